@@ -1,0 +1,60 @@
+"""The exceptions roughuq raises for conditions a user can act on.
+
+Every user-facing failure derives from :class:`RoughUQError`; the CLI prints
+its message on one line and exits with status 2. Anything else is a bug and
+keeps its traceback.
+"""
+
+from __future__ import annotations
+
+
+class RoughUQError(Exception):
+    """Base class of all errors a user can act on."""
+
+
+class InvalidParameterError(RoughUQError, ValueError):
+    """A physical or numerical parameter is outside its allowed range.
+
+    Parameters
+    ----------
+    name : str
+        The parameter (or config field path) that is wrong.
+    value : object
+        The value that was given.
+    allowed : str
+        What would have been accepted.
+    """
+
+    def __init__(self, name: str, value: object, allowed: str) -> None:
+        self.name = name
+        self.value = value
+        self.allowed = allowed
+        super().__init__(f"{name}: got {value!r}; allowed: {allowed}")
+
+
+class ConvergenceError(RoughUQError):
+    """A contact solve did not converge and the caller asked for a hard failure.
+
+    Carries the non-converged :class:`~rough_uq.solver.ContactSolution`
+    (``solution``) so that the partial result can be inspected.
+    """
+
+    def __init__(self, message: str, solution: object | None = None) -> None:
+        self.solution = solution
+        super().__init__(message)
+
+
+class ConfigError(RoughUQError):
+    """The study configuration is invalid; the message lists every problem."""
+
+
+class StudyFileError(RoughUQError):
+    """A study or shard file is missing, unreadable, locked or belongs to another config."""
+
+    def __init__(self, message: str, path: object | None = None) -> None:
+        self.path = path
+        super().__init__(message)
+
+
+class EstimationError(RoughUQError):
+    """The estimators cannot proceed (e.g. too few levels to fit rates)."""

@@ -1,0 +1,140 @@
+"""Real two-dimensional FFTs behind one small interface, with cached pyFFTW plans.
+
+Conventions (used by every module of roughuq)
+---------------------------------------------
+* Arrays are indexed ``[i, j]`` with ``x = i * h``, ``y = j * h``, ``h = L / n``.
+* :meth:`RealFFT.forward` is the unnormalised real-to-complex DFT,
+  ``X[k1, k2] = sum_{i,j} x[i, j] exp(-2 pi i (k1 i + k2 j) / n)``, of shape
+  ``(n, n // 2 + 1)`` (numpy's ``rfft2`` layout).
+* :meth:`RealFFT.inverse` is its exact inverse (it carries the ``1 / n**2``
+  factor), so ``inverse(forward(x)) == x`` up to rounding, as with numpy's
+  ``irfft2(rfft2(x))``.
+* Wave numbers are integers counted in periods per box (``k = L / lambda``); the
+  angular wave number is ``q = 2 pi k / L``. :func:`rfft_wavenumbers` gives them.
+
+Plans are built once per ``(shape, threads)`` in each process and reused
+(:func:`get_fft`). FFTW "wisdom" is kept in memory by pyFFTW; nothing is
+written to disk and nothing happens at import time.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pyfftw
+
+__all__ = ["RealFFT", "get_fft", "rfft_wavenumbers", "clear_plan_cache"]
+
+#: Planner effort. FFTW_MEASURE finds faster plans than FFTW_ESTIMATE at the cost
+#: of a short (bounded) planning phase, paid once per shape and process.
+_PLANNER_FLAGS = ("FFTW_MEASURE",)
+#: Upper bound on planning time per plan, in seconds.
+_PLANNING_TIMELIMIT = 5.0
+
+
+class RealFFT:
+    """A pair of FFTW plans (forward r2c, inverse c2r) on aligned work buffers.
+
+    The plans work in place on :attr:`real` (shape ``shape``, float64) and
+    :attr:`spectral` (shape ``(shape[0], shape[1] // 2 + 1)``, complex128):
+    fill one, call the transform, read the other. The buffers belong to the
+    plan: copy results that must outlive the next transform.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Real-space grid shape ``(n0, n1)``; ``n1`` must be even.
+    threads : int
+        Number of FFTW threads.
+    """
+
+    def __init__(self, shape: tuple[int, int], *, threads: int = 1) -> None:
+        n0, n1 = (int(s) for s in shape)
+        if n0 < 2 or n1 < 2 or n1 % 2:
+            raise ValueError(f"FFT grid shape must be at least 2 x 2 with an even last axis, got {shape}")
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        self.shape = (n0, n1)
+        self.threads = int(threads)
+        self.real = pyfftw.empty_aligned(self.shape, dtype="float64")
+        self.spectral = pyfftw.empty_aligned((n0, n1 // 2 + 1), dtype="complex128")
+        self._forward = pyfftw.FFTW(
+            self.real,
+            self.spectral,
+            axes=(0, 1),
+            direction="FFTW_FORWARD",
+            threads=self.threads,
+            flags=_PLANNER_FLAGS,
+            planning_timelimit=_PLANNING_TIMELIMIT,
+        )
+        self._inverse = pyfftw.FFTW(
+            self.spectral,
+            self.real,
+            axes=(0, 1),
+            direction="FFTW_BACKWARD",
+            threads=self.threads,
+            flags=_PLANNER_FLAGS + ("FFTW_DESTROY_INPUT",),
+            planning_timelimit=_PLANNING_TIMELIMIT,
+        )
+        # Planning with FFTW_MEASURE scribbles on the buffers.
+        self.real[...] = 0.0
+        self.spectral[...] = 0.0
+
+    def forward(self, x: np.ndarray | None = None) -> np.ndarray:
+        """Transform :attr:`real` (after copying ``x`` into it, if given) into :attr:`spectral`."""
+        if x is not None:
+            np.copyto(self.real, x)
+        self._forward()
+        return self.spectral
+
+    def inverse(self, x_hat: np.ndarray | None = None) -> np.ndarray:
+        """Transform :attr:`spectral` (after copying ``x_hat`` into it) into :attr:`real`.
+
+        The input buffer is destroyed (FFTW's c2r transforms overwrite it).
+        """
+        if x_hat is not None:
+            np.copyto(self.spectral, x_hat)
+        self._inverse(normalise_idft=True)
+        return self.real
+
+
+_PLANS: dict[tuple[tuple[int, int], int, int], RealFFT] = {}
+_PLANS_LOCK = threading.Lock()
+
+
+def get_fft(shape: tuple[int, int] | int, *, threads: int = 1) -> RealFFT:
+    """The cached :class:`RealFFT` for ``shape`` and ``threads`` in this process and thread.
+
+    Plans own their work buffers, so each Python thread gets its own plans.
+    """
+    if isinstance(shape, (int, np.integer)):
+        shape = (int(shape), int(shape))
+    key = (tuple(int(s) for s in shape), int(threads), threading.get_ident())
+    with _PLANS_LOCK:
+        plan = _PLANS.get(key)
+        if plan is None:
+            plan = RealFFT(key[0], threads=threads)
+            _PLANS[key] = plan
+    return plan
+
+
+def clear_plan_cache() -> None:
+    """Forget all cached plans (frees their buffers)."""
+    with _PLANS_LOCK:
+        _PLANS.clear()
+
+
+def rfft_wavenumbers(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Integer wave numbers of the ``(n, n // 2 + 1)`` rfft layout, broadcastable.
+
+    Returns
+    -------
+    k0 : ndarray, shape (n, 1)
+        Wave numbers along axis 0, in ``[-n/2, n/2)`` (periods per box).
+    k1 : ndarray, shape (1, n // 2 + 1)
+        Wave numbers along axis 1, in ``[0, n/2]``.
+    """
+    k0 = np.fft.fftfreq(n, d=1.0 / n).reshape(-1, 1)
+    k1 = np.fft.rfftfreq(n, d=1.0 / n).reshape(1, -1)
+    return k0, k1
