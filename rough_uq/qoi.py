@@ -1,0 +1,284 @@
+"""Quantities of interest of a contact solution (SPEC section 4).
+
+Conventions
+-----------
+* Fields are nodal arrays of shape ``(n0, n1)`` on the periodic grid of
+  :mod:`rough_uq.fft`. A node is *in contact* when its pressure is strictly
+  positive (``p > 0``); the solver returns exact zeros outside the contact.
+* Values are raw: area fractions in ``[0, 1]``, cluster counts as absolute
+  numbers, gaps and pressures in the units of the solution (length unit of
+  ``L``, pressure unit of ``E*``). Conversion to percent or per unit area
+  happens where the study is reported, not here.
+* Clusters are connected components of the contact set on the *periodic*
+  grid: a cluster that crosses an edge of the box counts once. With
+  4-connectivity nodes sharing an edge are neighbours; with 8-connectivity
+  nodes sharing a corner are too, including across the periodic edges and
+  corners (node ``(0, 0)`` touches ``(n0 - 1, n1 - 1)``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from rough_uq.errors import InvalidParameterError
+
+__all__ = [
+    "QOI_NAMES",
+    "CONNECTIVITIES",
+    "contact_area",
+    "count_clusters",
+    "label_clusters",
+    "mean_gap",
+    "max_pressure",
+    "area_above",
+    "evaluate_qoi",
+]
+
+#: Names accepted by :func:`evaluate_qoi`, in a fixed order.
+QOI_NAMES = ("contact_area", "clusters", "mean_gap", "max_pressure", "area_above")
+
+#: Neighbourhoods accepted for cluster counting.
+CONNECTIVITIES = (4, 8)
+
+
+def _field(name: str, values: object) -> np.ndarray:
+    """A non-empty, finite float64 array, or :class:`InvalidParameterError` naming ``name``.
+
+    A NaN would silently compare as "not in contact", so it is refused here.
+    """
+    array = np.asarray(values, dtype=np.float64)
+    if array.size == 0:
+        raise InvalidParameterError(name, f"array of shape {array.shape}", "a non-empty array")
+    if not np.all(np.isfinite(array)):
+        raise InvalidParameterError(name, "an array with non-finite entries", "finite values")
+    return array
+
+
+def _contact_map(name: str, contact: object) -> np.ndarray:
+    array = np.asarray(contact)
+    if array.dtype != np.bool_:
+        raise InvalidParameterError(name, f"array of dtype {array.dtype}", "a boolean array (e.g. pressure > 0)")
+    if array.ndim != 2 or 0 in array.shape:
+        raise InvalidParameterError(name, f"array of shape {array.shape}", "a non-empty 2-d array")
+    return array
+
+
+def _structure(connectivity: object) -> np.ndarray:
+    if isinstance(connectivity, bool) or connectivity not in CONNECTIVITIES:
+        raise InvalidParameterError("connectivity", connectivity, "4 or 8")
+    if connectivity == 4:
+        return ndimage.generate_binary_structure(2, 1)
+    return np.ones((3, 3), dtype=bool)
+
+
+def contact_area(pressure: np.ndarray) -> float:
+    """Fraction of nodes in contact.
+
+    Parameters
+    ----------
+    pressure : array_like, shape (n0, n1)
+        Contact pressure (unit of ``E*``), finite.
+
+    Returns
+    -------
+    float
+        ``mean(pressure > 0)``, in ``[0, 1]`` (dimensionless).
+    """
+    return float(np.count_nonzero(_field("pressure", pressure) > 0.0) / np.size(pressure))
+
+
+def area_above(pressure: np.ndarray, critical_pressure: float) -> float:
+    """Fraction of nodes whose pressure exceeds ``critical_pressure``.
+
+    Parameters
+    ----------
+    pressure : array_like, shape (n0, n1)
+        Contact pressure (unit of ``E*``), finite.
+    critical_pressure : float
+        Threshold (unit of ``E*``), finite and ``>= 0``; 0 gives :func:`contact_area`.
+
+    Returns
+    -------
+    float
+        ``mean(pressure > critical_pressure)``, in ``[0, 1]`` (dimensionless).
+    """
+    try:
+        threshold = float(critical_pressure)
+    except (TypeError, ValueError):
+        raise InvalidParameterError("critical_pressure", critical_pressure, "a finite number >= 0") from None
+    if not (np.isfinite(threshold) and threshold >= 0.0):
+        raise InvalidParameterError("critical_pressure", critical_pressure, "a finite number >= 0")
+    array = _field("pressure", pressure)
+    return float(np.count_nonzero(array > threshold) / array.size)
+
+
+def mean_gap(gap: np.ndarray) -> float:
+    """Mean gap between the surfaces (unit of ``L``), zero-gap contact nodes included."""
+    return float(np.mean(_field("gap", gap)))
+
+
+def max_pressure(pressure: np.ndarray) -> float:
+    """Largest nodal pressure (unit of ``E*``)."""
+    return float(np.max(_field("pressure", pressure)))
+
+
+def _periodic_components(contact: np.ndarray, connectivity: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Non-periodic labels, the periodic component of each label, and the component count.
+
+    ``scipy.ndimage.label`` labels the open grid; labels that touch across a
+    periodic edge are then merged as the connected components of the graph
+    whose edges are those touching label pairs.
+
+    Returns
+    -------
+    labels : ndarray of int, shape (n0, n1)
+        ``ndimage.label`` output (0 = no contact, 1..n_labels).
+    component : ndarray of int64, shape (n_labels,)
+        Component of label ``l`` at ``component[l - 1]``, numbered ``0, 1, ...``
+        in the order of each component's first node in C (raster) order.
+    n_components : int
+    """
+    labels, n_labels = ndimage.label(contact, structure=_structure(connectivity))
+    if n_labels == 0:
+        return labels, np.zeros(0, dtype=np.int64), 0
+    # Node (0, j) touches (n0 - 1, j + s) for s = 0 (and s = -1, 1 with diagonals),
+    # columns likewise; np.roll(x, s)[j] = x[j - s] wraps those shifts around the corners.
+    shifts = (0,) if connectivity == 4 else (-1, 0, 1)
+    first_edge = []
+    second_edge = []
+    for near, far in ((labels[0, :], labels[-1, :]), (labels[:, 0], labels[:, -1])):
+        for shift in shifts:
+            first_edge.append(near)
+            second_edge.append(np.roll(far, shift))
+    a = np.concatenate(first_edge)
+    b = np.concatenate(second_edge)
+    touching = (a > 0) & (b > 0) & (a != b)
+    if not np.any(touching):
+        return labels, np.arange(n_labels, dtype=np.int64), n_labels
+    a = a[touching] - 1
+    b = b[touching] - 1
+    graph = coo_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(n_labels, n_labels)).tocsr()
+    n_components, component = connected_components(graph, directed=False)
+    # ndimage numbers labels in raster order of their first node; renumber the
+    # components by their smallest label so the numbering is raster order too.
+    _, first_label, inverse = np.unique(component, return_index=True, return_inverse=True)
+    rank = np.empty(first_label.size, dtype=np.int64)
+    rank[np.argsort(first_label, kind="stable")] = np.arange(first_label.size)
+    return labels, rank[inverse], int(n_components)
+
+
+def label_clusters(contact: np.ndarray, *, connectivity: int = 4) -> np.ndarray:
+    """Label the connected contact clusters on the periodic grid.
+
+    Parameters
+    ----------
+    contact : ndarray of bool, shape (n0, n1)
+        Contact map (e.g. ``pressure > 0``).
+    connectivity : {4, 8}
+        4: neighbours share an edge; 8: an edge or a corner (module docstring).
+
+    Returns
+    -------
+    ndarray of int64, shape (n0, n1)
+        0 outside the contact; clusters numbered ``1, 2, ...`` in the raster
+        order of their first node. A cluster crossing the periodic boundary
+        has one label.
+    """
+    contact = _contact_map("contact", contact)
+    labels, component, n_components = _periodic_components(contact, connectivity)
+    lookup = np.zeros(component.size + 1, dtype=np.int64)
+    lookup[1:] = component + 1
+    return lookup[labels]
+
+
+def count_clusters(contact: np.ndarray, *, connectivity: int = 4) -> int:
+    """Number of connected contact clusters on the periodic grid.
+
+    Parameters
+    ----------
+    contact : ndarray of bool, shape (n0, n1)
+        Contact map (e.g. ``pressure > 0``).
+    connectivity : {4, 8}
+        4: neighbours share an edge; 8: an edge or a corner (module docstring).
+
+    Returns
+    -------
+    int
+        Absolute number of clusters (a cluster crossing the boundary counts once).
+    """
+    contact = _contact_map("contact", contact)
+    return _periodic_components(contact, connectivity)[2]
+
+
+def evaluate_qoi(
+    names: Iterable[str] | str,
+    *,
+    pressure: np.ndarray,
+    gap: np.ndarray | None = None,
+    connectivity: int = 4,
+    critical_pressure: float | None = None,
+) -> np.ndarray:
+    """Evaluate the requested quantities of interest of one contact solution.
+
+    Only the requested quantities are computed (no cluster labelling unless
+    ``"clusters"`` is asked for); a name given twice is computed once.
+
+    Parameters
+    ----------
+    names : iterable of str, or str
+        Names from :data:`QOI_NAMES`: ``"contact_area"`` (fraction),
+        ``"clusters"`` (absolute count), ``"mean_gap"`` (unit of ``L``),
+        ``"max_pressure"`` (unit of ``E*``), ``"area_above"`` (fraction above
+        ``critical_pressure``). A single string is one name.
+    pressure : array_like, shape (n0, n1)
+        Contact pressure (unit of ``E*``).
+    gap : array_like, shape (n0, n1), optional
+        Gap (unit of ``L``); required for ``"mean_gap"``.
+    connectivity : {4, 8}
+        Neighbourhood for ``"clusters"``.
+    critical_pressure : float, optional
+        Threshold (unit of ``E*``); required for ``"area_above"``.
+
+    Returns
+    -------
+    ndarray of float64, shape (len(names),)
+        One value per name, in the order given.
+
+    Raises
+    ------
+    InvalidParameterError
+        An unknown name (``name="names"``, listing the allowed ones), a missing
+        ``gap`` / ``critical_pressure``, a bad ``connectivity`` or a non-finite field.
+    """
+    names = (names,) if isinstance(names, str) else tuple(names)
+    for name in names:
+        if name not in QOI_NAMES:
+            raise InvalidParameterError("names", name, "one of " + ", ".join(QOI_NAMES))
+    _structure(connectivity)  # a bad setting is an error even when clusters are not asked for
+    pressure = _field("pressure", pressure)
+    values: dict[str, float] = {}
+    for name in names:
+        if name in values:
+            continue
+        if name == "contact_area":
+            values[name] = contact_area(pressure)
+        elif name == "clusters":
+            values[name] = float(count_clusters(pressure > 0.0, connectivity=connectivity))
+        elif name == "mean_gap":
+            if gap is None:
+                raise InvalidParameterError("gap", None, "a gap field when 'mean_gap' is requested")
+            values[name] = mean_gap(gap)
+        elif name == "max_pressure":
+            values[name] = max_pressure(pressure)
+        else:  # "area_above"
+            if critical_pressure is None:
+                raise InvalidParameterError(
+                    "critical_pressure", None, "a number >= 0 when 'area_above' is requested"
+                )
+            values[name] = area_above(pressure, critical_pressure)
+    return np.array([values[name] for name in names], dtype=np.float64)
