@@ -1,0 +1,1022 @@
+"""Monte Carlo and adaptive Multilevel Monte Carlo drivers (SPEC section 5).
+
+Symbols follow SPEC section 5 and :mod:`rough_uq.screening`: ``Q_l`` the
+quantity of interest on level ``l`` (mesh ``h_l = h_0 2^-l``),
+``Y_l = Q_l - Q_{l-1}`` (``Y_0 = Q_0``), ``V_l = Var(Y_l)``, ``C_l`` the mean
+cost of a level-``l`` sample, ``|E[Y_l]| ~ 2^(-alpha l)``,
+``V_l ~ 2^(-beta l)``, ``C_l ~ 2^(gamma l)``; ``eps`` (``tol``) bounds the
+root-mean-square error, ``MSE = sum_l V_l / N_l + bias^2 <= eps^2``, and
+``theta`` is the share of ``eps^2`` given to the squared bias.
+
+The sampler contract
+--------------------
+A level sampler is any callable ``sampler(level, sample_indices) ->
+(fine, coarse, cost)``:
+
+* ``sample_indices``: int64 array of shape ``(n,)``;
+* ``fine``, ``coarse``: shape ``(n,)`` (one QoI) or ``(n, n_qoi)``, the
+  QoIs ``Q_l`` and ``Q_{l-1}`` of the *same* random input (``coarse`` is 0
+  on level 0);
+* ``cost``: shape ``(n,)`` (a scalar is broadcast), the cost of each sample,
+  seconds or model units, ``>= 0``.
+
+The sampler derives all randomness from ``(level, index)`` (the pipeline uses
+``SeedSequence(seed, spawn_key=(stage, level, index))``), so the engine never
+touches a random generator and every sample can be recomputed. **The engine
+asks for contiguous new indices per level**: the samples of level ``l`` are
+indices ``0, 1, 2, ...`` in that order, each requested exactly once, batch
+after batch. A sampler backed by a cache (the pipeline's study file) can
+therefore serve the indices it already holds and compute only the rest; a
+resumed run that gets the stored values and costs back makes the same
+decisions and so replays the same sequence of requests.
+
+Drivers are generators
+----------------------
+:func:`iter_mlmc` and :func:`iter_mc` yield small frozen events:
+:class:`PlanUpdated` (levels and samples planned/done per level),
+:class:`BatchDone` (one batch: its indices, values and costs, plus progress)
+and finally :class:`Finished` (the :class:`EstimationResult`). The CLI
+consumes them for progress bars and store writes; :func:`mlmc` and
+:func:`mc` simply run them to the end.
+
+Adaptive MLMC
+-------------
+Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
+
+1. Start on levels ``0..min_finest_level`` with ``n_initial`` samples each,
+   or from a screening table / rates: the finest level and ``N_l`` of
+   :func:`~rough_uq.screening.plan` (never fewer than ``n_initial``).
+2. Draw the missing samples level by level in batches of at most
+   ``batch_size``; after each round re-estimate ``V_l``, ``C_l`` and refit the
+   rates (unless given), and update ``N_l = ceil((1-theta)^-1 eps^-2
+   sqrt(V_l/C_l) sum_k sqrt(V_k C_k))`` (maximum over QoIs; never below the
+   samples already drawn). For ``l >= 2``, ``V_l`` is floored at
+   ``V_{l-1} 2^-beta / 2`` so that a few lucky samples cannot starve a level.
+3. Once every level has (nearly, within 1%) its planned samples, estimate
+   the remaining bias ``max_{i=0,1,2} |E[Y_{L-i}]| 2^(-i alpha) / (2^alpha - 1)``
+   (the tail sum of the ``alpha`` model, taken from the three finest levels to
+   be robust against one level whose mean happens to be near 0). If it
+   exceeds ``sqrt(theta) eps`` for some QoI, add level ``L+1`` with
+   ``V_{L+1} = V_L 2^-beta``, ``C_{L+1} = C_L 2^gamma`` and go to 2.
+4. Stop when all planned samples are drawn and the bias test passes
+   (``stop_reason = "tol_met"``), when the bias test fails on ``max_level``
+   (``"max_level"``), or before a batch would exceed ``max_cost``
+   (``"max_cost"``). ``tol_met`` is then ``sum_l V_l/N_l + bias^2 <= eps^2``
+   for every QoI, with the sample variances and the remaining bias.
+
+Fitted rates are floored at 0.5 (as in Giles' code) so that extrapolation
+stays sane, and when a rate cannot be fitted (fewer than two usable levels,
+e.g. all ``E[Y_l] = 0``) the screening rates or 0.5 are used instead.
+
+Beyond the mean
+---------------
+The same samples give the MLMC estimate of ``Var(Q)``:
+``sum_l [s^2(Q_l) - s^2(Q_{l-1})]`` over the level-``l`` samples (both with
+the ``n - 1`` normalisation, so each term is unbiased for
+``Var(Q_l) - Var(Q_{l-1})``), with standard error
+``sqrt(sum_l se_l^2)``, ``se_l`` the plug-in fourth-moment standard error of
+:func:`~rough_uq.screening.level_statistics`. Its bias
+``Var(Q) - Var(Q_L)`` is not controlled.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.screening import (
+    KURTOSIS_LIMIT,
+    EstimationWarning,
+    LevelStatistics,
+    Plan,
+    Rates,
+    _assemble,
+    _check_fraction,
+    _fit_alpha,
+    _fit_beta,
+    _fit_gamma,
+    _level_moments,
+    _Moments,
+    _readonly,
+    _check_tol,
+    diagnose,
+    fine_cost_share,
+    fit_rates,
+    level_statistics,
+    optimal_samples,
+    plan,
+    remaining_bias,
+)
+
+__all__ = [
+    "BatchDone",
+    "EstimationResult",
+    "EstimationWarning",
+    "Event",
+    "Finished",
+    "LevelStatistics",
+    "Plan",
+    "PlanUpdated",
+    "Rates",
+    "Sampler",
+    "diagnose",
+    "fit_rates",
+    "iter_mc",
+    "iter_mlmc",
+    "level_statistics",
+    "mc",
+    "mlmc",
+    "plan",
+]
+
+Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
+
+#: Lower bound of fitted rates and fallback when a rate cannot be fitted (Giles' ``mlmc``).
+RATE_FLOOR = 0.5
+
+_MAX_COUNT = 2.0**52
+
+
+# --------------------------------------------------------------------------
+# Events and result
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class PlanUpdated:
+    """The plan changed: a new level, new ``N_l``, or the initial plan.
+
+    Attributes
+    ----------
+    levels : ndarray of int, shape (n_levels,)
+        Levels of the hierarchy.
+    n_planned, n_done : ndarray of int, shape (n_levels,)
+        Samples planned and drawn so far, per level.
+    reason : str
+        ``"initial"``, ``"variance"`` (re-estimated ``V_l``/``C_l``) or
+        ``"new level"``.
+    """
+
+    levels: np.ndarray
+    n_planned: np.ndarray
+    n_done: np.ndarray
+    reason: str
+
+
+@dataclass(frozen=True, eq=False)
+class BatchDone:
+    """One batch of samples was drawn.
+
+    Attributes
+    ----------
+    level : int
+        Level of the batch.
+    indices : ndarray of int64, shape (n,)
+        Sample indices (contiguous, continuing the previous batch of the level).
+    fine, coarse : ndarray, shape (n, n_qoi)
+        QoIs returned by the sampler (always 2-d here).
+    cost : ndarray, shape (n,)
+        Per-sample cost returned by the sampler.
+    levels : ndarray of int, shape (n_levels,)
+        Levels of the hierarchy.
+    n_done, n_planned : ndarray of int, shape (n_levels,)
+        Progress per level after this batch.
+    """
+
+    level: int
+    indices: np.ndarray
+    fine: np.ndarray
+    coarse: np.ndarray
+    cost: np.ndarray
+    levels: np.ndarray
+    n_done: np.ndarray
+    n_planned: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class EstimationResult:
+    """Outcome of an MC or MLMC run.
+
+    Per-QoI fields are floats when the sampler returned 1-d arrays (one QoI)
+    and arrays of shape (n_qoi,) otherwise.
+
+    Attributes
+    ----------
+    method : str
+        ``"mlmc"`` or ``"mc"``.
+    estimate : float or ndarray
+        Estimate of ``E[Q]``.
+    stat_error : float or ndarray
+        Statistical (standard) error, ``sqrt(sum_l V_l / N_l)``.
+    bias_estimate : float or ndarray
+        Estimated bias: the remaining bias of the finest level (MLMC), the
+        ``bias`` given to :func:`mc`, or 0 if unknown (``is_bias_estimated``).
+    variance : float or ndarray
+        Estimate of ``Var(Q)`` from the same samples.
+    variance_error : float or ndarray
+        Standard error of ``variance``.
+    n_samples : ndarray of int, shape (n_levels,)
+        ``N_l`` drawn.
+    levels : ndarray of int, shape (n_levels,)
+        Levels used (``[level]`` for MC).
+    cost : float
+        Total cost of the samples (sum of the sampler's costs).
+    mc_cost : float
+        Predicted cost of plain MC for the same tolerance on the finest level
+        (fine solves only; for :func:`mc`, the cost its own estimates predict).
+    statistics : LevelStatistics
+        Per-level statistics (for MC: of ``Q`` alone, coarse values ignored).
+    rates : Rates or None
+        Rates the MLMC driver used last (None for MC): the given ``rates``, or
+        fitted on the run's levels ``>= 1`` and floored at 0.5; a rate that could
+        not be fitted keeps the screening value or the floor (empty ``levels_*``).
+    tol : ndarray, shape (n_qoi,)
+        Tolerance per QoI.
+    theta : float
+        Bias share of ``eps^2``.
+    tol_met : bool
+        ``stat_error^2 + bias_estimate^2 <= tol^2`` for every QoI.
+    stop_reason : str
+        ``"tol_met"``, ``"max_cost"``, ``"max_level"`` (MLMC: the bias needs a
+        level beyond ``max_level``) or ``"bias"`` (MC: the statistical target is
+        met but the given bias is too large).
+    is_bias_estimated : bool
+        False for MC without a ``bias`` (``bias_estimate`` is then 0 and
+        ``tol_met`` concerns the statistical error only).
+    """
+
+    method: str
+    estimate: float | np.ndarray
+    stat_error: float | np.ndarray
+    bias_estimate: float | np.ndarray
+    variance: float | np.ndarray
+    variance_error: float | np.ndarray
+    n_samples: np.ndarray
+    levels: np.ndarray
+    cost: float
+    mc_cost: float
+    statistics: LevelStatistics
+    rates: Rates | None
+    tol: np.ndarray
+    theta: float
+    tol_met: bool
+    stop_reason: str
+    is_bias_estimated: bool
+
+    @property
+    def rmse(self) -> float | np.ndarray:
+        """Estimated root-mean-square error ``sqrt(stat_error^2 + bias_estimate^2)``."""
+        return np.sqrt(np.square(self.stat_error) + np.square(self.bias_estimate))
+
+    @property
+    def finest_level(self) -> int:
+        """Finest level used."""
+        return int(self.levels[-1])
+
+
+@dataclass(frozen=True, eq=False)
+class Finished:
+    """The run ended; ``result`` is its :class:`EstimationResult`."""
+
+    result: EstimationResult
+
+
+Event = PlanUpdated | BatchDone | Finished
+
+
+# --------------------------------------------------------------------------
+# Sample storage and sampler calls
+# --------------------------------------------------------------------------
+
+
+class _LevelSamples:
+    """All samples of one level, with their statistics cached until the next batch."""
+
+    def __init__(self, level: int) -> None:
+        self.level = level
+        self.n = 0
+        self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._moments: _Moments | None = None
+
+    def add(self, fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> None:
+        self._chunks.append((fine, coarse, cost))
+        self.n += len(cost)
+        self._moments = None
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if len(self._chunks) > 1:
+            # Merge once so that later concatenations do not redo the work.
+            self._chunks = [tuple(np.concatenate(part) for part in zip(*self._chunks))]
+        return self._chunks[0]
+
+    def moments(self) -> _Moments:
+        if self._moments is None:
+            self._moments = _level_moments(*self.arrays())
+        return self._moments
+
+
+def _qoi_array(values: object, *, name: str, level: int, n: int) -> np.ndarray:
+    array = np.asarray(values, dtype=float)
+    if array.ndim == 1:
+        array = array[:, None]
+    if array.ndim != 2 or array.shape[0] != n:
+        raise EstimationError(
+            f"sampler returned {name} of shape {np.shape(values)} for {n} samples on level {level}; "
+            "expected (n,) or (n, n_qoi)"
+        )
+    bad = ~np.all(np.isfinite(array), axis=1)
+    if np.any(bad):
+        rows = np.flatnonzero(bad)[:10].tolist()
+        raise EstimationError(f"sampler returned non-finite {name} values on level {level} (batch rows {rows})")
+    return array
+
+
+@dataclass(frozen=True, eq=False)
+class _Batch:
+    """One validated sampler answer; ``is_scalar`` records a 1-d (single QoI) return."""
+
+    indices: np.ndarray
+    fine: np.ndarray
+    coarse: np.ndarray
+    cost: np.ndarray
+    is_scalar: bool
+
+
+def _call_sampler(sampler: Sampler, level: int, start: int, n: int) -> _Batch:
+    indices = np.arange(start, start + n, dtype=np.int64)
+    returned = sampler(level, indices.copy())
+    try:
+        fine, coarse, cost = returned
+    except (TypeError, ValueError) as error:
+        raise EstimationError("a sampler must return a tuple (fine, coarse, cost)") from error
+    is_scalar = np.ndim(fine) == 1
+    fine = _qoi_array(fine, name="fine", level=level, n=n)
+    coarse = _qoi_array(coarse, name="coarse", level=level, n=n)
+    if coarse.shape != fine.shape:
+        raise EstimationError(f"sampler returned fine {fine.shape} and coarse {coarse.shape} on level {level}")
+    if level == 0 and np.any(coarse != 0):
+        raise EstimationError("sampler returned nonzero coarse values on level 0 (there is no coarser level)")
+    try:
+        cost = np.array(np.broadcast_to(np.asarray(cost, dtype=float), (n,)))
+    except ValueError as error:
+        raise EstimationError(f"sampler returned cost of shape {np.shape(cost)} for {n} samples") from error
+    if not np.all(np.isfinite(cost)) or np.any(cost < 0):
+        raise EstimationError(f"sampler returned a negative or non-finite cost on level {level}")
+    return _Batch(indices=indices, fine=fine, coarse=coarse, cost=cost, is_scalar=is_scalar)
+
+
+def _check_int(name: str, value: object, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise InvalidParameterError(name, value, f"an integer >= {minimum}")
+    return int(value)
+
+
+def _check_optional_positive(name: str, value: object) -> float | None:
+    if value is None:
+        return None
+    value_f = float(value)
+    if not value_f > 0:
+        raise InvalidParameterError(name, value, "a positive number or None")
+    return value_f
+
+
+def _shape_out(values: np.ndarray, is_scalar: bool) -> float | np.ndarray:
+    return float(values[0]) if is_scalar else _readonly(values)
+
+
+# --------------------------------------------------------------------------
+# MLMC driver internals
+# --------------------------------------------------------------------------
+
+
+def _floor_rates(n_qoi: int) -> Rates:
+    """Rates before anything is known: every rate at the floor, no bias or variance model."""
+    return Rates(
+        alpha=np.full(n_qoi, RATE_FLOOR),
+        beta=np.full(n_qoi, RATE_FLOOR),
+        gamma=RATE_FLOOR,
+        c_alpha=np.zeros(n_qoi),
+        c_beta=np.zeros(n_qoi),
+        c_gamma=1.0,
+    )
+
+
+def _lenient_rates(statistics: LevelStatistics, fallback: Rates | None) -> Rates:
+    """Rates for the driver: fitted on levels >= 1 where possible (floored), else the fallback.
+
+    A rate that cannot be fitted keeps the fallback's value (the screening rates, or
+    the floor), with its standard error and empty ``levels_*``.
+    """
+    n_qoi = statistics.n_qoi
+    base = fallback if fallback is not None else _floor_rates(n_qoi)
+    alpha, c_alpha, alpha_se = np.array(base.alpha), np.array(base.c_alpha), np.array(base.alpha_se)
+    beta, c_beta, beta_se = np.array(base.beta), np.array(base.c_beta), np.array(base.beta_se)
+    levels_alpha = list(base.levels_alpha) or [()] * n_qoi
+    levels_beta = list(base.levels_beta) or [()] * n_qoi
+    for q in range(n_qoi):
+        line, _ = _fit_alpha(statistics, q, 1)
+        if line is not None:
+            alpha[q], c_alpha[q], alpha_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
+            levels_alpha[q] = line.levels
+        line, _ = _fit_beta(statistics, q, 1)
+        if line is not None:
+            beta[q], c_beta[q], beta_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
+            levels_beta[q] = line.levels
+    gamma, c_gamma, gamma_se, levels_gamma = base.gamma, base.c_gamma, base.gamma_se, base.levels_gamma
+    line, _ = _fit_gamma(statistics, 1)
+    if line is not None:
+        gamma, c_gamma, gamma_se, levels_gamma = max(line.rate, RATE_FLOOR), line.constant, line.se, line.levels
+    elif fallback is None:
+        # Anchor the cost model at the finest level with a measured cost, so that
+        # extrapolated costs stay on the scale of the measured ones.
+        known = np.flatnonzero(statistics.mean_cost > 0)
+        if known.size:
+            top = known[-1]
+            c_gamma = statistics.mean_cost[top] * 2.0 ** (-gamma * statistics.levels[top])
+    return Rates(
+        alpha=alpha,
+        beta=beta,
+        gamma=gamma,
+        c_alpha=c_alpha,
+        c_beta=c_beta,
+        c_gamma=c_gamma,
+        alpha_se=alpha_se,
+        beta_se=beta_se,
+        gamma_se=gamma_se,
+        levels_alpha=tuple(levels_alpha),
+        levels_beta=tuple(levels_beta),
+        levels_gamma=levels_gamma,
+    )
+
+
+def _fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np.ndarray:
+    """Positive ``C_l`` for every level: measured where positive, else from the nearest measured level."""
+    known = np.flatnonzero(has_data & (mean_cost > 0))
+    levels = np.arange(len(mean_cost))
+    if known.size == 0:
+        # Only relative costs matter for the allocation; use the model shape.
+        return 2.0 ** (gamma * levels)
+    costs = np.array(mean_cost, dtype=float)
+    for level in np.flatnonzero(~(has_data & (mean_cost > 0))):
+        nearest = known[np.argmin(np.abs(known - level))]
+        costs[level] = mean_cost[nearest] * 2.0 ** (gamma * (level - nearest))
+    return costs
+
+
+def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """``V_l`` for the allocation: sample values, extrapolated where missing, floored from level 2 on."""
+    variances = np.array(var_diff, dtype=float)
+    for level in range(len(variances)):
+        extrapolated = variances[level - 1] * 2.0 ** (-beta) if level >= 1 else None
+        if not has_data[level]:
+            variances[level] = extrapolated if extrapolated is not None else 0.0
+        elif level >= 2:
+            variances[level] = np.maximum(variances[level], 0.5 * extrapolated)
+    return variances
+
+
+def _driver_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Remaining bias from the (up to) three finest levels ``>= 1``; rows are levels ``0..L``."""
+    finest = len(mean_diff) - 1
+    terms = [np.abs(mean_diff[finest - i]) * 2.0 ** (-i * alpha) for i in range(3) if finest - i >= 1]
+    if not terms:
+        return np.zeros(mean_diff.shape[1])
+    return remaining_bias(np.max(terms, axis=0), alpha)
+
+
+class _Hierarchy:
+    """Mutable state of one MLMC run: the samples, the plan, the spent cost."""
+
+    def __init__(self, n_levels: int, n_initial: int) -> None:
+        self.samples = [_LevelSamples(level) for level in range(n_levels)]
+        self.targets = [n_initial] * n_levels
+        self.spent = 0.0
+
+    @property
+    def n_levels(self) -> int:
+        return len(self.samples)
+
+    def levels(self) -> np.ndarray:
+        return _readonly(np.arange(self.n_levels))
+
+    def n_done(self) -> np.ndarray:
+        return _readonly(np.array([s.n for s in self.samples], dtype=np.int64))
+
+    def n_planned(self) -> np.ndarray:
+        return _readonly(np.array(self.targets, dtype=np.int64))
+
+    def plan_event(self, reason: str) -> PlanUpdated:
+        return PlanUpdated(levels=self.levels(), n_planned=self.n_planned(), n_done=self.n_done(), reason=reason)
+
+    def sampled(self) -> list[_LevelSamples]:
+        return [s for s in self.samples if s.n > 0]
+
+    def statistics(self) -> LevelStatistics:
+        sampled = self.sampled()
+        return _assemble([s.level for s in sampled], [s.moments() for s in sampled])
+
+
+def _per_sample_cost(hierarchy: _Hierarchy, level: int, gamma: float) -> float:
+    """Predicted cost of one sample on ``level`` (0 when nothing is known yet)."""
+    known = [s for s in hierarchy.samples if s.n > 0 and s.moments().mean_cost > 0]
+    if not known:
+        return 0.0
+    nearest = min(known, key=lambda s: abs(s.level - level))
+    return nearest.moments().mean_cost * 2.0 ** (gamma * (level - nearest.level))
+
+
+def _batch_size(hierarchy: _Hierarchy, level: int, wanted: int, max_cost: float | None, gamma: float) -> int:
+    """Samples to draw now on ``level``: ``wanted`` unless ``max_cost`` forbids (then maybe 0)."""
+    if max_cost is None:
+        return wanted
+    unit = _per_sample_cost(hierarchy, level, gamma)
+    if unit <= 0:
+        return wanted
+    affordable = math.floor((max_cost - hierarchy.spent) / unit)
+    n = min(wanted, max(affordable, 0))
+    # A level with a single sample has no variance; do not start one that cannot get two.
+    return n if hierarchy.samples[level].n + n >= 2 else 0
+
+
+def _warn_zero_cost(statistics: LevelStatistics) -> None:
+    if np.any(statistics.mean_cost <= 0):
+        warnings.warn(
+            f"the sampler reported zero cost on levels {statistics.levels[statistics.mean_cost <= 0].tolist()}; "
+            "the sample allocation uses costs extrapolated with the cost rate instead",
+            EstimationWarning,
+            stacklevel=3,
+        )
+
+
+def iter_mlmc(
+    sampler: Sampler,
+    *,
+    tol: float | np.ndarray,
+    theta: float = 0.5,
+    n_initial: int = 10,
+    min_finest_level: int = 2,
+    max_level: int = 16,
+    max_cost: float | None = None,
+    batch_size: int | None = 1000,
+    screening: LevelStatistics | None = None,
+    rates: Rates | None = None,
+    kurtosis_limit: float = KURTOSIS_LIMIT,
+) -> Iterator[Event]:
+    """Adaptive MLMC to a tolerance, as a generator of events.
+
+    Parameters
+    ----------
+    sampler : callable
+        ``sampler(level, sample_indices) -> (fine, coarse, cost)`` (module
+        docstring). Indices are requested contiguously from 0 per level.
+    tol : float or ndarray, shape (n_qoi,)
+        Tolerance ``eps`` on the RMS error, one for all QoIs or one each.
+    theta : float
+        Bias share of ``eps^2`` (default 1/2).
+    n_initial : int
+        Samples drawn on every level before its variance is trusted (>= 2).
+    min_finest_level : int
+        The run uses at least levels ``0..min_finest_level`` (>= 1; the default
+        2 gives two levels ``>= 1`` to fit the rates from).
+    max_level : int
+        Finest level allowed; if the bias needs more, the run stops with
+        ``stop_reason = "max_level"``.
+    max_cost : float, optional
+        Budget in the sampler's cost unit. A batch is drawn (possibly
+        shortened) only if its predicted cost fits in what is left, otherwise
+        the run stops with ``stop_reason = "max_cost"``. The prediction is the
+        level's mean cost so far, or the nearest sampled level's scaled by
+        ``2^gamma`` per level; the first batch of level 0 is always drawn. The
+        total can exceed ``max_cost`` only by a misprediction of a level's
+        first batch.
+    batch_size : int or None
+        Largest batch per sampler call (None: no cap). Smaller batches give
+        more frequent events and store writes.
+    screening : LevelStatistics, optional
+        Screening table (from independent samples); sets the initial finest
+        level and ``N_l`` via :func:`~rough_uq.screening.plan`. Its samples are
+        not part of the estimate.
+    rates : Rates, optional
+        Fixed ``alpha``, ``beta``, ``gamma``; by default they are refitted from
+        the run's samples after every round (falling back to the screening
+        rates, then to 0.5).
+    kurtosis_limit : float
+        Kurtosis of ``Y_l`` above which a warning is issued.
+
+    Yields
+    ------
+    PlanUpdated, BatchDone, Finished
+        ``Finished`` is last and carries the :class:`EstimationResult`.
+
+    Warns
+    -----
+    EstimationWarning
+        At the end, for every failed check of
+        :func:`~rough_uq.screening.diagnose` and for zero reported costs.
+    """
+    theta = _check_fraction("theta", theta)
+    n_initial = _check_int("n_initial", n_initial, 2)
+    min_finest_level = _check_int("min_finest_level", min_finest_level, 1)
+    max_level = _check_int("max_level", max_level, min_finest_level)
+    batch_size = None if batch_size is None else _check_int("batch_size", batch_size, 1)
+    max_cost = _check_optional_positive("max_cost", max_cost)
+    n_qoi = screening.n_qoi if screening is not None else (rates.n_qoi if rates is not None else None)
+    tol = _check_tol(tol, n_qoi)
+    if rates is not None:
+        remaining_bias(np.zeros(rates.n_qoi), rates.alpha)  # alpha <= 0 cannot meet any tolerance
+        if screening is not None and rates.n_qoi != screening.n_qoi:
+            raise EstimationError(f"rates have {rates.n_qoi} QoIs, the screening {screening.n_qoi}")
+    return _mlmc_events(
+        sampler,
+        tol=tol,
+        theta=theta,
+        n_initial=n_initial,
+        min_finest_level=min_finest_level,
+        max_level=max_level,
+        max_cost=max_cost,
+        batch_size=batch_size,
+        screening=screening,
+        rates=rates,
+        kurtosis_limit=float(kurtosis_limit),
+    )
+
+
+def _mlmc_events(
+    sampler: Sampler,
+    *,
+    tol: np.ndarray,
+    theta: float,
+    n_initial: int,
+    min_finest_level: int,
+    max_level: int,
+    max_cost: float | None,
+    batch_size: int | None,
+    screening: LevelStatistics | None,
+    rates: Rates | None,
+    kurtosis_limit: float,
+) -> Iterator[Event]:
+    budget_cap = batch_size if batch_size is not None else math.inf
+    fallback = rates
+    initial_targets: list[int] = []
+    if screening is not None:
+        screening_rates = rates if rates is not None else _lenient_rates(screening, None)
+        fallback = screening_rates
+        initial = plan(tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level)
+        initial_targets = [max(int(n), n_initial) for n in initial.n_samples]
+    n_levels = max(min_finest_level + 1, len(initial_targets))
+    hierarchy = _Hierarchy(n_levels, n_initial)
+    hierarchy.targets[: len(initial_targets)] = initial_targets
+    driver = fallback if fallback is not None else _floor_rates(tol.size)
+    is_scalar = False
+    n_qoi: int | None = None
+    yield hierarchy.plan_event("initial")
+
+    def replan() -> None:
+        nonlocal driver
+        statistics = hierarchy.statistics()
+        if rates is None:
+            driver = _lenient_rates(statistics, fallback)
+        has_data = np.array([s.n >= 2 for s in hierarchy.samples])
+        var_diff = np.zeros((hierarchy.n_levels, n_qoi))
+        mean_cost = np.zeros(hierarchy.n_levels)
+        for s in hierarchy.samples:
+            if s.n > 0:
+                var_diff[s.level] = s.moments().var_diff
+                mean_cost[s.level] = s.moments().mean_cost
+        variances = _planning_variances(var_diff, has_data, driver.beta)
+        costs = _fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), driver.gamma)
+        wanted = np.ceil(np.max(optimal_samples(variances, costs, (1.0 - theta) * tol**2), axis=1))
+        hierarchy.targets = [max(s.n, int(n), n_initial) for s, n in zip(hierarchy.samples, wanted)]
+
+    stop_reason = ""
+    while not stop_reason:
+        pending = [s for s in hierarchy.samples if s.n < hierarchy.targets[s.level]]
+        for level_samples in pending:
+            level = level_samples.level
+            wanted = int(min(hierarchy.targets[level] - level_samples.n, budget_cap))
+            n = _batch_size(hierarchy, level, wanted, max_cost, driver.gamma)
+            if n == 0:
+                stop_reason = "max_cost"
+                break
+            batch = _call_sampler(sampler, level, level_samples.n, n)
+            if n_qoi is None:
+                n_qoi, is_scalar = batch.fine.shape[1], batch.is_scalar
+                tol = _check_tol(tol, n_qoi)
+                if fallback is not None and fallback.n_qoi != n_qoi:
+                    raise EstimationError(f"the rates/screening have {fallback.n_qoi} QoIs, the sampler {n_qoi}")
+                if driver.n_qoi != n_qoi:
+                    driver = _floor_rates(n_qoi)
+            elif batch.fine.shape[1] != n_qoi:
+                raise EstimationError(f"sampler returned {batch.fine.shape[1]} QoIs on level {level}, earlier {n_qoi}")
+            level_samples.add(batch.fine, batch.coarse, batch.cost)
+            hierarchy.spent += float(np.sum(batch.cost))
+            yield BatchDone(
+                level=level,
+                indices=_readonly(batch.indices),
+                fine=_readonly(batch.fine),
+                coarse=_readonly(batch.coarse),
+                cost=_readonly(batch.cost),
+                levels=hierarchy.levels(),
+                n_done=hierarchy.n_done(),
+                n_planned=hierarchy.n_planned(),
+            )
+        if stop_reason:
+            break
+        if pending:
+            before = list(hierarchy.targets)
+            replan()
+            if hierarchy.targets != before:
+                yield hierarchy.plan_event("variance")
+            missing = [hierarchy.targets[s.level] - s.n for s in hierarchy.samples]
+            if any(m > 0.01 * s.n for m, s in zip(missing, hierarchy.samples)):
+                continue
+        is_complete = all(s.n >= hierarchy.targets[s.level] for s in hierarchy.samples)
+        mean_diff = np.array([s.moments().mean_diff for s in hierarchy.samples])
+        bias = _driver_bias(mean_diff, driver.alpha)
+        if np.all(bias <= math.sqrt(theta) * tol):
+            if is_complete:
+                stop_reason = "tol_met"
+            continue
+        if hierarchy.n_levels - 1 >= max_level:
+            if is_complete:
+                stop_reason = "max_level"
+            continue
+        hierarchy.samples.append(_LevelSamples(hierarchy.n_levels))
+        hierarchy.targets.append(0)
+        replan()
+        yield hierarchy.plan_event("new level")
+
+    statistics = hierarchy.statistics()
+    result = _mlmc_result(hierarchy, statistics, driver, tol, theta, is_scalar, stop_reason)
+    for message in diagnose(statistics, kurtosis_limit=kurtosis_limit):
+        warnings.warn(f"mlmc: {message}", EstimationWarning, stacklevel=2)
+    _warn_zero_cost(statistics)
+    yield Finished(result=result)
+
+
+def _mlmc_result(
+    hierarchy: _Hierarchy,
+    statistics: LevelStatistics,
+    driver: Rates,
+    tol: np.ndarray,
+    theta: float,
+    is_scalar: bool,
+    stop_reason: str,
+) -> EstimationResult:
+    n = statistics.n_samples[:, None]
+    estimate = np.sum(statistics.mean_diff, axis=0)
+    stat_variance = np.sum(statistics.var_diff / n, axis=0)
+    # Levels are sampled in order, so the sampled ones are 0..L without gaps.
+    bias = _driver_bias(statistics.mean_diff, driver.alpha)
+    finest = statistics.n_levels - 1
+    costs = _fill_costs(statistics.mean_cost, np.ones(statistics.n_levels, dtype=bool), driver.gamma)
+    budget = (1.0 - theta) * tol**2
+    mc_n = float(np.max(np.minimum(np.ceil(statistics.var_fine[finest] / budget), _MAX_COUNT)))
+    mc_cost = mc_n * costs[finest] * fine_cost_share(driver.gamma, finest)
+    return EstimationResult(
+        method="mlmc",
+        estimate=_shape_out(estimate, is_scalar),
+        stat_error=_shape_out(np.sqrt(stat_variance), is_scalar),
+        bias_estimate=_shape_out(bias, is_scalar),
+        variance=_shape_out(np.sum(statistics.var_delta, axis=0), is_scalar),
+        variance_error=_shape_out(np.sqrt(np.sum(statistics.var_delta_se**2, axis=0)), is_scalar),
+        n_samples=statistics.n_samples,
+        levels=statistics.levels,
+        cost=hierarchy.spent,
+        mc_cost=float(mc_cost),
+        statistics=statistics,
+        rates=driver,
+        tol=_readonly(tol),
+        theta=theta,
+        tol_met=bool(np.all(stat_variance + bias**2 <= tol**2 * (1 + 1e-12))),
+        stop_reason=stop_reason,
+        is_bias_estimated=True,
+    )
+
+
+def mlmc(sampler: Sampler, *, tol: float | np.ndarray, **options: object) -> EstimationResult:
+    """Adaptive MLMC estimate of ``E[Q]`` to RMS tolerance ``tol``.
+
+    Runs :func:`iter_mlmc` to the end; ``options`` are its keyword arguments
+    (``theta``, ``n_initial``, ``min_finest_level``, ``max_level``,
+    ``max_cost``, ``batch_size``, ``screening``, ``rates``,
+    ``kurtosis_limit``).
+
+    Returns
+    -------
+    EstimationResult
+    """
+    return _final(iter_mlmc(sampler, tol=tol, **options))
+
+
+def _final(events: Iterator[Event]) -> EstimationResult:
+    for event in events:
+        if isinstance(event, Finished):
+            return event.result
+    raise EstimationError("the estimator stopped without a result")  # pragma: no cover - generator bug
+
+
+# --------------------------------------------------------------------------
+# Plain Monte Carlo
+# --------------------------------------------------------------------------
+
+
+def iter_mc(
+    sampler: Sampler,
+    *,
+    tol: float | np.ndarray,
+    level: int,
+    theta: float = 0.5,
+    bias: float | np.ndarray | None = None,
+    n_initial: int = 10,
+    max_cost: float | None = None,
+    batch_size: int | None = 1000,
+    kurtosis_limit: float = KURTOSIS_LIMIT,
+) -> Iterator[Event]:
+    """Plain MC on one level to a tolerance, as a generator of events.
+
+    Draws ``N = ceil((1-theta)^-1 eps^-2 Var(Q_level))`` samples (at least
+    ``n_initial``; maximum over QoIs), re-estimating ``Var(Q_level)`` after
+    every batch. Only the ``fine`` values are used; a sampler for MC may
+    return zeros as ``coarse``.
+
+    Parameters
+    ----------
+    sampler : callable
+        ``sampler(level, sample_indices) -> (fine, coarse, cost)``.
+    tol : float or ndarray, shape (n_qoi,)
+        Tolerance ``eps`` on the RMS error.
+    level : int
+        The level (grid) to sample.
+    theta : float
+        Bias share of ``eps^2``; the statistical target is ``(1-theta) eps^2``,
+        as in :func:`~rough_uq.screening.plan`'s MC prediction.
+    bias : float or ndarray, optional
+        Estimated bias of level ``level`` (e.g. ``Plan.bias`` from the
+        screening). MC cannot estimate it from one level; without it the
+        result has ``bias_estimate = 0`` and ``is_bias_estimated = False``.
+    n_initial : int
+        Samples before the variance is trusted (>= 2).
+    max_cost : float, optional
+        Budget in the sampler's cost unit (as in :func:`iter_mlmc`).
+    batch_size : int or None
+        Largest batch per sampler call.
+    kurtosis_limit : float
+        Kurtosis of ``Q`` above which a warning is issued.
+
+    Yields
+    ------
+    PlanUpdated, BatchDone, Finished
+    """
+    theta = _check_fraction("theta", theta)
+    level = _check_int("level", level, 0)
+    n_initial = _check_int("n_initial", n_initial, 2)
+    batch_size = None if batch_size is None else _check_int("batch_size", batch_size, 1)
+    max_cost = _check_optional_positive("max_cost", max_cost)
+    tol = _check_tol(tol, None)
+    if bias is not None:
+        bias = np.atleast_1d(np.abs(np.asarray(bias, dtype=float)))
+        if bias.ndim != 1 or not np.all(np.isfinite(bias)):
+            raise InvalidParameterError("bias", bias, "a finite number or 1-d array (one per QoI)")
+    return _mc_events(
+        sampler,
+        tol=tol,
+        level=level,
+        theta=theta,
+        bias=bias,
+        n_initial=n_initial,
+        max_cost=max_cost,
+        batch_size=batch_size,
+        kurtosis_limit=float(kurtosis_limit),
+    )
+
+
+def _mc_events(
+    sampler: Sampler,
+    *,
+    tol: np.ndarray,
+    level: int,
+    theta: float,
+    bias: np.ndarray | None,
+    n_initial: int,
+    max_cost: float | None,
+    batch_size: int | None,
+    kurtosis_limit: float,
+) -> Iterator[Event]:
+    budget_cap = batch_size if batch_size is not None else math.inf
+    samples = _LevelSamples(level)
+    target = n_initial
+    spent = 0.0
+    n_qoi: int | None = None
+    is_scalar = False
+    levels = _readonly(np.array([level]))
+
+    def progress() -> dict[str, np.ndarray]:
+        return {
+            "levels": levels,
+            "n_done": _readonly(np.array([samples.n])),
+            "n_planned": _readonly(np.array([target])),
+        }
+
+    yield PlanUpdated(reason="initial", **progress())
+    stop_reason = ""
+    while samples.n < target:
+        n = int(min(target - samples.n, budget_cap))
+        if max_cost is not None and samples.n > 0:
+            unit = samples.moments().mean_cost
+            if unit > 0:
+                n = min(n, max(math.floor((max_cost - spent) / unit), 0))
+                n = n if samples.n + n >= 2 else 0
+        if n == 0:
+            stop_reason = "max_cost"
+            break
+        batch = _call_sampler(sampler, level, samples.n, n)
+        if n_qoi is None:
+            n_qoi, is_scalar = batch.fine.shape[1], batch.is_scalar
+            tol = _check_tol(tol, n_qoi)
+            if bias is not None:
+                bias = _check_bias(bias, n_qoi)
+        elif batch.fine.shape[1] != n_qoi:
+            raise EstimationError(f"sampler returned {batch.fine.shape[1]} QoIs on level {level}, earlier {n_qoi}")
+        # Plain MC uses Q alone; storing zeros as coarse makes the statistics describe Q.
+        samples.add(batch.fine, np.zeros_like(batch.fine), batch.cost)
+        spent += float(np.sum(batch.cost))
+        yield BatchDone(
+            level=level,
+            indices=_readonly(batch.indices),
+            fine=_readonly(batch.fine),
+            coarse=_readonly(batch.coarse),
+            cost=_readonly(batch.cost),
+            **progress(),
+        )
+        wanted = np.max(np.ceil(samples.moments().var_fine / ((1.0 - theta) * tol**2)))
+        new_target = max(samples.n, int(min(wanted, _MAX_COUNT)), n_initial)
+        if new_target != target:
+            target = new_target
+            yield PlanUpdated(reason="variance", **progress())
+
+    statistics = _assemble([level], [samples.moments()])
+    moments = samples.moments()
+    stat_variance = moments.var_fine / samples.n
+    is_bias_estimated = bias is not None
+    bias_values = bias if bias is not None else np.zeros(n_qoi)
+    tol_met = bool(np.all(stat_variance + bias_values**2 <= tol**2 * (1 + 1e-12)))
+    if not stop_reason:
+        stop_reason = "tol_met" if tol_met else "bias"
+    budget = (1.0 - theta) * tol**2
+    mc_n = float(np.max(np.minimum(np.ceil(moments.var_fine / budget), _MAX_COUNT)))
+    result = EstimationResult(
+        method="mc",
+        estimate=_shape_out(moments.mean_fine, is_scalar),
+        stat_error=_shape_out(np.sqrt(stat_variance), is_scalar),
+        bias_estimate=_shape_out(bias_values, is_scalar),
+        variance=_shape_out(moments.var_fine, is_scalar),
+        variance_error=_shape_out(moments.var_delta_se, is_scalar),
+        n_samples=statistics.n_samples,
+        levels=statistics.levels,
+        cost=spent,
+        mc_cost=float(mc_n * moments.mean_cost),
+        statistics=statistics,
+        rates=None,
+        tol=_readonly(tol),
+        theta=theta,
+        tol_met=tol_met,
+        stop_reason=stop_reason,
+        is_bias_estimated=is_bias_estimated,
+    )
+    if np.any(moments.kurtosis > kurtosis_limit):
+        warnings.warn(
+            f"mc: kurtosis {float(np.max(moments.kurtosis)):.3g} of Q on level {level} exceeds "
+            f"{kurtosis_limit:g}; the variance and error estimates are unreliable",
+            EstimationWarning,
+            stacklevel=2,
+        )
+    yield Finished(result=result)
+
+
+def _check_bias(bias: np.ndarray, n_qoi: int) -> np.ndarray:
+    """Bias as an array of shape (n_qoi,) (a single value is broadcast)."""
+    if bias.size == 1:
+        return np.repeat(bias, n_qoi)
+    if bias.size != n_qoi:
+        raise InvalidParameterError("bias", bias, f"a scalar or {n_qoi} values (one per QoI)")
+    return bias
+
+
+def mc(sampler: Sampler, *, tol: float | np.ndarray, level: int, **options: object) -> EstimationResult:
+    """Plain Monte Carlo estimate of ``E[Q_level]`` to RMS tolerance ``tol``.
+
+    Runs :func:`iter_mc` to the end; ``options`` are its keyword arguments
+    (``theta``, ``bias``, ``n_initial``, ``max_cost``, ``batch_size``,
+    ``kurtosis_limit``).
+
+    Returns
+    -------
+    EstimationResult
+    """
+    return _final(iter_mc(sampler, tol=tol, level=level, **options))

@@ -1,0 +1,370 @@
+"""Screening table, rate fits and plans against problems with known answers.
+
+Statistical assertions use fixed seeds and tolerances of four standard
+errors unless stated otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from mlmc_problems import GbmEuler, Synthetic, sample_levels
+from scipy import stats as scipy_stats
+
+from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.screening import (
+    EstimationWarning,
+    Rates,
+    diagnose,
+    fit_rates,
+    level_statistics,
+    plan,
+    remaining_bias,
+)
+
+
+@pytest.fixture(scope="module")
+def gbm_statistics():
+    problem = GbmEuler(r=1.0, sigma=0.5, seed=11)
+    return problem, level_statistics(**sample_levels(problem, range(8), 20_000))
+
+
+# --------------------------------------------------------------------------
+# level_statistics
+# --------------------------------------------------------------------------
+
+
+def test_level_statistics_matches_direct_formulas():
+    rng = np.random.default_rng(1)
+    fine0 = rng.normal(size=(50, 2))
+    fine1 = rng.normal(size=(40, 2))
+    coarse1 = fine1 + 0.3 * rng.standard_t(5, size=(40, 2))
+    cost = [rng.uniform(1, 2, 50), rng.uniform(3, 4, 40)]
+    table = level_statistics(fine=[fine0, fine1], coarse=[np.zeros((50, 2)), coarse1], cost=cost)
+
+    diff1 = fine1 - coarse1
+    np.testing.assert_allclose(table.mean_fine[1], fine1.mean(0))
+    np.testing.assert_allclose(table.var_fine[1], fine1.var(0, ddof=1))
+    np.testing.assert_allclose(table.var_coarse[1], coarse1.var(0, ddof=1))
+    np.testing.assert_allclose(table.mean_diff[1], diff1.mean(0))
+    np.testing.assert_allclose(table.var_diff[1], diff1.var(0, ddof=1))
+    np.testing.assert_allclose(table.var_diff[0], fine0.var(0, ddof=1))
+    np.testing.assert_allclose(table.kurtosis[1], scipy_stats.kurtosis(diff1, fisher=False, bias=True))
+    np.testing.assert_allclose(table.var_delta[1], fine1.var(0, ddof=1) - coarse1.var(0, ddof=1))
+    np.testing.assert_allclose(table.var_delta[0], fine0.var(0, ddof=1))
+    np.testing.assert_allclose(table.mean_cost, [c.mean() for c in cost])
+    assert table.n_samples.tolist() == [50, 40]
+    assert table.n_qoi == 2 and table.n_levels == 2
+
+
+def test_variance_difference_standard_error_matches_its_sampling_spread():
+    # 4000 independent screening tables of n = 40 correlated pairs: the spread of
+    # var_delta must match the exact formula and the mean reported error^2.
+    rng = np.random.default_rng(2)
+    n, n_rep = 40, 4000
+    x = rng.normal(size=(n_rep, n))
+    y = 0.8 * x + 0.5 * rng.exponential(size=(n_rep, n))
+    deltas = np.empty(n_rep)
+    se2 = np.empty(n_rep)
+    for rep in range(n_rep):
+        table = level_statistics(fine=[x[rep], x[rep]], coarse=[np.zeros(n), y[rep]], cost=[np.ones(n)] * 2)
+        deltas[rep] = table.var_delta[1, 0]
+        se2[rep] = table.var_delta_se[1, 0] ** 2
+    true_delta = 1.0 - (0.64 + 0.25)  # Var(x) - Var(0.8 x + 0.5 Exp(1))
+    empirical = deltas.var(ddof=1)
+    # The estimator is unbiased: mean within 4 standard errors of the mean.
+    assert abs(deltas.mean() - true_delta) < 4 * math.sqrt(empirical / n_rep)
+    # The sample variance of 4000 values has relative sd ~ sqrt((kurt - 1)/4000) < 5%;
+    # the plug-in se^2 is biased low by O(1/n); allow 15%.
+    assert se2.mean() == pytest.approx(empirical, rel=0.15)
+
+
+def test_gaussian_level_zero_variance_error_is_textbook():
+    # For X = Y (level 0) the formula is Var(s^2) = (mu4 - (n-3)/(n-1) sigma^4)/n, i.e.
+    # 2 sigma^4/(n-1) for Gaussian data; with plug-in moments it is close to that.
+    sample = np.random.default_rng(3).normal(scale=2.0, size=200_000)
+    table = level_statistics(fine=[sample], coarse=[np.zeros_like(sample)], cost=[np.ones_like(sample)])
+    assert table.var_delta_se[0, 0] == pytest.approx(math.sqrt(2 * 16.0 / (len(sample) - 1)), rel=0.02)
+
+
+def test_gbm_level_means_and_variances_match_closed_form(gbm_statistics):
+    problem, table = gbm_statistics
+    n = table.n_samples[:, None]
+    for row, level in enumerate(table.levels):
+        expected_q = problem.mean(level)
+        se_q = math.sqrt(table.var_fine[row, 0] / n[row, 0])
+        assert abs(table.mean_fine[row, 0] - expected_q) < 4 * se_q, level
+        expected_y = expected_q - (problem.mean(level - 1) if level else 0.0)
+        se_y = math.sqrt(table.var_diff[row, 0] / n[row, 0])
+        assert abs(table.mean_diff[row, 0] - expected_y) < 4 * se_y, level
+        # se of a sample variance: V sqrt((kurtosis - (n-3)/(n-1)) / n)
+        kurt = table.kurtosis[row, 0]
+        se_v = problem.var_diff(level) * math.sqrt((kurt - 1) / n[row, 0])
+        assert abs(table.var_diff[row, 0] - problem.var_diff(level)) < 4 * se_v, level
+    assert np.all(table.is_consistent)
+    assert np.all(table.is_coupled)
+    assert diagnose(table) == ()
+
+
+def test_gbm_rates_match_euler_maruyama_theory(gbm_statistics):
+    problem, table = gbm_statistics
+    rates = fit_rates(table, min_level=3)
+    levels = np.array(rates.levels_alpha[0])
+    assert levels.tolist() == [3, 4, 5, 6, 7] == list(rates.levels_beta[0])
+    # Theory: Euler-Maruyama has weak order 1 (E[S_T^(l)] = S0 (1 + r h)^(1/h) = S0 e^r (1 - r^2 h/2 + ...),
+    # so alpha = 1) and strong order 1/2 for multiplicative noise (the missing Milstein term
+    # sigma^2 S (dW^2 - h)/2 makes S_fine - S_coarse = O(h^1/2), so V_l ~ h and beta = 1 -- not the
+    # beta = 2 of Milstein). The closed-form values confirm it on fine levels...
+    deep = np.arange(10, 16)
+    exact_mean = [problem.mean(level) - problem.mean(level - 1) for level in deep]
+    exact_var = [problem.var_diff(level) for level in deep]
+    assert -np.polyfit(deep, np.log2(exact_mean), 1)[0] == pytest.approx(1.0, abs=0.01)
+    assert -np.polyfit(deep, np.log2(exact_var), 1)[0] == pytest.approx(1.0, abs=0.01)
+    # ... while on the screened levels 3..7 (r h up to 1/8) the closed-form slopes are still
+    # pre-asymptotic (0.90 and 1.09). The fit from samples must reproduce those within 4 se,
+    fit_alpha = -np.polyfit(levels, np.log2([problem.mean(lv) - problem.mean(lv - 1) for lv in levels]), 1)[0]
+    fit_beta = -np.polyfit(levels, np.log2([problem.var_diff(lv) for lv in levels]), 1)[0]
+    assert abs(rates.alpha[0] - fit_alpha) < 4 * rates.alpha_se[0]
+    assert abs(rates.beta[0] - fit_beta) < 4 * rates.beta_se[0]
+    # and so lies within that pre-asymptotic offset (0.11) plus 4 se of the theoretical 1.
+    assert abs(rates.alpha[0] - 1.0) < 0.11 + 4 * rates.alpha_se[0]
+    assert abs(rates.beta[0] - 1.0) < 0.11 + 4 * rates.beta_se[0]
+    assert rates.alpha_se[0] < 0.05 and rates.beta_se[0] < 0.05  # the test has power
+    # The cost is 1.5 * 2^l time steps exactly: gamma = 1, c_gamma = 1.5.
+    assert rates.gamma == pytest.approx(1.0, abs=1e-12)
+    assert rates.c_gamma == pytest.approx(1.5, rel=1e-12)
+
+
+def test_fit_rates_recovers_prescribed_exponents():
+    problem = Synthetic(alpha=1.5, beta=2.5, gamma=1.0, a=2.0, v1=3.0, seed=5)
+    table = level_statistics(**sample_levels(problem, range(7), 4000))
+    rates = fit_rates(table)
+    assert rates.levels_alpha[0] == (1, 2, 3, 4, 5, 6)
+    assert abs(rates.alpha[0] - 1.5) < 4 * rates.alpha_se[0]
+    assert abs(rates.beta[0] - 2.5) < 4 * rates.beta_se[0]
+    # Constants: log2 c has a standard error of roughly se(rate) * mean level.
+    assert abs(math.log2(rates.c_alpha[0] / 2.0)) < 4 * rates.alpha_se[0] * 3.5 + 0.05
+    assert abs(math.log2(rates.c_beta[0] / 3.0)) < 4 * rates.beta_se[0] * 3.5 + 0.05
+    assert rates.gamma == pytest.approx(1.0, abs=1e-12)
+    assert 0 < rates.alpha_se[0] < 0.2 and 0 < rates.beta_se[0] < 0.2
+
+
+def test_rate_standard_errors_are_honest_over_repetitions():
+    # z-scores of the fitted rates over independent screenings: mean ~ 0, sd ~ 1 (<= 1.5
+    # since the errors are conservative: the larger of two estimates).
+    z_alpha, z_beta = [], []
+    for seed in range(40):
+        problem = Synthetic(alpha=1.0, beta=2.0, seed=100 + seed)
+        rates = fit_rates(level_statistics(**sample_levels(problem, range(6), 500)))
+        z_alpha.append((rates.alpha[0] - 1.0) / rates.alpha_se[0])
+        z_beta.append((rates.beta[0] - 2.0) / rates.beta_se[0])
+    for z in (np.array(z_alpha), np.array(z_beta)):
+        assert abs(z.mean()) < 4 / math.sqrt(len(z)) * 1.5
+        assert 0.4 < z.std() < 1.5
+
+
+def test_fit_rates_refuses_too_few_usable_levels():
+    problem = Synthetic(seed=1)
+    table = level_statistics(**sample_levels(problem, range(2), 100))
+    with pytest.raises(EstimationError, match="cannot fit alpha .*at least two usable levels"):
+        fit_rates(table)
+    # Zero means and variances on levels >= 1 (Q_l independent of l): unusable, never log(0).
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=100)
+    flat = level_statistics(fine=[q, q, q], coarse=[0 * q, q, q], cost=[np.ones(100)] * 3)
+    with pytest.raises(EstimationError, match=r"unusable\): \[1, 2\]"):
+        fit_rates(flat)
+
+
+# --------------------------------------------------------------------------
+# plan
+# --------------------------------------------------------------------------
+
+
+def test_plan_reproduces_closed_form_with_exact_values():
+    problem = Synthetic(alpha=1.0, beta=2.0, gamma=1.0, a=1.0, v1=1.0)
+    rates = Rates(alpha=1.0, beta=2.0, gamma=1.0, c_alpha=1.0, c_beta=1.0, c_gamma=1.0)
+    eps, theta = 0.01, 0.3
+    # Remaining bias 2^-L / (2 - 1) <= sqrt(theta) eps.
+    finest = math.ceil(-math.log2(math.sqrt(theta) * eps))
+    variances = np.array([problem.var_diff(level) for level in range(finest + 1)])
+    costs = np.array([problem.cost(level) for level in range(finest + 1)])
+    result = plan(tol=eps, rates=rates, variances=variances, costs=costs, theta=theta)
+    assert result.finest_level == finest
+    assert result.is_bias_met and not np.any(result.is_extrapolated)
+    total = np.sum(np.sqrt(variances * costs))
+    expected = [math.ceil(math.sqrt(v / c) * total / ((1 - theta) * eps**2)) for v, c in zip(variances, costs)]
+    assert result.n_samples.tolist() == expected
+    assert result.cost == pytest.approx(float(np.dot(expected, costs)))
+    assert result.bias[0] == pytest.approx(2.0**-finest)
+    assert result.stat_variance[0] <= (1 - theta) * eps**2
+    # Without explicit values the rate models give the same numbers (V_0 = c_beta = 1 = s0^2).
+    assert plan(tol=eps, rates=rates, theta=theta).n_samples.tolist() == expected
+    # Plain MC on L: Var(Q_L) ~ V_0 = 1 without screening; fine-solve cost 2^L / (1 + 1/2).
+    assert result.mc_n_samples == math.ceil(1.0 / ((1 - theta) * eps**2))
+    assert result.mc_cost == pytest.approx(result.mc_n_samples * 2.0**finest / 1.5)
+
+
+def test_plan_uses_screened_levels_and_extrapolates_beyond():
+    problem = Synthetic(seed=3)
+    table = level_statistics(**sample_levels(problem, range(4), 2000))
+    rates = fit_rates(table)
+    result = plan(tol=0.002, rates=rates, statistics=table)
+    assert result.finest_level > 3
+    assert result.is_extrapolated.tolist() == [False] * 4 + [True] * (result.finest_level - 3)
+    np.testing.assert_allclose(result.variances[:4, 0], table.var_diff[:, 0])
+    np.testing.assert_allclose(result.variances[5, 0], rates.variance_model(5)[0])
+    np.testing.assert_allclose(result.costs[5], rates.cost_model(5))
+    # Var(Q_L) for the MC prediction comes from the finest screened level.
+    assert result.mc_n_samples == math.ceil(table.var_fine[3, 0] / (0.5 * 0.002**2))
+    # bias_from="data" uses the screened mean on screened levels.
+    coarse_plan = plan(tol=0.2, rates=rates, statistics=table, bias_from="data", finest_level=2)
+    np.testing.assert_allclose(coarse_plan.bias, remaining_bias(table.mean_diff[2], rates.alpha))
+
+
+def test_plan_reports_a_capped_finest_level():
+    rates = Rates(alpha=1.0, beta=2.0, gamma=1.0, c_alpha=1.0, c_beta=1.0, c_gamma=1.0)
+    result = plan(tol=1e-4, rates=rates, max_level=5)
+    assert result.finest_level == 5 and not result.is_bias_met
+    with pytest.raises(EstimationError, match="does not decay"):
+        plan(tol=0.1, rates=Rates(alpha=0.0, beta=1.0, gamma=1.0, c_alpha=1.0, c_beta=1.0, c_gamma=1.0))
+    with pytest.raises(InvalidParameterError):
+        plan(tol=-1.0, rates=rates)
+    with pytest.raises(InvalidParameterError):
+        plan(tol=0.1, rates=rates, theta=1.0)
+
+
+def test_plan_takes_the_worst_qoi():
+    rates = Rates(alpha=[1.0, 2.0], beta=[2.0, 2.0], gamma=1.0, c_alpha=[1.0, 1.0], c_beta=[1.0, 4.0], c_gamma=1.0)
+    both = plan(tol=[0.01, 0.01], rates=rates)
+    first = plan(tol=0.01, rates=Rates(alpha=1.0, beta=2.0, gamma=1.0, c_alpha=1.0, c_beta=1.0, c_gamma=1.0))
+    # QoI 0 decides the finest level (slower bias decay), QoI 1 the sample numbers (4x variance).
+    assert both.finest_level == first.finest_level
+    assert np.all(both.n_samples >= first.n_samples)
+    assert np.all(both.stat_variance <= 0.5 * 0.01**2)
+
+
+@pytest.mark.parametrize(
+    ("alpha", "beta", "gamma"),
+    [(1.0, 2.0, 1.0), (2.0, 2.0, 1.0), (1.0, 1.0, 2.0), (1.0, 1.0, 1.0)],
+)
+def test_predicted_costs_follow_the_complexity_theorem(alpha, beta, gamma):
+    rates = Rates(alpha=alpha, beta=beta, gamma=gamma, c_alpha=1.0, c_beta=1.0, c_gamma=1.0)
+    eps = np.logspace(-2, -5, 13)
+    plans = [plan(tol=e, rates=rates, variances=[1.0], costs=[1.0]) for e in eps]
+    log_eps = np.log(eps)
+    mlmc_cost = np.log([p.cost for p in plans])
+    mc_cost = np.log([p.mc_cost for p in plans])
+    # MC: eps^(-2 - gamma/alpha) (integer finest levels make the curve a staircase; over three
+    # decades its slope is within 0.15 of the exponent).
+    assert np.polyfit(log_eps, mc_cost, 1)[0] == pytest.approx(-2 - gamma / alpha, abs=0.15)
+    if beta == gamma:
+        # eps^-2 log(eps)^2: dividing it out leaves a flat curve.
+        flat = mlmc_cost + 2 * log_eps - 2 * np.log(-log_eps)
+        assert np.polyfit(log_eps, flat, 1)[0] == pytest.approx(0.0, abs=0.15)
+    else:
+        exponent = -2 - max(gamma - beta, 0.0) / alpha
+        assert np.polyfit(log_eps, mlmc_cost, 1)[0] == pytest.approx(exponent, abs=0.15)
+    ratio = np.array([p.work_ratio for p in plans])
+    assert ratio[-1] > max(ratio[0], 1.0)  # MLMC's advantage grows as eps shrinks
+
+
+# --------------------------------------------------------------------------
+# Diagnostics and robustness
+# --------------------------------------------------------------------------
+
+
+def test_independent_coarse_samples_are_flagged():
+    problem = Synthetic(seed=4, coupled=False)
+    table = level_statistics(**sample_levels(problem, range(4), 400))
+    # Independent coarse values: V_l ~ Var(Q_l) + Var(Q_l-1) ~ 2 Var(Q_l).
+    assert not np.any(table.is_coupled[1:])
+    assert np.all(table.coupling_ratio[1:, 0] > 1.5)
+    assert any("not coupled" in message for message in diagnose(table))
+
+
+def test_coarse_from_the_wrong_distribution_fails_the_consistency_check():
+    # A sampler whose coarse value is the fine value of level l (wrong grid) and thus
+    # does not have the distribution of Q_{l-1}: E[coarse_l] != E[fine_{l-1}].
+    problem = Synthetic(seed=6)
+
+    def broken(level, indices):
+        fine, coarse, cost = problem(level, indices)
+        if level >= 1:
+            coarse = problem(level, indices + 10**6)[0]
+        return fine, coarse, cost
+
+    table = level_statistics(**sample_levels(broken, range(4), 4000))
+    assert not np.all(table.is_consistent[1:])
+    assert np.max(table.consistency[1:]) > 1
+    assert any("consistency check failed" in message for message in diagnose(table))
+    good = level_statistics(**sample_levels(problem, range(4), 4000))
+    assert np.all(good.is_consistent)
+
+
+def test_degenerate_levels_give_finite_statistics():
+    # Level 0 random; level 1 a deterministic shift (zero variance of Y); level 2 deterministic
+    # (all samples identical); level 3 deterministic with a coarse value that is not level 2's.
+    rng = np.random.default_rng(7)
+    q0 = rng.normal(size=30)
+    fine = [q0, q0 + 1.0, np.full(30, 1.5), np.full(30, 2.0)]
+    coarse = [np.zeros(30), q0, np.full(30, 1.0), np.full(30, 1.7)]
+    table = level_statistics(fine=fine, coarse=coarse, cost=[np.ones(30)] * 4)
+    for name in ("var_diff", "kurtosis", "coupling_ratio", "var_delta", "var_delta_se"):
+        assert np.all(np.isfinite(getattr(table, name))), name
+    assert not np.any(np.isnan(table.consistency))
+    # Rounding noise of fine - coarse (q0 + 1 - q0) counts as zero variance.
+    assert table.var_diff[1:, 0].tolist() == [0.0, 0.0, 0.0]
+    assert table.kurtosis[1:, 0].tolist() == [0.0, 0.0, 0.0]
+    np.testing.assert_allclose(table.mean_diff[1:, 0], [1.0, 0.5, 0.3], rtol=1e-14)
+    # Level 3's coarse value (1.7) is not level 2's fine one (1.5), with no variance to
+    # hide behind: an infinite consistency ratio, not a NaN.
+    assert table.consistency[3, 0] == np.inf
+
+
+def test_single_sample_levels_warn_and_stay_finite():
+    with pytest.warns(EstimationWarning, match="single sample"):
+        table = level_statistics(fine=[[1.0], [2.0]], coarse=[[0.0], [1.5]], cost=[[1.0], [2.0]])
+    assert np.all(table.var_diff == 0) and np.all(table.consistency == 0)
+    assert any("variance unknown" in message for message in diagnose(table))
+
+
+def test_integer_valued_heavy_tailed_levels_are_flagged():
+    # Counts whose level difference is nonzero for about 1 sample in 1000.
+    rng = np.random.default_rng(8)
+    fine1 = rng.poisson(20.0, size=5000).astype(float)
+    coarse1 = fine1 - (rng.uniform(size=5000) < 1e-3)
+    table = level_statistics(
+        fine=[rng.poisson(20.0, size=5000), fine1],
+        coarse=[np.zeros(5000), coarse1],
+        cost=[np.ones(5000)] * 2,
+    )
+    assert table.kurtosis[1, 0] > 100
+    assert np.all(np.isfinite(table.var_delta_se))
+    assert any("kurtosis" in message for message in diagnose(table))
+
+
+def test_invalid_input_is_refused():
+    with pytest.raises(EstimationError, match="level 0 must be zero"):
+        level_statistics(fine=[[1.0, 2.0]], coarse=[[1.0, 1.0]], cost=[[1.0, 1.0]])
+    with pytest.raises(EstimationError, match="do not match"):
+        level_statistics(fine=[[1.0, 2.0]], coarse=[[0.0, 0.0]], cost=[[1.0]])
+    with pytest.raises(EstimationError, match="non-finite"):
+        level_statistics(fine=[[1.0, np.nan]], coarse=[[0.0, 0.0]], cost=[[1.0, 1.0]])
+    with pytest.raises(EstimationError, match="no samples"):
+        level_statistics(fine=[[]], coarse=[[]], cost=[[]])
+    with pytest.raises(EstimationError, match="non-negative"):
+        level_statistics(fine=[[1.0, 2.0]], coarse=[[0.0, 0.0]], cost=[[1.0, -1.0]])
+
+
+def test_core_modules_import_no_edge_dependencies():
+    code = (
+        "import sys, rough_uq.estimator, rough_uq.screening; "
+        "print(sorted(m for m in ('h5py', 'click', 'rich', 'yaml', 'pydantic') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
