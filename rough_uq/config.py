@@ -1,0 +1,1053 @@
+"""The study configuration: a strict, versioned schema read from YAML.
+
+This is the only module that reads YAML and the only one that uses pydantic.
+A study file looks like (every section is a mapping; see ``configs/*.yaml``)::
+
+    schema_version: 1          # required; the only version this code reads
+    seed: 2024                 # study seed (SPEC section 7)
+    surface:
+      system_size: 2.0         # box side L (length unit)
+      wavelengths: {lambda_l: 1.0, lambda_r: 1.0, lambda_s: 0.015625}
+      # ... or, instead: wavenumbers: {k_l: 2, k_r: 2, k_s: 128}
+      hurst: 0.8
+      rms_height: 1.0          # length unit
+    material: {e_star: 1.0}    # pressure unit
+    load: {relative: 0.1}      # or {absolute: <mean pressure, unit of E*>}
+    qoi:
+      contact_area: {unit: percent, tol: 0.5}
+    grid: {coarsest: 256, max_level: 3}
+    # optional sections: solver, screening, estimation, output
+
+Units (SPEC section 7): lengths are in the unit of ``surface.system_size``,
+pressures in the unit of ``material.e_star``; wave numbers are counted in
+periods per box, ``k = L / lambda``.
+
+Choices where the specification is silent
+-----------------------------------------
+* ``schema_version`` is *required*, so that a file written for a future
+  schema is never silently read with this one's defaults.
+* Required sections: ``seed``, ``surface``, ``material``, ``load``, ``qoi``,
+  ``grid``. ``solver``, ``screening``, ``estimation`` and ``output`` have
+  defaults for every field.
+* Numbers must be finite; booleans are not accepted where a number is
+  expected; duplicate YAML keys are an error; ``1e-8`` (no dot) is read as a
+  number, not as the string YAML 1.1 would make of it.
+* ``grid.projection: injection`` requires the spectrum to be band limited
+  below the Nyquist wave number of the coarsest grid (``k_s < n_0 / 2``); with
+  content above it injection aliases and the MLMC coupling is inconsistent
+  (SPEC section 3).
+* The band ``k_l <= |k| <= k_s`` must contain at least one non-zero integer
+  wave vector, otherwise the RMS height cannot be reached.
+* Memory estimate of the finest grid: a solve holds about
+  :data:`SOLVER_ARRAYS_PER_NODE` (= 20) float64 arrays of ``n x n`` (pressure,
+  gap, displacement, surface, search direction, residuals, FFT work arrays and
+  the warm-start guess), i.e. ``160 n^2`` bytes. A finest grid whose estimate
+  exceeds the physical memory is rejected; parallel workers multiply the need
+  and are not counted here.
+* ``output.path`` is a plain string, relative to the working directory.
+* ``config_hash`` hashes the spectrum as resolved wave numbers, so the same
+  surface given as wavelengths or as wave numbers has the same hash, and
+  keeps the order of the quantities of interest (it is the column order of
+  the stored samples). It leaves out ``output`` and ``solver.threads``, which
+  do not change any computed number.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import yaml
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
+
+from rough_uq.errors import ConfigError
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "SOLVER_ARRAYS_PER_NODE",
+    "QOI_NAMES",
+    "Wavelengths",
+    "Wavenumbers",
+    "SurfaceConfig",
+    "MaterialConfig",
+    "LoadConfig",
+    "SolverConfig",
+    "ContactAreaQoi",
+    "ClustersQoi",
+    "MeanGapQoi",
+    "MaxPressureQoi",
+    "AreaAboveQoi",
+    "QoiConfig",
+    "GridConfig",
+    "ScreeningConfig",
+    "EstimationConfig",
+    "OutputConfig",
+    "StudyConfig",
+    "load_config",
+    "config_from_dict",
+    "resolved_yaml",
+    "config_hash",
+    "solver_memory_bytes",
+]
+
+SCHEMA_VERSION = 1
+"""The config schema version this code reads and writes."""
+
+SOLVER_ARRAYS_PER_NODE = 20
+"""Estimated number of float64 ``n x n`` arrays alive during one solve."""
+
+_ERROR_TYPE = "roughuq_config"
+
+
+# ---------------------------------------------------------------------------
+# Building blocks
+# ---------------------------------------------------------------------------
+
+
+def _reject_bool(value: object) -> object:
+    # pydantic's lax mode would turn `true` into 1; a boolean where a number
+    # belongs is a typo, not a value.
+    if isinstance(value, bool):
+        raise PydanticCustomError("bool_not_number", "must be a number, not a boolean")
+    return value
+
+
+Int = Annotated[int, BeforeValidator(_reject_bool)]
+Float = Annotated[float, BeforeValidator(_reject_bool)]
+
+
+def _field(default: Any = ..., *, description: str, allowed: str, **constraints: Any) -> Any:
+    """A pydantic field that also records, for error messages, what it accepts."""
+    return Field(default, description=description, json_schema_extra={"allowed": allowed}, **constraints)
+
+
+class _Described(str):
+    """A description standing in for a value in a message; shown without quotes."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+def _problem(field: str, what: str, value: object, allowed: str) -> dict[str, object]:
+    return {"field": field, "what": what, "value": value, "allowed": allowed}
+
+
+def _fail(problems: list[dict[str, object]]) -> None:
+    """Raise the validation error that carries one or more field problems.
+
+    ``field`` in each problem is relative to the model being validated;
+    :func:`_format_errors` prefixes the model's location.
+    """
+    text = "; ".join(f"{p['field']}: {p['what']}" for p in problems)
+    raise PydanticCustomError(_ERROR_TYPE, "{text}", {"text": text, "problems": problems})
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+# ---------------------------------------------------------------------------
+# Surface
+# ---------------------------------------------------------------------------
+
+
+class Wavelengths(_Section):
+    """Spectrum cut-offs as wavelengths (length unit)."""
+
+    lambda_l: Float = _field(
+        description="Largest wavelength of the spectrum, lambda_l = L / k_l (length unit)",
+        allowed="number > 0",
+        gt=0,
+    )
+    lambda_r: Float = _field(
+        description="Roll-off wavelength, lambda_r = L / k_r (length unit)",
+        allowed="number > 0",
+        gt=0,
+    )
+    lambda_s: Float = _field(
+        description="Shortest wavelength (short cut-off), lambda_s = L / k_s (length unit)",
+        allowed="number > 0",
+        gt=0,
+    )
+
+
+class Wavenumbers(_Section):
+    """Spectrum cut-offs as wave numbers (periods per box, dimensionless)."""
+
+    k_l: Float = _field(
+        description="Lower cut-off wave number k_l (periods per box, dimensionless; 0 = no lower cut-off)",
+        allowed="number >= 0",
+        ge=0,
+    )
+    k_r: Float = _field(
+        description="Roll-off wave number k_r (periods per box, dimensionless)",
+        allowed="number > 0",
+        gt=0,
+    )
+    k_s: Float = _field(
+        description="Short cut-off wave number k_s (periods per box, dimensionless)",
+        allowed="number > 0",
+        gt=0,
+    )
+
+
+def _band_has_wave_vector(k_l: float, k_s: float) -> bool:
+    """Whether some integer wave vector k != 0 has k_l <= |k| <= k_s."""
+    slack = 1e-9 * max(1.0, k_s * k_s)
+    lo2 = k_l * k_l - slack
+    hi2 = k_s * k_s + slack
+    for i in range(int(math.floor(k_s)) + 1):
+        j_min = math.ceil(math.sqrt(max(0.0, lo2 - i * i)))
+        rest = hi2 - i * i
+        if rest < 0:
+            break
+        j_max = math.floor(math.sqrt(rest))
+        if i == 0:
+            j_min = max(j_min, 1)
+        if j_min <= j_max:
+            return True
+    return False
+
+
+class SurfaceConfig(_Section):
+    """The random rough surface (SPEC section 3)."""
+
+    system_size: Float = _field(
+        description="Side length L of the periodic square box (length unit; defines it)",
+        allowed="number > 0",
+        gt=0,
+    )
+    wavelengths: Wavelengths | None = _field(
+        None,
+        description="Spectrum cut-offs as wavelengths lambda_l, lambda_r, lambda_s (length unit); "
+        "give this or wavenumbers",
+        allowed="a mapping with keys lambda_l, lambda_r, lambda_s",
+    )
+    wavenumbers: Wavenumbers | None = _field(
+        None,
+        description="Spectrum cut-offs as wave numbers k_l, k_r, k_s (periods per box, dimensionless); "
+        "give this or wavelengths",
+        allowed="a mapping with keys k_l, k_r, k_s",
+    )
+    hurst: Float = _field(
+        description="Hurst exponent H of the self-affine part (dimensionless)",
+        allowed="number in [0, 1]",
+        ge=0,
+        le=1,
+    )
+    rms_height: Float = _field(
+        description="RMS height sigma of the surface (length unit)",
+        allowed="number > 0",
+        gt=0,
+    )
+
+    @model_validator(mode="after")
+    def _check_spectrum(self) -> SurfaceConfig:
+        if (self.wavelengths is None) == (self.wavenumbers is None):
+            got = "both" if self.wavelengths is not None else "neither"
+            _fail(
+                [
+                    _problem(
+                        "wavelengths",
+                        "give the spectrum exactly once, as wavelengths or as wavenumbers",
+                        _Described(f"{got} of wavelengths and wavenumbers"),
+                        "exactly one of wavelengths, wavenumbers",
+                    )
+                ]
+            )
+        k_l, k_r, k_s = self.k_l, self.k_r, self.k_s
+        if not (0 <= k_l <= k_r <= k_s):
+            if self.wavelengths is not None:
+                w = self.wavelengths
+                _fail(
+                    [
+                        _problem(
+                            "wavelengths",
+                            "cut-offs are out of order",
+                            _Described(f"lambda_l={w.lambda_l:g}, lambda_r={w.lambda_r:g}, lambda_s={w.lambda_s:g}"),
+                            "lambda_l >= lambda_r >= lambda_s",
+                        )
+                    ]
+                )
+            _fail(
+                [
+                    _problem(
+                        "wavenumbers",
+                        "cut-offs are out of order",
+                        _Described(f"k_l={k_l:g}, k_r={k_r:g}, k_s={k_s:g}"),
+                        "0 <= k_l <= k_r <= k_s",
+                    )
+                ]
+            )
+        if not _band_has_wave_vector(k_l, k_s):
+            name = "wavelengths" if self.wavelengths is not None else "wavenumbers"
+            _fail(
+                [
+                    _problem(
+                        name,
+                        "the band k_l <= |k| <= k_s contains no non-zero integer wave vector, "
+                        "so the surface would be flat",
+                        _Described(f"k_l={k_l:g}, k_s={k_s:g}"),
+                        "a band containing some |k| = sqrt(i^2 + j^2) > 0",
+                    )
+                ]
+            )
+        return self
+
+    @property
+    def k_l(self) -> float:
+        """Lower cut-off wave number (periods per box)."""
+        if self.wavenumbers is not None:
+            return self.wavenumbers.k_l
+        assert self.wavelengths is not None  # guaranteed by the validator
+        return self.system_size / self.wavelengths.lambda_l
+
+    @property
+    def k_r(self) -> float:
+        """Roll-off wave number (periods per box)."""
+        if self.wavenumbers is not None:
+            return self.wavenumbers.k_r
+        assert self.wavelengths is not None
+        return self.system_size / self.wavelengths.lambda_r
+
+    @property
+    def k_s(self) -> float:
+        """Short cut-off wave number (periods per box)."""
+        if self.wavenumbers is not None:
+            return self.wavenumbers.k_s
+        assert self.wavelengths is not None
+        return self.system_size / self.wavelengths.lambda_s
+
+
+# ---------------------------------------------------------------------------
+# Material, load, solver
+# ---------------------------------------------------------------------------
+
+
+class MaterialConfig(_Section):
+    """The elastic half-space."""
+
+    e_star: Float = _field(
+        description="Effective (plane-strain) modulus E* = E / (1 - nu^2) (pressure unit; defines it)",
+        allowed="number > 0",
+        gt=0,
+    )
+
+
+class LoadConfig(_Section):
+    """The imposed mean pressure, relative to E* sqrt(m2) or absolute."""
+
+    relative: Float | None = _field(
+        None,
+        description="Mean pressure p_mean / (E* sqrt(m2)), m2 from the spectral model (dimensionless)",
+        allowed="number > 0",
+        gt=0,
+    )
+    absolute: Float | None = _field(
+        None,
+        description="Mean pressure p_mean (pressure unit, i.e. unit of E*)",
+        allowed="number > 0",
+        gt=0,
+    )
+
+    @model_validator(mode="after")
+    def _check_one(self) -> LoadConfig:
+        if (self.relative is None) == (self.absolute is None):
+            got = "both" if self.relative is not None else "neither"
+            _fail(
+                [
+                    _problem(
+                        "relative",
+                        "give the load exactly once, as relative or as absolute",
+                        _Described(f"{got} of relative and absolute"),
+                        "exactly one of relative, absolute",
+                    )
+                ]
+            )
+        return self
+
+    @property
+    def kind(self) -> Literal["relative", "absolute"]:
+        """Which of the two load forms was given."""
+        return "relative" if self.relative is not None else "absolute"
+
+    @property
+    def value(self) -> float:
+        """The given load (dimensionless if relative, unit of E* if absolute)."""
+        value = self.relative if self.relative is not None else self.absolute
+        assert value is not None  # guaranteed by the validator
+        return value
+
+
+class SolverConfig(_Section):
+    """The constrained conjugate-gradient contact solver (SPEC section 2)."""
+
+    tol: Float = _field(
+        1e-8,
+        description="Relative stopping tolerance of the complementarity/gap error (dimensionless)",
+        allowed="number in (0, 1)",
+        gt=0,
+        lt=1,
+    )
+    max_iter: Int = _field(
+        10000,
+        description="Maximum number of CG iterations per solve (count)",
+        allowed="integer >= 1",
+        ge=1,
+    )
+    warm_start: bool = _field(
+        True,
+        description="Start the fine solve from the coarse solution of the same sample",
+        allowed="true or false",
+    )
+    threads: Int = _field(
+        1,
+        description="FFTW threads per solve (count; does not change results)",
+        allowed="integer >= 1",
+        ge=1,
+    )
+
+
+# ---------------------------------------------------------------------------
+# Quantities of interest
+# ---------------------------------------------------------------------------
+
+_TOL_DESCRIPTION = "Target root-mean-square error of the estimate, in the unit of this quantity"
+
+
+class ContactAreaQoi(_Section):
+    """Fraction of the nominal area in contact (``p > 0``)."""
+
+    kind: Literal["contact_area"] = Field("contact_area", exclude=True)
+    unit: Literal["fraction", "percent"] = _field(
+        "percent",
+        description="Report as a fraction (dimensionless) or in percent",
+        allowed="'fraction' or 'percent'",
+    )
+    tol: Float | None = _field(
+        None, description=_TOL_DESCRIPTION + " (fraction or percent)", allowed="number > 0 or null", gt=0
+    )
+
+    @property
+    def name(self) -> str:
+        return self.kind
+
+    @property
+    def unit_label(self) -> str:
+        """Short unit label for reports."""
+        return "%" if self.unit == "percent" else "fraction"
+
+
+class ClustersQoi(_Section):
+    """Number of connected contact patches on the periodic grid."""
+
+    kind: Literal["clusters"] = Field("clusters", exclude=True)
+    unit: Literal["absolute", "per_area"] = _field(
+        "per_area",
+        description="Count per box (dimensionless) or per unit area (1 / length unit^2)",
+        allowed="'absolute' or 'per_area'",
+    )
+    connectivity: Literal[4, 8] = _field(
+        4,
+        description="4: edge neighbours connect; 8: diagonal neighbours connect too",
+        allowed="4 or 8",
+    )
+    tol: Float | None = _field(
+        None, description=_TOL_DESCRIPTION + " (count or 1 / length^2)", allowed="number > 0 or null", gt=0
+    )
+
+    @property
+    def name(self) -> str:
+        return self.kind
+
+    @property
+    def unit_label(self) -> str:
+        return "clusters per unit area" if self.unit == "per_area" else "clusters"
+
+
+class MeanGapQoi(_Section):
+    """Mean gap between the surfaces over the box (length unit)."""
+
+    kind: Literal["mean_gap"] = Field("mean_gap", exclude=True)
+    tol: Float | None = _field(
+        None, description=_TOL_DESCRIPTION + " (length unit)", allowed="number > 0 or null", gt=0
+    )
+
+    @property
+    def name(self) -> str:
+        return self.kind
+
+    @property
+    def unit_label(self) -> str:
+        return "length"
+
+
+class MaxPressureQoi(_Section):
+    """Largest nodal contact pressure (unit of E*)."""
+
+    kind: Literal["max_pressure"] = Field("max_pressure", exclude=True)
+    tol: Float | None = _field(
+        None, description=_TOL_DESCRIPTION + " (unit of E*)", allowed="number > 0 or null", gt=0
+    )
+
+    @property
+    def name(self) -> str:
+        return self.kind
+
+    @property
+    def unit_label(self) -> str:
+        return "E*"
+
+
+class AreaAboveQoi(_Section):
+    """Fraction of the nominal area where the pressure exceeds a critical pressure."""
+
+    kind: Literal["area_above"] = Field("area_above", exclude=True)
+    critical_pressure: Float = _field(
+        description="Critical pressure (unit of E*)",
+        allowed="number > 0",
+        gt=0,
+    )
+    unit: Literal["fraction", "percent"] = _field(
+        "percent",
+        description="Report as a fraction (dimensionless) or in percent",
+        allowed="'fraction' or 'percent'",
+    )
+    tol: Float | None = _field(
+        None, description=_TOL_DESCRIPTION + " (fraction or percent)", allowed="number > 0 or null", gt=0
+    )
+
+    @property
+    def name(self) -> str:
+        return self.kind
+
+    @property
+    def unit_label(self) -> str:
+        return "%" if self.unit == "percent" else "fraction"
+
+
+QoiConfig = Annotated[
+    Union[ContactAreaQoi, ClustersQoi, MeanGapQoi, MaxPressureQoi, AreaAboveQoi],
+    Field(discriminator="kind"),
+]
+"""Settings of one quantity of interest; the mapping key selects the model."""
+
+_QOI_MODELS: dict[str, type[_Section]] = {
+    "contact_area": ContactAreaQoi,
+    "clusters": ClustersQoi,
+    "mean_gap": MeanGapQoi,
+    "max_pressure": MaxPressureQoi,
+    "area_above": AreaAboveQoi,
+}
+QOI_NAMES: tuple[str, ...] = tuple(_QOI_MODELS)
+"""Names of the quantities of interest a study may ask for."""
+
+
+# ---------------------------------------------------------------------------
+# Levels, screening, estimation, output
+# ---------------------------------------------------------------------------
+
+
+class GridConfig(_Section):
+    """The grid hierarchy ``n_l = coarsest * 2**l``, ``l = 0..max_level``."""
+
+    coarsest: Int = _field(
+        description="Nodes per side n_0 of the coarsest grid, level 0 (count)",
+        allowed="even integer >= 4",
+        ge=4,
+    )
+    max_level: Int = _field(
+        4,
+        description="Finest level allowed; finest grid n_0 * 2**max_level (count)",
+        allowed="integer >= 0",
+        ge=0,
+    )
+    projection: Literal["truncation", "injection"] = _field(
+        "truncation",
+        description="How a fine surface becomes the coarse one of the same sample: keep the "
+        "representable Fourier coefficients (truncation) or every second node (injection)",
+        allowed="'truncation' or 'injection'",
+    )
+
+    @field_validator("coarsest")
+    @classmethod
+    def _even(cls, value: int) -> int:
+        if value % 2:
+            raise PydanticCustomError("not_even", "must be even")
+        return value
+
+    def n_at(self, level: int) -> int:
+        """Nodes per side of the grid of ``level``."""
+        return self.coarsest * 2**level
+
+    @property
+    def finest(self) -> int:
+        """Nodes per side of the finest allowed grid."""
+        return self.n_at(self.max_level)
+
+
+class ScreeningConfig(_Section):
+    """The screening phase that fits the rates alpha, beta, gamma."""
+
+    levels: Int = _field(
+        3,
+        description="Number of levels screened, 0..levels-1 (count)",
+        allowed="integer >= 2 and <= grid.max_level + 1",
+        ge=2,
+    )
+    samples: Int = _field(
+        20,
+        description="Samples per screened level (count)",
+        allowed="integer >= 2",
+        ge=2,
+    )
+
+
+class EstimationConfig(_Section):
+    """The estimation runs (SPEC section 5)."""
+
+    theta: Float = _field(
+        0.5,
+        description="Share of eps^2 given to the squared bias (dimensionless)",
+        allowed="number in (0, 1)",
+        gt=0,
+        lt=1,
+    )
+    max_cost: Float | None = _field(
+        None,
+        description="Budget of solver time per run (seconds); null = no budget",
+        allowed="number > 0 or null",
+        gt=0,
+    )
+    initial_samples: Int = _field(
+        10,
+        description="Samples per level before the first variance update (count)",
+        allowed="integer >= 2",
+        ge=2,
+    )
+    batch_size: Int = _field(
+        10,
+        description="Samples computed and stored together (count; does not change results)",
+        allowed="integer >= 1",
+        ge=1,
+    )
+
+
+class OutputConfig(_Section):
+    """Where the study file goes."""
+
+    path: str = _field(
+        "results.h5",
+        description="Study file (HDF5), relative to the working directory",
+        allowed="a non-empty file path",
+        min_length=1,
+    )
+
+
+# ---------------------------------------------------------------------------
+# The study
+# ---------------------------------------------------------------------------
+
+
+def solver_memory_bytes(n: int) -> int:
+    """Estimated memory of one contact solve on an ``n x n`` grid, in bytes."""
+    return SOLVER_ARRAYS_PER_NODE * 8 * n * n
+
+
+def _physical_memory_bytes() -> int | None:
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not available on this platform
+        return None
+
+
+def _gib(n_bytes: float) -> str:
+    return f"{n_bytes / 2**30:.1f} GiB"
+
+
+class StudyConfig(_Section):
+    """A complete study. Frozen; build it with :func:`load_config` or :func:`config_from_dict`."""
+
+    schema_version: Literal[1] = _field(
+        description="Version of this config schema", allowed="1"
+    )
+    seed: Int = _field(
+        description="Study seed of all random streams (SPEC section 7)",
+        allowed="integer >= 0",
+        ge=0,
+    )
+    surface: SurfaceConfig = _field(description="Random rough surface", allowed="a mapping")
+    material: MaterialConfig = _field(description="Elastic half-space", allowed="a mapping")
+    load: LoadConfig = _field(description="Mean pressure", allowed="a mapping")
+    solver: SolverConfig = _field(SolverConfig(), description="Contact solver", allowed="a mapping")
+    qoi: dict[str, QoiConfig] = _field(
+        description="Quantities of interest, name -> settings; the order is the column order",
+        allowed="a mapping of " + ", ".join(QOI_NAMES) + " to settings",
+    )
+    grid: GridConfig = _field(description="Grid hierarchy", allowed="a mapping")
+    screening: ScreeningConfig = _field(ScreeningConfig(), description="Screening phase", allowed="a mapping")
+    estimation: EstimationConfig = _field(
+        EstimationConfig(), description="Estimation runs", allowed="a mapping"
+    )
+    output: OutputConfig = _field(OutputConfig(), description="Output files", allowed="a mapping")
+
+    @field_validator("qoi", mode="before")
+    @classmethod
+    def _tag_qoi(cls, value: object) -> object:
+        # The mapping key names the quantity; copy it into the settings as the
+        # union's tag so pydantic picks the right model (and keeps key order).
+        if not isinstance(value, Mapping):
+            return value
+        if not value:
+            _fail([_problem("", "at least one quantity of interest is needed", {}, ", ".join(QOI_NAMES))])
+        problems = []
+        tagged: dict[object, object] = {}
+        for name, settings in value.items():
+            if name not in _QOI_MODELS:
+                problems.append(_problem(str(name), "unknown quantity of interest", name, ", ".join(QOI_NAMES)))
+                continue
+            if settings is None:
+                settings = {}
+            if isinstance(settings, Mapping):
+                if "kind" in settings:
+                    allowed = _keys_of(_QOI_MODELS[name])
+                    problems.append(_problem(f"{name}.kind", "unknown key", settings["kind"], allowed))
+                    continue
+                settings = {"kind": name, **settings}
+            tagged[name] = settings
+        if problems:
+            _fail(problems)
+        return tagged
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> StudyConfig:
+        problems = []
+        n_0 = self.grid.coarsest
+        k_r, k_s = self.surface.k_r, self.surface.k_s
+        if not k_r < n_0 / 2:
+            needed = 2 * (math.floor(k_r) + 1)
+            problems.append(
+                _problem(
+                    "grid.coarsest",
+                    f"a {n_0} x {n_0} grid cannot resolve the roll-off wave number k_r = {k_r:g} "
+                    f"periods per box: its Nyquist wave number is n_0/2 = {n_0 // 2}",
+                    n_0,
+                    f"even integer > 2 k_r, i.e. >= {needed}",
+                )
+            )
+        if self.grid.projection == "injection" and not k_s < n_0 / 2:
+            problems.append(
+                _problem(
+                    "grid.projection",
+                    f"injection needs a spectrum band limited below the coarsest grid's Nyquist wave "
+                    f"number n_0/2 = {n_0 // 2}, but k_s = {k_s:g}; injection would alias",
+                    "injection",
+                    f"'truncation', or injection with k_s < {n_0 // 2}",
+                )
+            )
+        memory = _physical_memory_bytes()
+        n_fine = self.grid.finest
+        if memory is not None and solver_memory_bytes(n_fine) > memory:
+            n_max = 0
+            while solver_memory_bytes(self.grid.n_at(n_max + 1)) <= memory:
+                n_max += 1
+            problems.append(
+                _problem(
+                    "grid.max_level",
+                    f"the finest grid {n_fine} x {n_fine} needs about {_gib(solver_memory_bytes(n_fine))} per "
+                    f"solve ({SOLVER_ARRAYS_PER_NODE} float64 arrays of n^2) but this machine has "
+                    f"{_gib(memory)}",
+                    self.grid.max_level,
+                    f"integer <= {n_max}" if solver_memory_bytes(n_0) <= memory else "a smaller grid.coarsest",
+                )
+            )
+        if self.screening.levels > self.grid.max_level + 1:
+            problems.append(
+                _problem(
+                    "screening.levels",
+                    f"cannot screen more levels than exist (levels 0..{self.grid.max_level})",
+                    self.screening.levels,
+                    f"integer >= 2 and <= grid.max_level + 1 = {self.grid.max_level + 1}",
+                )
+            )
+        if problems:
+            _fail(problems)
+        return self
+
+    @property
+    def qoi_names(self) -> tuple[str, ...]:
+        """Names of the quantities of interest, in column order."""
+        return tuple(self.qoi)
+
+
+# ---------------------------------------------------------------------------
+# Error messages
+# ---------------------------------------------------------------------------
+
+
+def _keys_of(model: type[BaseModel]) -> str:
+    return ", ".join(name for name, info in model.model_fields.items() if not info.exclude)
+
+
+_NOTHING = object()  # the "value" of a missing field
+
+
+def _show(value: object) -> str:
+    if value is _NOTHING:
+        return "nothing"
+    text = repr(value)
+    if isinstance(value, Mapping):
+        text = "a mapping " + text
+    elif isinstance(value, list):
+        text = "a list " + text
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _model_of(annotation: object) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in getattr(annotation, "__args__", ()) or ():
+        found = _model_of(arg)
+        if found is not None:
+            return found
+    return None
+
+
+_QOI_MAPPING = object()  # marks the qoi mapping while walking a location
+
+
+def _walk(loc: tuple[str, ...]) -> tuple[type[BaseModel] | None, Any]:
+    """The model that holds the last element of ``loc``, and its FieldInfo (None if not a field)."""
+    model: Any = StudyConfig
+    for depth, part in enumerate(loc):
+        is_last = depth == len(loc) - 1
+        if model is None:
+            return None, None
+        if model is _QOI_MAPPING:
+            model = _QOI_MODELS.get(part)
+            if is_last:
+                return None, None
+            continue
+        info = model.model_fields.get(part)
+        if info is None or info.exclude:
+            return (model if is_last else None), None
+        if is_last:
+            return model, info
+        model = _QOI_MAPPING if (model is StudyConfig and part == "qoi") else _model_of(info.annotation)
+    return model, None
+
+
+def _allowed(loc: tuple[str, ...]) -> str:
+    parent, info = _walk(loc)
+    if info is not None:
+        extra = info.json_schema_extra or {}
+        allowed = str(extra.get("allowed", "see the documentation"))
+        section = _model_of(info.annotation)
+        if section is not None and allowed == "a mapping":
+            allowed = f"a mapping with keys {_keys_of(section)}"
+        return allowed
+    if loc and loc[0] == "qoi" and len(loc) == 2:
+        model = _QOI_MODELS.get(loc[1])
+        return f"a mapping with keys {_keys_of(model)}" if model else ", ".join(QOI_NAMES)
+    if parent is not None:
+        return f"keys {_keys_of(parent)}"
+    return "see the documentation"
+
+
+def _clean_loc(loc: tuple[object, ...]) -> tuple[str, ...]:
+    parts = tuple(str(p) for p in loc)
+    # A discriminated union repeats the tag: ('qoi', 'clusters', 'clusters', ...).
+    if len(parts) >= 3 and parts[0] == "qoi" and parts[1] == parts[2]:
+        parts = parts[:2] + parts[3:]
+    return parts
+
+
+def _format_errors(error: ValidationError) -> list[str]:
+    lines: list[str] = []
+    for item in error.errors(include_url=False):
+        loc = _clean_loc(item["loc"])
+        kind = item["type"]
+        if kind == _ERROR_TYPE:
+            for problem in item["ctx"]["problems"]:
+                path = ".".join(p for p in (*loc, str(problem["field"])) if p)
+                lines.append(
+                    f"{path or 'config'}: {problem['what']} (got {_show(problem['value'])}; "
+                    f"allowed: {problem['allowed']})"
+                )
+            continue
+        path = ".".join(loc) or "config"
+        value = item.get("input")
+        if kind == "missing":
+            _, info = _walk(loc)
+            is_section = info is not None and _model_of(info.annotation) is not None
+            what = "required section is missing" if is_section else "required field is missing"
+            value = _NOTHING
+        elif kind == "extra_forbidden":
+            what = "unknown key"
+        elif kind in ("model_type", "model_attributes_type", "dict_type"):
+            what = "must be a mapping"
+        else:
+            msg = item["msg"]
+            what = "must be " + msg[len("Input should be ") :] if msg.startswith("Input should be ") else msg
+            what = what[:1].lower() + what[1:]
+        lines.append(f"{path}: {what} (got {_show(value)}; allowed: {_allowed(loc)})")
+    return lines
+
+
+# ---------------------------------------------------------------------------
+# YAML
+# ---------------------------------------------------------------------------
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """Safe YAML loader that rejects duplicate keys and reads 1e-8 as a float."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[object] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    "while reading a mapping", node.start_mark, f"found duplicate key {key!r}", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def _yaml_error_line(path: str, error: yaml.YAMLError) -> str:
+    mark = getattr(error, "problem_mark", None)
+    problem = getattr(error, "problem", None) or str(error)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    return f"{path}: not valid YAML{where}: {problem} (got a malformed file; allowed: a YAML mapping of sections)"
+
+
+def load_config(path: str | os.PathLike[str]) -> StudyConfig:
+    """Read and validate a study config file.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The YAML file.
+
+    Returns
+    -------
+    StudyConfig
+
+    Raises
+    ------
+    ConfigError
+        For a missing, unreadable, empty or malformed file and for every
+        invalid field; the message has one line per problem,
+        ``<field.path>: <what is wrong> (got <value>; allowed: <what>)``.
+    """
+    name = os.fspath(path)
+    try:
+        text = Path(name).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise _config_error([f"{name}: config file not found (got {name!r}; allowed: an existing YAML file)"]) from None
+    except IsADirectoryError:
+        raise _config_error([f"{name}: is a directory (got {name!r}; allowed: a YAML file)"]) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        line = f"{name}: cannot be read: {exc} (got {name!r}; allowed: a readable UTF-8 YAML file)"
+        raise _config_error([line]) from None
+    try:
+        data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
+    except yaml.YAMLError as exc:
+        raise _config_error([_yaml_error_line(name, exc)]) from None
+    if data is None:
+        raise _config_error([f"{name}: the file is empty (got no content; allowed: a YAML mapping of sections)"])
+    return config_from_dict(data, source=name)
+
+
+def _config_error(lines: list[str]) -> ConfigError:
+    error = ConfigError("\n".join(lines))
+    error.problems = tuple(lines)  # type: ignore[attr-defined]
+    return error
+
+
+def config_from_dict(data: object, *, source: str = "config") -> StudyConfig:
+    """Validate an already-parsed config (a mapping of sections).
+
+    ``source`` names the input in the message when the top level is not a mapping.
+    Raises :class:`ConfigError` like :func:`load_config`.
+    """
+    if not isinstance(data, Mapping):
+        raise _config_error(
+            [
+                f"{source}: the top level must be a mapping of sections (got {_show(data)}; "
+                f"allowed: a mapping with keys {_keys_of(StudyConfig)})"
+            ]
+        )
+    try:
+        return StudyConfig.model_validate(dict(data))
+    except ValidationError as exc:
+        raise _config_error(_format_errors(exc)) from None
+
+
+# ---------------------------------------------------------------------------
+# Serialisation and hashing
+# ---------------------------------------------------------------------------
+
+
+def _resolved_dict(config: StudyConfig) -> dict[str, Any]:
+    data = config.model_dump(mode="json")
+    surface = data["surface"]
+    for key in ("wavelengths", "wavenumbers"):
+        if surface[key] is None:
+            del surface[key]
+    for key in ("relative", "absolute"):
+        if data["load"][key] is None:
+            del data["load"][key]
+    return data
+
+
+def resolved_yaml(config: StudyConfig) -> str:
+    """The full config with every default filled in, as YAML text.
+
+    Keys are in schema order (quantities of interest in the order given); of
+    the two alternative spectrum and load forms only the given one appears.
+    Loading the text gives back an equal config.
+    """
+    return yaml.safe_dump(_resolved_dict(config), sort_keys=False, default_flow_style=False, allow_unicode=True)
+
+
+def config_hash(config: StudyConfig) -> str:
+    """SHA-256 (hex) of everything in the config that affects computed numbers.
+
+    The hashed document is the resolved config with ``output`` and
+    ``solver.threads`` removed, the spectrum replaced by its resolved wave
+    numbers ``{k_l, k_r, k_s}``, and the quantities of interest as a list of
+    ``[name, settings]`` pairs (their order is the column order), serialised
+    as JSON with sorted keys and no whitespace.
+    """
+    data = _resolved_dict(config)
+    del data["output"]
+    del data["solver"]["threads"]
+    surface = data["surface"]
+    surface.pop("wavelengths", None)
+    surface["wavenumbers"] = {"k_l": config.surface.k_l, "k_r": config.surface.k_r, "k_s": config.surface.k_s}
+    data["qoi"] = [[name, settings] for name, settings in data["qoi"].items()]
+    canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()

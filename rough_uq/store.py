@@ -1,0 +1,838 @@
+"""Study files: the samples, screening results and estimation runs of a study.
+
+This is the only module that uses h5py. A study lives in one HDF5 file with
+this layout (format ``roughuq-study``, version 1)::
+
+    /                              attrs: format = "roughuq-study"
+    |                                     format_version = 1
+    |                                     config_hash   (sha256 hex, see rough_uq.config.config_hash)
+    |                                     code_version  (roughuq version that created the file)
+    |                                     created       (ISO 8601 time, UTC)
+    |-- config_yaml                scalar string: the resolved config (YAML text)
+    |-- qoi_names                  (n_qoi,) string: names of the QoI columns, in order
+    |-- samples/
+    |   `-- level_<l>/             attrs: level = l; one row per sample, rows in append order
+    |       |-- stage              (n,) int64     stage key (screening / estimation run)
+    |       |-- index              (n,) int64     sample index within (stage, level)
+    |       |-- fine               (n, n_qoi) float64  QoI on grid n_l
+    |       |-- coarse             (n, n_qoi) float64  QoI on grid n_{l-1} (0 on level 0)
+    |       |-- cost               (n,) float64   wall time of the sample (s)
+    |       |-- n_iter             (n, 2) int64   solver iterations (fine, coarse)
+    |       `-- converged          (n, 2) bool    solver converged (fine, coarse)
+    |-- screening/                 (present once written)
+    |   `-- record                 (m,) uint8: UTF-8 JSON text of the screening dict
+    `-- runs/
+        `-- <run_id>/              attrs: order = creation rank (0, 1, ...)
+            `-- record             (m,) uint8: UTF-8 JSON text of the run dict
+
+The sample datasets are chunked and resizable along the first axis. JSON
+records are byte arrays rather than string attributes because HDF5 never
+reuses the space of a rewritten attribute or string, and runs are rewritten
+as they progress; a resizable byte array is rewritten in place.
+
+Crash safety
+------------
+A writable :class:`StudyFile` holds an exclusive advisory lock
+(``fcntl.flock``, non-blocking) on the sidecar ``<path>.lock`` for as long as
+it is open; a second writer is refused with the pid of the holder. The OS
+releases the lock when the process dies, even on ``kill -9``.
+
+Every write (:meth:`~StudyStore.append_samples`, :meth:`~StudyStore.write_run`,
+:meth:`~StudyStore.write_screening`, and creation) is a copy-on-write
+transaction: copy ``<path>`` to ``<path>.tmp-<pid>``, change the copy with
+h5py, close it, ``fsync`` it, ``os.replace`` it onto ``<path>`` and ``fsync``
+the directory. ``<path>`` is therefore always either the old or the new
+complete file, and no h5py handle stays open between writes. A study file
+holds a few numbers per sample (about 60 bytes), so a copy costs
+milliseconds; the ``fsync`` usually dominates. Temporary files left by a
+killed writer are removed when the study is next opened for writing. Readers
+(:func:`open_study_readonly`) take no lock: the file they see is always
+complete.
+
+Choices where the specification is silent
+-----------------------------------------
+* ``read_samples(level=l)`` without a stage returns all rows of the level
+  ordered by (stage, index), with ``stage = ALL_STAGES`` (-1) on the batch.
+* ``sample_indices`` returns a sorted int64 array.
+* Records (screening, runs) must be JSON-able mappings; numpy scalars and
+  arrays are accepted and come back as Python numbers and lists, NaN and
+  infinities survive. ``read_runs`` adds the ``run_id`` key.
+* Opening for writing with ``create=True`` creates missing parent
+  directories.
+* HDF5's own file locking is switched off (``locking=False``): nobody ever
+  writes a file another process reads, and the sidecar lock serialises
+  writers. This also makes the store work on file systems without locks for
+  readers.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import re
+import shutil
+import warnings
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping, Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from types import TracebackType
+from typing import Any, TypeVar
+
+import h5py
+import numpy as np
+
+from rough_uq.errors import StudyFileError
+from rough_uq.sampler import LevelBatch
+
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "ALL_STAGES",
+    "DuplicateSampleWarning",
+    "StudyStore",
+    "StudyFile",
+    "MemoryStore",
+    "open_study",
+    "open_study_readonly",
+]
+
+FORMAT = "roughuq-study"
+"""Value of the root attribute ``format``."""
+
+FORMAT_VERSION = 1
+"""Version of the layout this code writes and reads."""
+
+ALL_STAGES = -1
+"""``LevelBatch.stage`` of a batch read across all stages."""
+
+_COLUMNS = ("stage", "index", "fine", "coarse", "cost", "n_iter", "converged")
+_CHUNK_ROWS = 512
+_RECORD_CHUNK = 4096
+_RUN_ID = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+_T = TypeVar("_T")
+
+
+class DuplicateSampleWarning(UserWarning):
+    """Samples already stored (same stage, level and index) were skipped."""
+
+
+# ---------------------------------------------------------------------------
+# Helpers shared by both stores
+# ---------------------------------------------------------------------------
+
+
+def _batch_columns(batch: LevelBatch) -> dict[str, np.ndarray]:
+    n = batch.n_samples
+    return {
+        "stage": np.full(n, batch.stage, dtype=np.int64),
+        "index": np.asarray(batch.indices, dtype=np.int64),
+        "fine": np.asarray(batch.fine, dtype=np.float64),
+        "coarse": np.asarray(batch.coarse, dtype=np.float64),
+        "cost": np.asarray(batch.cost, dtype=np.float64),
+        "n_iter": np.asarray(batch.n_iter, dtype=np.int64),
+        "converged": np.asarray(batch.converged, dtype=bool),
+    }
+
+
+def _empty_columns(n_qoi: int) -> dict[str, np.ndarray]:
+    return {
+        "stage": np.zeros(0, dtype=np.int64),
+        "index": np.zeros(0, dtype=np.int64),
+        "fine": np.zeros((0, n_qoi), dtype=np.float64),
+        "coarse": np.zeros((0, n_qoi), dtype=np.float64),
+        "cost": np.zeros(0, dtype=np.float64),
+        "n_iter": np.zeros((0, 2), dtype=np.int64),
+        "converged": np.zeros((0, 2), dtype=bool),
+    }
+
+
+def _fresh_rows(existing: Mapping[str, np.ndarray], batch: LevelBatch) -> np.ndarray:
+    """Mask of the batch rows not yet stored (first occurrence within the batch wins)."""
+    indices = np.asarray(batch.indices, dtype=np.int64)
+    stored = existing["index"][existing["stage"] == batch.stage]
+    is_new = ~np.isin(indices, stored)
+    is_first = np.zeros(len(indices), dtype=bool)
+    is_first[np.unique(indices, return_index=True)[1]] = True
+    return is_new & is_first
+
+
+def _warn_duplicates(batch: LevelBatch, keep: np.ndarray) -> None:
+    n_dup = int(np.count_nonzero(~keep))
+    if n_dup:
+        shown = ", ".join(str(i) for i in np.asarray(batch.indices)[~keep][:10])
+        more = ", ..." if n_dup > 10 else ""
+        warnings.warn(
+            f"{n_dup} sample(s) of stage {batch.stage}, level {batch.level} already stored and skipped "
+            f"(indices {shown}{more})",
+            DuplicateSampleWarning,
+            stacklevel=3,
+        )
+
+
+def _json_default(value: object) -> object:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON-able")
+
+
+def _encode_record(record: Mapping[str, Any], what: str) -> str:
+    if not isinstance(record, Mapping):
+        raise TypeError(f"{what} must be a mapping, got {type(record).__name__}")
+    try:
+        return json.dumps(dict(record), default=_json_default)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{what} is not JSON-able: {exc}") from None
+
+
+def _check_run_id(run_id: str) -> None:
+    if not isinstance(run_id, str) or not _RUN_ID.match(run_id) or run_id in (".", ".."):
+        raise ValueError(f"run_id must be a non-empty name of letters, digits, '_', '-', '.', got {run_id!r}")
+
+
+# ---------------------------------------------------------------------------
+# The interface
+# ---------------------------------------------------------------------------
+
+
+class StudyStore(ABC):
+    """What the pipeline needs from a study store; see :class:`StudyFile`, :class:`MemoryStore`.
+
+    Attributes
+    ----------
+    config_text : str
+        The resolved config (YAML) the study was created with.
+    config_hash : str
+        Its hash (:func:`rough_uq.config.config_hash`).
+    qoi_names : tuple of str
+        Names of the QoI columns of ``fine`` and ``coarse``.
+    code_version : str
+        roughuq version that created the study.
+    created : str
+        Creation time, ISO 8601 (UTC).
+    """
+
+    config_text: str
+    config_hash: str
+    qoi_names: tuple[str, ...]
+    code_version: str
+    created: str
+
+    @property
+    def n_qoi(self) -> int:
+        """Number of QoI columns."""
+        return len(self.qoi_names)
+
+    # -- storage primitives ------------------------------------------------
+
+    @abstractmethod
+    def _columns(self, level: int) -> dict[str, np.ndarray]:
+        """All stored rows of ``level`` (empty columns if none), in append order."""
+
+    @abstractmethod
+    def _append_rows(self, level: int, rows: dict[str, np.ndarray]) -> None:
+        """Append rows (already free of duplicates) to ``level``."""
+
+    @abstractmethod
+    def _stored_levels(self) -> list[int]:
+        """Levels with a sample group."""
+
+    @abstractmethod
+    def _write_record(self, key: tuple[str, ...], text: str) -> None:
+        """Store JSON text under ``("screening",)`` or ``("runs", run_id)``."""
+
+    @abstractmethod
+    def _read_record(self, key: tuple[str, ...]) -> str | None:
+        """JSON text under ``key``, or None."""
+
+    @abstractmethod
+    def _run_ids(self) -> list[str]:
+        """Run ids in creation order."""
+
+    # -- samples -------------------------------------------------------------
+
+    def append_samples(self, batch: LevelBatch) -> int:
+        """Store the samples of ``batch`` that are not stored yet.
+
+        Samples whose (stage, level, index) is already stored, or repeated
+        within the batch, are skipped with a :class:`DuplicateSampleWarning`.
+
+        Returns
+        -------
+        int
+            Number of samples added.
+        """
+        self._check_writable()
+        if batch.n_qoi != self.n_qoi:
+            raise ValueError(f"batch has {batch.n_qoi} QoI columns, the study has {self.n_qoi} ({self.qoi_names})")
+        if batch.level < 0:
+            raise ValueError(f"level must be >= 0, got {batch.level}")
+        keep = _fresh_rows(self._columns(batch.level), batch)
+        _warn_duplicates(batch, keep)
+        n_new = int(np.count_nonzero(keep))
+        if n_new:
+            rows = {name: values[keep] for name, values in _batch_columns(batch).items()}
+            self._append_rows(batch.level, rows)
+        return n_new
+
+    def read_samples(self, *, level: int, stage: int | None = None) -> LevelBatch:
+        """The stored samples of one level, of one stage or of all stages.
+
+        Rows are ordered by index (one stage) or by (stage, index) (all
+        stages, returned with ``stage = ALL_STAGES``). A level without
+        samples gives an empty batch.
+        """
+        columns = self._columns(level)
+        if stage is not None:
+            selected = columns["stage"] == stage
+            columns = {name: values[selected] for name, values in columns.items()}
+        order = np.lexsort((columns["index"], columns["stage"]))
+        columns = {name: values[order] for name, values in columns.items()}
+        return LevelBatch(
+            level=level,
+            stage=ALL_STAGES if stage is None else stage,
+            indices=columns["index"],
+            fine=columns["fine"],
+            coarse=columns["coarse"],
+            cost=columns["cost"],
+            n_iter=columns["n_iter"],
+            converged=columns["converged"],
+        )
+
+    def sample_indices(self, *, level: int, stage: int) -> np.ndarray:
+        """Sorted indices (int64) of the stored samples of (stage, level)."""
+        columns = self._columns(level)
+        return np.sort(columns["index"][columns["stage"] == stage])
+
+    def levels(self) -> list[int]:
+        """Levels that have stored samples, ascending."""
+        return sorted(level for level in self._stored_levels() if len(self._columns(level)["index"]))
+
+    def stages(self, *, level: int) -> list[int]:
+        """Stages that have stored samples on ``level``, ascending."""
+        return [int(s) for s in np.unique(self._columns(level)["stage"])]
+
+    # -- screening and runs --------------------------------------------------
+
+    def write_screening(self, record: Mapping[str, Any]) -> None:
+        """Store (replace) the screening results, a JSON-able mapping."""
+        self._check_writable()
+        self._write_record(("screening",), _encode_record(record, "screening record"))
+
+    def read_screening(self) -> dict[str, Any] | None:
+        """The screening results, or None if none were written."""
+        text = self._read_record(("screening",))
+        return None if text is None else json.loads(text)
+
+    def write_run(self, run_id: str, record: Mapping[str, Any]) -> None:
+        """Store (create or replace) the record of an estimation run, a JSON-able mapping.
+
+        A replaced run keeps its place in the creation order.
+        """
+        self._check_writable()
+        _check_run_id(run_id)
+        text = _encode_record(record, f"run {run_id!r}")
+        if "run_id" in record and record["run_id"] != run_id:
+            raise ValueError(f"record has run_id {record['run_id']!r}, written as {run_id!r}")
+        self._write_record(("runs", run_id), text)
+
+    def read_runs(self) -> list[dict[str, Any]]:
+        """All run records in creation order, each with its ``run_id``."""
+        runs = []
+        for run_id in self._run_ids():
+            text = self._read_record(("runs", run_id))
+            if text is not None:
+                runs.append({"run_id": run_id, **json.loads(text)})
+        return runs
+
+    # -- life cycle ----------------------------------------------------------
+
+    def _check_writable(self) -> None:
+        """Raise if this store cannot be written."""
+
+    def close(self) -> None:
+        """Release the store (the lock of a study file)."""
+
+    def __enter__(self: _T) -> _T:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------------
+# In memory
+# ---------------------------------------------------------------------------
+
+
+class MemoryStore(StudyStore):
+    """A study store in memory, with the semantics of :class:`StudyFile`.
+
+    Parameters
+    ----------
+    qoi_names : sequence of str
+        Names of the QoI columns.
+    config_text, config_hash, code_version : str, optional
+        Recorded as given.
+    """
+
+    def __init__(
+        self,
+        *,
+        qoi_names: Sequence[str],
+        config_text: str = "",
+        config_hash: str = "",
+        code_version: str = "",
+    ) -> None:
+        self.qoi_names = tuple(qoi_names)
+        self.config_text = config_text
+        self.config_hash = config_hash
+        self.code_version = code_version
+        self.created = _now()
+        self._samples: dict[int, dict[str, np.ndarray]] = {}
+        self._records: dict[tuple[str, ...], str] = {}
+
+    def __repr__(self) -> str:
+        return f"MemoryStore(qoi_names={self.qoi_names!r}, levels={self.levels()!r})"
+
+    def _columns(self, level: int) -> dict[str, np.ndarray]:
+        return self._samples.get(level, _empty_columns(self.n_qoi))
+
+    def _append_rows(self, level: int, rows: dict[str, np.ndarray]) -> None:
+        old = self._columns(level)
+        self._samples[level] = {name: np.concatenate([old[name], rows[name]]) for name in _COLUMNS}
+
+    def _stored_levels(self) -> list[int]:
+        return list(self._samples)
+
+    def _write_record(self, key: tuple[str, ...], text: str) -> None:
+        self._records[key] = text  # dicts keep insertion order: a rewrite keeps its place
+
+    def _read_record(self, key: tuple[str, ...]) -> str | None:
+        return self._records.get(key)
+
+    def _run_ids(self) -> list[str]:
+        return [key[1] for key in self._records if key[0] == "runs"]
+
+
+# ---------------------------------------------------------------------------
+# HDF5 file
+# ---------------------------------------------------------------------------
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _fsync_path(path: Path, *, directory: bool = False) -> None:
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _lock_path(path: Path) -> Path:
+    return path.with_name(path.name + ".lock")
+
+
+def _tmp_path(path: Path) -> Path:
+    return path.with_name(f"{path.name}.tmp-{os.getpid()}")
+
+
+def _remove_stale_tmp(path: Path) -> None:
+    pattern = re.compile(re.escape(path.name) + r"\.tmp-\d+$")
+    try:
+        candidates = list(path.parent.iterdir())
+    except OSError:
+        return
+    for candidate in candidates:
+        if pattern.match(candidate.name):
+            try:
+                candidate.unlink()
+            except OSError:
+                pass  # not ours to fight over; it is ignored either way
+
+
+def _acquire_lock(path: Path) -> int:
+    """Take the exclusive lock of ``path``; return the lock file descriptor."""
+    lock_path = _lock_path(path)
+    for _ in range(100):
+        try:
+            fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise StudyFileError(
+                f"{path}: cannot create the lock file {lock_path.name} in {path.parent} ({exc.strerror})", path
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            holder = os.read(fd, 64).decode("ascii", "replace").strip() or "unknown"
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise StudyFileError(
+                    f"{path} is locked by a running process (pid {holder}); wait for it to finish or use another file",
+                    path,
+                ) from None
+            raise StudyFileError(f"{path}: cannot lock {lock_path.name} ({exc.strerror})", path) from None
+        # The previous holder may have removed the lock file between our open
+        # and our flock; then we hold a lock nobody else can see. Start over.
+        try:
+            is_current = os.fstat(fd).st_ino == os.stat(lock_path).st_ino
+        except FileNotFoundError:
+            is_current = False
+        if is_current:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode("ascii"))
+            return fd
+        os.close(fd)
+    raise StudyFileError(f"{path}: could not take the lock {lock_path.name}", path)
+
+
+def _release_lock(path: Path, fd: int) -> None:
+    try:
+        _lock_path(path).unlink()  # while still holding the lock, see _acquire_lock
+    except FileNotFoundError:
+        pass
+    os.close(fd)
+
+
+def _read_text(dataset: Any) -> str:
+    value = dataset[()]
+    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
+
+
+def _read_header(path: Path) -> dict[str, Any]:
+    """Check that ``path`` is a readable study file of this format; return its header."""
+    if not path.exists():
+        raise StudyFileError(f"{path}: no such study file", path)
+    if not path.is_file():
+        raise StudyFileError(f"{path} is not a file", path)
+    if path.stat().st_size == 0:
+        raise StudyFileError(f"{path} is empty, not a study file", path)
+    try:
+        is_hdf5 = h5py.is_hdf5(path)
+    except OSError as exc:
+        raise StudyFileError(f"{path} cannot be read ({exc})", path) from None
+    if not is_hdf5:
+        raise StudyFileError(f"{path} is not an HDF5 file (so not a roughuq study file)", path)
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            found = f.attrs.get("format")
+            if isinstance(found, bytes):
+                found = found.decode("utf-8", "replace")
+            if found != FORMAT:
+                raise StudyFileError(
+                    f"{path} is an HDF5 file but not a roughuq study file (format {found!r}, expected {FORMAT!r})",
+                    path,
+                )
+            version = f.attrs.get("format_version")
+            if version is None or int(version) != FORMAT_VERSION:
+                raise StudyFileError(
+                    f"{path} has study format version {version}; this roughuq reads version {FORMAT_VERSION}",
+                    path,
+                )
+            return {
+                "config_hash": str(f.attrs["config_hash"]),
+                "code_version": str(f.attrs["code_version"]),
+                "created": str(f.attrs["created"]),
+                "config_text": _read_text(f["config_yaml"]),
+                "qoi_names": tuple(f["qoi_names"].asstr()[()]),
+                "has_samples": isinstance(f.get("samples"), h5py.Group),
+            }
+    except StudyFileError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as exc:
+        raise StudyFileError(f"{path} cannot be read: truncated or damaged study file ({exc})", path) from None
+
+
+def _write_header(
+    f: h5py.File, *, config_text: str, config_hash: str, qoi_names: Sequence[str], code_version: str
+) -> None:
+    f.attrs["format"] = FORMAT
+    f.attrs["format_version"] = np.int64(FORMAT_VERSION)
+    f.attrs["config_hash"] = config_hash
+    f.attrs["code_version"] = code_version
+    f.attrs["created"] = _now()
+    f.create_dataset("config_yaml", data=config_text, dtype=h5py.string_dtype())
+    f.create_dataset("qoi_names", data=list(qoi_names), dtype=h5py.string_dtype())
+    f.create_group("samples")
+    f.create_group("runs")
+
+
+class StudyFile(StudyStore):
+    """A study stored in an HDF5 file (see the module docstring for layout and crash safety).
+
+    Create with :func:`open_study` (writable, locked) or
+    :func:`open_study_readonly`. Use as a context manager; the lock is
+    released on exit.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The study file.
+    read_only : bool
+        Whether writes are refused.
+    """
+
+    def __init__(self, path: Path, header: Mapping[str, Any], *, lock_fd: int | None) -> None:
+        self.path = path
+        self.read_only = lock_fd is None
+        self.config_text = header["config_text"]
+        self.config_hash = header["config_hash"]
+        self.qoi_names = tuple(header["qoi_names"])
+        self.code_version = header["code_version"]
+        self.created = header["created"]
+        self._lock_fd = lock_fd
+        self._is_closed = False
+        # With the lock held nobody else writes the file, so what we read stays
+        # valid until we write it ourselves.
+        self._cache: dict[int, dict[str, np.ndarray]] = {}
+
+    def __repr__(self) -> str:
+        mode = "read-only" if self.read_only else "writable"
+        return f"StudyFile({str(self.path)!r}, {mode}{', closed' if self._is_closed else ''})"
+
+    # -- life cycle ----------------------------------------------------------
+
+    def close(self) -> None:
+        """Release the lock; further writes are refused. Safe to call twice."""
+        if not self._is_closed:
+            self._is_closed = True
+            if self._lock_fd is not None:
+                _release_lock(self.path, self._lock_fd)
+                self._lock_fd = None
+            self._cache.clear()
+
+    def _check_writable(self) -> None:
+        if self.read_only:
+            raise StudyFileError(f"{self.path} was opened read-only", self.path)
+        if self._is_closed:
+            raise StudyFileError(f"{self.path} is closed", self.path)
+
+    # -- file access ----------------------------------------------------------
+
+    def _read(self, action: Callable[[h5py.File], _T]) -> _T:
+        try:
+            with h5py.File(self.path, "r", locking=False) as f:
+                return action(f)
+        except OSError as exc:
+            raise StudyFileError(f"{self.path} cannot be read ({exc})", self.path) from None
+
+    def _transaction(self, action: Callable[[h5py.File], None]) -> None:
+        """Apply ``action`` to a copy of the file, then atomically replace the file by the copy."""
+        self._check_writable()
+        _replace_atomically(self.path, action, copy_from=self.path)
+
+    # -- storage primitives ----------------------------------------------------
+
+    def _columns(self, level: int) -> dict[str, np.ndarray]:
+        if self.read_only or level not in self._cache:
+
+            def read(f: h5py.File) -> dict[str, np.ndarray]:
+                group = f.get(f"samples/level_{level}")
+                if group is None:
+                    return _empty_columns(self.n_qoi)
+                return {name: group[name][()] for name in _COLUMNS}
+
+            columns = self._read(read)
+            if self.read_only:
+                return columns
+            self._cache[level] = columns
+        return self._cache[level]
+
+    def _append_rows(self, level: int, rows: dict[str, np.ndarray]) -> None:
+        def append(f: h5py.File) -> None:
+            group = f["samples"].get(f"level_{level}")
+            if group is None:
+                group = f["samples"].create_group(f"level_{level}")
+                group.attrs["level"] = np.int64(level)
+                for name in _COLUMNS:
+                    tail = rows[name].shape[1:]
+                    group.create_dataset(
+                        name,
+                        shape=(0, *tail),
+                        maxshape=(None, *tail),
+                        chunks=(_CHUNK_ROWS, *tail),
+                        dtype=rows[name].dtype,
+                    )
+            n_old = group["index"].shape[0]
+            n_new = n_old + len(rows["index"])
+            for name in _COLUMNS:
+                dataset = group[name]
+                dataset.resize(n_new, axis=0)
+                dataset[n_old:n_new] = rows[name]
+
+        self._cache.pop(level, None)
+        self._transaction(append)
+
+    def _stored_levels(self) -> list[int]:
+        def read(f: h5py.File) -> list[int]:
+            return [int(group.attrs["level"]) for group in f["samples"].values()]
+
+        return self._read(read)
+
+    def _write_record(self, key: tuple[str, ...], text: str) -> None:
+        data = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
+
+        def write(f: h5py.File) -> None:
+            group = f.get("/".join(key))
+            if group is None:
+                group = f.create_group("/".join(key))
+                if key[0] == "runs":
+                    group.attrs["order"] = np.int64(len(f["runs"]) - 1)
+            if "record" not in group:
+                group.create_dataset(
+                    "record", shape=(0,), maxshape=(None,), chunks=(_RECORD_CHUNK,), dtype=np.uint8
+                )
+            record = group["record"]
+            record.resize(len(data), axis=0)
+            if len(data):
+                record[:] = data
+
+        self._transaction(write)
+
+    def _read_record(self, key: tuple[str, ...]) -> str | None:
+        def read(f: h5py.File) -> str | None:
+            record = f.get("/".join(key) + "/record")
+            return None if record is None else record[()].tobytes().decode("utf-8")
+
+        return self._read(read)
+
+    def _run_ids(self) -> list[str]:
+        def read(f: h5py.File) -> list[str]:
+            runs = f["runs"]
+            return sorted(runs, key=lambda run_id: int(runs[run_id].attrs["order"]))
+
+        return self._read(read)
+
+
+def _replace_atomically(
+    path: Path, action: Callable[[h5py.File], None], *, copy_from: Path | None
+) -> None:
+    """Write ``path`` through a temporary file: copy (or create), change, fsync, rename."""
+    tmp = _tmp_path(path)
+    try:
+        if copy_from is not None:
+            shutil.copyfile(copy_from, tmp)
+            shutil.copymode(copy_from, tmp)
+        with h5py.File(tmp, "r+" if copy_from is not None else "w", locking=False) as f:
+            action(f)
+        _fsync_path(tmp)
+        os.replace(tmp, path)
+        _fsync_path(path.parent, directory=True)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        reason = exc.strerror or str(exc)
+        raise StudyFileError(f"{path}: could not write ({reason}); the study file is unchanged", path) from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def open_study(
+    path: str | os.PathLike[str],
+    *,
+    config_text: str,
+    config_hash: str,
+    qoi_names: Sequence[str],
+    create: bool = True,
+    code_version: str | None = None,
+) -> StudyFile:
+    """Open a study file for writing, creating it if asked; takes the file's lock.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The study file.
+    config_text : str
+        The resolved config (YAML); stored when the file is created.
+    config_hash : str
+        Hash of the config; must equal the stored one of an existing file.
+    qoi_names : sequence of str
+        QoI column names; stored when the file is created.
+    create : bool
+        Create the file (and missing parent directories) if it does not
+        exist. If False, a missing file is an error.
+    code_version : str, optional
+        Recorded when creating; defaults to the installed roughuq version.
+
+    Returns
+    -------
+    StudyFile
+        Writable; close it (or use ``with``) to release the lock.
+
+    Raises
+    ------
+    StudyFileError
+        Missing file (``create=False``), unwritable directory, file locked by
+        another process, not HDF5, truncated or damaged, another format or
+        format version, or written by another config. A refused file is not
+        modified.
+    """
+    path = Path(os.fspath(path))
+    if code_version is None:
+        from rough_uq import __version__
+
+        code_version = __version__
+    if path.exists() or not create:
+        if not path.exists():
+            raise StudyFileError(f"{path}: no such study file", path)
+        _read_header(path)  # refuse foreign files before touching their directory
+    elif create:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StudyFileError(f"{path}: cannot create the directory {path.parent} ({exc.strerror})", path) from None
+        if not os.access(path.parent, os.W_OK | os.X_OK):
+            raise StudyFileError(f"{path}: the directory {path.parent} is not writable", path)
+    lock_fd = _acquire_lock(path)
+    try:
+        if not path.exists():
+            _replace_atomically(
+                path,
+                lambda f: _write_header(
+                    f,
+                    config_text=config_text,
+                    config_hash=config_hash,
+                    qoi_names=qoi_names,
+                    code_version=str(code_version),
+                ),
+                copy_from=None,
+            )
+        header = _read_header(path)
+        if not header["has_samples"]:
+            raise StudyFileError(f"{path} cannot be read: damaged study file (no samples group)", path)
+        if header["config_hash"] != config_hash:
+            raise StudyFileError(
+                f"{path} was written by another config "
+                f"(hash {header['config_hash'][:12]}… ≠ {config_hash[:12]}…); "
+                "use a new --out/--study file or the original config",
+                path,
+            )
+        _remove_stale_tmp(path)  # left by a killed writer; we hold the lock, so none is live
+    except BaseException:
+        _release_lock(path, lock_fd)
+        raise
+    return StudyFile(path, header, lock_fd=lock_fd)
+
+
+def open_study_readonly(path: str | os.PathLike[str]) -> StudyFile:
+    """Open an existing study file for reading (no lock, no config needed).
+
+    The stored config is in ``config_text`` and ``config_hash``. Raises
+    :class:`StudyFileError` like :func:`open_study`.
+    """
+    path = Path(os.fspath(path))
+    header = _read_header(path)
+    return StudyFile(path, header, lock_fd=None)

@@ -1,0 +1,302 @@
+"""The study config: shipped configs load, every defect is named, the hash is canonical."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pydantic
+import pytest
+import yaml
+
+from rough_uq import config as config_module
+from rough_uq.config import (
+    config_from_dict,
+    config_hash,
+    load_config,
+    resolved_yaml,
+    solver_memory_bytes,
+)
+from rough_uq.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parent.parent
+SHIPPED = sorted((ROOT / "configs").glob("*.yaml"))
+BAD = ROOT / "tests" / "data" / "bad_configs"
+
+# One line per problem: "<field.path>: <what> (got <value>; allowed: <what>)"
+LINE = re.compile(r"^\S+: .+ \(got .+; allowed: .+\)$")
+
+
+def _base() -> dict:
+    return {
+        "schema_version": 1,
+        "seed": 7,
+        "surface": {
+            "system_size": 2.0,
+            "wavelengths": {"lambda_l": 1.0, "lambda_r": 1.0, "lambda_s": 1 / 64},
+            "hurst": 0.8,
+            "rms_height": 1.0,
+        },
+        "material": {"e_star": 1.0},
+        "load": {"relative": 0.1},
+        "qoi": {"contact_area": {"unit": "percent", "tol": 0.5}},
+        "grid": {"coarsest": 256, "max_level": 2},
+    }
+
+
+def _message(data: object) -> str:
+    with pytest.raises(ConfigError) as info:
+        config_from_dict(data)
+    return str(info.value)
+
+
+# ---------------------------------------------------------------------------
+# Shipped configs
+# ---------------------------------------------------------------------------
+
+
+def test_three_configs_are_shipped() -> None:
+    assert {p.name for p in SHIPPED} >= {"quickstart.yaml", "classic_area.yaml", "classic_clusters.yaml"}
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
+def test_shipped_config_loads_and_round_trips(path: Path) -> None:
+    config = load_config(path)
+    again = config_from_dict(yaml.safe_load(resolved_yaml(config)))
+    assert again == config
+    assert config_hash(again) == config_hash(config)
+    assert resolved_yaml(again) == resolved_yaml(config)
+
+
+def test_classic_configs_match_the_reference_setting() -> None:
+    area = load_config(ROOT / "configs" / "classic_area.yaml")
+    assert (area.surface.k_l, area.surface.k_r, area.surface.k_s) == (2.0, 2.0, 128.0)
+    assert area.surface.hurst == 0.8 and area.surface.rms_height == 1.0
+    assert area.material.e_star == 1.0
+    assert (area.load.kind, area.load.value) == ("relative", 0.1)
+    assert area.grid.coarsest == 256
+    assert area.qoi_names == ("contact_area",) and area.qoi["contact_area"].unit == "percent"
+
+    clusters = load_config(ROOT / "configs" / "classic_clusters.yaml")
+    assert clusters.surface.system_size == 3.0
+    assert (clusters.surface.k_l, clusters.surface.k_r, clusters.surface.k_s) == (3.0, 3.0, 192.0)
+    assert clusters.grid.coarsest == 128
+    settings = clusters.qoi["clusters"]
+    assert (settings.unit, settings.connectivity) == ("per_area", 8)
+
+
+def test_defaults_are_filled_in() -> None:
+    config = config_from_dict(_base())
+    assert config.solver.tol == 1e-8 and config.solver.max_iter == 10000
+    assert config.solver.warm_start is True and config.solver.threads == 1
+    assert config.grid.projection == "truncation"
+    assert config.screening.levels == 3 and config.screening.samples == 20
+    assert config.estimation.theta == 0.5 and config.estimation.max_cost is None
+    assert config.output.path == "results.h5"
+    assert config.grid.n_at(2) == 1024 == config.grid.finest
+    text = resolved_yaml(config)
+    assert "max_iter: 10000" in text and "wavenumbers" not in text and "absolute" not in text
+
+
+def test_wavenumbers_and_wavelengths_resolve_alike() -> None:
+    data = _base()
+    data["surface"].pop("wavelengths")
+    data["surface"]["wavenumbers"] = {"k_l": 2, "k_r": 2, "k_s": 128}
+    by_k = config_from_dict(data)
+    by_lambda = config_from_dict(_base())
+    assert (by_k.surface.k_l, by_k.surface.k_r, by_k.surface.k_s) == (2.0, 2.0, 128.0)
+    assert (by_lambda.surface.k_l, by_lambda.surface.k_r, by_lambda.surface.k_s) == (2.0, 2.0, 128.0)
+    assert config_hash(by_k) == config_hash(by_lambda)
+
+
+def test_config_is_frozen() -> None:
+    config = config_from_dict(_base())
+    with pytest.raises(pydantic.ValidationError):
+        config.seed = 3  # type: ignore[misc]
+
+
+def test_qoi_order_is_kept_and_bare_names_allowed(tmp_path: Path) -> None:
+    text = yaml.safe_dump(_base(), sort_keys=False).replace(
+        "qoi:\n  contact_area:\n    unit: percent\n    tol: 0.5\n",
+        "qoi:\n  mean_gap:\n  clusters: {connectivity: 8}\n  contact_area: {unit: fraction}\n",
+    )
+    path = tmp_path / "study.yaml"
+    path.write_text(text)
+    config = load_config(path)
+    assert config.qoi_names == ("mean_gap", "clusters", "contact_area")
+    assert config.qoi["clusters"].unit == "per_area"
+    assert list(yaml.safe_load(resolved_yaml(config))["qoi"]) == ["mean_gap", "clusters", "contact_area"]
+
+
+def test_exponent_without_dot_is_a_number(tmp_path: Path) -> None:
+    # YAML 1.1 reads 1e-6 as a string; a user writing it means a number.
+    path = tmp_path / "study.yaml"
+    path.write_text(yaml.safe_dump(_base()) + "solver:\n  tol: 1e-6\n  max_iter: 1e3\n")
+    config = load_config(path)
+    assert config.solver.tol == 1e-6 and config.solver.max_iter == 1000
+
+
+# ---------------------------------------------------------------------------
+# One bad config per defect
+# ---------------------------------------------------------------------------
+
+BAD_CASES = {
+    "wrong_type": ("grid.coarsest: ", "got 'big'"),
+    "unknown_key": ("surface.colour: unknown key", "got 'red'"),
+    "hurst_out_of_range": ("surface.hurst: ", "got 1.5"),
+    "negative_load": ("load.relative: ", "got -0.1"),
+    "unresolved_rolloff": ("grid.coarsest: ", "got 32"),
+    "both_spectra": ("surface.wavelengths: ", "got both of wavelengths and wavenumbers"),
+    "not_yaml": ("not_yaml.yaml: not valid YAML at line 7", "expected ','"),
+    "empty": ("empty.yaml: the file is empty", "got no content"),
+    "missing_section": ("material: required section is missing", "got nothing"),
+    "grid_too_large": ("grid.max_level: ", "got 16"),
+    "wavenumbers_out_of_order": ("surface.wavenumbers: cut-offs are out of order", "got k_l=4, k_r=2, k_s=16"),
+    "screening_too_many_levels": ("screening.levels: ", "got 5"),
+    "unknown_qoi": ("qoi.area: unknown quantity of interest", "got 'area'"),
+    "wrong_schema_version": ("schema_version: ", "got 2"),
+    "top_level_list": ("top_level_list.yaml: the top level must be a mapping", "got a list"),
+    "duplicate_key": ("duplicate_key.yaml: not valid YAML at line 4", "duplicate key 'seed'"),
+}
+
+
+def test_every_bad_config_file_has_a_case() -> None:
+    assert {p.stem for p in BAD.glob("*.yaml")} == set(BAD_CASES)
+
+
+@pytest.mark.parametrize("name", sorted(BAD_CASES))
+def test_bad_config_names_field_and_value(name: str) -> None:
+    path_part, value_part = BAD_CASES[name]
+    with pytest.raises(ConfigError) as info:
+        load_config(BAD / f"{name}.yaml")
+    lines = str(info.value).splitlines()
+    assert len(lines) == 1, lines
+    assert path_part in lines[0] and value_part in lines[0]
+    assert LINE.match(lines[0]), lines[0]
+    assert info.value.problems == tuple(lines)
+
+
+def test_unresolved_rolloff_message_explains_nyquist() -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config(BAD / "unresolved_rolloff.yaml")
+    assert "Nyquist wave number is n_0/2 = 16" in str(info.value)
+    assert "k_r = 20" in str(info.value)
+    assert ">= 42" in str(info.value)
+
+
+def test_missing_file_is_a_config_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.yaml")
+
+
+def test_one_line_per_problem() -> None:
+    data = _base()
+    data["surface"]["hurst"] = -1
+    data["material"]["e_star"] = 0
+    data["grid"]["projection"] = "spline"
+    data["qoi"] = {"clusters": {"connectivity": 6, "bogus": 1}}
+    lines = _message(data).splitlines()
+    assert len(lines) == 5, lines
+    assert all(LINE.match(line) for line in lines), lines
+    starts = sorted(line.split(":")[0] for line in lines)
+    assert starts == [
+        "grid.projection",
+        "material.e_star",
+        "qoi.clusters.bogus",
+        "qoi.clusters.connectivity",
+        "surface.hurst",
+    ]
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        (lambda d: d["load"].update(absolute=0.01), "load.relative: give the load exactly once"),
+        (lambda d: d["load"].clear(), "got neither of relative and absolute"),
+        (lambda d: d["grid"].update(coarsest=255), "grid.coarsest: must be even (got 255"),
+        (lambda d: d["grid"].update(projection="injection"), "grid.projection: injection needs"),
+        (lambda d: d.update(seed=True), "seed: must be a number, not a boolean (got True"),
+        (lambda d: d["surface"].update(rms_height=float("nan")), "surface.rms_height: must be a finite number"),
+        (lambda d: d.update(qoi={}), "qoi: at least one quantity of interest"),
+        (lambda d: d.update(qoi={"area_above": {}}), "qoi.area_above.critical_pressure: required field is missing"),
+        (lambda d: d.update(qoi={"mean_gap": 3}), "qoi.mean_gap: must be a mapping (got 3"),
+        (lambda d: d.update(material=5), "material: must be a mapping (got 5"),
+        (lambda d: d.update(estimation={"theta": 1.0}), "estimation.theta: must be less than 1"),
+        (lambda d: d.update(solver={"warm_start": "maybe"}), "solver.warm_start: "),
+        (
+            lambda d: d["surface"].update(wavelengths={"lambda_l": 1 / 1.2, "lambda_r": 1 / 1.25, "lambda_s": 1 / 1.3}),
+            "no non-zero integer wave vector",
+        ),
+    ],
+)
+def test_more_defects(change, expected: str) -> None:
+    data = _base()
+    change(data)
+    assert expected in _message(data)
+
+
+def test_memory_check_uses_the_documented_estimate(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert solver_memory_bytes(1024) == 20 * 8 * 1024**2
+    # Pretend the machine has just enough memory for a 512 x 512 solve.
+    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(512))
+    data = _base()
+    data["grid"] = {"coarsest": 256, "max_level": 1}
+    data["screening"] = {"levels": 2}
+    config_from_dict(data)
+    data["grid"]["max_level"] = 2
+    message = _message(data)
+    assert message.startswith("grid.max_level: the finest grid 1024 x 1024")
+    assert "allowed: integer <= 1" in message
+
+
+# ---------------------------------------------------------------------------
+# Hash
+# ---------------------------------------------------------------------------
+
+
+def test_hash_is_stable_and_tracks_physics_only() -> None:
+    reference = config_hash(config_from_dict(_base()))
+    assert re.fullmatch(r"[0-9a-f]{64}", reference)
+    assert config_hash(config_from_dict(_base())) == reference
+
+    def hash_with(change) -> str:
+        data = _base()
+        change(data)
+        return config_hash(config_from_dict(data))
+
+    assert hash_with(lambda d: d.update(output={"path": "elsewhere/other.h5"})) == reference
+    assert hash_with(lambda d: d.update(solver={"threads": 4})) == reference
+    assert hash_with(lambda d: d.update(solver={"tol": 1e-8})) == reference  # a default spelled out
+    assert hash_with(lambda d: d["surface"].update(hurst=0.7)) != reference
+    assert hash_with(lambda d: d.update(seed=8)) != reference
+    assert hash_with(lambda d: d["load"].update(relative=0.2)) != reference
+    assert hash_with(lambda d: d.update(solver={"tol": 1e-6})) != reference
+    assert hash_with(lambda d: d["grid"].update(projection="truncation")) == reference
+
+
+def test_hash_depends_on_qoi_order() -> None:
+    first = _base()
+    first["qoi"] = {"contact_area": {}, "mean_gap": {}}
+    second = _base()
+    second["qoi"] = {"mean_gap": {}, "contact_area": {}}
+    assert config_hash(config_from_dict(first)) != config_hash(config_from_dict(second))
+
+
+def test_every_number_field_states_its_unit() -> None:
+    words = ("unit", "dimensionless", "count", "seconds", "periods per box", "seed", "fraction", "percent")
+    models = [
+        obj
+        for obj in vars(config_module).values()
+        if isinstance(obj, type) and issubclass(obj, pydantic.BaseModel) and obj.__module__ == config_module.__name__
+    ]
+    assert len(models) >= 15
+    n_checked = 0
+    for model in models:
+        for name, info in model.model_fields.items():
+            if info.exclude:
+                continue
+            assert info.description, f"{model.__name__}.{name} has no description"
+            if "float" in repr(info.annotation) or "int" in repr(info.annotation):
+                n_checked += 1
+                assert any(w in info.description.lower() for w in words), f"{model.__name__}.{name}: {info.description}"
+    assert n_checked >= 20

@@ -1,0 +1,459 @@
+"""Study stores: HDF5 file and in-memory twin behave alike; files are refused safely."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from rough_uq import store as store_module
+from rough_uq.errors import StudyFileError
+from rough_uq.sampler import LevelBatch
+from rough_uq.store import (
+    ALL_STAGES,
+    FORMAT,
+    FORMAT_VERSION,
+    DuplicateSampleWarning,
+    MemoryStore,
+    StudyFile,
+    open_study,
+    open_study_readonly,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+QOI = ("contact_area", "clusters")
+HASH = "a" * 64
+OTHER_HASH = "b" * 64
+CONFIG_TEXT = "schema_version: 1\nseed: 7\n"
+
+
+def make_batch(level: int, stage: int, indices, *, n_qoi: int = 2) -> LevelBatch:
+    indices = np.asarray(indices, dtype=np.int64)
+    n = len(indices)
+    base = indices[:, None] + 10.0 * level + 100.0 * stage
+    fine = base + np.arange(n_qoi) / 10
+    converged = np.ones((n, 2), dtype=bool)
+    converged[indices % 3 == 0, 1] = False
+    return LevelBatch(
+        level=level,
+        stage=stage,
+        indices=indices,
+        fine=fine,
+        coarse=np.zeros_like(fine) if level == 0 else fine - 0.5,
+        cost=0.01 * (indices + 1),
+        n_iter=np.stack([indices + 5, np.full(n, 0 if level == 0 else 3)], axis=1),
+        converged=converged,
+    )
+
+
+def new_study(path: Path, **kwargs) -> StudyFile:
+    options = {"config_text": CONFIG_TEXT, "config_hash": HASH, "qoi_names": QOI, "code_version": "test"}
+    options.update(kwargs)
+    return open_study(path, **options)
+
+
+def fingerprint(path: Path) -> tuple[str, int]:
+    return hashlib.sha256(path.read_bytes()).hexdigest(), path.stat().st_mtime_ns
+
+
+def assert_same_batch(a: LevelBatch, b: LevelBatch) -> None:
+    assert (a.level, a.stage) == (b.level, b.stage)
+    for name in ("indices", "fine", "coarse", "cost", "n_iter", "converged"):
+        left, right = getattr(a, name), getattr(b, name)
+        assert left.dtype == right.dtype, name
+        np.testing.assert_array_equal(left, right, err_msg=name)
+
+
+@pytest.fixture(params=["hdf5", "memory"])
+def store(request, tmp_path: Path):
+    if request.param == "memory":
+        yield MemoryStore(qoi_names=QOI, config_text=CONFIG_TEXT, config_hash=HASH)
+    else:
+        with new_study(tmp_path / "study.h5") as study:
+            yield study
+
+
+# ---------------------------------------------------------------------------
+# Semantics shared by both stores
+# ---------------------------------------------------------------------------
+
+
+def test_roundtrip_orders_by_index(store) -> None:
+    written = make_batch(1, 4, [5, 2, 9])
+    assert store.append_samples(written) == 3
+    read = store.read_samples(level=1, stage=4)
+    order = np.argsort(written.indices)
+    expected = LevelBatch(
+        level=1,
+        stage=4,
+        indices=written.indices[order],
+        fine=written.fine[order],
+        coarse=written.coarse[order],
+        cost=written.cost[order],
+        n_iter=written.n_iter[order],
+        converged=written.converged[order],
+    )
+    assert_same_batch(read, expected)
+    assert read.n_qoi == 2 and not read.is_converged.all()
+
+
+def test_duplicates_are_skipped_with_a_warning(store) -> None:
+    assert store.append_samples(make_batch(0, 0, [0, 1, 2])) == 3
+    with pytest.warns(DuplicateSampleWarning, match="3 sample"):  # 2, the second 3, 1
+        assert store.append_samples(make_batch(0, 0, [2, 3, 3, 1])) == 1
+    with pytest.warns(DuplicateSampleWarning):
+        assert store.append_samples(make_batch(0, 0, [0])) == 0
+    # The same index in another stage or level is another sample.
+    assert store.append_samples(make_batch(0, 1, [0, 1])) == 2
+    assert store.append_samples(make_batch(1, 0, [0])) == 1
+    np.testing.assert_array_equal(store.sample_indices(level=0, stage=0), [0, 1, 2, 3])
+    assert store.read_samples(level=0, stage=0).n_samples == 4
+    assert store.read_samples(level=0).n_samples == 6
+
+
+def test_all_stages_and_empty_levels(store) -> None:
+    store.append_samples(make_batch(2, 3, [1, 0]))
+    store.append_samples(make_batch(2, 1, [4]))
+    both = store.read_samples(level=2)
+    assert both.stage == ALL_STAGES
+    np.testing.assert_array_equal(both.indices, [4, 0, 1])  # stage 1 first, then stage 3 by index
+    assert store.levels() == [2]
+    assert store.stages(level=2) == [1, 3]
+    empty = store.read_samples(level=0, stage=0)
+    assert empty.n_samples == 0 and empty.fine.shape == (0, 2) and empty.converged.dtype == bool
+    assert store.sample_indices(level=5, stage=0).size == 0
+
+
+def test_batch_with_wrong_qoi_count_is_a_bug(store) -> None:
+    with pytest.raises(ValueError, match="QoI columns"):
+        store.append_samples(make_batch(0, 0, [0], n_qoi=3))
+
+
+def test_runs_and_screening_roundtrip(store) -> None:
+    assert store.read_screening() is None and store.read_runs() == []
+    screening = {"alpha": 1.5, "V": np.array([1e-2, 1e-3]), "n": np.int64(20), "kurtosis": [float("nan")]}
+    store.write_screening(screening)
+    read = store.read_screening()
+    assert read["alpha"] == 1.5 and read["V"] == [1e-2, 1e-3] and read["n"] == 20
+    assert math.isnan(read["kurtosis"][0])
+
+    store.write_run("run-2", {"kind": "mlmc", "tol": 0.5, "N_l": [10, 0]})
+    store.write_run("run-1", {"kind": "mc", "tol": 1.0})
+    store.write_run("run-2", {"kind": "mlmc", "tol": 0.5, "N_l": [40, 12], "done": True})
+    runs = store.read_runs()
+    assert [r["run_id"] for r in runs] == ["run-2", "run-1"]  # creation order survives a rewrite
+    assert runs[0] == {"run_id": "run-2", "kind": "mlmc", "tol": 0.5, "N_l": [40, 12], "done": True}
+
+
+def test_bad_records_are_refused(store) -> None:
+    with pytest.raises(TypeError, match="JSON"):
+        store.write_run("r", {"x": object()})
+    with pytest.raises(TypeError, match="mapping"):
+        store.write_screening([1, 2])  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="run_id"):
+        store.write_run("a/b", {})
+    with pytest.raises(ValueError, match="run_id"):
+        store.write_run("x", {"run_id": "y"})
+    assert store.read_runs() == []
+
+
+def test_file_and_memory_store_are_equivalent(tmp_path: Path) -> None:
+    memory = MemoryStore(qoi_names=QOI)
+    operations = [
+        make_batch(0, 0, range(12)),
+        make_batch(1, 0, [3, 1, 2]),
+        make_batch(0, 1, [7, 0]),
+        make_batch(1, 0, [2, 5]),  # one duplicate
+        make_batch(2, 2, []),
+    ]
+    with new_study(tmp_path / "study.h5") as study:
+        for batch in operations:
+            with pytest.warns(DuplicateSampleWarning) if batch.level == 1 and 5 in batch.indices else _no_warning():
+                assert study.append_samples(batch) == memory.append_samples(batch)
+        for s in (study, memory):
+            s.write_run("r", {"estimate": np.float64(0.25)})
+    assert study.levels() == memory.levels() == [0, 1]
+    reopened = open_study_readonly(tmp_path / "study.h5")
+    for level in (0, 1, 2):
+        for stage in (None, 0, 1, 2):
+            assert_same_batch(
+                reopened.read_samples(level=level, stage=stage), memory.read_samples(level=level, stage=stage)
+            )
+    assert reopened.read_runs() == memory.read_runs()
+
+
+class _no_warning:
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, *args) -> None:
+        return None
+
+
+# ---------------------------------------------------------------------------
+# The file: header, resume, refusal
+# ---------------------------------------------------------------------------
+
+
+def test_header_and_layout(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(1, 0, [0, 1]))
+        study.write_run("r1", {"tol": 0.1})
+        study.write_screening({"alpha": 1.0})
+    with h5py.File(path, "r") as f:
+        assert f.attrs["format"] == FORMAT and f.attrs["format_version"] == FORMAT_VERSION
+        assert f.attrs["config_hash"] == HASH and f.attrs["code_version"] == "test"
+        assert "T" in f.attrs["created"]
+        assert f["config_yaml"].asstr()[()] == CONFIG_TEXT
+        assert tuple(f["qoi_names"].asstr()[()]) == QOI
+        level = f["samples/level_1"]
+        assert level["fine"].shape == (2, 2) and level["fine"].maxshape == (None, 2)
+        assert level["stage"].dtype == np.int64 and level["converged"].dtype == bool
+        assert json.loads(f["runs/r1/record"][()].tobytes()) == {"tol": 0.1}
+        assert json.loads(f["screening/record"][()].tobytes()) == {"alpha": 1.0}
+    assert sorted(os.listdir(tmp_path)) == ["study.h5"]  # no lock or temporary file left
+
+
+def test_resume_with_matching_hash(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, [0, 1]))
+    with new_study(path, create=False, config_text="ignored: 1\n", code_version="later") as study:
+        assert study.config_text == CONFIG_TEXT and study.code_version == "test"
+        np.testing.assert_array_equal(study.sample_indices(level=0, stage=0), [0, 1])
+        assert study.append_samples(make_batch(0, 0, [2])) == 1
+    assert open_study_readonly(path).read_samples(level=0, stage=0).n_samples == 3
+
+
+def test_mismatched_hash_is_refused_and_file_unchanged(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, [0]))
+    before = fingerprint(path)
+    time.sleep(0.01)
+    with pytest.raises(StudyFileError, match="written by another config") as info:
+        new_study(path, config_hash=OTHER_HASH)
+    assert "aaaaaaaaaaaa" in str(info.value) and "bbbbbbbbbbbb" in str(info.value)
+    assert "--out" in str(info.value)
+    assert fingerprint(path) == before
+    assert sorted(os.listdir(tmp_path)) == ["study.h5"]
+
+
+def _valid_bytes(tmp_path: Path) -> bytes:
+    path = tmp_path / "valid.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, range(50)))
+    data = path.read_bytes()
+    path.unlink()
+    return data
+
+
+def _not_hdf5(path: Path, tmp_path: Path) -> None:
+    path.write_text("this is not HDF5\n")
+
+
+def _truncated(path: Path, tmp_path: Path) -> None:
+    data = _valid_bytes(tmp_path)
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _empty(path: Path, tmp_path: Path) -> None:
+    path.write_bytes(b"")
+
+
+def _wrong_version(path: Path, tmp_path: Path) -> None:
+    path.write_bytes(_valid_bytes(tmp_path))
+    with h5py.File(path, "r+") as f:
+        f.attrs["format_version"] = 2
+
+
+def _foreign_hdf5(path: Path, tmp_path: Path) -> None:
+    with h5py.File(path, "w") as f:
+        f["data"] = np.arange(3)
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (_not_hdf5, "not an HDF5 file"),
+        (_truncated, "truncated or damaged"),
+        (_empty, "is empty"),
+        (_wrong_version, "format version 2; this roughuq reads version 1"),
+        (_foreign_hdf5, "not a roughuq study file"),
+    ],
+    ids=["not-hdf5", "truncated", "empty", "wrong-version", "foreign-hdf5"],
+)
+@pytest.mark.parametrize("opener", ["create", "resume", "readonly"])
+def test_bad_files_are_refused_and_unchanged(tmp_path: Path, make, message: str, opener: str) -> None:
+    path = tmp_path / "study.h5"
+    make(path, tmp_path)
+    before = fingerprint(path)
+    with pytest.raises(StudyFileError, match=message) as info:
+        if opener == "readonly":
+            open_study_readonly(path)
+        else:
+            new_study(path, create=opener == "create")
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+    assert fingerprint(path) == before
+    assert sorted(os.listdir(tmp_path)) == ["study.h5"]
+
+
+def test_missing_file_is_refused_when_not_creating(tmp_path: Path) -> None:
+    with pytest.raises(StudyFileError, match="no such study file"):
+        new_study(tmp_path / "missing.h5", create=False)
+    with pytest.raises(StudyFileError, match="no such study file"):
+        open_study_readonly(tmp_path / "missing.h5")
+    assert os.listdir(tmp_path) == []
+
+
+def test_create_makes_parent_directories(tmp_path: Path) -> None:
+    with new_study(tmp_path / "a" / "b" / "study.h5") as study:
+        assert study.path.exists()
+
+
+def test_unusable_directory_is_refused_before_any_work(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(StudyFileError, match="cannot create the directory"):
+        new_study(blocker / "study.h5")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write to read-only directories")
+def test_read_only_directory_is_refused(tmp_path: Path) -> None:
+    directory = tmp_path / "ro"
+    directory.mkdir()
+    directory.chmod(0o555)
+    try:
+        with pytest.raises(StudyFileError, match="not writable"):
+            new_study(directory / "study.h5")
+    finally:
+        directory.chmod(0o755)
+
+
+def test_failed_write_leaves_file_unchanged(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, [0]))
+        before = fingerprint(path)
+
+        def disk_full(*args, **kwargs):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(store_module, "_fsync_path", disk_full)
+        with pytest.raises(StudyFileError, match="No space left on device.*unchanged"):
+            study.append_samples(make_batch(0, 0, [1]))
+        monkeypatch.undo()
+        assert fingerprint(path) == before
+        assert sorted(os.listdir(tmp_path)) == ["study.h5", "study.h5.lock"]
+        np.testing.assert_array_equal(study.sample_indices(level=0, stage=0), [0])
+        assert study.append_samples(make_batch(0, 0, [1])) == 1  # the sample was not counted
+
+
+def test_read_only_and_closed_files_refuse_writes(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    study = new_study(path)
+    study.close()
+    with pytest.raises(StudyFileError, match="closed"):
+        study.append_samples(make_batch(0, 0, [0]))
+    reader = open_study_readonly(path)
+    assert reader.config_hash == HASH and reader.config_text == CONFIG_TEXT and reader.qoi_names == QOI
+    with pytest.raises(StudyFileError, match="read-only"):
+        reader.write_run("r", {})
+
+
+# ---------------------------------------------------------------------------
+# Locking and crash safety
+# ---------------------------------------------------------------------------
+
+
+def test_second_writer_is_refused_while_locked(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path):
+        with pytest.raises(StudyFileError, match=f"locked by a running process \\(pid {os.getpid()}\\)"):
+            new_study(path)
+        assert open_study_readonly(path).config_hash == HASH  # readers need no lock
+    with new_study(path, create=False):
+        pass
+
+
+def _child(code: str) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
+
+
+_CHILD_PRELUDE = f"""
+import sys, numpy as np
+sys.path.insert(0, {str(ROOT / 'tests')!r})
+from test_store import make_batch, new_study
+from pathlib import Path
+"""
+
+
+def test_lock_of_a_killed_process_is_released(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    code = _CHILD_PRELUDE + (
+        f"study = new_study(Path({str(path)!r}))\nprint('ready', flush=True)\nimport time\ntime.sleep(60)\n"
+    )
+    with _child(code) as child:
+        try:
+            assert child.stdout.readline().strip() == "ready", child.stderr.read()
+            with pytest.raises(StudyFileError, match=f"pid {child.pid}"):
+                new_study(path)
+        finally:
+            child.kill()
+            child.wait()
+    with new_study(path, create=False) as study:
+        assert study.read_samples(level=0).n_samples == 0
+
+
+def test_kill_during_appends_loses_nothing_acknowledged(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    code = _CHILD_PRELUDE + (
+        f"study = new_study(Path({str(path)!r}))\n"
+        "for start in range(0, 10**6, 5):\n"
+        "    study.append_samples(make_batch(0, 0, range(start, start + 5)))\n"
+        "    print(start + 5, flush=True)\n"
+    )
+    acknowledged = 0
+    with _child(code) as child:
+        try:
+            while acknowledged < 40:
+                line = child.stdout.readline()
+                assert line, child.stderr.read()
+                acknowledged = int(line)
+        finally:
+            child.kill()  # SIGKILL, at whatever point the writer is
+            child.wait()
+        for line in child.stdout.read().split():
+            acknowledged = int(line)
+    with new_study(path, create=False) as study:
+        stored = study.sample_indices(level=0, stage=0)
+        assert acknowledged <= stored.size <= acknowledged + 5
+        np.testing.assert_array_equal(stored, np.arange(stored.size))
+    assert sorted(os.listdir(tmp_path)) == ["study.h5"]  # the temporary copy is gone
+
+
+def test_stale_temporary_file_is_removed(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path):
+        pass
+    stale = tmp_path / "study.h5.tmp-999999"
+    stale.write_bytes(b"half a file")
+    unrelated = tmp_path / "other.h5.tmp-1"
+    unrelated.write_bytes(b"")
+    assert open_study_readonly(path).qoi_names == QOI  # readers ignore it
+    with new_study(path, create=False):
+        assert not stale.exists()
+    assert unrelated.exists()
