@@ -972,13 +972,22 @@ def load_config(path: str | os.PathLike[str]) -> StudyConfig:
     except (OSError, UnicodeDecodeError) as exc:
         line = f"{name}: cannot be read: {exc} (got {name!r}; allowed: a readable UTF-8 YAML file)"
         raise _config_error([line]) from None
+    return config_from_yaml_text(text, source=name)
+
+
+def config_from_yaml_text(text: str, *, source: str = "config") -> StudyConfig:
+    """Parse and validate a config given as YAML text (e.g. the copy stored in a study file).
+
+    ``source`` names the input in messages. Raises :class:`ConfigError` like
+    :func:`load_config`.
+    """
     try:
         data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
     except yaml.YAMLError as exc:
-        raise _config_error([_yaml_error_line(name, exc)]) from None
+        raise _config_error([_yaml_error_line(source, exc)]) from None
     if data is None:
-        raise _config_error([f"{name}: the file is empty (got no content; allowed: a YAML mapping of sections)"])
-    return config_from_dict(data, source=name)
+        raise _config_error([f"{source}: the file is empty (got no content; allowed: a YAML mapping of sections)"])
+    return config_from_dict(data, source=source)
 
 
 def _config_error(lines: list[str]) -> ConfigError:
@@ -1036,15 +1045,21 @@ def resolved_yaml(config: StudyConfig) -> str:
 def config_hash(config: StudyConfig) -> str:
     """SHA-256 (hex) of everything in the config that affects computed numbers.
 
-    The hashed document is the resolved config with ``output`` and
-    ``solver.threads`` removed, the spectrum replaced by its resolved wave
-    numbers ``{k_l, k_r, k_s}``, and the quantities of interest as a list of
-    ``[name, settings]`` pairs (their order is the column order), serialised
-    as JSON with sorted keys and no whitespace.
+    The hashed document is the resolved config without what only steers a
+    run and leaves every stored sample valid: ``output``, ``solver.threads``,
+    the ``estimation`` section and each quantity's ``tol`` (tolerances are
+    per run; ``roughuq mlmc --tol`` overrides them anyway). The spectrum is
+    replaced by its resolved wave numbers ``{k_l, k_r, k_s}``, and the
+    quantities of interest become a list of ``[name, settings]`` pairs (their
+    order is the column order), serialised as JSON with sorted keys and no
+    whitespace.
     """
     data = _resolved_dict(config)
     del data["output"]
     del data["solver"]["threads"]
+    del data["estimation"]
+    for settings in data["qoi"].values():
+        settings.pop("tol", None)
     surface = data["surface"]
     surface.pop("wavelengths", None)
     surface["wavenumbers"] = {"k_l": config.surface.k_l, "k_r": config.surface.k_r, "k_s": config.surface.k_s}

@@ -12,6 +12,7 @@ import yaml
 from rough_uq import config as config_module
 from rough_uq.config import (
     config_from_dict,
+    config_from_yaml_text,
     config_hash,
     load_config,
     resolved_yaml,
@@ -272,6 +273,17 @@ def test_hash_is_stable_and_tracks_physics_only() -> None:
     assert hash_with(lambda d: d["load"].update(relative=0.2)) != reference
     assert hash_with(lambda d: d.update(solver={"tol": 1e-6})) != reference
     assert hash_with(lambda d: d["grid"].update(projection="truncation")) == reference
+    # Per-run settings leave every stored sample valid.
+    assert hash_with(lambda d: d.update(estimation={"theta": 0.3, "batch_size": 3})) == reference
+    assert hash_with(lambda d: d["qoi"]["contact_area"].update(tol=0.05)) == reference
+    assert hash_with(lambda d: d["qoi"]["contact_area"].update(unit="fraction")) != reference
+
+
+def test_config_from_yaml_text_roundtrips_resolved_yaml() -> None:
+    config = config_from_dict(_base())
+    assert config_from_yaml_text(resolved_yaml(config), source="study.h5") == config
+    with pytest.raises(ConfigError, match="study.h5: not valid YAML"):
+        config_from_yaml_text("a: [", source="study.h5")
 
 
 def test_hash_depends_on_qoi_order() -> None:
