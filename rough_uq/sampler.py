@@ -1,20 +1,85 @@
-"""Level samples: what one batch of MLMC samples on one level carries.
+"""Level samples: how one contact sample is computed, and what a batch of them carries.
 
 A *level* ``l`` is the grid ``n_l = n_0 * 2**l``. A sample on level ``l``
 gives the quantities of interest on that grid (``fine``) and, from the same
 surface realisation projected on grid ``n_{l-1}``, on the next coarser one
 (``coarse``; zero on level 0). Samples are identified by ``(stage, level,
-index)``, which is also the key of their random stream (SPEC section 7):
-``stage`` tells the screening and each estimation run apart.
+index)``, which is also the key of their random stream (SPEC section 7)::
+
+    rng = Generator(PCG64(SeedSequence(seed, spawn_key=(stage, level, index))))
+
+so any sample can be recomputed alone, in any process, in any order.
+
+Stages
+------
+``STAGE_SCREENING`` (0) holds the screening samples, ``STAGE_MLMC`` (1) the
+samples of every MLMC run and ``STAGE_MC`` (2) those of every plain MC run.
+Runs of one method share their stage: a run at a tighter tolerance uses the
+first ``N_l`` samples of each level, i.e. the samples of looser runs plus new
+ones (each run's estimate is still that of ``N_l`` independent samples). MC
+samples are not coupled: ``coarse`` is zero and only the fine grid is solved.
+
+Cost
+----
+Planning needs each sample's cost, and the plan must not depend on how fast a
+particular process happened to run, or the same study would draw different
+``N_l`` serially and on a cluster. The cost handed to the estimators is
+therefore *modelled* (:func:`modelled_cost`): reference seconds computed from
+the grid sizes and solver iteration counts, with constants fitted once on the
+reference machine. The measured wall time is kept beside it (``LevelBatch.cost``)
+and reported.
+
+Non-convergence
+---------------
+A solve that does not reach ``tol`` within ``max_iter`` is continued from
+where it stopped for ``RETRY_FACTOR * max_iter`` more iterations. If it still
+fails, the sample keeps the QoIs of its last iterate and is flagged
+(``converged`` False); the pipeline counts and reports flagged samples and
+never drops them silently.
 """
 
 from __future__ import annotations
 
+import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LevelBatch"]
+from rough_uq.qoi import evaluate_qoi
+from rough_uq.solver import ContactSolution, solve_contact
+from rough_uq.surface import SurfaceSpectrum, sample_coupled, sample_surface
+
+__all__ = [
+    "LevelBatch",
+    "ContactModel",
+    "STAGE_SCREENING",
+    "STAGE_MLMC",
+    "STAGE_MC",
+    "STAGES",
+    "RETRY_FACTOR",
+    "sample_rng",
+    "modelled_cost",
+    "compute_batch",
+]
+
+STAGE_SCREENING = 0
+STAGE_MLMC = 1
+STAGE_MC = 2
+#: Stage names, as used on the command line.
+STAGES = {"screening": STAGE_SCREENING, "mlmc": STAGE_MLMC, "mc": STAGE_MC}
+
+#: A non-converged solve is continued for this many times ``max_iter`` more iterations.
+RETRY_FACTOR = 10
+
+#: Cost model of one solve, ``(n_iter + COST_EXTRA_ITERATIONS) * (COST_PER_POINT
+#: * n^2 log2(n^2) + COST_PER_ITERATION)`` reference seconds. Fitted on the
+#: reference machine (2 cores, 1 thread per solve, 2026-11-23; within 10% from 32^2
+#: to 512^2 there, ``scripts/calibrate_cost.py``);
+#: the extra iterations stand for the surface synthesis and the QoIs.
+COST_PER_POINT = 1.9e-9
+COST_PER_ITERATION = 5.0e-5
+COST_EXTRA_ITERATIONS = 2
 
 
 @dataclass(frozen=True)
@@ -81,3 +146,181 @@ class LevelBatch:
     def is_converged(self) -> np.ndarray:
         """Boolean mask, shape (n,): both solves of the sample converged."""
         return np.all(self.converged, axis=1)
+
+
+@dataclass(frozen=True)
+class ContactModel:
+    """Everything needed to compute a sample: the random surface, the contact problem and the QoIs.
+
+    Built by the pipeline from a study config; picklable, so worker processes
+    receive it once.
+
+    Attributes
+    ----------
+    spectrum : SurfaceSpectrum
+        The surface's power spectrum (carries the box side ``L``).
+    coarsest : int
+        Nodes per side of level 0, ``n_0``.
+    projection : {"truncation", "injection"}
+        How the coarse surface of a coupled sample is obtained.
+    e_star : float
+        Effective modulus (pressure unit).
+    mean_pressure : float
+        Imposed mean pressure (unit of ``e_star``).
+    qoi_names : tuple of str
+        Quantities of interest, in column order (:data:`rough_uq.qoi.QOI_NAMES`).
+    qoi_scales : tuple of float
+        Factor from the raw QoI (area fraction, cluster count, ...) to its
+        reported unit (e.g. 100 for percent), one per QoI.
+    seed : int
+        Study seed.
+    tol, max_iter, warm_start, threads
+        Solver settings (:func:`~rough_uq.solver.solve_contact`); with
+        ``warm_start`` the fine solve starts from the coarse pressure.
+    connectivity : {4, 8}
+        Cluster connectivity.
+    critical_pressure : float or None
+        Threshold of ``area_above``.
+    """
+
+    spectrum: SurfaceSpectrum
+    coarsest: int
+    projection: str
+    e_star: float
+    mean_pressure: float
+    qoi_names: tuple[str, ...]
+    qoi_scales: tuple[float, ...]
+    seed: int
+    tol: float = 1e-8
+    max_iter: int = 10_000
+    warm_start: bool = True
+    threads: int = 1
+    connectivity: int = 4
+    critical_pressure: float | None = None
+
+    def grid(self, level: int) -> int:
+        """Nodes per side of ``level``."""
+        return self.coarsest * 2**level
+
+    @property
+    def n_qoi(self) -> int:
+        """Number of quantities of interest."""
+        return len(self.qoi_names)
+
+
+def sample_rng(seed: int, stage: int, level: int, index: int) -> np.random.Generator:
+    """The random generator of sample ``(stage, level, index)`` of a study (SPEC section 7)."""
+    sequence = np.random.SeedSequence(seed, spawn_key=(int(stage), int(level), int(index)))
+    return np.random.Generator(np.random.PCG64(sequence))
+
+
+def _solve_cost(n: int, n_iter: np.ndarray) -> np.ndarray:
+    per_iteration = COST_PER_POINT * n * n * math.log2(n * n) + COST_PER_ITERATION
+    return (n_iter + COST_EXTRA_ITERATIONS) * per_iteration
+
+
+def modelled_cost(model: ContactModel, level: int, n_iter: np.ndarray, *, is_coupled: bool = True) -> np.ndarray:
+    """Modelled cost of samples in reference seconds (module docstring).
+
+    Parameters
+    ----------
+    model : ContactModel
+    level : int
+    n_iter : ndarray of int, shape (n, 2)
+        Iterations of the fine and coarse solves.
+    is_coupled : bool
+        Whether the samples include the coarse solve (level >= 1, not MC).
+
+    Returns
+    -------
+    ndarray of float64, shape (n,)
+    """
+    n_iter = np.asarray(n_iter, dtype=float).reshape(-1, 2)
+    cost = _solve_cost(model.grid(level), n_iter[:, 0])
+    if is_coupled and level > 0:
+        cost = cost + _solve_cost(model.grid(level - 1), n_iter[:, 1])
+    return cost
+
+
+def _solve(model: ContactModel, heights: np.ndarray, initial: np.ndarray | None) -> tuple[ContactSolution, int]:
+    """Solve, continuing once with ``RETRY_FACTOR * max_iter`` iterations if needed; total iterations."""
+    options = dict(
+        system_size=model.spectrum.system_size,
+        mean_pressure=model.mean_pressure,
+        e_star=model.e_star,
+        tol=model.tol,
+        threads=model.threads,
+    )
+    solution = solve_contact(heights, max_iter=model.max_iter, initial_pressure=initial, **options)
+    n_iter = solution.n_iter
+    if not solution.converged:
+        solution = solve_contact(
+            heights,
+            max_iter=RETRY_FACTOR * model.max_iter,
+            initial_pressure=solution.pressure,
+            **options,
+        )
+        n_iter += solution.n_iter
+    return solution, n_iter
+
+
+def _qoi(model: ContactModel, solution: ContactSolution) -> np.ndarray:
+    values = evaluate_qoi(
+        model.qoi_names,
+        pressure=solution.pressure,
+        gap=solution.gap,
+        connectivity=model.connectivity,
+        critical_pressure=model.critical_pressure,
+    )
+    return values * np.asarray(model.qoi_scales)
+
+
+def compute_batch(model: ContactModel, *, stage: int, level: int, indices: np.ndarray) -> LevelBatch:
+    """Compute samples ``(stage, level, i)`` for ``i`` in ``indices``.
+
+    Samples of the MLMC stages pair the level-``l`` solve with the coarse solve of the
+    same surface (:func:`~rough_uq.surface.sample_coupled`); samples of
+    ``STAGE_MC`` and of level 0 solve the fine grid only (``coarse`` zero).
+    Each sample's QoIs depend only on ``model`` and ``(stage, level, index)``.
+
+    Returns
+    -------
+    LevelBatch
+        With the measured wall time per sample as ``cost``.
+    """
+    indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+    n = len(indices)
+    fine = np.zeros((n, model.n_qoi))
+    coarse = np.zeros((n, model.n_qoi))
+    cost = np.zeros(n)
+    n_iter = np.zeros((n, 2), dtype=np.int64)
+    converged = np.ones((n, 2), dtype=bool)
+    is_coupled = stage != STAGE_MC and level > 0
+    n_fine = model.grid(level)
+    for row, index in enumerate(indices):
+        start = time.perf_counter()
+        rng = sample_rng(model.seed, stage, level, index)
+        initial = None
+        if is_coupled:
+            heights, coarse_heights = sample_coupled(model.spectrum, n_fine, rng, projection=model.projection)
+            solution, n_iter[row, 1] = _solve(model, coarse_heights, None)
+            converged[row, 1] = solution.converged
+            coarse[row] = _qoi(model, solution)
+            if model.warm_start:
+                initial = solution.pressure
+        else:
+            heights = sample_surface(model.spectrum, n_fine, rng)
+        solution, n_iter[row, 0] = _solve(model, heights, initial)
+        converged[row, 0] = solution.converged
+        fine[row] = _qoi(model, solution)
+        cost[row] = time.perf_counter() - start
+    return LevelBatch(
+        level=level,
+        stage=stage,
+        indices=indices,
+        fine=fine,
+        coarse=coarse,
+        cost=cost,
+        n_iter=n_iter,
+        converged=converged,
+    )

@@ -1,0 +1,285 @@
+"""The ``roughuq`` command line: thin click commands over :mod:`rough_uq.pipeline`.
+
+User errors (:class:`~rough_uq.errors.RoughUQError`: bad config, missing or
+mismatched study file, bad option values) print one line ``error: ...`` and
+exit with status 2; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+
+from rough_uq import __version__
+from rough_uq.errors import RoughUQError
+
+DEFAULT_STUDY = "results.h5"
+
+
+def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
+    """Turn a RoughUQError into one line on stderr and exit status 2."""
+    import functools
+
+    @functools.wraps(command)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return command(*args, **kwargs)
+        except RoughUQError as exc:
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            click.echo("interrupted: every completed sample is saved; run the same command to continue", err=True)
+            sys.exit(130)
+
+    return wrapper
+
+
+def _console() -> Any:
+    from rich.console import Console
+
+    return Console()
+
+
+def _progress(quiet: bool) -> Any:
+    from rough_uq.progress import make_progress
+
+    return make_progress(is_quiet=quiet)
+
+
+def _executor(config: Any, workers: int | None, executor: str, scheduler: str | None) -> Any:
+    from rough_uq.executor import make_executor
+
+    return make_executor(executor, workers=workers, threads=config.solver.threads, scheduler=scheduler)
+
+
+def _dump(data: Any) -> None:
+    click.echo(json.dumps(data, indent=2, default=str))
+
+
+_workers_option = click.option(
+    "--workers", type=click.IntRange(min=1), default=None,
+    help="Worker processes (default: cores // solver.threads; 1 = in this process).",
+)
+_executor_option = click.option(
+    "--executor", type=click.Choice(["local", "dask"]), default="local", show_default=True,
+    help="Where samples are computed: local processes or a dask.distributed cluster.",
+)
+_scheduler_option = click.option(
+    "--scheduler", default=None, metavar="ADDRESS", help="dask scheduler address (with --executor dask)."
+)
+_quiet_option = click.option("--quiet", "-q", is_flag=True, help="No progress output.")
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="roughuq")
+def main() -> None:
+    """roughuq: statistics of rough-surface contact with Multilevel Monte Carlo.
+
+    A study is one YAML config and one HDF5 file: `roughuq screen CONFIG`
+    creates it and fits the rates, `roughuq mlmc --tol EPS` and `roughuq mc
+    --tol EPS` run estimations into it, `roughuq report FILE` shows it.
+    """
+    # FFTW's and numba's thread pools otherwise busy-wait against each other.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+@main.command()
+@click.argument("config_path", metavar="CONFIG", type=click.Path(dir_okay=False))
+@_user_errors
+def validate(config_path: str) -> None:
+    """Check a study config and summarise it."""
+    from rough_uq.config import load_config, solver_memory_bytes
+
+    config = load_config(config_path)
+    grids = [config.grid.n_at(level) for level in range(config.grid.max_level + 1)]
+    click.echo(f"{config_path}: valid (schema version {config.schema_version})")
+    click.echo(f"  QoIs: {', '.join(f'{n} [{s.unit_label}]' for n, s in config.qoi.items())}")
+    click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about "
+               f"{solver_memory_bytes(grids[-1]) / 2**20:.0f} MiB)")
+    click.echo(f"  screening: levels 0..{config.screening.levels - 1}, {config.screening.samples} samples each")
+    click.echo(f"  study file: {config.output.path}")
+
+
+@main.command()
+@click.argument("config_path", metavar="CONFIG", type=click.Path(dir_okay=False), required=False)
+@click.option("--level", type=click.IntRange(min=0), default=0, show_default=True, help="Grid level.")
+@click.option("--index", type=click.IntRange(min=0), default=0, show_default=True, help="Sample index.")
+@_user_errors
+def solve(config_path: str | None, level: int, index: int) -> None:
+    """Solve one sample and print its QoIs, iterations and time (a demo).
+
+    Without CONFIG, the shipped quickstart config is used. The sample is
+    screening sample INDEX of LEVEL, i.e. exactly what `roughuq screen` stores.
+    """
+    from rough_uq.config import load_config
+    from rough_uq.pipeline import build_model
+    from rough_uq.sampler import STAGE_SCREENING, compute_batch
+
+    config = load_config(config_path or _shipped_config("quickstart.yaml"))
+    model = build_model(config)
+    start = time.perf_counter()
+    batch = compute_batch(model, stage=STAGE_SCREENING, level=level, indices=[index])
+    seconds = time.perf_counter() - start
+    n = model.grid(level)
+    click.echo(f"grid {n} x {n}, mean pressure {model.mean_pressure:.4g} (E* = {model.e_star:g})")
+    for name, settings, value in zip(config.qoi_names, config.qoi.values(), batch.fine[0]):
+        click.echo(f"  {name}: {value:.6g} {settings.unit_label}")
+    status = "converged" if batch.converged[0, 0] else "NOT converged"
+    click.echo(f"  solver: {batch.n_iter[0, 0]} iterations ({status}), {seconds:.3f} s")
+
+
+def _shipped_config(name: str) -> str:
+    here = Path(__file__).resolve().parent.parent / "configs" / name
+    if not here.exists():
+        raise RoughUQError(f"shipped config {name} not found next to the package; give a CONFIG path")
+    return str(here)
+
+
+@main.command()
+@click.argument("config_path", metavar="CONFIG", type=click.Path(dir_okay=False))
+@click.option("--out", "out", type=click.Path(dir_okay=False), default=None,
+              help="Study file (default: the config's output.path).")
+@_workers_option
+@_executor_option
+@_scheduler_option
+@_quiet_option
+@click.option("--json", "as_json", is_flag=True, help="Print the screening record as JSON.")
+@_user_errors
+def screen(config_path: str, out: str | None, workers: int | None, executor: str, scheduler: str | None,
+           quiet: bool, as_json: bool) -> None:
+    """Screen the levels: fit alpha, beta, gamma and predict what accuracy will cost.
+
+    Creates the study file (or continues an interrupted screening in it).
+    """
+    from rough_uq.config import load_config
+    from rough_uq.pipeline import create_study, run_screening
+    from rough_uq.report import complexity, render_screening
+
+    config = load_config(config_path)
+    with create_study(config, out) as study, _executor(config, workers, executor, scheduler) as pool:
+        outcome = run_screening(study, executor=pool, progress=_progress(quiet or as_json))
+        path = study.store.path
+    record = dict(outcome.record)
+    rates = record["rates"]
+    record["complexity"] = [complexity(a, b, rates["gamma"]) for a, b in zip(rates["alpha"], rates["beta"])]
+    if as_json:
+        _dump(record)
+        return
+    console = _console()
+    render_screening(console, record, config.qoi_names)
+    for text in record["warnings"]:
+        console.print(f"[yellow]warning:[/yellow] {text}")
+    console.print(f"study file: {path}")
+
+
+def _estimation_command(method: str) -> Callable[..., Any]:
+    @click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS",
+                  help="Target RMS error: a number (single QoI) or NAME=EPS per QoI; default: the config's qoi tol.")
+    @click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY,
+                  show_default=True, help="Study file.")
+    @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+                  help="Config to take estimation settings and tolerances from (must match the study's).")
+    @click.option("--max-cost", type=click.FloatRange(min=0, min_open=True), default=None,
+                  help="Budget in reference seconds (default: the config's estimation.max_cost).")
+    @click.option("--plan", "show_plan", is_flag=True, help="Print the samples still missing; compute nothing.")
+    @click.option("--json", "as_json", is_flag=True, help="Print the result (or the plan) as JSON.")
+    @_workers_option
+    @_executor_option
+    @_scheduler_option
+    @_quiet_option
+    @_user_errors
+    def command(tol: Sequence[str], study_path: str, config_path: str | None, max_cost: float | None,
+                show_plan: bool, as_json: bool, workers: int | None, executor: str, scheduler: str | None,
+                quiet: bool) -> None:
+        from rough_uq.config import load_config
+        from rough_uq.pipeline import missing_samples, open_existing_study, parse_tolerances, run_estimation
+
+        config = load_config(config_path) if config_path else None
+        with open_existing_study(study_path, config=config, writable=not show_plan) as study:
+            tolerances = parse_tolerances(tol, study.config)
+            if show_plan:
+                _print_plan(missing_samples(study, method=method, tol=tolerances), method, as_json)
+                return
+            with _executor(study.config, workers, executor, scheduler) as pool:
+                record = run_estimation(study, method=method, tol=tolerances, executor=pool,
+                                        progress=_progress(quiet or as_json), max_cost=max_cost)
+        if as_json:
+            _dump(record)
+        else:
+            _print_run(record)
+
+    return command
+
+
+def _print_plan(missing: dict[int, Any], method: str, as_json: bool) -> None:
+    from rough_uq.sampler import STAGES
+
+    rows = [{"stage": method, "stage_id": STAGES[method], "level": level, "n_missing": int(indices.size),
+             "indices": _ranges(indices)} for level, indices in missing.items()]
+    if as_json:
+        _dump(rows)
+        return
+    for row in rows:
+        click.echo(f"level {row['level']}: {row['n_missing']} missing  {' '.join(row['indices']) or '-'}")
+
+
+def _ranges(indices: Any) -> list[str]:
+    """Contiguous runs of sorted indices as ``A:B`` (half-open), the form `roughuq sample --indices` takes."""
+    out: list[str] = []
+    values = [int(i) for i in indices]
+    start = prev = None
+    for value in values + [None]:
+        if start is None:
+            start = prev = value
+        elif value is not None and value == prev + 1:
+            prev = value
+        else:
+            out.append(f"{start}:{prev + 1}")
+            start = prev = value
+    return out
+
+
+def _print_run(record: dict[str, Any]) -> None:
+    from rough_uq.report import render_runs
+
+    render_runs(_console(), [{"run_id": "", **record}], record["qoi_names"])
+    for text in record["warnings"]:
+        click.echo(f"warning: {text}", err=True)
+    if record["n_not_converged"]:
+        click.echo(f"warning: {record['n_not_converged']} samples with a non-converged solve are included", err=True)
+
+
+main.command(name="mlmc", help="Multilevel Monte Carlo to a tolerance; samples and result go to the study file.")(
+    _estimation_command("mlmc")
+)
+main.command(name="mc", help="Plain Monte Carlo on the finest level the tolerance needs (the baseline).")(
+    _estimation_command("mc")
+)
+
+
+@main.command()
+@click.argument("study_path", metavar="FILE", type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@_user_errors
+def report(study_path: str, as_json: bool) -> None:
+    """Show what a study file holds: config, screening, rates, every run, warnings."""
+    from rough_uq.pipeline import open_existing_study
+    from rough_uq.report import render_report, study_report
+
+    with open_existing_study(study_path, writable=False) as study:
+        data = study_report(study.store, study.config)
+    if as_json:
+        _dump(data)
+    else:
+        render_report(data, _console())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

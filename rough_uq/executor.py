@@ -1,0 +1,263 @@
+"""Where samples are computed: in this process, in a local process pool, or on a dask cluster.
+
+An executor takes work items ``(stage, level, indices)`` of a
+:class:`~rough_uq.sampler.ContactModel` and yields the computed
+:class:`~rough_uq.sampler.LevelBatch` es *as they complete*, in any order.
+Every sample depends only on the model and its ``(stage, level, index)``
+(:mod:`rough_uq.sampler`), so the executor cannot change a number: serial,
+pooled and distributed runs store identical samples.
+
+Threads
+-------
+Each solve uses the config's ``solver.threads`` FFTW/numba threads in every
+executor (changing the thread count may change the rounding of FFTs and of
+parallel reductions, so it is fixed per study). The pool defaults to
+``cores // threads`` worker processes, so workers do not oversubscribe the
+cores; workers are told ``OMP_NUM_THREADS`` (and the BLAS equivalents) =
+``threads`` and ``OMP_WAIT_POLICY=PASSIVE`` (FFTW's threads and numba's
+OpenMP threads otherwise spin against each other).
+
+Workers are started with ``spawn``: forking a process that has already run
+OpenMP threads is unsafe, and a forked child would inherit the study file's
+lock. Each worker builds its FFT plans once and reuses them for all its
+samples. Workers ignore Ctrl-C; the parent stops them.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+
+import numpy as np
+
+from rough_uq.errors import InvalidParameterError, RoughUQError
+from rough_uq.sampler import ContactModel, LevelBatch, compute_batch
+
+__all__ = [
+    "Executor",
+    "ExecutorError",
+    "SerialExecutor",
+    "PoolExecutor",
+    "DaskExecutor",
+    "default_workers",
+    "make_executor",
+    "thread_environment",
+]
+
+WorkItem = tuple[int, int, np.ndarray]
+"""``(stage, level, indices)``."""
+
+
+class ExecutorError(RoughUQError):
+    """A worker process or the cluster failed; samples already stored are kept."""
+
+
+def default_workers(threads: int = 1) -> int:
+    """Worker processes that fill the cores available to this process without oversubscription."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    return max(1, cores // max(1, threads))
+
+
+def thread_environment(threads: int) -> dict[str, str]:
+    """Environment variables that pin a worker's native thread pools to ``threads``."""
+    value = str(int(threads))
+    return {
+        "OMP_NUM_THREADS": value,
+        "OPENBLAS_NUM_THREADS": value,
+        "MKL_NUM_THREADS": value,
+        "NUMBA_NUM_THREADS": value,
+        "OMP_WAIT_POLICY": "PASSIVE",
+    }
+
+
+class Executor(ABC):
+    """Computes work items and yields their batches as they complete."""
+
+    #: Number of samples computed at once.
+    n_workers: int = 1
+
+    @abstractmethod
+    def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
+        """Compute ``items``; yield one :class:`LevelBatch` per item, in completion order.
+
+        Closing the iterator early (e.g. on Ctrl-C) cancels what has not started.
+        """
+
+    def close(self) -> None:
+        """Release workers (idempotent)."""
+
+    def __enter__(self) -> Executor:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+class SerialExecutor(Executor):
+    """Computes every item in this process, in order."""
+
+    def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
+        for stage, level, indices in items:
+            yield compute_batch(model, stage=stage, level=level, indices=indices)
+
+
+def _init_worker() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _compute(model: ContactModel, stage: int, level: int, indices: np.ndarray) -> LevelBatch:
+    return compute_batch(model, stage=stage, level=level, indices=indices)
+
+
+class PoolExecutor(Executor):
+    """A local pool of ``n_workers`` spawned processes (module docstring).
+
+    Parameters
+    ----------
+    n_workers : int
+        Number of worker processes (>= 1).
+    threads : int
+        Native threads per worker (the study's ``solver.threads``).
+    """
+
+    def __init__(self, n_workers: int, *, threads: int = 1) -> None:
+        if int(n_workers) < 1:
+            raise InvalidParameterError("workers", n_workers, "an integer >= 1")
+        self.n_workers = int(n_workers)
+        self.threads = int(threads)
+        self._pool: ProcessPoolExecutor | None = None
+
+    def _start(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            # Spawned children copy os.environ when they start; set it for them
+            # and restore ours right after.
+            saved = dict(os.environ)
+            os.environ.update(thread_environment(self.threads))
+            try:
+                self._pool = ProcessPoolExecutor(
+                    max_workers=self.n_workers,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_init_worker,
+                )
+                # Start every worker now, while the environment is set.
+                list(self._pool.map(int, range(self.n_workers)))
+            finally:
+                os.environ.clear()
+                os.environ.update(saved)
+        return self._pool
+
+    def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
+        pool = self._start()
+        queue = list(items)
+        pending: set[Future] = set()
+        is_done = False
+        try:
+            # Keep a bounded number of items in flight so cancelling is cheap.
+            while queue or pending:
+                while queue and len(pending) < 2 * self.n_workers:
+                    stage, level, indices = queue.pop(0)
+                    pending.add(pool.submit(_compute, model, stage, level, indices))
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    yield future.result()
+            is_done = True
+        except BrokenProcessPool as exc:
+            self._pool = None
+            raise ExecutorError(
+                "a worker process died while computing samples (killed, or out of memory); samples "
+                "already stored are kept: run the command again to compute the rest"
+            ) from exc
+        finally:
+            if not is_done:
+                for future in pending:
+                    future.cancel()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+
+class DaskExecutor(Executor):
+    """Sends work items to a ``dask.distributed`` cluster (optional extra ``dask``).
+
+    Parameters
+    ----------
+    scheduler : str or distributed.Client
+        Address of a running scheduler (``tcp://host:8786``) or a client.
+
+    The model is scattered to the workers once per run; each item is one task.
+    The cluster's workers should run one thread each per ``solver.threads``
+    (e.g. ``dask worker --nthreads 1``); roughuq does not manage them.
+    """
+
+    def __init__(self, scheduler: object) -> None:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise ExecutorError(
+                "the dask executor needs the optional extra: pip install 'roughuq[dask]'"
+            ) from None
+        if isinstance(scheduler, Client):
+            self._client = scheduler
+            self._owns_client = False
+        else:
+            try:
+                self._client = Client(str(scheduler), timeout="10s", set_as_default=False)
+            except OSError as exc:
+                raise ExecutorError(f"cannot reach the dask scheduler at {scheduler!r}: {exc}") from None
+            self._owns_client = True
+        self.n_workers = max(1, sum(self._client.nthreads().values()))
+
+    def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
+        from distributed import as_completed
+
+        model_future = self._client.scatter(model, broadcast=True)
+        futures = [
+            self._client.submit(_compute, model_future, stage, level, indices, pure=False)
+            for stage, level, indices in items
+        ]
+        is_done = False
+        try:
+            for future in as_completed(futures):
+                try:
+                    yield future.result()
+                except Exception as exc:
+                    if isinstance(exc, RoughUQError):
+                        raise
+                    raise ExecutorError(f"a dask task failed: {type(exc).__name__}: {exc}") from exc
+            is_done = True
+        finally:
+            if not is_done:
+                self._client.cancel(futures)
+
+    def close(self) -> None:
+        if self._owns_client:
+            self._client.close()
+            self._owns_client = False
+
+
+def make_executor(kind: str, *, workers: int | None = None, threads: int = 1, scheduler: str | None = None) -> Executor:
+    """The executor the CLI's ``--executor``/``--workers``/``--scheduler`` ask for.
+
+    ``kind`` is ``"local"`` (serial when ``workers == 1``, else a pool of
+    ``workers``, default :func:`default_workers`) or ``"dask"`` (needs ``scheduler``).
+    """
+    if kind == "dask":
+        if not scheduler:
+            raise InvalidParameterError("scheduler", scheduler, "the address of a dask scheduler, e.g. tcp://host:8786")
+        return DaskExecutor(scheduler)
+    if kind != "local":
+        raise InvalidParameterError("executor", kind, "'local' or 'dask'")
+    n_workers = default_workers(threads) if workers is None else int(workers)
+    if n_workers < 1:
+        raise InvalidParameterError("workers", workers, "an integer >= 1")
+    return SerialExecutor() if n_workers == 1 else PoolExecutor(n_workers, threads=threads)

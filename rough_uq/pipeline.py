@@ -1,0 +1,754 @@
+"""The study pipeline: config + store + executor -> screening and estimation runs.
+
+This is the only module that reads the config and meets the store. It
+
+* builds the :class:`~rough_uq.sampler.ContactModel` of a config
+  (:func:`build_model`): the mean pressure of a relative load is
+  ``relative * E* * rms_slope`` (SPEC section 6), contact and
+  ``area_above`` fractions are scaled by 100 for ``percent``, cluster counts
+  divided by ``L^2`` for ``per_area``;
+* serves the estimators a sampler backed by the study file
+  (:class:`StudySampler`): samples already stored are read back, missing ones
+  are computed by the executor and appended as they arrive (at least every
+  :data:`FLUSH_SECONDS`, and at the end of each batch the estimator asks for),
+  so an interrupted run loses at most a few seconds of work and its rerun
+  replays the same decisions from the stored samples;
+* runs the screening (:func:`run_screening`) and MLMC / MC estimation runs
+  (:func:`run_estimation`) and stores their records.
+
+Cost used for planning is the modelled cost of :mod:`rough_uq.sampler`
+(reference seconds, independent of the process that computed a sample); the
+records carry both it and the measured wall time.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rough_uq import __version__
+from rough_uq.config import StudyConfig, config_from_yaml_text, config_hash, resolved_yaml
+from rough_uq.errors import EstimationError, RoughUQError, StudyFileError
+from rough_uq.estimator import BatchDone, Finished, PlanUpdated, iter_mc, iter_mlmc
+from rough_uq.executor import Executor, SerialExecutor
+from rough_uq.progress import Progress
+from rough_uq.sampler import (
+    STAGE_MC,
+    STAGE_MLMC,
+    STAGE_SCREENING,
+    ContactModel,
+    LevelBatch,
+    modelled_cost,
+)
+from rough_uq.screening import (
+    EstimationWarning,
+    LevelStatistics,
+    Plan,
+    Rates,
+    diagnose,
+    fit_rates,
+    level_statistics,
+    plan,
+)
+from rough_uq.store import StudyFile, StudyStore, open_study, open_study_readonly
+from rough_uq.surface import SurfaceSpectrum
+
+__all__ = [
+    "FLUSH_SECONDS",
+    "PREDICTION_FACTORS",
+    "Study",
+    "StudySampler",
+    "build_model",
+    "create_study",
+    "open_existing_study",
+    "parse_tolerances",
+    "run_screening",
+    "run_estimation",
+    "screening_statistics",
+    "missing_samples",
+    "run_id",
+]
+
+#: Longest time computed samples wait in memory before they are written.
+FLUSH_SECONDS = 2.0
+#: Tolerances of the screening's cost predictions, as multiples of the base tolerance.
+PREDICTION_FACTORS = (2.0, 1.0, 0.5, 0.25, 0.125)
+
+
+# ---------------------------------------------------------------------------
+# Study = config + store + model
+# ---------------------------------------------------------------------------
+
+
+def build_model(config: StudyConfig) -> ContactModel:
+    """The contact model (surface, load, solver, QoIs) of a study config."""
+    surface = config.surface
+    spectrum = SurfaceSpectrum(
+        system_size=surface.system_size,
+        k_l=surface.k_l,
+        k_r=surface.k_r,
+        k_s=surface.k_s,
+        hurst=surface.hurst,
+        rms_height=surface.rms_height,
+    )
+    e_star = config.material.e_star
+    if config.load.kind == "relative":
+        mean_pressure = config.load.value * e_star * spectrum.rms_slope
+    else:
+        mean_pressure = config.load.value
+    scales = []
+    connectivity, critical_pressure = 4, None
+    for name, settings in config.qoi.items():
+        scale = 1.0
+        if getattr(settings, "unit", None) == "percent":
+            scale = 100.0
+        elif getattr(settings, "unit", None) == "per_area":
+            scale = 1.0 / surface.system_size**2
+        if name == "clusters":
+            connectivity = settings.connectivity
+        if name == "area_above":
+            critical_pressure = settings.critical_pressure
+        scales.append(scale)
+    return ContactModel(
+        spectrum=spectrum,
+        coarsest=config.grid.coarsest,
+        projection=config.grid.projection,
+        e_star=e_star,
+        mean_pressure=mean_pressure,
+        qoi_names=config.qoi_names,
+        qoi_scales=tuple(scales),
+        seed=config.seed,
+        tol=config.solver.tol,
+        max_iter=config.solver.max_iter,
+        warm_start=config.solver.warm_start,
+        threads=config.solver.threads,
+        connectivity=connectivity,
+        critical_pressure=critical_pressure,
+    )
+
+
+@dataclass
+class Study:
+    """An open study: its config, its store and the model of its samples."""
+
+    config: StudyConfig
+    store: StudyStore
+    model: ContactModel = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.model = build_model(self.config)
+
+    def close(self) -> None:
+        self.store.close()
+
+    def __enter__(self) -> Study:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+def create_study(config: StudyConfig, path: str | Path | None = None) -> Study:
+    """Open the study file of ``config`` for writing, creating it if missing.
+
+    An existing file must have been created with the same config (hash of
+    everything that changes numbers); otherwise :class:`StudyFileError`.
+    """
+    path = Path(path if path is not None else config.output.path)
+    store = open_study(
+        path,
+        config_text=resolved_yaml(config),
+        config_hash=config_hash(config),
+        qoi_names=config.qoi_names,
+        create=True,
+        code_version=__version__,
+    )
+    return Study(config, store)
+
+
+def _stored_config(store: StudyStore) -> StudyConfig:
+    path = getattr(store, "path", "study")
+    return config_from_yaml_text(store.config_text, source=f"{path} (stored config)")
+
+
+def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, writable: bool = True) -> Study:
+    """Open an existing study file.
+
+    The study's config is the one stored in the file unless ``config`` is
+    given; a given config must hash like the stored one (it may differ in
+    estimation settings and QoI tolerances, which do not change samples).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise StudyFileError(
+            f"study file {str(path)!r} does not exist; create it with `roughuq screen CONFIG --out {path}`",
+            path,
+        )
+    with open_study_readonly(path) as header:
+        config_text, stored_hash, qoi_names = header.config_text, header.config_hash, header.qoi_names
+        stored = _stored_config(header)
+    if config is not None and config_hash(config) != stored_hash:
+        raise StudyFileError(
+            f"study file {str(path)!r} was created with another config (hash {stored_hash[:12]}, "
+            f"this config {config_hash(config)[:12]}): use the config it was made with or a new --out file",
+            path,
+        )
+    if not writable:
+        return Study(config or stored, open_study_readonly(path))
+    store = open_study(
+        path,
+        config_text=config_text,
+        config_hash=stored_hash,
+        qoi_names=qoi_names,
+        create=False,
+        code_version=__version__,
+    )
+    return Study(config or stored, store)
+
+
+# ---------------------------------------------------------------------------
+# The store-backed sampler
+# ---------------------------------------------------------------------------
+
+
+class StudySampler:
+    """A level sampler (estimator contract) serving stored samples and computing missing ones.
+
+    Parameters
+    ----------
+    study : Study
+    stage : int
+        Stage of the samples (:mod:`rough_uq.sampler`).
+    executor : Executor
+    progress : Progress
+    chunk : int
+        Samples per work item sent to the executor.
+    """
+
+    def __init__(
+        self, study: Study, *, stage: int, executor: Executor, progress: Progress, chunk: int = 1
+    ) -> None:
+        self.study = study
+        self.stage = stage
+        self.executor = executor
+        self.progress = progress
+        self.chunk = max(1, int(chunk))
+        self._cache: dict[int, dict[int, int]] = {}
+        self._batches: dict[int, LevelBatch] = {}
+        self.n_computed = 0
+
+    def stored(self, level: int) -> LevelBatch:
+        """All stored samples of ``(stage, level)``."""
+        if level not in self._batches:
+            self._batches[level] = self.study.store.read_samples(level=level, stage=self.stage)
+            self._cache[level] = {int(i): row for row, i in enumerate(self._batches[level].indices)}
+        return self._batches[level]
+
+    def _forget(self, level: int) -> None:
+        self._batches.pop(level, None)
+        self._cache.pop(level, None)
+
+    def missing(self, level: int, indices: np.ndarray) -> np.ndarray:
+        """The ``indices`` of ``level`` not stored yet."""
+        self.stored(level)
+        rows = self._cache[level]
+        return np.array([i for i in np.asarray(indices, dtype=np.int64) if int(i) not in rows], dtype=np.int64)
+
+    def compute(self, level: int, indices: np.ndarray) -> None:
+        """Compute and store the missing samples among ``indices`` of ``level``."""
+        missing = self.missing(level, indices)
+        if missing.size == 0:
+            return
+        items = [(self.stage, level, missing[i : i + self.chunk]) for i in range(0, missing.size, self.chunk)]
+        pending: list[LevelBatch] = []
+        last_flush = time.monotonic()
+        try:
+            for batch in self.executor.run(self.study.model, items):
+                pending.append(batch)
+                self.progress.advance(level, batch.n_samples)
+                if time.monotonic() - last_flush >= FLUSH_SECONDS:
+                    self._flush(level, pending)
+                    last_flush = time.monotonic()
+        finally:
+            self._flush(level, pending)
+
+    def _flush(self, level: int, pending: list[LevelBatch]) -> None:
+        if not pending:
+            return
+        batch = _concatenate(pending)
+        pending.clear()
+        self.study.store.append_samples(batch)
+        self.n_computed += batch.n_samples
+        self._forget(level)
+
+    def samples(self, level: int, indices: np.ndarray) -> LevelBatch:
+        """Samples ``indices`` of ``level`` (computing the missing ones), in the order asked."""
+        indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+        self.compute(level, indices)
+        stored = self.stored(level)
+        rows = np.array([self._cache[level][int(i)] for i in indices], dtype=np.int64)
+        return _take(stored, rows)
+
+    def __call__(self, level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        batch = self.samples(level, indices)
+        is_coupled = self.stage != STAGE_MC
+        cost = modelled_cost(self.study.model, level, batch.n_iter, is_coupled=is_coupled)
+        return batch.fine, batch.coarse, cost
+
+
+def _take(batch: LevelBatch, rows: np.ndarray) -> LevelBatch:
+    return LevelBatch(
+        level=batch.level,
+        stage=batch.stage,
+        indices=batch.indices[rows],
+        fine=batch.fine[rows],
+        coarse=batch.coarse[rows],
+        cost=batch.cost[rows],
+        n_iter=batch.n_iter[rows],
+        converged=batch.converged[rows],
+    )
+
+
+def _concatenate(batches: Sequence[LevelBatch]) -> LevelBatch:
+    first = batches[0]
+    return LevelBatch(
+        level=first.level,
+        stage=first.stage,
+        indices=np.concatenate([b.indices for b in batches]),
+        fine=np.concatenate([b.fine for b in batches]),
+        coarse=np.concatenate([b.coarse for b in batches]),
+        cost=np.concatenate([b.cost for b in batches]),
+        n_iter=np.concatenate([b.n_iter for b in batches]),
+        converged=np.concatenate([b.converged for b in batches]),
+    )
+
+
+# ---------------------------------------------------------------------------
+# Records (JSON-able dicts stored in the study file)
+# ---------------------------------------------------------------------------
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _finite(value: object) -> object:
+    """JSON-friendly copy: arrays to lists, numpy scalars to Python numbers."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Mapping):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
+
+
+def statistics_record(statistics: LevelStatistics, seconds: Sequence[float]) -> dict[str, Any]:
+    """The screening table as a dict of per-level lists (per-QoI entries are lists)."""
+    return _finite(
+        {
+            "levels": statistics.levels,
+            "n_samples": statistics.n_samples,
+            "mean_fine": statistics.mean_fine,
+            "var_fine": statistics.var_fine,
+            "mean_diff": statistics.mean_diff,
+            "var_diff": statistics.var_diff,
+            "kurtosis": statistics.kurtosis,
+            "consistency": statistics.consistency,
+            "mean_cost": statistics.mean_cost,
+            "mean_seconds": list(seconds),
+        }
+    )
+
+
+def rates_record(rates: Rates) -> dict[str, Any]:
+    """Fitted rates as a dict (per-QoI values are lists)."""
+    return _finite(
+        {
+            "alpha": rates.alpha,
+            "alpha_se": rates.alpha_se,
+            "beta": rates.beta,
+            "beta_se": rates.beta_se,
+            "gamma": rates.gamma,
+            "gamma_se": rates.gamma_se,
+            "c_alpha": rates.c_alpha,
+            "c_beta": rates.c_beta,
+            "c_gamma": rates.c_gamma,
+            "levels_alpha": rates.levels_alpha,
+            "levels_beta": rates.levels_beta,
+            "levels_gamma": rates.levels_gamma,
+        }
+    )
+
+
+def _plan_record(prediction: Plan, seconds_per_cost: float) -> dict[str, Any]:
+    return _finite(
+        {
+            "tol": prediction.tol,
+            "finest_level": prediction.finest_level,
+            "n_samples": prediction.n_samples,
+            "mlmc_cost": prediction.cost,
+            "mc_cost": prediction.mc_cost,
+            "mlmc_seconds": prediction.cost * seconds_per_cost,
+            "mc_seconds": prediction.mc_cost * seconds_per_cost,
+            "work_ratio": prediction.work_ratio,
+            "is_bias_met": prediction.is_bias_met,
+        }
+    )
+
+
+# ---------------------------------------------------------------------------
+# Screening
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ScreeningOutcome:
+    """What screening measured: per-level statistics, rates, and what accuracy will cost."""
+
+    statistics: LevelStatistics
+    rates: Rates
+    record: dict[str, Any]
+
+
+def _not_converged(batches: Sequence[LevelBatch]) -> int:
+    return int(sum(np.count_nonzero(~b.is_converged) for b in batches))
+
+
+def _seconds_per_cost(batches: Sequence[LevelBatch], model: ContactModel, is_coupled: bool) -> float:
+    seconds = sum(float(np.sum(b.cost)) for b in batches)
+    modelled = sum(float(np.sum(modelled_cost(model, b.level, b.n_iter, is_coupled=is_coupled))) for b in batches)
+    return seconds / modelled if modelled > 0 else 1.0
+
+
+def screening_statistics(study: Study, sampler: StudySampler | None = None) -> tuple[LevelStatistics, list[LevelBatch]]:
+    """Level statistics of the screening samples (computing missing ones if ``sampler`` is given).
+
+    The statistics are recomputed from the stored samples, so every command
+    sees the same numbers whatever process ran the screening.
+    """
+    config = study.config
+    levels = list(range(config.screening.levels))
+    indices = np.arange(config.screening.samples)
+    if sampler is None:
+        sampler = StudySampler(study, stage=STAGE_SCREENING, executor=SerialExecutor(), progress=Progress())
+        for level in levels:
+            if sampler.missing(level, indices).size:
+                raise StudyFileError(
+                    "the study has no complete screening yet: run `roughuq screen CONFIG` first",
+                    getattr(study.store, "path", None),
+                )
+    batches = [sampler.samples(level, indices) for level in levels]
+    statistics = level_statistics(
+        fine=[b.fine for b in batches],
+        coarse=[b.coarse for b in batches],
+        cost=[modelled_cost(study.model, b.level, b.n_iter) for b in batches],
+        levels=levels,
+    )
+    return statistics, batches
+
+
+def _base_tolerance(config: StudyConfig, statistics: LevelStatistics) -> np.ndarray:
+    """Per QoI: its configured tol, or 1% of the finest screened mean (its standard deviation if that is 0)."""
+    base = []
+    for q, settings in enumerate(config.qoi.values()):
+        tol = getattr(settings, "tol", None)
+        if tol is None:
+            mean = abs(float(statistics.mean_fine[-1, q]))
+            spread = math.sqrt(max(float(statistics.var_fine[-1, q]), 0.0))
+            tol = 0.01 * mean if mean > 0 else spread
+            tol = tol if tol > 0 else 1.0
+        base.append(tol)
+    return np.array(base)
+
+
+def run_screening(study: Study, *, executor: Executor, progress: Progress) -> ScreeningOutcome:
+    """Compute (or complete) the screening samples, fit the rates, predict costs, store the record."""
+    config = study.config
+    levels = list(range(config.screening.levels))
+    n = config.screening.samples
+    sampler = StudySampler(study, stage=STAGE_SCREENING, executor=executor, progress=progress)
+    progress.start("screening")
+    try:
+        progress.plan(levels, [n] * len(levels), [n - sampler.missing(l, np.arange(n)).size for l in levels])
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", EstimationWarning)
+            statistics, batches = screening_statistics(study, sampler)
+            try:
+                rates = fit_rates(statistics)
+            except EstimationError as exc:
+                raise EstimationError(
+                    f"screening cannot fit the rates: {exc}; screen more levels (screening.levels) or "
+                    f"more samples (screening.samples)"
+                ) from None
+    finally:
+        progress.stop()
+    seconds_per_cost = _seconds_per_cost(batches, study.model, True)
+    base = _base_tolerance(config, statistics)
+    predictions = []
+    for factor in PREDICTION_FACTORS:
+        prediction = plan(
+            tol=base * factor,
+            rates=rates,
+            statistics=statistics,
+            theta=config.estimation.theta,
+            max_level=config.grid.max_level,
+        )
+        predictions.append(_plan_record(prediction, seconds_per_cost))
+    messages = list(dict.fromkeys([str(w.message) for w in caught] + list(diagnose(statistics))))
+    record = {
+        "created": _now(),
+        "code_version": __version__,
+        "qoi_names": list(config.qoi_names),
+        "statistics": statistics_record(statistics, [float(np.mean(b.cost)) for b in batches]),
+        "rates": rates_record(rates),
+        "predictions": predictions,
+        "seconds_per_cost": seconds_per_cost,
+        "n_not_converged": _not_converged(batches),
+        "n_computed": sampler.n_computed,
+        "warnings": messages,
+    }
+    study.store.write_screening(record)
+    return ScreeningOutcome(statistics, rates, record)
+
+
+# ---------------------------------------------------------------------------
+# Estimation runs
+# ---------------------------------------------------------------------------
+
+
+def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.ndarray:
+    """Tolerances per QoI from ``--tol`` values (``EPS`` or ``NAME=EPS``), falling back to the config's.
+
+    A bare number is allowed only for a single QoI. Raises
+    :class:`~rough_uq.errors.InvalidParameterError` naming what is wrong.
+    """
+    from rough_uq.errors import InvalidParameterError
+
+    names = config.qoi_names
+    given: dict[str, float] = {}
+    for text in values or ():
+        for part in str(text).split(","):
+            part = part.strip()
+            if not part:
+                continue
+            name, _, number = part.rpartition("=")
+            if not name:
+                if len(names) != 1:
+                    raise InvalidParameterError(
+                        "--tol", part, f"NAME=EPS pairs, one per QoI ({', '.join(names)}), with several QoIs"
+                    )
+                name = names[0]
+            if name not in names:
+                raise InvalidParameterError("--tol", part, f"a QoI of this study: {', '.join(names)}")
+            try:
+                eps = float(number)
+            except ValueError:
+                raise InvalidParameterError("--tol", part, "a positive number, e.g. 0.2 or contact_area=0.2") from None
+            if not (math.isfinite(eps) and eps > 0):
+                raise InvalidParameterError("--tol", part, "a positive, finite number")
+            given[name] = eps
+    tol = []
+    for name, settings in config.qoi.items():
+        eps = given.get(name, getattr(settings, "tol", None))
+        if eps is None:
+            raise InvalidParameterError(
+                "--tol", name, f"a tolerance for every QoI: give --tol {name}=EPS or set qoi.{name}.tol"
+            )
+        tol.append(eps)
+    return np.array(tol, dtype=float)
+
+
+def run_id(method: str, names: Sequence[str], tol: np.ndarray) -> str:
+    """Name of the run record of ``method`` at tolerances ``tol`` (same tolerances, same record)."""
+    return "_".join([method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)])
+
+
+def _estimation_plan(study: Study, tol: np.ndarray) -> tuple[LevelStatistics, Rates, Plan]:
+    statistics, _ = screening_statistics(study)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", EstimationWarning)
+        rates = fit_rates(statistics)
+    prediction = plan(
+        tol=tol,
+        rates=rates,
+        statistics=statistics,
+        theta=study.config.estimation.theta,
+        max_level=study.config.grid.max_level,
+    )
+    return statistics, rates, prediction
+
+
+class _SamplesMissing(Exception):
+    """Raised by the replay sampler of :func:`missing_samples` at the first sample not stored."""
+
+
+def missing_samples(study: Study, *, method: str, tol: np.ndarray, max_cost: float | None = None) -> dict[int, np.ndarray]:
+    """Per level, the sample indices the next round of the run needs that are not stored.
+
+    The run is replayed on the stored samples (exactly the decisions
+    ``run_estimation`` would take) until it asks for a sample that is not
+    stored; the missing indices of its current plan are returned. An empty
+    dict means the stored samples complete the run. An adaptive MLMC run may
+    plan more samples once these are stored: ask again after merging them.
+    Nothing is computed or written.
+    """
+    stage = STAGE_MLMC if method == "mlmc" else STAGE_MC
+    stored = StudySampler(study, stage=stage, executor=SerialExecutor(), progress=Progress())
+
+    def replay(level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if stored.missing(level, indices).size:
+            raise _SamplesMissing
+        return stored(level, indices)
+
+    max_cost = study.config.estimation.max_cost if max_cost is None else max_cost
+    events, _ = _events(study, method=method, tol=np.asarray(tol, dtype=float), sampler=replay, max_cost=max_cost)
+    planned: dict[int, int] = {}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", EstimationWarning)
+            for event in events:
+                if isinstance(event, PlanUpdated):
+                    planned = {int(level): int(n) for level, n in zip(event.levels, event.n_planned)}
+    except _SamplesMissing:
+        return {level: stored.missing(level, np.arange(n)) for level, n in planned.items()}
+    return {}
+
+
+def _measured(sampler: StudySampler, levels: np.ndarray, n_samples: np.ndarray) -> tuple[float, int]:
+    """Wall seconds and non-converged count of the first ``N_l`` samples of each level."""
+    seconds, not_converged = 0.0, 0
+    for level, n in zip(levels, n_samples):
+        batch = sampler.samples(int(level), np.arange(int(n)))
+        seconds += float(np.sum(batch.cost))
+        not_converged += int(np.count_nonzero(~batch.is_converged))
+    return seconds, not_converged
+
+
+def _events(
+    study: Study, *, method: str, tol: np.ndarray, sampler: StudySampler, max_cost: float | None
+) -> tuple[Iterator[object], dict[str, Any]]:
+    config = study.config
+    estimation = config.estimation
+    statistics, rates, prediction = _estimation_plan(study, tol)
+    options = dict(
+        tol=tol,
+        theta=estimation.theta,
+        n_initial=estimation.initial_samples,
+        max_cost=max_cost,
+        batch_size=estimation.batch_size,
+    )
+    context = {"screening_rates": rates_record(rates), "predicted": _plan_record(prediction, 1.0)}
+    if method == "mlmc":
+        events = iter_mlmc(sampler, max_level=config.grid.max_level, screening=statistics, **options)
+    else:
+        context["level"] = prediction.finest_level
+        events = iter_mc(sampler, level=prediction.finest_level, bias=prediction.bias, **options)
+    return events, context
+
+
+def run_estimation(
+    study: Study,
+    *,
+    method: str,
+    tol: np.ndarray,
+    executor: Executor,
+    progress: Progress,
+    max_cost: float | None = None,
+) -> dict[str, Any]:
+    """Run MLMC (``method="mlmc"``) or plain MC (``"mc"``) to ``tol`` and store its record.
+
+    ``max_cost`` (reference seconds of modelled cost; default the config's
+    ``estimation.max_cost``) bounds the run. The record is written when the
+    run starts (``status = "running"``) and when it ends (``"finished"``);
+    an interrupted run keeps its samples and its ``running`` record, and the
+    same command resumes it.
+
+    Returns
+    -------
+    dict
+        The run record (see ``roughuq report --json``).
+    """
+    if method not in ("mlmc", "mc"):
+        raise ValueError(f"method must be 'mlmc' or 'mc', got {method!r}")
+    config = study.config
+    names = config.qoi_names
+    tol = np.asarray(tol, dtype=float)
+    max_cost = config.estimation.max_cost if max_cost is None else max_cost
+    stage = STAGE_MLMC if method == "mlmc" else STAGE_MC
+    sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
+    key = run_id(method, names, tol)
+    events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost)
+    record: dict[str, Any] = {
+        "method": method,
+        "status": "running",
+        "started": _now(),
+        "code_version": __version__,
+        "qoi_names": list(names),
+        "tol": tol.tolist(),
+        "theta": config.estimation.theta,
+        "max_cost": max_cost,
+        **context,
+    }
+    study.store.write_run(key, record)
+    progress.start(f"{method} " + ", ".join(f"{n}={t:g}" for n, t in zip(names, tol)))
+    result = None
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", EstimationWarning)
+            for event in events:
+                if isinstance(event, PlanUpdated):
+                    progress.plan(event.levels, event.n_planned, event.n_done)
+                elif isinstance(event, Finished):
+                    result = event.result
+                elif not isinstance(event, BatchDone):  # pragma: no cover - the estimator's contract
+                    raise RoughUQError(f"unexpected estimator event {event!r}")
+    finally:
+        progress.stop()
+    assert result is not None  # the event stream always ends with Finished
+    seconds, n_not_converged = _measured(sampler, result.levels, result.n_samples)
+    seconds_per_cost = seconds / result.cost if result.cost > 0 else 1.0
+    record.update(
+        _finite(
+            {
+                "status": "finished",
+                "finished": _now(),
+                "estimate": np.atleast_1d(result.estimate),
+                "stat_error": np.atleast_1d(result.stat_error),
+                "bias_estimate": np.atleast_1d(result.bias_estimate),
+                "is_bias_estimated": result.is_bias_estimated,
+                "rmse": np.atleast_1d(result.rmse),
+                "variance": np.atleast_1d(result.variance),
+                "variance_error": np.atleast_1d(result.variance_error),
+                "levels": result.levels,
+                "n_samples": result.n_samples,
+                "cost": result.cost,
+                "seconds": seconds,
+                "mc_cost": result.mc_cost,
+                "mc_seconds_predicted": result.mc_cost * seconds_per_cost,
+                "n_computed": sampler.n_computed,
+                "n_not_converged": n_not_converged,
+                "tol_met": result.tol_met,
+                "stop_reason": result.stop_reason,
+                "rates": rates_record(result.rates) if result.rates is not None else None,
+                "statistics": statistics_record(
+                    result.statistics,
+                    [float(np.mean(sampler.samples(int(l), np.arange(int(n))).cost))
+                     for l, n in zip(result.levels, result.n_samples)],
+                ),
+                "warnings": list(dict.fromkeys(str(w.message) for w in caught)),
+            }
+        )
+    )
+    study.store.write_run(key, record)
+    return record

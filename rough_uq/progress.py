@@ -1,0 +1,184 @@
+"""Progress of long work: samples done / planned per level, elapsed time, ETA.
+
+The pipeline reports to any object with the :class:`Progress` methods; the
+core never imports this module. :func:`make_progress` picks rich progress bars
+on an interactive terminal and plain, line-buffered lines otherwise (CI,
+cluster jobs, pipes), at most one line every ``interval`` seconds per level
+plus one when a level completes.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Sequence
+from typing import IO
+
+__all__ = ["PlainProgress", "RichProgress", "make_progress"]
+
+
+class Progress:
+    """The interface the pipeline reports to (this base class ignores everything)."""
+
+    def start(self, title: str) -> None:
+        """A task begins (e.g. ``"screening"``, ``"mlmc tol 0.2"``)."""
+
+    def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
+        """Samples planned and already done per level (may be called again when the plan changes)."""
+
+    def advance(self, level: int, n: int) -> None:
+        """``n`` more samples of ``level`` are done."""
+
+    def note(self, text: str) -> None:
+        """A one-line message."""
+
+    def stop(self) -> None:
+        """The task ended (or was interrupted)."""
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds}s"
+    if seconds < 3600:
+        return f"{seconds // 60}m{seconds % 60:02d}s"
+    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m"
+
+
+class PlainProgress(Progress):
+    """Line-buffered text progress for logs.
+
+    ETA of a level: its remaining samples times the mean time per sample done
+    in this task (None until one is done).
+    """
+
+    def __init__(self, stream: IO[str] | None = None, *, interval: float = 10.0) -> None:
+        self._stream = stream if stream is not None else sys.stderr
+        self._interval = interval
+        self._title = ""
+        self._planned: dict[int, int] = {}
+        self._done: dict[int, int] = {}
+        self._started: dict[int, tuple[float, int]] = {}
+        self._last_line: dict[int, float] = {}
+        self._t0 = time.monotonic()
+
+    def _print(self, text: str) -> None:
+        print(text, file=self._stream, flush=True)
+
+    def start(self, title: str) -> None:
+        self._title = title
+        self._t0 = time.monotonic()
+        self._planned.clear()
+        self._done.clear()
+        self._started.clear()
+        self._last_line.clear()
+        self._print(f"[{title}] started")
+
+    def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
+        changed = []
+        now = time.monotonic()
+        for level, planned, done in zip(levels, n_planned, n_done):
+            level, planned, done = int(level), int(planned), int(done)
+            if self._planned.get(level) != planned:
+                changed.append(f"L{level}: {planned}")
+            self._planned[level] = planned
+            self._done[level] = max(done, self._done.get(level, 0))
+            self._started.setdefault(level, (now, self._done[level]))
+        if changed:
+            self._print(f"[{self._title}] plan: samples per level " + ", ".join(changed))
+
+    def advance(self, level: int, n: int) -> None:
+        now = time.monotonic()
+        self._done[level] = self._done.get(level, 0) + int(n)
+        self._started.setdefault(level, (now, self._done[level] - int(n)))
+        done, planned = self._done[level], self._planned.get(level, 0)
+        is_level_done = planned > 0 and done >= planned
+        if is_level_done or now - self._last_line.get(level, -1e9) >= self._interval:
+            self._last_line[level] = now
+            self._print(f"[{self._title}] level {level}: {done}/{planned} samples, "
+                        f"elapsed {_duration(now - self._t0)}{self._eta(level, now)}")
+
+    def _eta(self, level: int, now: float) -> str:
+        t_start, done_at_start = self._started[level]
+        computed = self._done[level] - done_at_start
+        remaining = self._planned.get(level, 0) - self._done[level]
+        if computed <= 0 or remaining <= 0:
+            return ""
+        return f", eta {_duration(remaining * (now - t_start) / computed)}"
+
+    def note(self, text: str) -> None:
+        self._print(f"[{self._title}] {text}")
+
+    def stop(self) -> None:
+        self._print(f"[{self._title}] done in {_duration(time.monotonic() - self._t0)}")
+
+
+class RichProgress(Progress):
+    """rich progress bars, one per level, for an interactive terminal."""
+
+    def __init__(self, console: object | None = None) -> None:
+        from rich.console import Console
+
+        self._console = console if console is not None else Console(stderr=True)
+        self._bars: object | None = None
+        self._tasks: dict[int, int] = {}
+        self._title = ""
+
+    def start(self, title: str) -> None:
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress as Bars,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        self._title = title
+        self._tasks = {}
+        self._bars = Bars(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("samples"),
+            TimeElapsedColumn(),
+            TextColumn("eta"),
+            TimeRemainingColumn(),
+            console=self._console,
+            transient=False,
+        )
+        self._bars.start()
+
+    def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
+        if self._bars is None:
+            return
+        for level, planned, done in zip(levels, n_planned, n_done):
+            level = int(level)
+            if level not in self._tasks:
+                self._tasks[level] = self._bars.add_task(
+                    f"{self._title} level {level}", total=int(planned), completed=int(done)
+                )
+            else:
+                self._bars.update(self._tasks[level], total=int(planned))
+
+    def advance(self, level: int, n: int) -> None:
+        if self._bars is not None and level in self._tasks:
+            self._bars.advance(self._tasks[level], int(n))
+
+    def note(self, text: str) -> None:
+        self._console.print(text)
+
+    def stop(self) -> None:
+        if self._bars is not None:
+            self._bars.stop()
+            self._bars = None
+
+
+def make_progress(*, is_quiet: bool = False, stream: IO[str] | None = None) -> Progress:
+    """Rich bars on an interactive terminal, plain lines otherwise, nothing when quiet."""
+    if is_quiet:
+        return Progress()
+    stream = stream if stream is not None else sys.stderr
+    if stream.isatty():
+        return RichProgress()
+    return PlainProgress(stream)

@@ -1,0 +1,150 @@
+"""The real CLI through click's CliRunner, on a tiny study: the commands users run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rough_uq import __version__
+from rough_uq.cli import main
+from rough_uq.store import open_study_readonly
+from tests.study_configs import tiny_config, write_config
+
+ROOT = Path(__file__).resolve().parent.parent
+BAD = sorted((ROOT / "tests" / "data" / "bad_configs").glob("*.yaml"))
+
+
+def run(*args: str, expect: int = 0) -> object:
+    result = CliRunner().invoke(main, list(args))
+    assert result.exit_code == expect, (result.output, result.stderr, result.exception)
+    return result
+
+
+@pytest.fixture
+def screened(tmp_path, monkeypatch):
+    """A tiny study screened into results.h5 in a fresh working directory."""
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    run("screen", str(config), "--workers", "1", "--quiet")
+    return tmp_path
+
+
+def test_version_and_help():
+    assert __version__ in run("--version").output
+    output = run("--help").output
+    for command in ("screen", "mlmc", "mc", "report", "validate", "solve"):
+        assert command in output
+
+
+def test_validate_and_solve_demo(tmp_path):
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(qoi={"contact_area": {}, "clusters": {}}))
+    assert "valid" in run("validate", str(config)).output
+    output = run("solve", str(config), "--level", "1").output
+    assert "grid 16 x 16" in output and "contact_area" in output and "clusters" in output
+    assert "converged" in output and "NOT" not in output
+
+
+def test_screen_prints_table_rates_and_predictions(screened):
+    result = run("report", "results.h5")
+    for text in ("Screening", "alpha", "beta", "gamma", "What accuracy will cost"):
+        assert text in result.output
+    with open_study_readonly(screened / "results.h5") as store:
+        assert [store.sample_indices(level=level, stage=0).size for level in range(3)] == [8, 8, 8]
+
+
+def test_mlmc_mc_and_report_json_agree_with_the_file(screened):
+    run("mlmc", "--tol", "1.0", "--workers", "1", "--quiet")
+    run("mlmc", "--tol", "contact_area=0.5", "--workers", "1", "--quiet")
+    mc = json.loads(run("mc", "--tol", "1.0", "--workers", "1", "--json").output)
+    report = json.loads(run("report", "results.h5", "--json").output)
+    runs = {run_["run_id"]: run_ for run_ in report["runs"]}
+    assert set(runs) == {"mlmc_contact_area-1", "mlmc_contact_area-0.5", "mc_contact_area-1"}
+    assert runs["mc_contact_area-1"]["estimate"] == mc["estimate"]
+    with open_study_readonly(screened / "results.h5") as store:
+        for run_ in store.read_runs():
+            assert runs[run_["run_id"]]["estimate"] == run_["estimate"]
+            assert runs[run_["run_id"]]["n_samples"] == run_["n_samples"]
+        n_mlmc = sum(store.sample_indices(level=level, stage=1).size for level in store.levels())
+    mlmc = runs["mlmc_contact_area-0.5"]
+    assert n_mlmc == sum(mlmc["n_samples"])  # the tighter run reused and extended the looser one
+    assert "measured_ratio" in runs["mlmc_contact_area-1"]
+    assert report["screening"]["complexity"][0]["mc_exponent"] > 2
+    text = run("report", "results.h5").output
+    assert "Estimation runs" in text and "mlmc" in text
+
+
+def test_rerunning_a_finished_run_computes_nothing(screened):
+    first = json.loads(run("mlmc", "--tol", "1.0", "--workers", "1", "--json").output)
+    again = json.loads(run("mlmc", "--tol", "1.0", "--workers", "1", "--json").output)
+    assert again["n_computed"] == 0
+    assert again["estimate"] == first["estimate"]
+
+
+def test_plan_lists_missing_samples_without_computing(screened):
+    before = (screened / "results.h5").read_bytes()
+    rows = json.loads(run("mlmc", "--tol", "1.0", "--plan", "--json").output)
+    assert [row["level"] for row in rows] == [0, 1, 2]
+    assert all(row["n_missing"] > 0 and row["indices"][0].startswith("0:") for row in rows)
+    assert (screened / "results.h5").read_bytes() == before
+    assert "level 0:" in run("mlmc", "--tol", "1.0", "--plan").output
+
+
+@pytest.mark.parametrize("path", BAD, ids=[p.stem for p in BAD])
+def test_bad_config_is_one_line_and_status_2(path, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for command in ("validate", "screen"):
+        result = run(command, str(path), expect=2)
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+        assert result.exception is None or isinstance(result.exception, SystemExit)
+    assert not (tmp_path / "results.h5").exists()
+
+
+def test_user_errors_are_one_line_and_status_2(screened):
+    cases = [
+        ("mlmc", "--tol", "1.0", "--study", "missing.h5"),
+        ("mlmc", "--tol", "-1"),
+        ("mlmc", "--tol", "area=1"),
+        ("report", "missing.h5"),
+    ]
+    (screened / "not_hdf5.h5").write_text("hello")
+    cases.append(("report", "not_hdf5.h5"))
+    for args in cases:
+        result = run(*args, expect=2)
+        assert len(result.stderr.strip().splitlines()) == 1 and result.stderr.startswith("error: "), args
+
+
+def test_study_from_another_config_is_refused_and_untouched(screened):
+    before = (screened / "results.h5").read_bytes()
+    other = write_config(screened / "other.yaml", tiny_config(seed=1))
+    result = run("screen", str(other), expect=2)
+    assert "another config" in result.stderr or "different config" in result.stderr
+    result = run("mlmc", "--tol", "1", "--config", str(other), expect=2)
+    assert "another config" in result.stderr
+    assert (screened / "results.h5").read_bytes() == before
+
+
+def test_estimation_before_screening_is_refused(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(screening={"levels": 3, "samples": 4}))
+    from rough_uq.config import load_config
+    from rough_uq.pipeline import create_study
+
+    create_study(load_config(config)).close()
+    result = run("mlmc", "--tol", "1", expect=2)
+    assert "roughuq screen" in result.stderr
+
+
+def test_stored_samples_are_what_the_cli_reports(screened):
+    record = json.loads(run("mlmc", "--tol", "1.0", "--workers", "1", "--json").output)
+    with h5py.File(screened / "results.h5", "r") as f:
+        fine = [f[f"samples/level_{level}/fine"][:] for level in record["levels"]]
+        stage = [f[f"samples/level_{level}/stage"][:] for level in record["levels"]]
+        coarse = [f[f"samples/level_{level}/coarse"][:] for level in record["levels"]]
+    estimate = sum(np.mean(f_[s == 1, 0] - c[s == 1, 0]) for f_, c, s in zip(fine, coarse, stage))
+    assert estimate == pytest.approx(record["estimate"][0], rel=1e-12)

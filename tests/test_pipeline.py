@@ -1,0 +1,259 @@
+"""The pipeline joins config, sampler, estimators and store: determinism, resume, units."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rough_uq.config import config_from_dict
+from rough_uq.errors import InvalidParameterError, StudyFileError
+from rough_uq.executor import Executor, PoolExecutor, SerialExecutor
+from rough_uq.pipeline import (
+    Study,
+    build_model,
+    create_study,
+    missing_samples,
+    open_existing_study,
+    parse_tolerances,
+    run_estimation,
+    run_screening,
+)
+from rough_uq.progress import Progress
+from rough_uq.sampler import STAGE_MC, STAGE_MLMC, STAGE_SCREENING, compute_batch
+from rough_uq.store import MemoryStore
+from tests.study_configs import tiny_config
+
+QUIET = Progress()
+
+
+def _study(**overrides: object) -> Study:
+    config = config_from_dict(tiny_config(**overrides))
+    return Study(config, MemoryStore(qoi_names=config.qoi_names))
+
+
+def _screened(**overrides: object) -> Study:
+    study = _study(**overrides)
+    run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    return study
+
+
+def test_model_units_and_load():
+    config = config_from_dict(
+        tiny_config(
+            surface={"system_size": 2.0, "wavenumbers": {"k_l": 1, "k_r": 2, "k_s": 8}, "hurst": 0.8,
+                     "rms_height": 1.0},
+            material={"e_star": 3.0},
+            qoi={"contact_area": {"unit": "percent"}, "clusters": {"unit": "per_area", "connectivity": 8},
+                 "mean_gap": {}},
+        )
+    )
+    model = build_model(config)
+    assert model.qoi_scales == (100.0, 0.25, 1.0)
+    assert model.connectivity == 8
+    assert model.mean_pressure == pytest.approx(0.2 * 3.0 * model.spectrum.rms_slope, rel=1e-14)
+    absolute = build_model(config_from_dict(tiny_config(load={"absolute": 0.05})))
+    assert absolute.mean_pressure == 0.05
+
+
+def test_sample_does_not_depend_on_its_batch():
+    model = build_model(config_from_dict(tiny_config()))
+    together = compute_batch(model, stage=STAGE_MLMC, level=2, indices=[0, 1, 2, 3])
+    alone = compute_batch(model, stage=STAGE_MLMC, level=2, indices=[2])
+    np.testing.assert_array_equal(alone.fine[0], together.fine[2])
+    np.testing.assert_array_equal(alone.coarse[0], together.coarse[2])
+    np.testing.assert_array_equal(alone.n_iter[0], together.n_iter[2])
+    other_stage = compute_batch(model, stage=STAGE_SCREENING, level=2, indices=[2])
+    assert not np.array_equal(other_stage.fine, alone.fine)
+
+
+def test_coupled_coarse_value_is_a_level_below_sample_in_distribution():
+    # The coarse QoI of a level-1 sample and the fine QoI of a level-0 sample come from
+    # surfaces with the same distribution: their means agree within statistical error.
+    model = build_model(config_from_dict(tiny_config()))
+    n = 60
+    level1 = compute_batch(model, stage=STAGE_MLMC, level=1, indices=np.arange(n))
+    level0 = compute_batch(model, stage=STAGE_MLMC, level=0, indices=np.arange(n))
+    difference = level1.coarse[:, 0].mean() - level0.fine[:, 0].mean()
+    se = math.sqrt(level1.coarse[:, 0].var(ddof=1) / n + level0.fine[:, 0].var(ddof=1) / n)
+    assert abs(difference) < 4 * se
+    assert np.all(level0.coarse == 0) and np.all(level0.n_iter[:, 1] == 0)
+
+
+def test_screening_stores_every_sample_and_resumes_without_recomputing():
+    study = _study()
+    first = run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    assert first.record["n_computed"] == 3 * 8
+    for level in range(3):
+        assert list(study.store.sample_indices(level=level, stage=STAGE_SCREENING)) == list(range(8))
+    again = run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    assert again.record["n_computed"] == 0
+    assert again.record["statistics"] == first.record["statistics"] | {
+        "mean_seconds": again.record["statistics"]["mean_seconds"]
+    }
+    rates = first.record["rates"]
+    assert all(np.isfinite(rates["alpha"])) and np.isfinite(rates["gamma"])
+    assert [p["tol"][0] for p in first.record["predictions"]] == [4.0, 2.0, 1.0, 0.5, 0.25]
+
+
+def test_mlmc_same_config_same_numbers_and_seed_matters():
+    records = []
+    for seed in (2026, 2026, 7):
+        study = _screened(seed=seed)
+        records.append(run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(),
+                                      progress=QUIET))
+    a, b, c = records
+    assert a["status"] == "finished"
+    assert a["estimate"] == b["estimate"] and a["n_samples"] == b["n_samples"] and a["cost"] == b["cost"]
+    assert a["estimate"] != c["estimate"]
+    assert a["stat_error"][0] > 0 and a["cost"] > 0 and a["seconds"] > 0
+
+
+def test_pool_and_serial_store_identical_samples():
+    serial = _screened()
+    pooled = _study()
+    with PoolExecutor(2) as pool:
+        run_screening(pooled, executor=pool, progress=QUIET)
+        pooled_record = run_estimation(pooled, method="mlmc", tol=np.array([2.0]), executor=pool, progress=QUIET)
+    serial_record = run_estimation(serial, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(),
+                                   progress=QUIET)
+    assert pooled_record["estimate"] == serial_record["estimate"]
+    assert pooled_record["n_samples"] == serial_record["n_samples"]
+    for stage in (STAGE_SCREENING, STAGE_MLMC):
+        for level in range(3):
+            x = serial.store.read_samples(level=level, stage=stage)
+            y = pooled.store.read_samples(level=level, stage=stage)
+            np.testing.assert_array_equal(x.indices, y.indices)
+            np.testing.assert_array_equal(x.fine, y.fine)
+            np.testing.assert_array_equal(x.coarse, y.coarse)
+            np.testing.assert_array_equal(x.n_iter, y.n_iter)
+
+
+class _Interrupting(Executor):
+    """Serial executor that raises KeyboardInterrupt after ``n_items`` work items."""
+
+    def __init__(self, n_items: int) -> None:
+        self.left = n_items
+
+    def run(self, model, items):
+        for item in SerialExecutor().run(model, items):
+            if self.left == 0:
+                raise KeyboardInterrupt
+            self.left -= 1
+            yield item
+
+
+@pytest.mark.parametrize("n_items", [0, 5, 17])
+def test_interrupted_mlmc_resumes_to_the_uninterrupted_result(n_items):
+    reference = run_estimation(_screened(), method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(),
+                               progress=QUIET)
+    study = _screened()
+    with pytest.raises(KeyboardInterrupt):
+        run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=_Interrupting(n_items), progress=QUIET)
+    stored = sum(study.store.sample_indices(level=l, stage=STAGE_MLMC).size for l in study.store.levels())
+    assert stored == n_items  # every completed sample was kept
+    (run,) = study.store.read_runs()
+    assert run["status"] == "running"
+    resumed = run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
+    assert resumed["n_computed"] == sum(reference["n_samples"]) - n_items
+    for key in ("estimate", "stat_error", "bias_estimate", "n_samples", "cost"):
+        assert resumed[key] == reference[key], key
+    (run,) = study.store.read_runs()
+    assert run["status"] == "finished"
+
+
+def test_tighter_tolerance_reuses_the_samples_of_a_looser_run():
+    study = _screened()
+    loose = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
+    tight = run_estimation(study, method="mlmc", tol=np.array([0.5]), executor=SerialExecutor(), progress=QUIET)
+    assert tight["n_computed"] == sum(tight["n_samples"]) - sum(loose["n_samples"])
+    assert all(t >= l for t, l in zip(tight["n_samples"], loose["n_samples"]))
+    assert len(study.store.read_runs()) == 2
+
+
+def test_mc_runs_uncoupled_on_the_planned_level():
+    study = _screened()
+    record = run_estimation(study, method="mc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
+    (level,) = record["levels"]
+    assert level == record["level"]
+    batch = study.store.read_samples(level=level, stage=STAGE_MC)
+    assert batch.n_samples == record["n_samples"][0]
+    assert np.all(batch.coarse == 0) and np.all(batch.n_iter[:, 1] == 0)
+    assert record["is_bias_estimated"]
+
+
+def test_missing_samples_shrinks_as_samples_are_stored():
+    study = _screened()
+    before = missing_samples(study, method="mlmc", tol=np.array([1.0]))
+    assert sorted(before) == [0, 1, 2]
+    assert all(list(indices) == list(range(indices.size)) and indices.size > 0 for indices in before.values())
+    # Store exactly what the plan asks for: the next plan starts where it ended.
+    for level, indices in before.items():
+        study.store.append_samples(compute_batch(study.model, stage=STAGE_MLMC, level=level, indices=indices))
+    after = missing_samples(study, method="mlmc", tol=np.array([1.0]))
+    for level, indices in after.items():
+        assert indices.size == 0 or indices[0] >= before[level].size
+    record = run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
+    assert missing_samples(study, method="mlmc", tol=np.array([1.0])) == {}
+    # The run computed only what was not stored (the first plan may ask for more than the run ends up using).
+    stored = [before[level].size for level in record["levels"]]
+    assert record["n_computed"] == sum(max(0, n - s) for n, s in zip(record["n_samples"], stored))
+
+
+def test_estimation_needs_a_screening():
+    with pytest.raises(StudyFileError, match="roughuq screen"):
+        run_estimation(_study(), method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
+
+
+def test_non_converged_solves_are_retried_flagged_and_reported():
+    study = _study(solver={"tol": 1e-14, "max_iter": 2})
+    outcome = run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    batch = study.store.read_samples(level=2, stage=STAGE_SCREENING)
+    assert not batch.converged[:, 0].any()
+    assert np.all(batch.n_iter[:, 0] == 2 + 20)  # max_iter, then the retry with 10 x max_iter
+    assert outcome.record["n_not_converged"] == 3 * 8
+    assert np.all(np.isfinite(batch.fine))
+
+
+def test_parse_tolerances():
+    single = config_from_dict(tiny_config())
+    assert parse_tolerances(["0.3"], single).tolist() == [0.3]
+    assert parse_tolerances(None, single).tolist() == [2.0]
+    assert parse_tolerances(["contact_area=0.1"], single).tolist() == [0.1]
+    two = config_from_dict(tiny_config(qoi={"contact_area": {"tol": 1.0}, "clusters": {}}))
+    assert parse_tolerances(["clusters=2", "contact_area=0.5"], two).tolist() == [0.5, 2.0]
+    assert parse_tolerances(["clusters=2,contact_area=0.5"], two).tolist() == [0.5, 2.0]
+    with pytest.raises(InvalidParameterError, match="clusters=EPS"):
+        parse_tolerances(None, two)
+    with pytest.raises(InvalidParameterError, match="NAME=EPS pairs"):
+        parse_tolerances(["0.5"], two)
+    with pytest.raises(InvalidParameterError, match="a QoI of this study"):
+        parse_tolerances(["area=0.5"], two)
+    for bad in ("-1", "0", "nan", "inf", "abc"):
+        with pytest.raises(InvalidParameterError, match="--tol"):
+            parse_tolerances([bad], single)
+
+
+def test_study_file_roundtrip_and_mismatch(tmp_path):
+    config = config_from_dict(tiny_config())
+    path = tmp_path / "study.h5"
+    with create_study(config, path) as study:
+        run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    with open_existing_study(path) as study:
+        assert study.config == config
+        record = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
+    with open_existing_study(path, writable=False) as study:
+        (run,) = study.store.read_runs()
+        assert run["estimate"] == record["estimate"]
+    other = config_from_dict(tiny_config(seed=1))
+    with pytest.raises(StudyFileError, match="another config"):
+        open_existing_study(path, config=other)
+    with pytest.raises(StudyFileError):
+        create_study(other, path)
+    # Estimation settings and tolerances do not change samples: the same study accepts them.
+    relaxed = config_from_dict(tiny_config(estimation={"theta": 0.3}))
+    with open_existing_study(path, config=relaxed) as study:
+        assert study.config.estimation.theta == 0.3
+    with pytest.raises(StudyFileError, match="does not exist"):
+        open_existing_study(tmp_path / "missing.h5")
