@@ -205,7 +205,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
         with open_existing_study(study_path, config=config, writable=not show_plan) as study:
             tolerances = parse_tolerances(tol, study.config)
             if show_plan:
-                _print_plan(missing_samples(study, method=method, tol=tolerances), method, as_json)
+                _print_plan(missing_samples(study, method=method, tol=tolerances, max_cost=max_cost), as_json)
                 return
             with _executor(study.config, workers, executor, scheduler) as pool:
                 record = run_estimation(study, method=method, tol=tolerances, executor=pool,
@@ -218,16 +218,15 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     return command
 
 
-def _print_plan(missing: dict[int, Any], method: str, as_json: bool) -> None:
-    from rough_uq.sampler import STAGES
-
-    rows = [{"stage": method, "stage_id": STAGES[method], "level": level, "n_missing": int(indices.size),
-             "indices": _ranges(indices)} for level, indices in missing.items()]
+def _print_plan(work: Any, as_json: bool) -> None:
+    rows = [{"level": level, "n_missing": int(indices.size), "indices": _ranges(indices)}
+            for level, indices in work.missing.items()]
     if as_json:
-        _dump(rows)
+        _dump({"run_id": work.run_id, "stage": work.stage, "n_missing": work.n_missing, "levels": rows})
         return
+    click.echo(f"run {work.run_id} (stage {work.stage}): {work.n_missing} samples missing")
     for row in rows:
-        click.echo(f"level {row['level']}: {row['n_missing']} missing  {' '.join(row['indices']) or '-'}")
+        click.echo(f"  level {row['level']}: {row['n_missing']} missing, indices {' '.join(row['indices'])}")
 
 
 def _ranges(indices: Any) -> list[str]:

@@ -41,12 +41,12 @@ from rough_uq.estimator import BatchDone, Finished, PlanUpdated, iter_mc, iter_m
 from rough_uq.executor import Executor, SerialExecutor
 from rough_uq.progress import Progress
 from rough_uq.sampler import (
-    STAGE_MC,
-    STAGE_MLMC,
     STAGE_SCREENING,
     ContactModel,
     LevelBatch,
+    is_coupled_stage,
     modelled_cost,
+    run_stage,
 )
 from rough_uq.screening import (
     EstimationWarning,
@@ -74,6 +74,7 @@ __all__ = [
     "run_estimation",
     "screening_statistics",
     "missing_samples",
+    "WorkPlan",
     "run_id",
 ]
 
@@ -299,8 +300,7 @@ class StudySampler:
 
     def __call__(self, level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         batch = self.samples(level, indices)
-        is_coupled = self.stage != STAGE_MC
-        cost = modelled_cost(self.study.model, level, batch.n_iter, is_coupled=is_coupled)
+        cost = modelled_cost(self.study.model, level, batch.n_iter, is_coupled=is_coupled_stage(self.stage))
         return batch.fine, batch.coarse, cost
 
 
@@ -569,9 +569,14 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
     return np.array(tol, dtype=float)
 
 
-def run_id(method: str, names: Sequence[str], tol: np.ndarray) -> str:
-    """Name of the run record of ``method`` at tolerances ``tol`` (same tolerances, same record)."""
-    return "_".join([method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)])
+def run_id(method: str, names: Sequence[str], tol: np.ndarray, theta: float) -> str:
+    """Name of the run of ``method`` at tolerances ``tol`` and bias share ``theta``.
+
+    The same command gives the same name, hence the same record and the same
+    random stage (:func:`~rough_uq.sampler.run_stage`): rerunning it resumes.
+    """
+    parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
+    return "_".join(parts)
 
 
 def _estimation_plan(study: Study, tol: np.ndarray) -> tuple[LevelStatistics, Rates, Plan]:
@@ -593,17 +598,42 @@ class _SamplesMissing(Exception):
     """Raised by the replay sampler of :func:`missing_samples` at the first sample not stored."""
 
 
-def missing_samples(study: Study, *, method: str, tol: np.ndarray, max_cost: float | None = None) -> dict[int, np.ndarray]:
-    """Per level, the sample indices the next round of the run needs that are not stored.
+@dataclass(frozen=True)
+class WorkPlan:
+    """Samples an estimation run still needs (:func:`missing_samples`).
+
+    Attributes
+    ----------
+    run_id : str
+        Name of the run.
+    stage : int
+        Its random stage (the ``--stage`` of ``roughuq sample``).
+    missing : dict of int to ndarray of int64
+        Per level, the sorted sample indices not stored yet.
+    """
+
+    run_id: str
+    stage: int
+    missing: dict[int, np.ndarray]
+
+    @property
+    def n_missing(self) -> int:
+        """Total samples missing (0: the stored samples complete the run)."""
+        return int(sum(indices.size for indices in self.missing.values()))
+
+
+def missing_samples(study: Study, *, method: str, tol: np.ndarray, max_cost: float | None = None) -> WorkPlan:
+    """The sample indices the next round of a run needs that are not stored, per level.
 
     The run is replayed on the stored samples (exactly the decisions
     ``run_estimation`` would take) until it asks for a sample that is not
-    stored; the missing indices of its current plan are returned. An empty
-    dict means the stored samples complete the run. An adaptive MLMC run may
+    stored; the missing indices of its current plan are returned. No missing
+    index means the stored samples complete the run. An adaptive MLMC run may
     plan more samples once these are stored: ask again after merging them.
     Nothing is computed or written.
     """
-    stage = STAGE_MLMC if method == "mlmc" else STAGE_MC
+    key = run_id(method, study.config.qoi_names, tol, study.config.estimation.theta)
+    stage = run_stage(method, key)
     stored = StudySampler(study, stage=stage, executor=SerialExecutor(), progress=Progress())
 
     def replay(level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -621,8 +651,9 @@ def missing_samples(study: Study, *, method: str, tol: np.ndarray, max_cost: flo
                 if isinstance(event, PlanUpdated):
                     planned = {int(level): int(n) for level, n in zip(event.levels, event.n_planned)}
     except _SamplesMissing:
-        return {level: stored.missing(level, np.arange(n)) for level, n in planned.items()}
-    return {}
+        missing = {level: stored.missing(level, np.arange(n)) for level, n in planned.items()}
+        return WorkPlan(key, stage, {level: indices for level, indices in missing.items() if indices.size})
+    return WorkPlan(key, stage, {})
 
 
 def _measured(sampler: StudySampler, levels: np.ndarray, n_samples: np.ndarray) -> tuple[float, int]:
@@ -685,12 +716,13 @@ def run_estimation(
     names = config.qoi_names
     tol = np.asarray(tol, dtype=float)
     max_cost = config.estimation.max_cost if max_cost is None else max_cost
-    stage = STAGE_MLMC if method == "mlmc" else STAGE_MC
+    key = run_id(method, names, tol, config.estimation.theta)
+    stage = run_stage(method, key)
     sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
-    key = run_id(method, names, tol)
     events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost)
     record: dict[str, Any] = {
         "method": method,
+        "stage": stage,
         "status": "running",
         "started": _now(),
         "code_version": __version__,

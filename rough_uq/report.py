@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from rough_uq.sampler import STAGES
+from rough_uq.sampler import STAGE_SCREENING
 from rough_uq.store import StudyStore
 
 __all__ = ["RATE_TIE", "complexity", "study_report", "render_report"]
@@ -61,13 +61,15 @@ def _config_summary(config: Any) -> dict[str, Any]:
     }
 
 
-def _sample_counts(store: StudyStore) -> dict[str, dict[str, int]]:
-    names = {stage: name for name, stage in STAGES.items()}
+def _sample_counts(store: StudyStore, runs: Sequence[dict[str, Any]]) -> dict[str, dict[str, int]]:
+    """Stored samples per stage (named by its run) and level."""
+    names = {run["stage"]: run["run_id"] for run in runs if "stage" in run}
+    names[STAGE_SCREENING] = "screening"
     counts: dict[str, dict[str, int]] = {}
     for level in store.levels():
         for stage in store.stages(level=level):
             n = int(store.sample_indices(level=level, stage=stage).size)
-            counts.setdefault(names.get(stage, str(stage)), {})[str(level)] = n
+            counts.setdefault(names.get(stage, f"stage {stage}"), {})[str(level)] = n
     return counts
 
 
@@ -119,7 +121,7 @@ def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
         "config_hash": store.config_hash,
         "config": _config_summary(config),
         "qoi_names": list(store.qoi_names),
-        "samples": _sample_counts(store),
+        "samples": _sample_counts(store, runs),
         "screening": screening,
         "runs": runs,
         "n_not_converged": n_not_converged,

@@ -12,12 +12,13 @@ so any sample can be recomputed alone, in any process, in any order.
 
 Stages
 ------
-``STAGE_SCREENING`` (0) holds the screening samples, ``STAGE_MLMC`` (1) the
-samples of every MLMC run and ``STAGE_MC`` (2) those of every plain MC run.
-Runs of one method share their stage: a run at a tighter tolerance uses the
-first ``N_l`` samples of each level, i.e. the samples of looser runs plus new
-ones (each run's estimate is still that of ``N_l`` independent samples). MC
-samples are not coupled: ``coarse`` is zero and only the fine grid is solved.
+``STAGE_SCREENING`` (0) holds the screening samples; every estimation run has
+a stage of its own (SPEC section 7: two runs never share a random stream),
+derived from the run's name by :func:`run_stage`, so that rerunning the same
+command (or computing its samples as shards on a cluster) finds the same
+stage without any bookkeeping. The stage also says whether samples are
+coupled: screening and MLMC stages are (odd run stages), plain MC stages are
+not (even run stages: only the fine grid is solved, ``coarse`` is zero).
 
 Cost
 ----
@@ -40,6 +41,7 @@ never drops them silently.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from dataclasses import dataclass
@@ -54,9 +56,8 @@ __all__ = [
     "LevelBatch",
     "ContactModel",
     "STAGE_SCREENING",
-    "STAGE_MLMC",
-    "STAGE_MC",
-    "STAGES",
+    "is_coupled_stage",
+    "run_stage",
     "RETRY_FACTOR",
     "sample_rng",
     "modelled_cost",
@@ -64,10 +65,6 @@ __all__ = [
 ]
 
 STAGE_SCREENING = 0
-STAGE_MLMC = 1
-STAGE_MC = 2
-#: Stage names, as used on the command line.
-STAGES = {"screening": STAGE_SCREENING, "mlmc": STAGE_MLMC, "mc": STAGE_MC}
 
 #: A non-converged solve is continued for this many times ``max_iter`` more iterations.
 RETRY_FACTOR = 10
@@ -208,6 +205,23 @@ class ContactModel:
         return len(self.qoi_names)
 
 
+def run_stage(method: str, run_id: str) -> int:
+    """Stage of the estimation run ``run_id``: odd for ``"mlmc"`` (coupled), even for ``"mc"``.
+
+    A 56-bit hash of the name, so distinct runs have distinct streams (a
+    collision has probability about ``n_runs^2 / 2^57``).
+    """
+    if method not in ("mlmc", "mc"):
+        raise ValueError(f"method must be 'mlmc' or 'mc', got {method!r}")
+    digest = int.from_bytes(hashlib.sha256(run_id.encode()).digest()[:7], "big")
+    return 2 * digest + (1 if method == "mlmc" else 2)
+
+
+def is_coupled_stage(stage: int) -> bool:
+    """Whether samples of ``stage`` pair the fine with the coarse solve (screening, MLMC)."""
+    return stage == STAGE_SCREENING or stage % 2 == 1
+
+
 def sample_rng(seed: int, stage: int, level: int, index: int) -> np.random.Generator:
     """The random generator of sample ``(stage, level, index)`` of a study (SPEC section 7)."""
     sequence = np.random.SeedSequence(seed, spawn_key=(int(stage), int(level), int(index)))
@@ -278,9 +292,10 @@ def _qoi(model: ContactModel, solution: ContactSolution) -> np.ndarray:
 def compute_batch(model: ContactModel, *, stage: int, level: int, indices: np.ndarray) -> LevelBatch:
     """Compute samples ``(stage, level, i)`` for ``i`` in ``indices``.
 
-    Samples of the MLMC stages pair the level-``l`` solve with the coarse solve of the
-    same surface (:func:`~rough_uq.surface.sample_coupled`); samples of
-    ``STAGE_MC`` and of level 0 solve the fine grid only (``coarse`` zero).
+    Samples of coupled stages (:func:`is_coupled_stage`) pair the level-``l``
+    solve with the coarse solve of the same surface
+    (:func:`~rough_uq.surface.sample_coupled`); samples of MC stages and of
+    level 0 solve the fine grid only (``coarse`` zero).
     Each sample's QoIs depend only on ``model`` and ``(stage, level, index)``.
 
     Returns
@@ -295,7 +310,7 @@ def compute_batch(model: ContactModel, *, stage: int, level: int, indices: np.nd
     cost = np.zeros(n)
     n_iter = np.zeros((n, 2), dtype=np.int64)
     converged = np.ones((n, 2), dtype=bool)
-    is_coupled = stage != STAGE_MC and level > 0
+    is_coupled = is_coupled_stage(stage) and level > 0
     n_fine = model.grid(level)
     for row, index in enumerate(indices):
         start = time.perf_counter()

@@ -63,16 +63,17 @@ def test_mlmc_mc_and_report_json_agree_with_the_file(screened):
     mc = json.loads(run("mc", "--tol", "1.0", "--workers", "1", "--json").output)
     report = json.loads(run("report", "results.h5", "--json").output)
     runs = {run_["run_id"]: run_ for run_ in report["runs"]}
-    assert set(runs) == {"mlmc_contact_area-1", "mlmc_contact_area-0.5", "mc_contact_area-1"}
-    assert runs["mc_contact_area-1"]["estimate"] == mc["estimate"]
+    assert set(runs) == {"mlmc_contact_area-1_theta-0.5", "mlmc_contact_area-0.5_theta-0.5",
+                         "mc_contact_area-1_theta-0.5"}
+    assert runs["mc_contact_area-1_theta-0.5"]["estimate"] == mc["estimate"]
     with open_study_readonly(screened / "results.h5") as store:
         for run_ in store.read_runs():
             assert runs[run_["run_id"]]["estimate"] == run_["estimate"]
             assert runs[run_["run_id"]]["n_samples"] == run_["n_samples"]
-        n_mlmc = sum(store.sample_indices(level=level, stage=1).size for level in store.levels())
-    mlmc = runs["mlmc_contact_area-0.5"]
-    assert n_mlmc == sum(mlmc["n_samples"])  # the tighter run reused and extended the looser one
-    assert "measured_ratio" in runs["mlmc_contact_area-1"]
+        for run_ in runs.values():
+            stored = sum(store.sample_indices(level=level, stage=run_["stage"]).size for level in store.levels())
+            assert stored == sum(run_["n_samples"])
+    assert "measured_ratio" in runs["mlmc_contact_area-1_theta-0.5"]
     assert report["screening"]["complexity"][0]["mc_exponent"] > 2
     text = run("report", "results.h5").output
     assert "Estimation runs" in text and "mlmc" in text
@@ -87,9 +88,11 @@ def test_rerunning_a_finished_run_computes_nothing(screened):
 
 def test_plan_lists_missing_samples_without_computing(screened):
     before = (screened / "results.h5").read_bytes()
-    rows = json.loads(run("mlmc", "--tol", "1.0", "--plan", "--json").output)
+    plan = json.loads(run("mlmc", "--tol", "1.0", "--plan", "--json").output)
+    assert plan["run_id"] == "mlmc_contact_area-1_theta-0.5" and plan["stage"] % 2 == 1
+    rows = plan["levels"]
     assert [row["level"] for row in rows] == [0, 1, 2]
-    assert all(row["n_missing"] > 0 and row["indices"][0].startswith("0:") for row in rows)
+    assert all(row["n_missing"] > 0 and row["indices"] == [f"0:{row['n_missing']}"] for row in rows)
     assert (screened / "results.h5").read_bytes() == before
     assert "level 0:" in run("mlmc", "--tol", "1.0", "--plan").output
 
@@ -146,5 +149,6 @@ def test_stored_samples_are_what_the_cli_reports(screened):
         fine = [f[f"samples/level_{level}/fine"][:] for level in record["levels"]]
         stage = [f[f"samples/level_{level}/stage"][:] for level in record["levels"]]
         coarse = [f[f"samples/level_{level}/coarse"][:] for level in record["levels"]]
-    estimate = sum(np.mean(f_[s == 1, 0] - c[s == 1, 0]) for f_, c, s in zip(fine, coarse, stage))
+    own = [s == record["stage"] for s in stage]
+    estimate = sum(np.mean(f_[k, 0] - c[k, 0]) for f_, c, k in zip(fine, coarse, own))
     assert estimate == pytest.approx(record["estimate"][0], rel=1e-12)

@@ -21,7 +21,10 @@ from rough_uq.pipeline import (
     run_screening,
 )
 from rough_uq.progress import Progress
-from rough_uq.sampler import STAGE_MC, STAGE_MLMC, STAGE_SCREENING, compute_batch
+from rough_uq.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage
+
+MLMC_STAGE = run_stage("mlmc", "test")
+MC_STAGE = run_stage("mc", "test")
 from rough_uq.store import MemoryStore
 from tests.study_configs import tiny_config
 
@@ -59,8 +62,8 @@ def test_model_units_and_load():
 
 def test_sample_does_not_depend_on_its_batch():
     model = build_model(config_from_dict(tiny_config()))
-    together = compute_batch(model, stage=STAGE_MLMC, level=2, indices=[0, 1, 2, 3])
-    alone = compute_batch(model, stage=STAGE_MLMC, level=2, indices=[2])
+    together = compute_batch(model, stage=MLMC_STAGE, level=2, indices=[0, 1, 2, 3])
+    alone = compute_batch(model, stage=MLMC_STAGE, level=2, indices=[2])
     np.testing.assert_array_equal(alone.fine[0], together.fine[2])
     np.testing.assert_array_equal(alone.coarse[0], together.coarse[2])
     np.testing.assert_array_equal(alone.n_iter[0], together.n_iter[2])
@@ -73,8 +76,8 @@ def test_coupled_coarse_value_is_a_level_below_sample_in_distribution():
     # surfaces with the same distribution: their means agree within statistical error.
     model = build_model(config_from_dict(tiny_config()))
     n = 60
-    level1 = compute_batch(model, stage=STAGE_MLMC, level=1, indices=np.arange(n))
-    level0 = compute_batch(model, stage=STAGE_MLMC, level=0, indices=np.arange(n))
+    level1 = compute_batch(model, stage=MLMC_STAGE, level=1, indices=np.arange(n))
+    level0 = compute_batch(model, stage=MLMC_STAGE, level=0, indices=np.arange(n))
     difference = level1.coarse[:, 0].mean() - level0.fine[:, 0].mean()
     se = math.sqrt(level1.coarse[:, 0].var(ddof=1) / n + level0.fine[:, 0].var(ddof=1) / n)
     assert abs(difference) < 4 * se
@@ -120,7 +123,7 @@ def test_pool_and_serial_store_identical_samples():
                                    progress=QUIET)
     assert pooled_record["estimate"] == serial_record["estimate"]
     assert pooled_record["n_samples"] == serial_record["n_samples"]
-    for stage in (STAGE_SCREENING, STAGE_MLMC):
+    for stage in (STAGE_SCREENING, pooled_record["stage"]):
         for level in range(3):
             x = serial.store.read_samples(level=level, stage=stage)
             y = pooled.store.read_samples(level=level, stage=stage)
@@ -151,7 +154,8 @@ def test_interrupted_mlmc_resumes_to_the_uninterrupted_result(n_items):
     study = _screened()
     with pytest.raises(KeyboardInterrupt):
         run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=_Interrupting(n_items), progress=QUIET)
-    stored = sum(study.store.sample_indices(level=l, stage=STAGE_MLMC).size for l in study.store.levels())
+    stage = run_stage("mlmc", "mlmc_contact_area-1_theta-0.5")
+    stored = sum(study.store.sample_indices(level=l, stage=stage).size for l in study.store.levels())
     assert stored == n_items  # every completed sample was kept
     (run,) = study.store.read_runs()
     assert run["status"] == "running"
@@ -163,13 +167,20 @@ def test_interrupted_mlmc_resumes_to_the_uninterrupted_result(n_items):
     assert run["status"] == "finished"
 
 
-def test_tighter_tolerance_reuses_the_samples_of_a_looser_run():
+def test_every_run_has_its_own_random_stage():
     study = _screened()
     loose = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
     tight = run_estimation(study, method="mlmc", tol=np.array([0.5]), executor=SerialExecutor(), progress=QUIET)
-    assert tight["n_computed"] == sum(tight["n_samples"]) - sum(loose["n_samples"])
-    assert all(t >= l for t, l in zip(tight["n_samples"], loose["n_samples"]))
-    assert len(study.store.read_runs()) == 2
+    mc = run_estimation(study, method="mc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
+    stages = {STAGE_SCREENING, loose["stage"], tight["stage"], mc["stage"]}
+    assert len(stages) == 4
+    assert is_coupled_stage(loose["stage"]) and is_coupled_stage(tight["stage"]) and not is_coupled_stage(mc["stage"])
+    assert tight["n_computed"] == sum(tight["n_samples"])  # nothing shared with the looser run
+    assert len(study.store.read_runs()) == 3
+    for level in range(3):
+        first = study.store.read_samples(level=level, stage=loose["stage"]).fine
+        second = study.store.read_samples(level=level, stage=tight["stage"]).fine
+        assert not np.array_equal(first[:3], second[:3])
 
 
 def test_mc_runs_uncoupled_on_the_planned_level():
@@ -177,7 +188,7 @@ def test_mc_runs_uncoupled_on_the_planned_level():
     record = run_estimation(study, method="mc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
     (level,) = record["levels"]
     assert level == record["level"]
-    batch = study.store.read_samples(level=level, stage=STAGE_MC)
+    batch = study.store.read_samples(level=level, stage=record["stage"])
     assert batch.n_samples == record["n_samples"][0]
     assert np.all(batch.coarse == 0) and np.all(batch.n_iter[:, 1] == 0)
     assert record["is_bias_estimated"]
@@ -185,17 +196,19 @@ def test_mc_runs_uncoupled_on_the_planned_level():
 
 def test_missing_samples_shrinks_as_samples_are_stored():
     study = _screened()
-    before = missing_samples(study, method="mlmc", tol=np.array([1.0]))
-    assert sorted(before) == [0, 1, 2]
+    work = missing_samples(study, method="mlmc", tol=np.array([1.0]))
+    before = work.missing
+    assert sorted(before) == [0, 1, 2] and work.n_missing == sum(i.size for i in before.values())
     assert all(list(indices) == list(range(indices.size)) and indices.size > 0 for indices in before.values())
     # Store exactly what the plan asks for: the next plan starts where it ended.
     for level, indices in before.items():
-        study.store.append_samples(compute_batch(study.model, stage=STAGE_MLMC, level=level, indices=indices))
-    after = missing_samples(study, method="mlmc", tol=np.array([1.0]))
+        study.store.append_samples(compute_batch(study.model, stage=work.stage, level=level, indices=indices))
+    after = missing_samples(study, method="mlmc", tol=np.array([1.0])).missing
     for level, indices in after.items():
         assert indices.size == 0 or indices[0] >= before[level].size
     record = run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
-    assert missing_samples(study, method="mlmc", tol=np.array([1.0])) == {}
+    assert record["stage"] == work.stage
+    assert missing_samples(study, method="mlmc", tol=np.array([1.0])).n_missing == 0
     # The run computed only what was not stored (the first plan may ask for more than the run ends up using).
     stored = [before[level].size for level in record["levels"]]
     assert record["n_computed"] == sum(max(0, n - s) for n, s in zip(record["n_samples"], stored))
