@@ -263,6 +263,78 @@ main.command(name="mc", help="Plain Monte Carlo on the finest level the toleranc
 )
 
 
+def _parse_indices(text: str) -> Any:
+    """``A:B`` (half-open), ``I``, or a comma-separated list of those, as a sorted index array."""
+    import numpy as np
+
+    from rough_uq.errors import InvalidParameterError
+
+    parts = []
+    for part in text.split(","):
+        start, sep, stop = part.strip().partition(":")
+        try:
+            first = int(start)
+            last = int(stop) if sep else first + 1
+        except ValueError:
+            raise InvalidParameterError("--indices", text, "ranges A:B (half-open) or indices, comma-separated") from None
+        if first < 0 or last <= first:
+            raise InvalidParameterError("--indices", text, "ranges A:B with 0 <= A < B")
+        parts.append(np.arange(first, last))
+    return np.unique(np.concatenate(parts))
+
+
+@main.command()
+@click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
+              help="Study file (only read).")
+@click.option("--stage", required=True, help="Stage of the samples: 'screening' or the number `--plan` prints.")
+@click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the samples.")
+@click.option("--indices", required=True, metavar="A:B[,C:D]", help="Sample indices, half-open ranges.")
+@click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="Shard file to write.")
+@_workers_option
+@_quiet_option
+@_user_errors
+def sample(study_path: str, stage: str, level: int, indices: str, out: str, workers: int | None,
+           quiet: bool) -> None:
+    """Compute the given samples into a shard file (for cluster job arrays); merge it later.
+
+    The shard is written under a temporary name and renamed when complete.
+    """
+    from rough_uq.errors import InvalidParameterError
+    from rough_uq.pipeline import compute_shard, open_existing_study
+
+    if stage == "screening":
+        stage_id = 0
+    else:
+        try:
+            stage_id = int(stage)
+        except ValueError:
+            raise InvalidParameterError("--stage", stage, "'screening' or a non-negative integer") from None
+        if stage_id < 0:
+            raise InvalidParameterError("--stage", stage, "'screening' or a non-negative integer")
+    wanted = _parse_indices(indices)
+    with open_existing_study(study_path, writable=False) as study:
+        with _executor(study.config, workers, "local", None) as pool:
+            path = compute_shard(study, stage=stage_id, level=level, indices=wanted, out=out, executor=pool,
+                                 progress=_progress(quiet))
+    click.echo(f"{path}: {wanted.size} samples of stage {stage_id}, level {level}")
+
+
+@main.command()
+@click.argument("shards", metavar="SHARD...", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--into", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
+              help="Study file to add the samples to.")
+@_user_errors
+def merge(shards: Sequence[str], study_path: str) -> None:
+    """Add the samples of shard files to a study (duplicates are skipped with a warning)."""
+    from rough_uq.pipeline import merge_shards, open_existing_study
+
+    with open_existing_study(study_path) as study:
+        counts = merge_shards(study, shards)
+    click.echo(f"{study_path}: added {counts['added']} samples from {len(shards)} shards")
+    if counts["duplicates"]:
+        click.echo(f"warning: skipped {counts['duplicates']} samples already in the study", err=True)
+
+
 @main.command()
 @click.argument("study_path", metavar="FILE", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")

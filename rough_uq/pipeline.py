@@ -24,6 +24,7 @@ records carry both it and the measured wall time.
 from __future__ import annotations
 
 import math
+import os
 import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
@@ -76,6 +77,8 @@ __all__ = [
     "missing_samples",
     "WorkPlan",
     "run_id",
+    "compute_shard",
+    "merge_shards",
 ]
 
 #: Longest time computed samples wait in memory before they are written.
@@ -784,3 +787,93 @@ def run_estimation(
     )
     study.store.write_run(key, record)
     return record
+
+
+# ---------------------------------------------------------------------------
+# Shards: samples computed elsewhere (cluster jobs) and merged into the study
+# ---------------------------------------------------------------------------
+
+
+def compute_shard(
+    study: Study,
+    *,
+    stage: int,
+    level: int,
+    indices: np.ndarray,
+    out: str | Path,
+    executor: Executor,
+    progress: Progress,
+) -> Path:
+    """Compute samples ``(stage, level, indices)`` of a study into the shard file ``out``.
+
+    The shard is a study file with the study's config and hash holding just
+    these samples. It is written under a temporary name and renamed to
+    ``out`` only when complete, so a killed job never leaves a partial shard
+    under the final name. The study itself is only read.
+    """
+    out = Path(out)
+    if out.exists():
+        raise StudyFileError(f"shard {str(out)!r} already exists; merge or remove it first", out)
+    if not 0 <= level <= study.config.grid.max_level:
+        from rough_uq.errors import InvalidParameterError
+
+        raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level} (grid.max_level)")
+    partial = out.with_name(f"{out.name}.partial-{os.getpid()}")
+    indices = np.unique(np.asarray(indices, dtype=np.int64))
+    shard_store = open_study(
+        partial,
+        config_text=study.store.config_text,
+        config_hash=study.store.config_hash,
+        qoi_names=study.store.qoi_names,
+        create=True,
+        code_version=__version__,
+    )
+    shard = Study(study.config, shard_store)
+    progress.start(f"shard stage {stage} level {level}")
+    try:
+        with shard:
+            progress.plan([level], [indices.size], [0])
+            StudySampler(shard, stage=stage, executor=executor, progress=progress).compute(level, indices)
+        os.replace(partial, out)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+    finally:
+        progress.stop()
+    return out
+
+
+def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
+    """Add the samples of shard files to the study.
+
+    Every shard is checked first: a shard of another config (hash) or with
+    other QoI columns is refused before anything is written. Samples already
+    in the study are skipped, never counted twice.
+
+    Returns
+    -------
+    dict
+        ``{"added": n, "duplicates": n}``.
+    """
+    from rough_uq.store import DuplicateSampleWarning
+
+    batches: list[LevelBatch] = []
+    for path in shards:
+        with open_study_readonly(path) as shard:
+            if shard.config_hash != study.store.config_hash or shard.qoi_names != study.store.qoi_names:
+                raise StudyFileError(
+                    f"shard {str(path)!r} belongs to another study (config hash {shard.config_hash[:12]}, "
+                    f"this study {study.store.config_hash[:12]}); nothing was merged",
+                    path,
+                )
+            for level in shard.levels():
+                for stage in shard.stages(level=level):
+                    batches.append(shard.read_samples(level=level, stage=stage))
+    added = duplicates = 0
+    for batch in batches:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DuplicateSampleWarning)
+            n = study.store.append_samples(batch)
+        added += n
+        duplicates += batch.n_samples - n
+    return {"added": added, "duplicates": duplicates}

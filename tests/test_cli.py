@@ -152,3 +152,54 @@ def test_stored_samples_are_what_the_cli_reports(screened):
     own = [s == record["stage"] for s in stage]
     estimate = sum(np.mean(f_[k, 0] - c[k, 0]) for f_, c, k in zip(fine, coarse, own))
     assert estimate == pytest.approx(record["estimate"][0], rel=1e-12)
+
+
+def test_shards_in_any_order_merge_to_the_serial_result(screened, tmp_path):
+    """The cluster workflow: plan, compute shards (out of order), merge, repeat; then mlmc computes nothing."""
+    reference = json.loads(run("mlmc", "--tol", "1.0", "--study", "results.h5", "--workers", "1", "--json").output)
+    copy = screened / "cluster.h5"
+    config = write_config(screened / "tiny2.yaml", tiny_config())
+    run("screen", str(config), "--out", str(copy), "--workers", "1", "--quiet")
+    n_rounds = 0
+    while True:
+        plan = json.loads(run("mlmc", "--tol", "1.0", "--study", str(copy), "--plan", "--json").output)
+        if plan["n_missing"] == 0:
+            break
+        n_rounds += 1
+        shards = []
+        for row in plan["levels"]:
+            indices = [i for part in row["indices"] for i in range(*map(int, part.split(":")))]
+            thirds = [indices[k::3] for k in range(3)]
+            for k in (2, 0, 1):  # in a different order than the indices
+                if not thirds[k]:
+                    continue
+                shard = screened / f"shard-{n_rounds}-{row['level']}-{k}.h5"
+                text = ",".join(str(i) for i in thirds[k])
+                run("sample", "--study", str(copy), "--stage", str(plan["stage"]), "--level", str(row["level"]),
+                    "--indices", text, "--out", str(shard), "--workers", "1", "--quiet")
+                shards.append(str(shard))
+        result = run("merge", *reversed(shards), "--into", str(copy))
+        assert "added" in result.output
+        assert n_rounds < 10
+    # Merging a shard twice never double-counts.
+    result = run("merge", shards[0], "--into", str(copy))
+    assert "skipped" in result.stderr and "added 0 samples" in result.output
+    final = json.loads(run("mlmc", "--tol", "1.0", "--study", str(copy), "--workers", "1", "--json").output)
+    assert final["n_computed"] == 0
+    for key in ("estimate", "stat_error", "bias_estimate", "n_samples", "cost"):
+        assert final[key] == reference[key], key
+    assert not list(screened.glob("*.partial-*"))
+
+
+def test_merge_refuses_a_shard_of_another_config(screened):
+    other = write_config(screened / "other.yaml", tiny_config(seed=99))
+    run("screen", str(other), "--out", "other.h5", "--workers", "1", "--quiet")
+    run("sample", "--study", "other.h5", "--stage", "screening", "--level", "0", "--indices", "100:102",
+        "--out", "foreign.h5", "--workers", "1", "--quiet")
+    before = (screened / "results.h5").read_bytes()
+    result = run("merge", "foreign.h5", "--into", "results.h5", expect=2)
+    assert "another study" in result.stderr
+    assert (screened / "results.h5").read_bytes() == before
+    result = run("sample", "--study", "results.h5", "--stage", "screening", "--level", "0", "--indices", "5:2",
+                 "--out", "x.h5", expect=2)
+    assert "--indices" in result.stderr
