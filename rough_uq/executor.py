@@ -155,11 +155,11 @@ class PoolExecutor(Executor):
         return self._pool
 
     def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
-        pool = self._start()
         queue = list(items)
         pending: set[Future] = set()
         is_done = False
         try:
+            pool = self._start()
             # Keep a bounded number of items in flight so cancelling is cheap.
             while queue or pending:
                 while queue and len(pending) < 2 * self.n_workers:
@@ -194,7 +194,7 @@ class DaskExecutor(Executor):
     scheduler : str or distributed.Client
         Address of a running scheduler (``tcp://host:8786``) or a client.
 
-    The model is scattered to the workers once per run; each item is one task.
+    The model is scattered to the workers once; each item is one task.
     The cluster's workers should run one thread each per ``solver.threads``
     (e.g. ``dask worker --nthreads 1``); roughuq does not manage them.
     """
@@ -216,18 +216,26 @@ class DaskExecutor(Executor):
                 raise ExecutorError(f"cannot reach the dask scheduler at {scheduler!r}: {exc}") from None
             self._owns_client = True
         self.n_workers = max(1, sum(self._client.nthreads().values()))
+        self._scattered: tuple[ContactModel, object] | None = None
+
+    def _scatter(self, model: ContactModel) -> object:
+        # Scatter once and keep the future: scattering the same data again gives the
+        # same key, which the release of an earlier run's future would take away.
+        if self._scattered is None or self._scattered[0] != model:
+            self._scattered = (model, self._client.scatter(model, broadcast=True))
+        return self._scattered[1]
 
     def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
         from distributed import as_completed
 
-        model_future = self._client.scatter(model, broadcast=True)
+        model_future = self._scatter(model)
         futures = [
             self._client.submit(_compute, model_future, stage, level, indices, pure=False)
             for stage, level, indices in items
         ]
         is_done = False
         try:
-            for future in as_completed(futures):
+            for future in as_completed(futures, loop=self._client.loop):
                 try:
                     yield future.result()
                 except Exception as exc:
@@ -240,6 +248,7 @@ class DaskExecutor(Executor):
                 self._client.cancel(futures)
 
     def close(self) -> None:
+        self._scattered = None
         if self._owns_client:
             self._client.close()
             self._owns_client = False

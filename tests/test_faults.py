@@ -1,0 +1,130 @@
+"""Faults: a run killed at random moments (Ctrl-C, kill -9) or losing a worker resumes to the same result."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rough_uq.store import open_study_readonly
+from tests.study_configs import tiny_config, write_config
+
+TOL = "0.25"
+
+
+def _config(directory: Path) -> Path:
+    # Grids 16..64: an MLMC run to TOL takes about 10 s here, long enough to interrupt.
+    config = tiny_config(
+        surface={"system_size": 1.0, "wavenumbers": {"k_l": 1, "k_r": 2, "k_s": 16}, "hurst": 0.8, "rms_height": 1.0},
+        grid={"coarsest": 16, "max_level": 2},
+    )
+    return write_config(directory / "study.yaml", config)
+
+
+def _roughuq(*args: str, cwd: Path, **kwargs: object) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rough_uq.cli", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=300, **kwargs)
+
+
+def _start(*args: str, cwd: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "rough_uq.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _screened(directory: Path) -> Path:
+    directory.mkdir()
+    result = _roughuq("screen", str(_config(directory)), "-q", "--workers", "1", cwd=directory)
+    assert result.returncode == 0, result.stderr
+    return directory
+
+
+def _finish(directory: Path, *options: str) -> dict:
+    result = _roughuq("mlmc", "--tol", TOL, "-q", "--json", *options, cwd=directory)
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)
+
+
+def _stored(directory: Path) -> dict[int, np.ndarray]:
+    """Indices per level of the estimation samples (every stage but the screening)."""
+    with open_study_readonly(directory / "results.h5") as store:
+        return {
+            level: np.concatenate([store.sample_indices(level=level, stage=stage)
+                                   for stage in store.stages(level=level) if stage != 0] or [np.zeros(0, int)])
+            for level in store.levels()
+        }
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> dict:
+    return _finish(_screened(tmp_path_factory.mktemp("reference") / "study"), "--workers", "1")
+
+
+def test_killed_runs_lose_nothing_and_resume_to_the_same_estimate(tmp_path, reference):
+    directory = _screened(tmp_path / "study")
+    rng = np.random.default_rng(5)
+    previous = {}
+    for attempt, sig in enumerate([signal.SIGINT, signal.SIGKILL, signal.SIGINT, signal.SIGKILL]):
+        process = _start("mlmc", "--tol", TOL, "-q", "--workers", "1", cwd=directory)
+        time.sleep(rng.uniform(2.5, 7.0))
+        process.send_signal(sig)
+        _, stderr = process.communicate(timeout=60)
+        if process.returncode == 0:
+            break  # finished before the signal: nothing left to interrupt
+        expected = 130 if sig == signal.SIGINT else -signal.SIGKILL
+        assert process.returncode == expected, stderr
+        if sig == signal.SIGINT:
+            assert "interrupted" in stderr and "Traceback" not in stderr
+        stored = _stored(directory)  # the file opens after every interruption
+        for level, indices in stored.items():
+            assert np.unique(indices).size == indices.size, "a sample was stored twice"
+            assert set(previous.get(level, [])) <= set(indices.tolist()), "a stored sample was lost"
+        previous = {level: indices.tolist() for level, indices in stored.items()}
+    final = _finish(directory, "--workers", "1")
+    for key in ("estimate", "stat_error", "bias_estimate", "n_samples", "cost"):
+        assert final[key] == reference[key], key
+    stored = _stored(directory)
+    assert sum(indices.size for indices in stored.values()) == sum(final["n_samples"])
+
+
+def _pool_workers(pid: int) -> list[int]:
+    """Pids of the spawned pool workers of process ``pid`` (not the resource tracker)."""
+    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    workers = []
+    for child in children:
+        try:
+            command = Path(f"/proc/{child}/cmdline").read_bytes().replace(b"\0", b" ")
+        except FileNotFoundError:
+            continue
+        if b"resource_tracker" not in command:
+            workers.append(int(child))
+    return workers
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
+def test_a_dead_worker_loses_only_its_samples(tmp_path, reference):
+    directory = _screened(tmp_path / "study")
+    process = _start("mlmc", "--tol", TOL, "-q", "--workers", "2", cwd=directory)
+    deadline = time.monotonic() + 60
+    workers: list[int] = []
+    while time.monotonic() < deadline and len(workers) < 2:
+        time.sleep(0.2)
+        workers = _pool_workers(process.pid)
+    assert len(workers) == 2, "the pool did not start"
+    time.sleep(3.0)
+    os.kill(workers[0], signal.SIGKILL)
+    _, stderr = process.communicate(timeout=120)
+    if process.returncode != 0:  # the run may have finished before the kill
+        assert process.returncode == 2, stderr
+        assert "worker process died" in stderr and "Traceback" not in stderr
+    final = _finish(directory, "--workers", "2")
+    for key in ("estimate", "stat_error", "bias_estimate", "n_samples", "cost"):
+        assert final[key] == reference[key], key
+    stored = _stored(directory)
+    assert sum(indices.size for indices in stored.values()) == sum(final["n_samples"])
