@@ -17,6 +17,9 @@ from rough_uq.store import open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
 TOL = "0.25"
+ROOT = Path(__file__).resolve().parent.parent
+# The subprocesses run this checkout's roughuq, whatever is installed.
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
 
 
 def _config(directory: Path) -> Path:
@@ -30,12 +33,12 @@ def _config(directory: Path) -> Path:
 
 def _roughuq(*args: str, cwd: Path, **kwargs: object) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "rough_uq.cli", *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=300, **kwargs)
+                          timeout=300, env=ENV, **kwargs)
 
 
 def _start(*args: str, cwd: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "rough_uq.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, env=ENV)
 
 
 def _screened(directory: Path) -> Path:

@@ -1,0 +1,569 @@
+"""Benchmark the contact solver on the reference surface of SPEC section 6.
+
+For each grid ``n`` one surface of the classic study (``L = 2``,
+``lambda_l = lambda_r = 1``, ``lambda_s = 1/64``, ``H = 0.8``, RMS height 1,
+``E* = 1``) is drawn with a seeded generator and solved at the paper load
+``p_mean = 0.1 E* sqrt(m2)``. Everything below is measured side by side in one
+run, so the ratios are meaningful even where the absolute times are not:
+
+* solver: iterations, seconds per solve and per iteration, the time of one real
+  FFT pair (forward + inverse, the same cached plan and threads the solver
+  uses, median over batches) and the ratio (s/iteration) / (FFT pair). An
+  iteration costs one FFT pair plus fused passes, and a second pair when the
+  active set changes, so the ratio is expected between 1 and 2;
+* warm start: the coupled coarse surface (grid ``n/2``, spectral truncation) is
+  solved first and its pressure passed as ``initial_pressure`` to the fine
+  solve; cold vs warm iterations and time;
+* peer (if ``import tamaas`` works): Tamaas's PolonskyKeerRey on the same
+  heights and mean pressure (``E = E*``, ``nu = 0``, model ``basic_2d``), the
+  contact areas, the relative L2 difference of the pressure fields and the time
+  ratio tamaas/roughuq. roughuq is solved once more at ``--tight-tol`` so that
+  the field comparison is not dominated by roughuq's own tolerance. The height
+  orientation and pressure scale of Tamaas are checked once on a small grid
+  (both signs of the heights are tried; the one matching roughuq's contact
+  area is used).
+
+Timings exclude one-off costs: numba compilation (a small warm-up solve) and
+FFT planning (the plan is built by the FFT timing before the first solve).
+
+    python scripts/bench_solver.py [--sizes 256,512,1024] [--threads 1] [--tol 1e-8]
+                                   [--seed 1] [--repeats 1] [--no-tamaas] [--json FILE]
+
+2048 is opt-in (``--sizes 256,512,1024,2048``); with Tamaas it takes minutes.
+"""
+
+from __future__ import annotations
+
+import os
+
+# FFTW's threads and numba's OpenMP threads spin-wait for each other otherwise.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import contextlib  # noqa: E402
+import datetime  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import re  # noqa: E402
+import shlex  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from dataclasses import asdict, dataclass  # noqa: E402
+
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+import pyfftw  # noqa: E402
+
+from rough_uq.fft import get_fft  # noqa: E402
+from rough_uq.solver import ContactSolution, solve_contact  # noqa: E402
+from rough_uq.surface import SurfaceSpectrum, sample_coupled, sample_surface  # noqa: E402
+
+#: SPEC section 6: box side, cut-off wavelengths (unit of L), Hurst exponent, RMS height.
+SYSTEM_SIZE = 2.0
+LAMBDA_L = 1.0
+LAMBDA_R = 1.0
+LAMBDA_S = 1.0 / 64.0
+HURST = 0.8
+RMS_HEIGHT = 1.0
+E_STAR = 1.0
+#: Dimensionless load p_mean / (E* sqrt(m2)).
+RELATIVE_LOAD = 0.1
+
+#: Minimum wall time of one batch of FFT pairs, and the number of batches (median taken).
+FFT_BATCH_SECONDS = 0.05
+FFT_BATCHES = 7
+
+#: Tamaas: iteration budget (its default is 1000), tolerances below / from TAMAAS_FINE_GRID.
+TAMAAS_MAX_ITER = 100_000
+TAMAAS_TOL_COARSE = 1e-12
+TAMAAS_TOL_FINE = 1e-10
+TAMAAS_FINE_GRID = 1024
+#: Grid of the one-off orientation check of Tamaas's height convention.
+CONVENTION_GRID = 128
+
+
+@dataclass
+class SolveTiming:
+    """One timed roughuq solve (median seconds over the repeats)."""
+
+    n: int
+    tol: float
+    n_iter: int
+    seconds: float
+    error: float
+    converged: bool
+    area_fraction: float
+
+
+@dataclass
+class GridRow:
+    """The solver line of the main table."""
+
+    n: int
+    n_iter: int
+    seconds_per_solve: float
+    seconds_per_iteration: float
+    fft_pair_seconds: float
+    iteration_over_fft: float
+    area_fraction: float
+    error: float
+    converged: bool
+
+
+@dataclass
+class WarmRow:
+    """Cold vs warm-started solve of one fine grid."""
+
+    n: int
+    cold_iter: int
+    cold_seconds: float
+    coarse_iter: int
+    coarse_seconds: float
+    warm_iter: int
+    warm_seconds: float
+    iteration_reduction_percent: float
+    time_reduction_percent: float
+    time_reduction_with_coarse_percent: float
+
+
+@dataclass
+class PeerRow:
+    """roughuq (at --tol and at --tight-tol) against Tamaas on one grid."""
+
+    n: int
+    tamaas_tol: float
+    tamaas_iter: int | None
+    tamaas_seconds: float
+    tamaas_area_fraction: float
+    tamaas_mean_pressure: float
+    roughuq_iter: int
+    roughuq_seconds: float
+    roughuq_area_fraction: float
+    roughuq_rel_l2: float
+    tight_tol: float
+    tight_iter: int
+    tight_seconds: float
+    tight_area_fraction: float
+    tight_rel_l2: float
+    time_ratio: float
+    time_ratio_tight: float
+
+
+def reference_spectrum() -> SurfaceSpectrum:
+    """The PSD of SPEC section 6."""
+    return SurfaceSpectrum.from_wavelengths(
+        system_size=SYSTEM_SIZE,
+        lambda_l=LAMBDA_L,
+        lambda_r=LAMBDA_R,
+        lambda_s=LAMBDA_S,
+        hurst=HURST,
+        rms_height=RMS_HEIGHT,
+    )
+
+
+def mean_pressure(spectrum: SurfaceSpectrum) -> float:
+    """The paper load ``RELATIVE_LOAD * E* * sqrt(m2)`` (unit of E*), from the spectral model."""
+    return RELATIVE_LOAD * E_STAR * spectrum.rms_slope
+
+
+def environment(argv: list[str]) -> dict[str, object]:
+    """Date, machine and library versions, and the exact command line."""
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        usable = os.cpu_count()
+    info: dict[str, object] = {
+        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "machine": f"{platform.node()} {platform.machine()} {platform.processor() or ''}".strip(),
+        "cores": f"{os.cpu_count()} logical, {usable} usable",
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "pyfftw": pyfftw.__version__,
+        "numba": f"{numba.__version__} (threading layer {numba.config.THREADING_LAYER}, "
+        f"NUMBA_NUM_THREADS {numba.config.NUMBA_NUM_THREADS})",
+        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
+        "command": shlex.join([os.path.basename(sys.executable)] + argv),
+    }
+    tamaas = import_tamaas()
+    info["tamaas"] = "not installed" if tamaas is None else f"{tamaas.__version__} (backend {tamaas.TamaasInfo.backend})"
+    return info
+
+
+def import_tamaas():
+    """The ``tamaas`` module, or None when it is not installed."""
+    try:
+        import tamaas
+    except ImportError:
+        return None
+    return tamaas
+
+
+def warm_up(threads: int) -> None:
+    """Load or compile the solver's numba kernels (and start its thread pool) outside the timings."""
+    spectrum = reference_spectrum()
+    heights = sample_surface(spectrum, 32, np.random.default_rng(0))
+    solve_contact(heights, system_size=SYSTEM_SIZE, mean_pressure=mean_pressure(spectrum), threads=threads)
+
+
+def time_fft_pair(n: int, threads: int) -> float:
+    """Median seconds of one forward + inverse real FFT with the solver's cached plan."""
+    plan = get_fft(n, threads=threads)
+    plan.real[...] = np.random.default_rng(0).standard_normal((n, n))
+    plan.forward()
+    plan.inverse()
+    start = time.perf_counter()
+    n_pairs = 0
+    while time.perf_counter() - start < FFT_BATCH_SECONDS:
+        plan.forward()
+        plan.inverse()
+        n_pairs += 1
+    batch = max(n_pairs, 1)
+    samples = []
+    for _ in range(FFT_BATCHES):
+        start = time.perf_counter()
+        for _ in range(batch):
+            plan.forward()
+            plan.inverse()
+        samples.append((time.perf_counter() - start) / batch)
+    return statistics.median(samples)
+
+
+def timed_solve(
+    heights: np.ndarray,
+    *,
+    pressure: float,
+    tol: float,
+    threads: int,
+    repeats: int,
+    initial_pressure: np.ndarray | None = None,
+) -> tuple[ContactSolution, SolveTiming]:
+    """Solve ``repeats`` times; the last solution and the median wall time."""
+    seconds = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        solution = solve_contact(
+            heights,
+            system_size=SYSTEM_SIZE,
+            mean_pressure=pressure,
+            e_star=E_STAR,
+            tol=tol,
+            threads=threads,
+            initial_pressure=initial_pressure,
+        )
+        seconds.append(time.perf_counter() - start)
+    timing = SolveTiming(
+        n=heights.shape[0],
+        tol=tol,
+        n_iter=solution.n_iter,
+        seconds=statistics.median(seconds),
+        error=solution.error,
+        converged=solution.converged,
+        area_fraction=float(solution.contact.mean()),
+    )
+    return solution, timing
+
+
+@contextlib.contextmanager
+def captured_stderr_fd():
+    """Redirect file descriptor 2 (where Tamaas's C++ logger writes) to a temp file; yields a getter."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        os.dup2(sink.fileno(), 2)
+        text: list[str] = []
+        try:
+            yield lambda: "".join(text)
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            text.append(sink.read().decode(errors="replace"))
+
+
+def tamaas_solve(tamaas, heights: np.ndarray, pressure: float, tol: float) -> tuple[np.ndarray, float, int | None]:
+    """Tamaas PolonskyKeerRey on ``heights``: (pressure field, seconds, iterations or None).
+
+    ``E = E*`` with ``nu = 0`` gives Tamaas the same effective modulus. Tamaas
+    logs its iterations to stderr at the info level; the log is captured (so it
+    does not flood the table) and the last iteration number is read from it.
+    """
+    n = heights.shape[0]
+    model = tamaas.ModelFactory.createModel(tamaas.model_type.basic_2d, [SYSTEM_SIZE, SYSTEM_SIZE], [n, n])
+    model.E = E_STAR
+    model.nu = 0.0
+    surface = np.ascontiguousarray(heights, dtype=np.float64)
+    solver = tamaas.PolonskyKeerRey(model, surface, tol)
+    solver.max_iter = TAMAAS_MAX_ITER
+    with captured_stderr_fd() as log:
+        start = time.perf_counter()
+        solver.solve(pressure)
+        seconds = time.perf_counter() - start
+    iterations = [int(m.group(1)) for m in re.finditer(r"^\s*(\d+)\s+\S+\s+\S+\s*$", log(), flags=re.MULTILINE)]
+    traction = np.array(model.traction, dtype=np.float64, copy=True).reshape(n, n)
+    return traction, seconds, (iterations[-1] if iterations else None)
+
+
+def check_tamaas_convention(tamaas, pressure: float, seed: int, threads: int) -> tuple[int, list[str]]:
+    """Which sign of the heights Tamaas needs to match roughuq (larger = touches first); report lines.
+
+    Both orientations are solved on a small grid; the one whose contact area
+    and pressure field are closer to roughuq's is returned (+1 or -1).
+    """
+    spectrum = reference_spectrum()
+    heights = sample_surface(spectrum, CONVENTION_GRID, np.random.default_rng(seed))
+    reference, _ = timed_solve(heights, pressure=pressure, tol=1e-10, threads=threads, repeats=1)
+    area = float(reference.contact.mean())
+    lines = [f"Tamaas convention check on {CONVENTION_GRID}^2: roughuq area {100 * area:.3f}%"]
+    best_sign, best_difference = 1, np.inf
+    for sign in (1, -1):
+        traction, _, _ = tamaas_solve(tamaas, sign * heights, pressure, TAMAAS_TOL_COARSE)
+        difference = relative_l2(traction, reference.pressure)
+        lines.append(
+            f"  heights x {sign:+d}: area {100 * float((traction > 0).mean()):.3f}%, "
+            f"mean pressure {traction.mean() / pressure:.6f} x p_mean, rel. L2 vs roughuq {difference:.2e}"
+        )
+        if difference < best_difference:
+            best_sign, best_difference = sign, difference
+    lines.append(f"  -> Tamaas gets heights x {best_sign:+d}")
+    return best_sign, lines
+
+
+def relative_l2(field: np.ndarray, reference: np.ndarray) -> float:
+    """``||field - reference|| / ||reference||`` (Frobenius norms)."""
+    return float(np.linalg.norm(field - reference) / np.linalg.norm(reference))
+
+
+def percent_less(new: float, old: float) -> float:
+    """Reduction from ``old`` to ``new`` in percent of ``old``."""
+    return 100.0 * (old - new) / old if old else float("nan")
+
+
+def format_table(headers: list[str], rows: list[list[str]]) -> str:
+    """A plain right-aligned text table."""
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(headers)]
+    lines = ["  ".join(h.rjust(w) for h, w in zip(headers, widths))]
+    lines.append("  ".join("-" * w for w in widths))
+    lines += ["  ".join(c.rjust(w) for c, w in zip(row, widths)) for row in rows]
+    return "\n".join(lines)
+
+
+def run_grid(
+    n: int, args: argparse.Namespace, pressure: float, tamaas, tamaas_sign: int
+) -> tuple[GridRow, WarmRow, PeerRow | None]:
+    """All measurements of one grid."""
+    spectrum = reference_spectrum()
+    fft_pair = time_fft_pair(n, args.threads)  # also builds the solver's plan outside the timings
+    heights = sample_surface(spectrum, n, np.random.default_rng(args.seed))
+    cold, cold_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats)
+    per_iteration = cold_timing.seconds / max(cold_timing.n_iter, 1)
+    grid_row = GridRow(
+        n=n,
+        n_iter=cold_timing.n_iter,
+        seconds_per_solve=cold_timing.seconds,
+        seconds_per_iteration=per_iteration,
+        fft_pair_seconds=fft_pair,
+        iteration_over_fft=per_iteration / fft_pair,
+        area_fraction=cold_timing.area_fraction,
+        error=cold_timing.error,
+        converged=cold_timing.converged,
+    )
+
+    fine, coarse = sample_coupled(spectrum, n, np.random.default_rng(args.seed))
+    if not np.array_equal(fine, heights):
+        raise RuntimeError(f"sample_coupled's fine surface differs from sample_surface's on grid {n}")
+    time_fft_pair(n // 2, args.threads)  # plan for the coarse grid, outside the timings
+    coarse_solution, coarse_timing = timed_solve(
+        coarse, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats
+    )
+    _, warm_timing = timed_solve(
+        fine,
+        pressure=pressure,
+        tol=args.tol,
+        threads=args.threads,
+        repeats=args.repeats,
+        initial_pressure=coarse_solution.pressure,
+    )
+    warm_row = WarmRow(
+        n=n,
+        cold_iter=cold_timing.n_iter,
+        cold_seconds=cold_timing.seconds,
+        coarse_iter=coarse_timing.n_iter,
+        coarse_seconds=coarse_timing.seconds,
+        warm_iter=warm_timing.n_iter,
+        warm_seconds=warm_timing.seconds,
+        iteration_reduction_percent=percent_less(warm_timing.n_iter, cold_timing.n_iter),
+        time_reduction_percent=percent_less(warm_timing.seconds, cold_timing.seconds),
+        time_reduction_with_coarse_percent=percent_less(
+            warm_timing.seconds + coarse_timing.seconds, cold_timing.seconds
+        ),
+    )
+
+    if tamaas is None:
+        return grid_row, warm_row, None
+    tight, tight_timing = timed_solve(
+        heights, pressure=pressure, tol=args.tight_tol, threads=args.threads, repeats=args.repeats
+    )
+    tamaas_tol = TAMAAS_TOL_FINE if n >= TAMAAS_FINE_GRID else TAMAAS_TOL_COARSE
+    traction, tamaas_seconds, tamaas_iter = tamaas_solve(tamaas, tamaas_sign * heights, pressure, tamaas_tol)
+    peer_row = PeerRow(
+        n=n,
+        tamaas_tol=tamaas_tol,
+        tamaas_iter=tamaas_iter,
+        tamaas_seconds=tamaas_seconds,
+        tamaas_area_fraction=float((traction > 0).mean()),
+        tamaas_mean_pressure=float(traction.mean()),
+        roughuq_iter=cold_timing.n_iter,
+        roughuq_seconds=cold_timing.seconds,
+        roughuq_area_fraction=cold_timing.area_fraction,
+        roughuq_rel_l2=relative_l2(cold.pressure, traction),
+        tight_tol=args.tight_tol,
+        tight_iter=tight_timing.n_iter,
+        tight_seconds=tight_timing.seconds,
+        tight_area_fraction=tight_timing.area_fraction,
+        tight_rel_l2=relative_l2(tight.pressure, traction),
+        time_ratio=tamaas_seconds / cold_timing.seconds,
+        time_ratio_tight=tamaas_seconds / tight_timing.seconds,
+    )
+    return grid_row, warm_row, peer_row
+
+
+def render(grid_rows: list[GridRow], warm_rows: list[WarmRow], peer_rows: list[PeerRow], args) -> str:
+    """The three result tables as text."""
+    parts = [
+        f"Solver (tol {args.tol:g}, {args.threads} thread(s), median of {args.repeats} solve(s))",
+        format_table(
+            ["n", "iters", "s/solve", "s/iter", "FFT pair s", "iter/FFT", "area %", "error", "conv"],
+            [
+                [
+                    str(r.n),
+                    str(r.n_iter),
+                    f"{r.seconds_per_solve:.3f}",
+                    f"{r.seconds_per_iteration:.3e}",
+                    f"{r.fft_pair_seconds:.3e}",
+                    f"{r.iteration_over_fft:.2f}",
+                    f"{100 * r.area_fraction:.3f}",
+                    f"{r.error:.1e}",
+                    "yes" if r.converged else "NO",
+                ]
+                for r in grid_rows
+            ],
+        ),
+        "",
+        "Warm start from the coupled coarse solution (grid n/2, spectral truncation)",
+        format_table(
+            ["n", "cold it", "cold s", "n/2 it", "n/2 s", "warm it", "warm s", "it -%", "time -%", "time+n/2 -%"],
+            [
+                [
+                    str(r.n),
+                    str(r.cold_iter),
+                    f"{r.cold_seconds:.3f}",
+                    str(r.coarse_iter),
+                    f"{r.coarse_seconds:.3f}",
+                    str(r.warm_iter),
+                    f"{r.warm_seconds:.3f}",
+                    f"{r.iteration_reduction_percent:.1f}",
+                    f"{r.time_reduction_percent:.1f}",
+                    f"{r.time_reduction_with_coarse_percent:.1f}",
+                ]
+                for r in warm_rows
+            ],
+        ),
+    ]
+    if peer_rows:
+        rows = []
+        for r in peer_rows:
+            iters = "?" if r.tamaas_iter is None else str(r.tamaas_iter)
+            rows.append([str(r.n), "tamaas", f"{r.tamaas_tol:g}", iters, f"{r.tamaas_seconds:.3f}",
+                         f"{100 * r.tamaas_area_fraction:.3f}", "-", "-"])
+            rows.append([str(r.n), "roughuq", f"{args.tol:g}", str(r.roughuq_iter),
+                         f"{r.roughuq_seconds:.3f}", f"{100 * r.roughuq_area_fraction:.3f}",
+                         f"{r.roughuq_rel_l2:.2e}", f"{r.time_ratio:.2f}"])
+            rows.append([str(r.n), "roughuq", f"{r.tight_tol:g}", str(r.tight_iter), f"{r.tight_seconds:.3f}",
+                         f"{100 * r.tight_area_fraction:.3f}", f"{r.tight_rel_l2:.2e}", f"{r.time_ratio_tight:.2f}"])
+        parts += [
+            "",
+            "Peer: Tamaas PolonskyKeerRey (E = E*, nu = 0), same heights and mean pressure",
+            format_table(["n", "solver", "tol", "iters", "seconds", "area %", "rel L2 vs tamaas", "tamaas/this"], rows),
+            "(tol is each solver's own error measure; Tamaas runs serially whatever --threads says)",
+        ]
+    return "\n".join(parts)
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    """Command-line options."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", default="256,512,1024", help="comma-separated grid sizes (2048 is slow)")
+    parser.add_argument("--threads", type=int, default=1, help="FFTW and numba threads of roughuq")
+    parser.add_argument("--tol", type=float, default=1e-8, help="roughuq tolerance of the timed solves")
+    parser.add_argument("--tight-tol", type=float, default=1e-10, help="roughuq tolerance for the field comparison")
+    parser.add_argument("--seed", type=int, default=1, help="seed of numpy.random.default_rng for the surfaces")
+    parser.add_argument("--repeats", type=int, default=1, help="timed roughuq solves per measurement (median)")
+    parser.add_argument("--no-tamaas", action="store_true", help="skip the peer comparison")
+    parser.add_argument("--json", metavar="FILE", help="also write the numbers to FILE")
+    args = parser.parse_args(argv)
+    try:
+        args.sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
+    except ValueError:
+        parser.error(f"--sizes must be comma-separated integers, got {args.sizes!r}")
+    if not args.sizes or any(n < 8 or n % 4 for n in args.sizes):
+        parser.error("--sizes must be multiples of 4, >= 8 (the warm start solves on n/2)")
+    if args.threads < 1 or args.repeats < 1:
+        parser.error("--threads and --repeats must be >= 1")
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Run the benchmark and print (and optionally save) the tables."""
+    argv = sys.argv[1:] if argv is None else argv
+    args = parse_args(argv)
+    info = environment([sys.argv[0]] + argv)
+    for key, value in info.items():
+        print(f"{key + ':':<17}{value}")
+    spectrum = reference_spectrum()
+    pressure = mean_pressure(spectrum)
+    print(f"{'surface:':<17}SPEC 6, L={SYSTEM_SIZE:g}, k_l=k_r={spectrum.k_r:g}, k_s={spectrum.k_s:g}, H={HURST:g}, "
+          f"rms height {RMS_HEIGHT:g}, rms slope {spectrum.rms_slope:.4f}, seed {args.seed}")
+    print(f"{'load:':<17}p_mean = {RELATIVE_LOAD:g} E* sqrt(m2) = {pressure:.6f} E*")
+    print(flush=True)
+
+    warm_up(args.threads)
+    tamaas = None if args.no_tamaas else import_tamaas()
+    tamaas_sign = 1
+    convention_lines: list[str] = []
+    if tamaas is not None:
+        tamaas.set_log_level(tamaas.LogLevel.info)  # the iteration log is captured and parsed
+        tamaas_sign, convention_lines = check_tamaas_convention(tamaas, pressure, args.seed, args.threads)
+        print("\n".join(convention_lines) + "\n", flush=True)
+
+    grid_rows, warm_rows, peer_rows = [], [], []
+    for n in args.sizes:
+        grid_row, warm_row, peer_row = run_grid(n, args, pressure, tamaas, tamaas_sign)
+        grid_rows.append(grid_row)
+        warm_rows.append(warm_row)
+        if peer_row is not None:
+            peer_rows.append(peer_row)
+        print(f"[grid {n} done]", file=sys.stderr, flush=True)
+
+    print(render(grid_rows, warm_rows, peer_rows, args))
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as handle:
+            json.dump(
+                {
+                    "environment": info,
+                    "options": {k: v for k, v in vars(args).items() if k != "json"},
+                    "mean_pressure": pressure,
+                    "tamaas_convention": convention_lines,
+                    "solver": [asdict(r) for r in grid_rows],
+                    "warm_start": [asdict(r) for r in warm_rows],
+                    "peer": [asdict(r) for r in peer_rows],
+                },
+                handle,
+                indent=2,
+            )
+
+
+if __name__ == "__main__":
+    main()
