@@ -189,6 +189,8 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     @click.option("--max-cost", type=click.FloatRange(min=0, min_open=True), default=None,
                   help="Budget in reference seconds (default: the config's estimation.max_cost).")
     @click.option("--plan", "show_plan", is_flag=True, help="Print the samples still missing; compute nothing.")
+    @click.option("--level", type=click.IntRange(min=0), default=None,
+                  help="mc only: sample this level (no screening needed; its bias is then not estimated).")
     @click.option("--json", "as_json", is_flag=True, help="Print the result (or the plan) as JSON.")
     @_workers_option
     @_executor_option
@@ -196,20 +198,32 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     @_quiet_option
     @_user_errors
     def command(tol: Sequence[str], study_path: str, config_path: str | None, max_cost: float | None,
-                show_plan: bool, as_json: bool, workers: int | None, executor: str, scheduler: str | None,
-                quiet: bool) -> None:
+                show_plan: bool, level: int | None, as_json: bool, workers: int | None, executor: str,
+                scheduler: str | None, quiet: bool) -> None:
         from rough_uq.config import load_config
-        from rough_uq.pipeline import missing_samples, open_existing_study, parse_tolerances, run_estimation
+        from rough_uq.errors import InvalidParameterError
+        from rough_uq.pipeline import (
+            create_study,
+            missing_samples,
+            open_existing_study,
+            parse_tolerances,
+            run_estimation,
+        )
 
+        if level is not None and method != "mc":
+            raise InvalidParameterError("--level", level, "only with `roughuq mc` (MLMC chooses its levels)")
         config = load_config(config_path) if config_path else None
+        if config is not None and not show_plan and not Path(study_path).exists():
+            create_study(config, study_path).close()  # a new study, e.g. MC on a given --level
         with open_existing_study(study_path, config=config, writable=not show_plan) as study:
             tolerances = parse_tolerances(tol, study.config)
             if show_plan:
-                _print_plan(missing_samples(study, method=method, tol=tolerances, max_cost=max_cost), as_json)
+                work = missing_samples(study, method=method, tol=tolerances, max_cost=max_cost, level=level)
+                _print_plan(work, as_json)
                 return
             with _executor(study.config, workers, executor, scheduler) as pool:
                 record = run_estimation(study, method=method, tol=tolerances, executor=pool,
-                                        progress=_progress(quiet or as_json), max_cost=max_cost)
+                                        progress=_progress(quiet or as_json), max_cost=max_cost, level=level)
         if as_json:
             _dump(record)
         else:
@@ -333,6 +347,55 @@ def merge(shards: Sequence[str], study_path: str) -> None:
     click.echo(f"{study_path}: added {counts['added']} samples from {len(shards)} shards")
     if counts["duplicates"]:
         click.echo(f"warning: skipped {counts['duplicates']} samples already in the study", err=True)
+
+
+@main.command()
+@click.argument("config_path", metavar="CONFIG", type=click.Path(dir_okay=False))
+@click.option("--set", "assignment", required=True, metavar="KEY=V1,V2,...",
+              help="Dotted config field and its values, e.g. surface.system_size=1,2,3,4.")
+@click.option("--fixed-spacing", is_flag=True,
+              help="With surface.system_size: scale grid.coarsest with the box (same grid spacing).")
+@click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS", help="MC tolerance (as for `roughuq mc`).")
+@click.option("--level", type=click.IntRange(min=0), default=0, show_default=True, help="Level sampled by MC.")
+@click.option("--dir", "directory", type=click.Path(file_okay=False), default=None,
+              help="Where the configs and study files go (default: sweep-<field>).")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
+@_workers_option
+@_quiet_option
+@_user_errors
+def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[str], level: int,
+          directory: str | None, as_json: bool, workers: int | None, quiet: bool) -> None:
+    """Plain MC estimates for several values of one config field, one study per value.
+
+    E.g. the box-size question: `roughuq sweep configs/classic_area.yaml --set
+    surface.system_size=1,2,3,4 --fixed-spacing --tol 0.5`. Rerunning resumes.
+    """
+    from rough_uq.config import load_config, sweep_configs
+    from rough_uq.errors import InvalidParameterError
+    from rough_uq.pipeline import run_sweep
+
+    key, sep, values = assignment.partition("=")
+    if not sep or not key or not values:
+        raise InvalidParameterError("--set", assignment, "KEY=V1,V2,... e.g. surface.system_size=1,2,3,4")
+    config = load_config(config_path)
+    configs = sweep_configs(config, key=key, values=values.split(","), fixed_spacing=fixed_spacing)
+    with _executor(config, workers, "local", None) as pool:
+        rows = run_sweep(configs, directory=directory or f"sweep-{key.rsplit('.', 1)[-1]}", tol=tol, level=level,
+                         executor=pool, progress=_progress(quiet or as_json))
+    if as_json:
+        _dump(rows)
+        return
+    from rich.table import Table
+
+    table = Table(title=f"Sweep of {key} (plain MC on level {level})")
+    for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "wall"):
+        table.add_column(column, justify="right")
+    for row in rows:
+        for q, name in enumerate(row["qoi_names"]):
+            table.add_row(row["value"], str(row["grid"]), name,
+                          f"{row['estimate'][q]:.5g} ± {row['stat_error'][q]:.2g}", str(row["n_samples"][0]),
+                          f"{row['seconds']:.3g} s")
+    _console().print(table)
 
 
 @main.command()

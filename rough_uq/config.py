@@ -54,12 +54,13 @@ Choices where the specification is silent
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
 import os
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
@@ -78,6 +79,7 @@ from pydantic_core import PydanticCustomError
 from rough_uq.errors import ConfigError
 
 __all__ = [
+    "sweep_configs",
     "SCHEMA_VERSION",
     "SOLVER_ARRAYS_PER_NODE",
     "QOI_NAMES",
@@ -1066,3 +1068,80 @@ def config_hash(config: StudyConfig) -> str:
     data["qoi"] = [[name, settings] for name, settings in data["qoi"].items()]
     canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(canonical.encode("utf-8")).hexdigest()
+
+
+def _parse_scalar(text: str) -> object:
+    value = yaml.safe_load(text)
+    return value if isinstance(value, (int, float, str, bool)) else text
+
+
+def sweep_configs(
+    config: StudyConfig, *, key: str, values: Sequence[str], fixed_spacing: bool = False
+) -> list[tuple[str, StudyConfig]]:
+    """One config per value of a dotted ``key`` (e.g. ``surface.system_size``): a parameter sweep.
+
+    Parameters
+    ----------
+    config : StudyConfig
+        The base study.
+    key : str
+        Dotted path of a field of the resolved config (``load.relative``,
+        ``surface.hurst``, ``surface.system_size``, ...).
+    values : sequence of str
+        The values, as written on the command line (parsed as YAML scalars).
+    fixed_spacing : bool
+        Only with ``key = surface.system_size``: scale ``grid.coarsest`` with
+        the box so that the grid spacing ``L / n_0`` stays that of the base
+        config (the new ``n_0`` must come out an even integer).
+
+    Returns
+    -------
+    list of (str, StudyConfig)
+        The value as given and the validated config; each config's
+        ``output.path`` gets ``-<key>-<value>`` before its suffix.
+
+    Raises
+    ------
+    ConfigError
+        Unknown key, or a value that makes the config invalid (the message
+        names the value).
+    """
+    base = _resolved_dict(config)
+    parts = key.split(".")
+    parent = base
+    for part in parts[:-1]:
+        if not isinstance(parent, dict) or part not in parent:
+            parent = None
+            break
+        parent = parent[part]
+    if not isinstance(parent, dict) or parts[-1] not in parent or isinstance(parent[parts[-1]], dict):
+        raise ConfigError(f"--set {key}: not a field of this config (got {key!r}; allowed: a dotted path to a "
+                          f"value, e.g. surface.system_size or load.relative)")
+    if fixed_spacing and key != "surface.system_size":
+        raise ConfigError(f"--fixed-spacing: only for surface.system_size (got {key!r}; allowed: surface.system_size)")
+    out = []
+    stem, dot, suffix = config.output.path.rpartition(".")
+    if not dot:
+        stem, suffix = config.output.path, "h5"
+    for text in values:
+        data = copy.deepcopy(base)
+        target = data
+        for part in parts[:-1]:
+            target = target[part]
+        value = _parse_scalar(str(text))
+        target[parts[-1]] = value
+        if fixed_spacing:
+            n_0 = config.grid.coarsest * float(value) / config.surface.system_size
+            if not (n_0 == round(n_0) and round(n_0) % 2 == 0):
+                raise ConfigError(
+                    f"--fixed-spacing: box {value} needs grid.coarsest = {n_0:g} for the spacing "
+                    f"{config.surface.system_size / config.grid.coarsest:g} (got {value!r}; allowed: a box size "
+                    f"giving an even integer n_0)"
+                )
+            data["grid"]["coarsest"] = int(round(n_0))
+        data["output"]["path"] = f"{stem}-{parts[-1]}-{text}.{suffix}"
+        try:
+            out.append((str(text), config_from_dict(data)))
+        except ConfigError as exc:
+            raise ConfigError(f"--set {key}={text}: {exc}") from None
+    return out

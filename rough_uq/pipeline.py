@@ -79,6 +79,7 @@ __all__ = [
     "run_id",
     "compute_shard",
     "merge_shards",
+    "run_sweep",
 ]
 
 #: Longest time computed samples wait in memory before they are written.
@@ -572,13 +573,15 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
     return np.array(tol, dtype=float)
 
 
-def run_id(method: str, names: Sequence[str], tol: np.ndarray, theta: float) -> str:
-    """Name of the run of ``method`` at tolerances ``tol`` and bias share ``theta``.
+def run_id(method: str, names: Sequence[str], tol: np.ndarray, theta: float, level: int | None = None) -> str:
+    """Name of the run of ``method`` at tolerances ``tol`` and bias share ``theta`` (MC: on ``level``, if given).
 
     The same command gives the same name, hence the same record and the same
     random stage (:func:`~rough_uq.sampler.run_stage`): rerunning it resumes.
     """
     parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
+    if level is not None:
+        parts.append(f"level-{level}")
     return "_".join(parts)
 
 
@@ -625,7 +628,9 @@ class WorkPlan:
         return int(sum(indices.size for indices in self.missing.values()))
 
 
-def missing_samples(study: Study, *, method: str, tol: np.ndarray, max_cost: float | None = None) -> WorkPlan:
+def missing_samples(
+    study: Study, *, method: str, tol: np.ndarray, max_cost: float | None = None, level: int | None = None
+) -> WorkPlan:
     """The sample indices the next round of a run needs that are not stored, per level.
 
     The run is replayed on the stored samples (exactly the decisions
@@ -635,7 +640,7 @@ def missing_samples(study: Study, *, method: str, tol: np.ndarray, max_cost: flo
     plan more samples once these are stored: ask again after merging them.
     Nothing is computed or written.
     """
-    key = run_id(method, study.config.qoi_names, tol, study.config.estimation.theta)
+    key = run_id(method, study.config.qoi_names, tol, study.config.estimation.theta, level)
     stage = run_stage(method, key)
     stored = StudySampler(study, stage=stage, executor=SerialExecutor(), progress=Progress())
 
@@ -645,7 +650,9 @@ def missing_samples(study: Study, *, method: str, tol: np.ndarray, max_cost: flo
         return stored(level, indices)
 
     max_cost = study.config.estimation.max_cost if max_cost is None else max_cost
-    events, _ = _events(study, method=method, tol=np.asarray(tol, dtype=float), sampler=replay, max_cost=max_cost)
+    events, _ = _events(
+        study, method=method, tol=np.asarray(tol, dtype=float), sampler=replay, max_cost=max_cost, level=level
+    )
     planned: dict[int, int] = {}
     try:
         with warnings.catch_warnings():
@@ -670,11 +677,16 @@ def _measured(sampler: StudySampler, levels: np.ndarray, n_samples: np.ndarray) 
 
 
 def _events(
-    study: Study, *, method: str, tol: np.ndarray, sampler: StudySampler, max_cost: float | None
+    study: Study,
+    *,
+    method: str,
+    tol: np.ndarray,
+    sampler: StudySampler,
+    max_cost: float | None,
+    level: int | None = None,
 ) -> tuple[Iterator[object], dict[str, Any]]:
     config = study.config
     estimation = config.estimation
-    statistics, rates, prediction = _estimation_plan(study, tol)
     options = dict(
         tol=tol,
         theta=estimation.theta,
@@ -682,6 +694,10 @@ def _events(
         max_cost=max_cost,
         batch_size=estimation.batch_size,
     )
+    if method == "mc" and level is not None:
+        # An explicit level needs no screening; the bias of that level is then unknown.
+        return iter_mc(sampler, level=level, **options), {"level": level}
+    statistics, rates, prediction = _estimation_plan(study, tol)
     context = {"screening_rates": rates_record(rates), "predicted": _plan_record(prediction, 1.0)}
     if method == "mlmc":
         events = iter_mlmc(sampler, max_level=config.grid.max_level, screening=statistics, **options)
@@ -699,8 +715,12 @@ def run_estimation(
     executor: Executor,
     progress: Progress,
     max_cost: float | None = None,
+    level: int | None = None,
 ) -> dict[str, Any]:
     """Run MLMC (``method="mlmc"``) or plain MC (``"mc"``) to ``tol`` and store its record.
+
+    MC runs on the finest level the screening's plan needs for ``tol``, or on
+    ``level`` if given (no screening needed; its bias is then not estimated).
 
     ``max_cost`` (reference seconds of modelled cost; default the config's
     ``estimation.max_cost``) bounds the run. The record is written when the
@@ -715,14 +735,18 @@ def run_estimation(
     """
     if method not in ("mlmc", "mc"):
         raise ValueError(f"method must be 'mlmc' or 'mc', got {method!r}")
+    if level is not None and (method != "mc" or not 0 <= level <= study.config.grid.max_level):
+        from rough_uq.errors import InvalidParameterError
+
+        raise InvalidParameterError("--level", level, f"with mc only, an integer in 0..{study.config.grid.max_level}")
     config = study.config
     names = config.qoi_names
     tol = np.asarray(tol, dtype=float)
     max_cost = config.estimation.max_cost if max_cost is None else max_cost
-    key = run_id(method, names, tol, config.estimation.theta)
+    key = run_id(method, names, tol, config.estimation.theta, level)
     stage = run_stage(method, key)
     sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
-    events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost)
+    events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost, level=level)
     record: dict[str, Any] = {
         "method": method,
         "stage": stage,
@@ -877,3 +901,51 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
         added += n
         duplicates += batch.n_samples - n
     return {"added": added, "duplicates": duplicates}
+
+
+# ---------------------------------------------------------------------------
+# Sweeps: one study per value of a config field
+# ---------------------------------------------------------------------------
+
+
+def run_sweep(
+    configs: Sequence[tuple[str, StudyConfig]],
+    *,
+    directory: str | Path,
+    tol: Sequence[str] | None,
+    level: int,
+    executor: Executor,
+    progress: Progress,
+) -> list[dict[str, Any]]:
+    """Plain MC on ``level`` for every config of a sweep (:func:`~rough_uq.config.sweep_configs`).
+
+    Each value gets its config (``<output stem>.yaml``) and its study file in
+    ``directory``; a rerun resumes every study. ``tol`` are ``--tol`` strings
+    (:func:`parse_tolerances`, per config).
+
+    Returns
+    -------
+    list of dict
+        Per value: ``value``, ``config``, ``study``, ``grid`` and the MC run record.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for value, config in configs:
+        study_path = directory / Path(config.output.path).name
+        config_path = study_path.with_suffix(".yaml")
+        config_path.write_text(resolved_yaml(config))
+        with create_study(config, study_path) as study:
+            record = run_estimation(
+                study,
+                method="mc",
+                tol=parse_tolerances(tol, config),
+                executor=executor,
+                progress=progress,
+                level=level,
+            )
+        rows.append(
+            {"value": value, "config": str(config_path), "study": str(study_path), "grid": config.grid.n_at(level),
+             **record}
+        )
+    return rows

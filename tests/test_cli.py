@@ -203,3 +203,34 @@ def test_merge_refuses_a_shard_of_another_config(screened):
     result = run("sample", "--study", "results.h5", "--stage", "screening", "--level", "0", "--indices", "5:2",
                  "--out", "x.h5", expect=2)
     assert "--indices" in result.stderr
+
+
+def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    rows = json.loads(run("sweep", str(config), "--set", "surface.system_size=1,2", "--fixed-spacing",
+                          "--tol", "3", "--workers", "1", "--json").output)
+    assert [row["value"] for row in rows] == ["1", "2"]
+    assert [row["grid"] for row in rows] == [8, 16]  # n_0 scales with the box: same spacing
+    for row in rows:
+        assert row["method"] == "mc" and row["levels"] == [0] and not row["is_bias_estimated"]
+        assert Path(row["study"]).exists() and Path(row["config"]).exists()
+    again = json.loads(run("sweep", str(config), "--set", "surface.system_size=1,2", "--fixed-spacing",
+                           "--tol", "3", "--workers", "1", "--json").output)
+    assert [row["estimate"] for row in again] == [row["estimate"] for row in rows]
+    assert all(row["n_computed"] == 0 for row in again)
+    result = run("sweep", str(config), "--set", "surface.system_size=1.1", "--fixed-spacing", expect=2)
+    assert "even integer" in result.stderr
+    result = run("sweep", str(config), "--set", "surface.colour=1", expect=2)
+    assert "not a field" in result.stderr
+
+
+def test_mc_on_a_given_level_needs_no_screening(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    record = json.loads(run("mc", "--config", str(config), "--level", "1", "--tol", "3", "--workers", "1",
+                            "--json").output)
+    assert record["levels"] == [1] and record["run_id"] if "run_id" in record else True
+    assert record["stat_error"][0] <= 3 and not record["is_bias_estimated"]
+    result = run("mlmc", "--level", "1", "--tol", "3", expect=2)
+    assert "--level" in result.stderr
