@@ -142,6 +142,7 @@ class LevelStatistics:
         ``V_l / Var(Q_l)``: how much the coupling reduces the variance; 1 on
         level 0 by definition. Above 1 on a level ``l >= 1`` the coarse
         sample is not coupled to the fine one (MLMC cannot beat MC there).
+        Where ``Var(Q_l) = 0``: ``inf`` if ``V_l > 0``, else 0.
     """
 
     levels: np.ndarray
@@ -330,10 +331,12 @@ def _assemble(levels: Sequence[int], moments: Sequence[_Moments]) -> LevelStatis
         has_spread = spread > rounding
         ratio = np.divide(gap, spread, out=np.zeros_like(gap), where=has_spread)
         consistency[row] = np.where(~has_spread & (gap > rounding), np.inf, ratio)
+    # Where Q_l never varies, V_l > 0 means the coarse value adds all the variance
+    # (ratio inf, not coupled); V_l = 0 as well means there is nothing to reduce (0).
     coupling = np.divide(
         table["var_diff"],
         table["var_fine"],
-        out=np.zeros_like(table["var_diff"]),
+        out=np.where(table["var_diff"] > 0, np.inf, 0.0),
         where=table["var_fine"] > 0,
     )
     coupling[levels_array == 0] = 1.0
@@ -723,14 +726,25 @@ def remaining_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray, shape (n_qoi,)
+        ``inf`` where the tail sum exceeds the float range (``alpha`` near 0).
+
+    Raises
+    ------
+    EstimationError
+        If some ``alpha <= 0`` (or NaN): the bias does not decay.
     """
     alpha = np.asarray(alpha, dtype=float)
-    if np.any(alpha <= 0):
+    # expm1 keeps 2^alpha - 1 = alpha ln 2 exact for small alpha, where 2.0**alpha - 1
+    # rounds to 0 (alpha < 1.6e-16) and the division would be 0/0 or x/0.
+    denominator = np.expm1(alpha * math.log(2.0))
+    if np.any(~(denominator > 0)):
         raise EstimationError(
             f"the bias does not decay with the level (alpha = {alpha.tolist()}); no finest level can "
             "meet a bias tolerance"
         )
-    return np.abs(mean_diff) / (2.0**alpha - 1.0)
+    # A rate so small that the tail sum exceeds the float range is an infinite bias.
+    with np.errstate(over="ignore"):
+        return np.abs(mean_diff) / denominator
 
 
 def optimal_samples(variances: np.ndarray, costs: np.ndarray, budget: np.ndarray) -> np.ndarray:
@@ -752,6 +766,9 @@ def optimal_samples(variances: np.ndarray, costs: np.ndarray, budget: np.ndarray
     -------
     ndarray, shape (n_levels, n_qoi)
     """
+    if np.any(~(np.asarray(costs) > 0)):
+        # C_l = 0 would divide by zero in sqrt(V_l / C_l).
+        raise InvalidParameterError("costs", costs, "positive costs C_l")
     costs = costs[:, None]
     total = np.sum(np.sqrt(variances * costs), axis=0)
     return np.minimum(np.sqrt(variances / costs) * total / budget, _MAX_COUNT)

@@ -45,6 +45,26 @@ of contact, both relative to the natural scale ``mean_pressure * s_rms``.
 The solve stops when ``error < tol``; ``tol`` is therefore dimensionless and
 invariant under scaling heights, loads or the modulus.
 
+Scaled units
+------------
+The problem is invariant under ``(s, d, u, p) -> (a s, a d, a u, a p)``
+(linearity), ``(p, E*) -> (b p, b E*)`` and ``(L, s, d, u) -> (c L, c s, c d,
+c u)`` (lengths). The solver subtracts the mean height and works in the
+units where the heights have unit RMS, ``E* = 1`` and ``L = 1``; the only
+parameter left is the dimensionless load
+
+    load = mean_pressure * L / (E* * s_rms),
+
+the load relative to the pressure scale ``E* s_rms / L`` of the surface's
+slopes (full contact sets in at a load of order ``2 pi k_s``). Results are
+scaled back. Iterates therefore neither overflow nor underflow whatever units
+the caller uses (heights of ``1e-300`` or ``1e300``, ``E*`` of ``1e-6`` or
+``1e9``), and the solution of a scaled problem is the scaled solution, to
+rounding. ``load`` must lie in ``[2.2e-308, 1e100]``: below, it is not a
+normal float; above, the rounding error of ``p = load + O(1)`` exceeds the
+surface itself by some 80 orders of magnitude (no solve can succeed) and
+squares of the residual would overflow.
+
 A solve that reaches ``max_iter`` returns ``converged=False`` with the last
 iterate; no field of a returned solution is ever NaN or infinite.
 """
@@ -65,6 +85,10 @@ __all__ = ["ContactSolution", "solve_contact", "resample_pressure"]
 #: Iterations after which ``w`` is recomputed from ``p`` to bound the drift of
 #: the recursive update.
 _REFRESH_EVERY = 50
+
+#: Range of the dimensionless load ``mean_pressure * L / (E* * s_rms)`` (module docstring).
+_MIN_LOAD = float(np.finfo(np.float64).tiny)
+_MAX_LOAD = 1e100
 
 
 @dataclass(frozen=True)
@@ -270,10 +294,13 @@ def resample_pressure(pressure: np.ndarray, n: int) -> np.ndarray:
     -------
     ndarray, shape (n, n)
     """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        # Checked first: n = 0 would divide by zero in the ratio below.
+        raise InvalidParameterError("n", n, "a positive integer grid size")
     field = np.asarray(pressure, dtype=np.float64)
+    if field.ndim != 2 or field.shape[1] != field.shape[0] or field.size == 0:
+        raise InvalidParameterError("initial_pressure", f"array of shape {field.shape}", "a non-empty square 2-D array")
     m = field.shape[0]
-    if field.ndim != 2 or field.shape[1] != m:
-        raise InvalidParameterError("initial_pressure", f"array of shape {field.shape}", "a square 2-D array")
     ratio = max(m, n) / min(m, n)
     if ratio != 2 ** round(math.log2(ratio)) or max(m, n) % min(m, n):
         raise InvalidParameterError(
@@ -319,15 +346,72 @@ def _initial_guess(initial_pressure, n: int) -> np.ndarray | None:
     if initial_pressure is None:
         return None
     p0 = np.asarray(initial_pressure, dtype=np.float64)
+    if p0.ndim != 2:
+        # Checked here, before resample_pressure indexes p0.shape[0] of a scalar.
+        raise InvalidParameterError("initial_pressure", f"array of shape {p0.shape}", "a square 2-D array")
     if not np.all(np.isfinite(p0)):
         raise InvalidParameterError("initial_pressure", "non-finite values", "finite, non-negative pressures")
     if np.any(p0 < 0):
         raise InvalidParameterError("initial_pressure", f"minimum {p0.min():g}", "non-negative pressures")
+    peak = float(p0.max(initial=0.0))
+    if not peak > 0:
+        raise InvalidParameterError("initial_pressure", "all zeros", "a field with some positive pressure")
+    # Only the shape of the guess matters (the solver rescales it to the load).
+    # Dividing by its peak first keeps the sums that rescale it finite for
+    # guesses near the overflow (1e308) or underflow (1e-320) thresholds.
+    p0 = p0 / peak
     if p0.shape != (n, n):
         p0 = resample_pressure(p0, n)
     if not p0.sum() > 0:
         raise InvalidParameterError("initial_pressure", "all zeros", "a field with some positive pressure")
     return p0
+
+
+def _binary_ratio(numerators: tuple[float, ...], denominators: tuple[float, ...]) -> tuple[float, int]:
+    """``(m, e)`` with ``prod(numerators) / prod(denominators) = m * 2**e`` (positive inputs).
+
+    Mantissas and exponents are combined separately, so no intermediate
+    product overflows or underflows where the result itself would not
+    (e.g. ``1e200 * 1e200 / 1e300``); apply with ``math.ldexp``/``np.ldexp``.
+    """
+    mantissa, exponent = 1.0, 0
+    for value in numerators:
+        fraction, power = math.frexp(value)
+        mantissa, exponent = mantissa * fraction, exponent + power
+    for value in denominators:
+        fraction, power = math.frexp(value)
+        mantissa, exponent = mantissa / fraction, exponent - power
+    return mantissa, exponent
+
+
+def _scaled_heights(s: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """``(offset, scale, (s - offset) / scale)``: ``offset`` the mean, ``scale`` the RMS about it.
+
+    Computed without squaring the raw heights, whose squares over- or
+    underflow for heights beyond about ``1e+-154`` (``np.std`` would return
+    ``inf`` or ``0``). A flat surface gets ``scale = 1``.
+
+    Raises
+    ------
+    InvalidParameterError
+        If the RMS height is not a normal float (subnormal heights).
+    """
+    peak = float(np.max(np.abs(s)))
+    if peak == 0.0:
+        return 0.0, 1.0, np.zeros_like(s)
+    unit = s / peak  # in [-1, 1]
+    mean_unit = float(np.mean(unit))
+    deviation = unit - mean_unit  # in [-2, 2]
+    spread = float(np.max(np.abs(deviation)))
+    offset = peak * mean_unit
+    if spread == 0.0:
+        return offset, 1.0, np.zeros_like(s)
+    deviation /= spread  # largest |value| is 1, so the mean square is >= 1 / N: no underflow
+    rms = float(np.sqrt(np.mean(deviation * deviation)))
+    scale = peak * (spread * rms)
+    if not scale >= np.finfo(np.float64).tiny:
+        raise InvalidParameterError("heights", f"RMS height {scale:g}", "an RMS height of at least 2.2e-308")
+    return offset, scale, np.ascontiguousarray(deviation / rms)
 
 
 def solve_contact(
@@ -350,7 +434,22 @@ def solve_contact(
     system_size : float
         Box side ``L``.
     mean_pressure : float
-        Imposed mean (nominal) pressure, ``> 0`` (unit of ``E*``).
+        Imposed mean (nominal) pressure, ``> 0`` (unit of ``E*``). Every load
+        has a defined result: as the load tends to 0 the contact shrinks to
+        the highest node(s), which carry the whole force ``n^2 mean_pressure``
+        (the limit is reached well above the smallest representable loads);
+        beyond the full-contact load every node is in contact and the
+        pressure is :func:`~rough_uq.reference.full_contact_pressure`. Zero
+        load itself is rejected: with no force there is no contact set to
+        find (every ``p = 0`` is admissible and the approach ``d`` is not
+        determined), so a defined answer would be an arbitrary convention.
+        Loads are also rejected when the dimensionless load
+        ``mean_pressure * system_size / (e_star * RMS height)`` lies outside
+        ``[2.2e-308, 1e100]`` (module docstring) or ``n^2 mean_pressure``
+        overflows. Far beyond full contact (at the default ``tol``, from
+        some ``1e7`` to ``1e8`` times the full-contact load on) rounding of
+        ``p = mean_pressure + (variation)`` limits the attainable error; the
+        solve then ends with ``converged=False`` after ``max_iter``.
     e_star : float, optional
         Effective modulus ``E* = E / (1 - nu^2)``.
     tol : float, optional
@@ -373,21 +472,41 @@ def solve_contact(
     Raises
     ------
     InvalidParameterError
-        For non-square, odd-sized or non-finite heights, non-positive
-        ``mean_pressure``, ``system_size`` or ``e_star`` (zero load has no
-        contact problem to solve), or an invalid ``initial_pressure``.
+        For non-square, odd-sized or non-finite heights (or subnormal RMS
+        height), non-positive ``mean_pressure`` (zero load included, see
+        above), ``system_size`` or ``e_star``, a dimensionless load out of
+        range (see ``mean_pressure``), or an invalid ``initial_pressure``
+        (negative, all zero, not square, or from a grid whose size does not
+        differ from ``n`` by a power of two).
     """
     s = _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter)
     n = s.shape[0]
     n_nodes = n * n
-    total_force = mean_pressure * n_nodes
     p0 = _initial_guess(initial_pressure, n)
-    s_rms = float(np.std(s))
-    if not s_rms > 0:
-        s_rms = 1.0
-    error_scale = n_nodes * mean_pressure * s_rms
+    # Scaled units (module docstring): heights with zero mean and unit RMS, E* = 1, L = 1.
+    # From here on s, p, w, gbar and ``load`` are in these units.
+    offset, s_rms, s = _scaled_heights(s)
+    if not math.isfinite(mean_pressure * n_nodes):
+        # All the force may end up on one node: its pressure must be a float.
+        raise InvalidParameterError(
+            "mean_pressure", mean_pressure, f"a load whose total over the {n_nodes} nodes is finite"
+        )
+    try:
+        load = math.ldexp(*_binary_ratio((mean_pressure, system_size), (e_star, s_rms)))
+    except OverflowError:
+        load = math.inf
+    if not _MIN_LOAD <= load <= _MAX_LOAD:
+        raise InvalidParameterError(
+            "mean_pressure",
+            mean_pressure,
+            f"a dimensionless load mean_pressure * system_size / (e_star * RMS height) in "
+            f"[{_MIN_LOAD:.2g}, {_MAX_LOAD:.0e}]; here it is {load:.3g} (system_size = {system_size:g}, "
+            f"e_star = {e_star:g}, RMS height = {s_rms:.3g})",
+        )
+    total_force = load * n_nodes
+    error_scale = total_force  # N * load * (unit RMS height)
 
-    half_space = HalfSpace(n, system_size=system_size, e_star=e_star, threads=threads)
+    half_space = HalfSpace(n, system_size=1.0, e_star=1.0, threads=threads)
     fft = half_space.fft
     kernel = half_space.kernel
     # Parseval weights of <K t, t> in the rfft half spectrum: interior columns
@@ -396,7 +515,7 @@ def solve_contact(
     weights[:, 0] *= 0.5
     weights[:, -1] *= 0.5
 
-    p = np.full((n, n), float(mean_pressure)) if p0 is None else p0.copy()
+    p = np.full((n, n), load) if p0 is None else p0.copy()
     w = np.empty((n, n))
     t = np.zeros((n, n))
     p_hat = np.empty_like(fft.spectral)
@@ -427,7 +546,7 @@ def solve_contact(
             active_total, n_active, t_total = _gap_pass(fft.real, s, p, t, w)
             gbar = active_total / n_active
             g_norm, complementarity, overlap = _residuals(w, p, gbar)
-            error = (complementarity + mean_pressure * overlap) / error_scale
+            error = (complementarity + load * overlap) / error_scale
             if not math.isfinite(error):
                 raise ConvergenceError(
                     f"non-finite convergence measure at iteration {n_iter} (inputs were finite; this is a bug)"
@@ -463,7 +582,7 @@ def solve_contact(
                     # set (e.g. all pressure on one node): start again from
                     # uniform pressure.
                     n_restarts += 1
-                    p.fill(mean_pressure)
+                    p.fill(load)
                     t.fill(0.0)
                     displacement_from_pressure()
                     is_exact = True
@@ -488,7 +607,7 @@ def solve_contact(
                 if not total > 0:
                     # Every node was clamped and none overlapped (cannot happen
                     # for a descent step, but never divide by zero).
-                    p.fill(mean_pressure)
+                    p.fill(load)
                     t.fill(0.0)
                     delta = 0.0
                 displacement_from_pressure()
@@ -501,14 +620,19 @@ def solve_contact(
     finally:
         numba.set_num_threads(previous_threads)
 
+    # Back from scaled units: heights, displacements and gaps times s_rms (the
+    # approach also gets the mean height back), pressures times E* s_rms / L
+    # (in binary, so that E* s_rms cannot overflow when the pressures do not).
     approach = -gbar
-    displacement = w + s
-    gap = w + approach
+    displacement = (w + s) * s_rms
+    gap = (w + approach) * s_rms
+    mantissa, exponent = _binary_ratio((e_star, s_rms), (system_size,))
+    pressure = np.ldexp(p * mantissa, exponent)
     return ContactSolution(
-        pressure=p,
+        pressure=pressure,
         displacement=displacement,
         gap=gap,
-        approach=float(approach),
+        approach=float(approach * s_rms + offset),
         n_iter=n_iter,
         error=float(error),
         converged=converged,

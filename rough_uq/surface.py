@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import functools
 import math
+import sys
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -122,8 +123,11 @@ class SurfaceSpectrum:
     Raises
     ------
     InvalidParameterError
-        A parameter is out of range (the error names it), or the band holds no
-        non-zero integer wave vector (named ``"k_l, k_s"``).
+        A parameter is out of range (the error names it), the band holds no
+        non-zero integer wave vector (named ``"k_l, k_s"``), or ``C`` or
+        ``m2`` would leave the normal float range (named ``"rms_height"`` or
+        ``"rms_height, system_size"``; roughly ``rms_height / system_size``
+        beyond ``1e+-150``).
     """
 
     system_size: float
@@ -169,9 +173,29 @@ class SurfaceSpectrum:
                 (self.k_l, self.k_s),
                 "a band k_l <= |k| <= k_s that contains at least one non-zero integer wave vector",
             )
-        amplitude = self.rms_height**2 / shape_sum
+        # Squares of extreme heights or box sizes leave the float range: C (or m2)
+        # would be 0 -- a silently flat surface, or zero slope and hence zero
+        # paper-style load -- or overflow. Refuse them, naming the culprits.
+        normal = "a value for which C = rms_height^2 / sum(Phi / C) is a normal, finite float (change units)"
+        try:
+            amplitude = self.rms_height**2 / shape_sum
+        except OverflowError:
+            amplitude = math.inf
+        if not sys.float_info.min <= amplitude < math.inf:
+            raise InvalidParameterError("rms_height", self.rms_height, normal)
+        try:
+            m2 = amplitude * (2.0 * math.pi / self.system_size) ** 2 * shape_k2_sum
+        except OverflowError:
+            m2 = math.inf
+        if not sys.float_info.min <= m2 < math.inf:
+            raise InvalidParameterError(
+                "rms_height, system_size",
+                (self.rms_height, self.system_size),
+                "values for which the slope variance m2 ~ (2 pi rms_height k / system_size)^2 is a normal, "
+                "finite float (change units)",
+            )
         object.__setattr__(self, "C", amplitude)
-        object.__setattr__(self, "m2", amplitude * (2.0 * math.pi / self.system_size) ** 2 * shape_k2_sum)
+        object.__setattr__(self, "m2", m2)
         object.__setattr__(self, "n_modes", n_modes)
 
     @classmethod
@@ -445,6 +469,14 @@ def sample_surface(spectrum: SurfaceSpectrum, n: int, rng: np.random.Generator) 
     ndarray of float64, shape (n, n)
         Heights ``s[i, j] = s(i h, j h)`` (unit of ``L``), mean zero (to rounding),
         pointwise variance ``spectrum.grid_variance(n)``.
+
+    Notes
+    -----
+    Any even ``n`` works, whether or not the grid resolves the band: a grid
+    that cannot represent ``k_s`` (``spectrum.resolves(n)`` False) gets the
+    spectral truncation of the field (the modes of ``G_n``; module
+    docstring), and a grid that represents no wave vector of the band at all
+    (e.g. ``n = 4`` with ``k_l = 2``) gets an identically zero surface.
     """
     _check_inputs(spectrum, rng)
     n = _check_grid_size("n", n)
