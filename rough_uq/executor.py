@@ -109,8 +109,23 @@ class SerialExecutor(Executor):
             yield compute_batch(model, stage=stage, level=level, indices=indices)
 
 
-def _init_worker() -> None:
+def _init_worker(parent: int) -> None:
+    # Ctrl-C goes to the whole process group; the parent decides what stops.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # Die with the parent (Linux), even when it is killed without cleaning up
+    # (SIGTERM, SIGKILL); otherwise idle workers would linger forever.
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+    except (OSError, AttributeError):  # not Linux
+        pass
+    # The parent may have died while this worker was still importing, before
+    # the death signal was armed.
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def _compute(model: ContactModel, stage: int, level: int, indices: np.ndarray) -> LevelBatch:
@@ -146,6 +161,7 @@ class PoolExecutor(Executor):
                     max_workers=self.n_workers,
                     mp_context=multiprocessing.get_context("spawn"),
                     initializer=_init_worker,
+                    initargs=(os.getpid(),),
                 )
                 # Start every worker now, while the environment is set.
                 list(self._pool.map(int, range(self.n_workers)))
@@ -180,10 +196,21 @@ class PoolExecutor(Executor):
                 for future in pending:
                     future.cancel()
 
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
+    def close(self, *, is_abort: bool = False) -> None:
+        """Stop the workers; with ``is_abort`` (an error or Ctrl-C) without waiting for running samples."""
+        if self._pool is None:
+            return
+        if is_abort:
+            # A running sample may take a minute on a fine grid; its result is not
+            # wanted any more. ProcessPoolExecutor has no public way to stop a
+            # running task before Python 3.14 (terminate_workers), hence _processes.
+            for process in list((getattr(self._pool, "_processes", None) or {}).values()):
+                process.terminate()
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._pool = None
+
+    def __exit__(self, exc_type: object, *exc_info: object) -> None:
+        self.close(is_abort=exc_type is not None)
 
 
 class DaskExecutor(Executor):

@@ -9,6 +9,7 @@ plus one when a level completes.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -60,6 +61,7 @@ class PlainProgress(Progress):
         self._done: dict[int, int] = {}
         self._started: dict[int, tuple[float, int]] = {}
         self._last_line: dict[int, float] = {}
+        self._last_plan = -math.inf
         self._t0 = time.monotonic()
 
     def _print(self, text: str) -> None:
@@ -72,20 +74,25 @@ class PlainProgress(Progress):
         self._done.clear()
         self._started.clear()
         self._last_line.clear()
+        self._last_plan = -math.inf
         self._print(f"[{title}] started")
 
     def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
-        changed = []
         now = time.monotonic()
+        is_new_level = any(int(level) not in self._planned for level in levels)
+        is_changed = False
         for level, planned, done in zip(levels, n_planned, n_done):
             level, planned, done = int(level), int(planned), int(done)
-            if self._planned.get(level) != planned:
-                changed.append(f"L{level}: {planned}")
+            is_changed |= self._planned.get(level) != planned
             self._planned[level] = planned
             self._done[level] = max(done, self._done.get(level, 0))
             self._started.setdefault(level, (now, self._done[level]))
-        if changed:
-            self._print(f"[{self._title}] plan: samples per level " + ", ".join(changed))
+        # The adaptive plan changes after every batch; say so when a level is
+        # added, otherwise at most once per interval.
+        if is_new_level or (is_changed and now - self._last_plan >= self._interval):
+            self._last_plan = now
+            text = ", ".join(f"L{level}: {n}" for level, n in sorted(self._planned.items()))
+            self._print(f"[{self._title}] plan: samples per level {text}")
 
     def advance(self, level: int, n: int) -> None:
         now = time.monotonic()

@@ -131,3 +131,26 @@ def test_a_dead_worker_loses_only_its_samples(tmp_path, reference):
         assert final[key] == reference[key], key
     stored = _stored(directory)
     assert sum(indices.size for indices in stored.values()) == sum(final["n_samples"])
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
+def test_pool_workers_do_not_outlive_their_run(tmp_path, sig):
+    directory = _screened(tmp_path / "study")
+    process = _start("mlmc", "--tol", TOL, "-q", "--workers", "2", cwd=directory)
+    deadline = time.monotonic() + 60
+    workers: list[int] = []
+    while time.monotonic() < deadline and len(workers) < 2:
+        time.sleep(0.2)
+        workers = _pool_workers(process.pid)
+    assert len(workers) == 2, "the pool did not start"
+    time.sleep(1.0)
+    start = time.monotonic()
+    process.send_signal(sig)
+    process.communicate(timeout=60)
+    # Ctrl-C stops running samples instead of waiting for them; kill -9 takes the workers along.
+    while time.monotonic() - start < 10 and any(Path(f"/proc/{pid}").exists() for pid in workers):
+        time.sleep(0.1)
+    alive = [pid for pid in workers if Path(f"/proc/{pid}/status").exists()
+             and "zombie" not in Path(f"/proc/{pid}/status").read_text()]
+    assert not alive, f"workers {alive} outlived their run"
