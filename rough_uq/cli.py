@@ -18,7 +18,7 @@ from typing import Any
 import click
 
 from rough_uq import __version__
-from rough_uq.errors import RoughUQError
+from rough_uq.errors import InvalidParameterError, RoughUQError
 
 DEFAULT_STUDY = "results.h5"
 
@@ -201,7 +201,6 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                 show_plan: bool, level: int | None, as_json: bool, workers: int | None, executor: str,
                 scheduler: str | None, quiet: bool) -> None:
         from rough_uq.config import load_config
-        from rough_uq.errors import InvalidParameterError
         from rough_uq.pipeline import (
             create_study,
             missing_samples,
@@ -277,11 +276,24 @@ main.command(name="mc", help="Plain Monte Carlo on the finest level the toleranc
 )
 
 
+def _stage_number(text: str) -> int:
+    """``--stage``: 'screening' (0) or a non-negative integer."""
+
+    if text == "screening":
+        return 0
+    try:
+        stage = int(text)
+    except ValueError:
+        raise InvalidParameterError("--stage", text, "'screening' or a non-negative integer") from None
+    if stage < 0:
+        raise InvalidParameterError("--stage", text, "'screening' or a non-negative integer")
+    return stage
+
+
 def _parse_indices(text: str) -> Any:
     """``A:B`` (half-open), ``I``, or a comma-separated list of those, as a sorted index array."""
     import numpy as np
 
-    from rough_uq.errors import InvalidParameterError
 
     parts = []
     for part in text.split(","):
@@ -313,18 +325,9 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
 
     The shard is written under a temporary name and renamed when complete.
     """
-    from rough_uq.errors import InvalidParameterError
     from rough_uq.pipeline import compute_shard, open_existing_study
 
-    if stage == "screening":
-        stage_id = 0
-    else:
-        try:
-            stage_id = int(stage)
-        except ValueError:
-            raise InvalidParameterError("--stage", stage, "'screening' or a non-negative integer") from None
-        if stage_id < 0:
-            raise InvalidParameterError("--stage", stage, "'screening' or a non-negative integer")
+    stage_id = _stage_number(stage)
     wanted = _parse_indices(indices)
     with open_existing_study(study_path, writable=False) as study:
         with _executor(study.config, workers, "local", None) as pool:
@@ -371,7 +374,6 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
     surface.system_size=1,2,3,4 --fixed-spacing --tol 0.5`. Rerunning resumes.
     """
     from rough_uq.config import load_config, sweep_configs
-    from rough_uq.errors import InvalidParameterError
     from rough_uq.pipeline import run_sweep
 
     key, sep, values = assignment.partition("=")
@@ -401,18 +403,51 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
 @main.command()
 @click.argument("study_path", metavar="FILE", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@click.option("--plots", "plots_dir", type=click.Path(file_okay=False), default=None,
+              help="Also write PNG figures (rates, cost vs tolerance, samples per level) to this folder.")
 @_user_errors
-def report(study_path: str, as_json: bool) -> None:
+def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     """Show what a study file holds: config, screening, rates, every run, warnings."""
     from rough_uq.pipeline import open_existing_study
     from rough_uq.report import render_report, study_report
 
     with open_existing_study(study_path, writable=False) as study:
         data = study_report(study.store, study.config)
+    written = []
+    if plots_dir is not None:
+        from rough_uq.plots import write_report_plots
+
+        written = write_report_plots(data, plots_dir)
     if as_json:
-        _dump(data)
-    else:
-        render_report(data, _console())
+        _dump({**data, "plots": [str(path) for path in written]} if plots_dir is not None else data)
+        return
+    render_report(data, _console())
+    for path in written:
+        click.echo(f"wrote {path}")
+
+
+@main.command()
+@click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
+              help="Study file (only read).")
+@click.option("--stage", default="screening", show_default=True,
+              help="'screening' or a run's stage number (see `roughuq report --json`).")
+@click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the sample.")
+@click.option("--index", type=click.IntRange(min=0), required=True, help="Index of the sample.")
+@click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="PNG file to write.")
+@_user_errors
+def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
+    """Recompute one sample from its seed and draw heights, pressure and contact clusters."""
+    from rough_uq.pipeline import open_existing_study
+    from rough_uq.plots import write_sample_figure
+
+    stage_id = _stage_number(stage)
+    with open_existing_study(study_path, writable=False) as study:
+        if level > study.config.grid.max_level:
+
+            raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")
+        model = study.model
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    click.echo(f"wrote {write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out)}")
 
 
 if __name__ == "__main__":  # pragma: no cover

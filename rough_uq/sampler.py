@@ -62,6 +62,8 @@ __all__ = [
     "sample_rng",
     "modelled_cost",
     "compute_batch",
+    "SampleSolution",
+    "solve_sample",
 ]
 
 STAGE_SCREENING = 0
@@ -289,19 +291,61 @@ def _qoi(model: ContactModel, solution: ContactSolution) -> np.ndarray:
     return values * np.asarray(model.qoi_scales)
 
 
-def compute_batch(model: ContactModel, *, stage: int, level: int, indices: np.ndarray) -> LevelBatch:
-    """Compute samples ``(stage, level, i)`` for ``i`` in ``indices``.
+@dataclass(frozen=True)
+class SampleSolution:
+    """The fields behind one sample (:func:`solve_sample`).
+
+    Attributes
+    ----------
+    heights : ndarray, shape (n_l, n_l)
+        The surface on the sample's grid.
+    fine : ContactSolution
+        Its contact solution.
+    n_iter : int
+        Iterations of the fine solve, retry included.
+    coarse : ContactSolution or None
+        The solution on the coarser grid of the same surface (coupled samples).
+    coarse_n_iter : int
+        Iterations of the coarse solve (0 without one).
+    """
+
+    heights: np.ndarray
+    fine: ContactSolution
+    n_iter: int
+    coarse: ContactSolution | None = None
+    coarse_n_iter: int = 0
+
+
+def solve_sample(model: ContactModel, *, stage: int, level: int, index: int) -> SampleSolution:
+    """Surface and contact solution(s) of sample ``(stage, level, index)``.
 
     Samples of coupled stages (:func:`is_coupled_stage`) pair the level-``l``
     solve with the coarse solve of the same surface
-    (:func:`~rough_uq.surface.sample_coupled`); samples of MC stages and of
-    level 0 solve the fine grid only (``coarse`` zero).
-    Each sample's QoIs depend only on ``model`` and ``(stage, level, index)``.
+    (:func:`~rough_uq.surface.sample_coupled`), and with ``warm_start`` the
+    fine solve starts from the coarse pressure; samples of MC stages and of
+    level 0 solve the fine grid only. The result depends only on ``model``
+    and ``(stage, level, index)``.
+    """
+    rng = sample_rng(model.seed, stage, level, index)
+    n_fine = model.grid(level)
+    if not (is_coupled_stage(stage) and level > 0):
+        heights = sample_surface(model.spectrum, n_fine, rng)
+        solution, n_iter = _solve(model, heights, None)
+        return SampleSolution(heights=heights, fine=solution, n_iter=n_iter)
+    heights, coarse_heights = sample_coupled(model.spectrum, n_fine, rng, projection=model.projection)
+    coarse, coarse_n_iter = _solve(model, coarse_heights, None)
+    solution, n_iter = _solve(model, heights, coarse.pressure if model.warm_start else None)
+    return SampleSolution(heights=heights, fine=solution, n_iter=n_iter, coarse=coarse, coarse_n_iter=coarse_n_iter)
+
+
+def compute_batch(model: ContactModel, *, stage: int, level: int, indices: np.ndarray) -> LevelBatch:
+    """Compute samples ``(stage, level, i)`` for ``i`` in ``indices`` (:func:`solve_sample`).
 
     Returns
     -------
     LevelBatch
-        With the measured wall time per sample as ``cost``.
+        QoIs of the fine and coarse solutions (``coarse`` zero without a coarse
+        solve), with the measured wall time per sample as ``cost``.
     """
     indices = np.asarray(indices, dtype=np.int64).reshape(-1)
     n = len(indices)
@@ -310,24 +354,15 @@ def compute_batch(model: ContactModel, *, stage: int, level: int, indices: np.nd
     cost = np.zeros(n)
     n_iter = np.zeros((n, 2), dtype=np.int64)
     converged = np.ones((n, 2), dtype=bool)
-    is_coupled = is_coupled_stage(stage) and level > 0
-    n_fine = model.grid(level)
     for row, index in enumerate(indices):
         start = time.perf_counter()
-        rng = sample_rng(model.seed, stage, level, index)
-        initial = None
-        if is_coupled:
-            heights, coarse_heights = sample_coupled(model.spectrum, n_fine, rng, projection=model.projection)
-            solution, n_iter[row, 1] = _solve(model, coarse_heights, None)
-            converged[row, 1] = solution.converged
-            coarse[row] = _qoi(model, solution)
-            if model.warm_start:
-                initial = solution.pressure
-        else:
-            heights = sample_surface(model.spectrum, n_fine, rng)
-        solution, n_iter[row, 0] = _solve(model, heights, initial)
-        converged[row, 0] = solution.converged
-        fine[row] = _qoi(model, solution)
+        sample = solve_sample(model, stage=stage, level=level, index=int(index))
+        fine[row] = _qoi(model, sample.fine)
+        n_iter[row] = (sample.n_iter, sample.coarse_n_iter)
+        converged[row, 0] = sample.fine.converged
+        if sample.coarse is not None:
+            coarse[row] = _qoi(model, sample.coarse)
+            converged[row, 1] = sample.coarse.converged
         cost[row] = time.perf_counter() - start
     return LevelBatch(
         level=level,

@@ -234,3 +234,18 @@ def test_mc_on_a_given_level_needs_no_screening(tmp_path, monkeypatch):
     assert record["stat_error"][0] <= 3 and not record["is_bias_estimated"]
     result = run("mlmc", "--level", "1", "--tol", "3", expect=2)
     assert "--level" in result.stderr
+
+
+def test_report_plots_and_show_write_figures(screened):
+    pytest.importorskip("matplotlib")
+    run("mlmc", "--tol", "1.0", "--workers", "1", "--quiet")
+    run("mc", "--tol", "1.0", "--workers", "1", "--quiet")
+    result = run("report", "results.h5", "--plots", "figures")
+    for name in ("rates.png", "cost_vs_tol.png", "samples_per_level.png"):
+        path = screened / "figures" / name
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 1000
+        assert name in result.output
+    result = run("show", "--level", "2", "--index", "3", "--out", "sample/fig.png")
+    assert (screened / "sample" / "fig.png").stat().st_size > 1000
+    result = run("show", "--level", "9", "--index", "0", "--out", "x.png", expect=2)
+    assert "--level" in result.stderr

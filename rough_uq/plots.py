@@ -1,0 +1,391 @@
+"""Figures of a study: MLMC rates, cost against tolerance, samples per level, one contact sample.
+
+An edge module like :mod:`rough_uq.report`: it reads the JSON-able dict of
+:func:`~rough_uq.report.study_report` (never the store) and writes PNG files.
+matplotlib (the ``plot`` extra) is imported only when a figure is drawn, and
+only its object-oriented API is used (``Figure`` on an Agg canvas): no
+pyplot, no global state, no display needed.
+
+Conventions
+-----------
+* Rates are drawn the way :mod:`rough_uq.screening` fits them: ``log2`` of the
+  per-level statistic against the level ``l``, with the fitted models
+  ``|E[Y_l]| = c_alpha 2^(-alpha l)``, ``V_l = c_beta 2^(-beta l)`` and
+  ``C_l = c_gamma 2^(gamma l)`` (:class:`~rough_uq.screening.Rates`) as
+  straight lines. The top axis names the grid ``n_l`` of each level.
+* Several QoIs share one tolerance axis: cost against tolerance and the
+  choice of the loosest / tightest run use the first QoI's tolerance.
+* Missing data (no screening, no finished run) skips a figure; it is never
+  an error.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rough_uq.errors import RoughUQError
+from rough_uq.qoi import label_clusters
+from rough_uq.sampler import ContactModel, is_coupled_stage, solve_sample
+
+__all__ = ["write_report_plots", "write_sample_figure"]
+
+_DPI = 120
+_MISSING = "plots need matplotlib: pip install 'roughuq[plot]'"
+
+
+def _matplotlib() -> tuple[Any, Any]:
+    """``(Figure, FigureCanvasAgg)``, or :class:`RoughUQError` if matplotlib is not installed."""
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise RoughUQError(_MISSING) from None
+    return Figure, FigureCanvasAgg
+
+
+def _new_figure(width: float, height: float) -> Any:
+    figure_class, canvas_class = _matplotlib()
+    figure = figure_class(figsize=(width, height), layout="constrained")
+    canvas_class(figure)
+    return figure
+
+
+def _save(figure: Any, path: Path) -> Path:
+    figure.savefig(path, dpi=_DPI, format="png")
+    return path
+
+
+def _log2_points(levels: Sequence[int], values: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Levels and ``log2(value)`` where the value is positive and finite (a log of 0 is not drawn)."""
+    levels = np.asarray(levels, dtype=float)
+    values = np.asarray(values, dtype=float)
+    keep = np.isfinite(values) & (values > 0)
+    return levels[keep], np.log2(values[keep])
+
+
+def _label_grids(ax: Any, levels: Sequence[int], grids: Sequence[int]) -> None:
+    """Integer level ticks below, the grid size ``n_l`` of each level above."""
+    levels = [int(level) for level in levels if 0 <= int(level) < len(grids)]
+    if not levels:
+        return
+    ax.set_xticks(levels)
+    top = ax.secondary_xaxis("top")
+    top.set_xticks(levels, labels=[str(grids[level]) for level in levels])
+    top.set_xlabel("grid $n_l$")
+
+
+def _fit_line(ax: Any, levels: Sequence[int], constant: float, rate: float, label: str, color: str) -> None:
+    """``log2(constant 2^(rate l))`` over the levels of the fit, wide and pale so the data stays visible on top."""
+    levels = np.asarray(levels, dtype=float)
+    if levels.size and np.isfinite(constant) and constant > 0 and np.isfinite(rate):
+        span = np.array([levels.min(), levels.max()])
+        ax.plot(span, np.log2(constant) + rate * span, "--", color=color, linewidth=4, alpha=0.4, zorder=1,
+                label=label)
+
+
+# ---------------------------------------------------------------------------
+# Report figures
+# ---------------------------------------------------------------------------
+
+
+def _rates_figure(report: dict[str, Any], path: Path) -> Path | None:
+    screening = report.get("screening")
+    if not screening or not screening.get("statistics"):
+        return None
+    stats = screening["statistics"]
+    rates = screening.get("rates") or {}
+    names = list(report.get("qoi_names") or screening.get("qoi_names") or [])
+    units = report.get("config", {}).get("qoi", {})
+    grids = report.get("config", {}).get("grids", [])
+    levels = np.asarray(stats["levels"], dtype=int)
+    if levels.size == 0:
+        return None
+    n_qoi = len(stats["mean_diff"][0])
+    names += [f"QoI {q}" for q in range(len(names), n_qoi)]
+    upper = levels >= 1
+    # Each line spans the levels its fit used (recorded by the screening), else the levels >= 1.
+    default_span = levels[upper] if np.any(upper) else levels
+    span_alpha = rates.get("levels_alpha") or [default_span] * n_qoi
+    span_beta = rates.get("levels_beta") or [default_span] * n_qoi
+    span_gamma = rates.get("levels_gamma") or default_span
+
+    figure = _new_figure(13.0, 3.6 * n_qoi)
+    axes = figure.subplots(n_qoi, 3, squeeze=False)
+    for q, name in enumerate(names[:n_qoi]):
+        title = f"{name} [{units[name]}]" if name in units else name
+        ax_mean, ax_var = axes[q, 0], axes[q, 1]
+
+        x, y = _log2_points(levels[upper], np.abs(np.asarray(stats["mean_diff"], float))[upper, q])
+        ax_mean.plot(x, y, "o-", color="C0", label="$|E[Y_l]|$")
+        if "alpha" in rates:
+            alpha = rates["alpha"][q]
+            _fit_line(ax_mean, span_alpha[q], rates["c_alpha"][q], -alpha,
+                      rf"$c_\alpha 2^{{-\alpha l}}$, $\alpha$ = {alpha:.2f} ± {rates['alpha_se'][q]:.2f}", "C0")
+        ax_mean.set_title(f"{title}: bias")
+        ax_mean.set_ylabel(r"$\log_2 |E[Y_l]|$")
+
+        x, y = _log2_points(levels[upper], np.asarray(stats["var_diff"], float)[upper, q])
+        ax_var.plot(x, y, "o-", color="C1", label=r"$V_l = \mathrm{Var}(Y_l)$")
+        x, y = _log2_points(levels, np.asarray(stats["var_fine"], float)[:, q])
+        ax_var.plot(x, y, "s:", color="C2", label=r"$\mathrm{Var}(Q_l)$")
+        if "beta" in rates:
+            beta = rates["beta"][q]
+            _fit_line(ax_var, span_beta[q], rates["c_beta"][q], -beta,
+                      rf"$c_\beta 2^{{-\beta l}}$, $\beta$ = {beta:.2f} ± {rates['beta_se'][q]:.2f}", "C1")
+        ax_var.set_title(f"{title}: variance")
+        ax_var.set_ylabel(r"$\log_2$ variance")
+
+        for ax in (ax_mean, ax_var):
+            ax.set_xlabel("level $l$")
+            _label_grids(ax, levels, grids)
+            ax.grid(True, alpha=0.3)
+            ax.legend(fontsize="small")
+
+    ax_cost = axes[0, 2]
+    x, y = _log2_points(levels, stats["mean_cost"])
+    ax_cost.plot(x, y, "o-", color="C3", label="$C_l$ modelled (reference s)")
+    seconds = stats.get("mean_seconds") or []
+    if len(seconds) == levels.size:
+        x, y = _log2_points(levels, seconds)
+        ax_cost.plot(x, y, "s:", color="C4", label="measured wall (s)")
+    if "gamma" in rates:
+        gamma = rates["gamma"]
+        _fit_line(ax_cost, span_gamma, rates["c_gamma"], gamma,
+                  rf"$c_\gamma 2^{{\gamma l}}$, $\gamma$ = {gamma:.2f} ± {rates['gamma_se']:.2f}", "C3")
+    ax_cost.set_title("cost per sample")
+    ax_cost.set_xlabel("level $l$")
+    ax_cost.set_ylabel(r"$\log_2$ seconds")
+    _label_grids(ax_cost, levels, grids)
+    ax_cost.grid(True, alpha=0.3)
+    ax_cost.legend(fontsize="small")
+    for q in range(1, n_qoi):
+        axes[q, 2].set_visible(False)
+    return _save(figure, path)
+
+
+def _finished(report: dict[str, Any], method: str) -> list[dict[str, Any]]:
+    return [
+        run for run in report.get("runs") or []
+        if run.get("status") == "finished" and run.get("method") == method
+    ]
+
+
+def _tol_label(report: dict[str, Any]) -> str:
+    names = report.get("qoi_names") or []
+    if not names:
+        return "tolerance"
+    unit = report.get("config", {}).get("qoi", {}).get(names[0])
+    return f"tolerance on {names[0]}" + (f" [{unit}]" if unit else "")
+
+
+def _positive(value: object) -> bool:
+    """A positive, finite number (a log axis shows nothing else; JSON may carry None or inf)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+
+
+def _cost_vs_tol_figure(report: dict[str, Any], path: Path) -> Path | None:
+    screening = report.get("screening") or {}
+    predictions = sorted(screening.get("predictions") or [], key=lambda p: p["tol"][0])
+    complexity = (screening.get("complexity") or [{}])[0]
+    mc_exponent = complexity.get("mc_exponent")
+    series = [  # (points, style, colour, label)
+        (
+            [(p["tol"][0], p["mlmc_seconds"]) for p in predictions if _positive(p.get("mlmc_seconds"))],
+            "-", "C0", "MLMC predicted" + (f" ({complexity['mlmc_regime']})" if "mlmc_regime" in complexity else ""),
+        ),
+        (
+            [(p["tol"][0], p["mc_seconds"]) for p in predictions if _positive(p.get("mc_seconds"))],
+            "--", "C3", "MC predicted" + (f" (eps^-{mc_exponent:.2f})" if _positive(mc_exponent) else ""),
+        ),
+    ]
+    for method, style, colour in (("mlmc", "o", "C0"), ("mc", "s", "C3")):
+        runs = [run for run in _finished(report, method) if _positive(run.get("seconds"))]
+        points = sorted((run["tol"][0], run["seconds"]) for run in runs)
+        series.append((points, style, colour, f"{method.upper()} measured (wall)"))
+    if not any(points for points, *_ in series):
+        return None
+
+    from matplotlib.ticker import NullFormatter
+
+    figure = _new_figure(6.4, 4.8)
+    ax = figure.subplots()
+    for points, style, colour, label in series:
+        if points:
+            x, y = np.array(points, dtype=float).T
+            ax.plot(x, y, style, color=colour, label=label)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xlabel(_tol_label(report))
+    ax.set_ylabel("cost (s)")
+    ax.set_title("cost against tolerance")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
+    return _save(figure, path)
+
+
+def _samples_figure(report: dict[str, Any], path: Path) -> Path | None:
+    mlmc = sorted(_finished(report, "mlmc"), key=lambda run: run["tol"][0], reverse=True)
+    if not mlmc:
+        return None
+    shown = [mlmc[0]] if len(mlmc) == 1 else [mlmc[0], mlmc[-1]]
+    mc_by_tol = {tuple(run["tol"]): run for run in _finished(report, "mc")}
+    grids = report.get("config", {}).get("grids", [])
+
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    figure = _new_figure(5.5 * len(shown), 4.5)
+    axes = figure.subplots(1, len(shown), squeeze=False, sharey=True)[0]
+    for ax, run in zip(axes, shown):
+        mc = mc_by_tol.get(tuple(run["tol"]))
+        width = 0.4 if mc is not None else 0.8
+        shift = -0.2 if mc is not None else 0.0
+        levels = np.asarray(run["levels"], dtype=float)
+        bars = ax.bar(levels + shift, run["n_samples"], width=width, color="C0", label="MLMC $N_l$")
+        ax.bar_label(bars, fontsize="small")
+        if mc is not None:
+            bars = ax.bar(np.asarray(mc["levels"], dtype=float) + 0.2, mc["n_samples"], width=width, color="C3",
+                          label="MC $N$")
+            ax.bar_label(bars, fontsize="small")
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.set_xlabel("level $l$")
+        all_levels = sorted(set(run["levels"]) | set(mc["levels"] if mc is not None else []))
+        _label_grids(ax, all_levels, grids)
+        ax.set_title("tol " + ", ".join(f"{t:g}" for t in run["tol"]))
+        ax.grid(True, axis="y", which="both", alpha=0.3)
+        ax.legend(fontsize="small")
+    axes[0].set_ylabel("samples per level")
+    # Shared by the panels; from below 1 so that a bar of N = 1 shows, with room for the bar labels on top.
+    counts = [n for run in shown for n in run["n_samples"]]
+    counts += [n for run in shown if tuple(run["tol"]) in mc_by_tol for n in mc_by_tol[tuple(run["tol"])]["n_samples"]]
+    axes[0].set_ylim(0.7, 2.0 * max(counts))
+    return _save(figure, path)
+
+
+def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Path]:
+    """Write the figures of a study report as PNG files.
+
+    Parameters
+    ----------
+    report : dict
+        A :func:`~rough_uq.report.study_report` (or its JSON round trip).
+    directory : str or Path
+        Where the files go; created if missing.
+
+    Returns
+    -------
+    list of Path
+        The files written, among:
+
+        ``rates.png``
+            Per QoI, ``log2 |E[Y_l]|`` (levels >= 1), ``log2 Var(Y_l)`` and
+            ``log2 Var(Q_l)`` against the level, with the screening's fitted
+            ``alpha`` and ``beta`` lines; and the cost per sample (modelled
+            ``C_l`` and measured wall seconds) with the ``gamma`` line.
+            Needs a screening.
+        ``cost_vs_tol.png``
+            Log-log cost in seconds against the first QoI's tolerance: the
+            screening's predicted MLMC and MC costs as lines, the measured
+            wall time of finished MLMC and MC runs as points. Needs a
+            screening or a finished run.
+        ``samples_per_level.png``
+            ``N_l`` per level (log scale) of the loosest and the tightest
+            finished MLMC run, beside the sample count of a finished MC run
+            at the same tolerance where there is one. Needs a finished MLMC run.
+
+        A figure without its data is skipped.
+
+    Raises
+    ------
+    RoughUQError
+        If matplotlib is not installed.
+    """
+    _matplotlib()
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, draw in (
+        ("rates.png", _rates_figure),
+        ("cost_vs_tol.png", _cost_vs_tol_figure),
+        ("samples_per_level.png", _samples_figure),
+    ):
+        path = draw(report, directory / name)
+        if path is not None:
+            written.append(path)
+    return written
+
+
+# ---------------------------------------------------------------------------
+# One sample
+# ---------------------------------------------------------------------------
+
+
+def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: int, path: str | Path) -> Path:
+    """Draw one sample: its heights, its contact pressure and its contact clusters.
+
+    The sample is recomputed from its random stream exactly as
+    :func:`~rough_uq.sampler.compute_batch` computes its fine grid (coupled
+    stages on ``level >= 1`` draw the coupled pair and warm-start from the
+    coarse solve).
+
+    Parameters
+    ----------
+    model : ContactModel
+        The study's model (:func:`~rough_uq.pipeline.build_model`).
+    stage, level, index : int
+        The sample's key (:mod:`rough_uq.sampler`).
+    path : str or Path
+        PNG file to write; its folder must exist.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    RoughUQError
+        If matplotlib is not installed.
+    """
+    _matplotlib()
+    import matplotlib
+
+    path = Path(path)
+    sample = solve_sample(model, stage=stage, level=level, index=index)
+    heights, solution = sample.heights, sample.fine
+    contact = solution.contact
+    labels = label_clusters(contact, connectivity=model.connectivity)
+    n_clusters = int(labels.max())
+    area = 100.0 * np.count_nonzero(contact) / contact.size
+    n = heights.shape[0]
+    size = model.spectrum.system_size
+    # Node (i, j) sits at (x, y) = (i h, j h): transpose so that i runs along x.
+    extent = (0.0, size, 0.0, size)
+
+    palette = matplotlib.colormaps["tab20"](np.arange(20))[:, :3]
+    colours = np.ones((n, n, 3))
+    colours[contact] = palette[(labels[contact] - 1) % len(palette)]
+
+    figure = _new_figure(15.0, 4.8)
+    axes = figure.subplots(1, 3)
+    image = axes[0].imshow(heights.T, origin="lower", extent=extent, cmap="viridis")
+    figure.colorbar(image, ax=axes[0], shrink=0.8, label="height (length unit)")
+    axes[0].set_title(f"heights, rms {np.std(heights):.3g}")
+    image = axes[1].imshow(solution.pressure.T, origin="lower", extent=extent, cmap="magma")
+    figure.colorbar(image, ax=axes[1], shrink=0.8, label="pressure (unit of $E^*$)")
+    axes[1].set_title(f"pressure, mean {model.mean_pressure:.3g}" + ("" if solution.converged else " (not converged)"))
+    axes[2].imshow(np.transpose(colours, (1, 0, 2)), origin="lower", extent=extent, interpolation="nearest")
+    axes[2].set_title(f"contact {area:.2f} %, {n_clusters} clusters ({model.connectivity}-connected)")
+    for ax in axes:
+        ax.set_xlabel("x")
+        ax.set_ylabel("y")
+    kind = "coupled" if is_coupled_stage(stage) and level > 0 else "single"
+    figure.suptitle(f"sample stage {stage}, level {level} (grid {n}), index {index} [{kind} draw]")
+    return _save(figure, path)

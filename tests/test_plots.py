@@ -1,0 +1,132 @@
+"""Figures of a study report and of one sample: files written, data missing, sample recomputed exactly."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from rough_uq import plots
+from rough_uq.config import config_from_dict
+from rough_uq.errors import RoughUQError
+from rough_uq.executor import SerialExecutor
+from rough_uq.pipeline import Study, build_model, run_estimation, run_screening
+from rough_uq.progress import Progress
+from rough_uq.qoi import evaluate_qoi, label_clusters
+from rough_uq.report import study_report
+from rough_uq.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage, solve_sample
+from rough_uq.store import MemoryStore
+from tests.study_configs import tiny_config
+
+pytest.importorskip("matplotlib")
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+ALL_FIGURES = ["rates.png", "cost_vs_tol.png", "samples_per_level.png"]
+
+
+def _study(**overrides: object) -> Study:
+    config = config_from_dict(tiny_config(**overrides))
+    return Study(config, MemoryStore(qoi_names=config.qoi_names))
+
+
+@pytest.fixture(scope="module")
+def report() -> dict:
+    """Screening, MLMC at two tolerances and MC at the looser one, on grids 8..32."""
+    study = _study()
+    run_screening(study, executor=SerialExecutor(), progress=Progress())
+    for method, tol in (("mlmc", 4.0), ("mlmc", 2.0), ("mc", 4.0)):
+        run_estimation(study, method=method, tol=np.array([tol]), executor=SerialExecutor(), progress=Progress())
+    return study_report(study.store, study.config)
+
+
+def _assert_pngs(paths: list, names: list[str]) -> None:
+    assert [path.name for path in paths] == names
+    for path in paths:
+        data = path.read_bytes()
+        assert data.startswith(PNG_MAGIC), path
+        assert len(data) > len(PNG_MAGIC)
+
+
+def test_report_figures_are_written(tmp_path, report):
+    directory = tmp_path / "not" / "there"
+    paths = plots.write_report_plots(report, directory)
+    _assert_pngs(paths, ALL_FIGURES)
+    assert all(path.parent == directory for path in paths)
+    assert sorted(p.name for p in directory.iterdir()) == sorted(ALL_FIGURES)
+
+
+def test_nothing_to_draw_writes_nothing(tmp_path, report):
+    empty = _study()
+    assert plots.write_report_plots(study_report(empty.store, empty.config), tmp_path / "empty") == []
+    assert (tmp_path / "empty").is_dir()
+    # Interrupted runs and no screening: nothing either.
+    interrupted = dict(report, screening=None, runs=[dict(run, status="running") for run in report["runs"]])
+    assert plots.write_report_plots(interrupted, tmp_path / "interrupted") == []
+
+
+def test_screening_only_skips_the_run_figures(tmp_path, report):
+    paths = plots.write_report_plots(dict(report, runs=[]), tmp_path)
+    _assert_pngs(paths, ["rates.png", "cost_vs_tol.png"])
+
+
+def test_runs_without_screening_skip_the_rates(tmp_path, report):
+    # One MLMC run and no MC run: the samples figure has one panel and MLMC bars only.
+    first_mlmc = next(run for run in report["runs"] if run["method"] == "mlmc")
+    paths = plots.write_report_plots(dict(report, screening=None, runs=[first_mlmc]), tmp_path)
+    _assert_pngs(paths, ["cost_vs_tol.png", "samples_per_level.png"])
+
+
+def test_missing_matplotlib_is_a_user_error(tmp_path, report, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
+    with pytest.raises(RoughUQError, match=r"pip install 'roughuq\[plot\]'"):
+        plots.write_report_plots(report, tmp_path)
+    model = build_model(config_from_dict(tiny_config()))
+    with pytest.raises(RoughUQError, match="matplotlib"):
+        plots.write_sample_figure(model=model, stage=STAGE_SCREENING, level=0, index=0, path=tmp_path / "s.png")
+
+
+SAMPLE_QOI = {"contact_area": {"unit": "percent"}, "clusters": {"connectivity": 8}, "mean_gap": {}}
+
+
+@pytest.mark.parametrize(
+    "stage, level",
+    [
+        (STAGE_SCREENING, 2),  # coupled, fine solve warm-started from the coarse one
+        (run_stage("mlmc", "plots"), 0),  # coupled stage, level 0: no coarse solve
+        (run_stage("mc", "plots"), 1),  # MC stage: fine grid only
+    ],
+)
+def test_recomputed_sample_is_the_stored_one(stage, level):
+    model = build_model(config_from_dict(tiny_config(qoi=SAMPLE_QOI)))
+    index = 3
+    batch = compute_batch(model, stage=stage, level=level, indices=[index])
+    sample = solve_sample(model, stage=stage, level=level, index=index)
+    heights, solution = sample.heights, sample.fine
+    assert heights.shape == (model.grid(level),) * 2
+    assert (sample.coarse is not None) == (is_coupled_stage(stage) and level > 0)
+    values = evaluate_qoi(model.qoi_names, pressure=solution.pressure, gap=solution.gap,
+                          connectivity=model.connectivity) * np.asarray(model.qoi_scales)
+    # Bit for bit, the mean gap included: it would change in its last digits without the warm start.
+    np.testing.assert_array_equal(values, batch.fine[0])
+    assert int(label_clusters(solution.contact, connectivity=8).max()) == batch.fine[0, 1]
+
+
+def test_sample_figure_shows_the_stored_contact_area(tmp_path, monkeypatch):
+    model = build_model(config_from_dict(tiny_config(qoi=SAMPLE_QOI)))
+    stage, level, index = run_stage("mlmc", "plots"), 2, 1
+    drawn = []
+    save = plots._save
+
+    def keep(figure, path):
+        drawn.append(figure)
+        return save(figure, path)
+
+    monkeypatch.setattr(plots, "_save", keep)
+    path = plots.write_sample_figure(model=model, stage=stage, level=level, index=index, path=tmp_path / "one.png")
+    assert path == tmp_path / "one.png"
+    _assert_pngs([path], ["one.png"])
+
+    fine = compute_batch(model, stage=stage, level=level, indices=[index]).fine[0]
+    titles = [ax.get_title() for ax in drawn[0].axes if ax.get_title()]
+    assert f"contact {fine[0]:.2f} %, {int(fine[1])} clusters (8-connected)" in titles
