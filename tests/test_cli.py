@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import h5py
@@ -249,3 +250,57 @@ def test_report_plots_and_show_write_figures(screened):
     assert (screened / "sample" / "fig.png").stat().st_size > 1000
     result = run("show", "--level", "9", "--index", "0", "--out", "x.png", expect=2)
     assert "--level" in result.stderr
+
+
+def _truncate(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _other_version(path: Path) -> None:
+    with h5py.File(path, "r+") as f:
+        f.attrs["format_version"] = 2
+
+
+def _garbage(path: Path) -> None:
+    path.write_text("not a study")
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [(_truncate, "truncated or damaged"), (_other_version, "format version 2"), (_garbage, "not an HDF5 file")],
+    ids=["truncated", "other-version", "not-hdf5"],
+)
+def test_bad_study_files_get_one_line_and_stay_unchanged(screened, damage, message):
+    path = screened / "results.h5"
+    damage(path)
+    before = path.read_bytes()
+    for args in (("mlmc", "--tol", "1"), ("mc", "--tol", "1"), ("report", "results.h5"),
+                 ("screen", str(screened / "tiny.yaml"))):
+        result = run(*args, expect=2)
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and message in lines[0], (args, result.stderr)
+    assert path.read_bytes() == before
+
+
+def test_locked_study_is_refused_and_unchanged(screened):
+    from rough_uq.config import load_config
+    from rough_uq.pipeline import create_study
+
+    before = (screened / "results.h5").read_bytes()
+    with create_study(load_config(screened / "tiny.yaml")):  # another writer holds the lock
+        result = run("mlmc", "--tol", "1", expect=2)
+        assert "locked by a running process" in result.stderr
+        assert "Screening" in run("report", "results.h5").output  # readers are never blocked
+    assert (screened / "results.h5").read_bytes() == before
+
+
+def test_unwritable_output_is_refused_before_any_work(tmp_path, monkeypatch):
+    if os.geteuid() == 0:
+        pytest.skip("root ignores directory permissions")
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    result = run("screen", str(config), "--out", str(locked / "study.h5"), expect=2)
+    assert "study.h5" in result.stderr and len(result.stderr.strip().splitlines()) == 1
