@@ -295,12 +295,17 @@ def test_locked_study_is_refused_and_unchanged(screened):
     assert (screened / "results.h5").read_bytes() == before
 
 
-def test_unwritable_output_is_refused_before_any_work(tmp_path, monkeypatch):
-    if os.geteuid() == 0:
-        pytest.skip("root ignores directory permissions")
+@pytest.mark.parametrize("kind", ["read-only directory", "file in the way"])
+def test_unwritable_output_is_refused_before_any_work(tmp_path, monkeypatch, kind):
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config())
-    locked = tmp_path / "locked"
-    locked.mkdir(mode=0o500)
-    result = run("screen", str(config), "--out", str(locked / "study.h5"), expect=2)
+    if kind == "read-only directory":
+        if os.geteuid() == 0:
+            pytest.skip("root ignores directory permissions")
+        parent = tmp_path / "locked"
+        parent.mkdir(mode=0o500)
+    else:
+        parent = tmp_path / "a-file"
+        parent.write_text("")
+    result = run("screen", str(config), "--out", str(parent / "study.h5"), expect=2)
     assert "study.h5" in result.stderr and len(result.stderr.strip().splitlines()) == 1
