@@ -189,6 +189,8 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     @click.option("--max-cost", type=click.FloatRange(min=0, min_open=True), default=None,
                   help="Budget in reference seconds (default: the config's estimation.max_cost).")
     @click.option("--plan", "show_plan", is_flag=True, help="Print the samples still missing; compute nothing.")
+    @click.option("--shards", "shard_size", type=click.IntRange(min=1), default=None, metavar="SIZE",
+                  help="With --plan: print one line 'STAGE LEVEL A:B' per shard of at most SIZE samples.")
     @click.option("--level", type=click.IntRange(min=0), default=None,
                   help="mc only: sample this level (no screening needed; its bias is then not estimated).")
     @click.option("--json", "as_json", is_flag=True, help="Print the result (or the plan) as JSON.")
@@ -198,7 +200,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     @_quiet_option
     @_user_errors
     def command(tol: Sequence[str], study_path: str, config_path: str | None, max_cost: float | None,
-                show_plan: bool, level: int | None, as_json: bool, workers: int | None, executor: str,
+                show_plan: bool, shard_size: int | None, level: int | None, as_json: bool, workers: int | None, executor: str,
                 scheduler: str | None, quiet: bool) -> None:
         from rough_uq.config import load_config
         from rough_uq.pipeline import (
@@ -218,7 +220,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
             tolerances = parse_tolerances(tol, study.config)
             if show_plan:
                 work = missing_samples(study, method=method, tol=tolerances, max_cost=max_cost, level=level)
-                _print_plan(work, as_json)
+                _print_plan(work, as_json, shard_size)
                 return
             with _executor(study.config, workers, executor, scheduler) as pool:
                 record = run_estimation(study, method=method, tol=tolerances, executor=pool,
@@ -231,7 +233,15 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     return command
 
 
-def _print_plan(work: Any, as_json: bool) -> None:
+def _print_plan(work: Any, as_json: bool, shard_size: int | None = None) -> None:
+    if shard_size is not None:
+        # For shell loops: `while read stage level indices; do roughuq sample ...; done`.
+        for level, indices in work.missing.items():
+            for part in _ranges(indices):
+                start, stop = (int(x) for x in part.split(":"))
+                for first in range(start, stop, shard_size):
+                    click.echo(f"{work.stage} {level} {first}:{min(first + shard_size, stop)}")
+        return
     rows = [{"level": level, "n_missing": int(indices.size), "indices": _ranges(indices)}
             for level, indices in work.missing.items()]
     if as_json:

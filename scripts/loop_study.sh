@@ -13,27 +13,15 @@ mkdir -p "$shards"
 
 [ -f "$study" ] || roughuq screen "$config" --out "$study"
 
-# Print "stage level start stop" lines, one per shard, from the JSON plan.
-plan_shards() {
-    roughuq mlmc --study "$study" --tol "$tol" --plan --json | python3 -c '
-import json, sys
-plan, chunk = json.load(sys.stdin), int(sys.argv[1])
-for row in plan["levels"]:
-    for part in row["indices"]:
-        start, stop = map(int, part.split(":"))
-        for a in range(start, stop, chunk):
-            print(plan["stage"], row["level"], a, min(a + chunk, stop))
-' "$chunk"
-}
-
 round=0
 while true; do
-    work=$(plan_shards)
+    # One line per shard: "STAGE LEVEL A:B".
+    work=$(roughuq mlmc --study "$study" --tol "$tol" --plan --shards "$chunk")
     [ -n "$work" ] || break
     round=$((round + 1))
-    while read -r stage level start stop; do
-        roughuq sample --study "$study" --stage "$stage" --level "$level" --indices "$start:$stop" \
-            --out "$shards/r$round-s$stage-l$level-$start.h5" --quiet
+    while read -r stage level indices; do
+        roughuq sample --study "$study" --stage "$stage" --level "$level" --indices "$indices" \
+            --out "$shards/r$round-s$stage-l$level-${indices%%:*}.h5" --quiet
     done <<< "$work"
     roughuq merge "$shards"/r$round-*.h5 --into "$study"
 done

@@ -18,16 +18,8 @@ if [ ! -f "$study" ]; then
     srun --ntasks=1 --cpus-per-task=8 roughuq screen "$config" --out "$study" --workers 8
 fi
 
-# One line per shard: "stage level start stop".
-roughuq mlmc --study "$study" --tol "$tol" --plan --json | python3 -c '
-import json, sys
-plan, chunk = json.load(sys.stdin), int(sys.argv[1])
-for row in plan["levels"]:
-    for part in row["indices"]:
-        start, stop = map(int, part.split(":"))
-        for a in range(start, stop, chunk):
-            print(plan["stage"], row["level"], a, min(a + chunk, stop))
-' "$chunk" > "$shards/tasks.txt"
+# One line per shard: "STAGE LEVEL A:B".
+roughuq mlmc --study "$study" --tol "$tol" --plan --shards "$chunk" > "$shards/tasks.txt"
 
 n=$(wc -l < "$shards/tasks.txt")
 if [ "$n" -eq 0 ]; then
@@ -37,8 +29,8 @@ fi
 
 array=$(sbatch --parsable --array=1-"$n" --ntasks=1 --cpus-per-task=1 --output=logs/shard-%A_%a.out <<EOS
 #!/usr/bin/env bash
-read -r stage level start stop < <(sed -n "\${SLURM_ARRAY_TASK_ID}p" "$shards/tasks.txt")
-roughuq sample --study "$study" --stage "\$stage" --level "\$level" --indices "\$start:\$stop" \
+read -r stage level indices < <(sed -n "\${SLURM_ARRAY_TASK_ID}p" "$shards/tasks.txt")
+roughuq sample --study "$study" --stage "\$stage" --level "\$level" --indices "\$indices" \
     --out "$shards/\$SLURM_ARRAY_JOB_ID-\$SLURM_ARRAY_TASK_ID.h5" --workers 1 --quiet
 EOS
 )

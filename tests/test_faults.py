@@ -110,9 +110,8 @@ def _pool_workers(pid: int) -> list[int]:
     return workers
 
 
-@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
-def test_a_dead_worker_loses_only_its_samples(tmp_path, reference):
-    directory = _screened(tmp_path / "study")
+def _start_with_pool(directory: Path) -> tuple[subprocess.Popen, list[int]]:
+    """Start an MLMC run with 2 pool workers; return it once both workers exist."""
     process = _start("mlmc", "--tol", TOL, "-q", "--workers", "2", cwd=directory)
     deadline = time.monotonic() + 60
     workers: list[int] = []
@@ -120,6 +119,13 @@ def test_a_dead_worker_loses_only_its_samples(tmp_path, reference):
         time.sleep(0.2)
         workers = _pool_workers(process.pid)
     assert len(workers) == 2, "the pool did not start"
+    return process, workers
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
+def test_a_dead_worker_loses_only_its_samples(tmp_path, reference):
+    directory = _screened(tmp_path / "study")
+    process, workers = _start_with_pool(directory)
     time.sleep(3.0)
     os.kill(workers[0], signal.SIGKILL)
     _, stderr = process.communicate(timeout=120)
@@ -137,13 +143,7 @@ def test_a_dead_worker_loses_only_its_samples(tmp_path, reference):
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
 def test_pool_workers_do_not_outlive_their_run(tmp_path, sig):
     directory = _screened(tmp_path / "study")
-    process = _start("mlmc", "--tol", TOL, "-q", "--workers", "2", cwd=directory)
-    deadline = time.monotonic() + 60
-    workers: list[int] = []
-    while time.monotonic() < deadline and len(workers) < 2:
-        time.sleep(0.2)
-        workers = _pool_workers(process.pid)
-    assert len(workers) == 2, "the pool did not start"
+    process, workers = _start_with_pool(directory)
     time.sleep(1.0)
     start = time.monotonic()
     process.send_signal(sig)
@@ -154,3 +154,27 @@ def test_pool_workers_do_not_outlive_their_run(tmp_path, sig):
     alive = [pid for pid in workers if Path(f"/proc/{pid}/status").exists()
              and "zombie" not in Path(f"/proc/{pid}/status").read_text()]
     assert not alive, f"workers {alive} outlived their run"
+
+
+def test_bash_loop_script_completes_a_study_like_an_uninterrupted_run(tmp_path):
+    """scripts/loop_study.sh (plan, shards, merge, repeat) ends with the estimate of a plain `roughuq mlmc`."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    shim = bin_dir / "roughuq"
+    shim.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m rough_uq.cli "$@"\n')
+    shim.chmod(0o755)
+    env = {**ENV, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+    directory = tmp_path / "loop"
+    directory.mkdir()
+    config = _config(directory)
+    subprocess.run(["bash", str(ROOT / "scripts" / "loop_study.sh"), str(config), "1.0", "study.h5", "500"],
+                   cwd=directory, env=env, check=True, capture_output=True, timeout=600)
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    assert _roughuq("screen", str(_config(plain)), "-q", "--workers", "1", cwd=plain).returncode == 0
+    expected = json.loads(_roughuq("mlmc", "--tol", "1.0", "--json", "-q", "--workers", "1", cwd=plain).stdout)
+    result = _roughuq("mlmc", "--study", "study.h5", "--tol", "1.0", "--json", "-q", cwd=directory)
+    final = json.loads(result.stdout)
+    assert final["n_computed"] == 0
+    for key in ("estimate", "stat_error", "n_samples", "cost"):
+        assert final[key] == expected[key], key
