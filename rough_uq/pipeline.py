@@ -59,7 +59,7 @@ from rough_uq.screening import (
     level_statistics,
     plan,
 )
-from rough_uq.store import StudyFile, StudyStore, open_study, open_study_readonly
+from rough_uq.store import StudyStore, open_study, open_study_readonly
 from rough_uq.surface import SurfaceSpectrum
 
 __all__ = [
@@ -344,22 +344,22 @@ def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
-def _finite(value: object) -> object:
+def _jsonable(value: object) -> object:
     """JSON-friendly copy: arrays to lists, numpy scalars to Python numbers."""
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, Mapping):
-        return {k: _finite(v) for k, v in value.items()}
+        return {k: _jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
+        return [_jsonable(v) for v in value]
     return value
 
 
 def statistics_record(statistics: LevelStatistics, seconds: Sequence[float]) -> dict[str, Any]:
     """The screening table as a dict of per-level lists (per-QoI entries are lists)."""
-    return _finite(
+    return _jsonable(
         {
             "levels": statistics.levels,
             "n_samples": statistics.n_samples,
@@ -377,7 +377,7 @@ def statistics_record(statistics: LevelStatistics, seconds: Sequence[float]) -> 
 
 def rates_record(rates: Rates) -> dict[str, Any]:
     """Fitted rates as a dict (per-QoI values are lists)."""
-    return _finite(
+    return _jsonable(
         {
             "alpha": rates.alpha,
             "alpha_se": rates.alpha_se,
@@ -396,7 +396,7 @@ def rates_record(rates: Rates) -> dict[str, Any]:
 
 
 def _plan_record(prediction: Plan, seconds_per_cost: float) -> dict[str, Any]:
-    return _finite(
+    return _jsonable(
         {
             "tol": prediction.tol,
             "finest_level": prediction.finest_level,
@@ -778,7 +778,7 @@ def run_estimation(
     seconds, n_not_converged = _measured(sampler, result.levels, result.n_samples)
     seconds_per_cost = seconds / result.cost if result.cost > 0 else 1.0
     record.update(
-        _finite(
+        _jsonable(
             {
                 "status": "finished",
                 "finished": _now(),
