@@ -1049,7 +1049,8 @@ def config_hash(config: StudyConfig) -> str:
 
     The hashed document is the resolved config without what only steers a
     run and leaves every stored sample valid: ``output``, ``solver.threads``,
-    the ``estimation`` section and each quantity's ``tol`` (tolerances are
+    the ``estimation`` and ``screening`` sections (screening more levels or
+    samples only adds samples) and each quantity's ``tol`` (tolerances are
     per run; ``roughuq mlmc --tol`` overrides them anyway). The spectrum is
     replaced by its resolved wave numbers ``{k_l, k_r, k_s}``, and the
     quantities of interest become a list of ``[name, settings]`` pairs (their
@@ -1060,6 +1061,7 @@ def config_hash(config: StudyConfig) -> str:
     del data["output"]
     del data["solver"]["threads"]
     del data["estimation"]
+    del data["screening"]
     for settings in data["qoi"].values():
         settings.pop("tol", None)
     surface = data["surface"]

@@ -439,12 +439,19 @@ def screening_statistics(study: Study, sampler: StudySampler | None = None) -> t
     """Level statistics of the screening samples (computing missing ones if ``sampler`` is given).
 
     The statistics are recomputed from the stored samples, so every command
-    sees the same numbers whatever process ran the screening.
+    sees the same numbers whatever process ran the screening. Without a
+    sampler (estimation runs), the levels and sample count are those of the
+    last completed screening (a study may be screened again with more levels
+    or samples than its config first said).
     """
     config = study.config
     levels = list(range(config.screening.levels))
     indices = np.arange(config.screening.samples)
     if sampler is None:
+        record = study.store.read_screening()
+        if record is not None:
+            levels = [int(level) for level in record["statistics"]["levels"]]
+            indices = np.arange(int(min(record["statistics"]["n_samples"])))
         sampler = StudySampler(study, stage=STAGE_SCREENING, executor=SerialExecutor(), progress=Progress())
         for level in levels:
             if sampler.missing(level, indices).size:
@@ -500,16 +507,23 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
     seconds_per_cost = _seconds_per_cost(batches, study.model, True)
     base = _base_tolerance(config, statistics)
     predictions = []
+    problems = []
     for factor in PREDICTION_FACTORS:
-        prediction = plan(
-            tol=base * factor,
-            rates=rates,
-            statistics=statistics,
-            theta=config.estimation.theta,
-            max_level=config.grid.max_level,
-        )
+        try:
+            prediction = plan(
+                tol=base * factor,
+                rates=rates,
+                statistics=statistics,
+                theta=config.estimation.theta,
+                max_level=config.grid.max_level,
+            )
+        except RoughUQError as exc:
+            # E.g. a bias that does not decay yet (alpha <= 0 on pre-asymptotic
+            # levels): keep the table and rates, say why nothing can be predicted.
+            problems.append(f"no cost prediction: {exc}; screen more levels (screening.levels)")
+            break
         predictions.append(_plan_record(prediction, seconds_per_cost))
-    messages = list(dict.fromkeys([str(w.message) for w in caught] + list(diagnose(statistics))))
+    messages = list(dict.fromkeys([str(w.message) for w in caught] + list(diagnose(statistics)) + problems))
     record = {
         "created": _now(),
         "code_version": __version__,

@@ -275,6 +275,7 @@ def test_hash_is_stable_and_tracks_physics_only() -> None:
     assert hash_with(lambda d: d["grid"].update(projection="truncation")) == reference
     # Per-run settings leave every stored sample valid.
     assert hash_with(lambda d: d.update(estimation={"theta": 0.3, "batch_size": 3})) == reference
+    assert hash_with(lambda d: d.update(screening={"levels": 3, "samples": 50})) == reference
     assert hash_with(lambda d: d["qoi"]["contact_area"].update(tol=0.05)) == reference
     assert hash_with(lambda d: d["qoi"]["contact_area"].update(unit="fraction")) != reference
 

@@ -270,3 +270,35 @@ def test_study_file_roundtrip_and_mismatch(tmp_path):
         assert study.config.estimation.theta == 0.3
     with pytest.raises(StudyFileError, match="does not exist"):
         open_existing_study(tmp_path / "missing.h5")
+
+
+def test_screening_again_with_more_levels_extends_the_study(tmp_path):
+    path = tmp_path / "study.h5"
+    grid = {"coarsest": 8, "max_level": 3}
+    first = config_from_dict(tiny_config(grid=grid, screening={"levels": 3, "samples": 6}))
+    with create_study(first, path) as study:
+        run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    more = config_from_dict(tiny_config(grid=grid, screening={"levels": 4, "samples": 8}))
+    with create_study(more, path) as study:  # same samples, same study
+        outcome = run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    assert outcome.record["n_computed"] == 4 * 8 - 3 * 6
+    with open_existing_study(path) as study:  # its stored config still says 3 levels
+        assert study.config.screening.levels == 3
+        record = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(),
+                                progress=QUIET)
+    assert record["predicted"]["finest_level"] >= 0
+    statistics = record["screening_rates"]
+    assert statistics["levels_gamma"] == [1, 2, 3]  # the rates come from the four screened levels
+
+
+def test_screening_without_decaying_bias_keeps_its_table_and_says_why(monkeypatch):
+    import rough_uq.pipeline as pipeline
+    from rough_uq.errors import InvalidParameterError as Invalid
+
+    def no_decay(**kwargs):
+        raise Invalid("alpha", -0.9, "alpha > 0: the bias does not decay with the level")
+
+    monkeypatch.setattr(pipeline, "plan", no_decay)
+    outcome = run_screening(_study(), executor=SerialExecutor(), progress=QUIET)
+    assert outcome.record["predictions"] == []
+    assert any("no cost prediction" in text and "screening.levels" in text for text in outcome.record["warnings"])
