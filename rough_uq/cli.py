@@ -44,7 +44,9 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
 def _console() -> Any:
     from rich.console import Console
 
-    return Console()
+    # Logs and pipes get full-width tables rather than rich's default of 80 columns.
+    is_terminal = sys.stdout.isatty()
+    return Console(width=None if is_terminal or os.environ.get("COLUMNS") else 160)
 
 
 def _progress(quiet: bool) -> Any:
