@@ -429,9 +429,10 @@ def _not_converged(batches: Sequence[LevelBatch]) -> int:
     return int(sum(np.count_nonzero(~b.is_converged) for b in batches))
 
 
-def _seconds_per_cost(batches: Sequence[LevelBatch], model: ContactModel, is_coupled: bool) -> float:
+def _seconds_per_cost(batches: Sequence[LevelBatch], model: ContactModel) -> float:
+    """Measured wall seconds per modelled reference second over coupled (screening) batches."""
     seconds = sum(float(np.sum(b.cost)) for b in batches)
-    modelled = sum(float(np.sum(modelled_cost(model, b.level, b.n_iter, is_coupled=is_coupled))) for b in batches)
+    modelled = sum(float(np.sum(modelled_cost(model, b.level, b.n_iter))) for b in batches)
     return seconds / modelled if modelled > 0 else 1.0
 
 
@@ -504,7 +505,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
                 ) from None
     finally:
         progress.stop()
-    seconds_per_cost = _seconds_per_cost(batches, study.model, True)
+    seconds_per_cost = _seconds_per_cost(batches, study.model)
     base = _base_tolerance(config, statistics)
     predictions = []
     problems = []
