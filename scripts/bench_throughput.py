@@ -1,6 +1,6 @@
 """Sample throughput of roughuq's executors: serial against a pool of worker processes.
 
-    python scripts/bench_throughput.py [--config configs/quickstart.yaml] [--level 3] [--samples 24]
+    python scripts/bench_throughput.py [--config configs/quickstart.yaml] [--level 3] [--samples 24] [--threads 1]
 
 Computes the same samples (stage 0, the given level) in this process and with
 pools of 1..--max-workers spawned workers, prints samples per second and the
@@ -11,6 +11,7 @@ speed-up over serial, and checks the samples are identical. Pool start-up
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import time
 from datetime import date
@@ -42,8 +43,11 @@ def main() -> None:
     parser.add_argument("--level", type=int, default=3)
     parser.add_argument("--samples", type=int, default=24)
     parser.add_argument("--max-workers", type=int, default=os.cpu_count() or 2)
+    parser.add_argument("--threads", type=int, default=None, help="solver threads per process (default: the config's)")
     args = parser.parse_args()
     model = build_model(load_config(args.config))
+    if args.threads is not None:
+        model = dataclasses.replace(model, threads=args.threads)
     indices = np.arange(args.samples)
     n = model.grid(args.level)
     print(f"roughuq throughput, {date.today()}, {os.cpu_count()} cores, grid {n}x{n} (level {args.level}), "
