@@ -638,7 +638,10 @@ class EstimationConfig(_Section):
     )
     initial_samples: Int = _field(
         10,
-        description="Samples per level before the first variance update (count)",
+        description=(
+            "Samples per level before the first variance update, for runs without a screening (count); "
+            "MLMC runs started from a screening need only 2 per level"
+        ),
         allowed="integer >= 2",
         ge=2,
     )

@@ -43,9 +43,15 @@ Adaptive MLMC
 -------------
 Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
 
-1. Start on levels ``0..min_finest_level`` with ``n_initial`` samples each,
-   or from a screening table / rates: the finest level and ``N_l`` of
-   :func:`~rough_uq.screening.plan` (never fewer than ``n_initial``).
+1. Start on levels ``0..min_finest_level`` with ``n_initial`` samples each
+   (Giles' ``N0``: nothing is known about the levels yet), or from a
+   screening table: the finest level and ``N_l`` of
+   :func:`~rough_uq.screening.plan`, at least 2 per level (so that every level
+   has a sample variance). With a screening, ``V_l`` of a level the screening
+   sampled is the pooled variance of the screening's and the run's ``Y_l``
+   (independent samples of the same level), both for the allocation and for
+   the statistical error; the estimate itself uses the run's samples only.
+   Without a screening, every level keeps at least ``n_initial`` samples.
 2. Draw the missing samples level by level in batches of at most
    ``batch_size``; after each round re-estimate ``V_l``, ``C_l`` and refit the
    rates (unless given), and update ``N_l = ceil((1-theta)^-1 eps^-2
@@ -140,6 +146,8 @@ Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
 RATE_FLOOR = 0.5
 
 _MAX_COUNT = 2.0**52
+MIN_LEVEL_SAMPLES = 2
+"""Fewest samples on a level of an MLMC run started from a screening (one variance needs two)."""
 
 
 # --------------------------------------------------------------------------
@@ -490,12 +498,40 @@ def _driver_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 
 
 class _Hierarchy:
-    """Mutable state of one MLMC run: the samples, the plan, the spent cost."""
+    """Mutable state of one MLMC run: the samples, the plan, the spent cost.
 
-    def __init__(self, n_levels: int, n_initial: int) -> None:
+    ``floor`` is the fewest samples any level gets; ``prior_var`` and
+    ``prior_n`` (rows = levels) are the screening's ``V_l`` and sample counts,
+    pooled with the run's samples in :meth:`variances`.
+    """
+
+    def __init__(self, n_levels: int, floor: int, prior: LevelStatistics | None = None) -> None:
         self.samples = [_LevelSamples(level) for level in range(n_levels)]
-        self.targets = [n_initial] * n_levels
+        self.targets = [floor] * n_levels
+        self.floor = floor
         self.spent = 0.0
+        self.prior_var: dict[int, np.ndarray] = {}
+        self.prior_n: dict[int, int] = {}
+        if prior is not None:
+            for row, level in enumerate(prior.levels):
+                if prior.n_samples[row] >= 2:
+                    self.prior_var[int(level)] = prior.var_diff[row]
+                    self.prior_n[int(level)] = int(prior.n_samples[row])
+
+    def add_level(self) -> None:
+        self.samples.append(_LevelSamples(self.n_levels))
+        self.targets.append(0)
+
+    def variances(self, level: int, run_var: np.ndarray, n_run: int) -> np.ndarray:
+        """``V_level``: the run's sample variance, pooled with the screening's where it has the level."""
+        if level not in self.prior_var:
+            return run_var
+        dof_run = max(n_run - 1, 0)
+        dof_prior = self.prior_n[level] - 1
+        return (dof_run * run_var + dof_prior * self.prior_var[level]) / (dof_run + dof_prior)
+
+    def has_variance(self, level: int) -> bool:
+        return self.samples[level].n >= 2 or level in self.prior_var
 
     @property
     def n_levels(self) -> int:
@@ -579,7 +615,10 @@ def iter_mlmc(
     theta : float
         Bias share of ``eps^2`` (default 1/2).
     n_initial : int
-        Samples drawn on every level before its variance is trusted (>= 2).
+        Without a screening: samples drawn on every level before its variance
+        is trusted (>= 2; Giles' ``N0``). With a screening, levels need only
+        ``MIN_LEVEL_SAMPLES`` (2): their variances are pooled with the
+        screening's or floored by extrapolation.
     min_finest_level : int
         The run uses at least levels ``0..min_finest_level`` (>= 1; the default
         2 gives two levels ``>= 1`` to fit the rates from).
@@ -599,8 +638,9 @@ def iter_mlmc(
         more frequent events and store writes.
     screening : LevelStatistics, optional
         Screening table (from independent samples); sets the initial finest
-        level and ``N_l`` via :func:`~rough_uq.screening.plan`. Its samples are
-        not part of the estimate.
+        level and ``N_l`` via :func:`~rough_uq.screening.plan`, and its ``V_l``
+        are pooled with the run's (module docstring). Its samples are not part
+        of the estimate.
     rates : Rates, optional
         Fixed ``alpha``, ``beta``, ``gamma``; by default they are refitted from
         the run's samples after every round (falling back to the screening
@@ -663,13 +703,15 @@ def _mlmc_events(
     budget_cap = batch_size if batch_size is not None else math.inf
     fallback = rates
     initial_targets: list[int] = []
+    floor = n_initial
     if screening is not None:
         screening_rates = rates if rates is not None else _lenient_rates(screening, None)
         fallback = screening_rates
         initial = plan(tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level)
-        initial_targets = [max(int(n), n_initial) for n in initial.n_samples]
+        floor = MIN_LEVEL_SAMPLES
+        initial_targets = [max(int(n), floor) for n in initial.n_samples]
     n_levels = max(min_finest_level + 1, len(initial_targets))
-    hierarchy = _Hierarchy(n_levels, n_initial)
+    hierarchy = _Hierarchy(n_levels, floor, screening)
     hierarchy.targets[: len(initial_targets)] = initial_targets
     driver = fallback if fallback is not None else _floor_rates(tol.size)
     is_scalar = False
@@ -681,17 +723,19 @@ def _mlmc_events(
         statistics = hierarchy.statistics()
         if rates is None:
             driver = _lenient_rates(statistics, fallback)
-        has_data = np.array([s.n >= 2 for s in hierarchy.samples])
+        has_data = np.array([hierarchy.has_variance(s.level) for s in hierarchy.samples])
         var_diff = np.zeros((hierarchy.n_levels, n_qoi))
         mean_cost = np.zeros(hierarchy.n_levels)
         for s in hierarchy.samples:
+            run_var = s.moments().var_diff if s.n > 0 else np.zeros(n_qoi)
+            if has_data[s.level]:
+                var_diff[s.level] = hierarchy.variances(s.level, run_var, s.n)
             if s.n > 0:
-                var_diff[s.level] = s.moments().var_diff
                 mean_cost[s.level] = s.moments().mean_cost
         variances = _planning_variances(var_diff, has_data, driver.beta)
         costs = _fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), driver.gamma)
         wanted = np.ceil(np.max(optimal_samples(variances, costs, (1.0 - theta) * tol**2), axis=1))
-        hierarchy.targets = [max(s.n, int(n), n_initial) for s, n in zip(hierarchy.samples, wanted)]
+        hierarchy.targets = [max(s.n, int(n), hierarchy.floor) for s, n in zip(hierarchy.samples, wanted)]
 
     stop_reason = ""
     while not stop_reason:
@@ -746,8 +790,7 @@ def _mlmc_events(
             if is_complete:
                 stop_reason = "max_level"
             continue
-        hierarchy.samples.append(_LevelSamples(hierarchy.n_levels))
-        hierarchy.targets.append(0)
+        hierarchy.add_level()
         replan()
         yield hierarchy.plan_event("new level")
 
@@ -770,7 +813,11 @@ def _mlmc_result(
 ) -> EstimationResult:
     n = statistics.n_samples[:, None]
     estimate = np.sum(statistics.mean_diff, axis=0)
-    stat_variance = np.sum(statistics.var_diff / n, axis=0)
+    var_diff = np.array(
+        [hierarchy.variances(int(level), statistics.var_diff[row], int(statistics.n_samples[row]))
+         for row, level in enumerate(statistics.levels)]
+    )
+    stat_variance = np.sum(var_diff / n, axis=0)
     # Levels are sampled in order, so the sampled ones are 0..L without gaps.
     bias = _driver_bias(statistics.mean_diff, driver.alpha)
     finest = statistics.n_levels - 1

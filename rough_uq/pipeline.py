@@ -771,6 +771,7 @@ def run_estimation(
         "qoi_names": list(names),
         "tol": tol.tolist(),
         "theta": config.estimation.theta,
+        "initial_samples": config.estimation.initial_samples,
         "max_cost": max_cost,
         **context,
     }

@@ -197,10 +197,52 @@ def test_mlmc_starts_from_a_screening():
     first = next(events)
     assert isinstance(first, PlanUpdated)
     assert len(first.levels) == max(expected.finest_level + 1, 3)
-    assert first.n_planned[: len(expected.n_samples)].tolist() == np.maximum(expected.n_samples, 10).tolist()
+    assert first.n_planned[: len(expected.n_samples)].tolist() == np.maximum(expected.n_samples, 2).tolist()
     result = [event for event in events if isinstance(event, Finished)][0].result
     assert result.tol_met
     assert abs(result.estimate - Synthetic().mean()) < 4 * result.rmse
+
+
+# beta < gamma (as for the contact area): the finest levels need two or three samples,
+# where a floor of n_initial samples per level would dominate the cost.
+STEEP = {"alpha": 1.0, "beta": 2.0, "gamma": 3.0, "v1": 0.5}
+STEEP_EPS = 0.05
+
+
+def steep_run(seed: int):
+    table = level_statistics(**sample_levels(Synthetic(seed=10_000 + seed, **STEEP), range(4), 20))
+    return table, run_quietly(mlmc, Synthetic(seed=seed, **STEEP), tol=STEEP_EPS, screening=table)[0]
+
+
+def test_mlmc_from_a_screening_draws_few_fine_samples_and_meets_the_tolerance():
+    runs = [steep_run(seed) for seed in range(N_REPEATS)]
+    truth = Synthetic(**STEEP).mean()
+    errors = np.array([result.estimate - truth for _, result in runs])
+    assert math.sqrt(np.mean(errors**2)) <= STEEP_EPS * rms_slack(N_REPEATS)
+    finest = np.array([result.n_samples[-1] for _, result in runs])
+    assert finest.min() == 2  # the floor with a screening, not n_initial = 10
+    assert np.median(finest) < 10
+    # The reported error is calibrated: z-scores of the statistical error alone
+    # (the bias is below sqrt(theta) eps by the test) have sd close to 1.
+    z = np.array([(result.estimate - Synthetic(**STEEP).mean(result.finest_level)) / result.stat_error
+                  for _, result in runs])
+    assert abs(z.mean()) < 4 / math.sqrt(len(z))
+    assert abs(z.std() - 1.0) < 0.2
+
+
+def test_mlmc_pools_the_screening_variances_with_its_own():
+    table, result = steep_run(3)
+    pooled = []
+    for row, level in enumerate(result.levels):
+        n, v = result.statistics.n_samples[row], result.statistics.var_diff[row, 0]
+        if level in table.levels.tolist():
+            m, w = table.n_samples[level], table.var_diff[level, 0]
+            v = ((n - 1) * v + (m - 1) * w) / (n + m - 2)
+        pooled.append(v / n)
+    assert result.stat_error == pytest.approx(math.sqrt(sum(pooled)), rel=1e-12)
+    assert result.stat_error != pytest.approx(
+        math.sqrt(np.sum(result.statistics.var_diff[:, 0] / result.statistics.n_samples)), rel=1e-3
+    )
 
 
 def test_fixed_rates_are_used_as_given():
