@@ -639,8 +639,8 @@ class EstimationConfig(_Section):
     initial_samples: Int = _field(
         10,
         description=(
-            "Samples per level before the first variance update, for runs without a screening (count); "
-            "MLMC runs started from a screening need only 2 per level"
+            "Samples before the first variance update in runs without a screening (mc --level; count); "
+            "runs started from a screening need only 2 per level"
         ),
         allowed="integer >= 2",
         ge=2,

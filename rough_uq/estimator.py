@@ -497,6 +497,12 @@ def _driver_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return remaining_bias(np.max(terms, axis=0), alpha)
 
 
+def _pooled_variance(run_var: np.ndarray, n_run: int, prior_var: np.ndarray, n_prior: int) -> np.ndarray:
+    """Variance pooled from two independent sample sets of one distribution (``n - 1`` weights)."""
+    dof_run = max(n_run - 1, 0)
+    return (dof_run * run_var + (n_prior - 1) * prior_var) / (dof_run + n_prior - 1)
+
+
 class _Hierarchy:
     """Mutable state of one MLMC run: the samples, the plan, the spent cost.
 
@@ -526,9 +532,7 @@ class _Hierarchy:
         """``V_level``: the run's sample variance, pooled with the screening's where it has the level."""
         if level not in self.prior_var:
             return run_var
-        dof_run = max(n_run - 1, 0)
-        dof_prior = self.prior_n[level] - 1
-        return (dof_run * run_var + dof_prior * self.prior_var[level]) / (dof_run + dof_prior)
+        return _pooled_variance(run_var, n_run, self.prior_var[level], self.prior_n[level])
 
     def has_variance(self, level: int) -> bool:
         return self.samples[level].n >= 2 or level in self.prior_var
@@ -883,6 +887,7 @@ def iter_mc(
     n_initial: int = 10,
     max_cost: float | None = None,
     batch_size: int | None = 1000,
+    screening: LevelStatistics | None = None,
     kurtosis_limit: float = KURTOSIS_LIMIT,
 ) -> Iterator[Event]:
     """Plain MC on one level to a tolerance, as a generator of events.
@@ -891,6 +896,12 @@ def iter_mc(
     ``n_initial``; maximum over QoIs), re-estimating ``Var(Q_level)`` after
     every batch. Only the ``fine`` values are used; a sampler for MC may
     return zeros as ``coarse``.
+
+    With a ``screening`` the run is treated as MLMC's (:func:`iter_mlmc`):
+    it starts from the ``N`` the screening's ``Var(Q)`` implies, needs at
+    least 2 samples, and ``Var(Q_level)`` is pooled with the screening's if
+    the screening sampled ``level``; otherwise the variance used to plan is
+    floored at half the screening's ``Var(Q)`` on its finest level.
 
     Parameters
     ----------
@@ -908,11 +919,13 @@ def iter_mc(
         screening). MC cannot estimate it from one level; without it the
         result has ``bias_estimate = 0`` and ``is_bias_estimated = False``.
     n_initial : int
-        Samples before the variance is trusted (>= 2).
+        Samples before the variance is trusted (>= 2), without a screening.
     max_cost : float, optional
         Budget in the sampler's cost unit (as in :func:`iter_mlmc`).
     batch_size : int or None
         Largest batch per sampler call.
+    screening : LevelStatistics, optional
+        Screening table (independent samples) of the same hierarchy.
     kurtosis_limit : float
         Kurtosis of ``Q`` above which a warning is issued.
 
@@ -925,7 +938,7 @@ def iter_mc(
     n_initial = _check_int("n_initial", n_initial, 2)
     batch_size = None if batch_size is None else _check_int("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
-    tol = _check_tol(tol, None)
+    tol = _check_tol(tol, screening.n_qoi if screening is not None else None)
     if bias is not None:
         bias = np.atleast_1d(np.abs(np.asarray(bias, dtype=float)))
         if bias.ndim != 1 or not np.all(np.isfinite(bias)):
@@ -939,6 +952,7 @@ def iter_mc(
         n_initial=n_initial,
         max_cost=max_cost,
         batch_size=batch_size,
+        screening=screening,
         kurtosis_limit=float(kurtosis_limit),
     )
 
@@ -953,11 +967,35 @@ def _mc_events(
     n_initial: int,
     max_cost: float | None,
     batch_size: int | None,
+    screening: LevelStatistics | None,
     kurtosis_limit: float,
 ) -> Iterator[Event]:
     budget_cap = batch_size if batch_size is not None else math.inf
     samples = _LevelSamples(level)
-    target = n_initial
+    floor = n_initial
+    prior: tuple[np.ndarray, int] | None = None  # Var(Q_level) of the screening and its sample count
+    var_floor = 0.0
+    if screening is not None:
+        floor = MIN_LEVEL_SAMPLES
+        usable = np.flatnonzero(screening.n_samples >= 2)
+        same = usable[screening.levels[usable] == level]
+        if same.size:
+            prior = (screening.var_fine[same[0]], int(screening.n_samples[same[0]]))
+            first_var = prior[0]
+        elif usable.size:
+            first_var = screening.var_fine[usable[-1]]
+            var_floor = 0.5 * first_var
+        else:
+            first_var = np.zeros(screening.n_qoi)
+        first = np.max(np.ceil(first_var / ((1.0 - theta) * tol**2)))
+        target = max(int(min(first, _MAX_COUNT)), floor)
+    else:
+        target = floor
+
+    def variance() -> np.ndarray:
+        """``Var(Q_level)``: the run's, pooled with the screening's where it sampled the level."""
+        run_var = samples.moments().var_fine
+        return run_var if prior is None else _pooled_variance(run_var, samples.n, *prior)
     spent = 0.0
     n_qoi: int | None = None
     is_scalar = False
@@ -1001,22 +1039,22 @@ def _mc_events(
             cost=_readonly(batch.cost),
             **progress(),
         )
-        wanted = np.max(np.ceil(samples.moments().var_fine / ((1.0 - theta) * tol**2)))
-        new_target = max(samples.n, int(min(wanted, _MAX_COUNT)), n_initial)
+        wanted = np.max(np.ceil(np.maximum(variance(), var_floor) / ((1.0 - theta) * tol**2)))
+        new_target = max(samples.n, int(min(wanted, _MAX_COUNT)), floor)
         if new_target != target:
             target = new_target
             yield PlanUpdated(reason="variance", **progress())
 
     statistics = _assemble([level], [samples.moments()])
     moments = samples.moments()
-    stat_variance = moments.var_fine / samples.n
+    stat_variance = variance() / samples.n
     is_bias_estimated = bias is not None
     bias_values = bias if bias is not None else np.zeros(n_qoi)
     tol_met = bool(np.all(stat_variance + bias_values**2 <= tol**2 * (1 + 1e-12)))
     if not stop_reason:
         stop_reason = "tol_met" if tol_met else "bias"
     budget = (1.0 - theta) * tol**2
-    mc_n = float(np.max(np.minimum(np.ceil(moments.var_fine / budget), _MAX_COUNT)))
+    mc_n = float(np.max(np.minimum(np.ceil(variance() / budget), _MAX_COUNT)))
     result = EstimationResult(
         method="mc",
         estimate=_shape_out(moments.mean_fine, is_scalar),

@@ -718,7 +718,9 @@ def _events(
         events = iter_mlmc(sampler, max_level=config.grid.max_level, screening=statistics, **options)
     else:
         context["level"] = prediction.finest_level
-        events = iter_mc(sampler, level=prediction.finest_level, bias=prediction.bias, **options)
+        events = iter_mc(
+            sampler, level=prediction.finest_level, bias=prediction.bias, screening=statistics, **options
+        )
     return events, context
 
 

@@ -209,8 +209,13 @@ STEEP = {"alpha": 1.0, "beta": 2.0, "gamma": 3.0, "v1": 0.5}
 STEEP_EPS = 0.05
 
 
+def steep_screening(seed: int):
+    """A 20-sample screening on levels 0..3 of the steep problem (independent of run ``seed``)."""
+    return level_statistics(**sample_levels(Synthetic(seed=10_000 + seed, **STEEP), range(4), 20))
+
+
 def steep_run(seed: int):
-    table = level_statistics(**sample_levels(Synthetic(seed=10_000 + seed, **STEEP), range(4), 20))
+    table = steep_screening(seed)
     return table, run_quietly(mlmc, Synthetic(seed=seed, **STEEP), tol=STEEP_EPS, screening=table)[0]
 
 
@@ -243,6 +248,29 @@ def test_mlmc_pools_the_screening_variances_with_its_own():
     assert result.stat_error != pytest.approx(
         math.sqrt(np.sum(result.statistics.var_diff[:, 0] / result.statistics.n_samples)), rel=1e-3
     )
+
+
+@pytest.mark.parametrize("level", [3, 5])  # screened (0..3) and beyond the screening
+def test_mc_from_a_screening_starts_from_its_variance_and_meets_the_tolerance(level):
+    eps = 1.0  # loose: N = Var(Q) / (eps^2 / 2) is about 3, below n_initial = 10
+    errors, counts = [], []
+    for seed in range(N_REPEATS):
+        table = steep_screening(seed)
+        events = list(iter_mc(Synthetic(seed=seed, **STEEP), tol=eps, level=level, screening=table))
+        result = events[-1].result
+        assert events[0].n_planned[0] == max(math.ceil(table.var_fine[min(level, 3), 0] / (eps**2 / 2)), 2)
+        errors.append(result.estimate - Synthetic(**STEEP).mean(level))
+        counts.append(result.n_samples[0])
+    assert math.sqrt(np.mean(np.square(errors))) <= math.sqrt(0.5) * eps * rms_slack(N_REPEATS)
+    assert min(counts) < 10
+
+
+def test_mc_pools_the_screening_variance_of_its_level():
+    table = steep_screening(4)
+    result = mc(Synthetic(seed=4, **STEEP), tol=0.2, level=2, screening=table)
+    n, v = result.n_samples[0], result.statistics.var_fine[0, 0]
+    m, w = table.n_samples[2], table.var_fine[2, 0]
+    assert result.stat_error == pytest.approx(math.sqrt(((n - 1) * v + (m - 1) * w) / (n + m - 2) / n), rel=1e-12)
 
 
 def test_fixed_rates_are_used_as_given():
