@@ -23,20 +23,36 @@ from rough_uq.errors import InvalidParameterError, RoughUQError
 DEFAULT_STUDY = "results.h5"
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (a batch system's time limit, ``kill``): stop as cleanly as on Ctrl-C."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise _Terminated()
+
+
 def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
-    """Turn a RoughUQError into one line on stderr and exit status 2."""
+    """Turn a RoughUQError into one line on stderr and exit status 2; Ctrl-C and SIGTERM into a clean stop."""
     import functools
+    import signal
+    import threading
 
     @functools.wraps(command)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
+        on_main_thread = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGTERM, _raise_terminated) if on_main_thread else None
         try:
             return command(*args, **kwargs)
         except RoughUQError as exc:
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
-        except KeyboardInterrupt:
-            click.echo("interrupted: every completed sample is saved; run the same command to continue", err=True)
-            sys.exit(130)
+        except KeyboardInterrupt as exc:
+            what, status = ("terminated", 143) if isinstance(exc, _Terminated) else ("interrupted", 130)
+            click.echo(f"{what}: every completed sample is saved; run the same command to continue", err=True)
+            sys.exit(status)
+        finally:
+            if on_main_thread:
+                signal.signal(signal.SIGTERM, previous)
 
     return wrapper
 

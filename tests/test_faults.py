@@ -73,17 +73,18 @@ def test_killed_runs_lose_nothing_and_resume_to_the_same_estimate(tmp_path, refe
     directory = _screened(tmp_path / "study")
     rng = np.random.default_rng(5)
     previous = {}
-    for attempt, sig in enumerate([signal.SIGINT, signal.SIGKILL, signal.SIGINT, signal.SIGKILL]):
+    for attempt, sig in enumerate([signal.SIGINT, signal.SIGKILL, signal.SIGTERM, signal.SIGKILL]):
         process = _start("mlmc", "--tol", TOL, "-q", "--workers", "1", cwd=directory)
         time.sleep(rng.uniform(2.5, 7.0))
         process.send_signal(sig)
         _, stderr = process.communicate(timeout=60)
         if process.returncode == 0:
             break  # finished before the signal: nothing left to interrupt
-        expected = 130 if sig == signal.SIGINT else -signal.SIGKILL
+        expected = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGKILL: -signal.SIGKILL}[sig]
         assert process.returncode == expected, stderr
-        if sig == signal.SIGINT:
-            assert "interrupted" in stderr and "Traceback" not in stderr
+        if sig != signal.SIGKILL:  # a clean stop, with its message
+            word = "interrupted" if sig == signal.SIGINT else "terminated"
+            assert word in stderr and "Traceback" not in stderr, stderr
         stored = _stored(directory)  # the file opens after every interruption
         for level, indices in stored.items():
             assert np.unique(indices).size == indices.size, "a sample was stored twice"
@@ -140,14 +141,15 @@ def test_a_dead_worker_loses_only_its_samples(tmp_path, reference):
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL])
 def test_pool_workers_do_not_outlive_their_run(tmp_path, sig):
     directory = _screened(tmp_path / "study")
     process, workers = _start_with_pool(directory)
     time.sleep(1.0)
     start = time.monotonic()
     process.send_signal(sig)
-    process.communicate(timeout=60)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGKILL: -signal.SIGKILL}[sig], stderr
     # Ctrl-C stops running samples instead of waiting for them; kill -9 takes the workers along.
     while time.monotonic() - start < 10 and any(Path(f"/proc/{pid}").exists() for pid in workers):
         time.sleep(0.1)
