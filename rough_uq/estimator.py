@@ -507,8 +507,8 @@ class _Hierarchy:
     """Mutable state of one MLMC run: the samples, the plan, the spent cost.
 
     ``floor`` is the fewest samples any level gets; ``prior_var`` and
-    ``prior_n`` (rows = levels) are the screening's ``V_l`` and sample counts,
-    pooled with the run's samples in :meth:`variances`.
+    ``prior_n`` (keyed by level) are the screening's ``V_l`` and sample
+    counts, pooled with the run's samples in :meth:`variances`.
     """
 
     def __init__(self, n_levels: int, floor: int, prior: LevelStatistics | None = None) -> None:
