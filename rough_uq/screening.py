@@ -431,12 +431,19 @@ def level_statistics(
     return _assemble(levels, moments)
 
 
+COUPLING_CHECK_SAMPLES = 10
+"""Fewest samples on a level for the coupling check of :func:`diagnose`."""
+
+
 def diagnose(statistics: LevelStatistics, *, kurtosis_limit: float = KURTOSIS_LIMIT) -> tuple[str, ...]:
     """The failed MLMC checks of a screening table, as one message each.
 
     Checks (SPEC section 5): the consistency check (ratio above 1), the
     kurtosis of ``Y_l`` (above ``kurtosis_limit``: ``V_l`` unreliable), the
-    coupling (``V_l >= Var(Q_l)`` on a level ``l >= 1``), levels ``l >= 1``
+    coupling (``V_l >= Var(Q_l)`` on a level ``l >= 1`` with at least
+    ``COUPLING_CHECK_SAMPLES`` samples: the ratio of two variances from a few
+    samples is noise, and MLMC runs started from a screening often have only
+    two samples on their fine levels), levels ``l >= 1``
     whose ``Y_l`` never varied although ``Q_l`` does (rare differences missed),
     and levels with fewer than two samples.
 
@@ -481,7 +488,7 @@ def diagnose(statistics: LevelStatistics, *, kurtosis_limit: float = KURTOSIS_LI
                     "mean and variance are underestimated -- use more samples per level"
                 )
             loose = np.flatnonzero(statistics.coupling_ratio[row] >= 1.0)
-            if loose.size:
+            if loose.size and n >= COUPLING_CHECK_SAMPLES:
                 messages.append(
                     f"level {level}: Var(Q_l - Q_l-1) >= Var(Q_l) for QoI {loose.tolist()} "
                     f"(ratio {float(np.max(statistics.coupling_ratio[row])):.3g}); the coarse sample "

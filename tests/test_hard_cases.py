@@ -769,3 +769,17 @@ def test_remaining_bias_overflow_is_infinite_and_non_decaying_rates_are_errors()
     for alpha in (0.0, -0.5, math.nan):
         with pytest.raises(EstimationError, match="does not decay"):
             remaining_bias(np.array([1.0]), np.array([alpha]))
+
+
+def test_the_coupling_check_needs_enough_samples():
+    # Two well-coupled samples can show Var(Y_l) > Var(Q_l) by chance (q1 ~ q2): no alarm;
+    # ten samples with an independent coarse value still raise it.
+    two = level_statistics(fine=[np.array([1.0, 2.0]), np.array([5.0, 5.01])],
+                           coarse=[np.zeros(2), np.array([4.9, 5.2])], cost=[np.ones(2)] * 2)
+    assert two.coupling_ratio[1, 0] > 1.0
+    assert not any("not coupled" in m for m in diagnose(two))
+    rng = np.random.default_rng(16)
+    ten = level_statistics(fine=[rng.normal(size=10), rng.normal(size=10)],
+                           coarse=[np.zeros(10), rng.normal(size=10)], cost=[np.ones(10)] * 2)
+    assert ten.coupling_ratio[1, 0] > 1.0
+    assert any("not coupled" in m for m in diagnose(ten))
