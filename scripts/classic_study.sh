@@ -14,10 +14,10 @@ work="${1:-classic}"
 mkdir -p "$work"
 cd "$work"
 
-AREA_TOLS=${AREA_TOLS:-"1.0 0.5 0.35 0.25"}
+AREA_TOLS=${AREA_TOLS:-"1.0 0.7 0.5"}
 AREA_MC_TOLS=${AREA_MC_TOLS:-"1.0 0.5"}
 CLUSTER_TOLS=${CLUSTER_TOLS:-"40 20 10"}
-CLUSTER_MC_TOLS=${CLUSTER_MC_TOLS:-"40 20"}
+CLUSTER_MC_TOLS=${CLUSTER_MC_TOLS:-"40 20 10"}
 
 roughuq screen "$here/configs/classic_area.yaml" --out classic_area.h5
 for tol in $AREA_TOLS; do
