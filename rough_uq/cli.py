@@ -306,7 +306,6 @@ main.command(name="mc", help="Plain Monte Carlo on the finest level the toleranc
 
 def _stage_number(text: str) -> int:
     """``--stage``: 'screening' (0) or a non-negative integer."""
-
     if text == "screening":
         return 0
     try:
@@ -321,7 +320,6 @@ def _stage_number(text: str) -> int:
 def _parse_indices(text: str) -> Any:
     """``A:B`` (half-open), ``I``, or a comma-separated list of those, as a sorted index array."""
     import numpy as np
-
 
     parts = []
     for part in text.split(","):
@@ -471,7 +469,6 @@ def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
     stage_id = _stage_number(stage)
     with open_existing_study(study_path, writable=False) as study:
         if level > study.config.grid.max_level:
-
             raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")
         model = study.model
     Path(out).parent.mkdir(parents=True, exist_ok=True)

@@ -37,7 +37,7 @@ import numpy as np
 
 from rough_uq import __version__
 from rough_uq.config import StudyConfig, config_from_yaml_text, config_hash, resolved_yaml
-from rough_uq.errors import EstimationError, RoughUQError, StudyFileError
+from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
 from rough_uq.estimator import BatchDone, Finished, PlanUpdated, iter_mc, iter_mlmc
 from rough_uq.executor import Executor, SerialExecutor
 from rough_uq.progress import Progress
@@ -552,8 +552,6 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
     A bare number is allowed only for a single QoI. Raises
     :class:`~rough_uq.errors.InvalidParameterError` naming what is wrong.
     """
-    from rough_uq.errors import InvalidParameterError
-
     names = config.qoi_names
     given: dict[str, float] = {}
     for text in values or ():
@@ -753,8 +751,6 @@ def run_estimation(
     if method not in ("mlmc", "mc"):
         raise ValueError(f"method must be 'mlmc' or 'mc', got {method!r}")
     if level is not None and (method != "mc" or not 0 <= level <= study.config.grid.max_level):
-        from rough_uq.errors import InvalidParameterError
-
         raise InvalidParameterError("--level", level, f"with mc only, an integer in 0..{study.config.grid.max_level}")
     config = study.config
     names = config.qoi_names
@@ -857,8 +853,6 @@ def compute_shard(
     if out.exists():
         raise StudyFileError(f"shard {str(out)!r} already exists; merge or remove it first", out)
     if not 0 <= level <= study.config.grid.max_level:
-        from rough_uq.errors import InvalidParameterError
-
         raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level} (grid.max_level)")
     partial = out.with_name(f"{out.name}.partial-{os.getpid()}")
     indices = np.unique(np.asarray(indices, dtype=np.int64))
