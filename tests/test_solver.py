@@ -170,6 +170,24 @@ def test_warm_start_from_coarser_grid_cuts_iterations_and_agrees():
     np.testing.assert_allclose(warm.pressure, cold.pressure, atol=1e-6 * load * 10)
 
 
+@pytest.mark.parametrize("n", [64, 256])
+def test_preconditioner_cuts_iterations_and_reaches_the_plain_solution(n):
+    # The preconditioned and the plain Polonsky-Keer iterations solve the same
+    # problem: same pressure to the tolerance, far fewer iterations on a rough
+    # surface resolved down to the grid (here 25 against 53 at 64^2 and 55
+    # against 193 at 256^2, about 18% contact), a gap that widens with the grid.
+    s = random_surface(n, seed=11, k_s=n // 2)
+    rms_slope = np.sqrt(2 * np.mean(np.gradient(s, L / n, axis=0) ** 2))
+    load = 0.1 * rms_slope
+    plain = solve_contact(s, system_size=L, mean_pressure=load, tol=1e-11, precondition=False)
+    fast = solve_contact(s, system_size=L, mean_pressure=load, tol=1e-11)
+    assert plain.converged and fast.converged
+    assert fast.n_iter < plain.n_iter / (1.5 if n == 64 else 2.5)
+    assert np.linalg.norm(fast.pressure - plain.pressure) / np.linalg.norm(plain.pressure) < 1e-8
+    assert np.array_equal(fast.contact, plain.contact)
+    assert fast.pressure.mean() == pytest.approx(load, rel=1e-12)
+
+
 @pytest.mark.parametrize("kind", ["single_node", "unrelated_surface", "finer_grid"])
 def test_poor_warm_starts_still_converge_to_the_same_solution(kind):
     n = 64
