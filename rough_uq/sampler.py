@@ -73,11 +73,12 @@ RETRY_FACTOR = 10
 
 #: Cost model of one solve, ``(n_iter + COST_EXTRA_ITERATIONS) * (COST_PER_POINT
 #: * n^2 log2(n^2) + COST_PER_ITERATION)`` reference seconds. Fitted on the
-#: reference machine (2 cores, 1 thread per solve, 2026-11-23; within 10% from 32^2
-#: to 512^2 there, ``scripts/calibrate_cost.py``);
-#: the extra iterations stand for the surface synthesis and the QoIs.
+#: reference machine (2 cores, 1 thread per solve, 2026-11-23, refitted for the
+#: preconditioned solver; within 15% from 32^2 to 512^2 there,
+#: ``scripts/calibrate_cost.py``); the extra iterations stand for the surface
+#: synthesis and the QoIs.
 COST_PER_POINT = 1.9e-9
-COST_PER_ITERATION = 5.0e-5
+COST_PER_ITERATION = 6.8e-5
 COST_EXTRA_ITERATIONS = 2
 
 
