@@ -7,10 +7,17 @@ For each grid ``n`` one surface of the classic study (``L = 2``,
 run, so the ratios are meaningful even where the absolute times are not:
 
 * solver: iterations, seconds per solve and per iteration, the time of one real
-  FFT pair (forward + inverse, the same cached plan and threads the solver
-  uses, median over batches) and the ratio (s/iteration) / (FFT pair). An
-  iteration costs one FFT pair plus fused passes, and a second pair when the
-  active set changes, so the ratio is expected between 1 and 2;
+  FFT pair (forward + inverse, double precision, the same cached plan and
+  threads the solver uses, median over batches) and the ratios (s/iteration) /
+  (FFT pair) and (s/solve) / (FFT pair), for the preconditioned solver (the
+  default) and for plain Polonsky-Keer (``precondition=False``) on the same
+  surface. A plain iteration costs one and a half FFT pairs plus fused passes;
+  a preconditioned one does one and a half single-precision pairs (a single
+  pair takes about half the time of a double pair at 1024^2) and one double
+  pair, and needs about a third of the iterations. ``iter/transf`` divides
+  the time of an iteration by the time of the transforms it must do (1.5
+  double pairs for plain Polonsky-Keer, 1.5 single and 1 double pair
+  preconditioned): what the elementwise passes and the Python loop add;
 * warm start: the coupled coarse surface (grid ``n/2``, spectral truncation) is
   solved first and its pressure passed as ``initial_pressure`` to the fine
   solve; cold vs warm iterations and time;
@@ -107,9 +114,18 @@ class GridRow:
     seconds_per_iteration: float
     fft_pair_seconds: float
     iteration_over_fft: float
+    single_pair_seconds: float
+    iteration_over_transforms: float
+    solve_over_fft: float
     area_fraction: float
     error: float
     converged: bool
+    plain_iter: int
+    plain_seconds_per_solve: float
+    plain_iteration_over_fft: float
+    plain_iteration_over_transforms: float
+    plain_solve_over_fft: float
+    plain_converged: bool
 
 
 @dataclass
@@ -204,12 +220,19 @@ def warm_up(threads: int) -> None:
     """Load or compile the solver's numba kernels (and start its thread pool) outside the timings."""
     spectrum = reference_spectrum()
     heights = sample_surface(spectrum, 32, np.random.default_rng(0))
-    solve_contact(heights, system_size=SYSTEM_SIZE, mean_pressure=mean_pressure(spectrum), threads=threads)
+    for precondition in (True, False):
+        solve_contact(
+            heights,
+            system_size=SYSTEM_SIZE,
+            mean_pressure=mean_pressure(spectrum),
+            threads=threads,
+            precondition=precondition,
+        )
 
 
-def time_fft_pair(n: int, threads: int) -> float:
-    """Median seconds of one forward + inverse real FFT with the solver's cached plan."""
-    plan = get_fft(n, threads=threads)
+def time_fft_pair(n: int, threads: int, *, single: bool = False) -> float:
+    """Median seconds of one forward + inverse real FFT with the solver's cached plan (of that precision)."""
+    plan = get_fft(n, threads=threads, single=single)
     plan.real[...] = np.random.default_rng(0).standard_normal((n, n))
     plan.forward()
     plan.inverse()
@@ -238,6 +261,7 @@ def timed_solve(
     threads: int,
     repeats: int,
     initial_pressure: np.ndarray | None = None,
+    precondition: bool = True,
 ) -> tuple[ContactSolution, SolveTiming]:
     """Solve ``repeats`` times; the last solution and the median wall time."""
     seconds = []
@@ -251,6 +275,7 @@ def timed_solve(
             tol=tol,
             threads=threads,
             initial_pressure=initial_pressure,
+            precondition=precondition,
         )
         seconds.append(time.perf_counter() - start)
     timing = SolveTiming(
@@ -356,9 +381,13 @@ def run_grid(
     """All measurements of one grid."""
     spectrum = reference_spectrum()
     fft_pair = time_fft_pair(n, args.threads)  # also builds the solver's plan outside the timings
+    single_pair = time_fft_pair(n, args.threads, single=True)  # the preconditioner's plan, outside the timings
     heights = sample_surface(spectrum, n, np.random.default_rng(args.seed))
     cold, cold_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats)
     per_iteration = cold_timing.seconds / max(cold_timing.n_iter, 1)
+    _, plain_timing = timed_solve(
+        heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats, precondition=False
+    )
     grid_row = GridRow(
         n=n,
         n_iter=cold_timing.n_iter,
@@ -366,15 +395,25 @@ def run_grid(
         seconds_per_iteration=per_iteration,
         fft_pair_seconds=fft_pair,
         iteration_over_fft=per_iteration / fft_pair,
+        single_pair_seconds=single_pair,
+        iteration_over_transforms=per_iteration / (1.5 * single_pair + fft_pair),
+        solve_over_fft=cold_timing.seconds / fft_pair,
         area_fraction=cold_timing.area_fraction,
         error=cold_timing.error,
         converged=cold_timing.converged,
+        plain_iter=plain_timing.n_iter,
+        plain_seconds_per_solve=plain_timing.seconds,
+        plain_iteration_over_fft=plain_timing.seconds / max(plain_timing.n_iter, 1) / fft_pair,
+        plain_iteration_over_transforms=plain_timing.seconds / max(plain_timing.n_iter, 1) / (1.5 * fft_pair),
+        plain_solve_over_fft=plain_timing.seconds / fft_pair,
+        plain_converged=plain_timing.converged,
     )
 
     fine, coarse = sample_coupled(spectrum, n, np.random.default_rng(args.seed))
     if not np.array_equal(fine, heights):
         raise RuntimeError(f"sample_coupled's fine surface differs from sample_surface's on grid {n}")
     time_fft_pair(n // 2, args.threads)  # plan for the coarse grid, outside the timings
+    get_fft(n // 2, threads=args.threads, single=True)
     coarse_solution, coarse_timing = timed_solve(
         coarse, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats
     )
@@ -435,20 +474,41 @@ def render(grid_rows: list[GridRow], warm_rows: list[WarmRow], peer_rows: list[P
     parts = [
         f"Solver (tol {args.tol:g}, {args.threads} thread(s), median of {args.repeats} solve(s))",
         format_table(
-            ["n", "iters", "s/solve", "s/iter", "FFT pair s", "iter/FFT", "area %", "error", "conv"],
+            ["n", "solver", "iters", "s/solve", "s/iter", "FFT pair s", "iter/FFT", "iter/transf", "solve/FFT",
+             "area %", "error", "conv"],
             [
-                [
-                    str(r.n),
-                    str(r.n_iter),
-                    f"{r.seconds_per_solve:.3f}",
-                    f"{r.seconds_per_iteration:.3e}",
-                    f"{r.fft_pair_seconds:.3e}",
-                    f"{r.iteration_over_fft:.2f}",
-                    f"{100 * r.area_fraction:.3f}",
-                    f"{r.error:.1e}",
-                    "yes" if r.converged else "NO",
-                ]
+                row
                 for r in grid_rows
+                for row in (
+                    [
+                        str(r.n),
+                        "precond.",
+                        str(r.n_iter),
+                        f"{r.seconds_per_solve:.3f}",
+                        f"{r.seconds_per_iteration:.3e}",
+                        f"{r.fft_pair_seconds:.3e}",
+                        f"{r.iteration_over_fft:.2f}",
+                        f"{r.iteration_over_transforms:.2f}",
+                        f"{r.solve_over_fft:.0f}",
+                        f"{100 * r.area_fraction:.3f}",
+                        f"{r.error:.1e}",
+                        "yes" if r.converged else "NO",
+                    ],
+                    [
+                        str(r.n),
+                        "plain PK",
+                        str(r.plain_iter),
+                        f"{r.plain_seconds_per_solve:.3f}",
+                        f"{r.plain_seconds_per_solve / max(r.plain_iter, 1):.3e}",
+                        f"{r.fft_pair_seconds:.3e}",
+                        f"{r.plain_iteration_over_fft:.2f}",
+                        f"{r.plain_iteration_over_transforms:.2f}",
+                        f"{r.plain_solve_over_fft:.0f}",
+                        "-",
+                        "-",
+                        "yes" if r.plain_converged else "NO",
+                    ],
+                )
             ],
         ),
         "",
