@@ -49,8 +49,9 @@ def westergaard_kernel(n: int, *, system_size: float, e_star: float = 1.0) -> np
 
 
 @numba.njit(cache=True, parallel=True)
-def _scale_spectrum(spectrum, kernel):  # pragma: no cover - compiled
-    # Multiply a complex spectrum by a real multiplier in place (one fused pass).
+def multiply_spectrum(spectrum, kernel):  # pragma: no cover - compiled
+    # Multiply a complex spectrum by a real multiplier in place (one fused pass);
+    # also used by the solver to apply the inverse operator, in single precision.
     n0, n1 = spectrum.shape
     for i in numba.prange(n0):
         for j in range(n1):
@@ -86,7 +87,7 @@ class HalfSpace:
         (saving a copy), and reads the displacement back from the same buffer.
         """
         self.fft.forward()
-        _scale_spectrum(self.fft.spectral, self.kernel)
+        multiply_spectrum(self.fft.spectral, self.kernel)
         return self.fft.inverse()
 
     def displacement(self, pressure: np.ndarray) -> np.ndarray:

@@ -101,7 +101,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .elastic import HalfSpace
+from .elastic import HalfSpace, multiply_spectrum
 from .errors import ConvergenceError, InvalidParameterError
 from .fft import get_fft
 
@@ -276,14 +276,6 @@ def _step(w, p, t, gbar, tau, tau_overlap):  # pragma: no cover - compiled
             n_clamped += clamped
             n_overlap += overlapping
     return total, n_clamped, n_overlap
-
-
-@numba.njit(cache=True, parallel=True)
-def _multiply_spectrum(spectrum, factor):  # pragma: no cover - compiled
-    n0, n1 = spectrum.shape
-    for i in numba.prange(n0):
-        for j in range(n1):
-            spectrum[i, j] = spectrum[i, j] * factor[i, j]
 
 
 @numba.njit(cache=True, parallel=True)
@@ -569,9 +561,7 @@ def solve_contact(
     def displacement_from_pressure() -> None:
         # Impose the mean pressure exactly, then fft.real <- K p.
         _scale_and_copy(p, total_force / p.sum(), fft.real)
-        fft.forward()
-        _multiply_spectrum(fft.spectral, kernel)
-        fft.inverse()
+        half_space.apply_in_place()
 
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(min(int(threads), numba.config.NUMBA_NUM_THREADS))
@@ -605,7 +595,7 @@ def solve_contact(
             # ``residual`` holds r = g on I, 0 elsewhere; y = M r (y = r unpreconditioned).
             if precondition:
                 preconditioner_fft.forward()
-                _multiply_spectrum(preconditioner_fft.spectral, inverse_kernel)
+                multiply_spectrum(preconditioner_fft.spectral, inverse_kernel)
                 preconditioner_fft.inverse()
             y = residual
             sum_y, sum_gy, sum_g, sum_t = _direction_sums(y, w, p, gbar, t)
