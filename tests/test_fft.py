@@ -1,0 +1,29 @@
+"""Cached real FFT plans: numpy's conventions, in double and in single precision."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rough_uq.fft import get_fft
+
+
+@pytest.mark.parametrize("single", [False, True])
+def test_plans_follow_numpy_conventions_at_their_precision(single):
+    n = 48
+    x = np.random.default_rng(3).standard_normal((n, n))
+    plan = get_fft(n, single=single)
+    assert plan.real.dtype == (np.float32 if single else np.float64)
+    assert plan.spectral.dtype == (np.complex64 if single else np.complex128)
+    expected = np.fft.rfft2(x)
+    spectrum = plan.forward(x).copy()
+    rtol = 1e-5 if single else 1e-12
+    np.testing.assert_allclose(spectrum, expected, rtol=0, atol=rtol * np.abs(expected).max())
+    back = plan.inverse(spectrum)
+    np.testing.assert_allclose(back, x, rtol=0, atol=rtol * np.abs(x).max())
+
+
+def test_plans_are_cached_per_precision():
+    assert get_fft(16) is get_fft((16, 16))
+    assert get_fft(16, single=True) is get_fft(16, single=True)
+    assert get_fft(16, single=True) is not get_fft(16)
