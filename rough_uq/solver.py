@@ -257,25 +257,22 @@ def _step(w, p, t, gbar, tau, tau_overlap):  # pragma: no cover - compiled
     # One Polonsky-Keer update of p, in place:
     #   active nodes: p <- max(p - tau t, 0)  (t = 0 off I)
     #   nodes left at zero pressure with g < 0 (overlap): p <- -tau_overlap g
-    # Returns (sum of new p, number of clamped nodes, number of overlap nodes).
+    # Returns (sum of new p, number of overlap nodes).
     n0, n1 = w.shape
     total = 0.0
-    n_clamped = 0
     n_overlap = 0
     for i in numba.prange(n0):
         for j in range(n1):
             pij = p[i, j]
             q = pij - tau * t[i, j]
-            clamped = pij > 0.0 and q <= 0.0
             q = q if q > 0.0 else 0.0
             g = w[i, j] - gbar
             overlapping = q == 0.0 and g < 0.0
             q = -tau_overlap * g if overlapping else q
             p[i, j] = q
             total += q
-            n_clamped += clamped
             n_overlap += overlapping
-    return total, n_clamped, n_overlap
+    return total, n_overlap
 
 
 @numba.njit(cache=True, parallel=True)
@@ -631,7 +628,7 @@ def solve_contact(
                 )
                 break
             tau = s_gt / curvature
-            total, n_clamped, n_overlap = _step(w, p, t, gbar, tau, tau * overlap_scale)
+            total, n_overlap = _step(w, p, t, gbar, tau, tau * overlap_scale)
             n_iter += 1
             # Nodes added from the overlap restart the conjugate directions.
             delta = 0.0 if n_overlap else 1.0
