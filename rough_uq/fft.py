@@ -12,9 +12,9 @@ Conventions (used by every module of roughuq)
 * Wave numbers are integers counted in periods per box (``k = L / lambda``); the
   angular wave number is ``q = 2 pi k / L``. :func:`rfft_wavenumbers` gives them.
 
-Plans are built once per ``(shape, threads)`` in each process and reused
-(:func:`get_fft`). FFTW "wisdom" is kept in memory by pyFFTW; nothing is
-written to disk and nothing happens at import time.
+Plans are built once per shape, thread count, precision and output layout in
+each process and reused (:func:`get_fft`). FFTW "wisdom" is kept in memory by
+pyFFTW; nothing is written to disk and nothing happens at import time.
 """
 
 from __future__ import annotations
@@ -39,10 +39,12 @@ _PLANNING_TIMELIMIT = 5.0
 class RealFFT:
     """A pair of FFTW plans (forward r2c, inverse c2r) on aligned work buffers.
 
-    The plans work in place on :attr:`real` (shape ``shape``, float64) and
-    :attr:`spectral` (shape ``(shape[0], shape[1] // 2 + 1)``, complex128):
-    fill one, call the transform, read the other. The buffers belong to the
-    plan: copy results that must outlive the next transform.
+    The forward plan reads :attr:`real` (shape ``shape``, float64) and writes
+    :attr:`spectral` (shape ``(shape[0], shape[1] // 2 + 1)``, complex128);
+    the inverse reads :attr:`spectral` and writes :attr:`output`, which is
+    :attr:`real` itself unless ``separate_output``: fill one, call the
+    transform, read the other. The buffers belong to the plan: copy results
+    that must outlive the next transform.
 
     Parameters
     ----------
@@ -54,9 +56,15 @@ class RealFFT:
         Single precision (float32 / complex64 buffers): about half the time of
         a double-precision pair at 1024^2, for uses that tolerate a relative
         rounding error of about 1e-7 (the solver's preconditioner).
+    separate_output : bool
+        Give the inverse its own output buffer, so that :attr:`real` keeps its
+        content across a round trip (the solver stores the pressure there and
+        saves a copy per iteration).
     """
 
-    def __init__(self, shape: tuple[int, int], *, threads: int = 1, single: bool = False) -> None:
+    def __init__(
+        self, shape: tuple[int, int], *, threads: int = 1, single: bool = False, separate_output: bool = False
+    ) -> None:
         n0, n1 = (int(s) for s in shape)
         if n0 < 2 or n1 < 2 or n1 % 2:
             raise ValueError(f"FFT grid shape must be at least 2 x 2 with an even last axis, got {shape}")
@@ -68,6 +76,7 @@ class RealFFT:
         real_type, complex_type = ("float32", "complex64") if self.single else ("float64", "complex128")
         self.real = pyfftw.empty_aligned(self.shape, dtype=real_type)
         self.spectral = pyfftw.empty_aligned((n0, n1 // 2 + 1), dtype=complex_type)
+        self.output = pyfftw.empty_aligned(self.shape, dtype=real_type) if separate_output else self.real
         self._forward = pyfftw.FFTW(
             self.real,
             self.spectral,
@@ -79,7 +88,7 @@ class RealFFT:
         )
         self._inverse = pyfftw.FFTW(
             self.spectral,
-            self.real,
+            self.output,
             axes=(0, 1),
             direction="FFTW_BACKWARD",
             threads=self.threads,
@@ -88,6 +97,7 @@ class RealFFT:
         )
         # Planning may scribble on the buffers.
         self.real[...] = 0.0
+        self.output[...] = 0.0
         self.spectral[...] = 0.0
 
     def forward(self, x: np.ndarray | None = None) -> np.ndarray:
@@ -98,32 +108,34 @@ class RealFFT:
         return self.spectral
 
     def inverse(self, x_hat: np.ndarray | None = None) -> np.ndarray:
-        """Transform :attr:`spectral` (after copying ``x_hat`` into it) into :attr:`real`.
+        """Transform :attr:`spectral` (after copying ``x_hat`` into it) into :attr:`output`.
 
         The input buffer is destroyed (FFTW's c2r transforms overwrite it).
         """
         if x_hat is not None:
             np.copyto(self.spectral, x_hat)
         self._inverse(normalise_idft=True)
-        return self.real
+        return self.output
 
 
-_PLANS: dict[tuple[tuple[int, int], int, bool, int], RealFFT] = {}
+_PLANS: dict[tuple[tuple[int, int], int, bool, bool, int], RealFFT] = {}
 _PLANS_LOCK = threading.Lock()
 
 
-def get_fft(shape: tuple[int, int] | int, *, threads: int = 1, single: bool = False) -> RealFFT:
-    """The cached :class:`RealFFT` for ``shape``, ``threads`` and precision in this process and thread.
+def get_fft(
+    shape: tuple[int, int] | int, *, threads: int = 1, single: bool = False, separate_output: bool = False
+) -> RealFFT:
+    """The cached :class:`RealFFT` for ``shape``, ``threads``, precision and output layout in this process and thread.
 
     Plans own their work buffers, so each Python thread gets its own plans.
     """
     if isinstance(shape, (int, np.integer)):
         shape = (int(shape), int(shape))
-    key = (tuple(int(s) for s in shape), int(threads), bool(single), threading.get_ident())
+    key = (tuple(int(s) for s in shape), int(threads), bool(single), bool(separate_output), threading.get_ident())
     with _PLANS_LOCK:
         plan = _PLANS.get(key)
         if plan is None:
-            plan = RealFFT(key[0], threads=threads, single=single)
+            plan = RealFFT(key[0], threads=threads, single=single, separate_output=separate_output)
             _PLANS[key] = plan
     return plan
 

@@ -27,3 +27,17 @@ def test_plans_are_cached_per_precision():
     assert get_fft(16) is get_fft((16, 16))
     assert get_fft(16, single=True) is get_fft(16, single=True)
     assert get_fft(16, single=True) is not get_fft(16)
+
+
+def test_separate_output_keeps_the_input_across_a_round_trip():
+    n = 32
+    x = np.random.default_rng(5).standard_normal((n, n))
+    plan = get_fft(n, separate_output=True)
+    assert plan.output is not plan.real
+    assert get_fft(n) is not plan
+    plan.real[...] = x
+    plan.forward()
+    back = plan.inverse()
+    assert back is plan.output
+    np.testing.assert_array_equal(plan.real, x)
+    np.testing.assert_allclose(back, x, rtol=0, atol=1e-12 * np.abs(x).max())
