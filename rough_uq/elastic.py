@@ -49,13 +49,14 @@ def westergaard_kernel(n: int, *, system_size: float, e_star: float = 1.0) -> np
 
 
 @numba.njit(cache=True, parallel=True)
-def multiply_spectrum(spectrum, kernel):  # pragma: no cover - compiled
-    # Multiply a complex spectrum by a real multiplier in place (one fused pass);
-    # also used by the solver to apply the inverse operator, in single precision.
+def multiply_spectrum(spectrum, kernel, scale):  # pragma: no cover - compiled
+    # Multiply a complex spectrum by ``scale * kernel`` (real) in place, in one
+    # fused pass; also used by the solver to apply the inverse operator in
+    # single precision (``scale`` then of the kernel's type, to stay single).
     n0, n1 = spectrum.shape
     for i in numba.prange(n0):
         for j in range(n1):
-            spectrum[i, j] = spectrum[i, j] * kernel[i, j]
+            spectrum[i, j] = spectrum[i, j] * (scale * kernel[i, j])
 
 
 class HalfSpace:
@@ -71,23 +72,30 @@ class HalfSpace:
         Effective modulus ``E*``.
     threads : int
         FFTW threads.
+    separate_output : bool
+        Plans whose result goes to ``fft.output`` instead of overwriting the
+        input ``fft.real`` (see :class:`~rough_uq.fft.RealFFT`).
     """
 
-    def __init__(self, n: int, *, system_size: float, e_star: float = 1.0, threads: int = 1) -> None:
+    def __init__(
+        self, n: int, *, system_size: float, e_star: float = 1.0, threads: int = 1, separate_output: bool = False
+    ) -> None:
         self.n = int(n)
         self.system_size = float(system_size)
         self.e_star = float(e_star)
-        self.fft = get_fft((self.n, self.n), threads=threads)
+        self.fft = get_fft((self.n, self.n), threads=threads, separate_output=separate_output)
         self.kernel = westergaard_kernel(self.n, system_size=self.system_size, e_star=self.e_star)
 
-    def apply_in_place(self) -> np.ndarray:
-        """Convolve the plan's real buffer with the kernel; the result is left in that buffer.
+    def apply(self, scale: float = 1.0) -> np.ndarray:
+        """Convolve the plan's input buffer with ``scale`` times the kernel; return its output buffer.
 
         This is the hot path of the solver: the caller fills ``self.fft.real``
-        (saving a copy), and reads the displacement back from the same buffer.
+        (saving a copy) and reads the displacement from ``self.fft.output``
+        (the same buffer unless ``separate_output``); ``scale`` saves it a
+        pass to normalise the pressure first.
         """
         self.fft.forward()
-        multiply_spectrum(self.fft.spectral, self.kernel)
+        multiply_spectrum(self.fft.spectral, self.kernel, float(scale))
         return self.fft.inverse()
 
     def displacement(self, pressure: np.ndarray) -> np.ndarray:
@@ -107,4 +115,4 @@ class HalfSpace:
         if pressure.shape != (self.n, self.n):
             raise ValueError(f"pressure has shape {pressure.shape}, expected {(self.n, self.n)}")
         np.copyto(self.fft.real, pressure)
-        return self.apply_in_place().copy()
+        return self.apply().copy()

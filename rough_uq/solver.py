@@ -33,7 +33,7 @@ product stays well conditioned (the idea of operator, or Calderon,
 preconditioning), so the iteration count grows slowly with the grid instead
 of like the square root of the condition number of ``K`` (about ``n``). On the
 reference surface of the benchmark it took 41 / 60 / 72 iterations at
-256^2 / 512^2 / 1024^2 against 147 / 188 / 249 for plain Polonsky-Keer.
+256^2 / 512^2 / 1024^2 against 147 / 188 / 250 for plain Polonsky-Keer.
 ``M`` is applied with single-precision FFTs: it only shapes the direction
 (the residual and the stopping test stay in double precision). The
 curvature ``<t, K t>`` of the step length (by Parseval, from the forward
@@ -48,11 +48,19 @@ overlap get ``p = -tau d g`` with ``d`` the diagonal of ``M``
 One iteration costs one and a half single-precision FFT pairs (the
 preconditioner and the transform of ``t``) and one double-precision pair: the
 displacement ``u = K p`` of the new pressure is recomputed exactly from ``p``,
-because in almost every iteration some node is clamped or added, so an
-update ``u <- u - tau K t`` would rarely be exact. Plain Polonsky-Keer
-(``precondition=False``) does the transform of ``t`` in double precision. The
-elementwise work is done in a few fused, branch-free passes compiled with
-numba.
+because in almost every iteration some node is clamped or added (a median of
+45 nodes per iteration for plain Polonsky-Keer, 97 preconditioned, on the
+benchmark surface at 512^2), so an update ``u <- u - tau K t`` would
+rarely be exact. Plain Polonsky-Keer (``precondition=False``) costs one double
+pair and the single-precision forward transform of ``t``, which it keeps in
+single precision (the direction needs no more; the iteration counts do not
+change). The elementwise work is done in a few fused, branch-free passes
+compiled with numba: plain Polonsky-Keer makes three passes over the grid per
+iteration (gap and sums; error and direction; step), the preconditioned
+iteration five. The pressure is stored unnormalised in the FFT input (the
+mean pressure is imposed by a factor in the spectral multiply of ``K``), and
+the gap overwrites the displacement: no pass to rescale and copy the
+pressure, and two arrays fewer.
 
 Convergence criterion
 ---------------------
@@ -166,60 +174,91 @@ class ContactSolution:
 
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _gap_pass(u, s, p, w):  # pragma: no cover - compiled
-    # w <- u - s everywhere. Returns (sum_I w, |I|).
+def _gap_pass(w, s, p, shift):  # pragma: no cover - compiled
+    # w <- w - s everywhere, in place (w holds u = K p on entry). Returns sums
+    # over I: (sum w, |I|, sum (w - shift)^2). With gbar = mean_I w,
+    # sum_I (w - gbar)^2 = sum_I (w - shift)^2 - |I| (gbar - shift)^2; a shift
+    # close to gbar (the previous one) keeps the difference free of
+    # cancellation. (Multiplying by the 0/1 indicator of I vectorises better
+    # than selecting.)
     n0, n1 = w.shape
     s_w = 0.0
+    s_sq = 0.0
     count = 0
     for i in numba.prange(n0):
         for j in range(n1):
-            wij = u[i, j] - s[i, j]
+            wij = w[i, j] - s[i, j]
             w[i, j] = wij
             active = p[i, j] > 0.0
-            s_w += wij if active else 0.0
+            weight = 1.0 if active else 0.0
+            shifted = weight * (wij - shift)
+            s_w += weight * wij
+            s_sq += shifted * shifted
             count += active
-    return s_w, count
+    return s_w, count, s_sq
 
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def _residual_pass(w, p, gbar, r):  # pragma: no cover - compiled
     # r <- g = w - gbar on I, 0 elsewhere (the input of the preconditioner).
-    # Returns (sum_I p |g|, sum_{not I} max(-g, 0)), the two terms of the error
-    # (p = 0 off I, so the first sum may run over all nodes).
+    # Returns (sum_I p |g|, sum_{not I} max(-g, 0), sum_I g): the two terms of
+    # the error (p = 0 off I, so the first sum may run over all nodes; p is the
+    # stored, unnormalised pressure) and the rounding error of the mean of g.
     n0, n1 = w.shape
     complementarity = 0.0
     overlap = 0.0
+    s_g = 0.0
     for i in numba.prange(n0):
         for j in range(n1):
             g = w[i, j] - gbar
             pij = p[i, j]
-            active = pij > 0.0
+            weight = 1.0 if pij > 0.0 else 0.0
             complementarity += pij * abs(g)
-            overlap += 0.0 if (active or g >= 0.0) else -g
-            r[i, j] = g if active else 0.0
-    return complementarity, overlap
+            overlap -= (1.0 - weight) * min(g, 0.0)
+            s_g += weight * g
+            r[i, j] = weight * g
+    return complementarity, overlap, s_g
 
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _direction_sums(y, w, p, gbar, t):  # pragma: no cover - compiled
-    # Sums over I of the preconditioned residual y, of g y, of g and of the
-    # previous direction t: (sum y, sum g y, sum g, sum t). (Multiplying by
-    # the 0/1 indicator of I vectorises better than selecting.)
+def _plain_direction(w, p, gbar, beta, t_mean, t):  # pragma: no cover - compiled
+    # Unpreconditioned: the residual pass and the direction in one.
+    # t <- g + beta (t - t_mean) on I, 0 elsewhere (g = w - gbar has zero sum
+    # on I), in place (t is the single-precision FFT input; sum g t is taken
+    # before rounding, a relative difference of 1e-7 in the step length, as
+    # harmless as the single-precision curvature). Returns
+    # (sum_I p |g|, sum_{not I} max(-g, 0), sum_I g t).
+    # (``(1 - weight) min(g, 0)`` vectorises; a test ``active or g >= 0`` does not.)
+    n0, n1 = w.shape
+    complementarity = 0.0
+    overlap = 0.0
+    s_gt = 0.0
+    for i in numba.prange(n0):
+        for j in range(n1):
+            g = w[i, j] - gbar
+            pij = p[i, j]
+            weight = 1.0 if pij > 0.0 else 0.0
+            complementarity += pij * abs(g)
+            overlap -= (1.0 - weight) * min(g, 0.0)
+            tij = weight * (g + beta * (t[i, j] - t_mean))
+            t[i, j] = tij
+            s_gt += g * tij
+    return complementarity, overlap, s_gt
+
+
+@numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
+def _direction_sums(y, w, p, gbar):  # pragma: no cover - compiled
+    # Sums over I of the preconditioned residual y and of g y.
     n0, n1 = w.shape
     s_y = 0.0
     s_gy = 0.0
-    s_g = 0.0
-    s_t = 0.0
     for i in numba.prange(n0):
         for j in range(n1):
             active = 1.0 if p[i, j] > 0.0 else 0.0
-            g = active * (w[i, j] - gbar)
             yij = active * y[i, j]
             s_y += yij
-            s_gy += g * yij
-            s_g += g
-            s_t += active * t[i, j]
-    return s_y, s_gy, s_g, s_t
+            s_gy += (w[i, j] - gbar) * yij
+    return s_y, s_gy
 
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
@@ -253,36 +292,29 @@ def _energy(spectrum, weights):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _step(w, p, t, gbar, tau, tau_overlap):  # pragma: no cover - compiled
-    # One Polonsky-Keer update of p, in place:
-    #   active nodes: p <- max(p - tau t, 0)  (t = 0 off I)
+def _step(w, p, t, gbar, scale, tau, tau_overlap):  # pragma: no cover - compiled
+    # One Polonsky-Keer update of the pressure scale * p, in place:
+    #   active nodes: p <- max(scale p - tau t, 0)  (t = 0 off I)
     #   nodes left at zero pressure with g < 0 (overlap): p <- -tau_overlap g
-    # Returns (sum of new p, number of overlap nodes).
+    # Returns (sum of new p, number of overlap nodes, sum of t over the new
+    # active set, for the next direction; t = 0 on overlap nodes).
     n0, n1 = w.shape
     total = 0.0
+    s_t = 0.0
     n_overlap = 0
     for i in numba.prange(n0):
         for j in range(n1):
-            pij = p[i, j]
-            q = pij - tau * t[i, j]
+            tij = t[i, j]
+            q = scale * p[i, j] - tau * tij
             q = q if q > 0.0 else 0.0
+            s_t += tij if q > 0.0 else 0.0
             g = w[i, j] - gbar
             overlapping = q == 0.0 and g < 0.0
             q = -tau_overlap * g if overlapping else q
             p[i, j] = q
             total += q
             n_overlap += overlapping
-    return total, n_overlap
-
-
-@numba.njit(cache=True, parallel=True)
-def _scale_and_copy(p, factor, out):  # pragma: no cover - compiled
-    n0, n1 = p.shape
-    for i in numba.prange(n0):
-        for j in range(n1):
-            v = p[i, j] * factor
-            p[i, j] = v
-            out[i, j] = v
+    return total, n_overlap, s_t
 
 
 # --------------------------------------------------------------------------
@@ -526,7 +558,8 @@ def solve_contact(
     total_force = load * n_nodes
     error_scale = total_force  # N * load * (unit RMS height)
 
-    half_space = HalfSpace(n, system_size=1.0, e_star=1.0, threads=threads)
+    # Separate output: the pressure stays in fft.real, u = K p lands in fft.output.
+    half_space = HalfSpace(n, system_size=1.0, e_star=1.0, threads=threads, separate_output=True)
     fft = half_space.fft
     kernel = half_space.kernel
     # Parseval weights of <K t, t> in the rfft half spectrum: interior columns
@@ -543,22 +576,35 @@ def solve_contact(
         np.divide(1.0, kernel, out=inverse_kernel, where=kernel > 0)
         overlap_scale = float(np.sum(inverse_kernel * multiplicity)) / n_nodes
         inverse_kernel = inverse_kernel.astype(np.float32)
-        preconditioner_fft = get_fft(n, threads=threads, single=True)
-        residual = preconditioner_fft.real
-        direction_fft = preconditioner_fft
     else:
         overlap_scale = 1.0
-        residual = fft.real
-        direction_fft = fft
+    # Single-precision plan: the preconditioner and the transform of t (the
+    # curvature of the step only).
+    direction_fft = get_fft(n, threads=threads, single=True)
+    residual = direction_fft.real
 
-    p = np.full((n, n), load) if p0 is None else p0.copy()
-    w = np.empty((n, n))
-    t = np.zeros((n, n))
+    # The pressure is p_scale * p: the step stores unnormalised values and the
+    # mean pressure is imposed in the spectral multiply of u = K p, which
+    # saves a pass over the grid.
+    p = fft.real
+    p[...] = load if p0 is None else p0
+    # u = K p, turned into w = u - s in place by the gap pass.
+    w = fft.output
+    # The search direction: with the preconditioner in double precision, its
+    # own array; without, in single precision, straight in the FFT input.
+    if precondition:
+        t = np.zeros((n, n))
+    else:
+        t = residual
+        t.fill(0.0)
+    sum_t = 0.0  # sum of t over the active set
+    p_scale = 1.0
 
     def displacement_from_pressure() -> None:
-        # Impose the mean pressure exactly, then fft.real <- K p.
-        _scale_and_copy(p, total_force / p.sum(), fft.real)
-        half_space.apply_in_place()
+        # u <- K (p_scale p), p_scale imposing the mean pressure.
+        nonlocal p_scale
+        p_scale = total_force / p.sum()
+        half_space.apply(p_scale)
 
     previous_threads = numba.get_num_threads()
     numba.set_num_threads(min(int(threads), numba.config.NUMBA_NUM_THREADS))
@@ -567,16 +613,24 @@ def solve_contact(
         n_restarts = 0
         delta = 0.0
         rho_old = 1.0
+        gbar = 0.0
         n_iter = 0
         message = ""
         error = math.inf
         converged = False
         while True:
-            # fft.real holds u = K p for the current p.
-            active_total, n_active = _gap_pass(fft.real, s, p, w)
-            gbar = active_total / n_active
-            complementarity, overlap = _residual_pass(w, p, gbar, residual)
-            error = (complementarity + load * overlap) / error_scale
+            # w holds u = K p for the current p.
+            active_total, n_active, shifted_squares = _gap_pass(w, s, p, gbar)
+            previous_gbar, gbar = gbar, active_total / n_active
+            t_mean = sum_t / n_active
+            if precondition:
+                complementarity, overlap, sum_g = _residual_pass(w, p, gbar, residual)
+            else:
+                # rho = sum_I g^2; the direction is built in the same pass as the error.
+                rho = max(shifted_squares - n_active * (gbar - previous_gbar) ** 2, 0.0)
+                beta = delta * rho / rho_old if rho_old > 0 else 0.0
+                complementarity, overlap, s_gt = _plain_direction(w, p, gbar, beta, t_mean, t)
+            error = (p_scale * complementarity + load * overlap) / error_scale
             if not math.isfinite(error):
                 raise ConvergenceError(
                     f"non-finite convergence measure at iteration {n_iter} (inputs were finite; this is a bug)"
@@ -589,18 +643,17 @@ def solve_contact(
                     message = f"not converged: max_iter={max_iter} reached with error {error:.3g} (tol {tol:.3g})"
                 break
 
-            # ``residual`` holds r = g on I, 0 elsewhere; y = M r (y = r unpreconditioned).
             if precondition:
-                preconditioner_fft.forward()
-                multiply_spectrum(preconditioner_fft.spectral, inverse_kernel)
-                preconditioner_fft.inverse()
-            y = residual
-            sum_y, sum_gy, sum_g, sum_t = _direction_sums(y, w, p, gbar, t)
-            y_mean = sum_y / n_active
-            # rho = <g, P M P g> over I, P the projection on zero sum over I.
-            rho = sum_gy - y_mean * sum_g
-            beta = delta * rho / rho_old if rho_old > 0 else 0.0
-            s_gt = _direction(y, w, p, gbar, y_mean, beta, sum_t / n_active, t, direction_fft.real)
+                # ``residual`` holds r = g on I, 0 elsewhere; y = M r.
+                direction_fft.forward()
+                multiply_spectrum(direction_fft.spectral, inverse_kernel, np.float32(1.0))
+                y = direction_fft.inverse()
+                sum_y, sum_gy = _direction_sums(y, w, p, gbar)
+                y_mean = sum_y / n_active
+                # rho = <g, P M P g> over I, P the projection on zero sum over I.
+                rho = sum_gy - y_mean * sum_g
+                beta = delta * rho / rho_old if rho_old > 0 else 0.0
+                s_gt = _direction(y, w, p, gbar, y_mean, beta, t_mean, t, residual)
             rho_old = rho
             direction_fft.forward()
             curvature = _energy(direction_fft.spectral, weights)  # <K t, t>
@@ -618,6 +671,7 @@ def solve_contact(
                     n_restarts += 1
                     p.fill(load)
                     t.fill(0.0)
+                    sum_t = 0.0
                     displacement_from_pressure()
                     continue
                 # Even steepest descent finds no decrease: the residual is at
@@ -628,17 +682,21 @@ def solve_contact(
                 )
                 break
             tau = s_gt / curvature
-            total, n_overlap = _step(w, p, t, gbar, tau, tau * overlap_scale)
+            total, n_overlap, sum_t = _step(w, p, t, gbar, p_scale, tau, tau * overlap_scale)
             n_iter += 1
             # Nodes added from the overlap restart the conjugate directions.
             delta = 0.0 if n_overlap else 1.0
-            if not total > 0:
+            if total > 0:
+                p_scale = total_force / total
+                half_space.apply(p_scale)
+            else:
                 # Every node was clamped and none overlapped (cannot happen
                 # for a descent step, but never divide by zero).
                 p.fill(load)
                 t.fill(0.0)
+                sum_t = 0.0
                 delta = 0.0
-            displacement_from_pressure()
+                displacement_from_pressure()
     finally:
         numba.set_num_threads(previous_threads)
 
@@ -649,7 +707,7 @@ def solve_contact(
     displacement = (w + s) * s_rms
     gap = (w + approach) * s_rms
     mantissa, exponent = _binary_ratio((e_star, s_rms), (system_size,))
-    pressure = np.ldexp(p * mantissa, exponent)
+    pressure = np.ldexp((p * p_scale) * mantissa, exponent)
     return ContactSolution(
         pressure=pressure,
         displacement=displacement,

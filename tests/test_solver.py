@@ -188,6 +188,19 @@ def test_preconditioner_cuts_iterations_and_reaches_the_plain_solution(n):
     assert fast.pressure.mean() == pytest.approx(load, rel=1e-12)
 
 
+@pytest.mark.parametrize("precondition", [True, False])
+def test_solutions_own_their_arrays(precondition):
+    # The solver iterates in the buffers of cached FFT plans (the pressure in
+    # the input, the gap over the displacement): a returned solution must not
+    # change when the next solve on the same grid reuses them.
+    n = 32
+    first = solve_contact(random_surface(n, seed=1), system_size=L, mean_pressure=0.5, precondition=precondition)
+    kept = {name: getattr(first, name).copy() for name in ("pressure", "displacement", "gap")}
+    solve_contact(random_surface(n, seed=2), system_size=L, mean_pressure=2.0, precondition=precondition)
+    for name, value in kept.items():
+        np.testing.assert_array_equal(getattr(first, name), value, err_msg=name)
+
+
 @pytest.mark.parametrize("kind", ["single_node", "unrelated_surface", "finer_grid"])
 def test_poor_warm_starts_still_converge_to_the_same_solution(kind):
     n = 64
