@@ -11,13 +11,15 @@ run, so the ratios are meaningful even where the absolute times are not:
   threads the solver uses, median over batches) and the ratios (s/iteration) /
   (FFT pair) and (s/solve) / (FFT pair), for the preconditioned solver (the
   default) and for plain Polonsky-Keer (``precondition=False``) on the same
-  surface. A plain iteration costs one and a half FFT pairs plus fused passes;
-  a preconditioned one does one and a half single-precision pairs (a single
-  pair takes about half the time of a double pair at 1024^2) and one double
-  pair, and needs about a third of the iterations. ``iter/transf`` divides
-  the time of an iteration by the time of the transforms it must do (1.5
-  double pairs for plain Polonsky-Keer, 1.5 single and 1 double pair
-  preconditioned): what the elementwise passes and the Python loop add;
+  surface. A plain iteration costs one double FFT pair and a single-precision
+  forward transform plus fused passes; a preconditioned one does one and a
+  half single-precision pairs (a single pair takes about half the time of a
+  double pair at 1024^2, three quarters at 256^2 and 512^2, nine tenths at
+  2048^2) and one double pair, and needs about a third of the iterations.
+  ``iter/transf`` divides the time of an iteration by the time of the
+  transforms it must do (1 double and 0.5 single pair for plain
+  Polonsky-Keer, 1 double and 1.5 single pairs preconditioned): what the
+  elementwise passes and the Python loop add;
 * warm start: the coupled coarse surface (grid ``n/2``, spectral truncation) is
   solved first and its pressure passed as ``initial_pressure`` to the fine
   solve; cold vs warm iterations and time;
@@ -231,8 +233,13 @@ def warm_up(threads: int) -> None:
 
 
 def time_fft_pair(n: int, threads: int, *, single: bool = False) -> float:
-    """Median seconds of one forward + inverse real FFT with the solver's cached plan (of that precision)."""
-    plan = get_fft(n, threads=threads, single=single)
+    """Median seconds of one forward + inverse real FFT with the solver's cached plan of that precision.
+
+    The double-precision plan is the solver's, with a separate output buffer
+    (within 5% of the in-place plan's time here); the single-precision one is
+    in place.
+    """
+    plan = get_fft(n, threads=threads, single=single, separate_output=not single)
     plan.real[...] = np.random.default_rng(0).standard_normal((n, n))
     plan.forward()
     plan.inverse()
@@ -404,7 +411,9 @@ def run_grid(
         plain_iter=plain_timing.n_iter,
         plain_seconds_per_solve=plain_timing.seconds,
         plain_iteration_over_fft=plain_timing.seconds / max(plain_timing.n_iter, 1) / fft_pair,
-        plain_iteration_over_transforms=plain_timing.seconds / max(plain_timing.n_iter, 1) / (1.5 * fft_pair),
+        plain_iteration_over_transforms=plain_timing.seconds
+        / max(plain_timing.n_iter, 1)
+        / (0.5 * single_pair + fft_pair),
         plain_solve_over_fft=plain_timing.seconds / fft_pair,
         plain_converged=plain_timing.converged,
     )
@@ -413,7 +422,7 @@ def run_grid(
     if not np.array_equal(fine, heights):
         raise RuntimeError(f"sample_coupled's fine surface differs from sample_surface's on grid {n}")
     time_fft_pair(n // 2, args.threads)  # plan for the coarse grid, outside the timings
-    get_fft(n // 2, threads=args.threads, single=True)
+    get_fft(n // 2, threads=args.threads, single=True)  # and its single-precision plan
     coarse_solution, coarse_timing = timed_solve(
         coarse, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats
     )
