@@ -198,6 +198,15 @@ def _gap_pass(w, s, p, shift):  # pragma: no cover - compiled
     return s_w, count, s_sq
 
 
+@numba.njit(inline="always")
+def _error_terms(g, pij, weight):  # pragma: no cover - compiled
+    # A node's share of the two sums of the error (module docstring):
+    # p |g| (zero off I, where p = 0) and, off I, max(-g, 0). Written as
+    # ``(1 - weight) min(g, 0)``, which vectorises; a test ``active or g >= 0``
+    # does not.
+    return pij * abs(g), -(1.0 - weight) * min(g, 0.0)
+
+
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def _residual_pass(w, p, gbar, r):  # pragma: no cover - compiled
     # r <- g = w - gbar on I, 0 elsewhere (the input of the preconditioner).
@@ -213,8 +222,9 @@ def _residual_pass(w, p, gbar, r):  # pragma: no cover - compiled
             g = w[i, j] - gbar
             pij = p[i, j]
             weight = 1.0 if pij > 0.0 else 0.0
-            complementarity += pij * abs(g)
-            overlap -= (1.0 - weight) * min(g, 0.0)
+            node_complementarity, node_overlap = _error_terms(g, pij, weight)
+            complementarity += node_complementarity
+            overlap += node_overlap
             s_g += weight * g
             r[i, j] = weight * g
     return complementarity, overlap, s_g
@@ -228,7 +238,6 @@ def _plain_direction(w, p, gbar, beta, t_mean, t):  # pragma: no cover - compile
     # before rounding, a relative difference of 1e-7 in the step length, as
     # harmless as the single-precision curvature). Returns
     # (sum_I p |g|, sum_{not I} max(-g, 0), sum_I g t).
-    # (``(1 - weight) min(g, 0)`` vectorises; a test ``active or g >= 0`` does not.)
     n0, n1 = w.shape
     complementarity = 0.0
     overlap = 0.0
@@ -238,8 +247,9 @@ def _plain_direction(w, p, gbar, beta, t_mean, t):  # pragma: no cover - compile
             g = w[i, j] - gbar
             pij = p[i, j]
             weight = 1.0 if pij > 0.0 else 0.0
-            complementarity += pij * abs(g)
-            overlap -= (1.0 - weight) * min(g, 0.0)
+            node_complementarity, node_overlap = _error_terms(g, pij, weight)
+            complementarity += node_complementarity
+            overlap += node_overlap
             tij = weight * (g + beta * (t[i, j] - t_mean))
             t[i, j] = tij
             s_gt += g * tij
