@@ -53,9 +53,11 @@ class RealFFT:
     threads : int
         Number of FFTW threads.
     single : bool
-        Single precision (float32 / complex64 buffers): about half the time of
-        a double-precision pair at 1024^2, for uses that tolerate a relative
-        rounding error of about 1e-7 (the solver's preconditioner).
+        Single precision (float32 / complex64 buffers), for uses that tolerate
+        a relative rounding error of about 1e-7 (the solver's preconditioner).
+        With FFTW_ESTIMATE plans a pair takes 0.6 of the time of a
+        double-precision pair at 1024^2, 0.7-0.8 at 256^2 and 512^2, 0.9 at
+        2048^2 (``scripts/bench_solver.py``).
     separate_output : bool
         Give the inverse its own output buffer, so that :attr:`real` keeps its
         content across a round trip (the solver stores the pressure there and
