@@ -13,27 +13,60 @@ Conventions (used by every module of roughuq)
   angular wave number is ``q = 2 pi k / L``. :func:`rfft_wavenumbers` gives them.
 
 Plans are built once per shape, thread count, precision and output layout in
-each process and reused (:func:`get_fft`). FFTW "wisdom" is kept in memory by
-pyFFTW; nothing is written to disk and nothing happens at import time.
+each process and reused (:func:`get_fft`). Nothing happens at import time and
+this module reads and writes no file.
+
+Planning and reproducibility
+----------------------------
+FFTW's algorithm choice changes the rounding of a transform, so a sample is
+reproducible to the bit only where every process uses the same plan. Two
+ways are offered:
+
+* ``FFTW_ESTIMATE`` (the default of a fresh process): the plan follows from
+  the shape alone.
+* Measured plans from shared wisdom: one process measures the plans it needs
+  (:func:`measure_plans`, ``FFTW_MEASURE``) and exports the wisdom
+  (:func:`export_wisdom`); every process that calls :func:`use_wisdom` with
+  those bytes then plans from the wisdom only (``FFTW_WISDOM_ONLY``), and so
+  uses the very same plans. A plan missing from the wisdom is estimated,
+  never measured, so that it too is the same in every such process.
+  The study pipeline measures the grids of each level before it computes
+  samples there, keeps the wisdom on disk (user cache directory) and ships it
+  with the contact model to every worker. Measured plans were 1.1-1.5x faster
+  than estimated ones here (``scripts/bench_solver.py`` prints both).
 """
 
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterable
 
 import numpy as np
 import pyfftw
 
-__all__ = ["RealFFT", "get_fft", "rfft_wavenumbers", "clear_plan_cache"]
+__all__ = [
+    "RealFFT",
+    "get_fft",
+    "rfft_wavenumbers",
+    "clear_plan_cache",
+    "measure_plans",
+    "use_wisdom",
+    "export_wisdom",
+    "planner_flags",
+]
 
-#: Planner effort. FFTW_ESTIMATE picks the algorithm from the shape alone, so every
-#: process (serial run, pool worker, cluster job) rounds identically and a sample is
-#: bit-for-bit reproducible. FFTW_MEASURE picks by timing, which differs between
-#: processes; its plans were 15-25% faster here (1.2x at 512^2, 1.15x at 1024^2), a
-#: price paid for reproducibility (SPEC section 7).
-_PLANNER_FLAGS = ("FFTW_ESTIMATE",)
-#: Upper bound on planning time per plan, in seconds.
+#: Upper bound on planning time per plan, in seconds (measured planning only).
 _PLANNING_TIMELIMIT = 5.0
+
+
+class _Planner:
+    """The process's planning mode (module docstring): flags and the wisdom it came from."""
+
+    flags: tuple[str, ...] = ("FFTW_ESTIMATE",)
+    wisdom: tuple[bytes, ...] | None = None
+
+
+_PLANNER = _Planner()
 
 
 class RealFFT:
@@ -62,10 +95,19 @@ class RealFFT:
         Give the inverse its own output buffer, so that :attr:`real` keeps its
         content across a round trip (the solver stores the pressure there and
         saves a copy per iteration).
+    flags : tuple of str, optional
+        FFTW planner flags; by default the process's planning mode (module
+        docstring). :attr:`flags` holds the flags the plans were made with.
     """
 
     def __init__(
-        self, shape: tuple[int, int], *, threads: int = 1, single: bool = False, separate_output: bool = False
+        self,
+        shape: tuple[int, int],
+        *,
+        threads: int = 1,
+        single: bool = False,
+        separate_output: bool = False,
+        flags: tuple[str, ...] | None = None,
     ) -> None:
         n0, n1 = (int(s) for s in shape)
         if n0 < 2 or n1 < 2 or n1 % 2:
@@ -79,13 +121,30 @@ class RealFFT:
         self.real = pyfftw.empty_aligned(self.shape, dtype=real_type)
         self.spectral = pyfftw.empty_aligned((n0, n1 // 2 + 1), dtype=complex_type)
         self.output = pyfftw.empty_aligned(self.shape, dtype=real_type) if separate_output else self.real
+        flags = _PLANNER.flags if flags is None else tuple(flags)
+        try:
+            self._plan(flags)
+        except RuntimeError:
+            if "FFTW_WISDOM_ONLY" not in flags:
+                raise
+            # Not in the wisdom: estimate, never measure, so that every process
+            # holding the same wisdom still makes the same plan.
+            flags = ("FFTW_ESTIMATE",)
+            self._plan(flags)
+        self.flags = flags
+        # Planning may scribble on the buffers.
+        self.real[...] = 0.0
+        self.output[...] = 0.0
+        self.spectral[...] = 0.0
+
+    def _plan(self, flags: tuple[str, ...]) -> None:
         self._forward = pyfftw.FFTW(
             self.real,
             self.spectral,
             axes=(0, 1),
             direction="FFTW_FORWARD",
             threads=self.threads,
-            flags=_PLANNER_FLAGS,
+            flags=flags,
             planning_timelimit=_PLANNING_TIMELIMIT,
         )
         self._inverse = pyfftw.FFTW(
@@ -94,13 +153,9 @@ class RealFFT:
             axes=(0, 1),
             direction="FFTW_BACKWARD",
             threads=self.threads,
-            flags=_PLANNER_FLAGS + ("FFTW_DESTROY_INPUT",),
+            flags=flags + ("FFTW_DESTROY_INPUT",),
             planning_timelimit=_PLANNING_TIMELIMIT,
         )
-        # Planning may scribble on the buffers.
-        self.real[...] = 0.0
-        self.output[...] = 0.0
-        self.spectral[...] = 0.0
 
     def forward(self, x: np.ndarray | None = None) -> np.ndarray:
         """Transform :attr:`real` (after copying ``x`` into it, if given) into :attr:`spectral`."""
@@ -146,6 +201,78 @@ def clear_plan_cache() -> None:
     """Forget all cached plans (frees their buffers)."""
     with _PLANS_LOCK:
         _PLANS.clear()
+
+
+#: The plan variants roughuq uses per grid: the surface synthesis and
+#: projection (double, in place, one thread), the solver's ``K`` (double,
+#: separate output) and its preconditioner (single, in place), both with the
+#: solver's threads. Keys: (threads of the solver or 1, single, separate_output).
+def _variants(threads: int) -> tuple[tuple[int, bool, bool], ...]:
+    return ((1, False, False), (threads, False, True), (threads, True, False))
+
+
+def measure_plans(
+    grids: Iterable[int], *, threads: int = 1, wisdom: tuple[bytes, ...] | None = None, effort: str = "FFTW_MEASURE"
+) -> tuple[bytes, ...]:
+    """Measure the plans roughuq needs on ``grids`` and return the accumulated wisdom.
+
+    Wisdom from an earlier call (e.g. read from disk) is imported first, so
+    plans it already holds are not measured again. Afterwards this process
+    plans from the returned wisdom only (:func:`use_wisdom`).
+
+    Parameters
+    ----------
+    grids : iterable of int
+        Grid sizes ``n`` (plans for ``n x n``).
+    threads : int
+        The solver's FFTW threads.
+    wisdom : tuple of bytes, optional
+        Wisdom to start from (:func:`export_wisdom` of this or another process).
+    effort : {"FFTW_MEASURE", "FFTW_PATIENT"}
+        Planner effort for plans not in the wisdom yet.
+
+    Returns
+    -------
+    tuple of bytes
+        The wisdom after planning (:func:`pyfftw.export_wisdom`).
+    """
+    if effort not in ("FFTW_MEASURE", "FFTW_PATIENT"):
+        raise ValueError(f"effort must be FFTW_MEASURE or FFTW_PATIENT, got {effort!r}")
+    if wisdom is not None:
+        pyfftw.import_wisdom(wisdom)
+    for n in sorted({int(n) for n in grids}):
+        for plan_threads, single, separate_output in _variants(int(threads)):
+            RealFFT((n, n), threads=plan_threads, single=single, separate_output=separate_output, flags=(effort,))
+    measured = tuple(pyfftw.export_wisdom())
+    use_wisdom(measured)
+    return measured
+
+
+def use_wisdom(wisdom: tuple[bytes, ...] | None) -> None:
+    """Plan from ``wisdom`` only from now on in this process (``None``: back to ``FFTW_ESTIMATE``).
+
+    Calling it again with the same wisdom does nothing; a change forgets the
+    cached plans, so that no plan of the old mode is reused.
+    """
+    wisdom = None if wisdom is None else tuple(bytes(part) for part in wisdom)
+    if wisdom == _PLANNER.wisdom:
+        return
+    if wisdom is not None:
+        pyfftw.forget_wisdom()
+        pyfftw.import_wisdom(wisdom)
+    _PLANNER.wisdom = wisdom
+    _PLANNER.flags = ("FFTW_ESTIMATE",) if wisdom is None else ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
+    clear_plan_cache()
+
+
+def export_wisdom() -> tuple[bytes, ...]:
+    """FFTW's accumulated wisdom in this process (:func:`pyfftw.export_wisdom`)."""
+    return tuple(pyfftw.export_wisdom())
+
+
+def planner_flags() -> tuple[str, ...]:
+    """The planner flags of this process's planning mode."""
+    return _PLANNER.flags
 
 
 def rfft_wavenumbers(n: int) -> tuple[np.ndarray, np.ndarray]:

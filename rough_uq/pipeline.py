@@ -28,7 +28,7 @@ import os
 import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -40,6 +40,7 @@ from rough_uq.config import StudyConfig, config_from_yaml_text, config_hash, res
 from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
 from rough_uq.estimator import BatchDone, Finished, PlanUpdated, iter_mc, iter_mlmc
 from rough_uq.executor import Executor, SerialExecutor
+from rough_uq.fft_wisdom import prepare_wisdom
 from rough_uq.progress import Progress
 from rough_uq.sampler import (
     STAGE_SCREENING,
@@ -150,6 +151,20 @@ class Study:
 
     def __post_init__(self) -> None:
         self.model = build_model(self.config)
+        self._planned: set[int] = set()
+
+    def model_for(self, level: int) -> ContactModel:
+        """The model, with FFTW wisdom that covers the grids of ``level`` (and its coarse grid).
+
+        Plans are measured once per machine and grid (:mod:`rough_uq.fft_wisdom`)
+        and travel with the model to every worker, so all use the same plans.
+        """
+        grids = {self.model.grid(level)} | ({self.model.grid(level - 1)} if level > 0 else set())
+        if not grids <= self._planned:
+            self._planned |= grids
+            wisdom = prepare_wisdom(sorted(self._planned), threads=self.model.threads)
+            self.model = replace(self.model, fft_wisdom=wisdom)
+        return self.model
 
     def close(self) -> None:
         self.store.close()
@@ -276,7 +291,7 @@ class StudySampler:
         pending: list[LevelBatch] = []
         last_flush = time.monotonic()
         try:
-            for batch in self.executor.run(self.study.model, items):
+            for batch in self.executor.run(self.study.model_for(level), items):
                 pending.append(batch)
                 self.progress.advance(level, batch.n_samples)
                 if time.monotonic() - last_flush >= FLUSH_SECONDS:

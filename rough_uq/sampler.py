@@ -44,10 +44,11 @@ from __future__ import annotations
 import hashlib
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from rough_uq.fft import use_wisdom
 from rough_uq.qoi import evaluate_qoi
 from rough_uq.solver import ContactSolution, solve_contact
 from rough_uq.surface import SurfaceSpectrum, sample_coupled, sample_surface
@@ -181,6 +182,10 @@ class ContactModel:
         Cluster connectivity.
     critical_pressure : float or None
         Threshold of ``area_above``.
+    fft_wisdom : tuple of bytes or None
+        FFTW wisdom that every process computing samples plans from
+        (:func:`rough_uq.fft.use_wisdom`), so that all use the same plans;
+        ``None``: ``FFTW_ESTIMATE`` plans. Not part of the model's identity.
     """
 
     spectrum: SurfaceSpectrum
@@ -197,6 +202,7 @@ class ContactModel:
     threads: int = 1
     connectivity: int = 4
     critical_pressure: float | None = None
+    fft_wisdom: tuple[bytes, ...] | None = field(default=None, repr=False, compare=False)
 
     def grid(self, level: int) -> int:
         """Nodes per side of ``level``."""
@@ -325,8 +331,10 @@ def solve_sample(model: ContactModel, *, stage: int, level: int, index: int) -> 
     (:func:`~rough_uq.surface.sample_coupled`), and with ``warm_start`` the
     fine solve starts from the coarse pressure; samples of MC stages and of
     level 0 solve the fine grid only. The result depends only on ``model``
-    and ``(stage, level, index)``.
+    and ``(stage, level, index)`` (and, at the level of rounding, on the FFT
+    plans: every process plans from ``model.fft_wisdom``).
     """
+    use_wisdom(model.fft_wisdom)
     rng = sample_rng(model.seed, stage, level, index)
     n_fine = model.grid(level)
     if not (is_coupled_stage(stage) and level > 0):

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 
+from rough_uq import fft as fft_module
 from rough_uq.fft import get_fft
 
 
@@ -41,3 +44,34 @@ def test_separate_output_keeps_the_input_across_a_round_trip():
     assert back is plan.output
     np.testing.assert_array_equal(plan.real, x)
     np.testing.assert_allclose(back, x, rtol=0, atol=1e-12 * np.abs(x).max())
+
+
+def test_plans_from_shared_wisdom_are_the_measured_ones_and_round_alike(tmp_path):
+    # Measured plans travel as wisdom: a fresh process planning from it only
+    # (use_wisdom) transforms to the same bits as the measuring process.
+    import subprocess
+    import sys
+
+    x = np.random.default_rng(3).standard_normal((48, 48))
+    try:
+        wisdom = fft_module.measure_plans([48], threads=1)
+        plan = get_fft(48, separate_output=True)
+        assert plan.flags == ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
+        here = plan.forward(x).copy()
+        # A grid the wisdom does not hold is estimated, never measured.
+        assert get_fft(24).flags == ("FFTW_ESTIMATE",)
+        np.save(tmp_path / "x.npy", x)
+        (tmp_path / "wisdom.bin").write_bytes(pickle.dumps(wisdom))
+        script = (
+            "import pickle, sys, numpy as np\n"
+            "from rough_uq import fft\n"
+            f"fft.use_wisdom(pickle.loads(open({str(tmp_path / 'wisdom.bin')!r}, 'rb').read()))\n"
+            "plan = fft.get_fft(48, separate_output=True)\n"
+            "assert plan.flags == ('FFTW_MEASURE', 'FFTW_WISDOM_ONLY'), plan.flags\n"
+            f"np.save({str(tmp_path / 'y.npy')!r}, plan.forward(np.load({str(tmp_path / 'x.npy')!r})))\n"
+        )
+        subprocess.run([sys.executable, "-c", script], check=True)
+        assert np.array_equal(np.load(tmp_path / "y.npy"), here)
+    finally:
+        fft_module.use_wisdom(None)
+    assert get_fft(48).flags == ("FFTW_ESTIMATE",)

@@ -1,0 +1,83 @@
+"""FFTW wisdom kept on disk, so that measured plans are measured once per machine.
+
+The core (:mod:`rough_uq.fft`) measures plans and plans from wisdom; this edge
+module reads and writes the wisdom file. The pipeline calls
+:func:`prepare_wisdom` with the grids of a level before it computes samples
+there and hands the returned bytes to every worker with the contact model, so
+that all processes of a study use the same plans (bit-identical samples).
+
+Where the file lives: ``$ROUGHUQ_FFTW_WISDOM`` if set, else
+``$XDG_CACHE_HOME/roughuq/fftw-wisdom-<host>.pickle`` (``~/.cache`` when
+``XDG_CACHE_HOME`` is unset); one file per host name, since wisdom describes one
+machine. ``ROUGHUQ_FFTW_WISDOM=estimate`` turns measured planning off
+(``FFTW_ESTIMATE`` plans, nothing measured or written). An unreadable or
+corrupt file is ignored and replaced.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import platform
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+from rough_uq.fft import measure_plans
+
+__all__ = ["wisdom_path", "load_wisdom", "prepare_wisdom", "ESTIMATE"]
+
+#: Value of ``ROUGHUQ_FFTW_WISDOM`` that turns measured planning off.
+ESTIMATE = "estimate"
+
+
+def wisdom_path() -> Path | None:
+    """The wisdom file of this machine, or ``None`` when measured planning is off."""
+    setting = os.environ.get("ROUGHUQ_FFTW_WISDOM", "")
+    if setting == ESTIMATE:
+        return None
+    if setting:
+        return Path(setting)
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    host = "".join(c if c.isalnum() or c in "-_." else "_" for c in platform.node()) or "host"
+    return cache / "roughuq" / f"fftw-wisdom-{host}.pickle"
+
+
+def load_wisdom(path: Path) -> tuple[bytes, ...] | None:
+    """The wisdom stored at ``path``; ``None`` if missing or unreadable."""
+    try:
+        with open(path, "rb") as handle:
+            wisdom = pickle.load(handle)
+    except (OSError, pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError):
+        return None
+    if not (isinstance(wisdom, tuple) and all(isinstance(part, bytes) for part in wisdom)):
+        return None
+    return wisdom
+
+
+def _save(path: Path, wisdom: tuple[bytes, ...]) -> None:
+    # Atomic replacement: concurrent studies on one machine never read half a file.
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+        with os.fdopen(handle, "wb") as out:
+            pickle.dump(wisdom, out)
+        os.replace(temporary, path)
+    except OSError:
+        # A read-only cache costs only the measuring time of the next run.
+        return
+
+
+def prepare_wisdom(grids: Iterable[int], *, threads: int) -> tuple[bytes, ...] | None:
+    """Measured plans for ``grids`` (from the disk cache where it has them); the wisdom to ship to workers.
+
+    Returns ``None`` when measured planning is off (``ROUGHUQ_FFTW_WISDOM=estimate``).
+    """
+    path = wisdom_path()
+    if path is None:
+        return None
+    stored = load_wisdom(path)
+    wisdom = measure_plans(grids, threads=threads, wisdom=stored)
+    if wisdom != stored:
+        _save(path, wisdom)
+    return wisdom
