@@ -54,6 +54,7 @@ import datetime  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import re  # noqa: E402
+import resource  # noqa: E402
 import shlex  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
@@ -64,8 +65,9 @@ from dataclasses import asdict, dataclass  # noqa: E402
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import pyfftw  # noqa: E402
+import scipy.fft  # noqa: E402
 
-from rough_uq.fft import get_fft  # noqa: E402
+from rough_uq.fft import RealFFT, get_fft, measure_plans, use_wisdom  # noqa: E402
 from rough_uq.solver import ContactSolution, solve_contact  # noqa: E402
 from rough_uq.surface import SurfaceSpectrum, sample_coupled, sample_surface  # noqa: E402
 
@@ -128,6 +130,13 @@ class GridRow:
     plain_iteration_over_transforms: float
     plain_solve_over_fft: float
     plain_converged: bool
+    floor: dict[str, float]
+    floor_name: str
+    floor_seconds: float
+    iteration_over_floor: float
+    estimate_iter: int
+    estimate_seconds_per_solve: float
+    peak_rss_mib: float
 
 
 @dataclass
@@ -232,6 +241,45 @@ def warm_up(threads: int) -> None:
         )
 
 
+def time_pair(pair) -> float:
+    """Median seconds of one call of ``pair`` (a forward + inverse transform), over batches."""
+    pair()
+    start = time.perf_counter()
+    n_pairs = 0
+    while time.perf_counter() - start < FFT_BATCH_SECONDS:
+        pair()
+        n_pairs += 1
+    batch = max(n_pairs, 1)
+    samples = []
+    for _ in range(FFT_BATCHES):
+        start = time.perf_counter()
+        for _ in range(batch):
+            pair()
+        samples.append((time.perf_counter() - start) / batch)
+    return statistics.median(samples)
+
+
+def fft_floor(n: int, threads: int) -> dict[str, float]:
+    """Seconds of one double-precision real FFT pair (rfft2 + irfft2) of every implementation at hand.
+
+    pyFFTW with a freshly measured plan (FFTW_MEASURE, then FFTW_PATIENT) and an
+    estimated one, ``scipy.fft`` (pocketfft, ``workers=threads``) and
+    ``numpy.fft`` (one thread); the floor of the per-iteration target is the
+    fastest of them.
+    """
+    x = np.random.default_rng(0).standard_normal((n, n))
+    times = {}
+    for effort in ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"):
+        if effort == "FFTW_PATIENT" and n > 2048:
+            continue  # planning alone would take many minutes
+        plan = RealFFT((n, n), threads=threads, flags=(effort,))
+        plan.real[...] = x
+        times[f"pyfftw {effort[5:].lower()}"] = time_pair(lambda plan=plan: (plan.forward(), plan.inverse()))
+    times["scipy.fft"] = time_pair(lambda: scipy.fft.irfft2(scipy.fft.rfft2(x, workers=threads), s=(n, n), workers=threads))
+    times["numpy.fft"] = time_pair(lambda: np.fft.irfft2(np.fft.rfft2(x), s=(n, n)))
+    return times
+
+
 def time_fft_pair(n: int, threads: int, *, single: bool = False) -> float:
     """Median seconds of one forward + inverse real FFT with the solver's cached plan of that precision.
 
@@ -241,23 +289,7 @@ def time_fft_pair(n: int, threads: int, *, single: bool = False) -> float:
     """
     plan = get_fft(n, threads=threads, single=single, separate_output=not single)
     plan.real[...] = np.random.default_rng(0).standard_normal((n, n))
-    plan.forward()
-    plan.inverse()
-    start = time.perf_counter()
-    n_pairs = 0
-    while time.perf_counter() - start < FFT_BATCH_SECONDS:
-        plan.forward()
-        plan.inverse()
-        n_pairs += 1
-    batch = max(n_pairs, 1)
-    samples = []
-    for _ in range(FFT_BATCHES):
-        start = time.perf_counter()
-        for _ in range(batch):
-            plan.forward()
-            plan.inverse()
-        samples.append((time.perf_counter() - start) / batch)
-    return statistics.median(samples)
+    return time_pair(lambda: (plan.forward(), plan.inverse()))
 
 
 def timed_solve(
@@ -387,10 +419,20 @@ def run_grid(
 ) -> tuple[GridRow, WarmRow, PeerRow | None]:
     """All measurements of one grid."""
     spectrum = reference_spectrum()
-    fft_pair = time_fft_pair(n, args.threads)  # also builds the solver's plan outside the timings
-    single_pair = time_fft_pair(n, args.threads, single=True)  # the preconditioner's plan, outside the timings
+    floor = fft_floor(n, args.threads)
+    floor_name = min(floor, key=floor.get)
     heights = sample_surface(spectrum, n, np.random.default_rng(args.seed))
+    # FFTW_ESTIMATE plans first (what a process without wisdom uses) ...
+    use_wisdom(None)
+    time_fft_pair(n, args.threads)
+    time_fft_pair(n, args.threads, single=True)
+    _, estimate_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=1)
+    # ... then measured plans, as a study uses them (rough_uq.fft_wisdom); planning outside the timings.
+    measure_plans([n, n // 2], threads=args.threads)
+    fft_pair = time_fft_pair(n, args.threads)
+    single_pair = time_fft_pair(n, args.threads, single=True)
     cold, cold_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats)
+    peak_rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     per_iteration = cold_timing.seconds / max(cold_timing.n_iter, 1)
     _, plain_timing = timed_solve(
         heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats, precondition=False
@@ -416,6 +458,13 @@ def run_grid(
         / (0.5 * single_pair + fft_pair),
         plain_solve_over_fft=plain_timing.seconds / fft_pair,
         plain_converged=plain_timing.converged,
+        floor=floor,
+        floor_name=floor_name,
+        floor_seconds=floor[floor_name],
+        iteration_over_floor=per_iteration / floor[floor_name],
+        estimate_iter=estimate_timing.n_iter,
+        estimate_seconds_per_solve=estimate_timing.seconds,
+        peak_rss_mib=peak_rss_mib,
     )
 
     fine, coarse = sample_coupled(spectrum, n, np.random.default_rng(args.seed))
@@ -449,7 +498,7 @@ def run_grid(
         ),
     )
 
-    if tamaas is None:
+    if tamaas is None or n > args.tamaas_max:
         return grid_row, warm_row, None
     tight, tight_timing = timed_solve(
         heights, pressure=pressure, tol=args.tight_tol, threads=args.threads, repeats=args.repeats
@@ -541,6 +590,24 @@ def render(grid_rows: list[GridRow], warm_rows: list[WarmRow], peer_rows: list[P
             ],
         ),
     ]
+    floor_names = list(grid_rows[0].floor) if grid_rows else []
+    parts += [
+        "",
+        "FFT floor: one double-precision real FFT pair (rfft2 + irfft2), seconds, same grid and threads",
+        format_table(
+            ["n", *floor_names, "fastest", "solver s/iter", "iter/fastest", "solve est. s", "solve meas. s",
+             "peak RSS MiB"],
+            [
+                [str(r.n), *(f"{r.floor[k]:.3e}" for k in floor_names), r.floor_name,
+                 f"{r.seconds_per_iteration:.3e}", f"{r.iteration_over_floor:.2f}",
+                 f"{r.estimate_seconds_per_solve:.3f} ({r.estimate_iter} it)",
+                 f"{r.seconds_per_solve:.3f} ({r.n_iter} it)", f"{r.peak_rss_mib:.0f}"]
+                for r in grid_rows
+            ],
+        ),
+        "(solve est./meas.: the preconditioned solve with FFTW_ESTIMATE plans and with measured plans, as studies"
+        " use them; peak RSS: the process's peak so far, grids in increasing order)",
+    ]
     if peer_rows:
         rows = []
         for r in peer_rows:
@@ -558,7 +625,22 @@ def render(grid_rows: list[GridRow], warm_rows: list[WarmRow], peer_rows: list[P
             format_table(["n", "solver", "tol", "iters", "seconds", "area %", "rel L2 vs tamaas", "tamaas/this"], rows),
             "(tol is each solver's own error measure; Tamaas runs serially whatever --threads says)",
         ]
+    parts += ["", "Targets (issue 14)", *targets(grid_rows, peer_rows)]
     return "\n".join(parts)
+
+
+def targets(grid_rows: list[GridRow], peer_rows: list[PeerRow]) -> list[str]:
+    """The issue's targets against this run's ratios."""
+    lines = []
+    for r in grid_rows:
+        if r.n in (1024, 2048):
+            verdict = "met" if r.iteration_over_floor <= 2.0 else "NOT met"
+            lines.append(f"  s/iteration <= 2.0 fastest FFT pairs at {r.n}^2: {r.iteration_over_floor:.2f} ({verdict})")
+    for r in peer_rows:
+        if r.n in (1024, 2048):
+            verdict = "met" if r.time_ratio >= 20 else "NOT met"
+            lines.append(f"  whole solve >= 20x faster than Tamaas at {r.n}^2: {r.time_ratio:.1f}x ({verdict})")
+    return lines or ["  (none of the target grids 1024, 2048 in this run)"]
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -571,6 +653,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=1, help="seed of numpy.random.default_rng for the surfaces")
     parser.add_argument("--repeats", type=int, default=1, help="timed roughuq solves per measurement (median)")
     parser.add_argument("--no-tamaas", action="store_true", help="skip the peer comparison")
+    parser.add_argument("--tamaas-max", type=int, default=2048, help="largest grid solved with Tamaas too")
     parser.add_argument("--json", metavar="FILE", help="also write the numbers to FILE")
     args = parser.parse_args(argv)
     try:
