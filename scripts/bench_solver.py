@@ -52,6 +52,7 @@ import argparse  # noqa: E402
 import contextlib  # noqa: E402
 import datetime  # noqa: E402
 import json  # noqa: E402
+import math  # noqa: E402
 import platform  # noqa: E402
 import re  # noqa: E402
 import resource  # noqa: E402
@@ -434,9 +435,13 @@ def run_grid(
     cold, cold_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats)
     peak_rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     per_iteration = cold_timing.seconds / max(cold_timing.n_iter, 1)
-    _, plain_timing = timed_solve(
-        heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats, precondition=False
-    )
+    if n <= args.plain_max:
+        _, plain_timing = timed_solve(
+            heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats, precondition=False
+        )
+    else:  # plain Polonsky-Keer would take some 1000 iterations here
+        plain_timing = SolveTiming(n=n, tol=args.tol, n_iter=0, seconds=math.nan, error=math.nan, converged=False,
+                                   area_fraction=math.nan)
     grid_row = GridRow(
         n=n,
         n_iter=cold_timing.n_iter,
@@ -654,6 +659,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--repeats", type=int, default=1, help="timed roughuq solves per measurement (median)")
     parser.add_argument("--no-tamaas", action="store_true", help="skip the peer comparison")
     parser.add_argument("--tamaas-max", type=int, default=2048, help="largest grid solved with Tamaas too")
+    parser.add_argument("--plain-max", type=int, default=2048, help="largest grid solved with plain PK too")
     parser.add_argument("--json", metavar="FILE", help="also write the numbers to FILE")
     args = parser.parse_args(argv)
     try:
