@@ -400,8 +400,13 @@ class SolverConfig(_Section):
     """The constrained conjugate-gradient contact solver (SPEC section 2)."""
 
     tol: Float = _field(
-        1e-8,
-        description="Relative stopping tolerance of the complementarity/gap error (dimensionless)",
+        1e-6,
+        description=(
+            "Relative stopping tolerance of the complementarity/gap error (dimensionless). The default 1e-6 moves "
+            "the mean contact area by at most 0.0004 percentage points and the mean cluster density by at most "
+            "0.007 per unit area on the classic settings against tol 1e-10, under 1 % of the tightest classic "
+            "tolerances (scripts/tolerance_study.py, README)"
+        ),
         allowed="number in (0, 1)",
         gt=0,
         lt=1,
