@@ -293,6 +293,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
             tolerances = parse_tolerances(tol, study.config)
             cap = study.config.estimation.max_cost if max_cost is None else max_cost
             if show_plan:
+                forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level)
                 work = missing_samples(study, method=method, tol=tolerances, max_cost=cap, level=level)
                 _print_plan(work, as_json, shard_size)
                 return
@@ -302,7 +303,8 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                 if not as_json:
                     _print_forecast(forecast, method)
                 record = run_estimation(study, method=method, tol=tolerances, executor=pool,
-                                        progress=_progress(quiet or as_json), max_cost=cap, level=level)
+                                        progress=_progress(quiet or as_json), max_cost=cap, level=level,
+                                        forecast=forecast)
             key = run_id(method, study.config.qoi_names, tolerances, study.config.estimation.theta, level)
         with open_existing_study(study_path, writable=False) as study:
             report = study_report(study.store, study.config)  # the same numbers `roughuq report` shows
@@ -578,7 +580,7 @@ def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     if plots_dir is not None:
         from rough_uq.plots import write_report_plots
 
-        written = write_report_plots(data, plots_dir)
+        written = _writing(plots_dir, lambda: write_report_plots(data, plots_dir))
     if as_json:
         _dump({**data, "plots": [str(path) for path in written]} if plots_dir is not None else data)
         return
@@ -587,27 +589,88 @@ def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
         click.echo(f"wrote {path}")
 
 
+def _writing(target: str, write: Callable[[], Any]) -> Any:
+    """Run ``write``; an output that cannot be written becomes one ``error:`` line (status 2)."""
+    try:
+        return write()
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        where = exc.filename or target
+        raise RoughUQError(f"cannot write {where}: {reason}; choose another place") from None
+
+
+def _stage_of(study: Any, text: str) -> int:
+    """``--stage``: 'screening', a run id (as `roughuq report` prints it) or a stage number."""
+    if text == "screening":
+        return 0
+    for run in study.store.read_runs():
+        if run["run_id"] == text:
+            return int(run["stage"])
+    try:
+        stage = int(text)
+    except ValueError:
+        runs = ", ".join(run["run_id"] for run in study.store.read_runs()) or "none"
+        raise InvalidParameterError("--stage", text, f"'screening', a run id of this study ({runs}) "
+                                    "or a stage number") from None
+    if stage < 0:
+        raise InvalidParameterError("--stage", text, "'screening', a run id or a non-negative stage number")
+    return stage
+
+
 @main.command()
 @click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
               help="Study file (only read).")
 @click.option("--stage", default="screening", show_default=True,
-              help="'screening' or a run's stage number (see `roughuq report --json`).")
+              help="'screening' or a run id as `roughuq report` prints it (e.g. mlmc_contact_area-0.5_theta-0.5).")
 @click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the sample.")
-@click.option("--index", type=click.IntRange(min=0), required=True, help="Index of the sample.")
+@click.option("--index", type=click.IntRange(min=0), required=True, help="Index of a stored sample.")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="PNG file to write.")
 @_user_errors
 def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
-    """Recompute one sample from its seed and draw heights, pressure and contact clusters."""
+    """Recompute one stored sample from its seed and draw heights, pressure and contact clusters."""
     from rough_uq.pipeline import open_existing_study
     from rough_uq.plots import write_sample_figure
 
-    stage_id = _stage_number(stage)
     with open_existing_study(study_path, writable=False) as study:
         if level > study.config.grid.max_level:
             raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")
+        stage_id = _stage_of(study, stage)
+        stored = study.store.sample_indices(level=level, stage=stage_id)
         model = study.model
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    click.echo(f"wrote {write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out)}")
+    if index not in set(int(i) for i in stored):
+        have = f"stored: {' '.join(_ranges(sorted(int(i) for i in stored)))}" if stored.size else "none stored"
+        raise InvalidParameterError("--index", index, f"a sample of stage {stage} on level {level} ({have})")
+
+    def write() -> Any:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        return write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out)
+
+    click.echo(f"wrote {_writing(out, write)}")
+
+
+@main.command()
+@click.argument("run_ids", metavar="RUN_ID...", nargs=-1, required=True)
+@click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
+              help="Study file.")
+@_user_errors
+def drop(run_ids: Sequence[str], study_path: str) -> None:
+    """Forget run records (e.g. an abandoned run); their samples stay in the file.
+
+    A dropped run no longer appears in reports; running the same command
+    again brings it back and reuses its stored samples.
+    """
+    from rough_uq.pipeline import open_existing_study
+
+    with open_existing_study(study_path) as study:
+        runs = {run["run_id"]: run for run in study.store.read_runs()}
+        for key in run_ids:
+            if key not in runs or runs[key].get("status") == "dropped":
+                known = ", ".join(k for k, run in runs.items() if run.get("status") != "dropped") or "none"
+                raise InvalidParameterError("RUN_ID", key, f"a run of this study ({known})")
+        for key in run_ids:
+            record = {k: v for k, v in runs[key].items() if k != "run_id"}
+            study.store.write_run(key, {**record, "status": "dropped"})
+    click.echo(f"{study_path}: dropped {', '.join(run_ids)} (samples kept)")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -80,6 +80,8 @@ __all__ = [
     "compute_shard",
     "merge_shards",
     "run_sweep",
+    "Forecast",
+    "forecast_run",
 ]
 
 #: Longest time computed samples wait in memory before they are written.
@@ -825,7 +827,6 @@ def missing_samples(
         return stored(level, indices)
 
     max_cost = study.config.estimation.max_cost if max_cost is None else max_cost
-    forecast_run(study, method=method, tol=tol, max_cost=max_cost, level=level)
     events, _ = _events(
         study, method=method, tol=np.asarray(tol, dtype=float), sampler=replay, max_cost=max_cost, level=level
     )
@@ -934,8 +935,12 @@ def run_estimation(
     progress: Progress,
     max_cost: float | None = None,
     level: int | None = None,
+    forecast: Forecast | None = None,
 ) -> dict[str, Any]:
     """Run MLMC (``method="mlmc"``) or plain MC (``"mc"``) to ``tol`` and store its record.
+
+    ``forecast`` (:func:`forecast_run`, which the CLI calls first to refuse
+    hopeless tolerances) is stored in the record as ``forecast``.
 
     MC runs on the finest level the screening's plan needs for ``tol``, or on
     ``level`` if given (no screening needed; its bias is then not estimated).
@@ -960,8 +965,6 @@ def run_estimation(
     tol = np.asarray(tol, dtype=float)
     max_cost = config.estimation.max_cost if max_cost is None else max_cost
     key = run_id(method, names, tol, config.estimation.theta, level)
-    forecast = forecast_run(study, method=method, tol=tol, max_cost=max_cost, level=level,
-                            n_workers=getattr(executor, "n_workers", 1))
     started = time.monotonic()
     stage = run_stage(method, key)
     sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
