@@ -704,7 +704,22 @@ def forecast_run(
     if method == "mc" and level is not None and study.store.read_screening() is None:
         return None
     with np.errstate(all="ignore"):
-        statistics, rates, prediction = _estimation_plan(study, tol)
+        statistics, _ = screening_statistics(study)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", EstimationWarning)
+            rates = fit_rates(statistics)
+        alpha = np.atleast_1d(rates.alpha)
+        stalled = [f"{name} (alpha = {a:.2g})" for name, a in zip(names, alpha) if not a > 0]
+        if stalled and not (method == "mc" and level is not None):
+            raise EstimationError(
+                f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, "
+                "so no finest grid can be chosen for a tolerance: screen finer grids (a new study with a larger "
+                "grid.coarsest or more screening.levels), or use `roughuq mc --level L` (bias not estimated)"
+            )
+        prediction = plan(
+            tol=tol, rates=rates, statistics=statistics, theta=config.estimation.theta,
+            max_level=config.grid.max_level,
+        )
         if not prediction.is_bias_met and not (method == "mc" and level is not None):
             bias = np.asarray(prediction.bias, dtype=float)
             reachable = bias / math.sqrt(config.estimation.theta)

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.markup import escape
 
 from rough_uq.sampler import STAGE_SCREENING
 from rough_uq.store import FORMAT_VERSION, StudyStore
@@ -293,7 +294,7 @@ def format_run(run: dict[str, Any], qoi_names: Sequence[str], units: dict[str, s
         f"modelled cost {_g(run['cost'])} ref-s"
     )
     if run["method"] == "mlmc":
-        text = (f"  plain MC to this tol: predicted {_seconds(run['mc_seconds_predicted'], 'CPU')}, "
+        text = (f"  plain MC: {_seconds(run['mc_seconds_predicted'], 'CPU')} predicted; "
                 f"MC/MLMC {_g(run.get('work_ratio'), 2)} predicted")
         if "measured_ratio" in run:
             text += f", {_g(run['measured_ratio'], 2)} measured"
@@ -314,9 +315,12 @@ def render_screening(console: Any, screening: dict[str, Any], qoi_names: Sequenc
     units = units or {}
     stats = screening["statistics"]
     grids = screening.get("grids")
+    levels = stats["levels"]
+    console.print(f"screened levels {levels[0]}..{levels[-1]}, {min(stats['n_samples'])} samples each",
+                  highlight=False)
     for q, name in enumerate(qoi_names):
         unit = units.get(name)
-        table = _table(f"Screening of {name}" + (f" [{unit}]" if unit else "") + " per level")
+        table = _table(escape(f"Screening of {name}" + (f" [{unit}]" if unit else "") + " per level"))
         for column in ("level", "N", "mean Q", "var Q", "mean Y", "var Y", "kurt", "check"):
             table.add_column(column, justify="right")
         for i, level in enumerate(stats["levels"]):
@@ -344,7 +348,7 @@ def render_screening(console: Any, screening: dict[str, Any], qoi_names: Sequenc
         alpha_text = _pm(alpha, rates["alpha_se"][q]) if c["mc_exponent"] is not None else f"{_g(alpha, 2)} (no decay)"
         console.print(f"  {name}: alpha = {alpha_text}, beta = {_pm(beta, rates['beta_se'][q])}")
         if c["mc_exponent"] is None:
-            console.print(f"    cost to RMSE eps: {c['mlmc_regime']}")
+            console.print(f"    {c['mlmc_regime']}")
         else:
             console.print(f"    cost to RMSE eps: MC eps^-{c['mc_exponent']:.2f}, MLMC {c['mlmc_regime']}")
 
@@ -371,7 +375,7 @@ def render_runs(console: Any, runs: Sequence[dict[str, Any]], qoi_names: Sequenc
     console.print("[bold]Estimation runs[/bold]")
     for run in runs:
         for line in format_run(run, qoi_names, units or {}):
-            console.print(line, highlight=False, soft_wrap=False)
+            console.print(escape(line), highlight=False, soft_wrap=False)
 
 
 def render_report(report: dict[str, Any], console: Any) -> None:
@@ -386,7 +390,7 @@ def render_report(report: dict[str, Any], console: Any) -> None:
         f"load {load_text(config['load'])}; grids {', '.join(str(n) for n in grids)}; seed {config['seed']}",
         highlight=False,
     )
-    console.print("QoIs: " + ", ".join(f"{name} [{unit}]" for name, unit in units.items()), highlight=False)
+    console.print(escape("QoIs: " + ", ".join(f"{name} [{unit}]" for name, unit in units.items())), highlight=False)
     counts = "; ".join(
         f"{stage}: " + ", ".join(f"L{level} {n}" for level, n in levels.items())
         for stage, levels in report["samples"].items()
@@ -401,4 +405,4 @@ def render_report(report: dict[str, Any], console: Any) -> None:
     if report.get("dropped_runs"):
         console.print(f"dropped runs (their samples stay): {', '.join(report['dropped_runs'])}", highlight=False)
     for text in report["warnings"]:
-        console.print(f"[yellow]warning:[/yellow] {text}", highlight=False)
+        console.print(f"[yellow]warning:[/yellow] {escape(text)}", highlight=False)
