@@ -34,7 +34,7 @@ DEFAULT_STUDY = "results.h5"
 #: Exit status of a run that ended without meeting its tolerance (its result is stored).
 EXIT_TOL_NOT_MET = 3
 #: A kernel warm-up slower than this (seconds) is announced as compilation.
-COMPILE_NOTICE_SECONDS = 1.0
+COMPILE_NOTICE_SECONDS = 2.0
 
 _EXIT_CODES = """\b
 Exit status: 0 done (mlmc/mc: tolerance met); 2 nothing computed: an error
