@@ -28,6 +28,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
+import sys
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -48,6 +49,9 @@ __all__ = [
     "make_executor",
     "thread_environment",
 ]
+
+#: -W option given to multiprocessing's helper processes (see PoolExecutor._start).
+_QUIET_TRACKER = "ignore:resource_tracker:UserWarning"
 
 WorkItem = tuple[int, int, np.ndarray]
 """``(stage, level, indices)``."""
@@ -152,6 +156,12 @@ class PoolExecutor(Executor):
 
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:
+            # multiprocessing's resource tracker (a helper process started with
+            # our -W options) frees the pool's semaphores when this process is
+            # killed (kill -9) and then warns about each one on the user's
+            # terminal, after the fact and with nothing left to do: silence it.
+            if _QUIET_TRACKER not in sys.warnoptions:
+                sys.warnoptions.append(_QUIET_TRACKER)
             # Spawned children copy os.environ when they start; set it for them
             # and restore ours right after.
             saved = dict(os.environ)

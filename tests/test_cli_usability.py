@@ -363,3 +363,33 @@ def test_first_run_announces_compiling_and_keeps_it_out_of_the_solve_time(tmp_pa
     assert solve < compiled
     second = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, check=True)
     assert "compiling" not in second.stderr
+
+
+@pytest.mark.slow
+def test_kill_9_leaves_no_semaphore_warnings(tmp_path):
+    """kill -9 of a pooled run: its resource tracker cleans up silently; the resumed run then finishes."""
+    import signal
+    import time
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_NUM_THREADS": "1"}
+    config = write_config(tmp_path / "s.yaml", tiny_config(
+        surface={"system_size": 1.0, "wavenumbers": {"k_l": 1, "k_r": 2, "k_s": 16}, "hurst": 0.8,
+                 "rms_height": 1.0},
+        grid={"coarsest": 16, "max_level": 2}, qoi={"mean_gap": {}}))
+    command = [sys.executable, "-m", "rough_uq.cli"]
+    subprocess.run(command + ["screen", str(config), "-q", "--workers", "1"], cwd=tmp_path, env=env, check=True)
+    log = tmp_path / "killed.log"
+    with log.open("w") as stream:
+        process = subprocess.Popen(command + ["mlmc", "--tol", "0.003", "--workers", "2"], cwd=tmp_path, env=env,
+                                   stdout=stream, stderr=stream)
+        deadline = time.monotonic() + 120
+        while not re.search(r"level [0-9]+: [0-9]+/", log.read_text()) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+    time.sleep(3)  # the orphaned resource tracker notices and cleans up
+    assert "leaked semaphore" not in log.read_text()
+    resumed = subprocess.run(command + ["mlmc", "--tol", "0.003", "--workers", "2"], cwd=tmp_path, env=env,
+                             capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "leaked" not in resumed.stderr and "tolerance met" in resumed.stdout
