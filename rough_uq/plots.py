@@ -196,7 +196,8 @@ def _cost_vs_tol_figure(report: dict[str, Any], path: Path) -> Path | None:
     series = [  # (points, style, colour, label)
         (
             [(p["tol"][0], p["mlmc_seconds"]) for p in predictions if _positive(p.get("mlmc_seconds"))],
-            "-", "C0", "MLMC predicted CPU-s" + (f" ({complexity['mlmc_regime']})" if "mlmc_regime" in complexity else ""),
+            "-", "C0",
+            "MLMC predicted CPU-s" + (f" ({complexity['mlmc_regime']})" if "mlmc_regime" in complexity else ""),
         ),
         (
             [(p["tol"][0], p["mc_seconds"]) for p in predictions if _positive(p.get("mc_seconds"))],

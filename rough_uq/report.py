@@ -383,7 +383,8 @@ def render_report(report: dict[str, Any], console: Any) -> None:
     config = report["config"]
     grids = config["grids"]
     units = config["qoi"]
-    console.print(f"[bold]Study[/bold] {report['path']} (created {report['created']}, roughuq {report['code_version']})")
+    console.print(f"[bold]Study[/bold] {escape(report['path'])} (created {report['created']}, "
+                  f"roughuq {report['code_version']})")
     console.print(
         f"surface L={config['system_size']:g}, k = {config['k_l']:g}/{config['k_r']:g}/{config['k_s']:g}, "
         f"H={config['hurst']:g}, rms height {config['rms_height']:g}; E*={config['e_star']:g}; "

@@ -68,3 +68,27 @@ def test_interrupted_task_does_not_say_done():
     progress.start("mlmc")
     progress.stop(is_complete=False)
     assert "done" not in stream.getvalue() and "stopped after" in stream.getvalue().splitlines()[-1]
+
+
+def test_rich_eta_column_waits_for_a_steady_rate(monkeypatch):
+    from rich.progress import Progress as Bars
+
+    clock = [0.0]
+    monkeypatch.setattr(progress_module.time, "monotonic", lambda: clock[0])
+    column = progress_module._EtaColumn()
+    bars = Bars(column, auto_refresh=False, disable=True)
+    task_id = bars.add_task("level 0", total=100, completed=0, done_at_start=0)
+    task = bars.tasks[0]
+    assert str(column.render(task)) == ""
+    clock[0] = 30.0  # the first sample carries 30 s of start-up
+    bars.update(task_id, completed=1)
+    assert str(column.render(task)) == ""
+    for n in range(2, 2 + ETA_MIN_SAMPLES):
+        clock[0] += 0.1
+        bars.update(task_id, completed=n)
+        assert str(column.render(task)) == ""  # too few samples / seconds yet
+    while clock[0] < 30.0 + ETA_MIN_SECONDS + 0.5:
+        clock[0] += 0.1
+        bars.update(task_id, completed=task.completed + 1)
+    text = str(column.render(task))
+    assert text == "eta " + progress_module._duration((100 - task.completed) * 0.1)
