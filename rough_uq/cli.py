@@ -553,13 +553,13 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
     from rich.table import Table
 
     table = Table(title=f"Sweep of {key} (plain MC on level {level})")
-    for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "wall"):
+    for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "CPU"):
         table.add_column(column, justify="right")
     for row in rows:
         for q, name in enumerate(row["qoi_names"]):
             table.add_row(row["value"], str(row["grid"]), name,
                           f"{row['estimate'][q]:.5g} ± {row['stat_error'][q]:.2g}", str(row["n_samples"][0]),
-                          f"{row['seconds']:.3g} s")
+                          f"{row['seconds']:.3g} s CPU")
     _console().print(table)
 
 

@@ -913,10 +913,11 @@ def _elapsed(study: Study, key: str, sampler: StudySampler, seconds: float) -> f
 def _pooled_mc_cost(study: Study, sampler: StudySampler, result: Any) -> float:
     """Modelled cost of plain MC to the run's tolerance, from the best ``Var(Q_L)`` available.
 
-    ``Var(Q_L)`` of the finest level pools the run's fine values with the
-    screening's on that level (or, beyond the screening, on its finest level:
-    ``Var(Q_l)`` converges with the level); the run alone often has two
-    samples there. The cost of one fine solve is the run's.
+    ``Var(Q_L)`` of the finest level pools (weights ``n - 1``) the sample
+    variance of the run's fine values with the screening's on that level (or,
+    beyond the screening, on its finest level: ``Var(Q_l)`` converges with the
+    level); the run alone often has two samples there. The cost of one fine
+    solve is the run's.
     """
     finest = int(result.levels[-1])
     n_run = int(result.n_samples[-1])
@@ -928,16 +929,18 @@ def _pooled_mc_cost(study: Study, sampler: StudySampler, result: Any) -> float:
         if below:
             n = int(min(record["statistics"]["n_samples"]))
             values.append(study.store.read_samples(level=below[-1], stage=STAGE_SCREENING).fine[:n])
-    pooled = np.concatenate(values)
-    if pooled.shape[0] < 2:
+    groups = [v for v in values if v.shape[0] >= 2]
+    if not groups:
         return float(result.mc_cost)
+    # Each group about its own mean: the screened level's mean differs from the run's finest level's.
+    pooled = sum((v.shape[0] - 1) * np.var(v, axis=0, ddof=1) for v in groups) / sum(v.shape[0] - 1 for v in groups)
     budget = (1.0 - result.theta) * np.asarray(result.tol, dtype=float) ** 2
     run_var = np.asarray(result.statistics.var_fine[-1], dtype=float)
     n_mc_run = float(np.max(np.ceil(run_var / budget)))
     per_sample = result.mc_cost / n_mc_run if n_mc_run > 0 else 0.0
     if per_sample <= 0:
         return float(result.mc_cost)
-    n_mc = float(np.max(np.ceil(np.var(pooled, axis=0, ddof=1) / budget)))
+    n_mc = float(np.max(np.ceil(pooled / budget)))
     return max(n_mc, 1.0) * per_sample
 
 
