@@ -654,7 +654,7 @@ def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
               help="Study file.")
 @_user_errors
 def drop(run_ids: Sequence[str], study_path: str) -> None:
-    """Forget run records (e.g. an abandoned run); their samples stay in the file.
+    """Forget abandoned run records; their samples stay in the file.
 
     A dropped run no longer appears in reports; running the same command
     again brings it back and reuses its stored samples.
