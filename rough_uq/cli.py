@@ -366,7 +366,7 @@ def _what_to_change(record: dict[str, Any], method: str) -> str:
 def _print_forecast(forecast: Any, method: str) -> None:
     """The prediction of a run, before its first sample (stderr: it is not the result)."""
     if forecast is None:
-        click.echo("forecast: none (no screening to predict from)", err=True)
+        click.echo("forecast: none (no usable screening to predict from)", err=True)
         return
     if method == "mc":
         samples = f"level {forecast.finest_level} ({forecast.grid}^2), N {forecast.n_samples[0]}"

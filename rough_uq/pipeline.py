@@ -694,7 +694,7 @@ def forecast_run(
     above ``max_cost``, without ``max_cost`` a plan beyond
     :data:`DEFAULT_COST_CEILING` CPU-seconds, and any plan of more than
     :data:`MAX_PLANNED_SAMPLES` samples. ``mc --level`` without a screening
-    predicts nothing (None).
+    (or with one whose bias does not decay) predicts nothing (None).
     """
     from rough_uq.config import solver_memory_bytes
 
@@ -710,7 +710,9 @@ def forecast_run(
             rates = fit_rates(statistics)
         alpha = np.atleast_1d(rates.alpha)
         stalled = [f"{name} (alpha = {a:.2g})" for name, a in zip(names, alpha) if not a > 0]
-        if stalled and not (method == "mc" and level is not None):
+        if stalled and method == "mc" and level is not None:
+            return None  # MC on a given level needs no bias model, and there is none to predict from
+        if stalled:
             raise EstimationError(
                 f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, "
                 "so no finest grid can be chosen for a tolerance: screen finer grids (a new study with a larger "
