@@ -376,7 +376,12 @@ def _print_forecast(forecast: Any, method: str) -> None:
     click.echo(f"forecast: {samples}", err=True)
     click.echo(f"forecast: about {_duration(forecast.wall_seconds)} elapsed "
                f"({_duration(forecast.cpu_seconds)} CPU, modelled cost {forecast.modelled_cost:.3g} ref-s), "
-               f"memory about {forecast.memory_bytes / 2**20:.0f} MiB", err=True)
+               f"memory about {_mib(forecast.memory_bytes)} MiB", err=True)
+
+
+def _mib(n_bytes: float) -> str:
+    mib = n_bytes / 2**20
+    return f"{mib:.2g}" if mib < 10 else f"{mib:.0f}"
 
 
 def _duration(seconds: float) -> str:

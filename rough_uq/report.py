@@ -60,10 +60,9 @@ RATE_TIE = 0.1
 MIN_ALPHA = 0.05
 
 _STOP_REASONS = {
-    "tol_met": "tolerance met",
-    "max_level": "NOT MET: the bias needs a grid finer than grid.max_level",
-    "max_cost": "NOT MET: stopped at --max-cost",
-    "bias": "NOT MET: the bias of this level is larger than the tolerance allows",
+    "max_level": "the bias needs a grid finer than grid.max_level",
+    "max_cost": "stopped at --max-cost",
+    "bias": "the bias of this level is larger than the tolerance allows",
 }
 
 
@@ -276,7 +275,11 @@ def format_run(run: dict[str, Any], qoi_names: Sequence[str], units: dict[str, s
         where = f"level {levels[-1]}, N {run['n_samples'][-1]}"
     else:
         where = f"levels {levels[0]}..{levels[-1]}, N_l {' '.join(str(n) for n in run['n_samples'])}"
-    lines = [f"{head}: {_STOP_REASONS.get(run['stop_reason'], run['stop_reason'])}; {where}"]
+    reason = run["stop_reason"]
+    if run.get("tol_met", reason == "tol_met"):
+        lines = [f"{head}: tolerance met", f"  {where}"]
+    else:
+        lines = [f"{head}: NOT MET ({reason})", f"  {_STOP_REASONS.get(reason, reason)}; {where}"]
     rmse = run.get("rmse") or [
         math.hypot(s, b) for s, b in zip(run["stat_error"], run["bias_estimate"])
     ]

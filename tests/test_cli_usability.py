@@ -71,7 +71,8 @@ def test_run_that_misses_its_tolerance_exits_3_and_says_what_to_change(screened)
     """tol 3 passes the screening's forecast, but the run's own bias estimate on level 2 is too large."""
     result = CliRunner().invoke(main, ["mlmc", "--tol", "3", "--workers", "1"])
     assert result.exit_code == EXIT_TOL_NOT_MET != 2, result.output
-    assert "NOT MET" in result.stdout
+    assert "NOT MET (max_level)" in result.stdout and "RMSE" in result.stdout
+    _assert_fits(result.stdout)
     last = result.stderr.strip().splitlines()[-1]
     assert last.startswith("tolerance not met (max_level)") and "grid.max_level" in last and "--tol" in last
     record = json.loads(run("report", "results.h5", "--json").output)["runs"][0]
