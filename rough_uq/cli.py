@@ -1,8 +1,18 @@
 """The ``roughuq`` command line: thin click commands over :mod:`rough_uq.pipeline`.
 
-User errors (:class:`~rough_uq.errors.RoughUQError`: bad config, missing or
-mismatched study file, bad option values) print one line ``error: ...`` and
-exit with status 2; anything else is a bug and keeps its traceback.
+Exit status (also in ``roughuq --help`` and the README):
+
+* 0: done (for ``mlmc`` / ``mc``: the tolerance was met);
+* 2: nothing was computed because of what was typed: bad config, option
+  value, missing / mismatched / locked study file, unwritable output, or a
+  tolerance refused before the first sample (unreachable with
+  ``grid.max_level``, or predicted beyond ``--max-cost``); one line
+  ``error: ...``, no traceback (click's own usage errors also exit 2);
+* 3: an ``mlmc`` / ``mc`` run finished without meeting its tolerance (bias
+  beyond ``grid.max_level``, ``--max-cost`` reached, MC bias too large); its
+  result is stored and printed, with what to change;
+* 130 / 143: stopped by Ctrl-C / SIGTERM; completed samples are saved;
+* 1: a bug (a traceback follows).
 """
 
 from __future__ import annotations
@@ -21,6 +31,17 @@ from rough_uq import __version__
 from rough_uq.errors import InvalidParameterError, RoughUQError
 
 DEFAULT_STUDY = "results.h5"
+#: Exit status of a run that ended without meeting its tolerance (its result is stored).
+EXIT_TOL_NOT_MET = 3
+#: A kernel warm-up slower than this (seconds) is announced as compilation.
+COMPILE_NOTICE_SECONDS = 2.0
+
+_EXIT_CODES = """\b
+Exit status: 0 done (mlmc/mc: tolerance met); 2 nothing computed: an error
+in what was typed (config, options, files, a tolerance refused before
+starting), one line 'error: ...'; 3 mlmc/mc finished without meeting the
+tolerance (result stored; the message says what to change); 130 Ctrl-C,
+143 SIGTERM (completed samples saved); 1 a bug (traceback)."""
 
 
 class _Terminated(KeyboardInterrupt):
@@ -95,7 +116,7 @@ _scheduler_option = click.option(
 _quiet_option = click.option("--quiet", "-q", is_flag=True, help="No progress output.")
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings={"help_option_names": ["-h", "--help"]}, epilog=_EXIT_CODES)
 @click.version_option(__version__, prog_name="roughuq")
 def main() -> None:
     """roughuq: statistics of rough-surface contact with Multilevel Monte Carlo.
@@ -109,24 +130,62 @@ def main() -> None:
 
 
 @main.command()
-@click.argument("config_path", metavar="CONFIG", type=click.Path(dir_okay=False))
+@click.argument("config_paths", metavar="CONFIG...", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @_user_errors
-def validate(config_path: str) -> None:
-    """Check a study config and summarise it."""
+def validate(config_paths: Sequence[str]) -> None:
+    """Check study configs and summarise each (status 2 if any is invalid)."""
     from rough_uq.config import load_config, solver_memory_bytes
 
-    config = load_config(config_path)
-    grids = [config.grid.n_at(level) for level in range(config.grid.max_level + 1)]
-    click.echo(f"{config_path}: valid (schema version {config.schema_version})")
-    click.echo(f"  QoIs: {', '.join(f'{n} [{s.unit_label}]' for n, s in config.qoi.items())}")
-    click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about "
-               f"{solver_memory_bytes(grids[-1]) / 2**20:.0f} MiB)")
-    click.echo(f"  screening: levels 0..{config.screening.levels - 1}, {config.screening.samples} samples each")
-    click.echo(f"  study file: {config.output.path}")
+    n_bad = 0
+    for config_path in config_paths:
+        try:
+            config = load_config(config_path)
+        except RoughUQError as exc:
+            if len(config_paths) == 1:
+                raise
+            click.echo(f"error: {exc}", err=True)
+            n_bad += 1
+            continue
+        grids = [config.grid.n_at(level) for level in range(config.grid.max_level + 1)]
+        click.echo(f"{config_path}: valid (schema version {config.schema_version})")
+        click.echo(f"  QoIs: {', '.join(f'{n} [{s.unit_label}]' for n, s in config.qoi.items())}")
+        click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about "
+                   f"{solver_memory_bytes(grids[-1]) / 2**20:.0f} MiB)")
+        click.echo(f"  screening: levels 0..{config.screening.levels - 1}, {config.screening.samples} samples each")
+        click.echo(f"  study file: {config.output.path}")
+    if n_bad:
+        sys.exit(2)
+
+
+def _warm_kernels(model: Any, *, quiet: bool = False) -> None:
+    """Compile (or load from numba's disk cache) the solver and QoI kernels before anything is timed.
+
+    One coupled sample on a tiny copy of the model's grids runs every kernel
+    a sample uses. Loading cached kernels takes a fraction of a second; if it
+    takes longer (a fresh install compiles them), say so while it happens.
+    """
+    import dataclasses
+    import threading
+
+    from rough_uq.sampler import compute_batch
+
+    start = time.perf_counter()
+    notice = threading.Timer(
+        COMPILE_NOTICE_SECONDS, lambda: click.echo("compiling kernels (first run only) ...", err=True)
+    )
+    if not quiet:
+        notice.start()
+    try:
+        compute_batch(dataclasses.replace(model, coarsest=8), stage=1, level=1, indices=[0])
+    finally:
+        notice.cancel()
+    seconds = time.perf_counter() - start
+    if not quiet and seconds > COMPILE_NOTICE_SECONDS:
+        click.echo(f"kernels compiled in {seconds:.1f} s (cached for the next runs)", err=True)
 
 
 @main.command()
-@click.argument("config_path", metavar="CONFIG", type=click.Path(dir_okay=False), required=False)
+@click.argument("config_path", metavar="[CONFIG]", type=click.Path(dir_okay=False), required=False)
 @click.option("--level", type=click.IntRange(min=0), default=0, show_default=True, help="Grid level.")
 @click.option("--index", type=click.IntRange(min=0), default=0, show_default=True, help="Sample index.")
 @_user_errors
@@ -135,13 +194,17 @@ def solve(config_path: str | None, level: int, index: int) -> None:
 
     Without CONFIG, the shipped quickstart config is used. The sample is
     screening sample INDEX of LEVEL, i.e. exactly what `roughuq screen` stores.
+    The time excludes compiling the kernels (first run only, announced).
     """
     from rough_uq.config import load_config
     from rough_uq.pipeline import build_model
     from rough_uq.sampler import STAGE_SCREENING, compute_batch
 
     config = load_config(config_path or _shipped_config("quickstart.yaml"))
+    if level > config.grid.max_level:
+        raise InvalidParameterError("--level", level, f"an integer in 0..{config.grid.max_level} (grid.max_level)")
     model = build_model(config)
+    _warm_kernels(model)
     start = time.perf_counter()
     batch = compute_batch(model, stage=STAGE_SCREENING, level=level, indices=[index])
     seconds = time.perf_counter() - start
@@ -181,8 +244,10 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     from rough_uq.report import complexity, render_screening
 
     config = load_config(config_path)
-    with create_study(config, out) as study, _executor(config, workers, executor, scheduler) as pool:
-        outcome = run_screening(study, executor=pool, progress=_progress(quiet or as_json))
+    with create_study(config, out) as study:
+        _warm_kernels(study.model, quiet=quiet or as_json)
+        with _executor(config, workers, executor, scheduler) as pool:
+            outcome = run_screening(study, executor=pool, progress=_progress(quiet or as_json))
         path = study.store.path
     record = dict(outcome.record)
     rates = record["rates"]
@@ -191,64 +256,140 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
         _dump(record)
         return
     console = _console()
-    render_screening(console, record, config.qoi_names)
+    grids = [config.grid.n_at(level) for level in range(config.grid.max_level + 1)]
+    units = {name: settings.unit_label for name, settings in config.qoi.items()}
+    render_screening(console, {**record, "grids": grids}, config.qoi_names, units)
     for text in record["warnings"]:
-        console.print(f"[yellow]warning:[/yellow] {text}")
+        click.echo(f"warning: {text}", err=True)
+    if record.get("n_not_converged"):
+        click.echo(f"warning: {record['n_not_converged']} screening samples have a solve that did not converge "
+                   f"within solver.max_iter (even after the retry); raise solver.max_iter or loosen solver.tol",
+                   err=True)
     console.print(f"study file: {path}")
 
 
 def _estimation_command(method: str) -> Callable[..., Any]:
-    @click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS",
-                  help="Target RMS error: a number (single QoI) or NAME=EPS per QoI; default: the config's qoi tol.")
-    @click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY,
-                  show_default=True, help="Study file.")
-    @click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
-                  help="Config to take estimation settings and tolerances from (must match the study's).")
-    @click.option("--max-cost", type=click.FloatRange(min=0, min_open=True), default=None,
-                  help="Budget in reference seconds (default: the config's estimation.max_cost).")
-    @click.option("--plan", "show_plan", is_flag=True, help="Print the samples still missing; compute nothing.")
-    @click.option("--shards", "shard_size", type=click.IntRange(min=1), default=None, metavar="SIZE",
-                  help="With --plan: print one line 'STAGE LEVEL A:B' per shard of at most SIZE samples.")
-    @click.option("--level", type=click.IntRange(min=0), default=None,
-                  help="mc only: sample this level (no screening needed; its bias is then not estimated).")
-    @click.option("--json", "as_json", is_flag=True, help="Print the result (or the plan) as JSON.")
-    @_workers_option
-    @_executor_option
-    @_scheduler_option
-    @_quiet_option
-    @_user_errors
     def command(tol: Sequence[str], study_path: str, config_path: str | None, max_cost: float | None,
-                show_plan: bool, shard_size: int | None, level: int | None, as_json: bool, workers: int | None, executor: str,
-                scheduler: str | None, quiet: bool) -> None:
+                show_plan: bool, shard_size: int | None, as_json: bool, workers: int | None, executor: str,
+                scheduler: str | None, quiet: bool, level: int | None = None) -> None:
         from rough_uq.config import load_config
         from rough_uq.pipeline import (
             create_study,
+            forecast_run,
             missing_samples,
             open_existing_study,
             parse_tolerances,
             run_estimation,
+            run_id,
         )
+        from rough_uq.report import study_report
 
-        if level is not None and method != "mc":
-            raise InvalidParameterError("--level", level, "only with `roughuq mc` (MLMC chooses its levels)")
+        if shard_size is not None and not show_plan:
+            raise InvalidParameterError("--shards", shard_size, "only with --plan (it splits the plan into shards)")
         config = load_config(config_path) if config_path else None
         if config is not None and not show_plan and not Path(study_path).exists():
             create_study(config, study_path).close()  # a new study, e.g. MC on a given --level
         with open_existing_study(study_path, config=config, writable=not show_plan) as study:
             tolerances = parse_tolerances(tol, study.config)
+            cap = study.config.estimation.max_cost if max_cost is None else max_cost
             if show_plan:
-                work = missing_samples(study, method=method, tol=tolerances, max_cost=max_cost, level=level)
+                forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level)
+                work = missing_samples(study, method=method, tol=tolerances, max_cost=cap, level=level)
                 _print_plan(work, as_json, shard_size)
                 return
             with _executor(study.config, workers, executor, scheduler) as pool:
+                forecast = forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level,
+                                        n_workers=getattr(pool, "n_workers", 1))
+                if not as_json:
+                    _print_forecast(forecast, method)
                 record = run_estimation(study, method=method, tol=tolerances, executor=pool,
-                                        progress=_progress(quiet or as_json), max_cost=max_cost, level=level)
+                                        progress=_progress(quiet or as_json), max_cost=cap, level=level,
+                                        forecast=forecast)
+            key = run_id(method, study.config.qoi_names, tolerances, study.config.estimation.theta, level)
+        with open_existing_study(study_path, writable=False) as study:
+            report = study_report(study.store, study.config)  # the same numbers `roughuq report` shows
+        shown = next(run for run in report["runs"] if run["run_id"] == key)
         if as_json:
-            _dump(record)
+            _dump(shown)
         else:
-            _print_run(record)
+            _print_run(shown, report)
+        if not record["tol_met"]:
+            click.echo(f"tolerance not met ({record['stop_reason']}): {_what_to_change(record, method)}", err=True)
+            sys.exit(EXIT_TOL_NOT_MET)
 
+    options = [
+        click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS",
+                     help="Target RMS error: a number (single QoI) or NAME=EPS per QoI (each QoI once); "
+                          "default: the config's qoi tol."),
+        click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY,
+                     show_default=True, help="Study file."),
+        click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
+                     help="Config to take estimation settings and tolerances from (must match the study's)."),
+        click.option("--max-cost", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
+                     help="Budget in modelled cost (reference seconds, about CPU-seconds on the calibration "
+                          "machine): a plan predicted above it is refused, a run reaching it stops "
+                          "(default: the config's estimation.max_cost; without any, plans over a week of "
+                          "CPU time are refused)."),
+        click.option("--plan", "show_plan", is_flag=True, help="Print the samples still missing; compute nothing."),
+        click.option("--shards", "shard_size", type=click.IntRange(min=1), default=None, metavar="SIZE",
+                     help="With --plan: print one line 'STAGE LEVEL A:B' per shard of at most SIZE samples."),
+        click.option("--json", "as_json", is_flag=True, help="Print the result (or the plan) as JSON."),
+        _workers_option,
+        _executor_option,
+        _scheduler_option,
+        _quiet_option,
+    ]
+    if method == "mc":
+        options.append(click.option(
+            "--level", type=click.IntRange(min=0), default=None,
+            help="Sample this level (no screening needed; its bias is then not estimated).",
+        ))
+    command = _user_errors(command)
+    for option in reversed(options):
+        command = option(command)
     return command
+
+
+def _what_to_change(record: dict[str, Any], method: str) -> str:
+    reason = record["stop_reason"]
+    if reason == "max_cost":
+        return "the run reached --max-cost; raise --max-cost (or estimation.max_cost) or loosen --tol"
+    if reason == "bias":
+        return ("the bias on this level exceeds the tolerance's share; loosen --tol, use `roughuq mlmc`, or "
+                "a study with a larger grid.max_level")
+    if reason == "max_level":
+        return ("the bias needs a grid finer than grid.max_level; loosen --tol, or screen a new study with a "
+                "larger grid.max_level")
+    return "loosen --tol, raise --max-cost, or use a study with a larger grid.max_level"
+
+
+def _print_forecast(forecast: Any, method: str) -> None:
+    """The prediction of a run, before its first sample (stderr: it is not the result)."""
+    if forecast is None:
+        click.echo("forecast: none (no usable screening to predict from)", err=True)
+        return
+    if method == "mc":
+        samples = f"level {forecast.finest_level} ({forecast.grid}^2), N {forecast.n_samples[0]}"
+    else:
+        samples = (f"levels 0..{forecast.finest_level} (finest {forecast.grid}^2), "
+                   f"N_l {' '.join(str(n) for n in forecast.n_samples)}")
+    click.echo(f"forecast: {samples}", err=True)
+    click.echo(f"forecast: about {_duration(forecast.wall_seconds)} elapsed "
+               f"({_duration(forecast.cpu_seconds)} CPU, modelled cost {forecast.modelled_cost:.3g} ref-s), "
+               f"memory about {_mib(forecast.memory_bytes)} MiB", err=True)
+
+
+def _mib(n_bytes: float) -> str:
+    mib = n_bytes / 2**20
+    return f"{mib:.2g}" if mib < 10 else f"{mib:.0f}"
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.2g} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.2g} min"
+    return f"{seconds / 3600:.3g} h"
 
 
 def _print_plan(work: Any, as_json: bool, shard_size: int | None = None) -> None:
@@ -286,10 +427,11 @@ def _ranges(indices: Any) -> list[str]:
     return out
 
 
-def _print_run(record: dict[str, Any]) -> None:
-    from rough_uq.report import render_runs
+def _print_run(record: dict[str, Any], report: dict[str, Any]) -> None:
+    from rough_uq.report import format_run
 
-    render_runs(_console(), [{"run_id": "", **record}], record["qoi_names"])
+    for line in format_run(record, report["qoi_names"], report["config"]["qoi"]):
+        click.echo(line)
     for text in record["warnings"]:
         click.echo(f"warning: {text}", err=True)
     if record["n_not_converged"]:
@@ -416,13 +558,13 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
     from rich.table import Table
 
     table = Table(title=f"Sweep of {key} (plain MC on level {level})")
-    for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "wall"):
+    for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "CPU"):
         table.add_column(column, justify="right")
     for row in rows:
         for q, name in enumerate(row["qoi_names"]):
             table.add_row(row["value"], str(row["grid"]), name,
                           f"{row['estimate'][q]:.5g} ± {row['stat_error'][q]:.2g}", str(row["n_samples"][0]),
-                          f"{row['seconds']:.3g} s")
+                          f"{row['seconds']:.3g} s CPU")
     _console().print(table)
 
 
@@ -443,7 +585,7 @@ def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     if plots_dir is not None:
         from rough_uq.plots import write_report_plots
 
-        written = write_report_plots(data, plots_dir)
+        written = _writing(plots_dir, lambda: write_report_plots(data, plots_dir))
     if as_json:
         _dump({**data, "plots": [str(path) for path in written]} if plots_dir is not None else data)
         return
@@ -452,27 +594,88 @@ def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
         click.echo(f"wrote {path}")
 
 
+def _writing(target: str, write: Callable[[], Any]) -> Any:
+    """Run ``write``; an output that cannot be written becomes one ``error:`` line (status 2)."""
+    try:
+        return write()
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        where = exc.filename or target
+        raise RoughUQError(f"cannot write {where}: {reason}; choose another place") from None
+
+
+def _stage_of(study: Any, text: str) -> int:
+    """``--stage``: 'screening', a run id (as `roughuq report` prints it) or a stage number."""
+    if text == "screening":
+        return 0
+    for run in study.store.read_runs():
+        if run["run_id"] == text:
+            return int(run["stage"])
+    try:
+        stage = int(text)
+    except ValueError:
+        runs = ", ".join(run["run_id"] for run in study.store.read_runs()) or "none"
+        raise InvalidParameterError("--stage", text, f"'screening', a run id of this study ({runs}) "
+                                    "or a stage number") from None
+    if stage < 0:
+        raise InvalidParameterError("--stage", text, "'screening', a run id or a non-negative stage number")
+    return stage
+
+
 @main.command()
 @click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
               help="Study file (only read).")
 @click.option("--stage", default="screening", show_default=True,
-              help="'screening' or a run's stage number (see `roughuq report --json`).")
+              help="'screening' or a run id as `roughuq report` prints it (e.g. mlmc_contact_area-0.5_theta-0.5).")
 @click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the sample.")
-@click.option("--index", type=click.IntRange(min=0), required=True, help="Index of the sample.")
+@click.option("--index", type=click.IntRange(min=0), required=True, help="Index of a stored sample.")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="PNG file to write.")
 @_user_errors
 def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
-    """Recompute one sample from its seed and draw heights, pressure and contact clusters."""
+    """Recompute one stored sample from its seed and draw heights, pressure and contact clusters."""
     from rough_uq.pipeline import open_existing_study
     from rough_uq.plots import write_sample_figure
 
-    stage_id = _stage_number(stage)
     with open_existing_study(study_path, writable=False) as study:
         if level > study.config.grid.max_level:
             raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")
+        stage_id = _stage_of(study, stage)
+        stored = study.store.sample_indices(level=level, stage=stage_id)
         model = study.model
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    click.echo(f"wrote {write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out)}")
+    if index not in set(int(i) for i in stored):
+        have = f"stored: {' '.join(_ranges(sorted(int(i) for i in stored)))}" if stored.size else "none stored"
+        raise InvalidParameterError("--index", index, f"a sample of stage {stage} on level {level} ({have})")
+
+    def write() -> Any:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        return write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out)
+
+    click.echo(f"wrote {_writing(out, write)}")
+
+
+@main.command()
+@click.argument("run_ids", metavar="RUN_ID...", nargs=-1, required=True)
+@click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
+              help="Study file.")
+@_user_errors
+def drop(run_ids: Sequence[str], study_path: str) -> None:
+    """Forget abandoned run records; their samples stay in the file.
+
+    A dropped run no longer appears in reports; running the same command
+    again brings it back and reuses its stored samples.
+    """
+    from rough_uq.pipeline import open_existing_study
+
+    with open_existing_study(study_path) as study:
+        runs = {run["run_id"]: run for run in study.store.read_runs()}
+        for key in run_ids:
+            if key not in runs or runs[key].get("status") == "dropped":
+                known = ", ".join(k for k, run in runs.items() if run.get("status") != "dropped") or "none"
+                raise InvalidParameterError("RUN_ID", key, f"a run of this study ({known})")
+        for key in run_ids:
+            record = {k: v for k, v in runs[key].items() if k != "run_id"}
+            study.store.write_run(key, {**record, "status": "dropped"})
+    click.echo(f"{study_path}: dropped {', '.join(run_ids)} (samples kept)")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -28,6 +28,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
+import sys
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -132,6 +133,31 @@ def _compute(model: ContactModel, stage: int, level: int, indices: np.ndarray) -
     return compute_batch(model, stage=stage, level=level, indices=indices)
 
 
+def _start_quiet_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker with its stderr on /dev/null.
+
+    The tracker frees the pool's semaphores when this process is killed
+    (kill -9), correctly, and then warns about each "leaked" one on the
+    user's terminal, after the fact and with nothing left to do. It inherits
+    file descriptor 2 when it starts; a tracker already running is kept.
+    """
+    from multiprocessing import resource_tracker
+
+    try:
+        sys.stderr.flush()
+    except (AttributeError, ValueError, OSError):
+        pass
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        resource_tracker.ensure_running()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
 class PoolExecutor(Executor):
     """A local pool of ``n_workers`` spawned processes (module docstring).
 
@@ -152,6 +178,7 @@ class PoolExecutor(Executor):
 
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:
+            _start_quiet_resource_tracker()
             # Spawned children copy os.environ when they start; set it for them
             # and restore ours right after.
             saved = dict(os.environ)

@@ -81,6 +81,8 @@ __all__ = [
     "compute_shard",
     "merge_shards",
     "run_sweep",
+    "Forecast",
+    "forecast_run",
 ]
 
 #: Longest time computed samples wait in memory before they are written.
@@ -445,10 +447,16 @@ def _not_converged(batches: Sequence[LevelBatch]) -> int:
 
 
 def _seconds_per_cost(batches: Sequence[LevelBatch], model: ContactModel) -> float:
-    """Measured wall seconds per modelled reference second over coupled (screening) batches."""
-    seconds = sum(float(np.sum(b.cost)) for b in batches)
-    modelled = sum(float(np.sum(modelled_cost(model, b.level, b.n_iter))) for b in batches)
-    return seconds / modelled if modelled > 0 else 1.0
+    """Measured CPU-seconds per modelled reference second over coupled (screening) batches.
+
+    The median of the per-sample ratios: the first samples of every worker
+    also pay its start-up (loading the compiled kernels, FFT plans), which
+    would otherwise inflate every prediction of a cheap study many times.
+    """
+    seconds = np.concatenate([np.asarray(b.cost, dtype=float) for b in batches])
+    modelled = np.concatenate([np.asarray(modelled_cost(model, b.level, b.n_iter), dtype=float) for b in batches])
+    usable = modelled > 0
+    return float(np.median(seconds[usable] / modelled[usable])) if np.any(usable) else 1.0
 
 
 def screening_statistics(study: Study, sampler: StudySampler | None = None) -> tuple[LevelStatistics, list[LevelBatch]]:
@@ -499,6 +507,17 @@ def _base_tolerance(config: StudyConfig, statistics: LevelStatistics) -> np.ndar
     return np.array(base)
 
 
+def _no_prediction(names: Sequence[str], rates: Rates, exc: Exception) -> str:
+    """Why the screening predicts no cost, in words (the QoIs whose bias does not decay, by name)."""
+    alpha = np.atleast_1d(rates.alpha)
+    stalled = [f"{name} (alpha = {a:.2g})" for name, a in zip(names, alpha) if not a > 0]
+    if stalled:
+        return (f"no cost prediction: the bias of {', '.join(stalled)} does not decrease from level to level "
+                "on the screened grids, so no finest grid can be chosen; screen finer grids (screening.levels, "
+                "grid.coarsest)")
+    return f"no cost prediction: {exc}; screen more levels (screening.levels)"
+
+
 def run_screening(study: Study, *, executor: Executor, progress: Progress) -> ScreeningOutcome:
     """Compute (or complete) the screening samples, fit the rates, predict costs, store the record."""
     config = study.config
@@ -518,8 +537,10 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
                     f"screening cannot fit the rates: {exc}; screen more levels (screening.levels) or "
                     f"more samples (screening.samples)"
                 ) from None
-    finally:
-        progress.stop()
+    except BaseException:
+        progress.stop(is_complete=False)
+        raise
+    progress.stop()
     seconds_per_cost = _seconds_per_cost(batches, study.model)
     base = _base_tolerance(config, statistics)
     predictions = []
@@ -536,7 +557,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
         except RoughUQError as exc:
             # E.g. a bias that does not decay yet (alpha <= 0 on pre-asymptotic
             # levels): keep the table and rates, say why nothing can be predicted.
-            problems.append(f"no cost prediction: {exc}; screen more levels (screening.levels)")
+            problems.append(_no_prediction(config.qoi_names, rates, exc))
             break
         predictions.append(_plan_record(prediction, seconds_per_cost))
     messages = list(dict.fromkeys([str(w.message) for w in caught] + list(diagnose(statistics)) + problems))
@@ -589,6 +610,9 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
                 raise InvalidParameterError("--tol", part, "a positive number, e.g. 0.2 or contact_area=0.2") from None
             if not (math.isfinite(eps) and eps > 0):
                 raise InvalidParameterError("--tol", part, "a positive, finite number")
+            if name in given:
+                raise InvalidParameterError("--tol", part, f"one tolerance per QoI; {name} was already given "
+                                            f"{given[name]:g}")
             given[name] = eps
     tol = []
     for name, settings in config.qoi.items():
@@ -626,6 +650,163 @@ def _estimation_plan(study: Study, tol: np.ndarray) -> tuple[LevelStatistics, Ra
         max_level=study.config.grid.max_level,
     )
     return statistics, rates, prediction
+
+
+#: Plans with more samples than this are refused whatever the budget (the index arrays alone would not fit).
+MAX_PLANNED_SAMPLES = 10**7
+#: Without ``--max-cost``, plans predicted to take longer than this (CPU-seconds of samples) are refused.
+DEFAULT_COST_CEILING = 7 * 24 * 3600.0
+
+
+@dataclass(frozen=True)
+class Forecast:
+    """What a run will need, predicted from the screening before its first sample.
+
+    Attributes
+    ----------
+    finest_level : int
+        Finest level the bias needs (MC: the level it samples).
+    grid : int
+        Nodes per side of that level.
+    n_samples : tuple of int
+        Samples per level ``0..finest_level`` (MC: one entry, the finest level).
+    modelled_cost : float
+        Predicted modelled cost (reference seconds).
+    cpu_seconds : float
+        Predicted CPU-seconds of the samples (modelled cost times the
+        screening's measured seconds per modelled second).
+    wall_seconds : float
+        ``cpu_seconds`` shared by the workers.
+    memory_bytes : int
+        Memory of the solves running at once (one finest solve per worker).
+    """
+
+    finest_level: int
+    grid: int
+    n_samples: tuple[int, ...]
+    modelled_cost: float
+    cpu_seconds: float
+    wall_seconds: float
+    memory_bytes: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return _jsonable(self.__dict__)
+
+
+def _tol_text(names: Sequence[str], tol: np.ndarray) -> str:
+    return ", ".join(f"{name}={eps:.3g}" for name, eps in zip(names, tol))
+
+
+def forecast_run(
+    study: Study, *, method: str, tol: np.ndarray, max_cost: float | None = None, level: int | None = None,
+    n_workers: int = 1,
+) -> Forecast | None:
+    """Predict a run from the screening, or refuse it before its first sample.
+
+    Refused (:class:`~rough_uq.errors.EstimationError`, naming what to
+    change): a tolerance whose bias ``grid.max_level`` cannot reach (the
+    message gives the smallest reachable tolerance), a predicted modelled cost
+    above ``max_cost``, without ``max_cost`` a plan beyond
+    :data:`DEFAULT_COST_CEILING` CPU-seconds, and any plan of more than
+    :data:`MAX_PLANNED_SAMPLES` samples. ``mc --level`` without a screening
+    (or with one whose bias does not decay) predicts nothing (None).
+    """
+    from rough_uq.config import solver_memory_bytes
+
+    config = study.config
+    names = config.qoi_names
+    tol = np.asarray(tol, dtype=float)
+    if method == "mc" and level is not None and study.store.read_screening() is None:
+        return None
+    with np.errstate(all="ignore"):
+        statistics, _ = screening_statistics(study)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", EstimationWarning)
+            rates = fit_rates(statistics)
+        alpha = np.atleast_1d(rates.alpha)
+        stalled = [f"{name} (alpha = {a:.2g})" for name, a in zip(names, alpha) if not a > 0]
+        if stalled and method == "mc" and level is not None:
+            return None  # MC on a given level needs no bias model, and there is none to predict from
+        if stalled:
+            raise EstimationError(
+                f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, "
+                "so no finest grid can be chosen for a tolerance: screen finer grids (a new study with a larger "
+                "grid.coarsest or more screening.levels), or use `roughuq mc --level L` (bias not estimated)"
+            )
+        prediction = plan(
+            tol=tol, rates=rates, statistics=statistics, theta=config.estimation.theta,
+            max_level=config.grid.max_level,
+        )
+        if not prediction.is_bias_met and not (method == "mc" and level is not None):
+            bias = np.asarray(prediction.bias, dtype=float)
+            reachable = bias / math.sqrt(config.estimation.theta)
+            raise EstimationError(
+                f"--tol {_tol_text(names, tol)} cannot be reached: on the finest grid allowed "
+                f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
+                f"screening predicts a bias of {_tol_text(names, bias)}; the smallest reachable tolerance is about "
+                f"{_tol_text(names, [_round_up(x) for x in reachable])} (or screen a study with a larger "
+                "grid.max_level)"
+            )
+        if method == "mc":
+            finest = prediction.finest_level if level is None else int(level)
+            counts = (max(int(prediction.mc_n_samples), 2),)
+            fine_cost = prediction.mc_cost / max(prediction.mc_n_samples, 1)
+            if level is not None:
+                fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
+            modelled = counts[0] * float(fine_cost)
+        else:
+            finest = prediction.finest_level
+            counts = tuple(max(int(n), 2) for n in prediction.n_samples)
+            modelled = float(np.sum(np.array(counts) * prediction.costs))
+    record = study.store.read_screening() or {}
+    seconds_per_cost = float(record.get("seconds_per_cost") or 1.0)
+    cpu_seconds = modelled * seconds_per_cost
+    n_workers = max(1, int(n_workers))
+    result = Forecast(
+        finest_level=int(finest),
+        grid=config.grid.n_at(int(finest)),
+        n_samples=counts,
+        modelled_cost=modelled,
+        cpu_seconds=cpu_seconds,
+        wall_seconds=cpu_seconds / min(n_workers, max(sum(counts), 1)),
+        memory_bytes=solver_memory_bytes(config.grid.n_at(int(finest))) * n_workers,
+    )
+    total = sum(counts)
+    if total > MAX_PLANNED_SAMPLES or not math.isfinite(modelled):
+        raise EstimationError(
+            f"--tol {_tol_text(names, tol)} needs about {total:.3g} samples ({_hours(cpu_seconds)} CPU); "
+            f"that is beyond any budget: loosen --tol"
+        )
+    if max_cost is not None and modelled > max_cost:
+        raise EstimationError(
+            f"--tol {_tol_text(names, tol)} is predicted to cost {modelled:.3g} reference seconds of modelled cost, "
+            f"more than --max-cost {max_cost:g}: loosen --tol or raise --max-cost"
+        )
+    if max_cost is None and cpu_seconds > DEFAULT_COST_CEILING:
+        raise EstimationError(
+            f"--tol {_tol_text(names, tol)} is predicted to take {_hours(cpu_seconds)} of CPU time "
+            f"({sum(counts)} samples), more than the default ceiling of {_hours(DEFAULT_COST_CEILING)}: loosen --tol, "
+            "or allow it with --max-cost SECONDS"
+        )
+    return result
+
+
+def _round_up(value: float) -> float:
+    """``value`` rounded up to two significant digits (a tolerance that is surely reachable)."""
+    if not (math.isfinite(value) and value > 0):
+        return value
+    scale = 10.0 ** (math.floor(math.log10(value)) - 1)
+    return math.ceil(value / scale * (1 - 1e-12)) * scale
+
+
+def _hours(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "forever"
+    if seconds < 120:
+        return f"{seconds:.3g} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.3g} min"
+    return f"{seconds / 3600:.3g} h"
 
 
 class _SamplesMissing(Exception):
@@ -737,6 +918,49 @@ def _events(
     return events, context
 
 
+def _elapsed(study: Study, key: str, sampler: StudySampler, seconds: float) -> float:
+    """Wall seconds of the run: this command's, or the first finish's when this rerun computed nothing."""
+    if sampler.n_computed == 0:
+        for run in study.store.read_runs():
+            if run["run_id"] == key and run.get("elapsed") is not None:
+                return float(run["elapsed"])
+    return seconds
+
+
+def _pooled_mc_cost(study: Study, sampler: StudySampler, result: Any) -> float:
+    """Modelled cost of plain MC to the run's tolerance, from the best ``Var(Q_L)`` available.
+
+    ``Var(Q_L)`` of the finest level pools (weights ``n - 1``) the sample
+    variance of the run's fine values with the screening's on that level (or,
+    beyond the screening, on its finest level: ``Var(Q_l)`` converges with the
+    level); the run alone often has two samples there. The cost of one fine
+    solve is the run's.
+    """
+    finest = int(result.levels[-1])
+    n_run = int(result.n_samples[-1])
+    values = [sampler.samples(finest, np.arange(n_run)).fine]
+    record = study.store.read_screening()
+    if record is not None:
+        screened = [int(level) for level in record["statistics"]["levels"]]
+        below = [level for level in screened if level <= finest]
+        if below:
+            n = int(min(record["statistics"]["n_samples"]))
+            values.append(study.store.read_samples(level=below[-1], stage=STAGE_SCREENING).fine[:n])
+    groups = [v for v in values if v.shape[0] >= 2]
+    if not groups:
+        return float(result.mc_cost)
+    # Each group about its own mean: the screened level's mean differs from the run's finest level's.
+    pooled = sum((v.shape[0] - 1) * np.var(v, axis=0, ddof=1) for v in groups) / sum(v.shape[0] - 1 for v in groups)
+    budget = (1.0 - result.theta) * np.asarray(result.tol, dtype=float) ** 2
+    run_var = np.asarray(result.statistics.var_fine[-1], dtype=float)
+    n_mc_run = float(np.max(np.ceil(run_var / budget)))
+    per_sample = result.mc_cost / n_mc_run if n_mc_run > 0 else 0.0
+    if per_sample <= 0:
+        return float(result.mc_cost)
+    n_mc = float(np.max(np.ceil(pooled / budget)))
+    return max(n_mc, 1.0) * per_sample
+
+
 def run_estimation(
     study: Study,
     *,
@@ -746,8 +970,12 @@ def run_estimation(
     progress: Progress,
     max_cost: float | None = None,
     level: int | None = None,
+    forecast: Forecast | None = None,
 ) -> dict[str, Any]:
     """Run MLMC (``method="mlmc"``) or plain MC (``"mc"``) to ``tol`` and store its record.
+
+    ``forecast`` (:func:`forecast_run`, which the CLI calls first to refuse
+    hopeless tolerances) is stored in the record as ``forecast``.
 
     MC runs on the finest level the screening's plan needs for ``tol``, or on
     ``level`` if given (no screening needed; its bias is then not estimated).
@@ -772,9 +1000,11 @@ def run_estimation(
     tol = np.asarray(tol, dtype=float)
     max_cost = config.estimation.max_cost if max_cost is None else max_cost
     key = run_id(method, names, tol, config.estimation.theta, level)
+    started = time.monotonic()
     stage = run_stage(method, key)
     sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
     events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost, level=level)
+    context["forecast"] = forecast.as_dict() if forecast is not None else None
     record: dict[str, Any] = {
         "method": method,
         "stage": stage,
@@ -801,11 +1031,17 @@ def run_estimation(
                     result = event.result
                 elif not isinstance(event, BatchDone):  # pragma: no cover - the estimator's contract
                     raise RoughUQError(f"unexpected estimator event {event!r}")
-    finally:
-        progress.stop()
+    except BaseException:
+        progress.stop(is_complete=False)
+        raise
+    progress.stop()
     assert result is not None  # the event stream always ends with Finished
     seconds, n_not_converged = _measured(sampler, result.levels, result.n_samples)
     seconds_per_cost = seconds / result.cost if result.cost > 0 else 1.0
+    screening_record = study.store.read_screening()
+    if screening_record is not None and screening_record.get("seconds_per_cost"):
+        seconds_per_cost = float(screening_record["seconds_per_cost"])  # robust to the pool's start-up
+    mc_cost = _pooled_mc_cost(study, sampler, result) if method == "mlmc" else result.mc_cost
     record.update(
         _jsonable(
             {
@@ -822,8 +1058,9 @@ def run_estimation(
                 "n_samples": result.n_samples,
                 "cost": result.cost,
                 "seconds": seconds,
-                "mc_cost": result.mc_cost,
-                "mc_seconds_predicted": result.mc_cost * seconds_per_cost,
+                "elapsed": _elapsed(study, key, sampler, time.monotonic() - started),
+                "mc_cost": mc_cost,
+                "mc_seconds_predicted": mc_cost * seconds_per_cost,
                 "n_computed": sampler.n_computed,
                 "n_not_converged": n_not_converged,
                 "tol_met": result.tol_met,
@@ -888,9 +1125,9 @@ def compute_shard(
         os.replace(partial, out)
     except BaseException:
         partial.unlink(missing_ok=True)
+        progress.stop(is_complete=False)
         raise
-    finally:
-        progress.stop()
+    progress.stop()
     return out
 
 

@@ -148,18 +148,18 @@ def _rates_figure(report: dict[str, Any], path: Path) -> Path | None:
 
     ax_cost = axes[0, 2]
     x, y = _log2_points(levels, stats["mean_cost"])
-    ax_cost.plot(x, y, "o-", color="C3", label="$C_l$ modelled (reference s)")
+    ax_cost.plot(x, y, "o-", color="C3", label="$C_l$ modelled cost (ref-s)")
     seconds = stats.get("mean_seconds") or []
     if len(seconds) == levels.size:
         x, y = _log2_points(levels, seconds)
-        ax_cost.plot(x, y, "s:", color="C4", label="measured wall (s)")
+        ax_cost.plot(x, y, "s:", color="C4", label="CPU-s per sample (measured)")
     if "gamma" in rates:
         gamma = rates["gamma"]
         _fit_line(ax_cost, span_gamma, rates["c_gamma"], gamma,
                   rf"$c_\gamma 2^{{\gamma l}}$, $\gamma$ = {gamma:.2f} ± {rates['gamma_se']:.2f}", "C3")
     ax_cost.set_title("cost per sample")
     ax_cost.set_xlabel("level $l$")
-    ax_cost.set_ylabel(r"$\log_2$ seconds")
+    ax_cost.set_ylabel(r"$\log_2$ ref-s or CPU-s")
     _label_grids(ax_cost, levels, grids)
     ax_cost.grid(True, alpha=0.3)
     ax_cost.legend(fontsize="small")
@@ -196,17 +196,18 @@ def _cost_vs_tol_figure(report: dict[str, Any], path: Path) -> Path | None:
     series = [  # (points, style, colour, label)
         (
             [(p["tol"][0], p["mlmc_seconds"]) for p in predictions if _positive(p.get("mlmc_seconds"))],
-            "-", "C0", "MLMC predicted" + (f" ({complexity['mlmc_regime']})" if "mlmc_regime" in complexity else ""),
+            "-", "C0",
+            "MLMC predicted CPU-s" + (f" ({complexity['mlmc_regime']})" if "mlmc_regime" in complexity else ""),
         ),
         (
             [(p["tol"][0], p["mc_seconds"]) for p in predictions if _positive(p.get("mc_seconds"))],
-            "--", "C3", "MC predicted" + (f" (eps^-{mc_exponent:.2f})" if _positive(mc_exponent) else ""),
+            "--", "C3", "MC predicted CPU-s" + (f" (eps^-{mc_exponent:.2f})" if _positive(mc_exponent) else ""),
         ),
     ]
     for method, style, colour in (("mlmc", "o", "C0"), ("mc", "s", "C3")):
         runs = [run for run in _finished(report, method) if _positive(run.get("seconds"))]
         points = sorted((run["tol"][0], run["seconds"]) for run in runs)
-        series.append((points, style, colour, f"{method.upper()} measured (wall)"))
+        series.append((points, style, colour, f"{method.upper()} measured CPU-s"))
     if not any(points for points, *_ in series):
         return None
 
@@ -222,8 +223,8 @@ def _cost_vs_tol_figure(report: dict[str, Any], path: Path) -> Path | None:
     ax.set_yscale("log")
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel(_tol_label(report))
-    ax.set_ylabel("cost (s)")
-    ax.set_title("cost against tolerance")
+    ax.set_ylabel("CPU-seconds of the samples")
+    ax.set_title("CPU time against tolerance")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     return _save(figure, path)

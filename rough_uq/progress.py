@@ -5,6 +5,11 @@ core never imports this module. :func:`make_progress` picks rich progress bars
 on an interactive terminal and plain, line-buffered lines otherwise (CI,
 cluster jobs, pipes), at most one line every ``interval`` seconds per level
 plus one when a level completes.
+
+ETA: none until it means something. The first sample of a level carries the
+start-up (worker processes, loading compiled kernels), so the rate is
+measured from the first completion on, and an ETA is shown only once
+:data:`ETA_MIN_SAMPLES` more samples and :data:`ETA_MIN_SECONDS` have passed.
 """
 
 from __future__ import annotations
@@ -15,7 +20,12 @@ import time
 from collections.abc import Sequence
 from typing import IO
 
-__all__ = ["PlainProgress", "RichProgress", "make_progress"]
+__all__ = ["ETA_MIN_SAMPLES", "ETA_MIN_SECONDS", "PlainProgress", "RichProgress", "make_progress"]
+
+#: Samples completed after a level's first one before its ETA is shown.
+ETA_MIN_SAMPLES = 3
+#: Seconds after a level's first completed sample before its ETA is shown.
+ETA_MIN_SECONDS = 2.0
 
 
 class Progress:
@@ -33,8 +43,8 @@ class Progress:
     def note(self, text: str) -> None:
         """A one-line message."""
 
-    def stop(self) -> None:
-        """The task ended (or was interrupted)."""
+    def stop(self, *, is_complete: bool = True) -> None:
+        """The task ended (``is_complete=False``: it was interrupted or failed)."""
 
 
 def _duration(seconds: float) -> str:
@@ -49,8 +59,8 @@ def _duration(seconds: float) -> str:
 class PlainProgress(Progress):
     """Line-buffered text progress for logs.
 
-    ETA of a level: its remaining samples times the mean time per sample done
-    in this task (None until one is done).
+    ETA of a level: its remaining samples times the mean time per sample
+    since the level's first completed sample (see the module docstring).
     """
 
     def __init__(self, stream: IO[str] | None = None, *, interval: float = 10.0) -> None:
@@ -60,6 +70,7 @@ class PlainProgress(Progress):
         self._planned: dict[int, int] = {}
         self._done: dict[int, int] = {}
         self._started: dict[int, tuple[float, int]] = {}
+        self._first: dict[int, tuple[float, int]] = {}
         self._last_line: dict[int, float] = {}
         self._last_plan = -math.inf
         self._t0 = time.monotonic()
@@ -73,6 +84,7 @@ class PlainProgress(Progress):
         self._planned.clear()
         self._done.clear()
         self._started.clear()
+        self._first.clear()
         self._last_line.clear()
         self._last_plan = -math.inf
         self._print(f"[{title}] started")
@@ -98,6 +110,7 @@ class PlainProgress(Progress):
         now = time.monotonic()
         self._done[level] = self._done.get(level, 0) + int(n)
         self._started.setdefault(level, (now, self._done[level] - int(n)))
+        self._first.setdefault(level, (now, self._done[level]))
         done, planned = self._done[level], self._planned.get(level, 0)
         is_level_done = planned > 0 and done >= planned
         if is_level_done or now - self._last_line.get(level, -1e9) >= self._interval:
@@ -106,18 +119,48 @@ class PlainProgress(Progress):
                         f"elapsed {_duration(now - self._t0)}{self._eta(level, now)}")
 
     def _eta(self, level: int, now: float) -> str:
-        t_start, done_at_start = self._started[level]
-        computed = self._done[level] - done_at_start
+        t_first, done_at_first = self._first.get(level, (now, self._done[level]))
+        computed = self._done[level] - done_at_first
         remaining = self._planned.get(level, 0) - self._done[level]
-        if computed <= 0 or remaining <= 0:
+        if computed < ETA_MIN_SAMPLES or now - t_first < ETA_MIN_SECONDS or remaining <= 0:
             return ""
-        return f", eta {_duration(remaining * (now - t_start) / computed)}"
+        return f", eta {_duration(remaining * (now - t_first) / computed)}"
 
     def note(self, text: str) -> None:
         self._print(f"[{self._title}] {text}")
 
-    def stop(self) -> None:
-        self._print(f"[{self._title}] done in {_duration(time.monotonic() - self._t0)}")
+    def stop(self, *, is_complete: bool = True) -> None:
+        what = "done in" if is_complete else "stopped after"
+        self._print(f"[{self._title}] {what} {_duration(time.monotonic() - self._t0)}")
+
+
+def _eta_column_class() -> type:
+    from rich.progress import ProgressColumn
+    from rich.text import Text
+
+    class EtaColumn(ProgressColumn):
+        """``eta 1m05s`` once the rate means something (module docstring), else nothing."""
+
+        def render(self, task: object) -> Text:
+            fields = task.fields
+            first = fields.get("first")
+            if first is None:
+                if task.completed > fields.get("done_at_start", 0):
+                    fields["first"] = (time.monotonic(), task.completed)
+                return Text("")
+            t_first, done_at_first = first
+            computed = task.completed - done_at_first
+            elapsed = time.monotonic() - t_first
+            remaining = (task.total or 0) - task.completed
+            if computed < ETA_MIN_SAMPLES or elapsed < ETA_MIN_SECONDS or remaining <= 0:
+                return Text("")
+            return Text(f"eta {_duration(remaining * elapsed / computed)}", style="progress.remaining")
+
+    return EtaColumn
+
+
+def _EtaColumn() -> object:
+    return _eta_column_class()()
 
 
 class RichProgress(Progress):
@@ -138,7 +181,6 @@ class RichProgress(Progress):
             Progress as Bars,
             TextColumn,
             TimeElapsedColumn,
-            TimeRemainingColumn,
         )
 
         self._title = title
@@ -149,8 +191,7 @@ class RichProgress(Progress):
             MofNCompleteColumn(),
             TextColumn("samples"),
             TimeElapsedColumn(),
-            TextColumn("eta"),
-            TimeRemainingColumn(),
+            _EtaColumn(),
             console=self._console,
             transient=False,
         )
@@ -163,7 +204,7 @@ class RichProgress(Progress):
             level = int(level)
             if level not in self._tasks:
                 self._tasks[level] = self._bars.add_task(
-                    f"{self._title} level {level}", total=int(planned), completed=int(done)
+                    f"{self._title} level {level}", total=int(planned), completed=int(done), done_at_start=int(done)
                 )
             else:
                 self._bars.update(self._tasks[level], total=int(planned))
@@ -175,7 +216,7 @@ class RichProgress(Progress):
     def note(self, text: str) -> None:
         self._console.print(text)
 
-    def stop(self) -> None:
+    def stop(self, *, is_complete: bool = True) -> None:
         if self._bars is not None:
             self._bars.stop()
             self._bars = None

@@ -1,45 +1,94 @@
-"""What a study file holds, as a dict (``roughuq report --json``) and as rich tables.
+"""What a study file holds, as a dict (``roughuq report --json``) and as text that fits 80 columns.
 
 :func:`study_report` gathers the config summary, the sample counts, the
 screening table and rates with the complexity they imply, and every run with
 its measured and predicted costs; :func:`render_report` prints it.
+
+Three kinds of time, each with one name and unit everywhere:
+
+* **elapsed** (s): wall-clock time of the command that ran the run
+  (JSON ``elapsed``);
+* **CPU-seconds** (CPU-s): the wall times of the samples, each measured in the
+  process that computed it, summed (JSON keys with ``seconds``: ``seconds``,
+  ``mean_seconds``, ``mlmc_seconds``, ``mc_seconds``,
+  ``mc_seconds_predicted``); with 2 workers a run's CPU-seconds are about
+  twice its elapsed time;
+* **modelled cost** (ref-s, reference seconds): the cost model the estimators
+  plan with (JSON keys with ``cost``: ``cost``, ``mean_cost``, ``mc_cost``,
+  ``mlmc_cost``), independent of the machine's load.
 
 Complexity (SPEC section 5): plain MC to RMS error ``eps`` costs
 ``eps^-(2 + gamma/alpha)``; MLMC costs ``eps^-2`` if ``beta > gamma``,
 ``eps^-2 log(eps)^2`` if ``beta == gamma`` and ``eps^-(2 + (gamma - beta)/alpha)``
 if ``beta < gamma``. The exponents are computed per QoI from the fitted rates;
 ``beta`` and ``gamma`` are called equal when they differ by less than
-:data:`RATE_TIE` (about the standard error of a screening fit).
+:data:`RATE_TIE` (about the standard error of a screening fit). A bias that
+does not decay (``alpha`` at most :data:`MIN_ALPHA`) has no exponent: the
+report says so instead of printing a meaningless number.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.markup import escape
 
 from rough_uq.sampler import STAGE_SCREENING
-from rough_uq.store import StudyStore
+from rough_uq.store import FORMAT_VERSION, StudyStore
 
-__all__ = ["RATE_TIE", "complexity", "study_report", "render_report"]
+__all__ = [
+    "MIN_ALPHA",
+    "RATE_TIE",
+    "complexity",
+    "derive_runs",
+    "format_run",
+    "is_locked_by_running_process",
+    "load_text",
+    "render_report",
+    "render_runs",
+    "render_screening",
+    "study_report",
+]
 
 RATE_TIE = 0.1
+#: Fitted bias rates at or below this are "not fitted": the bias does not decay (measurably).
+MIN_ALPHA = 0.05
+
+_STOP_REASONS = {
+    "max_level": "the bias needs a grid finer than grid.max_level",
+    "max_cost": "stopped at --max-cost",
+    "bias": "the bias of this level is larger than the tolerance allows",
+}
 
 
-def complexity(alpha: float, beta: float, gamma: float) -> dict[str, Any]:
-    """Cost exponents of MC and MLMC in ``1/eps`` (and whether MLMC has the ``log^2`` factor)."""
-    alpha = max(alpha, 1e-12)
+def complexity(alpha: float | None, beta: float | None, gamma: float | None) -> dict[str, Any]:
+    """Cost exponents of MC and MLMC in ``1/eps`` (None, with the reason, where a rate is not fitted)."""
+    if alpha is None or not math.isfinite(alpha) or alpha <= MIN_ALPHA:
+        return {"mc_exponent": None, "mlmc_exponent": None,
+                "mlmc_regime": "not fitted: the bias does not decay over the screened levels"}
+    if gamma is None or not math.isfinite(gamma):
+        return {"mc_exponent": None, "mlmc_exponent": None, "mlmc_regime": "not fitted: no cost rate gamma"}
     mc = 2.0 + gamma / alpha
+    if beta is None or not math.isfinite(beta):
+        return {"mc_exponent": mc, "mlmc_exponent": None, "mlmc_regime": "not fitted: no variance rate beta"}
     if abs(beta - gamma) < RATE_TIE:
-        mlmc, regime = 2.0, "beta = gamma: eps^-2 log(eps)^2"
+        mlmc, regime = 2.0, "eps^-2 log(eps)^2 (beta = gamma)"
     elif beta > gamma:
-        mlmc, regime = 2.0, "beta > gamma: eps^-2"
+        mlmc, regime = 2.0, "eps^-2 (beta > gamma)"
     else:
         mlmc = 2.0 + (gamma - beta) / alpha
-        regime = f"beta < gamma: eps^-{mlmc:.2f}"
+        regime = f"eps^-{mlmc:.2f} (beta < gamma)"
     return {"mc_exponent": mc, "mlmc_exponent": mlmc, "mlmc_regime": regime}
+
+
+def load_text(load: dict[str, float]) -> str:
+    """The load as it is written in a config, e.g. ``relative: 0.1``."""
+    return ", ".join(f"{kind}: {value:g}" for kind, value in load.items())
 
 
 def _config_summary(config: Any) -> dict[str, Any]:
@@ -77,21 +126,33 @@ def _not_converged(store: StudyStore) -> int:
     return int(sum(np.count_nonzero(~store.read_samples(level=level).is_converged) for level in store.levels()))
 
 
-def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
-    """Everything ``roughuq report`` shows, as a JSON-able dict.
+def is_locked_by_running_process(path: str | Path) -> bool:
+    """Whether a live process holds the study's lock (``<file>.lock`` names its pid, see :mod:`rough_uq.store`)."""
+    lock = Path(str(path) + ".lock")
+    try:
+        pid = int(lock.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return False
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
-    Each run gets ``work_ratio`` = predicted MC cost / MLMC cost (both
-    modelled), and, where an MC run at the same tolerances exists in the file,
-    ``mc_seconds_measured`` and ``measured_ratio``.
+
+def derive_runs(runs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Runs with what is derived from them (copies): MC/MLMC ratios, predicted and measured.
+
+    ``work_ratio``: predicted plain-MC modelled cost over the run's modelled
+    cost. Where a finished MC run at the same tolerances exists,
+    ``mc_seconds_measured`` (its CPU-seconds) and ``measured_ratio`` (over the
+    MLMC run's CPU-seconds). Dropped runs (``roughuq drop``) are left out.
     """
-    screening = store.read_screening()
-    if screening is not None:
-        rates = screening["rates"]
-        screening = dict(screening)
-        screening["complexity"] = [
-            complexity(a, b, rates["gamma"]) for a, b in zip(rates["alpha"], rates["beta"])
-        ]
-    runs = [dict(run) for run in store.read_runs()]
+    runs = [dict(run) for run in runs if run.get("status") != "dropped"]
     measured_mc = {
         tuple(run["tol"]): run["seconds"] for run in runs if run["method"] == "mc" and run.get("status") == "finished"
     }
@@ -102,11 +163,34 @@ def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
         if run["method"] == "mlmc" and tuple(run["tol"]) in measured_mc:
             run["mc_seconds_measured"] = measured_mc[tuple(run["tol"])]
             run["measured_ratio"] = run["mc_seconds_measured"] / run["seconds"] if run["seconds"] > 0 else math.inf
+    return runs
+
+
+def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
+    """Everything ``roughuq report`` shows, as a JSON-able dict (see :func:`derive_runs` for the ratios)."""
+    screening = store.read_screening()
+    if screening is not None:
+        rates = screening["rates"]
+        screening = dict(screening)
+        screening["complexity"] = [
+            complexity(a, b, rates["gamma"]) for a, b in zip(rates["alpha"], rates["beta"])
+        ]
+    stored_runs = store.read_runs()
+    runs = derive_runs(stored_runs)
+    path = getattr(store, "path", "")
+    is_running = bool(path) and is_locked_by_running_process(path)
     warnings = list(screening.get("warnings", [])) if screening else []
     for run in runs:
         warnings += [f"{run['run_id']}: {text}" for text in run.get("warnings", [])]
         if run.get("status") != "finished":
-            warnings.append(f"{run['run_id']}: did not finish (interrupted?); rerun the same command to resume")
+            if is_running:
+                run["status"] = "running"
+            else:
+                run["status"] = "interrupted"
+                warnings.append(
+                    f"{run['run_id']}: interrupted; rerun the same command to resume, or "
+                    f"`roughuq drop {run['run_id']}` to forget it"
+                )
     n_not_converged = _not_converged(store)
     if n_not_converged:
         warnings.append(
@@ -114,22 +198,29 @@ def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
             "their QoIs (from the last iterate) are included"
         )
     return {
-        "path": str(getattr(store, "path", "")),
-        "format_version": getattr(store, "format_version", None),
+        "path": str(path),
+        "format_version": FORMAT_VERSION,
         "code_version": store.code_version,
         "created": store.created,
         "config_hash": store.config_hash,
         "config": _config_summary(config),
         "qoi_names": list(store.qoi_names),
-        "samples": _sample_counts(store, runs),
+        "samples": _sample_counts(store, stored_runs),
         "screening": screening,
         "runs": runs,
+        "dropped_runs": [run["run_id"] for run in stored_runs if run.get("status") == "dropped"],
+        "is_running": is_running,
         "n_not_converged": n_not_converged,
         "warnings": warnings,
     }
 
 
-def _g(value: float, digits: int = 3) -> str:
+# ---------------------------------------------------------------------------
+# Text
+# ---------------------------------------------------------------------------
+
+
+def _g(value: float | None, digits: int = 3) -> str:
     if value is None:
         return "-"
     if isinstance(value, float) and not math.isfinite(value):
@@ -138,60 +229,135 @@ def _g(value: float, digits: int = 3) -> str:
 
 
 def _pm(value: float, error: float) -> str:
-    return f"{_g(value, 5)} ± {_g(error, 2)}"
+    return f"{_g(value, 3)} ± {_g(error, 2)}"
 
 
-def _seconds(value: float | None) -> str:
+def _value_error(value: float, error: float) -> str:
+    """``value ± error`` with the error to two significant digits and the value to the same decimal."""
+    if not (math.isfinite(value) and math.isfinite(error)) or error <= 0:
+        return f"{_g(value, 5)} ± {_g(error, 2)}"
+    decimals = max(0, 1 - math.floor(math.log10(error)))
+    if decimals > 8:
+        return f"{value:.6g} ± {error:.2g}"
+    return f"{value:.{decimals}f} ± {error:.{decimals}f}"
+
+
+def _seconds(value: float | None, unit: str = "s") -> str:
+    """A duration with its unit: ``12.3 s``, ``4.5 min CPU``, ..."""
     if value is None:
         return "-"
-    return f"{value:.3g} s" if value < 120 else f"{value / 60:.3g} min"
+    suffix = "" if unit == "s" else f" {unit}"
+    if value < 120:
+        return f"{value:.3g} s{suffix}"
+    if value < 7200:
+        return f"{value / 60:.3g} min{suffix}"
+    return f"{value / 3600:.3g} h{suffix}"
 
 
-def render_screening(console: Any, screening: dict[str, Any], qoi_names: Sequence[str]) -> None:
-    """The per-level screening table, the rates with their complexity, and the cost predictions."""
+def _unit(label: str) -> str:
+    return "" if label in ("fraction", "") else f" {label}"
+
+
+def _tol_text(names: Sequence[str], tol: Sequence[float]) -> str:
+    return ", ".join(f"{name}={eps:g}" for name, eps in zip(names, tol))
+
+
+def format_run(run: dict[str, Any], qoi_names: Sequence[str], units: dict[str, str]) -> list[str]:
+    """A run as a few lines of at most about 80 characters (one summary line per QoI)."""
+    head = f"{run['method']} {_tol_text(qoi_names, run['tol'])}"
+    status = run.get("status")
+    if status != "finished":
+        if status == "running":
+            return [f"{head}: running (another process is computing it)"]
+        return [f"{head}: interrupted; rerun the same command to resume"]
+    levels = run["levels"]
+    if run["method"] == "mc":
+        where = f"level {levels[-1]}, N {run['n_samples'][-1]}"
+    else:
+        where = f"levels {levels[0]}..{levels[-1]}, N_l {' '.join(str(n) for n in run['n_samples'])}"
+    reason = run["stop_reason"]
+    if run.get("tol_met", reason == "tol_met"):
+        lines = [f"{head}: tolerance met", f"  {where}"]
+    else:
+        lines = [f"{head}: NOT MET ({reason})", f"  {_STOP_REASONS.get(reason, reason)}; {where}"]
+    rmse = run.get("rmse") or [
+        math.hypot(s, b) for s, b in zip(run["stat_error"], run["bias_estimate"])
+    ]
+    has_bias = run.get("is_bias_estimated", True)
+    for q, name in enumerate(qoi_names):
+        relation = "<=" if rmse[q] <= run["tol"][q] * (1 + 1e-12) else ">"
+        bias = f"bias {_g(run['bias_estimate'][q], 2)}" if has_bias else "bias not estimated"
+        lines.append(
+            f"  {name} = {_value_error(run['estimate'][q], run['stat_error'][q])}{_unit(units.get(name, ''))} "
+            f"(RMSE {_g(rmse[q], 2)} {relation} tol {_g(run['tol'][q])}, {bias})"
+        )
+    elapsed = run.get("elapsed")
+    lines.append(
+        f"  time: elapsed {_seconds(elapsed)}; samples {_seconds(run['seconds'], 'CPU')}; "
+        f"modelled cost {_g(run['cost'])} ref-s"
+    )
+    if run["method"] == "mlmc":
+        text = (f"  plain MC: {_seconds(run['mc_seconds_predicted'], 'CPU')} predicted; "
+                f"MC/MLMC {_g(run.get('work_ratio'), 2)} predicted")
+        if "measured_ratio" in run:
+            text += f", {_g(run['measured_ratio'], 2)} measured"
+        lines.append(text)
+    return lines
+
+
+def _table(title: str) -> Any:
+    from rich import box
     from rich.table import Table
 
+    return Table(title=title, box=box.SIMPLE_HEAD, title_justify="left", pad_edge=False)
+
+
+def render_screening(console: Any, screening: dict[str, Any], qoi_names: Sequence[str],
+                     units: dict[str, str] | None = None) -> None:
+    """The per-level screening tables, the rates with their complexity, and the cost predictions."""
+    units = units or {}
     stats = screening["statistics"]
-    table = Table(title="Screening (per level)")
-    for column in ("level", "N"):
+    grids = screening.get("grids")
+    levels = stats["levels"]
+    console.print(f"screened levels {levels[0]}..{levels[-1]}, {min(stats['n_samples'])} samples each",
+                  highlight=False)
+    for q, name in enumerate(qoi_names):
+        unit = units.get(name)
+        table = _table(escape(f"Screening of {name}" + (f" [{unit}]" if unit else "") + " per level"))
+        for column in ("level", "N", "mean Q", "var Q", "mean Y", "var Y", "kurt", "check"):
+            table.add_column(column, justify="right")
+        for i, level in enumerate(stats["levels"]):
+            table.add_row(
+                str(level), str(stats["n_samples"][i]),
+                _g(stats["mean_fine"][i][q], 4), _g(stats["var_fine"][i][q]),
+                _g(stats["mean_diff"][i][q]), _g(stats["var_diff"][i][q]),
+                _g(stats["kurtosis"][i][q]), _g(stats["consistency"][i][q], 2),
+            )
+        console.print(table)
+    table = _table("Time per sample")
+    for column in ("level", "grid", "modelled cost", "measured"):
         table.add_column(column, justify="right")
-    for name in qoi_names:
-        for column in ("mean Q", "var Q", "mean Y", "var Y", "kurt", "check"):
-            table.add_column(f"{column}\n{name}" if len(qoi_names) > 1 else column, justify="right")
-    table.add_column("cost/sample\n(model)", justify="right")
-    table.add_column("wall/sample", justify="right")
     for i, level in enumerate(stats["levels"]):
-        row = [str(level), str(stats["n_samples"][i])]
-        for q in range(len(qoi_names)):
-            row += [
-                _g(stats["mean_fine"][i][q], 4),
-                _g(stats["var_fine"][i][q]),
-                _g(stats["mean_diff"][i][q]),
-                _g(stats["var_diff"][i][q]),
-                _g(stats["kurtosis"][i][q]),
-                _g(stats["consistency"][i][q], 2),
-            ]
-        row += [_seconds(stats["mean_cost"][i]), _seconds(stats["mean_seconds"][i])]
-        table.add_row(*row)
+        grid = str(grids[level]) if grids and level < len(grids) else "-"
+        table.add_row(str(level), grid, f"{_g(stats['mean_cost'][i])} ref-s", _seconds(stats["mean_seconds"][i], "CPU"))
     console.print(table)
 
     rates = screening["rates"]
-    table = Table(title="Rates (|E[Y_l]| ~ 2^-alpha l, V_l ~ 2^-beta l, C_l ~ 2^gamma l)")
-    for column in ("QoI", "alpha", "beta", "gamma", "MC cost", "MLMC cost"):
-        table.add_column(column, justify="right")
+    console.print("Rates: |E[Y_l]| ~ 2^(-alpha l), Var(Y_l) ~ 2^(-beta l), cost ~ 2^(gamma l)")
+    console.print(f"  gamma = {_pm(rates['gamma'], rates['gamma_se'])} (cost)")
     for q, name in enumerate(qoi_names):
         c = screening["complexity"][q]
-        table.add_row(
-            name,
-            _pm(rates["alpha"][q], rates["alpha_se"][q]),
-            _pm(rates["beta"][q], rates["beta_se"][q]),
-            _pm(rates["gamma"], rates["gamma_se"]),
-            f"eps^-{c['mc_exponent']:.2f}",
-            c["mlmc_regime"],
-        )
-    console.print(table)
+        alpha, beta = rates["alpha"][q], rates["beta"][q]
+        alpha_text = _pm(alpha, rates["alpha_se"][q]) if c["mc_exponent"] is not None else f"{_g(alpha, 2)} (no decay)"
+        console.print(f"  {name}: alpha = {alpha_text}, beta = {_pm(beta, rates['beta_se'][q])}")
+        if c["mc_exponent"] is None:
+            console.print(f"    {c['mlmc_regime']}")
+        else:
+            console.print(f"    cost to RMSE eps: MC eps^-{c['mc_exponent']:.2f}, MLMC {c['mlmc_regime']}")
 
-    table = Table(title="What accuracy will cost (predicted from the screening)")
+    if not screening["predictions"]:
+        return
+    table = _table("Predicted from the screening (CPU time of the samples)")
     for column in ("tol", "levels", "N_l", "MLMC", "MC", "MC/MLMC"):
         table.add_column(column, justify="right")
     for p in screening["predictions"]:
@@ -206,58 +372,41 @@ def render_screening(console: Any, screening: dict[str, Any], qoi_names: Sequenc
     console.print(table)
 
 
-def render_runs(console: Any, runs: Sequence[dict[str, Any]], qoi_names: Sequence[str]) -> None:
-    """One row per run (and per QoI): tolerance, estimate ± error, bias, N_l, costs."""
-    from rich.table import Table
-
-    table = Table(title="Estimation runs")
-    for column in ("run", "QoI", "tol", "estimate ± stat. error", "bias", "N_l", "cost (wall)",
-                   "cost (model)", "MC predicted", "MC/MLMC", "stop"):
-        table.add_column(column, justify="right")
+def render_runs(console: Any, runs: Sequence[dict[str, Any]], qoi_names: Sequence[str],
+                units: dict[str, str] | None = None) -> None:
+    """Every run as a block of lines (:func:`format_run`)."""
+    console.print("[bold]Estimation runs[/bold]")
     for run in runs:
-        if run.get("status") != "finished":
-            table.add_row(run["run_id"], "", ", ".join(_g(t) for t in run["tol"]), "(interrupted)")
-            continue
-        for q, name in enumerate(qoi_names):
-            first = q == 0
-            ratio = run.get("measured_ratio", run.get("work_ratio"))
-            table.add_row(
-                run["method"] if first else "",
-                name,
-                _g(run["tol"][q]),
-                _pm(run["estimate"][q], run["stat_error"][q]),
-                _g(run["bias_estimate"][q], 2) if run.get("is_bias_estimated", True) else "-",
-                " ".join(str(n) for n in run["n_samples"]) + f" (L{run['levels'][0]}..{run['levels'][-1]})"
-                if first else "",
-                _seconds(run["seconds"]) if first else "",
-                _seconds(run["cost"]) if first else "",
-                _seconds(run["mc_seconds_predicted"]) if first else "",
-                (_g(ratio) + (" measured" if "measured_ratio" in run else "")) if first and run["method"] == "mlmc" else "",
-                ("" if run["tol_met"] else "NOT MET: ") + run["stop_reason"] if first else "",
-            )
-    console.print(table)
+        for line in format_run(run, qoi_names, units or {}):
+            console.print(escape(line), highlight=False, soft_wrap=False)
 
 
 def render_report(report: dict[str, Any], console: Any) -> None:
     """Print a :func:`study_report` with rich."""
     config = report["config"]
-    console.print(f"[bold]Study[/bold] {report['path']}  (created {report['created']}, roughuq {report['code_version']})")
+    grids = config["grids"]
+    units = config["qoi"]
+    console.print(f"[bold]Study[/bold] {escape(report['path'])} (created {report['created']}, "
+                  f"roughuq {report['code_version']})")
     console.print(
         f"surface L={config['system_size']:g}, k = {config['k_l']:g}/{config['k_r']:g}/{config['k_s']:g}, "
-        f"H={config['hurst']:g}, rms height {config['rms_height']:g}; E*={config['e_star']:g}; load {config['load']}; "
-        f"grids {config['grids']}; seed {config['seed']}"
+        f"H={config['hurst']:g}, rms height {config['rms_height']:g}; E*={config['e_star']:g}; "
+        f"load {load_text(config['load'])}; grids {', '.join(str(n) for n in grids)}; seed {config['seed']}",
+        highlight=False,
     )
-    console.print("QoIs: " + ", ".join(f"{name} [{unit}]" for name, unit in config["qoi"].items()))
+    console.print(escape("QoIs: " + ", ".join(f"{name} [{unit}]" for name, unit in units.items())), highlight=False)
     counts = "; ".join(
         f"{stage}: " + ", ".join(f"L{level} {n}" for level, n in levels.items())
         for stage, levels in report["samples"].items()
     )
-    console.print(f"samples stored: {counts or 'none'}")
+    console.print(f"samples stored: {counts or 'none'}", highlight=False)
     if report["screening"] is not None:
-        render_screening(console, report["screening"], report["qoi_names"])
+        render_screening(console, {**report["screening"], "grids": grids}, report["qoi_names"], units)
     else:
         console.print("no screening yet: run `roughuq screen CONFIG`")
     if report["runs"]:
-        render_runs(console, report["runs"], report["qoi_names"])
+        render_runs(console, report["runs"], report["qoi_names"], units)
+    if report.get("dropped_runs"):
+        console.print(f"dropped runs (their samples stay): {', '.join(report['dropped_runs'])}", highlight=False)
     for text in report["warnings"]:
-        console.print(f"[yellow]warning:[/yellow] {text}")
+        console.print(f"[yellow]warning:[/yellow] {escape(text)}", highlight=False)

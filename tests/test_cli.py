@@ -52,21 +52,21 @@ def test_validate_and_solve_demo(tmp_path):
 
 def test_screen_prints_table_rates_and_predictions(screened):
     result = run("report", "results.h5")
-    for text in ("Screening", "alpha", "beta", "gamma", "What accuracy will cost"):
+    for text in ("Screening", "alpha", "beta", "gamma", "Predicted from the screening"):
         assert text in result.output
     with open_study_readonly(screened / "results.h5") as store:
         assert [store.sample_indices(level=level, stage=0).size for level in range(3)] == [8, 8, 8]
 
 
 def test_mlmc_mc_and_report_json_agree_with_the_file(screened):
-    run("mlmc", "--tol", "1.0", "--workers", "1", "--quiet")
-    run("mlmc", "--tol", "contact_area=0.5", "--workers", "1", "--quiet")
-    mc = json.loads(run("mc", "--tol", "1.0", "--workers", "1", "--json").output)
+    run("mlmc", "--tol", "5", "--workers", "1", "--quiet")
+    run("mlmc", "--tol", "contact_area=4", "--workers", "1", "--quiet")
+    mc = json.loads(run("mc", "--tol", "5", "--workers", "1", "--json").output)
     report = json.loads(run("report", "results.h5", "--json").output)
     runs = {run_["run_id"]: run_ for run_ in report["runs"]}
-    assert set(runs) == {"mlmc_contact_area-1_theta-0.5", "mlmc_contact_area-0.5_theta-0.5",
-                         "mc_contact_area-1_theta-0.5"}
-    assert runs["mc_contact_area-1_theta-0.5"]["estimate"] == mc["estimate"]
+    assert set(runs) == {"mlmc_contact_area-5_theta-0.5", "mlmc_contact_area-4_theta-0.5",
+                         "mc_contact_area-5_theta-0.5"}
+    assert runs["mc_contact_area-5_theta-0.5"]["estimate"] == mc["estimate"]
     with open_study_readonly(screened / "results.h5") as store:
         for run_ in store.read_runs():
             assert runs[run_["run_id"]]["estimate"] == run_["estimate"]
@@ -74,28 +74,28 @@ def test_mlmc_mc_and_report_json_agree_with_the_file(screened):
         for run_ in runs.values():
             stored = sum(store.sample_indices(level=level, stage=run_["stage"]).size for level in store.levels())
             assert stored == sum(run_["n_samples"])
-    assert "measured_ratio" in runs["mlmc_contact_area-1_theta-0.5"]
+    assert "measured_ratio" in runs["mlmc_contact_area-5_theta-0.5"]
     assert report["screening"]["complexity"][0]["mc_exponent"] > 2
     text = run("report", "results.h5").output
     assert "Estimation runs" in text and "mlmc" in text
 
 
 def test_rerunning_a_finished_run_computes_nothing(screened):
-    first = json.loads(run("mlmc", "--tol", "1.0", "--workers", "1", "--json").output)
-    again = json.loads(run("mlmc", "--tol", "1.0", "--workers", "1", "--json").output)
+    first = json.loads(run("mlmc", "--tol", "5", "--workers", "1", "--json").output)
+    again = json.loads(run("mlmc", "--tol", "5", "--workers", "1", "--json").output)
     assert again["n_computed"] == 0
     assert again["estimate"] == first["estimate"]
 
 
 def test_plan_lists_missing_samples_without_computing(screened):
     before = (screened / "results.h5").read_bytes()
-    plan = json.loads(run("mlmc", "--tol", "1.0", "--plan", "--json").output)
-    assert plan["run_id"] == "mlmc_contact_area-1_theta-0.5" and plan["stage"] % 2 == 1
+    plan = json.loads(run("mlmc", "--tol", "5", "--plan", "--json").output)
+    assert plan["run_id"] == "mlmc_contact_area-5_theta-0.5" and plan["stage"] % 2 == 1
     rows = plan["levels"]
     assert [row["level"] for row in rows] == [0, 1, 2]
     assert all(row["n_missing"] > 0 and row["indices"] == [f"0:{row['n_missing']}"] for row in rows)
     assert (screened / "results.h5").read_bytes() == before
-    assert "level 0:" in run("mlmc", "--tol", "1.0", "--plan").output
+    assert "level 0:" in run("mlmc", "--tol", "5", "--plan").output
 
 
 @pytest.mark.parametrize("path", BAD, ids=[p.stem for p in BAD])
@@ -111,7 +111,7 @@ def test_bad_config_is_one_line_and_status_2(path, tmp_path, monkeypatch):
 
 def test_user_errors_are_one_line_and_status_2(screened):
     cases = [
-        ("mlmc", "--tol", "1.0", "--study", "missing.h5"),
+        ("mlmc", "--tol", "5", "--study", "missing.h5"),
         ("mlmc", "--tol", "-1"),
         ("mlmc", "--tol", "area=1"),
         ("report", "missing.h5"),
@@ -145,7 +145,7 @@ def test_estimation_before_screening_is_refused(tmp_path, monkeypatch):
 
 
 def test_stored_samples_are_what_the_cli_reports(screened):
-    record = json.loads(run("mlmc", "--tol", "1.0", "--workers", "1", "--json").output)
+    record = json.loads(run("mlmc", "--tol", "5", "--workers", "1", "--json").output)
     with h5py.File(screened / "results.h5", "r") as f:
         fine = [f[f"samples/level_{level}/fine"][:] for level in record["levels"]]
         stage = [f[f"samples/level_{level}/stage"][:] for level in record["levels"]]
@@ -157,13 +157,13 @@ def test_stored_samples_are_what_the_cli_reports(screened):
 
 def test_shards_in_any_order_merge_to_the_serial_result(screened, tmp_path):
     """The cluster workflow: plan, compute shards (out of order), merge, repeat; then mlmc computes nothing."""
-    reference = json.loads(run("mlmc", "--tol", "1.0", "--study", "results.h5", "--workers", "1", "--json").output)
+    reference = json.loads(run("mlmc", "--tol", "5", "--study", "results.h5", "--workers", "1", "--json").output)
     copy = screened / "cluster.h5"
     config = write_config(screened / "tiny2.yaml", tiny_config())
     run("screen", str(config), "--out", str(copy), "--workers", "1", "--quiet")
     n_rounds = 0
     while True:
-        plan = json.loads(run("mlmc", "--tol", "1.0", "--study", str(copy), "--plan", "--json").output)
+        plan = json.loads(run("mlmc", "--tol", "5", "--study", str(copy), "--plan", "--json").output)
         if plan["n_missing"] == 0:
             break
         n_rounds += 1
@@ -185,7 +185,7 @@ def test_shards_in_any_order_merge_to_the_serial_result(screened, tmp_path):
     # Merging a shard twice never double-counts.
     result = run("merge", shards[0], "--into", str(copy))
     assert "skipped" in result.stderr and "added 0 samples" in result.output
-    final = json.loads(run("mlmc", "--tol", "1.0", "--study", str(copy), "--workers", "1", "--json").output)
+    final = json.loads(run("mlmc", "--tol", "5", "--study", str(copy), "--workers", "1", "--json").output)
     assert final["n_computed"] == 0
     for key in ("estimate", "stat_error", "bias_estimate", "n_samples", "cost"):
         assert final[key] == reference[key], key
@@ -210,14 +210,14 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config())
     rows = json.loads(run("sweep", str(config), "--set", "surface.system_size=1,2", "--fixed-spacing",
-                          "--tol", "3", "--workers", "1", "--json").output)
+                          "--tol", "5", "--workers", "1", "--json").output)
     assert [row["value"] for row in rows] == ["1", "2"]
     assert [row["grid"] for row in rows] == [8, 16]  # n_0 scales with the box: same spacing
     for row in rows:
         assert row["method"] == "mc" and row["levels"] == [0] and not row["is_bias_estimated"]
         assert Path(row["study"]).exists() and Path(row["config"]).exists()
     again = json.loads(run("sweep", str(config), "--set", "surface.system_size=1,2", "--fixed-spacing",
-                           "--tol", "3", "--workers", "1", "--json").output)
+                           "--tol", "5", "--workers", "1", "--json").output)
     assert [row["estimate"] for row in again] == [row["estimate"] for row in rows]
     assert all(row["n_computed"] == 0 for row in again)
     result = run("sweep", str(config), "--set", "surface.system_size=1.1", "--fixed-spacing", expect=2)
@@ -229,18 +229,18 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
 def test_mc_on_a_given_level_needs_no_screening(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config())
-    record = json.loads(run("mc", "--config", str(config), "--level", "1", "--tol", "3", "--workers", "1",
+    record = json.loads(run("mc", "--config", str(config), "--level", "1", "--tol", "5", "--workers", "1",
                             "--json").output)
     assert record["levels"] == [1] and record["run_id"] if "run_id" in record else True
     assert record["stat_error"][0] <= 3 and not record["is_bias_estimated"]
-    result = run("mlmc", "--level", "1", "--tol", "3", expect=2)
+    result = run("mlmc", "--level", "1", "--tol", "5", expect=2)
     assert "--level" in result.stderr
 
 
 def test_report_plots_and_show_write_figures(screened):
     pytest.importorskip("matplotlib")
-    run("mlmc", "--tol", "1.0", "--workers", "1", "--quiet")
-    run("mc", "--tol", "1.0", "--workers", "1", "--quiet")
+    run("mlmc", "--tol", "5", "--workers", "1", "--quiet")
+    run("mc", "--tol", "5", "--workers", "1", "--quiet")
     result = run("report", "results.h5", "--plots", "figures")
     for name in ("rates.png", "cost_vs_tol.png", "samples_per_level.png"):
         path = screened / "figures" / name

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import io
 
-from rough_uq.progress import PlainProgress, Progress, make_progress
+import rough_uq.progress as progress_module
+from rough_uq.progress import ETA_MIN_SAMPLES, ETA_MIN_SECONDS, PlainProgress, Progress, make_progress
 
 
 def test_plain_progress_lines_are_throttled_and_complete():
@@ -25,7 +26,7 @@ def test_plain_progress_lines_are_throttled_and_complete():
     assert plan_lines == ["[mlmc] plan: samples per level L0: 10, L1: 4",
                           "[mlmc] plan: samples per level L0: 40, L1: 4, L2: 2"]
     level_lines = [line for line in lines if "level 1:" in line]
-    assert level_lines[0].startswith("[mlmc] level 1: 1/4 samples") and "eta" in level_lines[0]
+    assert level_lines[0].startswith("[mlmc] level 1: 1/4 samples") and "eta" not in level_lines[0]
     assert level_lines[-1].startswith("[mlmc] level 1: 4/4 samples")  # completion is always printed
     assert len(level_lines) == 2
     assert "[mlmc] hello" in lines and lines[-1].startswith("[mlmc] done in")
@@ -34,3 +35,60 @@ def test_plain_progress_lines_are_throttled_and_complete():
 def test_make_progress_picks_plain_for_pipes_and_nothing_when_quiet():
     assert isinstance(make_progress(stream=io.StringIO()), PlainProgress)
     assert type(make_progress(is_quiet=True)) is Progress
+
+
+def test_no_eta_until_the_rate_means_something(monkeypatch):
+    """The first sample carries the start-up: no ETA from it, a right one from the samples after it."""
+    clock = [1000.0]
+    monkeypatch.setattr(progress_module.time, "monotonic", lambda: clock[0])
+    stream = io.StringIO()
+    progress = PlainProgress(stream, interval=0)
+    progress.start("mlmc")
+    progress.plan([0], [100], [0])
+    clock[0] += 30.0  # start-up: 30 s before the first sample
+    progress.advance(0, 1)
+    for _ in range(ETA_MIN_SAMPLES):
+        clock[0] += 0.1  # then 0.1 s per sample: too soon for an ETA
+        progress.advance(0, 1)
+    lines = [line for line in stream.getvalue().splitlines() if "level 0:" in line]
+    assert lines and not any("eta" in line for line in lines)
+    while clock[0] < 1030.0 + ETA_MIN_SECONDS + 1:
+        clock[0] += 0.1
+        progress.advance(0, 1)
+    last = stream.getvalue().splitlines()[-1]
+    done = int(last.split("level 0: ")[1].split("/")[0])
+    assert "eta" in last
+    eta = last.rsplit("eta ", 1)[1]
+    assert eta == progress_module._duration((100 - done) * 0.1)  # from the steady rate, not the start-up
+
+
+def test_interrupted_task_does_not_say_done():
+    stream = io.StringIO()
+    progress = PlainProgress(stream)
+    progress.start("mlmc")
+    progress.stop(is_complete=False)
+    assert "done" not in stream.getvalue() and "stopped after" in stream.getvalue().splitlines()[-1]
+
+
+def test_rich_eta_column_waits_for_a_steady_rate(monkeypatch):
+    from rich.progress import Progress as Bars
+
+    clock = [0.0]
+    monkeypatch.setattr(progress_module.time, "monotonic", lambda: clock[0])
+    column = progress_module._EtaColumn()
+    bars = Bars(column, auto_refresh=False, disable=True)
+    task_id = bars.add_task("level 0", total=100, completed=0, done_at_start=0)
+    task = bars.tasks[0]
+    assert str(column.render(task)) == ""
+    clock[0] = 30.0  # the first sample carries 30 s of start-up
+    bars.update(task_id, completed=1)
+    assert str(column.render(task)) == ""
+    for n in range(2, 2 + ETA_MIN_SAMPLES):
+        clock[0] += 0.1
+        bars.update(task_id, completed=n)
+        assert str(column.render(task)) == ""  # too few samples / seconds yet
+    while clock[0] < 30.0 + ETA_MIN_SECONDS + 0.5:
+        clock[0] += 0.1
+        bars.update(task_id, completed=task.completed + 1)
+    text = str(column.render(task))
+    assert text == "eta " + progress_module._duration((100 - task.completed) * 0.1)

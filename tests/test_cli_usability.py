@@ -1,0 +1,400 @@
+"""What a new user trips over, through the real CLI: exit codes, one-line errors, 80-column results."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from rough_uq.cli import EXIT_TOL_NOT_MET, main
+from rough_uq.store import FORMAT_VERSION, open_study, open_study_readonly
+from tests.study_configs import tiny_config, write_config
+
+ROOT = Path(__file__).resolve().parent.parent
+NARROW = {"COLUMNS": "80"}
+
+
+def run(*args: str, expect: int = 0, env: dict[str, str] | None = None) -> object:
+    result = CliRunner().invoke(main, list(args), env=env)
+    assert result.exit_code == expect, (result.output, result.exception)
+    return result
+
+
+def one_error_line(result: object) -> str:
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    return lines[0]
+
+
+@pytest.fixture
+def screened(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    run("screen", str(config), "--workers", "1", "--quiet")
+    return tmp_path
+
+
+def _reachable_limit(stderr: str) -> float:
+    match = re.search(r"smallest reachable tolerance is about contact_area=([0-9.e+-]+)", stderr)
+    assert match, stderr
+    return float(match.group(1))
+
+
+# -- exit codes and refusals ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("tol", ["1e-300", "1e-3", "0.5"])
+@pytest.mark.parametrize("plan", [False, True], ids=["run", "plan"])
+def test_unreachable_tolerance_is_refused_before_any_sample(screened, tol, plan):
+    before = (screened / "results.h5").read_bytes()
+    args = ["mlmc", "--tol", tol, "--workers", "1"] + (["--plan"] if plan else [])
+    result = run(*args, expect=2)
+    line = one_error_line(result)
+    assert "cannot be reached" in line and "grid.max_level = 2" in line
+    limit = _reachable_limit(line)
+    assert limit > float(tol)
+    assert (screened / "results.h5").read_bytes() == before  # no record, no sample
+    # The named tolerance is accepted (the forecast lets it start).
+    assert "cannot be reached" not in run("mlmc", "--tol", f"{limit:g}", "--plan").output
+
+
+def test_run_that_misses_its_tolerance_exits_3_and_says_what_to_change(screened):
+    """tol 3 passes the screening's forecast, but the run's own bias estimate on level 2 is too large."""
+    result = CliRunner().invoke(main, ["mlmc", "--tol", "3", "--workers", "1"])
+    assert result.exit_code == EXIT_TOL_NOT_MET != 2, result.output
+    assert "NOT MET (max_level)" in result.stdout and "RMSE" in result.stdout
+    _assert_fits(result.stdout)
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("tolerance not met (max_level)") and "grid.max_level" in last and "--tol" in last
+    record = json.loads(run("report", "results.h5", "--json").output)["runs"][0]
+    assert record["status"] == "finished" and not record["tol_met"]  # the result is kept
+
+
+def test_max_cost_refuses_a_plan_beyond_it_and_stops_a_run_at_it(screened):
+    result = run("mlmc", "--tol", "5", "--max-cost", "1e-6", "--workers", "1", expect=2)
+    assert "--max-cost" in one_error_line(result)
+    forecast = re.search(r"modelled cost ([0-9.e+-]+) ref-s",
+                         run("mlmc", "--tol", "5", "--workers", "1").stderr)
+    assert forecast and float(forecast.group(1)) > 0
+
+
+def test_a_plan_beyond_any_budget_is_refused(screened, monkeypatch):
+    import rough_uq.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "DEFAULT_COST_CEILING", 1e-9)
+    result = run("mc", "--tol", "5", "--workers", "1", expect=2)
+    assert "ceiling" in one_error_line(result) and "--max-cost" in result.stderr
+    run("mc", "--tol", "5", "--workers", "1", "--max-cost", "1e6", "--quiet")  # an explicit budget allows it
+
+
+def test_forecast_is_printed_before_the_first_sample_and_stored(screened):
+    result = run("mlmc", "--tol", "5", "--workers", "1")
+    lines = result.stderr.splitlines()
+    first_progress = next(i for i, line in enumerate(lines) if line.startswith("[mlmc"))
+    forecast = [i for i, line in enumerate(lines) if line.startswith("forecast:")]
+    assert forecast and max(forecast) < first_progress
+    text = "\n".join(lines[i] for i in forecast)
+    assert "levels 0..2" in text and "N_l" in text and "MiB" in text and "elapsed" in text
+    record = json.loads(run("report", "results.h5", "--json").output)["runs"][0]
+    assert record["forecast"]["finest_level"] == 2 and len(record["forecast"]["n_samples"]) == 3
+
+
+@pytest.mark.parametrize("command", ["report", "show"])
+def test_unwritable_outputs_are_one_error_line(screened, command):
+    if command == "report":
+        pytest.importorskip("matplotlib")
+    blocker = screened / "a-file"
+    blocker.write_text("")
+    if command == "report":
+        args = ("report", "results.h5", "--plots", str(blocker / "figures"))
+    else:
+        args = ("show", "--level", "0", "--index", "0", "--out", str(blocker / "fig.png"))
+    line = one_error_line(run(*args, expect=2))
+    assert "cannot write" in line and "a-file" in line
+    if os.geteuid() != 0:  # root ignores permissions
+        locked = screened / "locked"
+        locked.mkdir(mode=0o500)
+        args = (args[:-1] + (str(locked / "sub" / "fig.png"),)) if command == "show" else \
+            ("report", "results.h5", "--plots", str(locked / "figures"))
+        assert "cannot write" in one_error_line(run(*args, expect=2))
+
+
+def test_repeated_tolerance_and_shards_without_plan_are_refused(screened):
+    line = one_error_line(run("mlmc", "--tol", "contact_area=5", "--tol", "contact_area=4", expect=2))
+    assert "already given" in line
+    line = one_error_line(run("mlmc", "--tol", "5", "--shards", "3", expect=2))
+    assert "--shards" in line and "--plan" in line
+
+
+def test_interrupted_run_does_not_say_done(screened, monkeypatch):
+    """Ctrl-C during a run: status 130, 'stopped after', never 'done' just before 'interrupted'."""
+    import rough_uq.cli as cli
+    from rough_uq.executor import SerialExecutor
+
+    class Interrupting(SerialExecutor):
+        n_workers = 1
+
+        def run(self, model, items):
+            yield from super().run(model, items[:1])
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_executor", lambda *args: Interrupting())
+    result = CliRunner().invoke(main, ["mlmc", "--tol", "5"])
+    assert result.exit_code == 130
+    assert "done in" not in result.stderr and "stopped after" in result.stderr
+    assert result.stderr.strip().splitlines()[-1].startswith("interrupted:")
+
+
+# -- readable results ------------------------------------------------------------------------------
+
+
+def _assert_fits(text: str, width: int = 80) -> None:
+    for line in text.splitlines():
+        assert len(line) <= width, line
+    assert "…" not in text
+
+
+def test_results_are_readable_at_80_columns_with_total_rmse(screened):
+    run("mc", "--tol", "5", "--workers", "1", "--quiet", env=NARROW)
+    result = run("mlmc", "--tol", "5", "--workers", "1", "--quiet", env=NARROW)
+    _assert_fits(result.stdout)
+    record = json.loads(run("report", "results.h5", "--json").output)
+    mlmc = next(r for r in record["runs"] if r["method"] == "mlmc")
+    summary = re.compile(r"^  contact_area = ([0-9.]+) ± ([0-9.]+) % \(RMSE ([0-9.]+) <= tol 5, bias ([0-9.]+)\)$",
+                         re.M)
+    match = summary.search(result.stdout)
+    assert match, result.stdout
+    assert float(match.group(1)) == pytest.approx(mlmc["estimate"][0], abs=float(match.group(2)))
+    assert float(match.group(3)) == pytest.approx(np.hypot(mlmc["stat_error"][0], mlmc["bias_estimate"][0]),
+                                                  rel=0.05)
+    report = run("report", "results.h5", env=NARROW).stdout
+    _assert_fits(report)
+    for text in ("Screening of contact_area", "alpha", "Predicted from the screening", "Estimation runs"):
+        assert text in report
+    assert len(summary.findall(report)) == 2  # the mlmc and the mc run
+
+
+def test_each_kind_of_time_has_one_name_and_unit(screened):
+    run("mc", "--tol", "5", "--workers", "1", "--quiet")
+    output = run("mlmc", "--tol", "5", "--workers", "1").stdout
+    report = run("report", "results.h5", env=NARROW).stdout
+    for text in (output, report):
+        time_line = next(line for line in text.splitlines() if line.strip().startswith("time:"))
+        assert re.search(r"elapsed [0-9.]+ s;", time_line)
+        assert re.search(r"samples [0-9.]+ (s|min|h) CPU;", time_line)
+        assert re.search(r"modelled cost [0-9.e+-]+ ref-s$", time_line)
+        assert "cost (wall)" not in text
+    assert "ref-s" in report and "CPU" in report
+    record = json.loads(run("report", "results.h5", "--json").output)
+    for run_ in record["runs"]:
+        assert run_["elapsed"] > 0 and run_["seconds"] > 0 and run_["cost"] > 0
+
+
+def test_mc_over_mlmc_is_the_same_in_mlmc_and_report(screened):
+    output = run("mlmc", "--tol", "5", "--workers", "1").stdout
+    mc_line = next(line for line in output.splitlines() if "plain MC:" in line)
+    assert "predicted" in mc_line and "-" not in mc_line.split("MC/MLMC")[1]
+    assert mc_line in run("report", "results.h5").stdout
+    run("mc", "--tol", "5", "--workers", "1", "--quiet")
+    report = run("report", "results.h5").stdout
+    assert re.search(r"MC/MLMC [0-9.]+ predicted, [0-9.]+ measured", report)
+    assert re.search(r"MC/MLMC [0-9.]+ predicted, [0-9.]+ measured",
+                     run("mlmc", "--tol", "5", "--workers", "1").stdout)
+
+
+def test_predicted_mc_pools_the_screening_variance(screened):
+    """The run has few samples on its finest level; the MC prediction pools them with the screening's."""
+    record = json.loads(run("mlmc", "--tol", "5", "--workers", "1", "--json").output)
+    n_run = record["n_samples"][-1]
+    with open_study_readonly(screened / "results.h5") as store:
+        fine_run = store.read_samples(level=2, stage=record["stage"]).fine[:n_run, 0]
+        fine_screen = store.read_samples(level=2, stage=0).fine[:, 0]
+    assert fine_screen.size > n_run
+    budget = (1 - record["theta"]) * 5.0**2
+    pooled = ((n_run - 1) * np.var(fine_run, ddof=1) + (fine_screen.size - 1) * np.var(fine_screen, ddof=1)) / (
+        n_run + fine_screen.size - 2)
+    n_mc = max(np.ceil(pooled / budget), 1)
+    fine_solve = record["statistics"]["mean_cost"][-1] / (1 + 2.0 ** -record["rates"]["gamma"])
+    assert record["mc_cost"] == pytest.approx(n_mc * fine_solve, rel=1e-9)
+
+
+def test_report_prints_the_load_as_written_and_the_format_version(screened):
+    report = run("report", "results.h5").stdout
+    assert "load relative: 0.2;" in report and "{'relative'" not in report
+    data = json.loads(run("report", "results.h5", "--json").output)
+    assert data["format_version"] == FORMAT_VERSION == 1
+
+
+def test_unfittable_rates_are_said_plainly(tmp_path, monkeypatch):
+    """Clusters on very coarse grids: the count grows with the grid, the bias does not decay."""
+    monkeypatch.chdir(tmp_path)
+    surface = {"system_size": 1.0, "wavenumbers": {"k_l": 1, "k_r": 2, "k_s": 32}, "hurst": 0.8,
+               "rms_height": 1.0}
+    config = write_config(tmp_path / "c.yaml", tiny_config(qoi={"clusters": {"tol": 1.0}}, surface=surface))
+    result = run("screen", str(config), "--workers", "1", env=NARROW)
+    _assert_fits(result.stdout)
+    assert "not fitted: the bias does not decay" in result.stdout
+    assert "eps^-" not in result.stdout  # no meaningless exponent
+    warning = next(line for line in result.stderr.splitlines() if "no cost prediction" in line)
+    assert "clusters (alpha = " in warning and "[" not in warning
+    line = one_error_line(run("mlmc", "--workers", "1", expect=2))
+    assert "does not decrease" in line and "[" not in line and "mc --level" in line
+    result = run("mc", "--level", "1", "--tol", "2", "--workers", "1")  # as the message suggests
+    assert "forecast: none" in result.stderr and "bias not estimated" in result.stdout
+
+
+def test_screen_warns_about_non_converged_solves_where_they_happen(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "t.yaml", tiny_config(solver={"tol": 1e-8, "max_iter": 1}))
+    result = run("screen", str(config), "--workers", "1", "--quiet")
+    assert re.search(r"warning: [0-9]+ screening samples have a solve that did not converge", result.stderr)
+    assert "solver.max_iter" in result.stderr
+
+
+# -- commands that behave as documented -----------------------------------------------------------
+
+
+def test_validate_accepts_several_files_and_fails_if_any_is_bad(tmp_path):
+    shipped = sorted(str(path) for path in (ROOT / "configs").glob("*.yaml"))
+    assert len(shipped) >= 2
+    output = run("validate", *shipped).stdout
+    assert output.count(": valid") == len(shipped)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("schema_version: 1\nseed: -1\n")
+    result = run("validate", shipped[0], str(bad), expect=2)
+    assert ": valid" in result.stdout and result.stderr.startswith("error: ")
+
+
+def test_usage_and_help_say_what_the_commands_take():
+    assert "[CONFIG]" in run("solve", "--help").output
+    mlmc_help = run("mlmc", "--help").output
+    assert "--level" not in mlmc_help and "--max-cost" in mlmc_help
+    assert "--level" in run("mc", "--help").output
+    top = run("--help").output
+    for code in ("0 done", "2 nothing computed", "3 mlmc/mc finished without", "130", "143"):
+        assert code in " ".join(top.split()), code
+
+
+def test_show_takes_a_run_id_and_refuses_samples_not_stored(screened):
+    pytest.importorskip("matplotlib")
+    record = json.loads(run("mlmc", "--tol", "5", "--workers", "1", "--json").output)
+    key = record["run_id"]
+    run("show", "--stage", key, "--level", "2", "--index", "0", "--out", "run.png")
+    assert (screened / "run.png").stat().st_size > 1000
+    n = record["n_samples"][2]
+    line = one_error_line(run("show", "--stage", key, "--level", "2", "--index", str(n + 5), "--out", "x.png",
+                              expect=2))
+    assert "--index" in line and f"0:{n}" in line
+    line = one_error_line(run("show", "--level", "0", "--index", "99", "--out", "x.png", expect=2))
+    assert "0:8" in line
+    line = one_error_line(run("show", "--stage", "nonsense", "--level", "0", "--index", "0", "--out", "x.png",
+                              expect=2))
+    assert key in line
+    assert not (screened / "x.png").exists()
+
+
+def test_report_says_running_while_another_process_holds_the_study(screened):
+    from rough_uq.config import config_hash, load_config, resolved_yaml
+
+    config = load_config(screened / "tiny.yaml")
+    with open_study(screened / "results.h5", config_text=resolved_yaml(config), config_hash=config_hash(config),
+                    qoi_names=config.qoi_names, create=False, code_version="test") as store:
+        store.write_run("mlmc_contact_area-9_theta-0.5", {"method": "mlmc", "stage": 7, "status": "running",
+                                                          "tol": [9.0]})
+        text = run("report", "results.h5").stdout
+        assert "running (another process is computing it)" in text and "interrupted" not in text
+    text = run("report", "results.h5").stdout
+    assert "interrupted" in text and "roughuq drop mlmc_contact_area-9_theta-0.5" in text
+
+
+def test_drop_forgets_a_run_and_keeps_its_samples(screened):
+    run("mlmc", "--tol", "5", "--workers", "1", "--quiet")
+    key = "mlmc_contact_area-5_theta-0.5"
+    before = json.loads(run("report", "results.h5", "--json").output)
+    assert "dropped" in run("drop", key).stdout
+    after = json.loads(run("report", "results.h5", "--json").output)
+    assert after["runs"] == [] and after["dropped_runs"] == [key]
+    assert after["samples"] == before["samples"]
+    assert key not in " ".join(after["warnings"])
+    assert "RUN_ID" in one_error_line(run("drop", key, expect=2))
+    again = json.loads(run("mlmc", "--tol", "5", "--workers", "1", "--json").output)
+    assert again["n_computed"] == 0  # the same command brings it back from the kept samples
+
+
+def test_screening_again_with_more_levels_extends_it_and_the_report_says_so(screened):
+    """The README: screening settings may change; the screening record says what was screened."""
+    more = write_config(screened / "more.yaml", tiny_config(screening={"levels": 3, "samples": 12}))
+    run("screen", str(more), "--workers", "1", "--quiet")
+    data = json.loads(run("report", "results.h5", "--json").output)
+    assert data["screening"]["statistics"]["n_samples"] == [12, 12, 12]
+    assert "screened levels 0..2, 12 samples each" in run("report", "results.h5").stdout
+    readme = (ROOT / "README.md").read_text().lower()
+    assert "screening again with more levels or samples extends" in " ".join(readme.split())
+
+
+def test_quickstart_is_in_the_small_slope_regime_at_the_classic_relative_load():
+    from rough_uq.config import load_config
+    from rough_uq.pipeline import build_model
+
+    quick = load_config(ROOT / "configs" / "quickstart.yaml")
+    classic = load_config(ROOT / "configs" / "classic_area.yaml")
+    model = build_model(quick)
+    assert model.spectrum.rms_slope < 0.2
+    assert (quick.load.kind, quick.load.value) == (classic.load.kind, classic.load.value) == ("relative", 0.1)
+    assert quick.surface.hurst == classic.surface.hurst
+    assert model.mean_pressure < 0.05 * quick.material.e_star
+    text = (ROOT / "configs" / "quickstart.yaml").read_text()
+    assert yaml.safe_load(text)["surface"]["rms_height"] == quick.surface.rms_height
+
+
+@pytest.mark.slow
+def test_first_run_announces_compiling_and_keeps_it_out_of_the_solve_time(tmp_path):
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": str(ROOT),
+           "NUMBA_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "rough_uq.cli", "solve"]
+    first = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, check=True)
+    assert "compiling kernels (first run only)" in first.stderr
+    compiled = float(re.search(r"kernels compiled in ([0-9.]+) s", first.stderr).group(1))
+    solve = float(re.search(r"iterations \(converged\), ([0-9.]+) s", first.stdout).group(1))
+    assert solve < compiled
+    second = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, check=True)
+    assert "compiling" not in second.stderr
+
+
+@pytest.mark.slow
+def test_kill_9_leaves_no_semaphore_warnings(tmp_path):
+    """kill -9 of a pooled run: its resource tracker cleans up silently; the resumed run then finishes."""
+    import signal
+    import time
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_NUM_THREADS": "1"}
+    config = write_config(tmp_path / "s.yaml", tiny_config(
+        surface={"system_size": 1.0, "wavenumbers": {"k_l": 1, "k_r": 2, "k_s": 16}, "hurst": 0.8,
+                 "rms_height": 1.0},
+        grid={"coarsest": 16, "max_level": 2}, qoi={"mean_gap": {}}))
+    command = [sys.executable, "-m", "rough_uq.cli"]
+    subprocess.run(command + ["screen", str(config), "-q", "--workers", "1"], cwd=tmp_path, env=env, check=True)
+    log = tmp_path / "killed.log"
+    with log.open("w") as stream:
+        process = subprocess.Popen(command + ["mlmc", "--tol", "0.003", "--workers", "2"], cwd=tmp_path, env=env,
+                                   stdout=stream, stderr=stream)
+        deadline = time.monotonic() + 120
+        while not re.search(r"level [0-9]+: [0-9]+/", log.read_text()) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+    time.sleep(3)  # the orphaned resource tracker notices and cleans up
+    assert "leaked semaphore" not in log.read_text()
+    resumed = subprocess.run(command + ["mlmc", "--tol", "0.003", "--workers", "2"], cwd=tmp_path, env=env,
+                             capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "leaked" not in resumed.stderr and "tolerance met" in resumed.stdout
