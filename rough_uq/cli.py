@@ -641,7 +641,7 @@ def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
             raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")
         stage_id = _stage_of(study, stage)
         stored = study.store.sample_indices(level=level, stage=stage_id)
-        model = study.model
+        model = study.model_for(level)  # the FFT plans the sample was computed with
     if index not in set(int(i) for i in stored):
         have = f"stored: {' '.join(_ranges(sorted(int(i) for i in stored)))}" if stored.size else "none stored"
         raise InvalidParameterError("--index", index, f"a sample of stage {stage} on level {level} ({have})")
