@@ -108,13 +108,16 @@ def test_the_once_diverging_problem_converges_preconditioned():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("block", range(4))
-def test_random_problems_at_1024(block):
-    for seed in range(1000 + 5 * block, 1000 + 5 * (block + 1)):
-        assert_agrees_with_plain(*random_problem(seed, grids=(1024,)), threads=2)
+@pytest.mark.timeout(3600)
+@pytest.mark.parametrize("seed", range(1000, 1020))
+def test_random_problems_at_1024(seed):
+    # Plain Polonsky-Keer needs thousands of iterations on some of these
+    # (spectra up to the Nyquist wave number): minutes per problem.
+    assert_agrees_with_plain(*random_problem(seed, grids=(1024,)), threads=2)
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(3600)
 @pytest.mark.parametrize(
     ("size", "n", "seed"),
     [(2, 2048, s) for s in range(6)] + [(3, 3072, s) for s in range(3)],
