@@ -6,12 +6,21 @@ For each grid ``n`` one surface of the classic study (``L = 2``,
 ``p_mean = 0.1 E* sqrt(m2)``. Everything below is measured side by side in one
 run, so the ratios are meaningful even where the absolute times are not:
 
+* FFT floor: the time of one double-precision real FFT pair (rfft2 + irfft2,
+  median over batches) of every implementation at hand on the same grid and
+  threads: pyFFTW with estimated, measured and patient plans (patient up to
+  2048^2), ``scipy.fft`` and ``numpy.fft``; the fastest is the floor, and the
+  solver's time per iteration is printed over it (target: at most 2.0 at
+  1024^2 and 2048^2). The solver is timed with measured plans from wisdom, as
+  studies use it (``rough_uq.fft_wisdom``), and once with ``FFTW_ESTIMATE``
+  plans for comparison; the process's peak resident memory is printed after
+  each grid;
 * solver: iterations, seconds per solve and per iteration, the time of one real
   FFT pair (forward + inverse, double precision, the same cached plan and
   threads the solver uses, median over batches) and the ratios (s/iteration) /
   (FFT pair) and (s/solve) / (FFT pair), for the preconditioned solver (the
-  default) and for plain Polonsky-Keer (``precondition=False``) on the same
-  surface. A plain iteration costs one double FFT pair and a single-precision
+  default) and for plain Polonsky-Keer (``precondition=False``, up to
+  ``--plain-max``) on the same surface. A plain iteration costs one double FFT pair and a single-precision
   forward transform plus fused passes; a preconditioned one does one and a
   half single-precision pairs (a single pair takes about half the time of a
   double pair at 1024^2, three quarters at 256^2 and 512^2, nine tenths at
@@ -36,9 +45,11 @@ Timings exclude one-off costs: numba compilation (a small warm-up solve) and
 FFT planning (the plan is built by the FFT timing before the first solve).
 
     python scripts/bench_solver.py [--sizes 256,512,1024] [--threads 1] [--tol 1e-8]
-                                   [--seed 1] [--repeats 1] [--no-tamaas] [--json FILE]
+                                   [--seed 1] [--repeats 1] [--no-tamaas] [--tamaas-max 2048]
+                                   [--plain-max 2048] [--json FILE]
 
-2048 is opt-in (``--sizes 256,512,1024,2048``); with Tamaas it takes minutes.
+2048 and 4096 are opt-in (``--sizes 256,512,1024,2048,4096``); with Tamaas
+(up to ``--tamaas-max``) it takes many minutes.
 """
 
 from __future__ import annotations
