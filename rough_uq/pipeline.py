@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from rough_uq import __version__
-from rough_uq.config import StudyConfig, config_from_yaml_text, config_hash, resolved_yaml
+from rough_uq.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
 from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
 from rough_uq.estimator import BatchDone, Finished, PlanUpdated, iter_mc, iter_mlmc
 from rough_uq.executor import Executor, SerialExecutor
@@ -110,7 +110,7 @@ def build_model(config: StudyConfig) -> ContactModel:
     else:
         mean_pressure = config.load.value
     scales = []
-    connectivity, critical_pressure = 4, None
+    connectivity, critical_pressure, area_estimator = 4, None, "corrected"
     for name, settings in config.qoi.items():
         scale = 1.0
         if getattr(settings, "unit", None) == "percent":
@@ -121,6 +121,8 @@ def build_model(config: StudyConfig) -> ContactModel:
             connectivity = settings.connectivity
         if name == "area_above":
             critical_pressure = settings.critical_pressure
+        if name == "contact_area":
+            area_estimator = settings.estimator
         scales.append(scale)
     return ContactModel(
         spectrum=spectrum,
@@ -137,6 +139,7 @@ def build_model(config: StudyConfig) -> ContactModel:
         threads=config.solver.threads,
         connectivity=connectivity,
         critical_pressure=critical_pressure,
+        area_estimator=area_estimator,
     )
 
 
@@ -181,7 +184,7 @@ def create_study(config: StudyConfig, path: str | Path | None = None) -> Study:
 
 def _stored_config(store: StudyStore) -> StudyConfig:
     path = getattr(store, "path", "study")
-    return config_from_yaml_text(store.config_text, source=f"{path} (stored config)")
+    return config_from_stored_text(store.config_text, source=f"{path} (stored config)")
 
 
 def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, writable: bool = True) -> Study:

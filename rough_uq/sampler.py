@@ -181,6 +181,8 @@ class ContactModel:
         Cluster connectivity.
     critical_pressure : float or None
         Threshold of ``area_above``.
+    area_estimator : {"corrected", "nodes"}
+        Estimator of ``contact_area`` (:func:`~rough_uq.qoi.contact_area`).
     """
 
     spectrum: SurfaceSpectrum
@@ -197,6 +199,7 @@ class ContactModel:
     threads: int = 1
     connectivity: int = 4
     critical_pressure: float | None = None
+    area_estimator: str = "corrected"
 
     def grid(self, level: int) -> int:
         """Nodes per side of ``level``."""
@@ -288,6 +291,7 @@ def _qoi(model: ContactModel, solution: ContactSolution) -> np.ndarray:
         gap=solution.gap,
         connectivity=model.connectivity,
         critical_pressure=model.critical_pressure,
+        area_estimator=model.area_estimator,
     )
     return values * np.asarray(model.qoi_scales)
 
