@@ -665,6 +665,12 @@ class EstimationConfig(_Section):
         allowed="integer >= 1",
         ge=1,
     )
+    richardson: bool = _field(
+        False,
+        description="MLMC: Richardson-extrapolate the finest level, w = 2^alpha / (2^alpha - 1), where the "
+        "level means decay with stable ratios; refused with a message (plain MLMC) where they do not",
+        allowed="true or false",
+    )
 
 
 class OutputConfig(_Section):

@@ -70,6 +70,26 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    (``"max_cost"``). ``tol_met`` is then ``sum_l V_l/N_l + bias^2 <= eps^2``
    for every QoI, with the sample variances and the remaining bias.
 
+Richardson extrapolation (``richardson=True``)
+-----------------------------------------------
+The estimate becomes ``sum_{l<L} mean(Y_l) + w mean(Y_L)``,
+``w = 2^alpha / (2^alpha - 1)`` with the driver's ``alpha`` (see
+:mod:`rough_uq.screening` for the formulas and the remaining-bias estimate).
+While it is *active*, the allocation gives the finest level the variance
+``w^2 V_L`` and step 3 tests the extrapolated estimate's remaining bias
+(:func:`~rough_uq.screening.richardson_bias`) instead of the plain one. It is
+active from the start if the screening's plan is extrapolated
+(:func:`~rough_uq.screening.plan` with ``richardson``), else *pending* until
+the run has ``RICHARDSON_MIN_LEVELS`` levels ``>= 1``. Each time the samples
+are complete the run's own level means (standard errors from the pooled
+``V_l``) are checked with :func:`~rough_uq.screening.ratio_instability`; a
+failed check *refuses* the extrapolation for the rest of the run (a
+:class:`RichardsonRefused` event, ``EstimationResult.richardson =
+"refused"`` with the reason, an :class:`EstimationWarning`) and the run goes
+on as plain MLMC, adding levels if the plain bias test asks for them. So
+does a screening whose means fail the check (two levels ``>= 1`` suffice
+there), and a run that ends while still pending.
+
 Fitted rates are floored at 0.5 (as in Giles' code) so that extrapolation
 stays sane, and when a rate cannot be fitted (fewer than two usable levels,
 e.g. all ``E[Y_l] = 0``) the screening rates or 0.5 are used instead.
@@ -97,6 +117,7 @@ import numpy as np
 from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.screening import (
     KURTOSIS_LIMIT,
+    RICHARDSON_MIN_LEVELS,
     EstimationWarning,
     LevelStatistics,
     Plan,
@@ -116,7 +137,10 @@ from rough_uq.screening import (
     level_statistics,
     optimal_samples,
     plan,
+    ratio_instability,
     remaining_bias,
+    richardson_bias,
+    richardson_weight,
 )
 
 __all__ = [
@@ -129,6 +153,7 @@ __all__ = [
     "Plan",
     "PlanUpdated",
     "Rates",
+    "RichardsonRefused",
     "Sampler",
     "diagnose",
     "fit_rates",
@@ -173,6 +198,22 @@ class PlanUpdated:
     levels: np.ndarray
     n_planned: np.ndarray
     n_done: np.ndarray
+    reason: str
+
+
+@dataclass(frozen=True, eq=False)
+class RichardsonRefused:
+    """Richardson extrapolation was refused; the run continues as plain MLMC.
+
+    Attributes
+    ----------
+    levels : ndarray of int, shape (n_levels,)
+        Levels of the hierarchy when it was refused.
+    reason : str
+        Which check failed (:func:`~rough_uq.screening.ratio_instability`).
+    """
+
+    levels: np.ndarray
     reason: str
 
 
@@ -256,6 +297,12 @@ class EstimationResult:
     is_bias_estimated : bool
         False for MC without a ``bias`` (``bias_estimate`` is then 0 and
         ``tol_met`` concerns the statistical error only).
+    richardson : str
+        ``"off"`` (not asked for), ``"applied"`` (``estimate``, ``stat_error``
+        and ``bias_estimate`` are those of the extrapolated estimate) or
+        ``"refused"`` (plain MLMC; ``richardson_reason`` says why).
+    richardson_reason : str
+        Why the extrapolation was refused ("" otherwise).
     """
 
     method: str
@@ -275,6 +322,8 @@ class EstimationResult:
     tol_met: bool
     stop_reason: str
     is_bias_estimated: bool
+    richardson: str = "off"
+    richardson_reason: str = ""
 
     @property
     def rmse(self) -> float | np.ndarray:
@@ -294,7 +343,7 @@ class Finished:
     result: EstimationResult
 
 
-Event = PlanUpdated | BatchDone | Finished
+Event = PlanUpdated | BatchDone | RichardsonRefused | Finished
 
 
 # --------------------------------------------------------------------------
@@ -606,6 +655,7 @@ def iter_mlmc(
     screening: LevelStatistics | None = None,
     rates: Rates | None = None,
     kurtosis_limit: float = KURTOSIS_LIMIT,
+    richardson: bool = False,
 ) -> Iterator[Event]:
     """Adaptive MLMC to a tolerance, as a generator of events.
 
@@ -651,17 +701,21 @@ def iter_mlmc(
         rates, then to 0.5).
     kurtosis_limit : float
         Kurtosis of ``Y_l`` above which a warning is issued.
+    richardson : bool
+        Richardson-extrapolate the finest level where the ratios of successive
+        level means are stable, else fall back to plain MLMC (module docstring).
 
     Yields
     ------
-    PlanUpdated, BatchDone, Finished
+    PlanUpdated, BatchDone, RichardsonRefused, Finished
         ``Finished`` is last and carries the :class:`EstimationResult`.
 
     Warns
     -----
     EstimationWarning
         At the end, for every failed check of
-        :func:`~rough_uq.screening.diagnose` and for zero reported costs.
+        :func:`~rough_uq.screening.diagnose`, for zero reported costs and for a
+        refused Richardson extrapolation.
     """
     theta = _check_fraction("theta", theta)
     n_initial = _check_int("n_initial", n_initial, 2)
@@ -687,6 +741,7 @@ def iter_mlmc(
         screening=screening,
         rates=rates,
         kurtosis_limit=float(kurtosis_limit),
+        richardson=bool(richardson),
     )
 
 
@@ -703,17 +758,26 @@ def _mlmc_events(
     screening: LevelStatistics | None,
     rates: Rates | None,
     kurtosis_limit: float,
+    richardson: bool,
 ) -> Iterator[Event]:
     budget_cap = batch_size if batch_size is not None else math.inf
     fallback = rates
     initial_targets: list[int] = []
     floor = n_initial
+    # Richardson state: "off", "pending" (too few levels to check), "active" or "refused".
+    extrapolation, refusal = ("pending" if richardson else "off"), ""
     if screening is not None:
         screening_rates = rates if rates is not None else _lenient_rates(screening, None)
         fallback = screening_rates
-        initial = plan(tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level)
+        initial = plan(
+            tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level,
+            richardson=richardson,
+        )
         floor = MIN_LEVEL_SAMPLES
         initial_targets = [max(int(n), floor) for n in initial.n_samples]
+        if richardson:
+            refusal = _screening_instability(screening)
+            extrapolation = "refused" if refusal else ("active" if initial.is_richardson else "pending")
     n_levels = max(min_finest_level + 1, len(initial_targets))
     hierarchy = _Hierarchy(n_levels, floor, screening)
     hierarchy.targets[: len(initial_targets)] = initial_targets
@@ -721,6 +785,8 @@ def _mlmc_events(
     is_scalar = False
     n_qoi: int | None = None
     yield hierarchy.plan_event("initial")
+    if extrapolation == "refused":
+        yield RichardsonRefused(levels=hierarchy.levels(), reason=refusal)
 
     def replan() -> None:
         nonlocal driver
@@ -737,6 +803,8 @@ def _mlmc_events(
             if s.n > 0:
                 mean_cost[s.level] = s.moments().mean_cost
         variances = _planning_variances(var_diff, has_data, driver.beta)
+        if extrapolation == "active":
+            variances[-1] = variances[-1] * richardson_weight(driver.alpha) ** 2
         costs = _fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), driver.gamma)
         wanted = np.ceil(np.max(optimal_samples(variances, costs, (1.0 - theta) * tol**2), axis=1))
         hierarchy.targets = [max(s.n, int(n), hierarchy.floor) for s, n in zip(hierarchy.samples, wanted)]
@@ -784,8 +852,26 @@ def _mlmc_events(
             if any(m > 0.01 * s.n for m, s in zip(missing, hierarchy.samples)):
                 continue
         is_complete = all(s.n >= hierarchy.targets[s.level] for s in hierarchy.samples)
+        if extrapolation in ("pending", "active") and is_complete:
+            reason = _run_instability(hierarchy)
+            enough = hierarchy.n_levels - 1 >= RICHARDSON_MIN_LEVELS
+            before = extrapolation
+            if reason and (enough or extrapolation == "active"):
+                extrapolation, refusal = "refused", reason
+                yield RichardsonRefused(levels=hierarchy.levels(), reason=reason)
+            elif not reason:
+                extrapolation = "active"
+            if extrapolation != before:
+                targets = list(hierarchy.targets)
+                replan()
+                if hierarchy.targets != targets:
+                    yield hierarchy.plan_event("richardson")
+                    continue
         mean_diff = np.array([s.moments().mean_diff for s in hierarchy.samples])
-        bias = _driver_bias(mean_diff, driver.alpha)
+        if extrapolation == "active":
+            bias = richardson_bias(mean_diff[1:], driver.alpha)
+        else:
+            bias = _driver_bias(mean_diff, driver.alpha)
         if np.all(bias <= math.sqrt(theta) * tol):
             if is_complete:
                 stop_reason = "tol_met"
@@ -798,10 +884,22 @@ def _mlmc_events(
         replan()
         yield hierarchy.plan_event("new level")
 
+    if extrapolation == "pending":
+        refusal = _run_instability(hierarchy) or "the ratios were never checked"
+        extrapolation = "refused"
+        yield RichardsonRefused(levels=hierarchy.levels(), reason=refusal)
     statistics = hierarchy.statistics()
-    result = _mlmc_result(hierarchy, statistics, driver, tol, theta, is_scalar, stop_reason)
+    result = _mlmc_result(
+        hierarchy, statistics, driver, tol, theta, is_scalar, stop_reason, extrapolation, refusal
+    )
     for message in diagnose(statistics, kurtosis_limit=kurtosis_limit):
         warnings.warn(f"mlmc: {message}", EstimationWarning, stacklevel=2)
+    if extrapolation == "refused":
+        warnings.warn(
+            f"mlmc: Richardson extrapolation refused, the estimate is plain MLMC: {refusal}",
+            EstimationWarning,
+            stacklevel=2,
+        )
     _warn_zero_cost(statistics)
     yield Finished(result=result)
 
@@ -814,16 +912,23 @@ def _mlmc_result(
     theta: float,
     is_scalar: bool,
     stop_reason: str,
+    extrapolation: str = "off",
+    refusal: str = "",
 ) -> EstimationResult:
     n = statistics.n_samples[:, None]
-    estimate = np.sum(statistics.mean_diff, axis=0)
     var_diff = np.array(
         [hierarchy.variances(int(level), statistics.var_diff[row], int(statistics.n_samples[row]))
          for row, level in enumerate(statistics.levels)]
     )
-    stat_variance = np.sum(var_diff / n, axis=0)
     # Levels are sampled in order, so the sampled ones are 0..L without gaps.
-    bias = _driver_bias(statistics.mean_diff, driver.alpha)
+    weights = np.ones_like(statistics.mean_diff)
+    if extrapolation == "active":
+        weights[-1] = richardson_weight(driver.alpha)
+        bias = richardson_bias(statistics.mean_diff[1:], driver.alpha)
+    else:
+        bias = _driver_bias(statistics.mean_diff, driver.alpha)
+    estimate = np.sum(weights * statistics.mean_diff, axis=0)
+    stat_variance = np.sum(weights**2 * var_diff / n, axis=0)
     finest = statistics.n_levels - 1
     costs = _fill_costs(statistics.mean_cost, np.ones(statistics.n_levels, dtype=bool), driver.gamma)
     budget = (1.0 - theta) * tol**2
@@ -847,7 +952,31 @@ def _mlmc_result(
         tol_met=bool(np.all(stat_variance + bias**2 <= tol**2 * (1 + 1e-12))),
         stop_reason=stop_reason,
         is_bias_estimated=True,
+        richardson={"active": "applied", "refused": "refused"}.get(extrapolation, "off"),
+        richardson_reason=refusal,
     )
+
+
+def _screening_instability(screening: LevelStatistics) -> str:
+    """Why the screening's means of levels >= 1 forbid extrapolation ("" if they do not, or cannot tell)."""
+    rows = [r for r in range(screening.n_levels) if screening.levels[r] >= 1 and screening.n_samples[r] >= 2]
+    if len(rows) < 2:
+        return ""
+    errors = np.sqrt(screening.var_diff[rows] / screening.n_samples[rows][:, None])
+    reason = ratio_instability(
+        screening.mean_diff[rows], errors, [int(screening.levels[r]) for r in rows], min_levels=2
+    )
+    return f"screening: {reason}" if reason else ""
+
+
+def _run_instability(hierarchy: _Hierarchy) -> str:
+    """Why the run's means of levels >= 1 (standard errors from the pooled V_l) are not stable ("" if they are)."""
+    rows = [s for s in hierarchy.samples[1:] if s.n >= 2]
+    if not rows:
+        return ratio_instability(np.zeros((0, 1)), np.zeros((0, 1)), [])
+    means = np.array([s.moments().mean_diff for s in rows])
+    errors = np.array([np.sqrt(hierarchy.variances(s.level, s.moments().var_diff, s.n) / s.n) for s in rows])
+    return ratio_instability(means, errors, [s.level for s in rows])
 
 
 def mlmc(sampler: Sampler, *, tol: float | np.ndarray, **options: object) -> EstimationResult:
@@ -856,7 +985,7 @@ def mlmc(sampler: Sampler, *, tol: float | np.ndarray, **options: object) -> Est
     Runs :func:`iter_mlmc` to the end; ``options`` are its keyword arguments
     (``theta``, ``n_initial``, ``min_finest_level``, ``max_level``,
     ``max_cost``, ``batch_size``, ``screening``, ``rates``,
-    ``kurtosis_limit``).
+    ``kurtosis_limit``, ``richardson``).
 
     Returns
     -------

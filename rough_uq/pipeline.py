@@ -38,7 +38,7 @@ import numpy as np
 from rough_uq import __version__
 from rough_uq.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
 from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
-from rough_uq.estimator import BatchDone, Finished, PlanUpdated, iter_mc, iter_mlmc
+from rough_uq.estimator import BatchDone, Finished, PlanUpdated, RichardsonRefused, iter_mc, iter_mlmc
 from rough_uq.executor import Executor, SerialExecutor
 from rough_uq.progress import Progress
 from rough_uq.sampler import (
@@ -589,15 +589,26 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
     return np.array(tol, dtype=float)
 
 
-def run_id(method: str, names: Sequence[str], tol: np.ndarray, theta: float, level: int | None = None) -> str:
+def run_id(
+    method: str,
+    names: Sequence[str],
+    tol: np.ndarray,
+    theta: float,
+    level: int | None = None,
+    *,
+    richardson: bool = False,
+) -> str:
     """Name of the run of ``method`` at tolerances ``tol`` and bias share ``theta`` (MC: on ``level``, if given).
 
     The same command gives the same name, hence the same record and the same
     random stage (:func:`~rough_uq.sampler.run_stage`): rerunning it resumes.
+    A Richardson-extrapolated MLMC run ends in ``_richardson``.
     """
     parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
     if level is not None:
         parts.append(f"level-{level}")
+    if richardson and method == "mlmc":
+        parts.append("richardson")
     return "_".join(parts)
 
 
@@ -656,7 +667,8 @@ def missing_samples(
     plan more samples once these are stored: ask again after merging them.
     Nothing is computed or written.
     """
-    key = run_id(method, study.config.qoi_names, tol, study.config.estimation.theta, level)
+    estimation = study.config.estimation
+    key = run_id(method, study.config.qoi_names, tol, estimation.theta, level, richardson=estimation.richardson)
     stage = run_stage(method, key)
     stored = StudySampler(study, stage=stage, executor=SerialExecutor(), progress=Progress())
 
@@ -716,7 +728,10 @@ def _events(
     statistics, rates, prediction = _estimation_plan(study, tol)
     context = {"screening_rates": rates_record(rates), "predicted": _plan_record(prediction, 1.0)}
     if method == "mlmc":
-        events = iter_mlmc(sampler, max_level=config.grid.max_level, screening=statistics, **options)
+        events = iter_mlmc(
+            sampler, max_level=config.grid.max_level, screening=statistics, richardson=estimation.richardson,
+            **options,
+        )
     else:
         context["level"] = prediction.finest_level
         events = iter_mc(
@@ -759,7 +774,7 @@ def run_estimation(
     names = config.qoi_names
     tol = np.asarray(tol, dtype=float)
     max_cost = config.estimation.max_cost if max_cost is None else max_cost
-    key = run_id(method, names, tol, config.estimation.theta, level)
+    key = run_id(method, names, tol, config.estimation.theta, level, richardson=config.estimation.richardson)
     stage = run_stage(method, key)
     sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
     events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost, level=level)
@@ -787,7 +802,7 @@ def run_estimation(
                     progress.plan(event.levels, event.n_planned, event.n_done)
                 elif isinstance(event, Finished):
                     result = event.result
-                elif not isinstance(event, BatchDone):  # pragma: no cover - the estimator's contract
+                elif not isinstance(event, (BatchDone, RichardsonRefused)):  # pragma: no cover - the contract
                     raise RoughUQError(f"unexpected estimator event {event!r}")
     finally:
         progress.stop()
@@ -816,6 +831,8 @@ def run_estimation(
                 "n_not_converged": n_not_converged,
                 "tol_met": result.tol_met,
                 "stop_reason": result.stop_reason,
+                "richardson": result.richardson,
+                "richardson_reason": result.richardson_reason,
                 "rates": rates_record(result.rates) if result.rates is not None else None,
                 "statistics": statistics_record(
                     result.statistics,
