@@ -107,6 +107,7 @@ the ``n - 1`` normalisation, so each term is unbiased for
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from collections.abc import Callable, Iterator
@@ -118,6 +119,7 @@ from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.screening import (
     KURTOSIS_LIMIT,
     RICHARDSON_MIN_LEVELS,
+    DroppedLevel,
     EstimationWarning,
     LevelStatistics,
     Plan,
@@ -303,6 +305,8 @@ class EstimationResult:
         ``"refused"`` (plain MLMC; ``richardson_reason`` says why).
     richardson_reason : str
         Why the extrapolation was refused ("" otherwise).
+    dropped_levels : tuple of DroppedLevel
+        MLMC: coarse levels left out (``levels`` then starts above 0) and why.
     """
 
     method: str
@@ -324,6 +328,7 @@ class EstimationResult:
     is_bias_estimated: bool
     richardson: str = "off"
     richardson_reason: str = ""
+    dropped_levels: tuple[DroppedLevel, ...] = ()
 
     @property
     def rmse(self) -> float | np.ndarray:
@@ -463,7 +468,7 @@ def _floor_rates(n_qoi: int) -> Rates:
     )
 
 
-def _lenient_rates(statistics: LevelStatistics, fallback: Rates | None) -> Rates:
+def _lenient_rates(statistics: LevelStatistics, fallback: Rates | None, min_level: int = 1) -> Rates:
     """Rates for the driver: fitted on levels >= 1 where possible (floored), else the fallback.
 
     A rate that cannot be fitted keeps the fallback's value (the screening rates, or
@@ -476,16 +481,16 @@ def _lenient_rates(statistics: LevelStatistics, fallback: Rates | None) -> Rates
     levels_alpha = list(base.levels_alpha) or [()] * n_qoi
     levels_beta = list(base.levels_beta) or [()] * n_qoi
     for q in range(n_qoi):
-        line, _ = _fit_alpha(statistics, q, 1)
+        line, _ = _fit_alpha(statistics, q, min_level)
         if line is not None:
             alpha[q], c_alpha[q], alpha_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
             levels_alpha[q] = line.levels
-        line, _ = _fit_beta(statistics, q, 1)
+        line, _ = _fit_beta(statistics, q, min_level)
         if line is not None:
             beta[q], c_beta[q], beta_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
             levels_beta[q] = line.levels
     gamma, c_gamma, gamma_se, levels_gamma = base.gamma, base.c_gamma, base.gamma_se, base.levels_gamma
-    line, _ = _fit_gamma(statistics, 1)
+    line, _ = _fit_gamma(statistics, min_level)
     if line is not None:
         gamma, c_gamma, gamma_se, levels_gamma = max(line.rate, RATE_FLOOR), line.constant, line.se, line.levels
     elif fallback is None:
@@ -525,14 +530,19 @@ def _fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np
     return costs
 
 
-def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.ndarray) -> np.ndarray:
-    """``V_l`` for the allocation: sample values, extrapolated where missing, floored from level 2 on."""
+def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.ndarray, base: int = 0) -> np.ndarray:
+    """``V_l`` for the allocation: sample values, extrapolated where missing, floored from level ``base + 2`` on.
+
+    Levels below ``base`` get 0; the base level's ``V`` is ``Var(Q_base)``, so
+    it is neither extrapolated from nor used as a floor of the level above.
+    """
     variances = np.array(var_diff, dtype=float)
-    for level in range(len(variances)):
-        extrapolated = variances[level - 1] * 2.0 ** (-beta) if level >= 1 else None
+    variances[:base] = 0.0
+    for level in range(base, len(variances)):
+        extrapolated = variances[level - 1] * 2.0 ** (-beta) if level >= base + 1 else None
         if not has_data[level]:
             variances[level] = extrapolated if extrapolated is not None else 0.0
-        elif level >= 2:
+        elif level >= base + 2:
             variances[level] = np.maximum(variances[level], 0.5 * extrapolated)
     return variances
 
@@ -560,17 +570,20 @@ class _Hierarchy:
     counts, pooled with the run's samples in :meth:`variances`.
     """
 
-    def __init__(self, n_levels: int, floor: int, prior: LevelStatistics | None = None) -> None:
+    def __init__(self, n_levels: int, floor: int, prior: LevelStatistics | None = None, base: int = 0) -> None:
         self.samples = [_LevelSamples(level) for level in range(n_levels)]
-        self.targets = [floor] * n_levels
+        self.base = base
+        self.targets = [floor if level >= base else 0 for level in range(n_levels)]
         self.floor = floor
         self.spent = 0.0
         self.prior_var: dict[int, np.ndarray] = {}
         self.prior_n: dict[int, int] = {}
         if prior is not None:
             for row, level in enumerate(prior.levels):
-                if prior.n_samples[row] >= 2:
-                    self.prior_var[int(level)] = prior.var_diff[row]
+                if prior.n_samples[row] >= 2 and level >= base:
+                    # The base level is sampled as Q_base: its prior is the screening's Var(Q).
+                    variance = prior.var_fine[row] if level == base else prior.var_diff[row]
+                    self.prior_var[int(level)] = variance
                     self.prior_n[int(level)] = int(prior.n_samples[row])
 
     def add_level(self) -> None:
@@ -584,7 +597,7 @@ class _Hierarchy:
         return _pooled_variance(run_var, n_run, self.prior_var[level], self.prior_n[level])
 
     def has_variance(self, level: int) -> bool:
-        return self.samples[level].n >= 2 or level in self.prior_var
+        return level >= self.base and (self.samples[level].n >= 2 or level in self.prior_var)
 
     @property
     def n_levels(self) -> int:
@@ -607,7 +620,11 @@ class _Hierarchy:
 
     def statistics(self) -> LevelStatistics:
         sampled = self.sampled()
-        return _assemble([s.level for s in sampled], [s.moments() for s in sampled])
+        return _assemble([s.level for s in sampled], [s.moments() for s in sampled], base_level=self.base)
+
+    def mean_diff(self, n_qoi: int) -> np.ndarray:
+        """``E[Y_l]`` of levels ``0..L`` (zeros on levels not sampled), shape (n_levels, n_qoi)."""
+        return np.array([s.moments().mean_diff if s.n else np.zeros(n_qoi) for s in self.samples])
 
 
 def _per_sample_cost(hierarchy: _Hierarchy, level: int, gamma: float) -> float:
@@ -656,6 +673,7 @@ def iter_mlmc(
     rates: Rates | None = None,
     kurtosis_limit: float = KURTOSIS_LIMIT,
     richardson: bool = False,
+    coarsest_level: int | None = 0,
 ) -> Iterator[Event]:
     """Adaptive MLMC to a tolerance, as a generator of events.
 
@@ -704,6 +722,13 @@ def iter_mlmc(
     richardson : bool
         Richardson-extrapolate the finest level where the ratios of successive
         level means are stable, else fall back to plain MLMC (module docstring).
+    coarsest_level : int or None
+        Level ``b`` the hierarchy starts on (default 0): its samples give
+        ``Q_b`` alone (the sampler's coarse values are ignored) and the levels
+        below are never sampled. None lets the screening's plan choose it
+        (:func:`~rough_uq.screening.choose_coarsest_level`; 0 without a
+        screening; 0 if ``max_level`` leaves fewer than two levels above the
+        chosen one); ``EstimationResult.dropped_levels`` says why.
 
     Yields
     ------
@@ -742,6 +767,7 @@ def iter_mlmc(
         rates=rates,
         kurtosis_limit=float(kurtosis_limit),
         richardson=bool(richardson),
+        coarsest_level=None if coarsest_level is None else _check_int("coarsest_level", coarsest_level, 0),
     )
 
 
@@ -759,6 +785,7 @@ def _mlmc_events(
     rates: Rates | None,
     kurtosis_limit: float,
     richardson: bool,
+    coarsest_level: int | None,
 ) -> Iterator[Event]:
     budget_cap = batch_size if batch_size is not None else math.inf
     fallback = rates
@@ -771,15 +798,27 @@ def _mlmc_events(
         fallback = screening_rates
         initial = plan(
             tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level,
-            richardson=richardson,
+            richardson=richardson, coarsest_level=coarsest_level,
         )
+        if coarsest_level is None and initial.coarsest_level + 2 > max_level:
+            # The rates need two levels above the base; max_level leaves no room for them.
+            initial = plan(
+                tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level,
+                richardson=richardson, coarsest_level=0,
+            )
         floor = MIN_LEVEL_SAMPLES
-        initial_targets = [max(int(n), floor) for n in initial.n_samples]
+        base, dropped = initial.coarsest_level, initial.dropped_levels
+        initial_targets = [max(int(n), floor) if level >= base else 0 for level, n in enumerate(initial.n_samples)]
         if richardson:
             refusal = _screening_instability(screening)
             extrapolation = "refused" if refusal else ("active" if initial.is_richardson else "pending")
-    n_levels = max(min_finest_level + 1, len(initial_targets))
-    hierarchy = _Hierarchy(n_levels, floor, screening)
+    else:
+        base, dropped = (coarsest_level or 0), ()
+    # Two levels above the base to fit the rates from.
+    n_levels = max(min_finest_level + 1, base + 3, len(initial_targets))
+    if n_levels - 1 > max_level:
+        raise InvalidParameterError("coarsest_level", coarsest_level, f"at most max_level - 2 = {max_level - 2}")
+    hierarchy = _Hierarchy(n_levels, floor, screening, base)
     hierarchy.targets[: len(initial_targets)] = initial_targets
     driver = fallback if fallback is not None else _floor_rates(tol.size)
     is_scalar = False
@@ -792,7 +831,7 @@ def _mlmc_events(
         nonlocal driver
         statistics = hierarchy.statistics()
         if rates is None:
-            driver = _lenient_rates(statistics, fallback)
+            driver = _lenient_rates(statistics, fallback, base + 1)
         has_data = np.array([hierarchy.has_variance(s.level) for s in hierarchy.samples])
         var_diff = np.zeros((hierarchy.n_levels, n_qoi))
         mean_cost = np.zeros(hierarchy.n_levels)
@@ -802,12 +841,15 @@ def _mlmc_events(
                 var_diff[s.level] = hierarchy.variances(s.level, run_var, s.n)
             if s.n > 0:
                 mean_cost[s.level] = s.moments().mean_cost
-        variances = _planning_variances(var_diff, has_data, driver.beta)
+        variances = _planning_variances(var_diff, has_data, driver.beta, base)
         if extrapolation == "active":
             variances[-1] = variances[-1] * richardson_weight(driver.alpha) ** 2
         costs = _fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), driver.gamma)
-        wanted = np.ceil(np.max(optimal_samples(variances, costs, (1.0 - theta) * tol**2), axis=1))
-        hierarchy.targets = [max(s.n, int(n), hierarchy.floor) for s, n in zip(hierarchy.samples, wanted)]
+        wanted = np.zeros(hierarchy.n_levels)
+        wanted[base:] = np.ceil(np.max(optimal_samples(variances[base:], costs[base:], (1.0 - theta) * tol**2), axis=1))
+        hierarchy.targets = [
+            max(s.n, int(n), hierarchy.floor) if s.level >= base else 0 for s, n in zip(hierarchy.samples, wanted)
+        ]
 
     stop_reason = ""
     while not stop_reason:
@@ -829,7 +871,9 @@ def _mlmc_events(
                     driver = _floor_rates(n_qoi)
             elif batch.fine.shape[1] != n_qoi:
                 raise EstimationError(f"sampler returned {batch.fine.shape[1]} QoIs on level {level}, earlier {n_qoi}")
-            level_samples.add(batch.fine, batch.coarse, batch.cost)
+            # The base level is sampled as Q_base: its coarse values are not part of the sum.
+            coarse = np.zeros_like(batch.fine) if level == base else batch.coarse
+            level_samples.add(batch.fine, coarse, batch.cost)
             hierarchy.spent += float(np.sum(batch.cost))
             yield BatchDone(
                 level=level,
@@ -854,7 +898,7 @@ def _mlmc_events(
         is_complete = all(s.n >= hierarchy.targets[s.level] for s in hierarchy.samples)
         if extrapolation in ("pending", "active") and is_complete:
             reason = _run_instability(hierarchy)
-            enough = hierarchy.n_levels - 1 >= RICHARDSON_MIN_LEVELS
+            enough = hierarchy.n_levels - 1 - base >= RICHARDSON_MIN_LEVELS
             before = extrapolation
             if reason and (enough or extrapolation == "active"):
                 extrapolation, refusal = "refused", reason
@@ -867,7 +911,7 @@ def _mlmc_events(
                 if hierarchy.targets != targets:
                     yield hierarchy.plan_event("richardson")
                     continue
-        mean_diff = np.array([s.moments().mean_diff for s in hierarchy.samples])
+        mean_diff = hierarchy.mean_diff(n_qoi)[base:]  # row 0 is the base level
         if extrapolation == "active":
             bias = richardson_bias(mean_diff[1:], driver.alpha)
         else:
@@ -892,6 +936,7 @@ def _mlmc_events(
     result = _mlmc_result(
         hierarchy, statistics, driver, tol, theta, is_scalar, stop_reason, extrapolation, refusal
     )
+    result = dataclasses.replace(result, dropped_levels=dropped)
     for message in diagnose(statistics, kurtosis_limit=kurtosis_limit):
         warnings.warn(f"mlmc: {message}", EstimationWarning, stacklevel=2)
     if extrapolation == "refused":
@@ -971,7 +1016,7 @@ def _screening_instability(screening: LevelStatistics) -> str:
 
 def _run_instability(hierarchy: _Hierarchy) -> str:
     """Why the run's means of levels >= 1 (standard errors from the pooled V_l) are not stable ("" if they are)."""
-    rows = [s for s in hierarchy.samples[1:] if s.n >= 2]
+    rows = [s for s in hierarchy.samples[hierarchy.base + 1 :] if s.n >= 2]
     if not rows:
         return ratio_instability(np.zeros((0, 1)), np.zeros((0, 1)), [])
     means = np.array([s.moments().mean_diff for s in rows])

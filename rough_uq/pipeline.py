@@ -54,6 +54,7 @@ from rough_uq.screening import (
     LevelStatistics,
     Plan,
     Rates,
+    choose_coarsest_level,
     diagnose,
     fit_rates,
     level_statistics,
@@ -520,6 +521,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
                 statistics=statistics,
                 theta=config.estimation.theta,
                 max_level=config.grid.max_level,
+                coarsest_level=None,
             )
         except RoughUQError as exc:
             # E.g. a bias that does not decay yet (alpha <= 0 on pre-asymptotic
@@ -528,6 +530,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
             break
         predictions.append(_plan_record(prediction, seconds_per_cost))
     messages = list(dict.fromkeys([str(w.message) for w in caught] + list(diagnose(statistics)) + problems))
+    coarsest = choose_coarsest_level(statistics)
     record = {
         "created": _now(),
         "code_version": __version__,
@@ -535,6 +538,8 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
         "statistics": statistics_record(statistics, [float(np.mean(b.cost)) for b in batches]),
         "rates": rates_record(rates),
         "predictions": predictions,
+        "coarsest_level": coarsest.level,
+        "dropped_levels": [{"level": d.level, "reason": d.reason} for d in coarsest.dropped],
         "seconds_per_cost": seconds_per_cost,
         "n_not_converged": _not_converged(batches),
         "n_computed": sampler.n_computed,
@@ -623,6 +628,7 @@ def _estimation_plan(study: Study, tol: np.ndarray) -> tuple[LevelStatistics, Ra
         statistics=statistics,
         theta=study.config.estimation.theta,
         max_level=study.config.grid.max_level,
+        coarsest_level=None,
     )
     return statistics, rates, prediction
 
@@ -730,7 +736,7 @@ def _events(
     if method == "mlmc":
         events = iter_mlmc(
             sampler, max_level=config.grid.max_level, screening=statistics, richardson=estimation.richardson,
-            **options,
+            coarsest_level=None, **options,
         )
     else:
         context["level"] = prediction.finest_level
@@ -833,6 +839,7 @@ def run_estimation(
                 "stop_reason": result.stop_reason,
                 "richardson": result.richardson,
                 "richardson_reason": result.richardson_reason,
+                "dropped_levels": [{"level": d.level, "reason": d.reason} for d in result.dropped_levels],
                 "rates": rates_record(result.rates) if result.rates is not None else None,
                 "statistics": statistics_record(
                     result.statistics,

@@ -41,6 +41,22 @@ geometric tail ``|E[Y_L]| / (2^alpha - 1)`` (Giles 2015, section 3.1); this
 module calls that the *remaining bias* and uses it everywhere a bias is
 predicted (:func:`plan`) or reported.
 
+Coarsest useful level
+---------------------
+The telescoping sum may start on any level ``b``: ``E[Q_L] = E[Q_b] + sum_{b<l<=L}
+E[Y_l]``, the base level sampled as ``Q_b`` alone. A level ``l`` with
+``Var(Y_l) >= Var(Q_l)`` makes everything below it useless: sampling ``Q_l``
+directly is cheaper than sampling ``Y_l`` plus the coarser levels. In
+general the MLMC cost is proportional to ``S(b)^2``,
+``S(b) = sqrt(Var(Q_b) C_b) + sum_{l>b} sqrt(V_l C_l)`` (SPEC section 5 with
+the base level's variance ``Var(Q_b)``); :func:`choose_coarsest_level` picks
+the screened ``b`` that minimises it (worst QoI, relative to ``b = 0``) and
+drops the levels below ``b`` when the predicted saving is at least
+``DROP_MARGIN`` (10 %: the screening's variances carry sampling noise of that
+order). ``C_b`` is the cost of a screened (coupled) level-``b`` sample, since
+the estimators draw the base level's samples from the same coupled sampler
+and ignore the coarse value, so the prediction is what a run pays.
+
 Richardson extrapolation
 ------------------------
 Where ``E[Y_l] = c 2^(-alpha l)`` holds, ``E[Q] - E[Q_L]`` is the geometric
@@ -93,8 +109,11 @@ __all__ = [
     "RICHARDSON_MIN_LEVELS",
     "EstimationWarning",
     "LevelStatistics",
+    "CoarsestLevel",
+    "DroppedLevel",
     "Plan",
     "Rates",
+    "choose_coarsest_level",
     "diagnose",
     "fine_cost_share",
     "fit_rates",
@@ -116,6 +135,9 @@ _ROUNDING = 64 * np.finfo(float).eps
 
 # Largest sample count a plan may ask for; keeps float -> int conversions exact.
 _MAX_COUNT = 2.0**52
+
+#: Smallest predicted saving (fraction of the MLMC cost) for which coarse levels are dropped.
+DROP_MARGIN = 0.1
 
 #: Levels ``>= 1`` (two ratios of successive means) needed before Richardson extrapolation is trusted.
 RICHARDSON_MIN_LEVELS = 3
@@ -189,6 +211,10 @@ class LevelStatistics:
         level 0 by definition. Above 1 on a level ``l >= 1`` the coarse
         sample is not coupled to the fine one (MLMC cannot beat MC there).
         Where ``Var(Q_l) = 0``: ``inf`` if ``V_l > 0``, else 0.
+    base_level : int
+        The level the hierarchy starts on (0 unless an estimation run dropped
+        coarse levels): its ``Y`` is ``Q`` itself (coarse values 0), and
+        like level 0 it has coupling ratio 1 and is not checked for coupling.
     """
 
     levels: np.ndarray
@@ -206,6 +232,7 @@ class LevelStatistics:
     var_cost: np.ndarray
     consistency: np.ndarray
     coupling_ratio: np.ndarray
+    base_level: int = 0
 
     @property
     def n_levels(self) -> int:
@@ -225,7 +252,7 @@ class LevelStatistics:
     @property
     def is_coupled(self) -> np.ndarray:
         """Boolean, shape (n_levels, n_qoi): ``V_l < Var(Q_l)`` (always True on level 0)."""
-        return (self.levels[:, None] == 0) | (self.coupling_ratio < 1.0)
+        return (self.levels[:, None] <= self.base_level) | (self.coupling_ratio < 1.0)
 
     def index(self, level: int) -> int | None:
         """Row of ``level`` in the arrays, or None if the level is absent."""
@@ -334,8 +361,8 @@ def _level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> _M
     )
 
 
-def _assemble(levels: Sequence[int], moments: Sequence[_Moments]) -> LevelStatistics:
-    """Stack per-level moments and add the cross-level checks."""
+def _assemble(levels: Sequence[int], moments: Sequence[_Moments], base_level: int = 0) -> LevelStatistics:
+    """Stack per-level moments and add the cross-level checks (``base_level``: see :class:`LevelStatistics`)."""
     levels_array = np.asarray(levels, dtype=np.int64)
 
     def stack(name: str) -> np.ndarray:
@@ -385,8 +412,9 @@ def _assemble(levels: Sequence[int], moments: Sequence[_Moments]) -> LevelStatis
         out=np.where(table["var_diff"] > 0, np.inf, 0.0),
         where=table["var_fine"] > 0,
     )
-    coupling[levels_array == 0] = 1.0
+    coupling[levels_array <= base_level] = 1.0
     return LevelStatistics(
+        base_level=int(base_level),
         levels=_readonly(levels_array),
         n_samples=_readonly(n_samples),
         consistency=_readonly(consistency),
@@ -525,7 +553,7 @@ def diagnose(statistics: LevelStatistics, *, kurtosis_limit: float = KURTOSIS_LI
                 f"level {level}: kurtosis {float(np.max(statistics.kurtosis[row])):.3g} of Q_l - Q_l-1 "
                 f"for QoI {heavy.tolist()} exceeds {kurtosis_limit:g}; its variance estimate is unreliable"
             )
-        if level >= 1:
+        if level > statistics.base_level:
             frozen = np.flatnonzero((statistics.var_diff[row] == 0) & (statistics.var_fine[row] > 0))
             if frozen.size:
                 messages.append(
@@ -800,6 +828,87 @@ def remaining_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
         return np.abs(mean_diff) / denominator
 
 
+@dataclass(frozen=True)
+class DroppedLevel:
+    """A coarse level left out of the hierarchy, and why."""
+
+    level: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class CoarsestLevel:
+    """The coarsest useful level (:func:`choose_coarsest_level`).
+
+    Attributes
+    ----------
+    level : int
+        ``b``: the hierarchy starts here (0 when nothing is dropped).
+    dropped : tuple of DroppedLevel
+        The levels ``0..b-1``, each with its reason.
+    cost_factor : float
+        Predicted MLMC cost starting at ``b`` relative to starting at 0 (worst QoI).
+    """
+
+    level: int
+    dropped: tuple[DroppedLevel, ...]
+    cost_factor: float
+
+
+def choose_coarsest_level(statistics: LevelStatistics, *, margin: float = DROP_MARGIN) -> CoarsestLevel:
+    """The screened level the hierarchy should start on (module docstring, "Coarsest useful level").
+
+    Parameters
+    ----------
+    statistics : LevelStatistics
+        Screening table; only the levels ``0, 1, 2, ...`` screened with two
+        or more samples and a positive cost are candidates.
+    margin : float
+        Drop levels only if that saves at least this fraction of the cost.
+
+    Returns
+    -------
+    CoarsestLevel
+    """
+    rows: list[int] = []
+    for row in range(statistics.n_levels):
+        if statistics.levels[row] != len(rows) or statistics.n_samples[row] < 2 or statistics.mean_cost[row] <= 0:
+            break
+        rows.append(row)
+    if len(rows) < 2:
+        return CoarsestLevel(level=0, dropped=(), cost_factor=1.0)
+    cost = statistics.mean_cost[rows]
+    var_q = statistics.var_fine[rows]
+    corrections = np.sqrt(statistics.var_diff[rows] * cost[:, None])
+    # S(b) per QoI: base term plus the corrections above b (over the screened levels).
+    totals = np.array([np.sqrt(var_q[b] * cost[b]) + np.sum(corrections[b + 1 :], axis=0) for b in range(len(rows))])
+    reference = totals[0]
+    relative = np.divide(totals, reference, out=np.ones_like(totals), where=reference > 0) ** 2
+    worst = np.max(relative, axis=1)
+    best = int(np.argmin(worst))
+    if best == 0 or worst[best] > 1.0 - margin:
+        return CoarsestLevel(level=0, dropped=(), cost_factor=1.0)
+    dropped = []
+    for level in range(best):
+        above = level + 1
+        loose = np.flatnonzero(statistics.var_diff[rows[above]] >= var_q[above])
+        if loose.size:
+            q = int(loose[0])
+            reason = (
+                f"Var(Y_{above}) = {statistics.var_diff[rows[above], q]:.3g} is not below "
+                f"Var(Q_{above}) = {var_q[above, q]:.3g}: level {level} does not reduce the variance of "
+                f"level {above}, it only adds cost"
+            )
+        else:
+            factor = float(np.max(relative[best] / np.where(relative[level] > 0, relative[level], 1.0)))
+            reason = (
+                f"a hierarchy starting at level {best} is predicted to cost {factor:.2f} x one starting at "
+                f"level {level} (sqrt(Var(Q_b) C_b) + sum_l>b sqrt(V_l C_l), screened levels)"
+            )
+        dropped.append(DroppedLevel(level=level, reason=reason))
+    return CoarsestLevel(level=best, dropped=tuple(dropped), cost_factor=float(worst[best]))
+
+
 def richardson_weight(alpha: np.ndarray) -> np.ndarray:
     """Weight ``w = 2^alpha / (2^alpha - 1)`` of the finest level in the extrapolated estimate.
 
@@ -1011,6 +1120,11 @@ class Plan:
         bias, ``n_samples`` and ``stat_variance`` weight ``V_L`` by ``w^2``.
     richardson_note : str
         Why a requested extrapolation was not planned ("" otherwise).
+    coarsest_level : int
+        ``b``, the level the hierarchy starts on (its ``V_b`` is ``Var(Q_b)``;
+        ``n_samples`` and ``variances`` are 0 below it).
+    dropped_levels : tuple of DroppedLevel
+        The levels below ``b`` and why they were dropped.
     """
 
     tol: np.ndarray
@@ -1028,6 +1142,8 @@ class Plan:
     mc_cost: float
     is_richardson: bool = False
     richardson_note: str = ""
+    coarsest_level: int = 0
+    dropped_levels: tuple[DroppedLevel, ...] = ()
 
     @property
     def levels(self) -> np.ndarray:
@@ -1082,6 +1198,7 @@ def plan(
     max_level: int | None = None,
     bias_from: str = "model",
     richardson: bool = False,
+    coarsest_level: int | None = 0,
 ) -> Plan:
     """Finest level and optimal ``N_l`` for a tolerance (SPEC section 5).
 
@@ -1114,6 +1231,10 @@ def plan(
         Plan the Richardson-extrapolated estimate (module docstring) if the
         screened means allow it and it needs fewer levels than plain MLMC;
         otherwise plan plain MLMC and say why in ``richardson_note``.
+    coarsest_level : int or None
+        Level the hierarchy starts on (default 0); None chooses it with
+        :func:`choose_coarsest_level` from ``statistics`` (0 without). It is
+        capped at the finest level.
 
     Returns
     -------
@@ -1186,12 +1307,24 @@ def plan(
             finest_level, bias = extrapolated
             is_richardson = True
 
-    level_variances = np.empty((finest_level + 1, n_qoi))
+    dropped: tuple[DroppedLevel, ...] = ()
+    if coarsest_level is None:
+        choice = choose_coarsest_level(statistics) if statistics is not None else CoarsestLevel(0, (), 1.0)
+        coarsest_level, dropped = choice.level, choice.dropped
+    base = min(int(coarsest_level), finest_level)
+    if base < 0 or (base > 0 and screened(base) is None):
+        raise InvalidParameterError("coarsest_level", coarsest_level, "0 or a screened level")
+    dropped = tuple(d for d in dropped if d.level < base)
+    level_variances = np.zeros((finest_level + 1, n_qoi))
     level_costs = np.empty(finest_level + 1)
     is_extrapolated = np.zeros(finest_level + 1, dtype=bool)
     for level in range(finest_level + 1):
         row = screened(level)
-        if variances is not None and level < len(variances):
+        if level < base:
+            pass
+        elif level == base and base > 0:
+            level_variances[level] = statistics.var_fine[row]
+        elif variances is not None and level < len(variances):
             level_variances[level] = variances[level]
         elif row is not None:
             level_variances[level] = statistics.var_diff[row]
@@ -1214,9 +1347,11 @@ def plan(
     weighted = np.array(level_variances)
     if is_richardson:
         weighted[-1] *= richardson_weight(rates.alpha) ** 2
-    n_real = optimal_samples(weighted, level_costs, budget)
+    n_real = np.zeros_like(weighted)
+    n_real[base:] = optimal_samples(weighted[base:], level_costs[base:], budget)
     n_samples = np.maximum(np.ceil(np.max(n_real, axis=1)), 1.0).astype(np.int64)
-    stat_variance = np.sum(weighted / n_samples[:, None], axis=0)
+    n_samples[:base] = 0
+    stat_variance = np.sum(weighted[base:] / n_samples[base:, None], axis=0)
 
     # Plain MC on level L.
     var_q = level_variances[0]
@@ -1244,6 +1379,8 @@ def plan(
         mc_cost=float(mc_cost),
         is_richardson=is_richardson,
         richardson_note=richardson_note,
+        coarsest_level=base,
+        dropped_levels=dropped,
     )
 
 

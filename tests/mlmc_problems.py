@@ -57,7 +57,9 @@ class Synthetic:
     draws ``Z_0..Z_l`` and returns ``Q_l`` and ``Q_{l-1}``. The cost of a
     level-``l`` sample is ``2^(gamma l)``. With ``scales`` the QoI is a
     vector ``scales * Q`` (one column per scale). ``b`` (default 0) adds a
-    second-order bias term, the one Richardson extrapolation leaves.
+    second-order bias term, the one Richardson extrapolation leaves. On the
+    ``loose_levels`` the coarse value comes from an independent draw (as for
+    ``coupled=False`` on every level): consistent, but ``V_l > Var(Q_l)``.
     """
 
     alpha: float = 1.0
@@ -72,6 +74,7 @@ class Synthetic:
     coupled: bool = True
     b: float = 0.0
     alpha2: float = 2.0
+    loose_levels: tuple[int, ...] = ()
 
     def mean_diff(self, level: int) -> float:
         """``E[Y_l]``."""
@@ -113,7 +116,7 @@ class Synthetic:
         fine = paths[:, level]
         if level == 0:
             coarse = np.zeros_like(fine)
-        elif self.coupled:
+        elif self.coupled and level not in self.loose_levels:
             coarse = paths[:, level - 1]
         else:
             # Broken coupling: the coarse value comes from an independent draw.

@@ -341,3 +341,16 @@ def test_a_stored_config_without_estimator_was_a_node_count() -> None:
     old_text = yaml.safe_dump(old, sort_keys=False)
     assert config_from_stored_text(old_text).qoi["contact_area"].estimator == "nodes"
     assert config_from_yaml_text(old_text).qoi["contact_area"].estimator == "corrected"  # a user's config file
+
+
+def test_richardson_is_an_opt_in_estimation_setting() -> None:
+    data = _base()
+    config = config_from_dict(data)
+    assert config.estimation.richardson is False
+    data["estimation"] = {"richardson": True}
+    extrapolated = config_from_dict(data)
+    assert extrapolated.estimation.richardson is True
+    # An estimation setting: the samples stay valid, so the study file is the same.
+    assert config_hash(extrapolated) == config_hash(config)
+    data["estimation"] = {"richardson": "sometimes"}
+    assert "estimation.richardson: " in _message(data)
