@@ -79,8 +79,9 @@ While it is *active*, the allocation gives the finest level the variance
 ``w^2 V_L`` and step 3 tests the extrapolated estimate's remaining bias
 (:func:`~rough_uq.screening.richardson_bias`) instead of the plain one. It is
 active from the start if the screening's plan is extrapolated
-(:func:`~rough_uq.screening.plan` with ``richardson``), else *pending* until
-the run has ``RICHARDSON_MIN_LEVELS`` levels ``>= 1``. Each time the samples
+(:func:`~rough_uq.screening.plan` with ``richardson``), else *pending* (plain
+MLMC) until the run has ``RICHARDSON_MIN_LEVELS`` levels above its base
+level. Each time the samples
 are complete the run's own level means (standard errors from the pooled
 ``V_l``) are checked with :func:`~rough_uq.screening.ratio_instability`; a
 failed check *refuses* the extrapolation for the rest of the run (a
@@ -810,7 +811,7 @@ def _mlmc_events(
         base, dropped = initial.coarsest_level, initial.dropped_levels
         initial_targets = [max(int(n), floor) if level >= base else 0 for level, n in enumerate(initial.n_samples)]
         if richardson:
-            refusal = _screening_instability(screening)
+            refusal = _screening_instability(screening, base)
             extrapolation = "refused" if refusal else ("active" if initial.is_richardson else "pending")
     else:
         base, dropped = (coarsest_level or 0), ()
@@ -900,11 +901,12 @@ def _mlmc_events(
             reason = _run_instability(hierarchy)
             enough = hierarchy.n_levels - 1 - base >= RICHARDSON_MIN_LEVELS
             before = extrapolation
-            if reason and (enough or extrapolation == "active"):
+            if reason and enough:
                 extrapolation, refusal = "refused", reason
                 yield RichardsonRefused(levels=hierarchy.levels(), reason=reason)
-            elif not reason:
-                extrapolation = "active"
+            else:
+                # Too few levels above the base to check the ratios: plain MLMC until there are.
+                extrapolation = "pending" if reason else "active"
             if extrapolation != before:
                 targets = list(hierarchy.targets)
                 replan()
@@ -1002,9 +1004,9 @@ def _mlmc_result(
     )
 
 
-def _screening_instability(screening: LevelStatistics) -> str:
-    """Why the screening's means of levels >= 1 forbid extrapolation ("" if they do not, or cannot tell)."""
-    rows = [r for r in range(screening.n_levels) if screening.levels[r] >= 1 and screening.n_samples[r] >= 2]
+def _screening_instability(screening: LevelStatistics, base: int) -> str:
+    """Why the screening's means of levels above ``base`` forbid extrapolation ("" if they do not, or cannot tell)."""
+    rows = [r for r in range(screening.n_levels) if screening.levels[r] > base and screening.n_samples[r] >= 2]
     if len(rows) < 2:
         return ""
     errors = np.sqrt(screening.var_diff[rows] / screening.n_samples[rows][:, None])

@@ -568,3 +568,16 @@ def test_mlmc_starts_on_the_coarsest_useful_level():
     # Per run on the same finest level (the bias test's noise sometimes adds a level to one of
     # them; a 2^(2L) sample then dominates): measured median 0.60, predicted about 0.68.
     assert len(ratios) >= n_repeats // 2 and np.median(ratios) < 0.8
+
+
+def test_a_screening_with_unstable_ratios_refuses_richardson_at_the_start():
+    problem = Synthetic(seed=4, a=1.0, b=-3.0, alpha=1.0, alpha2=2.0, v1=1e-4)
+    screening = level_statistics(**sample_levels(Synthetic(seed=40, a=1.0, b=-3.0, alpha=1.0, alpha2=2.0, v1=1e-4),
+                                                 range(4), 20))
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always", EstimationWarning)
+        events = list(iter_mlmc(problem, tol=0.02, screening=screening, richardson=True))
+    assert isinstance(events[0], PlanUpdated) and isinstance(events[1], RichardsonRefused)
+    assert events[1].reason.startswith("screening: the level means change sign between levels 1 and 2")
+    assert sum(isinstance(e, RichardsonRefused) for e in events) == 1
+    assert events[-1].result.richardson == "refused"
