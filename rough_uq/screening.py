@@ -80,10 +80,11 @@ that happens to be near 0). ``alpha`` itself is fitted, and on
 pre-asymptotic levels it differs from the local rate of the two finest
 levels; the extrapolation then leaves part of the leading term, about
 ``|w - w_L| |E[Y_L]|`` with ``w_L`` the weight of the local ratio, and the
-reported remaining bias is the larger of the two. ``alpha2`` is not fitted (it would need four or
-more levels with small noise): it is taken as ``min(2 alpha, alpha + 1)``, the
-next order of an expansion in powers of ``h^alpha`` or in integer powers of
-``h``, whichever decays more slowly (the conservative choice).
+reported remaining bias is the larger of the two. ``alpha2`` is not fitted
+(it would need four or more levels with small noise): it is taken as
+``min(2 alpha, alpha + 1)``, the next order of an expansion in powers of
+``h^alpha`` or in integer powers of ``h``, whichever decays more slowly (the
+conservative choice).
 
 Extrapolation is only sound where the ratios ``E[Y_l] / E[Y_{l-1}]`` are
 stable; :func:`ratio_instability` says why they are not (too few levels, a
@@ -104,6 +105,7 @@ import numpy as np
 from rough_uq.errors import EstimationError, InvalidParameterError
 
 __all__ = [
+    "DROP_MARGIN",
     "KURTOSIS_LIMIT",
     "RATIO_LOG2_TOLERANCE",
     "RICHARDSON_MIN_LEVELS",
