@@ -305,7 +305,9 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                 record = run_estimation(study, method=method, tol=tolerances, executor=pool,
                                         progress=_progress(quiet or as_json), max_cost=cap, level=level,
                                         forecast=forecast)
-            key = run_id(method, study.config.qoi_names, tolerances, study.config.estimation.theta, level)
+            estimation = study.config.estimation
+            key = run_id(method, study.config.qoi_names, tolerances, estimation.theta, level,
+                         richardson=estimation.richardson)
         with open_existing_study(study_path, writable=False) as study:
             report = study_report(study.store, study.config)  # the same numbers `roughuq report` shows
         shown = next(run for run in report["runs"] if run["run_id"] == key)

@@ -102,6 +102,7 @@ __all__ = [
     "StudyConfig",
     "load_config",
     "config_from_dict",
+    "config_from_stored_text",
     "resolved_yaml",
     "config_hash",
     "solver_memory_bytes",
@@ -438,13 +439,26 @@ _TOL_DESCRIPTION = "Target root-mean-square error of the estimate, in the unit o
 
 
 class ContactAreaQoi(_Section):
-    """Fraction of the nominal area in contact (``p > 0``)."""
+    """Fraction of the nominal area in contact (``p > 0``).
+
+    ``estimator`` was added after the first schema-1 files: a config without
+    it gets the corrected estimator. Study files store their resolved config;
+    one stored without the key was computed with the node count and is read
+    back as ``nodes`` (:func:`config_from_stored_text`).
+    """
 
     kind: Literal["contact_area"] = Field("contact_area", exclude=True)
     unit: Literal["fraction", "percent"] = _field(
         "percent",
         description="Report as a fraction (dimensionless) or in percent",
         allowed="'fraction' or 'percent'",
+    )
+    estimator: Literal["corrected", "nodes"] = _field(
+        "corrected",
+        description="Area estimator (dimensionless fraction of nodes): 'corrected' = (N_c - c P) / N with the "
+        "contact perimeter P in grid edges and c = (pi - 1 + ln 2) / 24 (Yastrebov et al. 2017; bias much "
+        "smaller than the node count's), 'nodes' = N_c / N (bias proportional to the grid spacing)",
+        allowed="'corrected' or 'nodes'",
     )
     tol: Float | None = _field(
         None, description=_TOL_DESCRIPTION + " (fraction or percent)", allowed="number > 0 or null", gt=0
@@ -655,6 +669,12 @@ class EstimationConfig(_Section):
         description="Samples computed and stored together (count; does not change results)",
         allowed="integer >= 1",
         ge=1,
+    )
+    richardson: bool = _field(
+        False,
+        description="MLMC: Richardson-extrapolate the finest level, w = 2^alpha / (2^alpha - 1), where the "
+        "level means decay with stable ratios; refused with a message (plain MLMC) where they do not",
+        allowed="true or false",
     )
 
 
@@ -983,6 +1003,27 @@ def load_config(path: str | os.PathLike[str]) -> StudyConfig:
         line = f"{name}: cannot be read: {exc} (got {name!r}; allowed: a readable UTF-8 YAML file)"
         raise _config_error([line]) from None
     return config_from_yaml_text(text, source=name)
+
+
+def config_from_stored_text(text: str, *, source: str = "config") -> StudyConfig:
+    """Parse the resolved config stored in a study file, as the code that wrote it meant it.
+
+    Like :func:`config_from_yaml_text`, except that a ``qoi.contact_area``
+    without ``estimator`` gets ``nodes``: a resolved config lists every field,
+    so a stored one without the key was written before the corrected estimator
+    existed, and its samples are node counts.
+    """
+    try:
+        data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
+    except yaml.YAMLError as exc:
+        raise _config_error([_yaml_error_line(source, exc)]) from None
+    if isinstance(data, dict) and isinstance(data.get("qoi"), dict):
+        area = data["qoi"].get("contact_area")
+        if isinstance(area, dict) and "estimator" not in area:
+            data["qoi"]["contact_area"] = {**area, "estimator": "nodes"}
+    if data is None:
+        raise _config_error([f"{source}: the file is empty (got no content; allowed: a YAML mapping of sections)"])
+    return config_from_dict(data, source=source)
 
 
 def config_from_yaml_text(text: str, *, source: str = "config") -> StudyConfig:

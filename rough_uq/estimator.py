@@ -70,6 +70,27 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    (``"max_cost"``). ``tol_met`` is then ``sum_l V_l/N_l + bias^2 <= eps^2``
    for every QoI, with the sample variances and the remaining bias.
 
+Richardson extrapolation (``richardson=True``)
+-----------------------------------------------
+The estimate becomes ``sum_{l<L} mean(Y_l) + w mean(Y_L)``,
+``w = 2^alpha / (2^alpha - 1)`` with the driver's ``alpha`` (see
+:mod:`rough_uq.screening` for the formulas and the remaining-bias estimate).
+While it is *active*, the allocation gives the finest level the variance
+``w^2 V_L`` and step 3 tests the extrapolated estimate's remaining bias
+(:func:`~rough_uq.screening.richardson_bias`) instead of the plain one. It is
+active from the start if the screening's plan is extrapolated
+(:func:`~rough_uq.screening.plan` with ``richardson``), else *pending* (plain
+MLMC) until the run has ``RICHARDSON_MIN_LEVELS`` levels above its base
+level. Each time the samples
+are complete the run's own level means (standard errors from the pooled
+``V_l``) are checked with :func:`~rough_uq.screening.ratio_instability`; a
+failed check *refuses* the extrapolation for the rest of the run (a
+:class:`RichardsonRefused` event, ``EstimationResult.richardson =
+"refused"`` with the reason, an :class:`EstimationWarning`) and the run goes
+on as plain MLMC, adding levels if the plain bias test asks for them. So
+does a screening whose means fail the check (two levels ``>= 1`` suffice
+there), and a run that ends while still pending.
+
 Fitted rates are floored at 0.5 (as in Giles' code) so that extrapolation
 stays sane, and when a rate cannot be fitted (fewer than two usable levels,
 e.g. all ``E[Y_l] = 0``) the screening rates or 0.5 are used instead.
@@ -87,6 +108,7 @@ the ``n - 1`` normalisation, so each term is unbiased for
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from collections.abc import Callable, Iterator
@@ -97,6 +119,8 @@ import numpy as np
 from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.screening import (
     KURTOSIS_LIMIT,
+    RICHARDSON_MIN_LEVELS,
+    DroppedLevel,
     EstimationWarning,
     LevelStatistics,
     Plan,
@@ -116,7 +140,10 @@ from rough_uq.screening import (
     level_statistics,
     optimal_samples,
     plan,
+    ratio_instability,
     remaining_bias,
+    richardson_bias,
+    richardson_weight,
 )
 
 __all__ = [
@@ -129,6 +156,7 @@ __all__ = [
     "Plan",
     "PlanUpdated",
     "Rates",
+    "RichardsonRefused",
     "Sampler",
     "diagnose",
     "fit_rates",
@@ -173,6 +201,22 @@ class PlanUpdated:
     levels: np.ndarray
     n_planned: np.ndarray
     n_done: np.ndarray
+    reason: str
+
+
+@dataclass(frozen=True, eq=False)
+class RichardsonRefused:
+    """Richardson extrapolation was refused; the run continues as plain MLMC.
+
+    Attributes
+    ----------
+    levels : ndarray of int, shape (n_levels,)
+        Levels of the hierarchy when it was refused.
+    reason : str
+        Which check failed (:func:`~rough_uq.screening.ratio_instability`).
+    """
+
+    levels: np.ndarray
     reason: str
 
 
@@ -256,6 +300,14 @@ class EstimationResult:
     is_bias_estimated : bool
         False for MC without a ``bias`` (``bias_estimate`` is then 0 and
         ``tol_met`` concerns the statistical error only).
+    richardson : str
+        ``"off"`` (not asked for), ``"applied"`` (``estimate``, ``stat_error``
+        and ``bias_estimate`` are those of the extrapolated estimate) or
+        ``"refused"`` (plain MLMC; ``richardson_reason`` says why).
+    richardson_reason : str
+        Why the extrapolation was refused ("" otherwise).
+    dropped_levels : tuple of DroppedLevel
+        MLMC: coarse levels left out (``levels`` then starts above 0) and why.
     """
 
     method: str
@@ -275,6 +327,9 @@ class EstimationResult:
     tol_met: bool
     stop_reason: str
     is_bias_estimated: bool
+    richardson: str = "off"
+    richardson_reason: str = ""
+    dropped_levels: tuple[DroppedLevel, ...] = ()
 
     @property
     def rmse(self) -> float | np.ndarray:
@@ -294,7 +349,7 @@ class Finished:
     result: EstimationResult
 
 
-Event = PlanUpdated | BatchDone | Finished
+Event = PlanUpdated | BatchDone | RichardsonRefused | Finished
 
 
 # --------------------------------------------------------------------------
@@ -414,7 +469,7 @@ def _floor_rates(n_qoi: int) -> Rates:
     )
 
 
-def _lenient_rates(statistics: LevelStatistics, fallback: Rates | None) -> Rates:
+def _lenient_rates(statistics: LevelStatistics, fallback: Rates | None, min_level: int = 1) -> Rates:
     """Rates for the driver: fitted on levels >= 1 where possible (floored), else the fallback.
 
     A rate that cannot be fitted keeps the fallback's value (the screening rates, or
@@ -427,16 +482,16 @@ def _lenient_rates(statistics: LevelStatistics, fallback: Rates | None) -> Rates
     levels_alpha = list(base.levels_alpha) or [()] * n_qoi
     levels_beta = list(base.levels_beta) or [()] * n_qoi
     for q in range(n_qoi):
-        line, _ = _fit_alpha(statistics, q, 1)
+        line, _ = _fit_alpha(statistics, q, min_level)
         if line is not None:
             alpha[q], c_alpha[q], alpha_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
             levels_alpha[q] = line.levels
-        line, _ = _fit_beta(statistics, q, 1)
+        line, _ = _fit_beta(statistics, q, min_level)
         if line is not None:
             beta[q], c_beta[q], beta_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
             levels_beta[q] = line.levels
     gamma, c_gamma, gamma_se, levels_gamma = base.gamma, base.c_gamma, base.gamma_se, base.levels_gamma
-    line, _ = _fit_gamma(statistics, 1)
+    line, _ = _fit_gamma(statistics, min_level)
     if line is not None:
         gamma, c_gamma, gamma_se, levels_gamma = max(line.rate, RATE_FLOOR), line.constant, line.se, line.levels
     elif fallback is None:
@@ -476,14 +531,19 @@ def _fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np
     return costs
 
 
-def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.ndarray) -> np.ndarray:
-    """``V_l`` for the allocation: sample values, extrapolated where missing, floored from level 2 on."""
+def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.ndarray, base: int = 0) -> np.ndarray:
+    """``V_l`` for the allocation: sample values, extrapolated where missing, floored from level ``base + 2`` on.
+
+    Levels below ``base`` get 0; the base level's ``V`` is ``Var(Q_base)``, so
+    it is neither extrapolated from nor used as a floor of the level above.
+    """
     variances = np.array(var_diff, dtype=float)
-    for level in range(len(variances)):
-        extrapolated = variances[level - 1] * 2.0 ** (-beta) if level >= 1 else None
+    variances[:base] = 0.0
+    for level in range(base, len(variances)):
+        extrapolated = variances[level - 1] * 2.0 ** (-beta) if level >= base + 1 else None
         if not has_data[level]:
             variances[level] = extrapolated if extrapolated is not None else 0.0
-        elif level >= 2:
+        elif level >= base + 2:
             variances[level] = np.maximum(variances[level], 0.5 * extrapolated)
     return variances
 
@@ -511,17 +571,20 @@ class _Hierarchy:
     counts, pooled with the run's samples in :meth:`variances`.
     """
 
-    def __init__(self, n_levels: int, floor: int, prior: LevelStatistics | None = None) -> None:
+    def __init__(self, n_levels: int, floor: int, prior: LevelStatistics | None = None, base: int = 0) -> None:
         self.samples = [_LevelSamples(level) for level in range(n_levels)]
-        self.targets = [floor] * n_levels
+        self.base = base
+        self.targets = [floor if level >= base else 0 for level in range(n_levels)]
         self.floor = floor
         self.spent = 0.0
         self.prior_var: dict[int, np.ndarray] = {}
         self.prior_n: dict[int, int] = {}
         if prior is not None:
             for row, level in enumerate(prior.levels):
-                if prior.n_samples[row] >= 2:
-                    self.prior_var[int(level)] = prior.var_diff[row]
+                if prior.n_samples[row] >= 2 and level >= base:
+                    # The base level is sampled as Q_base: its prior is the screening's Var(Q).
+                    variance = prior.var_fine[row] if level == base else prior.var_diff[row]
+                    self.prior_var[int(level)] = variance
                     self.prior_n[int(level)] = int(prior.n_samples[row])
 
     def add_level(self) -> None:
@@ -535,7 +598,7 @@ class _Hierarchy:
         return _pooled_variance(run_var, n_run, self.prior_var[level], self.prior_n[level])
 
     def has_variance(self, level: int) -> bool:
-        return self.samples[level].n >= 2 or level in self.prior_var
+        return level >= self.base and (self.samples[level].n >= 2 or level in self.prior_var)
 
     @property
     def n_levels(self) -> int:
@@ -558,7 +621,11 @@ class _Hierarchy:
 
     def statistics(self) -> LevelStatistics:
         sampled = self.sampled()
-        return _assemble([s.level for s in sampled], [s.moments() for s in sampled])
+        return _assemble([s.level for s in sampled], [s.moments() for s in sampled], base_level=self.base)
+
+    def mean_diff(self, n_qoi: int) -> np.ndarray:
+        """``E[Y_l]`` of levels ``0..L`` (zeros on levels not sampled), shape (n_levels, n_qoi)."""
+        return np.array([s.moments().mean_diff if s.n else np.zeros(n_qoi) for s in self.samples])
 
 
 def _per_sample_cost(hierarchy: _Hierarchy, level: int, gamma: float) -> float:
@@ -606,6 +673,8 @@ def iter_mlmc(
     screening: LevelStatistics | None = None,
     rates: Rates | None = None,
     kurtosis_limit: float = KURTOSIS_LIMIT,
+    richardson: bool = False,
+    coarsest_level: int | None = 0,
 ) -> Iterator[Event]:
     """Adaptive MLMC to a tolerance, as a generator of events.
 
@@ -651,17 +720,28 @@ def iter_mlmc(
         rates, then to 0.5).
     kurtosis_limit : float
         Kurtosis of ``Y_l`` above which a warning is issued.
+    richardson : bool
+        Richardson-extrapolate the finest level where the ratios of successive
+        level means are stable, else fall back to plain MLMC (module docstring).
+    coarsest_level : int or None
+        Level ``b`` the hierarchy starts on (default 0): its samples give
+        ``Q_b`` alone (the sampler's coarse values are ignored) and the levels
+        below are never sampled. None lets the screening's plan choose it
+        (:func:`~rough_uq.screening.choose_coarsest_level`; 0 without a
+        screening; 0 if ``max_level`` leaves fewer than two levels above the
+        chosen one); ``EstimationResult.dropped_levels`` says why.
 
     Yields
     ------
-    PlanUpdated, BatchDone, Finished
+    PlanUpdated, BatchDone, RichardsonRefused, Finished
         ``Finished`` is last and carries the :class:`EstimationResult`.
 
     Warns
     -----
     EstimationWarning
         At the end, for every failed check of
-        :func:`~rough_uq.screening.diagnose` and for zero reported costs.
+        :func:`~rough_uq.screening.diagnose`, for zero reported costs and for a
+        refused Richardson extrapolation.
     """
     theta = _check_fraction("theta", theta)
     n_initial = _check_int("n_initial", n_initial, 2)
@@ -687,6 +767,8 @@ def iter_mlmc(
         screening=screening,
         rates=rates,
         kurtosis_limit=float(kurtosis_limit),
+        richardson=bool(richardson),
+        coarsest_level=None if coarsest_level is None else _check_int("coarsest_level", coarsest_level, 0),
     )
 
 
@@ -703,30 +785,54 @@ def _mlmc_events(
     screening: LevelStatistics | None,
     rates: Rates | None,
     kurtosis_limit: float,
+    richardson: bool,
+    coarsest_level: int | None,
 ) -> Iterator[Event]:
     budget_cap = batch_size if batch_size is not None else math.inf
     fallback = rates
     initial_targets: list[int] = []
     floor = n_initial
+    # Richardson state: "off", "pending" (too few levels to check), "active" or "refused".
+    extrapolation, refusal = ("pending" if richardson else "off"), ""
     if screening is not None:
         screening_rates = rates if rates is not None else _lenient_rates(screening, None)
         fallback = screening_rates
-        initial = plan(tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level)
+        initial = plan(
+            tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level,
+            richardson=richardson, coarsest_level=coarsest_level,
+        )
+        if coarsest_level is None and initial.coarsest_level + 2 > max_level:
+            # The rates need two levels above the base; max_level leaves no room for them.
+            initial = plan(
+                tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level,
+                richardson=richardson, coarsest_level=0,
+            )
         floor = MIN_LEVEL_SAMPLES
-        initial_targets = [max(int(n), floor) for n in initial.n_samples]
-    n_levels = max(min_finest_level + 1, len(initial_targets))
-    hierarchy = _Hierarchy(n_levels, floor, screening)
+        base, dropped = initial.coarsest_level, initial.dropped_levels
+        initial_targets = [max(int(n), floor) if level >= base else 0 for level, n in enumerate(initial.n_samples)]
+        if richardson:
+            refusal = _screening_instability(screening, base)
+            extrapolation = "refused" if refusal else ("active" if initial.is_richardson else "pending")
+    else:
+        base, dropped = (coarsest_level or 0), ()
+    # Two levels above the base to fit the rates from.
+    n_levels = max(min_finest_level + 1, base + 3, len(initial_targets))
+    if n_levels - 1 > max_level:
+        raise InvalidParameterError("coarsest_level", coarsest_level, f"at most max_level - 2 = {max_level - 2}")
+    hierarchy = _Hierarchy(n_levels, floor, screening, base)
     hierarchy.targets[: len(initial_targets)] = initial_targets
     driver = fallback if fallback is not None else _floor_rates(tol.size)
     is_scalar = False
     n_qoi: int | None = None
     yield hierarchy.plan_event("initial")
+    if extrapolation == "refused":
+        yield RichardsonRefused(levels=hierarchy.levels(), reason=refusal)
 
     def replan() -> None:
         nonlocal driver
         statistics = hierarchy.statistics()
         if rates is None:
-            driver = _lenient_rates(statistics, fallback)
+            driver = _lenient_rates(statistics, fallback, base + 1)
         has_data = np.array([hierarchy.has_variance(s.level) for s in hierarchy.samples])
         var_diff = np.zeros((hierarchy.n_levels, n_qoi))
         mean_cost = np.zeros(hierarchy.n_levels)
@@ -736,10 +842,15 @@ def _mlmc_events(
                 var_diff[s.level] = hierarchy.variances(s.level, run_var, s.n)
             if s.n > 0:
                 mean_cost[s.level] = s.moments().mean_cost
-        variances = _planning_variances(var_diff, has_data, driver.beta)
+        variances = _planning_variances(var_diff, has_data, driver.beta, base)
+        if extrapolation == "active":
+            variances[-1] = variances[-1] * richardson_weight(driver.alpha) ** 2
         costs = _fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), driver.gamma)
-        wanted = np.ceil(np.max(optimal_samples(variances, costs, (1.0 - theta) * tol**2), axis=1))
-        hierarchy.targets = [max(s.n, int(n), hierarchy.floor) for s, n in zip(hierarchy.samples, wanted)]
+        wanted = np.zeros(hierarchy.n_levels)
+        wanted[base:] = np.ceil(np.max(optimal_samples(variances[base:], costs[base:], (1.0 - theta) * tol**2), axis=1))
+        hierarchy.targets = [
+            max(s.n, int(n), hierarchy.floor) if s.level >= base else 0 for s, n in zip(hierarchy.samples, wanted)
+        ]
 
     stop_reason = ""
     while not stop_reason:
@@ -761,7 +872,9 @@ def _mlmc_events(
                     driver = _floor_rates(n_qoi)
             elif batch.fine.shape[1] != n_qoi:
                 raise EstimationError(f"sampler returned {batch.fine.shape[1]} QoIs on level {level}, earlier {n_qoi}")
-            level_samples.add(batch.fine, batch.coarse, batch.cost)
+            # The base level is sampled as Q_base: its coarse values are not part of the sum.
+            coarse = np.zeros_like(batch.fine) if level == base else batch.coarse
+            level_samples.add(batch.fine, coarse, batch.cost)
             hierarchy.spent += float(np.sum(batch.cost))
             yield BatchDone(
                 level=level,
@@ -784,8 +897,27 @@ def _mlmc_events(
             if any(m > 0.01 * s.n for m, s in zip(missing, hierarchy.samples)):
                 continue
         is_complete = all(s.n >= hierarchy.targets[s.level] for s in hierarchy.samples)
-        mean_diff = np.array([s.moments().mean_diff for s in hierarchy.samples])
-        bias = _driver_bias(mean_diff, driver.alpha)
+        if extrapolation in ("pending", "active") and is_complete:
+            reason = _run_instability(hierarchy)
+            enough = hierarchy.n_levels - 1 - base >= RICHARDSON_MIN_LEVELS
+            before = extrapolation
+            if reason and enough:
+                extrapolation, refusal = "refused", reason
+                yield RichardsonRefused(levels=hierarchy.levels(), reason=reason)
+            else:
+                # Too few levels above the base to check the ratios: plain MLMC until there are.
+                extrapolation = "pending" if reason else "active"
+            if extrapolation != before:
+                targets = list(hierarchy.targets)
+                replan()
+                if hierarchy.targets != targets:
+                    yield hierarchy.plan_event("richardson")
+                    continue
+        mean_diff = hierarchy.mean_diff(n_qoi)[base:]  # row 0 is the base level
+        if extrapolation == "active":
+            bias = richardson_bias(mean_diff[1:], driver.alpha)
+        else:
+            bias = _driver_bias(mean_diff, driver.alpha)
         if np.all(bias <= math.sqrt(theta) * tol):
             if is_complete:
                 stop_reason = "tol_met"
@@ -798,10 +930,23 @@ def _mlmc_events(
         replan()
         yield hierarchy.plan_event("new level")
 
+    if extrapolation == "pending":
+        refusal = _run_instability(hierarchy) or "the ratios were never checked"
+        extrapolation = "refused"
+        yield RichardsonRefused(levels=hierarchy.levels(), reason=refusal)
     statistics = hierarchy.statistics()
-    result = _mlmc_result(hierarchy, statistics, driver, tol, theta, is_scalar, stop_reason)
+    result = _mlmc_result(
+        hierarchy, statistics, driver, tol, theta, is_scalar, stop_reason, extrapolation, refusal
+    )
+    result = dataclasses.replace(result, dropped_levels=dropped)
     for message in diagnose(statistics, kurtosis_limit=kurtosis_limit):
         warnings.warn(f"mlmc: {message}", EstimationWarning, stacklevel=2)
+    if extrapolation == "refused":
+        warnings.warn(
+            f"mlmc: Richardson extrapolation refused, the estimate is plain MLMC: {refusal}",
+            EstimationWarning,
+            stacklevel=2,
+        )
     _warn_zero_cost(statistics)
     yield Finished(result=result)
 
@@ -814,16 +959,23 @@ def _mlmc_result(
     theta: float,
     is_scalar: bool,
     stop_reason: str,
+    extrapolation: str = "off",
+    refusal: str = "",
 ) -> EstimationResult:
     n = statistics.n_samples[:, None]
-    estimate = np.sum(statistics.mean_diff, axis=0)
     var_diff = np.array(
         [hierarchy.variances(int(level), statistics.var_diff[row], int(statistics.n_samples[row]))
          for row, level in enumerate(statistics.levels)]
     )
-    stat_variance = np.sum(var_diff / n, axis=0)
     # Levels are sampled in order, so the sampled ones are 0..L without gaps.
-    bias = _driver_bias(statistics.mean_diff, driver.alpha)
+    weights = np.ones_like(statistics.mean_diff)
+    if extrapolation == "active":
+        weights[-1] = richardson_weight(driver.alpha)
+        bias = richardson_bias(statistics.mean_diff[1:], driver.alpha)
+    else:
+        bias = _driver_bias(statistics.mean_diff, driver.alpha)
+    estimate = np.sum(weights * statistics.mean_diff, axis=0)
+    stat_variance = np.sum(weights**2 * var_diff / n, axis=0)
     finest = statistics.n_levels - 1
     costs = _fill_costs(statistics.mean_cost, np.ones(statistics.n_levels, dtype=bool), driver.gamma)
     budget = (1.0 - theta) * tol**2
@@ -847,7 +999,31 @@ def _mlmc_result(
         tol_met=bool(np.all(stat_variance + bias**2 <= tol**2 * (1 + 1e-12))),
         stop_reason=stop_reason,
         is_bias_estimated=True,
+        richardson={"active": "applied", "refused": "refused"}.get(extrapolation, "off"),
+        richardson_reason=refusal,
     )
+
+
+def _screening_instability(screening: LevelStatistics, base: int) -> str:
+    """Why the screening's means of levels above ``base`` forbid extrapolation ("" if they do not, or cannot tell)."""
+    rows = [r for r in range(screening.n_levels) if screening.levels[r] > base and screening.n_samples[r] >= 2]
+    if len(rows) < 2:
+        return ""
+    errors = np.sqrt(screening.var_diff[rows] / screening.n_samples[rows][:, None])
+    reason = ratio_instability(
+        screening.mean_diff[rows], errors, [int(screening.levels[r]) for r in rows], min_levels=2
+    )
+    return f"screening: {reason}" if reason else ""
+
+
+def _run_instability(hierarchy: _Hierarchy) -> str:
+    """Why the run's means of levels >= 1 (standard errors from the pooled V_l) are not stable ("" if they are)."""
+    rows = [s for s in hierarchy.samples[hierarchy.base + 1 :] if s.n >= 2]
+    if not rows:
+        return ratio_instability(np.zeros((0, 1)), np.zeros((0, 1)), [])
+    means = np.array([s.moments().mean_diff for s in rows])
+    errors = np.array([np.sqrt(hierarchy.variances(s.level, s.moments().var_diff, s.n) / s.n) for s in rows])
+    return ratio_instability(means, errors, [s.level for s in rows])
 
 
 def mlmc(sampler: Sampler, *, tol: float | np.ndarray, **options: object) -> EstimationResult:
@@ -856,7 +1032,7 @@ def mlmc(sampler: Sampler, *, tol: float | np.ndarray, **options: object) -> Est
     Runs :func:`iter_mlmc` to the end; ``options`` are its keyword arguments
     (``theta``, ``n_initial``, ``min_finest_level``, ``max_level``,
     ``max_cost``, ``batch_size``, ``screening``, ``rates``,
-    ``kurtosis_limit``).
+    ``kurtosis_limit``, ``richardson``).
 
     Returns
     -------

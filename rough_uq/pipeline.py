@@ -36,9 +36,9 @@ from typing import Any
 import numpy as np
 
 from rough_uq import __version__
-from rough_uq.config import StudyConfig, config_from_yaml_text, config_hash, resolved_yaml
+from rough_uq.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
 from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
-from rough_uq.estimator import BatchDone, Finished, PlanUpdated, iter_mc, iter_mlmc
+from rough_uq.estimator import BatchDone, Finished, PlanUpdated, RichardsonRefused, iter_mc, iter_mlmc
 from rough_uq.executor import Executor, SerialExecutor
 from rough_uq.fft_wisdom import prepare_wisdom
 from rough_uq.progress import Progress
@@ -55,6 +55,7 @@ from rough_uq.screening import (
     LevelStatistics,
     Plan,
     Rates,
+    choose_coarsest_level,
     diagnose,
     fit_rates,
     level_statistics,
@@ -113,7 +114,7 @@ def build_model(config: StudyConfig) -> ContactModel:
     else:
         mean_pressure = config.load.value
     scales = []
-    connectivity, critical_pressure = 4, None
+    connectivity, critical_pressure, area_estimator = 4, None, "corrected"
     for name, settings in config.qoi.items():
         scale = 1.0
         if getattr(settings, "unit", None) == "percent":
@@ -124,6 +125,8 @@ def build_model(config: StudyConfig) -> ContactModel:
             connectivity = settings.connectivity
         if name == "area_above":
             critical_pressure = settings.critical_pressure
+        if name == "contact_area":
+            area_estimator = settings.estimator
         scales.append(scale)
     return ContactModel(
         spectrum=spectrum,
@@ -140,6 +143,7 @@ def build_model(config: StudyConfig) -> ContactModel:
         threads=config.solver.threads,
         connectivity=connectivity,
         critical_pressure=critical_pressure,
+        area_estimator=area_estimator,
     )
 
 
@@ -198,7 +202,7 @@ def create_study(config: StudyConfig, path: str | Path | None = None) -> Study:
 
 def _stored_config(store: StudyStore) -> StudyConfig:
     path = getattr(store, "path", "study")
-    return config_from_yaml_text(store.config_text, source=f"{path} (stored config)")
+    return config_from_stored_text(store.config_text, source=f"{path} (stored config)")
 
 
 def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, writable: bool = True) -> Study:
@@ -553,6 +557,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
                 statistics=statistics,
                 theta=config.estimation.theta,
                 max_level=config.grid.max_level,
+                coarsest_level=None,
             )
         except RoughUQError as exc:
             # E.g. a bias that does not decay yet (alpha <= 0 on pre-asymptotic
@@ -561,6 +566,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
             break
         predictions.append(_plan_record(prediction, seconds_per_cost))
     messages = list(dict.fromkeys([str(w.message) for w in caught] + list(diagnose(statistics)) + problems))
+    coarsest = choose_coarsest_level(statistics)
     record = {
         "created": _now(),
         "code_version": __version__,
@@ -568,6 +574,8 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
         "statistics": statistics_record(statistics, [float(np.mean(b.cost)) for b in batches]),
         "rates": rates_record(rates),
         "predictions": predictions,
+        "coarsest_level": coarsest.level,
+        "dropped_levels": [{"level": d.level, "reason": d.reason} for d in coarsest.dropped],
         "seconds_per_cost": seconds_per_cost,
         "n_not_converged": _not_converged(batches),
         "n_computed": sampler.n_computed,
@@ -625,15 +633,26 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
     return np.array(tol, dtype=float)
 
 
-def run_id(method: str, names: Sequence[str], tol: np.ndarray, theta: float, level: int | None = None) -> str:
+def run_id(
+    method: str,
+    names: Sequence[str],
+    tol: np.ndarray,
+    theta: float,
+    level: int | None = None,
+    *,
+    richardson: bool = False,
+) -> str:
     """Name of the run of ``method`` at tolerances ``tol`` and bias share ``theta`` (MC: on ``level``, if given).
 
     The same command gives the same name, hence the same record and the same
     random stage (:func:`~rough_uq.sampler.run_stage`): rerunning it resumes.
+    A Richardson-extrapolated MLMC run ends in ``_richardson``.
     """
     parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
     if level is not None:
         parts.append(f"level-{level}")
+    if richardson and method == "mlmc":
+        parts.append("richardson")
     return "_".join(parts)
 
 
@@ -648,6 +667,7 @@ def _estimation_plan(study: Study, tol: np.ndarray) -> tuple[LevelStatistics, Ra
         statistics=statistics,
         theta=study.config.estimation.theta,
         max_level=study.config.grid.max_level,
+        coarsest_level=None,
     )
     return statistics, rates, prediction
 
@@ -849,7 +869,8 @@ def missing_samples(
     plan more samples once these are stored: ask again after merging them.
     Nothing is computed or written.
     """
-    key = run_id(method, study.config.qoi_names, tol, study.config.estimation.theta, level)
+    estimation = study.config.estimation
+    key = run_id(method, study.config.qoi_names, tol, estimation.theta, level, richardson=estimation.richardson)
     stage = run_stage(method, key)
     stored = StudySampler(study, stage=stage, executor=SerialExecutor(), progress=Progress())
 
@@ -909,7 +930,10 @@ def _events(
     statistics, rates, prediction = _estimation_plan(study, tol)
     context = {"screening_rates": rates_record(rates), "predicted": _plan_record(prediction, 1.0)}
     if method == "mlmc":
-        events = iter_mlmc(sampler, max_level=config.grid.max_level, screening=statistics, **options)
+        events = iter_mlmc(
+            sampler, max_level=config.grid.max_level, screening=statistics, richardson=estimation.richardson,
+            coarsest_level=None, **options,
+        )
     else:
         context["level"] = prediction.finest_level
         events = iter_mc(
@@ -999,7 +1023,7 @@ def run_estimation(
     names = config.qoi_names
     tol = np.asarray(tol, dtype=float)
     max_cost = config.estimation.max_cost if max_cost is None else max_cost
-    key = run_id(method, names, tol, config.estimation.theta, level)
+    key = run_id(method, names, tol, config.estimation.theta, level, richardson=config.estimation.richardson)
     started = time.monotonic()
     stage = run_stage(method, key)
     sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
@@ -1029,7 +1053,7 @@ def run_estimation(
                     progress.plan(event.levels, event.n_planned, event.n_done)
                 elif isinstance(event, Finished):
                     result = event.result
-                elif not isinstance(event, BatchDone):  # pragma: no cover - the estimator's contract
+                elif not isinstance(event, (BatchDone, RichardsonRefused)):  # pragma: no cover - the contract
                     raise RoughUQError(f"unexpected estimator event {event!r}")
     except BaseException:
         progress.stop(is_complete=False)
@@ -1065,6 +1089,9 @@ def run_estimation(
                 "n_not_converged": n_not_converged,
                 "tol_met": result.tol_met,
                 "stop_reason": result.stop_reason,
+                "richardson": result.richardson,
+                "richardson_reason": result.richardson_reason,
+                "dropped_levels": [{"level": d.level, "reason": d.reason} for d in result.dropped_levels],
                 "rates": rates_record(result.rates) if result.rates is not None else None,
                 "statistics": statistics_record(
                     result.statistics,

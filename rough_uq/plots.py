@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from rough_uq.errors import RoughUQError
-from rough_uq.qoi import label_clusters
+from rough_uq.qoi import contact_area, label_clusters
 from rough_uq.sampler import ContactModel, is_coupled_stage, solve_sample
 
 __all__ = ["write_report_plots", "write_sample_figure"]
@@ -364,7 +364,7 @@ def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: i
     contact = solution.contact
     labels = label_clusters(contact, connectivity=model.connectivity)
     n_clusters = int(labels.max())
-    area = 100.0 * np.count_nonzero(contact) / contact.size
+    area = 100.0 * contact_area(solution.pressure, estimator=model.area_estimator)
     n = heights.shape[0]
     size = model.spectrum.system_size
     # Node (i, j) sits at (x, y) = (i h, j h): transpose so that i runs along x.

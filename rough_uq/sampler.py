@@ -182,6 +182,8 @@ class ContactModel:
         Cluster connectivity.
     critical_pressure : float or None
         Threshold of ``area_above``.
+    area_estimator : {"corrected", "nodes"}
+        Estimator of ``contact_area`` (:func:`~rough_uq.qoi.contact_area`).
     fft_wisdom : tuple of bytes or None
         FFTW wisdom that every process computing samples plans from
         (:func:`rough_uq.fft.use_wisdom`), so that all use the same plans;
@@ -202,6 +204,7 @@ class ContactModel:
     threads: int = 1
     connectivity: int = 4
     critical_pressure: float | None = None
+    area_estimator: str = "corrected"
     fft_wisdom: tuple[bytes, ...] | None = field(default=None, repr=False, compare=False)
 
     def grid(self, level: int) -> int:
@@ -294,6 +297,7 @@ def _qoi(model: ContactModel, solution: ContactSolution) -> np.ndarray:
         gap=solution.gap,
         connectivity=model.connectivity,
         critical_pressure=model.critical_pressure,
+        area_estimator=model.area_estimator,
     )
     return values * np.asarray(model.qoi_scales)
 

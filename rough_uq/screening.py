@@ -40,6 +40,57 @@ The bias of an estimator whose finest level is ``L`` is
 geometric tail ``|E[Y_L]| / (2^alpha - 1)`` (Giles 2015, section 3.1); this
 module calls that the *remaining bias* and uses it everywhere a bias is
 predicted (:func:`plan`) or reported.
+
+Coarsest useful level
+---------------------
+The telescoping sum may start on any level ``b``: ``E[Q_L] = E[Q_b] + sum_{b<l<=L}
+E[Y_l]``, the base level sampled as ``Q_b`` alone. A level ``l`` with
+``Var(Y_l) >= Var(Q_l)`` makes everything below it useless: sampling ``Q_l``
+directly is cheaper than sampling ``Y_l`` plus the coarser levels. In
+general the MLMC cost is proportional to ``S(b)^2``,
+``S(b) = sqrt(Var(Q_b) C_b) + sum_{l>b} sqrt(V_l C_l)`` (SPEC section 5 with
+the base level's variance ``Var(Q_b)``); :func:`choose_coarsest_level` picks
+the screened ``b`` that minimises it (worst QoI, relative to ``b = 0``) and
+drops the levels below ``b`` when the predicted saving is at least
+``DROP_MARGIN`` (10 %: the screening's variances carry sampling noise of that
+order). ``C_b`` is the cost of a screened (coupled) level-``b`` sample, since
+the estimators draw the base level's samples from the same coupled sampler
+and ignore the coarse value, so the prediction is what a run pays.
+
+Richardson extrapolation
+------------------------
+Where ``E[Y_l] = c 2^(-alpha l)`` holds, ``E[Q] - E[Q_L]`` is the geometric
+tail ``E[Y_L] / (2^alpha - 1)``, so
+
+    R_L = sum_{l<L} mean(Y_l) + w mean(Y_L),    w = 2^alpha / (2^alpha - 1),
+
+removes the leading bias term (Giles 2015, section 3.1; Lemaire & Pages,
+multilevel Richardson-Romberg). Its variance is ``sum_{l<L} V_l / N_l + w^2
+V_L / N_L``, so the allocation treats the finest level as having variance
+``w^2 V_L`` (:func:`optimal_samples` with scaled ``V_L``). What remains is the
+next term of the expansion; this module estimates it from the change of the
+extrapolated value between successive finest levels,
+
+    D_L = R_L - R_{L-1} = w E[Y_L] - E[Y_{L-1}] / (2^alpha - 1),
+
+and, if the next term decays like ``2^(-alpha2 l)``, the remaining bias is
+``|D_L| / (2^alpha2 - 1)`` (:func:`richardson_bias`; as for the plain bias the
+maximum with the same tail taken from ``D_{L-1}`` guards against a ``D_L``
+that happens to be near 0). ``alpha`` itself is fitted, and on
+pre-asymptotic levels it differs from the local rate of the two finest
+levels; the extrapolation then leaves part of the leading term, about
+``|w - w_L| |E[Y_L]|`` with ``w_L`` the weight of the local ratio, and the
+reported remaining bias is the larger of the two. ``alpha2`` is not fitted
+(it would need four or more levels with small noise): it is taken as
+``min(2 alpha, alpha + 1)``, the next order of an expansion in powers of
+``h^alpha`` or in integer powers of ``h``, whichever decays more slowly (the
+conservative choice).
+
+Extrapolation is only sound where the ratios ``E[Y_l] / E[Y_{l-1}]`` are
+stable; :func:`ratio_instability` says why they are not (too few levels, a
+mean indistinguishable from zero, a change of sign, no decay, or successive
+ratios differing by more than a factor ``2^RATIO_LOG2_TOLERANCE`` beyond
+their noise), and callers fall back to plain MLMC.
 """
 
 from __future__ import annotations
@@ -54,18 +105,28 @@ import numpy as np
 from rough_uq.errors import EstimationError, InvalidParameterError
 
 __all__ = [
+    "DROP_MARGIN",
     "KURTOSIS_LIMIT",
+    "RATIO_LOG2_TOLERANCE",
+    "RICHARDSON_MIN_LEVELS",
     "EstimationWarning",
     "LevelStatistics",
+    "CoarsestLevel",
+    "DroppedLevel",
     "Plan",
     "Rates",
+    "choose_coarsest_level",
     "diagnose",
     "fine_cost_share",
     "fit_rates",
     "level_statistics",
     "optimal_samples",
     "plan",
+    "ratio_instability",
     "remaining_bias",
+    "richardson_bias",
+    "richardson_weight",
+    "second_order_rate",
 ]
 
 #: Kurtosis of ``Y_l`` above which ``V_l`` is considered unreliable (Giles' ``mlmc_test`` value).
@@ -76,6 +137,15 @@ _ROUNDING = 64 * np.finfo(float).eps
 
 # Largest sample count a plan may ask for; keeps float -> int conversions exact.
 _MAX_COUNT = 2.0**52
+
+#: Smallest predicted saving (fraction of the MLMC cost) for which coarse levels are dropped.
+DROP_MARGIN = 0.1
+
+#: Levels ``>= 1`` (two ratios of successive means) needed before Richardson extrapolation is trusted.
+RICHARDSON_MIN_LEVELS = 3
+
+#: Largest ``|log2 r_l - log2 r_{l-1}|`` of successive mean ratios, beyond two standard errors, still "stable".
+RATIO_LOG2_TOLERANCE = 0.5
 
 
 class EstimationWarning(UserWarning):
@@ -143,6 +213,10 @@ class LevelStatistics:
         level 0 by definition. Above 1 on a level ``l >= 1`` the coarse
         sample is not coupled to the fine one (MLMC cannot beat MC there).
         Where ``Var(Q_l) = 0``: ``inf`` if ``V_l > 0``, else 0.
+    base_level : int
+        The level the hierarchy starts on (0 unless an estimation run dropped
+        coarse levels): its ``Y`` is ``Q`` itself (coarse values 0), and
+        like level 0 it has coupling ratio 1 and is not checked for coupling.
     """
 
     levels: np.ndarray
@@ -160,6 +234,7 @@ class LevelStatistics:
     var_cost: np.ndarray
     consistency: np.ndarray
     coupling_ratio: np.ndarray
+    base_level: int = 0
 
     @property
     def n_levels(self) -> int:
@@ -179,7 +254,7 @@ class LevelStatistics:
     @property
     def is_coupled(self) -> np.ndarray:
         """Boolean, shape (n_levels, n_qoi): ``V_l < Var(Q_l)`` (always True on level 0)."""
-        return (self.levels[:, None] == 0) | (self.coupling_ratio < 1.0)
+        return (self.levels[:, None] <= self.base_level) | (self.coupling_ratio < 1.0)
 
     def index(self, level: int) -> int | None:
         """Row of ``level`` in the arrays, or None if the level is absent."""
@@ -288,8 +363,8 @@ def _level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> _M
     )
 
 
-def _assemble(levels: Sequence[int], moments: Sequence[_Moments]) -> LevelStatistics:
-    """Stack per-level moments and add the cross-level checks."""
+def _assemble(levels: Sequence[int], moments: Sequence[_Moments], base_level: int = 0) -> LevelStatistics:
+    """Stack per-level moments and add the cross-level checks (``base_level``: see :class:`LevelStatistics`)."""
     levels_array = np.asarray(levels, dtype=np.int64)
 
     def stack(name: str) -> np.ndarray:
@@ -339,8 +414,9 @@ def _assemble(levels: Sequence[int], moments: Sequence[_Moments]) -> LevelStatis
         out=np.where(table["var_diff"] > 0, np.inf, 0.0),
         where=table["var_fine"] > 0,
     )
-    coupling[levels_array == 0] = 1.0
+    coupling[levels_array <= base_level] = 1.0
     return LevelStatistics(
+        base_level=int(base_level),
         levels=_readonly(levels_array),
         n_samples=_readonly(n_samples),
         consistency=_readonly(consistency),
@@ -479,7 +555,7 @@ def diagnose(statistics: LevelStatistics, *, kurtosis_limit: float = KURTOSIS_LI
                 f"level {level}: kurtosis {float(np.max(statistics.kurtosis[row])):.3g} of Q_l - Q_l-1 "
                 f"for QoI {heavy.tolist()} exceeds {kurtosis_limit:g}; its variance estimate is unreliable"
             )
-        if level >= 1:
+        if level > statistics.base_level:
             frozen = np.flatnonzero((statistics.var_diff[row] == 0) & (statistics.var_fine[row] > 0))
             if frozen.size:
                 messages.append(
@@ -754,6 +830,231 @@ def remaining_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
         return np.abs(mean_diff) / denominator
 
 
+@dataclass(frozen=True)
+class DroppedLevel:
+    """A coarse level left out of the hierarchy, and why."""
+
+    level: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class CoarsestLevel:
+    """The coarsest useful level (:func:`choose_coarsest_level`).
+
+    Attributes
+    ----------
+    level : int
+        ``b``: the hierarchy starts here (0 when nothing is dropped).
+    dropped : tuple of DroppedLevel
+        The levels ``0..b-1``, each with its reason.
+    cost_factor : float
+        Predicted MLMC cost starting at ``b`` relative to starting at 0 (worst QoI).
+    """
+
+    level: int
+    dropped: tuple[DroppedLevel, ...]
+    cost_factor: float
+
+
+def choose_coarsest_level(statistics: LevelStatistics, *, margin: float = DROP_MARGIN) -> CoarsestLevel:
+    """The screened level the hierarchy should start on (module docstring, "Coarsest useful level").
+
+    Parameters
+    ----------
+    statistics : LevelStatistics
+        Screening table; only the levels ``0, 1, 2, ...`` screened with two
+        or more samples and a positive cost are candidates.
+    margin : float
+        Drop levels only if that saves at least this fraction of the cost.
+
+    Returns
+    -------
+    CoarsestLevel
+    """
+    rows: list[int] = []
+    for row in range(statistics.n_levels):
+        if statistics.levels[row] != len(rows) or statistics.n_samples[row] < 2 or statistics.mean_cost[row] <= 0:
+            break
+        rows.append(row)
+    if len(rows) < 2:
+        return CoarsestLevel(level=0, dropped=(), cost_factor=1.0)
+    cost = statistics.mean_cost[rows]
+    var_q = statistics.var_fine[rows]
+    corrections = np.sqrt(statistics.var_diff[rows] * cost[:, None])
+    # S(b) per QoI: base term plus the corrections above b (over the screened levels).
+    totals = np.array([np.sqrt(var_q[b] * cost[b]) + np.sum(corrections[b + 1 :], axis=0) for b in range(len(rows))])
+    reference = totals[0]
+    relative = np.divide(totals, reference, out=np.ones_like(totals), where=reference > 0) ** 2
+    worst = np.max(relative, axis=1)
+    best = int(np.argmin(worst))
+    if best == 0 or worst[best] > 1.0 - margin:
+        return CoarsestLevel(level=0, dropped=(), cost_factor=1.0)
+    dropped = []
+    for level in range(best):
+        above = level + 1
+        loose = np.flatnonzero(statistics.var_diff[rows[above]] >= var_q[above])
+        if loose.size:
+            q = int(loose[0])
+            reason = (
+                f"Var(Y_{above}) = {statistics.var_diff[rows[above], q]:.3g} is not below "
+                f"Var(Q_{above}) = {var_q[above, q]:.3g}: level {level} does not reduce the variance of "
+                f"level {above}, it only adds cost"
+            )
+        else:
+            factor = float(np.max(relative[best] / np.where(relative[level] > 0, relative[level], 1.0)))
+            reason = (
+                f"a hierarchy starting at level {best} is predicted to cost {factor:.2f} x one starting at "
+                f"level {level} (sqrt(Var(Q_b) C_b) + sum_l>b sqrt(V_l C_l), screened levels)"
+            )
+        dropped.append(DroppedLevel(level=level, reason=reason))
+    return CoarsestLevel(level=best, dropped=tuple(dropped), cost_factor=float(worst[best]))
+
+
+def richardson_weight(alpha: np.ndarray) -> np.ndarray:
+    """Weight ``w = 2^alpha / (2^alpha - 1)`` of the finest level in the extrapolated estimate.
+
+    Parameters
+    ----------
+    alpha : ndarray, shape (n_qoi,)
+        Bias rate, positive.
+
+    Returns
+    -------
+    ndarray, shape (n_qoi,)
+    """
+    alpha = np.asarray(alpha, dtype=float)
+    remaining_bias(np.zeros_like(alpha), alpha)  # alpha <= 0: raises the explanatory error
+    return -1.0 / np.expm1(-alpha * math.log(2.0))
+
+
+def second_order_rate(alpha: np.ndarray) -> np.ndarray:
+    """Assumed rate ``alpha2 = min(2 alpha, alpha + 1)`` of the bias left by extrapolation (module docstring)."""
+    alpha = np.asarray(alpha, dtype=float)
+    return np.minimum(2.0 * alpha, alpha + 1.0)
+
+
+def richardson_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Remaining bias of the extrapolated estimate from the change ``D_L`` of the extrapolated values.
+
+    Parameters
+    ----------
+    mean_diff : ndarray, shape (n, n_qoi)
+        ``E[Y_l]`` of consecutive levels ``l >= 1`` (not the base level, whose
+        ``Y = Q``), the finest last; ``n >= 2``.
+    alpha : ndarray, shape (n_qoi,)
+        Bias rate of the extrapolation.
+
+    Returns
+    -------
+    ndarray, shape (n_qoi,)
+        The larger of the next-order tail ``max(|D_L|, |D_{L-1}| 2^-alpha2) /
+        (2^alpha2 - 1)`` (``alpha2`` from :func:`second_order_rate`; the
+        ``D_{L-1}`` term only with ``n >= 3``) and the sensitivity to the rate,
+        ``|w - w_L| |E[Y_L]|`` with ``w_L = 1 / (1 - r_L)`` the weight of the
+        local ratio ``r_L = E[Y_L] / E[Y_{L-1}]`` (where ``0 < r_L < 1``).
+
+    Raises
+    ------
+    EstimationError
+        With fewer than two levels (no ``D_L``) or a non-positive ``alpha``.
+    """
+    mean_diff = np.asarray(mean_diff, dtype=float)
+    if mean_diff.ndim != 2 or mean_diff.shape[0] < 2:
+        raise EstimationError("Richardson's remaining bias needs the means of two levels >= 1")
+    weight = richardson_weight(alpha)
+    alpha2 = second_order_rate(alpha)
+    changes = weight * mean_diff[1:] - (weight - 1.0) * mean_diff[:-1]  # D_l; w - 1 = 1 / (2^alpha - 1)
+    terms = [np.abs(changes[-1])]
+    if len(changes) >= 2:
+        terms.append(np.abs(changes[-2]) * 2.0 ** (-alpha2))
+    next_order = remaining_bias(np.max(terms, axis=0), alpha2)
+    # A fitted alpha off the local rate of the two finest levels leaves part of the leading
+    # term; the difference of the two extrapolations measures it.
+    finest, below = mean_diff[-1], mean_diff[-2]
+    ratio = np.divide(finest, below, out=np.zeros_like(finest), where=below != 0)
+    has_local = (ratio > 0) & (ratio < 1)
+    local_weight = np.divide(1.0, 1.0 - ratio, out=np.ones_like(ratio), where=has_local)
+    rate_error = np.where(has_local, np.abs(local_weight - weight) * np.abs(finest), 0.0)
+    return np.maximum(next_order, rate_error)
+
+
+def ratio_instability(
+    mean_diff: np.ndarray,
+    mean_se: np.ndarray,
+    levels: Sequence[int],
+    *,
+    min_levels: int = RICHARDSON_MIN_LEVELS,
+    window: int = 3,
+) -> str:
+    """Why the ratios of successive level means are not stable enough to extrapolate ("" if they are).
+
+    Parameters
+    ----------
+    mean_diff, mean_se : ndarray, shape (n, n_qoi)
+        ``E[Y_l]`` and its standard error ``sqrt(V_l / N_l)`` of consecutive
+        levels ``l >= 1``, the finest last.
+    levels : sequence of int, length n
+        The level indices (for the message).
+    min_levels : int
+        Fewest levels needed (two ratios by default).
+    window : int
+        Number of finest ratios checked.
+
+    Returns
+    -------
+    str
+        The first failed check for some QoI, or "" when, on the ``window``
+        finest levels, every mean is at least two standard errors from 0, all
+        have the same sign, every ratio ``r_l = E[Y_l] / E[Y_{l-1}]`` is below
+        1, and successive ratios agree: ``|log2 r_l - log2 r_{l-1}| <=
+        RATIO_LOG2_TOLERANCE`` plus two standard errors of that difference.
+    """
+    mean_diff = np.asarray(mean_diff, dtype=float)
+    mean_se = np.asarray(mean_se, dtype=float)
+    levels = [int(level) for level in levels]
+    if len(levels) < min_levels:
+        return (
+            f"needs the means of {min_levels} levels >= 1 to check the ratios of successive means, "
+            f"has {len(levels)} ({levels})"
+        )
+    rows = slice(max(0, len(levels) - window - 1), len(levels))
+    means, errors, names = mean_diff[rows], mean_se[rows], levels[rows]
+    for q in range(means.shape[1]):
+        m, se = means[:, q], errors[:, q]
+        tag = f" (QoI {q})" if means.shape[1] > 1 else ""
+        weak = np.flatnonzero(np.abs(m) < 2.0 * se)
+        if weak.size:
+            row = int(weak[0])
+            return (
+                f"the mean of Y_{names[row]} = {m[row]:.3g} is within two standard errors ({se[row]:.2g}) of 0"
+                f"{tag}: its ratio to the next level is noise"
+            )
+        ratios = m[1:] / m[:-1]
+        for k, ratio in enumerate(ratios):
+            if ratio <= 0:
+                return (
+                    f"the level means change sign between levels {names[k]} and {names[k + 1]} "
+                    f"({m[k]:.3g}, {m[k + 1]:.3g}){tag}: the bias is not in its asymptotic regime"
+                )
+            if ratio >= 1:
+                return (
+                    f"the level means do not decay between levels {names[k]} and {names[k + 1]} "
+                    f"({m[k]:.3g}, {m[k + 1]:.3g}){tag}"
+                )
+        rel = se / np.abs(m)
+        log_ratios = np.log2(ratios)
+        for k in range(1, len(ratios)):
+            spread = abs(log_ratios[k] - log_ratios[k - 1])
+            noise = math.sqrt(rel[k + 1] ** 2 + 4.0 * rel[k] ** 2 + rel[k - 1] ** 2) / math.log(2.0)
+            if spread > RATIO_LOG2_TOLERANCE + 2.0 * noise:
+                return (
+                    f"the ratios of successive level means are not stable: E[Y_l] / E[Y_l-1] = "
+                    f"{ratios[k - 1]:.3g} at level {names[k]} and {ratios[k]:.3g} at level {names[k + 1]}{tag}"
+                )
+    return ""
+
+
 def optimal_samples(variances: np.ndarray, costs: np.ndarray, budget: np.ndarray) -> np.ndarray:
     """Real-valued optimal ``N_l`` per QoI for a variance budget.
 
@@ -815,6 +1116,17 @@ class Plan:
     mc_cost : float
         Predicted cost of plain MC, ``mc_n_samples`` times the cost of one fine
         solve on level ``L``.
+    is_richardson : bool
+        The plan is for the Richardson-extrapolated estimate (``richardson=True``
+        and it needs fewer levels than plain MLMC): ``bias`` is its remaining
+        bias, ``n_samples`` and ``stat_variance`` weight ``V_L`` by ``w^2``.
+    richardson_note : str
+        Why a requested extrapolation was not planned ("" otherwise).
+    coarsest_level : int
+        ``b``, the level the hierarchy starts on (its ``V_b`` is ``Var(Q_b)``;
+        ``n_samples`` and ``variances`` are 0 below it).
+    dropped_levels : tuple of DroppedLevel
+        The levels below ``b`` and why they were dropped.
     """
 
     tol: np.ndarray
@@ -830,6 +1142,10 @@ class Plan:
     cost: float
     mc_n_samples: int
     mc_cost: float
+    is_richardson: bool = False
+    richardson_note: str = ""
+    coarsest_level: int = 0
+    dropped_levels: tuple[DroppedLevel, ...] = ()
 
     @property
     def levels(self) -> np.ndarray:
@@ -883,6 +1199,8 @@ def plan(
     finest_level: int | None = None,
     max_level: int | None = None,
     bias_from: str = "model",
+    richardson: bool = False,
+    coarsest_level: int | None = 0,
 ) -> Plan:
     """Finest level and optimal ``N_l`` for a tolerance (SPEC section 5).
 
@@ -911,6 +1229,14 @@ def plan(
         ``|E[Y_L]|`` from the fitted model ``c_alpha 2^(-alpha L)``
         (default; smooth, and the only choice beyond the data) or from the
         screened mean where available.
+    richardson : bool
+        Plan the Richardson-extrapolated estimate (module docstring) if the
+        screened means allow it and it needs fewer levels than plain MLMC;
+        otherwise plan plain MLMC and say why in ``richardson_note``.
+    coarsest_level : int or None
+        Level the hierarchy starts on (default 0); None chooses it with
+        :func:`choose_coarsest_level` from ``statistics`` (0 without). It is
+        capped at the finest level.
 
     Returns
     -------
@@ -973,13 +1299,34 @@ def plan(
     if finest_level < 0:
         raise InvalidParameterError("finest_level", finest_level, "a non-negative integer")
     bias = bias_at(finest_level)
+    is_richardson, richardson_note = False, ""
+    if richardson:
+        is_plain_met = bool(np.all(bias <= bias_limit))
+        extrapolated = _richardson_level(statistics, rates, bias_limit, finest_level, is_plain_met)
+        if isinstance(extrapolated, str):
+            richardson_note = extrapolated
+        else:
+            finest_level, bias = extrapolated
+            is_richardson = True
 
-    level_variances = np.empty((finest_level + 1, n_qoi))
+    dropped: tuple[DroppedLevel, ...] = ()
+    if coarsest_level is None:
+        choice = choose_coarsest_level(statistics) if statistics is not None else CoarsestLevel(0, (), 1.0)
+        coarsest_level, dropped = choice.level, choice.dropped
+    base = min(int(coarsest_level), finest_level)
+    if base < 0 or (base > 0 and screened(base) is None):
+        raise InvalidParameterError("coarsest_level", coarsest_level, "0 or a screened level")
+    dropped = tuple(d for d in dropped if d.level < base)
+    level_variances = np.zeros((finest_level + 1, n_qoi))
     level_costs = np.empty(finest_level + 1)
     is_extrapolated = np.zeros(finest_level + 1, dtype=bool)
     for level in range(finest_level + 1):
         row = screened(level)
-        if variances is not None and level < len(variances):
+        if level < base:
+            pass
+        elif level == base and base > 0:
+            level_variances[level] = statistics.var_fine[row]
+        elif variances is not None and level < len(variances):
             level_variances[level] = variances[level]
         elif row is not None:
             level_variances[level] = statistics.var_diff[row]
@@ -999,9 +1346,14 @@ def plan(
             f"plan needs positive costs; got C_l = {level_costs.tolist()} (check the rates' c_gamma)"
         )
     budget = (1.0 - theta) * tol**2
-    n_real = optimal_samples(level_variances, level_costs, budget)
+    weighted = np.array(level_variances)
+    if is_richardson:
+        weighted[-1] *= richardson_weight(rates.alpha) ** 2
+    n_real = np.zeros_like(weighted)
+    n_real[base:] = optimal_samples(weighted[base:], level_costs[base:], budget)
     n_samples = np.maximum(np.ceil(np.max(n_real, axis=1)), 1.0).astype(np.int64)
-    stat_variance = np.sum(level_variances / n_samples[:, None], axis=0)
+    n_samples[:base] = 0
+    stat_variance = np.sum(weighted[base:] / n_samples[base:, None], axis=0)
 
     # Plain MC on level L.
     var_q = level_variances[0]
@@ -1027,4 +1379,45 @@ def plan(
         cost=float(np.sum(n_samples * level_costs)),
         mc_n_samples=mc_n,
         mc_cost=float(mc_cost),
+        is_richardson=is_richardson,
+        richardson_note=richardson_note,
+        coarsest_level=base,
+        dropped_levels=dropped,
     )
+
+
+def _richardson_level(
+    statistics: LevelStatistics | None,
+    rates: Rates,
+    bias_limit: np.ndarray,
+    plain_level: int,
+    is_plain_met: bool,
+) -> tuple[int, np.ndarray] | str:
+    """Finest level and remaining bias of the extrapolated estimate, or why there is none (:func:`plan`)."""
+    if statistics is None:
+        return "Richardson extrapolation needs screened level means"
+    rows = [r for r in range(statistics.n_levels) if statistics.levels[r] >= 1 and statistics.n_samples[r] >= 2]
+    levels = [int(statistics.levels[r]) for r in rows]
+    if len(rows) < 2 or levels != list(range(1, len(rows) + 1)):
+        return f"Richardson extrapolation needs the screened means of levels 1 and 2 at least (has {levels})"
+    means = statistics.mean_diff[rows]
+    errors = np.sqrt(statistics.var_diff[rows] / statistics.n_samples[rows][:, None])
+    reason = ratio_instability(means, errors, levels, min_levels=2)
+    if reason:
+        return f"Richardson extrapolation refused: {reason}"
+    alpha = rates.alpha
+    if np.any(alpha <= 0):
+        return f"Richardson extrapolation refused: the bias does not decay (alpha = {alpha.tolist()})"
+    top = levels[-1]
+    alpha2 = second_order_rate(alpha)
+    # Worth it only with fewer levels than plain MLMC, or on the same levels if plain MLMC
+    # cannot meet the bias there (capped by max_level).
+    cap = plain_level + 1 if not is_plain_met else plain_level
+    for level in range(RICHARDSON_MIN_LEVELS, cap):
+        if level <= top:
+            bias = richardson_bias(means[:level], alpha)
+        else:
+            bias = richardson_bias(means, alpha) * 2.0 ** (-alpha2 * (level - top))
+        if np.all(bias <= bias_limit):
+            return level, bias
+    return f"Richardson extrapolation needs as many levels as plain MLMC here (L = {plain_level}); plain MLMC planned"

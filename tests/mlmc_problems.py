@@ -50,13 +50,16 @@ def sample_levels(sampler, levels, n: int) -> dict[str, list]:
 
 @dataclass(frozen=True)
 class Synthetic:
-    """Hierarchy with prescribed rates: ``Y_l = a 2^(-alpha l) + sqrt(v1 2^(-beta l)) Z_l``.
+    """Hierarchy with prescribed rates: ``Y_l = a 2^(-alpha l) + b 2^(-alpha2 l) + sqrt(v1 2^(-beta l)) Z_l``.
 
     ``Q_0 = mu0 + s0 Z_0`` and ``Q_l = Q_{l-1} + Y_l`` with independent
     standard normals ``Z_0, Z_1, ...`` of one sample; a level-``l`` sample
     draws ``Z_0..Z_l`` and returns ``Q_l`` and ``Q_{l-1}``. The cost of a
     level-``l`` sample is ``2^(gamma l)``. With ``scales`` the QoI is a
-    vector ``scales * Q`` (one column per scale).
+    vector ``scales * Q`` (one column per scale). ``b`` (default 0) adds a
+    second-order bias term, the one Richardson extrapolation leaves. On the
+    ``loose_levels`` the coarse value comes from an independent draw (as for
+    ``coupled=False`` on every level): consistent, but ``V_l > Var(Q_l)``.
     """
 
     alpha: float = 1.0
@@ -69,10 +72,15 @@ class Synthetic:
     seed: int = 0
     scales: tuple[float, ...] | None = None
     coupled: bool = True
+    b: float = 0.0
+    alpha2: float = 2.0
+    loose_levels: tuple[int, ...] = ()
 
     def mean_diff(self, level: int) -> float:
         """``E[Y_l]``."""
-        return self.mu0 if level == 0 else self.a * 2.0 ** (-self.alpha * level)
+        if level == 0:
+            return self.mu0
+        return self.a * 2.0 ** (-self.alpha * level) + self.b * 2.0 ** (-self.alpha2 * level)
 
     def var_diff(self, level: int) -> float:
         """``V_l``."""
@@ -81,8 +89,8 @@ class Synthetic:
     def mean(self, level: int | None = None) -> float:
         """``E[Q_l]``; the limit ``E[Q]`` for ``level=None``."""
         if level is None:
-            r = 2.0 ** (-self.alpha)
-            return self.mu0 + self.a * r / (1.0 - r)
+            r, r2 = 2.0 ** (-self.alpha), 2.0 ** (-self.alpha2)
+            return self.mu0 + self.a * r / (1.0 - r) + self.b * r2 / (1.0 - r2)
         return sum(self.mean_diff(k) for k in range(level + 1))
 
     def variance(self, level: int | None = None) -> float:
@@ -98,7 +106,7 @@ class Synthetic:
 
     def _paths(self, level: int, z: np.ndarray) -> np.ndarray:
         steps = np.arange(level + 1)
-        drift = np.where(steps == 0, self.mu0, self.a * 2.0 ** (-self.alpha * steps))
+        drift = np.array([self.mean_diff(int(step)) for step in steps])
         spread = np.where(steps == 0, self.s0, np.sqrt(self.v1 * 2.0 ** (-self.beta * steps)))
         return np.cumsum(drift + spread * z, axis=1)
 
@@ -108,7 +116,7 @@ class Synthetic:
         fine = paths[:, level]
         if level == 0:
             coarse = np.zeros_like(fine)
-        elif self.coupled:
+        elif self.coupled and level not in self.loose_levels:
             coarse = paths[:, level - 1]
         else:
             # Broken coupling: the coarse value comes from an independent draw.

@@ -12,6 +12,7 @@ import yaml
 from rough_uq import config as config_module
 from rough_uq.config import (
     config_from_dict,
+    config_from_stored_text,
     config_from_yaml_text,
     config_hash,
     load_config,
@@ -223,6 +224,10 @@ def test_one_line_per_problem() -> None:
         (lambda d: d.update(qoi={"mean_gap": 3}), "qoi.mean_gap: must be a mapping (got 3"),
         (lambda d: d.update(material=5), "material: must be a mapping (got 5"),
         (lambda d: d.update(estimation={"theta": 1.0}), "estimation.theta: must be less than 1"),
+        (
+            lambda d: d["qoi"]["contact_area"].update(estimator="exact"),
+            "qoi.contact_area.estimator: must be 'corrected' or 'nodes' (got 'exact'",
+        ),
         (lambda d: d.update(solver={"warm_start": "maybe"}), "solver.warm_start: "),
         (
             lambda d: d["surface"].update(wavelengths={"lambda_l": 1 / 1.2, "lambda_r": 1 / 1.25, "lambda_s": 1 / 1.3}),
@@ -313,3 +318,39 @@ def test_every_number_field_states_its_unit() -> None:
                 n_checked += 1
                 assert any(w in info.description.lower() for w in words), f"{model.__name__}.{name}: {info.description}"
     assert n_checked >= 20
+
+
+def test_contact_area_estimator_defaults_to_corrected_and_changes_the_hash() -> None:
+    data = _base()
+    config = config_from_dict(data)
+    assert config.qoi["contact_area"].estimator == "corrected"
+    assert yaml.safe_load(resolved_yaml(config))["qoi"]["contact_area"]["estimator"] == "corrected"
+    data["qoi"]["contact_area"]["estimator"] = "nodes"
+    nodes = config_from_dict(data)
+    assert nodes.qoi["contact_area"].estimator == "nodes"
+    # Different numbers, different samples: a study file of one is refused for the other.
+    assert config_hash(nodes) != config_hash(config)
+
+
+def test_a_stored_config_without_estimator_was_a_node_count() -> None:
+    config = config_from_dict(_base())
+    text = resolved_yaml(config)
+    assert config_from_stored_text(text) == config  # written by this code: read back as it is
+    old = yaml.safe_load(text)
+    del old["qoi"]["contact_area"]["estimator"]  # written before the option existed
+    old_text = yaml.safe_dump(old, sort_keys=False)
+    assert config_from_stored_text(old_text).qoi["contact_area"].estimator == "nodes"
+    assert config_from_yaml_text(old_text).qoi["contact_area"].estimator == "corrected"  # a user's config file
+
+
+def test_richardson_is_an_opt_in_estimation_setting() -> None:
+    data = _base()
+    config = config_from_dict(data)
+    assert config.estimation.richardson is False
+    data["estimation"] = {"richardson": True}
+    extrapolated = config_from_dict(data)
+    assert extrapolated.estimation.richardson is True
+    # An estimation setting: the samples stay valid, so the study file is the same.
+    assert config_hash(extrapolated) == config_hash(config)
+    data["estimation"] = {"richardson": "sometimes"}
+    assert "estimation.richardson: " in _message(data)

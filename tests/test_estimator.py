@@ -20,6 +20,7 @@ from rough_uq.estimator import (
     Finished,
     PlanUpdated,
     Rates,
+    RichardsonRefused,
     fit_rates,
     iter_mc,
     iter_mlmc,
@@ -28,6 +29,7 @@ from rough_uq.estimator import (
     mlmc,
     plan,
 )
+from rough_uq.screening import ratio_instability, richardson_bias, richardson_weight
 
 N_REPEATS = 200
 EPS = 0.05
@@ -413,3 +415,169 @@ def test_bad_samplers_and_arguments_are_refused():
         mlmc(Synthetic(), tol=0.1, rates=Rates(alpha=0.0, beta=1.0, gamma=1.0, c_alpha=1.0, c_beta=1.0, c_gamma=1.0))
     with pytest.raises(InvalidParameterError):
         mc(Synthetic(), tol=0.1, level=-1)
+
+
+# --------------------------------------------------------------------------
+# Richardson extrapolation
+# --------------------------------------------------------------------------
+
+# Y_l = 2^-l + 4^-l + noise: the second-order term is as large as the first on level 0, so
+# the rates fitted on coarse levels are pre-asymptotic (about 1.4 instead of 1).
+RICHARDSON_PROBLEM = dict(a=1.0, b=1.0, alpha=1.0, alpha2=2.0, beta=1.5, gamma=2.0)
+N_RICHARDSON = 80
+
+
+@pytest.fixture(scope="module")
+def richardson_repeats():
+    """Plain and Richardson-extrapolated MLMC on the same seeded problems."""
+    runs = []
+    for seed in range(N_RICHARDSON):
+        problem = Synthetic(seed=seed, **RICHARDSON_PROBLEM)
+        plain, _ = run_quietly(mlmc, problem, tol=EPS)
+        extrapolated, _ = run_quietly(mlmc, problem, tol=EPS, richardson=True)
+        runs.append((problem, plain, extrapolated))
+    return runs
+
+
+def test_richardson_meets_the_tolerance_with_fewer_levels_and_less_cost(richardson_repeats):
+    errors = np.array([r.estimate - problem.mean() for problem, _, r in richardson_repeats])
+    assert math.sqrt(np.mean(errors**2)) <= EPS * rms_slack(N_RICHARDSON)
+    applied = [r for _, _, r in richardson_repeats if r.richardson == "applied"]
+    # Refusals (a fine-level mean within two standard errors of 0) fall back to plain MLMC; they
+    # must stay the exception on a hierarchy whose ratios are stable.
+    assert len(applied) >= 0.7 * N_RICHARDSON
+    assert all(r.tol_met and r.bias_estimate <= math.sqrt(0.5) * EPS for r in applied)
+    plain_levels = np.mean([p.finest_level for _, p, _ in richardson_repeats])
+    richardson_levels = np.mean([r.finest_level for _, _, r in richardson_repeats])
+    assert richardson_levels <= plain_levels - 1.0  # measured: 3.9 against 5.4
+    plain_cost = sum(p.cost for _, p, _ in richardson_repeats)
+    richardson_cost = sum(r.cost for _, _, r in richardson_repeats)
+    assert richardson_cost <= 0.8 * plain_cost  # measured: 0.61
+
+
+def test_richardson_estimate_is_the_weighted_sum(richardson_repeats):
+    for _, _, result in richardson_repeats[:10]:
+        means = result.statistics.mean_diff[:, 0]
+        if result.richardson == "applied":
+            weight = 2.0**result.rates.alpha[0] / (2.0**result.rates.alpha[0] - 1.0)
+            assert result.estimate == pytest.approx(np.sum(means[:-1]) + weight * means[-1], rel=1e-12)
+            assert result.richardson_reason == ""
+        else:
+            assert result.estimate == pytest.approx(np.sum(means), rel=1e-12)
+            assert result.richardson_reason
+
+
+def test_unstable_ratios_are_refused_and_the_run_is_plain_mlmc():
+    # E[Y_l] = 2^-l - 3 * 4^-l: -0.25, +0.0625, +0.078, ... changes sign between levels 1 and 2.
+    problem = Synthetic(seed=3, a=1.0, b=-3.0, alpha=1.0, alpha2=2.0, v1=1e-4)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", EstimationWarning)
+        events = list(iter_mlmc(problem, tol=0.02, richardson=True))
+    refusals = [e for e in events if isinstance(e, RichardsonRefused)]
+    assert len(refusals) == 1 and "change sign" in refusals[0].reason
+    result = events[-1].result
+    assert result.richardson == "refused" and result.richardson_reason == refusals[0].reason
+    assert any("Richardson extrapolation refused" in str(w.message) for w in caught)
+    plain, _ = run_quietly(mlmc, problem, tol=0.02)
+    assert plain.richardson == "off"
+    assert result.estimate == plain.estimate and result.bias_estimate == plain.bias_estimate
+    np.testing.assert_array_equal(result.n_samples, plain.n_samples)
+
+
+@pytest.mark.parametrize(
+    ("means", "errors", "expected"),
+    [
+        ([0.5, 0.25, 0.125], [0.01] * 3, ""),
+        ([-0.8, -0.42, -0.2, -0.11], [0.01] * 4, ""),
+        ([0.5, 0.25], [0.01] * 2, "needs the means of 3 levels"),
+        ([0.5, -0.25, 0.125], [0.01] * 3, "change sign"),
+        ([0.5, 0.25, 0.3], [0.01] * 3, "do not decay"),
+        ([0.5, 0.25, 0.02], [0.001] * 3, "not stable"),
+        ([0.5, 0.25, 0.02], [0.015] * 3, "within two standard errors"),
+        ([0.5, 0.25, 0.05], [0.04, 0.04, 0.02], ""),  # the ratios differ, but within their noise
+    ],
+)
+def test_ratio_instability_names_the_failed_check(means, errors, expected):
+    reason = ratio_instability(np.array(means)[:, None], np.array(errors)[:, None], list(range(1, len(means) + 1)))
+    assert (expected in reason) if expected else reason == ""
+
+
+def test_richardson_weight_and_bias_on_exact_hierarchies():
+    np.testing.assert_allclose(richardson_weight(np.array([1.0, 2.0])), [2.0, 4.0 / 3.0])
+    levels = np.arange(1, 5)
+    first_order = (2.0 ** -levels)[:, None]
+    # A pure first-order hierarchy is extrapolated exactly: nothing remains.
+    assert richardson_bias(first_order, np.array([1.0]))[0] == pytest.approx(0.0, abs=1e-15)
+    # E[Y_l] = 2^-l + b 4^-l: the extrapolation on L = 4 adds b 4^-L where the tail is
+    # b 4^-L / 3, so b (2/3) 4^-L remains. The estimate is the larger of the next-order tail
+    # (exact here) and the rate sensitivity (the local ratio sees the second-order term too).
+    second = first_order + 0.5 * (4.0 ** -levels)[:, None]
+    true_remainder = 0.5 * (2.0 / 3.0) * 4.0**-4
+    estimated = richardson_bias(second, np.array([1.0]))[0]
+    assert true_remainder <= estimated <= 3 * true_remainder
+
+
+def test_plan_extrapolates_only_with_fewer_levels():
+    problem = Synthetic(seed=11, **RICHARDSON_PROBLEM)
+    statistics = level_statistics(**sample_levels(problem, range(4), 200))
+    rates = fit_rates(statistics)
+    plain = plan(tol=EPS, rates=rates, statistics=statistics)
+    extrapolated = plan(tol=EPS, rates=rates, statistics=statistics, richardson=True)
+    assert not plain.is_richardson and extrapolated.is_richardson and extrapolated.richardson_note == ""
+    assert 3 <= extrapolated.finest_level < plain.finest_level
+    assert np.all(extrapolated.bias <= math.sqrt(0.5) * EPS)
+    # The finest level carries the variance w^2 V_L.
+    weight = richardson_weight(rates.alpha)[0]
+    expected = np.sum(extrapolated.variances[:-1, 0] / extrapolated.n_samples[:-1])
+    expected += weight**2 * extrapolated.variances[-1, 0] / extrapolated.n_samples[-1]
+    assert extrapolated.stat_variance[0] == pytest.approx(expected)
+    loose = plan(tol=10.0, rates=rates, statistics=statistics, richardson=True)
+    assert not loose.is_richardson and "as many levels as plain MLMC" in loose.richardson_note
+
+
+# --------------------------------------------------------------------------
+# Dropped coarse levels
+# --------------------------------------------------------------------------
+
+
+def test_mlmc_starts_on_the_coarsest_useful_level():
+    eps, n_repeats = 0.03, 20
+    errors, ratios = [], []
+    for seed in range(n_repeats):
+        problem = Synthetic(seed=seed, gamma=2.0, loose_levels=(1,))
+        screening = level_statistics(**sample_levels(Synthetic(seed=1000 + seed, gamma=2.0, loose_levels=(1,)),
+                                                     range(4), 100))
+        asked = set()
+
+        def sampler(level, indices, problem=problem):
+            asked.add(level)
+            return problem(level, indices)
+
+        result, caught = run_quietly(mlmc, sampler, tol=eps, screening=screening, coarsest_level=None)
+        assert 0 not in asked and result.levels[0] == 1
+        assert [d.level for d in result.dropped_levels] == [0] and result.dropped_levels[0].reason
+        assert result.statistics.base_level == 1
+        # The base level is Q_1 alone: no coupling or consistency warning about it.
+        assert not any("level 1:" in str(w.message) for w in caught)
+        kept, _ = run_quietly(mlmc, problem, tol=eps, screening=screening)
+        assert kept.levels[0] == 0 and kept.dropped_levels == ()
+        errors.append(result.estimate - problem.mean())
+        if result.finest_level == kept.finest_level:
+            ratios.append(result.cost / kept.cost)
+    assert math.sqrt(np.mean(np.square(errors))) <= eps * rms_slack(n_repeats)
+    # Per run on the same finest level (the bias test's noise sometimes adds a level to one of
+    # them; a 2^(2L) sample then dominates): measured median 0.60, predicted about 0.68.
+    assert len(ratios) >= n_repeats // 2 and np.median(ratios) < 0.8
+
+
+def test_a_screening_with_unstable_ratios_refuses_richardson_at_the_start():
+    problem = Synthetic(seed=4, a=1.0, b=-3.0, alpha=1.0, alpha2=2.0, v1=1e-4)
+    screening = level_statistics(**sample_levels(Synthetic(seed=40, a=1.0, b=-3.0, alpha=1.0, alpha2=2.0, v1=1e-4),
+                                                 range(4), 20))
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always", EstimationWarning)
+        events = list(iter_mlmc(problem, tol=0.02, screening=screening, richardson=True))
+    assert isinstance(events[0], PlanUpdated) and isinstance(events[1], RichardsonRefused)
+    assert events[1].reason.startswith("screening: the level means change sign between levels 1 and 2")
+    assert sum(isinstance(e, RichardsonRefused) for e in events) == 1
+    assert events[-1].result.richardson == "refused"

@@ -18,8 +18,10 @@ from scipy import stats as scipy_stats
 
 from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.screening import (
+    DROP_MARGIN,
     EstimationWarning,
     Rates,
+    choose_coarsest_level,
     diagnose,
     fit_rates,
     level_statistics,
@@ -389,3 +391,36 @@ def test_core_modules_import_no_edge_dependencies():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+# --------------------------------------------------------------------------
+# Coarsest useful level
+# --------------------------------------------------------------------------
+
+
+def test_a_level_without_variance_reduction_drops_the_levels_below():
+    loose = Synthetic(seed=5, gamma=2.0, loose_levels=(1,))  # Var(Y_1) = Var(Q_0) + Var(Q_1)
+    statistics = level_statistics(**sample_levels(loose, range(4), 200))
+    choice = choose_coarsest_level(statistics)
+    assert choice.level == 1 and [d.level for d in choice.dropped] == [0]
+    assert "Var(Y_1)" in choice.dropped[0].reason and "is not below Var(Q_1)" in choice.dropped[0].reason
+    assert choice.cost_factor < 1.0 - DROP_MARGIN
+    coupled = level_statistics(**sample_levels(Synthetic(seed=5, gamma=2.0), range(4), 200))
+    assert choose_coarsest_level(coupled).level == 0 and choose_coarsest_level(coupled).dropped == ()
+
+
+def test_plan_starts_on_the_chosen_level_and_costs_less():
+    loose = Synthetic(seed=6, gamma=2.0, loose_levels=(1,))
+    statistics = level_statistics(**sample_levels(loose, range(4), 200))
+    rates = fit_rates(statistics)
+    full = plan(tol=0.02, rates=rates, statistics=statistics)
+    chosen = plan(tol=0.02, rates=rates, statistics=statistics, coarsest_level=None)
+    assert full.coarsest_level == 0 and full.dropped_levels == ()
+    assert chosen.coarsest_level == 1 and [d.level for d in chosen.dropped_levels] == [0]
+    assert chosen.n_samples[0] == 0 and np.all(chosen.n_samples[1:] >= 1)
+    np.testing.assert_array_equal(chosen.variances[1], statistics.var_fine[1])  # the base level is Q_1 itself
+    assert chosen.finest_level == full.finest_level
+    assert np.all(chosen.stat_variance <= 0.5 * 0.02**2 * (1 + 1e-12))
+    assert chosen.cost < (1.0 - DROP_MARGIN) * full.cost
+    with pytest.raises(InvalidParameterError):
+        plan(tol=0.02, rates=rates, statistics=statistics, coarsest_level=9)
