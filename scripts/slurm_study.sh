@@ -114,7 +114,7 @@ minutes() {
     echo $(( days * 1440 + 10#$h * 60 + 10#$m + (10#$s + 59) / 60 ))
 }
 if [ -z "$cpus" ]; then   # the smallest node, so the screening job fits on any
-    has_sinfo && cpus="$(sinfo_lines %c | tr -d '+ ' | grep -E '^[0-9]+$' | sort -n | head -n 1)"
+    ! has_sinfo || cpus="$(sinfo_lines %c | tr -d '+ ' | { grep -E '^[0-9]+$' || true; } | sort -n | head -n 1)"
     cpus="${cpus:-1}"
 fi
 if [ -z "$max_time" ] && has_sinfo; then   # the partition's (or the default partition's) limit

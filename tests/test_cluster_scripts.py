@@ -29,7 +29,7 @@ from tests.study_configs import tiny_config, write_config
 ROOT = Path(__file__).resolve().parent.parent
 FAKE_SLURM = ROOT / "tests" / "fake_slurm"
 TOL = "2.0"
-CHUNK = "40"   # one shard per level in the first round: few processes, the test stays short
+CHUNK = "50"   # one shard per level in the first round: few processes, the test stays short
 #: Run-record fields that are wall-clock times or dates (everything else must match bit for bit).
 TIMING = {"started", "finished", "seconds", "mc_seconds_predicted", "n_computed"}
 
@@ -171,6 +171,21 @@ def test_loop_study_survives_a_killed_shard_and_matches_serial(serial, tmp_path)
     assert "planned again next round" in done.stderr
     assert_same_as_serial(tmp_path / "study.h5", serial_study)
     assert not list((tmp_path / "study.shards").glob("shard-*"))
+
+
+@pytest.mark.slow
+def test_quickstart_on_slurm_and_loop_matches_serial(tmp_path):
+    """The issue's case: the quickstart at tol 0.3, a lost task, 2-core nodes (minutes)."""
+    config = ROOT / "configs" / "quickstart.yaml"
+    serial_study = tmp_path / "serial.h5"
+    run_cli("screen", str(config), "--out", str(serial_study), "--workers", "1", "--quiet")
+    run_cli("mlmc", "--study", str(serial_study), "--tol", "0.3", "--workers", "1", "--quiet")
+    env = environment(tmp_path, FAKE_SLURM_CPUS="2", FAKE_SLURM_KILL="3")
+    bash("slurm_study.sh", str(config), "0.3", "slurm.h5", "20", cwd=tmp_path, env=env)
+    run_queue(env, tmp_path)
+    assert_same_as_serial(tmp_path / "slurm.h5", serial_study)
+    bash("loop_study.sh", "--jobs", "2", str(config), "0.3", "loop.h5", "20", cwd=tmp_path, env=env)
+    assert_same_as_serial(tmp_path / "loop.h5", serial_study)
 
 
 def test_plan_resources_columns(serial, tmp_path):
