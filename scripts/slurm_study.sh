@@ -49,7 +49,6 @@
 set -euo pipefail
 
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
-self=("$@")   # the arguments, for the jobs that run this script again
 
 cpus="${RUQ_CPUS:-}"; partition="${RUQ_PARTITION:-}"; account="${RUQ_ACCOUNT:-}"
 time_factor="${RUQ_TIME_FACTOR:-3}"; mem_factor="${RUQ_MEM_FACTOR:-1.5}"
@@ -95,7 +94,6 @@ common=(--parsable)
 read -r -a extra <<< "$sbatch_args"
 common+=("${extra[@]}")
 quoted() { local q; q="$(printf '%q ' "$@")"; echo "${q% }"; }
-rerun="bash $(quoted "$here/slurm_study.sh" "${self[@]}")"
 roughuq="$(quoted "${ruq[@]}")"
 
 has_sinfo() { command -v sinfo > /dev/null 2>&1; }
@@ -123,6 +121,17 @@ if [ -z "$max_time" ] && has_sinfo; then   # the partition's (or the default par
     max_time="$(minutes "$limit")"
 fi
 
+# The jobs that run this script again get every setting explicitly (a site
+# may not pass the environment on to jobs).
+resolved=(--cpus "$cpus" --time-factor "$time_factor" --mem-factor "$mem_factor" --min-time "$min_time"
+          --retries "$retries" --array-max "$array_max" --sbatch-args "$sbatch_args")
+for pair in partition:"$partition" account:"$account" max-time:"$max_time" screen-time:"$screen_time" \
+            screen-mem:"$screen_mem" next-time:"$next_time"; do
+    [ -z "${pair#*:}" ] || resolved+=(--"${pair%%:*}" "${pair#*:}")
+done
+rerun="cd $(quoted "$PWD") && ROUGHUQ=$(quoted "${ROUGHUQ:-roughuq}") exec bash $(quoted "$here/slurm_study.sh" \
+    "${resolved[@]}" -- "$config" "$tol" "$study" "$chunk")"
+
 is_screened() {
     [ -f "$study" ] && "${ruq[@]}" report "$study" --json 2> /dev/null | grep -q '"seconds_per_cost"'
 }
@@ -132,7 +141,7 @@ submit_next() {   # a job that runs this script again once jobs $1 are over, how
     [ -z "$next_time" ] || opts+=(--time="$next_time")
     sbatch "${opts[@]}" <<EOS > /dev/null
 #!/usr/bin/env bash
-exec $rerun
+$rerun
 EOS
 }
 
@@ -175,7 +184,7 @@ exec $roughuq screen $(quoted "$config") --out $(quoted "$study") --workers "\${
 EOS
 )
     submit_next "${job%%;*}"
-    echo "submitted the screening (job ${job%%;*}, $cpus cores)"
+    echo "submitted the screening (job ${job%%;*}, --cpus-per-task=$cpus)"
 }
 [ -f "$study" ] || { submit_screening; exit 0; }
 
