@@ -18,6 +18,7 @@ Exit status (also in ``roughuq --help`` and the README):
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import time
@@ -270,8 +271,8 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
 
 def _estimation_command(method: str) -> Callable[..., Any]:
     def command(tol: Sequence[str], study_path: str, config_path: str | None, max_cost: float | None,
-                show_plan: bool, shard_size: int | None, as_json: bool, workers: int | None, executor: str,
-                scheduler: str | None, quiet: bool, level: int | None = None) -> None:
+                show_plan: bool, shard_size: int | None, with_resources: bool, as_json: bool, workers: int | None,
+                executor: str, scheduler: str | None, quiet: bool, level: int | None = None) -> None:
         from rough_uq.config import load_config
         from rough_uq.pipeline import (
             create_study,
@@ -286,6 +287,8 @@ def _estimation_command(method: str) -> Callable[..., Any]:
 
         if shard_size is not None and not show_plan:
             raise InvalidParameterError("--shards", shard_size, "only with --plan (it splits the plan into shards)")
+        if with_resources and (shard_size is None or not show_plan):
+            raise InvalidParameterError("--resources", True, "only with --plan --shards SIZE")
         config = load_config(config_path) if config_path else None
         if config is not None and not show_plan and not Path(study_path).exists():
             create_study(config, study_path).close()  # a new study, e.g. MC on a given --level
@@ -295,7 +298,12 @@ def _estimation_command(method: str) -> Callable[..., Any]:
             if show_plan:
                 forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level)
                 work = missing_samples(study, method=method, tol=tolerances, max_cost=cap, level=level)
-                _print_plan(work, as_json, shard_size)
+                resources = None
+                if with_resources:
+                    from rough_uq.resources import shard_resources
+
+                    resources = shard_resources(study, stage=work.stage, levels=list(work.missing))
+                _print_plan(work, as_json, shard_size, resources)
                 return
             with _executor(study.config, workers, executor, scheduler) as pool:
                 forecast = forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level,
@@ -335,6 +343,8 @@ def _estimation_command(method: str) -> Callable[..., Any]:
         click.option("--plan", "show_plan", is_flag=True, help="Print the samples still missing; compute nothing."),
         click.option("--shards", "shard_size", type=click.IntRange(min=1), default=None, metavar="SIZE",
                      help="With --plan: print one line 'STAGE LEVEL A:B' per shard of at most SIZE samples."),
+        click.option("--resources", "with_resources", is_flag=True,
+                     help="With --shards: add each shard's estimated wall seconds and peak MiB for one process."),
         click.option("--json", "as_json", is_flag=True, help="Print the result (or the plan) as JSON."),
         _workers_option,
         _executor_option,
@@ -394,14 +404,19 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.3g} h"
 
 
-def _print_plan(work: Any, as_json: bool, shard_size: int | None = None) -> None:
+def _print_plan(work: Any, as_json: bool, shard_size: int | None = None, resources: Any = None) -> None:
     if shard_size is not None:
         # For shell loops: `while read stage level indices; do roughuq sample ...; done`.
         for level, indices in work.missing.items():
             for part in _ranges(indices):
                 start, stop = (int(x) for x in part.split(":"))
                 for first in range(start, stop, shard_size):
-                    click.echo(f"{work.stage} {level} {first}:{min(first + shard_size, stop)}")
+                    last = min(first + shard_size, stop)
+                    extra = ""
+                    if resources is not None:  # for batch systems' --time and --mem
+                        seconds = resources.seconds(level, last - first)
+                        extra = f" {math.ceil(seconds)} {math.ceil(resources.memory_bytes[level] / 2**20)}"
+                    click.echo(f"{work.stage} {level} {first}:{last}{extra}")
         return
     rows = [{"level": level, "n_missing": int(indices.size), "indices": _ranges(indices)}
             for level, indices in work.missing.items()]
