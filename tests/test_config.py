@@ -89,7 +89,7 @@ def test_classic_configs_match_the_reference_setting() -> None:
 
 def test_defaults_are_filled_in() -> None:
     config = config_from_dict(_base())
-    assert config.solver.tol == 1e-6 and config.solver.max_iter == 10000
+    assert config.solver.tol == 1e-7 and config.solver.max_iter == 10000
     assert config.solver.warm_start is True and config.solver.threads == 1
     assert config.grid.projection == "truncation"
     assert config.screening.levels == 3 and config.screening.samples == 20
@@ -272,7 +272,7 @@ def test_hash_is_stable_and_tracks_physics_only() -> None:
 
     assert hash_with(lambda d: d.update(output={"path": "elsewhere/other.h5"})) == reference
     assert hash_with(lambda d: d.update(solver={"threads": 4})) == reference
-    assert hash_with(lambda d: d.update(solver={"tol": 1e-6})) == reference  # a default spelled out
+    assert hash_with(lambda d: d.update(solver={"tol": 1e-7})) == reference  # a default spelled out
     assert hash_with(lambda d: d["surface"].update(hurst=0.7)) != reference
     assert hash_with(lambda d: d.update(seed=8)) != reference
     assert hash_with(lambda d: d["load"].update(relative=0.2)) != reference
