@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from rough_uq.sampler import STAGE_SCREENING
+from rough_uq.batch import STAGE_SCREENING
 from rough_uq.store import StudyStore
 
 __all__ = ["RATE_TIE", "complexity", "study_report", "render_report"]

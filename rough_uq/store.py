@@ -85,7 +85,7 @@ import h5py
 import numpy as np
 
 from rough_uq.errors import StudyFileError
-from rough_uq.sampler import LevelBatch
+from rough_uq.batch import LevelBatch
 
 __all__ = [
     "FORMAT",

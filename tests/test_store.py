@@ -457,3 +457,16 @@ def test_stale_temporary_file_is_removed(tmp_path: Path) -> None:
     with new_study(path, create=False):
         assert not stale.exists()
     assert unrelated.exists()
+
+
+# ---------------------------------------------------------------------------
+# Imports
+# ---------------------------------------------------------------------------
+
+
+def test_store_and_report_do_not_import_the_solver() -> None:
+    heavy = ("numba", "pyfftw", "rough_uq.solver", "rough_uq.sampler", "rough_uq.fft")
+    code = f"import sys, rough_uq.store, rough_uq.report; print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    assert out.stdout.strip() == "[]"
