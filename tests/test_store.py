@@ -274,7 +274,7 @@ def _empty(path: Path, tmp_path: Path) -> None:
 def _wrong_version(path: Path, tmp_path: Path) -> None:
     path.write_bytes(_valid_bytes(tmp_path))
     with h5py.File(path, "r+") as f:
-        f.attrs["format_version"] = 2
+        f.attrs["format_version"] = 3
 
 
 def _foreign_hdf5(path: Path, tmp_path: Path) -> None:
@@ -288,7 +288,7 @@ def _foreign_hdf5(path: Path, tmp_path: Path) -> None:
         (_not_hdf5, "not an HDF5 file"),
         (_truncated, "truncated or damaged"),
         (_empty, "is empty"),
-        (_wrong_version, "format version 2; this roughuq reads version 1"),
+        (_wrong_version, "format version 3; this roughuq reads versions 1 and 2"),
         (_foreign_hdf5, "not a roughuq study file"),
     ],
     ids=["not-hdf5", "truncated", "empty", "wrong-version", "foreign-hdf5"],
@@ -340,23 +340,42 @@ def test_read_only_directory_is_refused(tmp_path: Path) -> None:
         directory.chmod(0o755)
 
 
-def test_failed_write_leaves_file_unchanged(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def _disk_full(*args, **kwargs):
+    raise OSError(28, "No space left on device")
+
+
+def test_failed_copy_on_write_leaves_file_unchanged(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = tmp_path / "study.h5"
     with new_study(path) as study:
         study.append_samples(make_batch(0, 0, [0]))
         before = fingerprint(path)
-
-        def disk_full(*args, **kwargs):
-            raise OSError(28, "No space left on device")
-
-        monkeypatch.setattr(store_module, "_fsync_path", disk_full)
+        monkeypatch.setattr(store_module, "_fsync_path", _disk_full)
         with pytest.raises(StudyFileError, match="No space left on device.*unchanged"):
-            study.append_samples(make_batch(0, 0, [1]))
+            study.append_samples(make_batch(1, 0, [0]))  # a new level: written by copy-on-write
+        with pytest.raises(StudyFileError, match="No space left on device.*unchanged"):
+            study.write_run("r", {"tol": 0.1})
         monkeypatch.undo()
         assert fingerprint(path) == before
         assert sorted(os.listdir(tmp_path)) == ["study.h5", "study.h5.lock"]
-        np.testing.assert_array_equal(study.sample_indices(level=0, stage=0), [0])
-        assert study.append_samples(make_batch(0, 0, [1])) == 1  # the sample was not counted
+        assert study.levels() == [0] and study.read_runs() == []
+        assert study.append_samples(make_batch(1, 0, [0])) == 1  # the sample was not counted
+
+
+def test_failed_append_keeps_the_committed_samples(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, [0, 1]))
+        study.append_samples(make_batch(0, 0, [2]))  # in place
+        monkeypatch.setattr(store_module, "_fsync_path", _disk_full)  # fails before the count is written
+        with pytest.raises(StudyFileError, match="No space left on device.*committed samples are intact"):
+            study.append_samples(make_batch(0, 0, [3, 4]))
+        monkeypatch.undo()
+        assert sorted(os.listdir(tmp_path)) == ["study.h5", "study.h5.lock"]
+        with open_study_readonly(path) as reader:
+            assert_same_batch(reader.read_samples(level=0, stage=0), make_batch(0, 0, [0, 1, 2]))
+        np.testing.assert_array_equal(study.sample_indices(level=0, stage=0), [0, 1, 2])
+        assert study.append_samples(make_batch(0, 0, [4, 3])) == 2  # the samples were not counted
+        assert_same_batch(study.read_samples(level=0, stage=0), make_batch(0, 0, range(5)))
 
 
 def test_read_only_and_closed_files_refuse_writes(tmp_path: Path) -> None:
