@@ -554,7 +554,8 @@ def _now() -> str:
 def _fsync_path(path: Path, *, directory: bool = False) -> None:
     fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
     try:
-        os.fsync(fd)
+        # A file's data and size, not its times: what reading it back after a crash needs.
+        (os.fsync if directory else os.fdatasync)(fd)
     finally:
         os.close(fd)
 
@@ -787,6 +788,7 @@ class StudyFile(StudyStore):
         # snapshot; a writer's stay valid because nobody else writes the file.
         self._committed: dict[int, int] | None = None
         self._cache: dict[int, list[dict[str, np.ndarray]]] = {}
+        self._datasets: dict[int, dict[str, h5py.Dataset]] = {}  # a writer's open datasets per level
 
     def __repr__(self) -> str:
         mode = "read-only" if self.read_only else "writable"
@@ -821,6 +823,7 @@ class StudyFile(StudyStore):
         return self._h5
 
     def _close_handle(self) -> None:
+        self._datasets.clear()
         if self._h5 is not None:
             h5, self._h5 = self._h5, None
             try:
@@ -893,15 +896,17 @@ class StudyFile(StudyStore):
         n_new = n_old + n_rows
         try:
             f = self._handle()
-            group = f[f"samples/level_{level}"]
+            if level not in self._datasets:
+                group = f[f"samples/level_{level}"]
+                self._datasets[level] = {name: group[name] for name in (*_COLUMNS, _COMMITTED)}
+            datasets = self._datasets[level]
             for name in _COLUMNS:
-                dataset = group[name]
-                if dataset.shape[0] < n_new:
-                    dataset.resize(n_new, axis=0)
-                dataset[n_old:n_new] = rows[name]
+                if datasets[name].shape[0] < n_new:
+                    datasets[name].resize(n_new, axis=0)
+                datasets[name][n_old:n_new] = rows[name]
             f.flush()
             _fsync_path(self.path)  # the rows are on disk before the count that makes them visible
-            group[_COMMITTED][()] = n_new
+            datasets[_COMMITTED][()] = n_new
             f.flush()
             _fsync_path(self.path)
         except BaseException as exc:
