@@ -555,7 +555,7 @@ def _fsync_path(path: Path, *, directory: bool = False) -> None:
     fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
     try:
         # A file's data and size, not its times: what reading it back after a crash needs.
-        (os.fsync if directory else os.fdatasync)(fd)
+        (os.fsync if directory else getattr(os, "fdatasync", os.fsync))(fd)  # no fdatasync on macOS
     finally:
         os.close(fd)
 
