@@ -816,6 +816,9 @@ class StudyFile(StudyStore):
     def _handle(self) -> h5py.File:
         """The open HDF5 file: SWMR reading for a reader, SWMR writing for a writer."""
         if self._h5 is None:
+            if not self.read_only and _is_marked_open(self.path):
+                # Our own handle failed to close after a write error; we hold the lock.
+                _rewrite(self.path)
             try:
                 self._h5 = _open_for_reading(self.path) if self.read_only else _open_for_writing(self.path)
             except OSError as exc:
