@@ -80,8 +80,11 @@ A read-only :class:`StudyFile` (:func:`open_study_readonly`) takes no lock.
 It reads the header when opened, then opens the HDF5 file once, at its first
 read of samples or records, and keeps it open until :meth:`~StudyFile.close`:
 it sees the study as it was at that moment (the committed row counts are read
-once), even while a writer appends. A writable one reads its own file through
-its writing handle and keeps what it has read in memory.
+once), even while a writer appends. Reading during appends relies on SWMR,
+which needs POSIX write semantics: on a network file system (NFS) a reader
+may fail while a writer is active on another machine, and succeeds once it
+stops. A writable one reads its own file through its writing handle and keeps
+what it has read in memory.
 
 Choices where the specification is silent
 -----------------------------------------
