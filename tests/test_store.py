@@ -534,7 +534,16 @@ import sys, numpy as np
 sys.path.insert(0, {str(ROOT / 'tests')!r})
 from test_store import make_batch, new_study
 from pathlib import Path
+
+def say(*words):  # one write per line: a kill never leaves half a line (print writes word by word unbuffered)
+    sys.stdout.write(" ".join(map(str, words)) + "\\n")
+    sys.stdout.flush()
 """
+
+
+def _complete_lines(output: str) -> list[str]:
+    """Lines of a killed child's output, without a last line it may not have finished."""
+    return [line for line in output.splitlines(keepends=True) if line.endswith("\n")]
 
 
 def test_lock_of_a_killed_process_is_released(tmp_path: Path) -> None:
@@ -560,7 +569,7 @@ def test_kill_during_appends_loses_nothing_acknowledged(tmp_path: Path) -> None:
         f"study = new_study(Path({str(path)!r}))\n"
         "for start in range(0, 10**6, 5):\n"
         "    study.append_samples(make_batch(0, 0, range(start, start + 5)))\n"
-        "    print(start + 5, flush=True)\n"
+        "    say(start + 5)\n"
     )
     acknowledged = 0
     with _child(code) as child:
@@ -572,7 +581,7 @@ def test_kill_during_appends_loses_nothing_acknowledged(tmp_path: Path) -> None:
         finally:
             child.kill()  # SIGKILL, at whatever point the writer is
             child.wait()
-        for line in child.stdout.read().split():
+        for line in _complete_lines(child.stdout.read()):
             acknowledged = int(line)
     with new_study(path, create=False) as study:
         stored = study.sample_indices(level=0, stage=0)
@@ -588,7 +597,7 @@ _MAX_BATCH = 13
 def _writer_code(path: Path, n_batches: int | None) -> str:
     """A writer that resumes the study at ``path`` and appends batches (forever, or ``n_batches``)."""
     return _CHILD_PRELUDE + f"""
-print("opening", flush=True)
+say("opening")
 study = new_study(Path({str(path)!r}), create=True)
 keys = {_WRITER_KEYS!r}
 next_index = {{key: int(study.sample_indices(level=key[0], stage=key[1]).size) for key in keys}}
@@ -598,7 +607,7 @@ while {n_batches!r} is None or k < {n_batches!r}:
     start, size = next_index[(level, stage)], 1 + (7 * k) % {_MAX_BATCH}
     study.append_samples(make_batch(level, stage, range(start, start + size)))
     next_index[(level, stage)] = start + size
-    print(level, stage, start + size, flush=True)
+    say(level, stage, start + size)
     if k % 10 == 9:
         study.write_run("r", {{"n_samples": sum(next_index.values())}})  # copy-on-write, killed too
     k += 1
@@ -613,7 +622,9 @@ def _check_committed(path: Path, acknowledged: dict[tuple[int, int], int]) -> in
         for level, stage in _WRITER_KEYS:
             stored = reader.read_samples(level=level, stage=stage)
             n_acknowledged = acknowledged.get((level, stage), 0)
-            assert n_acknowledged <= stored.n_samples <= n_acknowledged + _MAX_BATCH
+            assert n_acknowledged <= stored.n_samples <= n_acknowledged + _MAX_BATCH, (
+                level, stage, n_acknowledged, stored.n_samples, reader._committed_counts()
+            )
             assert_same_batch(stored, make_batch(level, stage, range(stored.n_samples)))
             n_total += stored.n_samples
         runs = reader.read_runs()
@@ -640,7 +651,7 @@ def test_writer_killed_at_random_moments_keeps_every_committed_row(tmp_path: Pat
             child.wait()
             output, errors = output + child.stdout.read(), child.stderr.read()
         assert "Traceback" not in errors, errors
-        for line in output.splitlines():
+        for line in _complete_lines(output):
             level, stage, n = map(int, line.split())
             acknowledged[(level, stage)] = max(acknowledged.get((level, stage), 0), n)
         if path.exists():
