@@ -962,14 +962,17 @@ class StudyFile(StudyStore):
 
 
 def _open_for_writing(path: Path) -> h5py.File:
-    """Open ``path`` (a version 2 file without a writer's mark) for appending in SWMR mode."""
-    f = h5py.File(path, "r+", libver=_LIBVER, locking=False)
-    try:
-        f.swmr_mode = True
-    except BaseException:
-        f.close()
-        raise
-    return f
+    """Open ``path`` (a version 2 file without a writer's mark) for appending in SWMR mode.
+
+    One open marks the superblock "SWMR writer" at once. (h5py's ``"r+"``
+    followed by ``swmr_mode = True`` marks it "writer" first: a kill in
+    between leaves a file that neither a SWMR nor a plain reader opens.)
+    """
+    fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+    fapl.set_libver_bounds(h5py.h5f.LIBVER_V110, h5py.h5f.LIBVER_V110)
+    fapl.set_file_locking(False, True)
+    flags = h5py.h5f.ACC_RDWR | h5py.h5f.ACC_SWMR_WRITE
+    return h5py.File(h5py.h5f.open(os.fsencode(path), flags, fapl=fapl))
 
 
 def _replace_atomically(
