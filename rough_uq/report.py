@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from rich.markup import escape
 
-from rough_uq.sampler import STAGE_SCREENING
+from rough_uq.batch import STAGE_SCREENING
 from rough_uq.store import FORMAT_VERSION, StudyStore
 
 __all__ = [

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rough_uq.batch import STAGE_SCREENING, LevelBatch
 from rough_uq.fft import use_wisdom
 from rough_uq.qoi import evaluate_qoi
 from rough_uq.solver import ContactSolution, solve_contact
@@ -67,8 +68,6 @@ __all__ = [
     "solve_sample",
 ]
 
-STAGE_SCREENING = 0
-
 #: A non-converged solve is continued for this many times ``max_iter`` more iterations.
 RETRY_FACTOR = 10
 
@@ -81,72 +80,6 @@ RETRY_FACTOR = 10
 COST_PER_POINT = 1.9e-9
 COST_PER_ITERATION = 6.8e-5
 COST_EXTRA_ITERATIONS = 2
-
-
-@dataclass(frozen=True)
-class LevelBatch:
-    """Samples of one level and one stage, in a fixed order.
-
-    Attributes
-    ----------
-    level : int
-        Level index ``l``.
-    stage : int
-        Stage key of the random streams (screening or one estimation run).
-    indices : ndarray of int64, shape (n,)
-        Sample indices within ``(stage, level)``.
-    fine : ndarray of float64, shape (n, n_qoi)
-        Quantities of interest on grid ``n_l``.
-    coarse : ndarray of float64, shape (n, n_qoi)
-        Quantities of interest on grid ``n_{l-1}`` (zeros on level 0).
-    cost : ndarray of float64, shape (n,)
-        Wall time of each sample in seconds (both solves and the QoI).
-    n_iter : ndarray of int64, shape (n, 2)
-        Solver iterations, fine and coarse (0 for the missing coarse solve on level 0).
-    converged : ndarray of bool, shape (n, 2)
-        Whether each solve converged (True for the missing coarse solve on level 0).
-    """
-
-    level: int
-    stage: int
-    indices: np.ndarray
-    fine: np.ndarray
-    coarse: np.ndarray
-    cost: np.ndarray
-    n_iter: np.ndarray
-    converged: np.ndarray
-
-    def __post_init__(self) -> None:
-        n = len(self.indices)
-        expected = {
-            "indices": (n,),
-            "cost": (n,),
-            "n_iter": (n, 2),
-            "converged": (n, 2),
-        }
-        for name, shape in expected.items():
-            if np.shape(getattr(self, name)) != shape:
-                raise ValueError(f"LevelBatch.{name} has shape {np.shape(getattr(self, name))}, expected {shape}")
-        if np.ndim(self.fine) != 2 or np.shape(self.fine)[0] != n or np.shape(self.coarse) != np.shape(self.fine):
-            raise ValueError(
-                f"LevelBatch.fine/coarse must both have shape (n, n_qoi) with n={n}, "
-                f"got {np.shape(self.fine)} and {np.shape(self.coarse)}"
-            )
-
-    @property
-    def n_samples(self) -> int:
-        """Number of samples in the batch."""
-        return len(self.indices)
-
-    @property
-    def n_qoi(self) -> int:
-        """Number of quantities of interest per sample."""
-        return int(np.shape(self.fine)[1])
-
-    @property
-    def is_converged(self) -> np.ndarray:
-        """Boolean mask, shape (n,): both solves of the sample converged."""
-        return np.all(self.converged, axis=1)
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,10 @@
 """Study files: the samples, screening results and estimation runs of a study.
 
 This is the only module that uses h5py. A study lives in one HDF5 file with
-this layout (format ``roughuq-study``, version 1)::
+this layout (format ``roughuq-study``, version 2)::
 
     /                              attrs: format = "roughuq-study"
-    |                                     format_version = 1
+    |                                     format_version = 2
     |                                     config_hash   (sha256 hex, see rough_uq.config.config_hash)
     |                                     code_version  (roughuq version that created the file)
     |                                     created       (ISO 8601 time, UTC)
@@ -12,6 +12,7 @@ this layout (format ``roughuq-study``, version 1)::
     |-- qoi_names                  (n_qoi,) string: names of the QoI columns, in order
     |-- samples/
     |   `-- level_<l>/             attrs: level = l; one row per sample, rows in append order
+    |       |-- n_committed        scalar int64: rows 0 .. n_committed-1 are the samples
     |       |-- stage              (n,) int64     stage key (screening / estimation run)
     |       |-- index              (n,) int64     sample index within (stage, level)
     |       |-- fine               (n, n_qoi) float64  QoI on grid n_l
@@ -25,29 +26,65 @@ this layout (format ``roughuq-study``, version 1)::
         `-- <run_id>/              attrs: order = creation rank (0, 1, ...)
             `-- record             (m,) uint8: UTF-8 JSON text of the run dict
 
-The sample datasets are chunked and resizable along the first axis. JSON
-records are byte arrays rather than string attributes because HDF5 never
-reuses the space of a rewritten attribute or string, and runs are rewritten
-as they progress; a resizable byte array is rewritten in place.
+The sample datasets are chunked and resizable along the first axis; they may
+hold rows beyond ``n_committed`` (left by a writer that died in an append),
+which are not part of the study and are never read. Version 2 files use the
+HDF5 1.10 file format (``libver="v110"``), which any HDF5 >= 1.10 reads.
+Version 1 (written by roughuq before the in-place appends) had no
+``n_committed`` (every row counted) and the HDF5 1.8 file format; it is read
+as it is and converted to version 2 when opened for writing. JSON records are
+byte arrays rather than string attributes because HDF5 never reuses the space
+of a rewritten attribute or string.
 
-Crash safety
-------------
+Writing and crash safety
+------------------------
 A writable :class:`StudyFile` holds an exclusive advisory lock
 (``fcntl.flock``, non-blocking) on the sidecar ``<path>.lock`` for as long as
 it is open; a second writer is refused with the pid of the holder. The OS
 releases the lock when the process dies, even on ``kill -9``.
 
-Every write (:meth:`~StudyStore.append_samples`, :meth:`~StudyStore.write_run`,
-:meth:`~StudyStore.write_screening`, and creation) is a copy-on-write
-transaction: copy ``<path>`` to ``<path>.tmp-<pid>``, change the copy with
-h5py, close it, ``fsync`` it, ``os.replace`` it onto ``<path>`` and ``fsync``
-the directory. ``<path>`` is therefore always either the old or the new
-complete file, and no h5py handle stays open between writes. A study file
-holds a few numbers per sample (about 60 bytes), so a copy costs
-milliseconds; the ``fsync`` usually dominates. Temporary files left by a
-killed writer are removed when the study is next opened for writing. Readers
-(:func:`open_study_readonly`) take no lock: the file they see is always
-complete.
+Samples are appended in place, so the cost of an append does not depend on
+the size of the file. The writer keeps the file open in HDF5's
+single-writer/multiple-reader (SWMR) mode, in which the library orders its
+metadata writes so that the file on disk is a valid HDF5 file at every
+moment, and a reader, or a writer that died, never leaves pointers to
+unwritten data. An append (:meth:`~StudyStore.append_samples`)
+
+1. grows the level's datasets and writes the new rows after the last
+   committed one (overwriting any uncommitted leftovers),
+2. flushes the file and ``fsync``\\ s it,
+3. writes the new ``n_committed`` (8 bytes written in place),
+4. flushes and ``fsync``\\ s again.
+
+A process killed at any moment therefore leaves every committed row
+readable, and rows of a half-done append invisible: readers take the first
+``n_committed`` rows, never the dataset length. A writer that dies leaves
+HDF5's "open for writing" mark in the superblock; readers open the file in
+SWMR mode, which ignores the mark, and the next writer (holding the lock, so
+no writer is alive) rewrites the file with its committed rows only, which
+also drops the leftovers.
+
+Everything else (creating the file, the first batch of a level, the
+screening and run records, converting a version 1 file, the rewrite after a
+crash) is a copy-on-write transaction: close the file, copy ``<path>`` to
+``<path>.tmp-<pid>``, change the copy, ``fsync`` it, ``os.replace`` it onto
+``<path>`` and ``fsync`` the directory, so ``<path>`` is always either the
+old or the new complete file. These cost a copy of the file but happen a few
+times per command (run records are written when a run starts and ends).
+Temporary files left by a killed writer are removed when the study is next
+opened for writing.
+
+Reading
+-------
+A read-only :class:`StudyFile` (:func:`open_study_readonly`) takes no lock.
+It reads the header when opened, then opens the HDF5 file once, at its first
+read of samples or records, and keeps it open until :meth:`~StudyFile.close`:
+it sees the study as it was at that moment (the committed row counts are read
+once), even while a writer appends. Reading during appends relies on SWMR,
+which needs POSIX write semantics: on a network file system (NFS) a reader
+may fail while a writer is active on another machine, and succeeds once it
+stops. A writable one reads its own file through its writing handle and keeps
+what it has read in memory.
 
 Choices where the specification is silent
 -----------------------------------------
@@ -59,10 +96,11 @@ Choices where the specification is silent
   infinities survive. ``read_runs`` adds the ``run_id`` key.
 * Opening for writing with ``create=True`` creates missing parent
   directories.
-* HDF5's own file locking is switched off (``locking=False``): nobody ever
-  writes a file another process reads, and the sidecar lock serialises
-  writers. This also makes the store work on file systems without locks for
-  readers.
+* HDF5's own file locking is switched off (``locking=False``): the sidecar
+  lock serialises writers, readers need no lock (SWMR), and the store works
+  on file systems without locks.
+* A closed store can still be read (each read opens and closes the file);
+  only writes are refused.
 """
 
 from __future__ import annotations
@@ -75,7 +113,8 @@ import re
 import shutil
 import warnings
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 from types import TracebackType
@@ -84,12 +123,13 @@ from typing import Any, TypeVar
 import h5py
 import numpy as np
 
+from rough_uq.batch import LevelBatch
 from rough_uq.errors import StudyFileError
-from rough_uq.sampler import LevelBatch
 
 __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
+    "READABLE_VERSIONS",
     "ALL_STAGES",
     "DuplicateSampleWarning",
     "StudyStore",
@@ -102,16 +142,24 @@ __all__ = [
 FORMAT = "roughuq-study"
 """Value of the root attribute ``format``."""
 
-FORMAT_VERSION = 1
-"""Version of the layout this code writes and reads."""
+FORMAT_VERSION = 2
+"""Version of the layout this code writes."""
+
+READABLE_VERSIONS = (1, 2)
+"""Versions of the layout this code reads (version 1 is converted when opened for writing)."""
 
 ALL_STAGES = -1
 """``LevelBatch.stage`` of a batch read across all stages."""
 
 _COLUMNS = ("stage", "index", "fine", "coarse", "cost", "n_iter", "converged")
+_COMMITTED = "n_committed"
 _CHUNK_ROWS = 512
 _RECORD_CHUNK = 4096
 _RUN_ID = re.compile(r"^[A-Za-z0-9_.\-]+$")
+# The HDF5 1.10 file format: the oldest that supports SWMR, pinned so that
+# files stay readable by HDF5 1.10 to 1.14 whatever library writes them.
+_LIBVER = ("v110", "v110")
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 _T = TypeVar("_T")
 
@@ -150,11 +198,55 @@ def _empty_columns(n_qoi: int) -> dict[str, np.ndarray]:
     }
 
 
-def _fresh_rows(existing: Mapping[str, np.ndarray], batch: LevelBatch) -> np.ndarray:
+def _concatenated(blocks: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """The rows of ``blocks`` as one block; ``blocks`` is collapsed to it (appends stay O(batch))."""
+    if len(blocks) > 1:
+        blocks[:] = [{name: np.concatenate([block[name] for block in blocks]) for name in _COLUMNS}]
+    return blocks[0]
+
+
+class _IndexSet:
+    """A set of sample indices, held as sorted disjoint ranges ``[start, stop)``.
+
+    Indices arrive in runs (a plan asks for ``N_old .. N_new - 1``), so a
+    study of a million samples per level usually needs one range per stage:
+    membership and insertion cost ``O(batch log n_ranges)``, not ``O(n)``.
+    """
+
+    def __init__(self, indices: np.ndarray | None = None) -> None:
+        self.starts = np.zeros(0, dtype=np.int64)
+        self.stops = np.zeros(0, dtype=np.int64)
+        if indices is not None:
+            self.add(indices)
+
+    def contains(self, indices: np.ndarray) -> np.ndarray:
+        """Boolean mask: which of ``indices`` are in the set."""
+        indices = np.asarray(indices, dtype=np.int64)
+        if self.starts.size == 0:
+            return np.zeros(indices.shape, dtype=bool)
+        where = np.searchsorted(self.starts, indices, side="right") - 1
+        return (where >= 0) & (indices < self.stops[np.maximum(where, 0)])
+
+    def add(self, indices: np.ndarray) -> None:
+        """Add ``indices`` (any order, repeats allowed)."""
+        values = np.unique(np.asarray(indices, dtype=np.int64))
+        if values.size == 0:
+            return
+        breaks = np.flatnonzero(np.diff(values) != 1) + 1
+        starts = np.concatenate([self.starts, values[np.r_[0, breaks]]])
+        stops = np.concatenate([self.stops, values[np.r_[breaks - 1, values.size - 1]] + 1])
+        order = np.argsort(starts, kind="stable")
+        starts, stops = starts[order], np.maximum.accumulate(stops[order])
+        # A range opens where it starts past the furthest stop so far (touching ranges merge).
+        opens = np.r_[True, starts[1:] > stops[:-1]]
+        closes = np.r_[np.flatnonzero(opens)[1:] - 1, starts.size - 1]
+        self.starts, self.stops = starts[opens], stops[closes]
+
+
+def _fresh_rows(stored: _IndexSet | None, batch: LevelBatch) -> np.ndarray:
     """Mask of the batch rows not yet stored (first occurrence within the batch wins)."""
     indices = np.asarray(batch.indices, dtype=np.int64)
-    stored = existing["index"][existing["stage"] == batch.stage]
-    is_new = ~np.isin(indices, stored)
+    is_new = np.ones(len(indices), dtype=bool) if stored is None else ~stored.contains(indices)
     is_first = np.zeros(len(indices), dtype=bool)
     is_first[np.unique(indices, return_index=True)[1]] = True
     return is_new & is_first
@@ -195,6 +287,7 @@ def _check_run_id(run_id: str) -> None:
         raise ValueError(f"run_id must be a non-empty name of letters, digits, '_', '-', '.', got {run_id!r}")
 
 
+
 # ---------------------------------------------------------------------------
 # The interface
 # ---------------------------------------------------------------------------
@@ -223,6 +316,12 @@ class StudyStore(ABC):
     code_version: str
     created: str
 
+    def __init__(self) -> None:
+        # Stored indices per level and stage, built from the rows at the first
+        # append to a level, then kept up to date: duplicates are found without
+        # reading the level again.
+        self._stored_indices: dict[int, dict[int, _IndexSet]] = {}
+
     @property
     def n_qoi(self) -> int:
         """Number of QoI columns."""
@@ -241,6 +340,10 @@ class StudyStore(ABC):
     @abstractmethod
     def _stored_levels(self) -> list[int]:
         """Levels with a sample group."""
+
+    def _n_rows(self, level: int) -> int:
+        """Number of stored rows of ``level``."""
+        return len(self._columns(level)["index"])
 
     @abstractmethod
     def _write_record(self, key: tuple[str, ...], text: str) -> None:
@@ -272,13 +375,24 @@ class StudyStore(ABC):
             raise ValueError(f"batch has {batch.n_qoi} QoI columns, the study has {self.n_qoi} ({self.qoi_names})")
         if batch.level < 0:
             raise ValueError(f"level must be >= 0, got {batch.level}")
-        keep = _fresh_rows(self._columns(batch.level), batch)
+        stored = self._indices_by_stage(batch.level)
+        keep = _fresh_rows(stored.get(batch.stage), batch)
         _warn_duplicates(batch, keep)
         n_new = int(np.count_nonzero(keep))
         if n_new:
             rows = {name: values[keep] for name, values in _batch_columns(batch).items()}
             self._append_rows(batch.level, rows)
+            stored.setdefault(batch.stage, _IndexSet()).add(rows["index"])
         return n_new
+
+    def _indices_by_stage(self, level: int) -> dict[int, _IndexSet]:
+        if level not in self._stored_indices:
+            columns = self._columns(level)
+            self._stored_indices[level] = {
+                int(stage): _IndexSet(columns["index"][columns["stage"] == stage])
+                for stage in np.unique(columns["stage"])
+            }
+        return self._stored_indices[level]
 
     def read_samples(self, *, level: int, stage: int | None = None) -> LevelBatch:
         """The stored samples of one level, of one stage or of all stages.
@@ -311,7 +425,7 @@ class StudyStore(ABC):
 
     def levels(self) -> list[int]:
         """Levels that have stored samples, ascending."""
-        return sorted(level for level in self._stored_levels() if len(self._columns(level)["index"]))
+        return sorted(level for level in self._stored_levels() if self._n_rows(level))
 
     def stages(self, *, level: int) -> list[int]:
         """Stages that have stored samples on ``level``, ascending."""
@@ -370,6 +484,7 @@ class StudyStore(ABC):
         self.close()
 
 
+
 # ---------------------------------------------------------------------------
 # In memory
 # ---------------------------------------------------------------------------
@@ -394,26 +509,31 @@ class MemoryStore(StudyStore):
         config_hash: str = "",
         code_version: str = "",
     ) -> None:
+        super().__init__()
         self.qoi_names = tuple(qoi_names)
         self.config_text = config_text
         self.config_hash = config_hash
         self.code_version = code_version
         self.created = _now()
-        self._samples: dict[int, dict[str, np.ndarray]] = {}
+        self._samples: dict[int, list[dict[str, np.ndarray]]] = {}
         self._records: dict[tuple[str, ...], str] = {}
 
     def __repr__(self) -> str:
         return f"MemoryStore(qoi_names={self.qoi_names!r}, levels={self.levels()!r})"
 
     def _columns(self, level: int) -> dict[str, np.ndarray]:
-        return self._samples.get(level, _empty_columns(self.n_qoi))
+        if level not in self._samples:
+            return _empty_columns(self.n_qoi)
+        return _concatenated(self._samples[level])
 
     def _append_rows(self, level: int, rows: dict[str, np.ndarray]) -> None:
-        old = self._columns(level)
-        self._samples[level] = {name: np.concatenate([old[name], rows[name]]) for name in _COLUMNS}
+        self._samples.setdefault(level, []).append(rows)
 
     def _stored_levels(self) -> list[int]:
         return list(self._samples)
+
+    def _n_rows(self, level: int) -> int:
+        return sum(len(block["index"]) for block in self._samples.get(level, []))
 
     def _write_record(self, key: tuple[str, ...], text: str) -> None:
         self._records[key] = text  # dicts keep insertion order: a rewrite keeps its place
@@ -437,7 +557,8 @@ def _now() -> str:
 def _fsync_path(path: Path, *, directory: bool = False) -> None:
     fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if directory else 0))
     try:
-        os.fsync(fd)
+        # A file's data and size, not its times: what reading it back after a crash needs.
+        (os.fsync if directory else getattr(os, "fdatasync", os.fsync))(fd)  # no fdatasync on macOS
     finally:
         os.close(fd)
 
@@ -512,6 +633,38 @@ def _read_text(dataset: Any) -> str:
     return value.decode("utf-8") if isinstance(value, bytes) else str(value)
 
 
+def _open_for_reading(path: Path) -> h5py.File:
+    """Open ``path`` read-only in SWMR mode: works while a writer appends, and after one died."""
+    return h5py.File(path, "r", locking=False, swmr=True)
+
+
+def _open_checked(path: Path) -> h5py.File:
+    """Open ``path`` read-only with HDF5's checks (a truncated file is refused) unless a writer has it.
+
+    SWMR readers skip the end-of-file check (a live writer may have reserved
+    space it has not written yet), so a file nobody writes is opened without.
+    """
+    if not _is_marked_open(path):
+        try:
+            return h5py.File(path, "r", locking=False)
+        except OSError:
+            if not _is_marked_open(path):  # not a writer that arrived meanwhile
+                raise
+    return _open_for_reading(path)
+
+
+def _is_marked_open(path: Path) -> bool:
+    """Whether the superblock says a writer has the file open (HDF5 file format, superblock v2+).
+
+    The flag byte follows the signature, the superblock version and two size
+    bytes. Once we hold the lock, no roughuq writer is alive, so a set flag
+    was left by one that died.
+    """
+    with open(path, "rb") as stream:
+        head = stream.read(12)
+    return len(head) == 12 and head[:8] == _HDF5_SIGNATURE and head[8] >= 2 and head[11] != 0
+
+
 def _read_header(path: Path) -> dict[str, Any]:
     """Check that ``path`` is a readable study file of this format; return its header."""
     if not path.exists():
@@ -527,7 +680,7 @@ def _read_header(path: Path) -> dict[str, Any]:
     if not is_hdf5:
         raise StudyFileError(f"{path} is not an HDF5 file (so not a roughuq study file)", path)
     try:
-        with h5py.File(path, "r", locking=False) as f:
+        with _open_checked(path) as f:
             found = f.attrs.get("format")
             if isinstance(found, bytes):
                 found = found.decode("utf-8", "replace")
@@ -537,12 +690,14 @@ def _read_header(path: Path) -> dict[str, Any]:
                     path,
                 )
             version = f.attrs.get("format_version")
-            if version is None or int(version) != FORMAT_VERSION:
+            if version is None or int(version) not in READABLE_VERSIONS:
+                readable = " and ".join(str(v) for v in READABLE_VERSIONS)
                 raise StudyFileError(
-                    f"{path} has study format version {version}; this roughuq reads version {FORMAT_VERSION}",
+                    f"{path} has study format version {version}; this roughuq reads versions {readable}",
                     path,
                 )
             return {
+                "format_version": int(version),
                 "config_hash": str(f.attrs["config_hash"]),
                 "code_version": str(f.attrs["code_version"]),
                 "created": str(f.attrs["created"]),
@@ -570,12 +725,44 @@ def _write_header(
     f.create_group("runs")
 
 
+def _create_level(f: h5py.File, level: int, columns: Mapping[str, np.ndarray]) -> None:
+    """Create ``samples/level_<level>`` holding ``columns`` (all committed)."""
+    group = f["samples"].create_group(f"level_{level}")
+    group.attrs["level"] = np.int64(level)
+    for name in _COLUMNS:
+        tail = columns[name].shape[1:]
+        group.create_dataset(
+            name, data=columns[name], maxshape=(None, *tail), chunks=(_CHUNK_ROWS, *tail)
+        )
+    group.create_dataset(_COMMITTED, data=np.int64(len(columns["index"])))
+
+
+def _committed_rows(f: h5py.File, version: int) -> dict[int, int]:
+    """Committed row count of every level group (version 1: every row)."""
+    counts = {}
+    for group in f["samples"].values():
+        level = int(group.attrs["level"])
+        counts[level] = int(group[_COMMITTED][()]) if version >= 2 else int(group["index"].shape[0])
+    return counts
+
+
+def _read_columns(f: h5py.File, level: int, n_rows: int) -> dict[str, np.ndarray]:
+    group = f[f"samples/level_{level}"]
+    columns = {}
+    for name in _COLUMNS:
+        dataset = group[name]
+        if dataset.shape[0] < n_rows:  # a SWMR reader's cached extent; ask the file again
+            dataset.refresh()
+        columns[name] = dataset[:n_rows]
+    return columns
+
+
 class StudyFile(StudyStore):
     """A study stored in an HDF5 file (see the module docstring for layout and crash safety).
 
     Create with :func:`open_study` (writable, locked) or
     :func:`open_study_readonly`. Use as a context manager; the lock is
-    released on exit.
+    released and the file closed on exit.
 
     Attributes
     ----------
@@ -583,11 +770,15 @@ class StudyFile(StudyStore):
         The study file.
     read_only : bool
         Whether writes are refused.
+    format_version : int
+        Layout version of the file (a writable file is always the current one).
     """
 
     def __init__(self, path: Path, header: Mapping[str, Any], *, lock_fd: int | None) -> None:
+        super().__init__()
         self.path = path
         self.read_only = lock_fd is None
+        self.format_version = int(header["format_version"])
         self.config_text = header["config_text"]
         self.config_hash = header["config_hash"]
         self.qoi_names = tuple(header["qoi_names"])
@@ -595,9 +786,12 @@ class StudyFile(StudyStore):
         self.created = header["created"]
         self._lock_fd = lock_fd
         self._is_closed = False
-        # With the lock held nobody else writes the file, so what we read stays
-        # valid until we write it ourselves.
-        self._cache: dict[int, dict[str, np.ndarray]] = {}
+        self._h5: h5py.File | None = None
+        # Committed rows per level and the rows read so far. A reader's are a
+        # snapshot; a writer's stay valid because nobody else writes the file.
+        self._committed: dict[int, int] | None = None
+        self._cache: dict[int, list[dict[str, np.ndarray]]] = {}
+        self._datasets: dict[int, dict[str, h5py.Dataset]] = {}  # a writer's open datasets per level
 
     def __repr__(self) -> str:
         mode = "read-only" if self.read_only else "writable"
@@ -606,13 +800,13 @@ class StudyFile(StudyStore):
     # -- life cycle ----------------------------------------------------------
 
     def close(self) -> None:
-        """Release the lock; further writes are refused. Safe to call twice."""
+        """Close the file and release the lock; further writes are refused. Safe to call twice."""
         if not self._is_closed:
             self._is_closed = True
+            self._forget()
             if self._lock_fd is not None:
                 _release_lock(self.path, self._lock_fd)
                 self._lock_fd = None
-            self._cache.clear()
 
     def _check_writable(self) -> None:
         if self.read_only:
@@ -622,65 +816,119 @@ class StudyFile(StudyStore):
 
     # -- file access ----------------------------------------------------------
 
-    def _read(self, action: Callable[[h5py.File], _T]) -> _T:
+    def _handle(self) -> h5py.File:
+        """The open HDF5 file: SWMR reading for a reader, SWMR writing for a writer."""
+        if self._h5 is None:
+            if not self.read_only and _is_marked_open(self.path):
+                # Our own handle failed to close after a write error; we hold the lock.
+                _rewrite(self.path)
+            try:
+                self._h5 = _open_for_reading(self.path) if self.read_only else _open_for_writing(self.path)
+            except OSError as exc:
+                raise StudyFileError(f"{self.path} cannot be opened ({exc})", self.path) from None
+        return self._h5
+
+    def _close_handle(self) -> None:
+        self._datasets.clear()
+        if self._h5 is not None:
+            h5, self._h5 = self._h5, None
+            try:
+                h5.close()
+            except OSError:
+                pass  # a writer's mark may stay in the superblock; the next writer rewrites the file
+
+    def _forget(self) -> None:
+        """Close the file and drop everything read from it."""
+        self._close_handle()
+        self._committed = None
+        self._cache.clear()
+        self._stored_indices.clear()
+
+    @contextmanager
+    def _reading(self) -> Iterator[h5py.File]:
+        """The file to read: the cached handle, or (closed store) a handle for this read only."""
         try:
-            with h5py.File(self.path, "r", locking=False) as f:
-                return action(f)
+            if self._is_closed:
+                with _open_for_reading(self.path) as f:
+                    yield f
+            else:
+                yield self._handle()
         except OSError as exc:
             raise StudyFileError(f"{self.path} cannot be read ({exc})", self.path) from None
+
+    def _committed_counts(self) -> dict[int, int]:
+        if self._is_closed:
+            with self._reading() as f:
+                return _committed_rows(f, self.format_version)
+        if self._committed is None:
+            with self._reading() as f:
+                self._committed = _committed_rows(f, self.format_version)
+        return self._committed
 
     def _transaction(self, action: Callable[[h5py.File], None]) -> None:
         """Apply ``action`` to a copy of the file, then atomically replace the file by the copy."""
         self._check_writable()
+        self._close_handle()  # a complete file on disk, without the writer's mark, to copy
         _replace_atomically(self.path, action, copy_from=self.path)
 
     # -- storage primitives ----------------------------------------------------
 
     def _columns(self, level: int) -> dict[str, np.ndarray]:
-        if self.read_only or level not in self._cache:
+        if level in self._cache:
+            return _concatenated(self._cache[level])
+        n_rows = self._committed_counts().get(level, 0)
+        if n_rows == 0:
+            return _empty_columns(self.n_qoi)
+        with self._reading() as f:
+            columns = _read_columns(f, level, n_rows)
+        if not self._is_closed:
+            self._cache[level] = [columns]
+        return columns
 
-            def read(f: h5py.File) -> dict[str, np.ndarray]:
-                group = f.get(f"samples/level_{level}")
-                if group is None:
-                    return _empty_columns(self.n_qoi)
-                return {name: group[name][()] for name in _COLUMNS}
-
-            columns = self._read(read)
-            if self.read_only:
-                return columns
-            self._cache[level] = columns
-        return self._cache[level]
-
-    def _append_rows(self, level: int, rows: dict[str, np.ndarray]) -> None:
-        def append(f: h5py.File) -> None:
-            group = f["samples"].get(f"level_{level}")
-            if group is None:
-                group = f["samples"].create_group(f"level_{level}")
-                group.attrs["level"] = np.int64(level)
-                for name in _COLUMNS:
-                    tail = rows[name].shape[1:]
-                    group.create_dataset(
-                        name,
-                        shape=(0, *tail),
-                        maxshape=(None, *tail),
-                        chunks=(_CHUNK_ROWS, *tail),
-                        dtype=rows[name].dtype,
-                    )
-            n_old = group["index"].shape[0]
-            n_new = n_old + len(rows["index"])
-            for name in _COLUMNS:
-                dataset = group[name]
-                dataset.resize(n_new, axis=0)
-                dataset[n_old:n_new] = rows[name]
-
-        self._cache.pop(level, None)
-        self._transaction(append)
+    def _n_rows(self, level: int) -> int:
+        return self._committed_counts().get(level, 0)
 
     def _stored_levels(self) -> list[int]:
-        def read(f: h5py.File) -> list[int]:
-            return [int(group.attrs["level"]) for group in f["samples"].values()]
+        return list(self._committed_counts())
 
-        return self._read(read)
+    def _append_rows(self, level: int, rows: dict[str, np.ndarray]) -> None:
+        committed = self._committed_counts()
+        n_rows = len(rows["index"])
+        if level not in committed:
+            self._transaction(lambda f: _create_level(f, level, rows))
+            committed[level] = n_rows
+            return
+        n_old = committed[level]
+        n_new = n_old + n_rows
+        try:
+            f = self._handle()
+            if level not in self._datasets:
+                group = f[f"samples/level_{level}"]
+                self._datasets[level] = {name: group[name] for name in (*_COLUMNS, _COMMITTED)}
+            datasets = self._datasets[level]
+            for name in _COLUMNS:
+                if datasets[name].shape[0] < n_new:
+                    datasets[name].resize(n_new, axis=0)
+                datasets[name][n_old:n_new] = rows[name]
+            f.flush()
+            _fsync_path(self.path)  # the rows are on disk before the count that makes them visible
+            datasets[_COMMITTED][()] = n_new
+            f.flush()
+            _fsync_path(self.path)
+        except BaseException as exc:
+            # Whether the count reached the file is unknown: read everything again from the file.
+            self._forget()
+            if isinstance(exc, OSError):
+                reason = exc.strerror or str(exc)
+                raise StudyFileError(
+                    f"{self.path}: could not write ({reason}); the committed samples are intact, "
+                    "this batch may be missing",
+                    self.path,
+                ) from None
+            raise
+        committed[level] = n_new
+        if level in self._cache:
+            self._cache[level].append(rows)
 
     def _write_record(self, key: tuple[str, ...], text: str) -> None:
         data = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
@@ -703,18 +951,28 @@ class StudyFile(StudyStore):
         self._transaction(write)
 
     def _read_record(self, key: tuple[str, ...]) -> str | None:
-        def read(f: h5py.File) -> str | None:
+        with self._reading() as f:
             record = f.get("/".join(key) + "/record")
             return None if record is None else record[()].tobytes().decode("utf-8")
 
-        return self._read(read)
-
     def _run_ids(self) -> list[str]:
-        def read(f: h5py.File) -> list[str]:
+        with self._reading() as f:
             runs = f["runs"]
             return sorted(runs, key=lambda run_id: int(runs[run_id].attrs["order"]))
 
-        return self._read(read)
+
+def _open_for_writing(path: Path) -> h5py.File:
+    """Open ``path`` (a version 2 file without a writer's mark) for appending in SWMR mode.
+
+    One open marks the superblock "SWMR writer" at once. (h5py's ``"r+"``
+    followed by ``swmr_mode = True`` marks it "writer" first: a kill in
+    between leaves a file that neither a SWMR nor a plain reader opens.)
+    """
+    fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+    fapl.set_libver_bounds(h5py.h5f.LIBVER_V110, h5py.h5f.LIBVER_V110)
+    fapl.set_file_locking(False, True)
+    flags = h5py.h5f.ACC_RDWR | h5py.h5f.ACC_SWMR_WRITE
+    return h5py.File(h5py.h5f.open(os.fsencode(path), flags, fapl=fapl))
 
 
 def _replace_atomically(
@@ -726,7 +984,7 @@ def _replace_atomically(
         if copy_from is not None:
             shutil.copyfile(copy_from, tmp)
             shutil.copymode(copy_from, tmp)
-        with h5py.File(tmp, "r+" if copy_from is not None else "w", locking=False) as f:
+        with h5py.File(tmp, "r+" if copy_from is not None else "w", libver=_LIBVER, locking=False) as f:
             action(f)
         _fsync_path(tmp)
         os.replace(tmp, path)
@@ -740,6 +998,34 @@ def _replace_atomically(
         raise
 
 
+def _rewrite(path: Path) -> None:
+    """Rewrite ``path`` as a fresh version-2 file holding its committed rows only (atomically).
+
+    Converts a version 1 file, and cleans up after a writer that died: drops
+    rows beyond ``n_committed`` and the writer's mark in the superblock.
+    """
+    try:
+        src = _open_for_reading(path)
+    except OSError as exc:
+        raise StudyFileError(f"{path} cannot be read ({exc})", path) from None
+    with src:
+        version = int(src.attrs["format_version"])
+        committed = _committed_rows(src, version)
+
+        def write(dst: h5py.File) -> None:
+            for name in ("format", "config_hash", "code_version", "created"):
+                dst.attrs[name] = src.attrs[name]
+            dst.attrs["format_version"] = np.int64(FORMAT_VERSION)
+            for name in ("config_yaml", "qoi_names", "runs", "screening"):
+                if name in src:
+                    src.copy(src[name], dst, name)
+            dst.create_group("samples")
+            for level, n_rows in sorted(committed.items()):
+                _create_level(dst, level, _read_columns(src, level, n_rows))
+
+        _replace_atomically(path, write, copy_from=None)
+
+
 def open_study(
     path: str | os.PathLike[str],
     *,
@@ -750,6 +1036,9 @@ def open_study(
     code_version: str | None = None,
 ) -> StudyFile:
     """Open a study file for writing, creating it if asked; takes the file's lock.
+
+    A version 1 file, and a file whose last writer died, are first rewritten
+    as a version 2 file holding the committed samples (module docstring).
 
     Parameters
     ----------
@@ -821,6 +1110,9 @@ def open_study(
                 path,
             )
         _remove_stale_tmp(path)  # left by a killed writer; we hold the lock, so none is live
+        if header["format_version"] != FORMAT_VERSION or _is_marked_open(path):
+            _rewrite(path)
+            header = _read_header(path)
     except BaseException:
         _release_lock(path, lock_fd)
         raise
@@ -830,8 +1122,10 @@ def open_study(
 def open_study_readonly(path: str | os.PathLike[str]) -> StudyFile:
     """Open an existing study file for reading (no lock, no config needed).
 
-    The stored config is in ``config_text`` and ``config_hash``. Raises
-    :class:`StudyFileError` like :func:`open_study`.
+    The stored config is in ``config_text`` and ``config_hash``. The HDF5
+    file is opened at the first read and stays open until
+    :meth:`StudyFile.close`. Raises :class:`StudyFileError` like
+    :func:`open_study`.
     """
     path = Path(os.fspath(path))
     header = _read_header(path)

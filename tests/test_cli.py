@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 from rough_uq import __version__
 from rough_uq.cli import main
-from rough_uq.store import open_study_readonly
+from rough_uq.store import FORMAT_VERSION, open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -259,7 +259,7 @@ def _truncate(path: Path) -> None:
 
 def _other_version(path: Path) -> None:
     with h5py.File(path, "r+") as f:
-        f.attrs["format_version"] = 2
+        f.attrs["format_version"] = FORMAT_VERSION + 1
 
 
 def _garbage(path: Path) -> None:
@@ -268,7 +268,7 @@ def _garbage(path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("damage", "message"),
-    [(_truncate, "truncated or damaged"), (_other_version, "format version 2"), (_garbage, "not an HDF5 file")],
+    [(_truncate, "truncated or damaged"), (_other_version, f"format version {FORMAT_VERSION + 1}"), (_garbage, "not an HDF5 file")],
     ids=["truncated", "other-version", "not-hdf5"],
 )
 def test_bad_study_files_get_one_line_and_stay_unchanged(screened, damage, message):

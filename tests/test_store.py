@@ -17,7 +17,7 @@ import pytest
 
 from rough_uq import store as store_module
 from rough_uq.errors import StudyFileError
-from rough_uq.sampler import LevelBatch
+from rough_uq.batch import LevelBatch
 from rough_uq.store import (
     ALL_STAGES,
     FORMAT,
@@ -218,10 +218,127 @@ def test_header_and_layout(tmp_path: Path) -> None:
         assert tuple(f["qoi_names"].asstr()[()]) == QOI
         level = f["samples/level_1"]
         assert level["fine"].shape == (2, 2) and level["fine"].maxshape == (None, 2)
+        assert level["n_committed"][()] == 2 and level["n_committed"].dtype == np.int64
         assert level["stage"].dtype == np.int64 and level["converged"].dtype == bool
         assert json.loads(f["runs/r1/record"][()].tobytes()) == {"tol": 0.1}
         assert json.loads(f["screening/record"][()].tobytes()) == {"alpha": 1.0}
     assert sorted(os.listdir(tmp_path)) == ["study.h5"]  # no lock or temporary file left
+
+
+def test_index_set_is_a_set(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    stored = store_module._IndexSet()
+    expected: set[int] = set()
+    for _ in range(200):
+        start = int(rng.integers(0, 300))
+        added = rng.integers(start, start + rng.integers(1, 20), size=int(rng.integers(0, 8)))
+        stored.add(added)
+        expected.update(int(i) for i in added)
+        probe = rng.integers(-5, 330, size=50)
+        np.testing.assert_array_equal(stored.contains(probe), [int(i) in expected for i in probe])
+    assert np.all(stored.starts[1:] > stored.stops[:-1])  # disjoint, not touching, sorted
+    assert int(np.sum(stored.stops - stored.starts)) == len(expected)
+
+
+def test_rows_beyond_the_committed_count_are_invisible_and_overwritten(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, [0, 1]))
+        study.append_samples(make_batch(0, 0, [2]))
+    with h5py.File(path, "r+") as f:  # what an append killed before its count leaves
+        level = f["samples/level_0"]
+        for name in ("stage", "index", "fine", "coarse", "cost", "n_iter", "converged"):
+            level[name].resize(5, axis=0)
+        level["index"][3:] = [7, 8]
+        level["fine"][3:] = -1.0
+    with open_study_readonly(path) as reader:
+        assert_same_batch(reader.read_samples(level=0, stage=0), make_batch(0, 0, [0, 1, 2]))
+        assert reader.levels() == [0] and reader.stages(level=0) == [0]
+    with new_study(path, create=False) as study:
+        assert study.append_samples(make_batch(0, 0, [8])) == 1  # 8 was never committed
+        assert_same_batch(study.read_samples(level=0, stage=0), make_batch(0, 0, [0, 1, 2, 8]))
+    with h5py.File(path, "r") as f:
+        assert f["samples/level_0/n_committed"][()] == 4
+        np.testing.assert_array_equal(f["samples/level_0/index"][:4], [0, 1, 2, 8])
+
+
+VERSION_1 = ROOT / "tests" / "data" / "study_v1.h5"
+
+
+def _check_version_1_content(study: StudyFile) -> None:
+    # tests/data/study_v1.h5 was written by the version-1 store (before in-place appends) with
+    # make_batch: level 0 stage 0 [3, 1, 0] then [2, 5, 4]; level 1 stage 0 [0, 1], stage 7 [2, 0];
+    # screening {"alpha": 1.5, "levels": [0, 1]}; runs r1 (written twice) and r0.
+    assert (study.config_hash, study.config_text, study.qoi_names, study.code_version) == (
+        HASH, CONFIG_TEXT, QOI, "test"
+    )
+    assert study.levels() == [0, 1] and study.stages(level=1) == [0, 7]
+    assert_same_batch(study.read_samples(level=0, stage=0), make_batch(0, 0, range(6)))
+    assert_same_batch(study.read_samples(level=1, stage=7), make_batch(1, 7, [0, 2]))
+    np.testing.assert_array_equal(study.read_samples(level=1).indices, [0, 1, 0, 2])
+    assert study.read_screening() == {"alpha": 1.5, "levels": [0, 1]}
+    assert study.read_runs() == [
+        {"run_id": "r1", "tol": 0.1, "status": "finished"},
+        {"run_id": "r0", "tol": 0.2},
+    ]
+
+
+def test_version_1_file_is_read(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    path.write_bytes(VERSION_1.read_bytes())
+    before = fingerprint(path)
+    with open_study_readonly(path) as reader:
+        assert reader.format_version == 1
+        _check_version_1_content(reader)
+    assert fingerprint(path) == before
+
+
+def test_version_1_file_is_converted_when_opened_for_writing(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    path.write_bytes(VERSION_1.read_bytes())
+    with new_study(path, create=False) as study:
+        assert study.format_version == FORMAT_VERSION
+        _check_version_1_content(study)
+        assert study.append_samples(make_batch(0, 0, [6, 7])) == 2
+        with pytest.warns(DuplicateSampleWarning):
+            assert study.append_samples(make_batch(1, 7, [2, 3])) == 1
+    with h5py.File(path, "r") as f:
+        assert f.attrs["format_version"] == FORMAT_VERSION and f.attrs["created"] == "2026-11-23T20:54:25+00:00"
+        assert f["samples/level_0/n_committed"][()] == 8
+    with open_study_readonly(path) as reader:
+        assert_same_batch(reader.read_samples(level=0, stage=0), make_batch(0, 0, range(8)))
+        assert_same_batch(reader.read_samples(level=1, stage=7), make_batch(1, 7, [0, 2, 3]))
+        assert [run["run_id"] for run in reader.read_runs()] == ["r1", "r0"]
+    assert sorted(os.listdir(tmp_path)) == ["study.h5"]
+
+
+def test_read_only_file_is_opened_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        for level in range(3):
+            study.append_samples(make_batch(level, 0, range(4)))
+            study.append_samples(make_batch(level, 5, [1]))
+        study.write_run("r", {"tol": 0.1})
+        study.write_screening({"alpha": 1.0})
+    opened = []
+    real_file = h5py.File
+
+    def counting_file(*args, **kwargs):
+        opened.append(args[0])
+        return real_file(*args, **kwargs)
+
+    monkeypatch.setattr(store_module.h5py, "File", counting_file)
+    with open_study_readonly(path) as reader:
+        n_header = len(opened)  # the header check
+        for _ in range(2):
+            for level in reader.levels():
+                reader.read_samples(level=level)
+                for stage in reader.stages(level=level):
+                    reader.sample_indices(level=level, stage=stage)
+                    reader.read_samples(level=level, stage=stage)
+            reader.read_runs(), reader.read_screening(), reader.qoi_names, reader.config_hash
+        assert len(opened) == n_header + 1
+    assert n_header == 1
 
 
 def test_resume_with_matching_hash(tmp_path: Path) -> None:
@@ -274,7 +391,7 @@ def _empty(path: Path, tmp_path: Path) -> None:
 def _wrong_version(path: Path, tmp_path: Path) -> None:
     path.write_bytes(_valid_bytes(tmp_path))
     with h5py.File(path, "r+") as f:
-        f.attrs["format_version"] = 2
+        f.attrs["format_version"] = 3
 
 
 def _foreign_hdf5(path: Path, tmp_path: Path) -> None:
@@ -288,7 +405,7 @@ def _foreign_hdf5(path: Path, tmp_path: Path) -> None:
         (_not_hdf5, "not an HDF5 file"),
         (_truncated, "truncated or damaged"),
         (_empty, "is empty"),
-        (_wrong_version, "format version 2; this roughuq reads version 1"),
+        (_wrong_version, "format version 3; this roughuq reads versions 1 and 2"),
         (_foreign_hdf5, "not a roughuq study file"),
     ],
     ids=["not-hdf5", "truncated", "empty", "wrong-version", "foreign-hdf5"],
@@ -340,23 +457,42 @@ def test_read_only_directory_is_refused(tmp_path: Path) -> None:
         directory.chmod(0o755)
 
 
-def test_failed_write_leaves_file_unchanged(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def _disk_full(*args, **kwargs):
+    raise OSError(28, "No space left on device")
+
+
+def test_failed_copy_on_write_leaves_file_unchanged(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = tmp_path / "study.h5"
     with new_study(path) as study:
         study.append_samples(make_batch(0, 0, [0]))
         before = fingerprint(path)
-
-        def disk_full(*args, **kwargs):
-            raise OSError(28, "No space left on device")
-
-        monkeypatch.setattr(store_module, "_fsync_path", disk_full)
+        monkeypatch.setattr(store_module, "_fsync_path", _disk_full)
         with pytest.raises(StudyFileError, match="No space left on device.*unchanged"):
-            study.append_samples(make_batch(0, 0, [1]))
+            study.append_samples(make_batch(1, 0, [0]))  # a new level: written by copy-on-write
+        with pytest.raises(StudyFileError, match="No space left on device.*unchanged"):
+            study.write_run("r", {"tol": 0.1})
         monkeypatch.undo()
         assert fingerprint(path) == before
         assert sorted(os.listdir(tmp_path)) == ["study.h5", "study.h5.lock"]
-        np.testing.assert_array_equal(study.sample_indices(level=0, stage=0), [0])
-        assert study.append_samples(make_batch(0, 0, [1])) == 1  # the sample was not counted
+        assert study.levels() == [0] and study.read_runs() == []
+        assert study.append_samples(make_batch(1, 0, [0])) == 1  # the sample was not counted
+
+
+def test_failed_append_keeps_the_committed_samples(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, [0, 1]))
+        study.append_samples(make_batch(0, 0, [2]))  # in place
+        monkeypatch.setattr(store_module, "_fsync_path", _disk_full)  # fails before the count is written
+        with pytest.raises(StudyFileError, match="No space left on device.*committed samples are intact"):
+            study.append_samples(make_batch(0, 0, [3, 4]))
+        monkeypatch.undo()
+        assert sorted(os.listdir(tmp_path)) == ["study.h5", "study.h5.lock"]
+        with open_study_readonly(path) as reader:
+            assert_same_batch(reader.read_samples(level=0, stage=0), make_batch(0, 0, [0, 1, 2]))
+        np.testing.assert_array_equal(study.sample_indices(level=0, stage=0), [0, 1, 2])
+        assert study.append_samples(make_batch(0, 0, [4, 3])) == 2  # the samples were not counted
+        assert_same_batch(study.read_samples(level=0, stage=0), make_batch(0, 0, range(5)))
 
 
 def test_read_only_and_closed_files_refuse_writes(tmp_path: Path) -> None:
@@ -398,7 +534,16 @@ import sys, numpy as np
 sys.path.insert(0, {str(ROOT / 'tests')!r})
 from test_store import make_batch, new_study
 from pathlib import Path
+
+def say(*words):  # one write per line: a kill never leaves half a line (print writes word by word unbuffered)
+    sys.stdout.write(" ".join(map(str, words)) + "\\n")
+    sys.stdout.flush()
 """
+
+
+def _complete_lines(output: str) -> list[str]:
+    """Lines of a killed child's output, without a last line it may not have finished."""
+    return [line for line in output.splitlines(keepends=True) if line.endswith("\n")]
 
 
 def test_lock_of_a_killed_process_is_released(tmp_path: Path) -> None:
@@ -424,7 +569,7 @@ def test_kill_during_appends_loses_nothing_acknowledged(tmp_path: Path) -> None:
         f"study = new_study(Path({str(path)!r}))\n"
         "for start in range(0, 10**6, 5):\n"
         "    study.append_samples(make_batch(0, 0, range(start, start + 5)))\n"
-        "    print(start + 5, flush=True)\n"
+        "    say(start + 5)\n"
     )
     acknowledged = 0
     with _child(code) as child:
@@ -436,13 +581,97 @@ def test_kill_during_appends_loses_nothing_acknowledged(tmp_path: Path) -> None:
         finally:
             child.kill()  # SIGKILL, at whatever point the writer is
             child.wait()
-        for line in child.stdout.read().split():
+        for line in _complete_lines(child.stdout.read()):
             acknowledged = int(line)
     with new_study(path, create=False) as study:
         stored = study.sample_indices(level=0, stage=0)
         assert acknowledged <= stored.size <= acknowledged + 5
         np.testing.assert_array_equal(stored, np.arange(stored.size))
     assert sorted(os.listdir(tmp_path)) == ["study.h5"]  # the temporary copy is gone
+
+
+_WRITER_KEYS = ((0, 0), (1, 0), (0, 3), (2, 3))  # (level, stage) appended in turn
+_MAX_BATCH = 13
+
+
+def _writer_code(path: Path, n_batches: int | None) -> str:
+    """A writer that resumes the study at ``path`` and appends batches (forever, or ``n_batches``)."""
+    return _CHILD_PRELUDE + f"""
+say("opening")
+study = new_study(Path({str(path)!r}), create=True)
+keys = {_WRITER_KEYS!r}
+next_index = {{key: int(study.sample_indices(level=key[0], stage=key[1]).size) for key in keys}}
+k = 0
+while {n_batches!r} is None or k < {n_batches!r}:
+    level, stage = keys[k % len(keys)]
+    start, size = next_index[(level, stage)], 1 + (7 * k) % {_MAX_BATCH}
+    study.append_samples(make_batch(level, stage, range(start, start + size)))
+    next_index[(level, stage)] = start + size
+    say(level, stage, start + size)
+    if k % 10 == 9:
+        study.write_run("r", {{"n_samples": sum(next_index.values())}})  # copy-on-write, killed too
+    k += 1
+study.close()
+"""
+
+
+def _check_committed(path: Path, acknowledged: dict[tuple[int, int], int]) -> int:
+    """Every committed row reads back as written, with no gap and no partial row; return the row count."""
+    n_total = 0
+    with open_study_readonly(path) as reader:
+        for level, stage in _WRITER_KEYS:
+            stored = reader.read_samples(level=level, stage=stage)
+            n_acknowledged = acknowledged.get((level, stage), 0)
+            assert n_acknowledged <= stored.n_samples <= n_acknowledged + _MAX_BATCH, (
+                level, stage, n_acknowledged, stored.n_samples, reader._committed_counts()
+            )
+            assert_same_batch(stored, make_batch(level, stage, range(stored.n_samples)))
+            n_total += stored.n_samples
+        runs = reader.read_runs()
+        assert runs == [] or (runs[0]["run_id"] == "r" and runs[0]["n_samples"] <= n_total)
+    return n_total
+
+
+@pytest.mark.parametrize(
+    "n_kills", [6, pytest.param(60, marks=pytest.mark.slow)], ids=["6-kills", "60-kills"]
+)
+def test_writer_killed_at_random_moments_keeps_every_committed_row(tmp_path: Path, n_kills: int) -> None:
+    path = tmp_path / "study.h5"
+    rng = np.random.default_rng(2026 + n_kills)
+    acknowledged: dict[tuple[int, int], int] = {}
+    n_before = 0
+    n_crashed_writers = 0
+    for attempt, delay in enumerate(rng.uniform(0.0, 0.6, size=n_kills)):
+        with _child(_writer_code(path, None)) as child:
+            assert child.stdout.readline() == "opening\n", child.stderr.read()
+            # Every other writer is killed while appending; the others possibly in the open (and its rewrite).
+            output = child.stdout.readline() if attempt % 2 else ""
+            time.sleep(delay)
+            child.kill()
+            child.wait()
+            output, errors = output + child.stdout.read(), child.stderr.read()
+        assert "Traceback" not in errors, errors
+        for line in _complete_lines(output):
+            level, stage, n = map(int, line.split())
+            acknowledged[(level, stage)] = max(acknowledged.get((level, stage), 0), n)
+        if path.exists():
+            n_crashed_writers += store_module._is_marked_open(path)
+            n_rows = _check_committed(path, acknowledged)  # readable before any writer cleans up
+            assert n_rows >= n_before  # nothing committed is ever lost
+            n_before = n_rows
+    assert n_crashed_writers >= 1  # a kill hit a writer with the file open (in SWMR mode)
+    with _child(_writer_code(path, 12)) as child:  # the resume continues where the last writer stopped
+        output, errors = child.communicate(timeout=60)
+    assert child.returncode == 0, errors
+    for line in output.splitlines()[1:]:
+        level, stage, n = map(int, line.split())
+        acknowledged[(level, stage)] = n
+    assert _check_committed(path, acknowledged) == sum(acknowledged.values()) > n_before
+    with h5py.File(path, "r") as f:  # the resume dropped what the killed writers left beyond their counts
+        assert f.attrs["format_version"] == FORMAT_VERSION
+        for group in f["samples"].values():
+            assert group["index"].shape[0] == group["n_committed"][()]
+    assert sorted(os.listdir(tmp_path)) == ["study.h5"]
 
 
 def test_stale_temporary_file_is_removed(tmp_path: Path) -> None:
@@ -457,3 +686,16 @@ def test_stale_temporary_file_is_removed(tmp_path: Path) -> None:
     with new_study(path, create=False):
         assert not stale.exists()
     assert unrelated.exists()
+
+
+# ---------------------------------------------------------------------------
+# Imports
+# ---------------------------------------------------------------------------
+
+
+def test_store_and_report_do_not_import_the_solver() -> None:
+    heavy = ("numba", "pyfftw", "rough_uq.solver", "rough_uq.sampler", "rough_uq.fft")
+    code = f"import sys, rough_uq.store, rough_uq.report; print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    assert out.stdout.strip() == "[]"
