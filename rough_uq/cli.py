@@ -1,4 +1,4 @@
-"""The ``roughuq`` command line: thin click commands over :mod:`rough_uq.pipeline`.
+"""The ``roughuq`` command line: thin click commands over :mod:`rough_uq.study.pipeline`.
 
 Exit status (also in ``roughuq --help`` and the README):
 
@@ -88,13 +88,13 @@ def _console() -> Any:
 
 
 def _progress(quiet: bool) -> Any:
-    from rough_uq.progress import make_progress
+    from rough_uq.study.progress import make_progress
 
     return make_progress(is_quiet=quiet)
 
 
 def _executor(config: Any, workers: int | None, executor: str, scheduler: str | None) -> Any:
-    from rough_uq.executor import make_executor
+    from rough_uq.study.executors import make_executor
 
     return make_executor(executor, workers=workers, threads=config.solver.threads, scheduler=scheduler)
 
@@ -135,7 +135,7 @@ def main() -> None:
 @_user_errors
 def validate(config_paths: Sequence[str]) -> None:
     """Check study configs and summarise each (status 2 if any is invalid)."""
-    from rough_uq.config import load_config, solver_memory_bytes
+    from rough_uq.study.config import load_config, solver_memory_bytes
 
     n_bad = 0
     for config_path in config_paths:
@@ -168,7 +168,7 @@ def _warm_kernels(model: Any, *, quiet: bool = False) -> None:
     import dataclasses
     import threading
 
-    from rough_uq.sampler import compute_batch
+    from rough_uq.problem.sampler import compute_batch
 
     start = time.perf_counter()
     notice = threading.Timer(
@@ -197,9 +197,9 @@ def solve(config_path: str | None, level: int, index: int) -> None:
     screening sample INDEX of LEVEL, i.e. exactly what `roughuq screen` stores.
     The time excludes compiling the kernels (first run only, announced).
     """
-    from rough_uq.config import load_config
-    from rough_uq.pipeline import build_model
-    from rough_uq.sampler import STAGE_SCREENING, compute_batch
+    from rough_uq.study.config import load_config
+    from rough_uq.study.pipeline import build_model
+    from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch
 
     config = load_config(config_path or _shipped_config("quickstart.yaml"))
     if level > config.grid.max_level:
@@ -240,9 +240,9 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
 
     Creates the study file (or continues an interrupted screening in it).
     """
-    from rough_uq.config import load_config
-    from rough_uq.pipeline import create_study, run_screening
-    from rough_uq.report import complexity, render_screening
+    from rough_uq.study.config import load_config
+    from rough_uq.study.pipeline import create_study, run_screening
+    from rough_uq.report.summary import complexity, render_screening
 
     config = load_config(config_path)
     with create_study(config, out) as study:
@@ -273,8 +273,8 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     def command(tol: Sequence[str], study_path: str, config_path: str | None, max_cost: float | None,
                 show_plan: bool, shard_size: int | None, with_resources: bool, as_json: bool, workers: int | None,
                 executor: str, scheduler: str | None, quiet: bool, level: int | None = None) -> None:
-        from rough_uq.config import load_config
-        from rough_uq.pipeline import (
+        from rough_uq.study.config import load_config
+        from rough_uq.study.pipeline import (
             create_study,
             forecast_run,
             missing_samples,
@@ -283,7 +283,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
             run_estimation,
             run_id,
         )
-        from rough_uq.report import study_report
+        from rough_uq.report.summary import study_report
 
         if shard_size is not None and not show_plan:
             raise InvalidParameterError("--shards", shard_size, "only with --plan (it splits the plan into shards)")
@@ -300,7 +300,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                 work = missing_samples(study, method=method, tol=tolerances, max_cost=cap, level=level)
                 resources = None
                 if with_resources:
-                    from rough_uq.resources import shard_resources
+                    from rough_uq.study.resources import shard_resources
 
                     resources = shard_resources(study, stage=work.stage, levels=list(work.missing))
                 _print_plan(work, as_json, shard_size, resources)
@@ -445,7 +445,7 @@ def _ranges(indices: Any) -> list[str]:
 
 
 def _print_run(record: dict[str, Any], report: dict[str, Any]) -> None:
-    from rough_uq.report import format_run
+    from rough_uq.report.summary import format_run
 
     for line in format_run(record, report["qoi_names"], report["config"]["qoi"]):
         click.echo(line)
@@ -510,7 +510,7 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
 
     The shard is written under a temporary name and renamed when complete.
     """
-    from rough_uq.pipeline import compute_shard, open_existing_study
+    from rough_uq.study.pipeline import compute_shard, open_existing_study
 
     stage_id = _stage_number(stage)
     wanted = _parse_indices(indices)
@@ -528,7 +528,7 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
 @_user_errors
 def merge(shards: Sequence[str], study_path: str) -> None:
     """Add the samples of shard files to a study (duplicates are skipped with a warning)."""
-    from rough_uq.pipeline import merge_shards, open_existing_study
+    from rough_uq.study.pipeline import merge_shards, open_existing_study
 
     with open_existing_study(study_path) as study:
         counts = merge_shards(study, shards)
@@ -558,8 +558,8 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
     E.g. the box-size question: `roughuq sweep configs/classic_area.yaml --set
     surface.system_size=1,2,3,4 --fixed-spacing --tol 0.5`. Rerunning resumes.
     """
-    from rough_uq.config import load_config, sweep_configs
-    from rough_uq.pipeline import run_sweep
+    from rough_uq.study.config import load_config, sweep_configs
+    from rough_uq.study.pipeline import run_sweep
 
     key, sep, values = assignment.partition("=")
     if not sep or not key or not values:
@@ -593,14 +593,14 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
 @_user_errors
 def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     """Show what a study file holds: config, screening, rates, every run, warnings."""
-    from rough_uq.pipeline import open_existing_study
-    from rough_uq.report import render_report, study_report
+    from rough_uq.study.pipeline import open_existing_study
+    from rough_uq.report.summary import render_report, study_report
 
     with open_existing_study(study_path, writable=False) as study:
         data = study_report(study.store, study.config)
     written = []
     if plots_dir is not None:
-        from rough_uq.plots import write_report_plots
+        from rough_uq.report.figures import write_report_plots
 
         written = _writing(plots_dir, lambda: write_report_plots(data, plots_dir))
     if as_json:
@@ -650,8 +650,8 @@ def _stage_of(study: Any, text: str) -> int:
 @_user_errors
 def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
     """Recompute one stored sample from its seed and draw heights, pressure and contact clusters."""
-    from rough_uq.pipeline import open_existing_study
-    from rough_uq.plots import write_sample_figure
+    from rough_uq.study.pipeline import open_existing_study
+    from rough_uq.report.figures import write_sample_figure
 
     with open_existing_study(study_path, writable=False) as study:
         if level > study.config.grid.max_level:
@@ -681,7 +681,7 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
     A dropped run no longer appears in reports; running the same command
     again brings it back and reuses its stored samples.
     """
-    from rough_uq.pipeline import open_existing_study
+    from rough_uq.study.pipeline import open_existing_study
 
     with open_existing_study(study_path) as study:
         runs = {run["run_id"]: run for run in study.store.read_runs()}

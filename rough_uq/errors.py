@@ -35,7 +35,7 @@ class InvalidParameterError(RoughUQError, ValueError):
 class ConvergenceError(RoughUQError):
     """A contact solve did not converge and the caller asked for a hard failure.
 
-    Carries the non-converged :class:`~rough_uq.solver.ContactSolution`
+    Carries the non-converged :class:`~rough_uq.physics.solver.ContactSolution`
     (``solution``) so that the partial result can be inspected.
     """
 

@@ -12,7 +12,7 @@ run, so the ratios are meaningful even where the absolute times are not:
   2048^2), ``scipy.fft`` and ``numpy.fft``; the fastest is the floor, and the
   solver's time per iteration is printed over it (target: at most 2.0 at
   1024^2 and 2048^2). The solver is timed with measured plans from wisdom, as
-  studies use it (``rough_uq.fft_wisdom``), and once with ``FFTW_ESTIMATE``
+  studies use it (``rough_uq.study.fft_wisdom``), and once with ``FFTW_ESTIMATE``
   plans for comparison; the process's peak resident memory is printed after
   each grid;
 * solver: iterations, seconds per solve and per iteration, the time of one real
@@ -79,9 +79,9 @@ import numpy as np  # noqa: E402
 import pyfftw  # noqa: E402
 import scipy.fft  # noqa: E402
 
-from rough_uq.fft import RealFFT, get_fft, measure_plans, use_wisdom  # noqa: E402
-from rough_uq.solver import ContactSolution, solve_contact  # noqa: E402
-from rough_uq.surface import SurfaceSpectrum, sample_coupled, sample_surface  # noqa: E402
+from rough_uq.physics.fft import RealFFT, get_fft, measure_plans, use_wisdom  # noqa: E402
+from rough_uq.physics.solver import ContactSolution, solve_contact  # noqa: E402
+from rough_uq.physics.surface import SurfaceSpectrum, sample_coupled, sample_surface  # noqa: E402
 
 #: SPEC section 6: box side, cut-off wavelengths (unit of L), Hurst exponent, RMS height.
 SYSTEM_SIZE = 2.0
@@ -439,7 +439,7 @@ def run_grid(
     time_fft_pair(n, args.threads)
     time_fft_pair(n, args.threads, single=True)
     _, estimate_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=1)
-    # ... then measured plans, as a study uses them (rough_uq.fft_wisdom); planning outside the timings.
+    # ... then measured plans, as a study uses them (rough_uq.study.fft_wisdom); planning outside the timings.
     measure_plans([n, n // 2], threads=args.threads)
     fft_pair = time_fft_pair(n, args.threads)
     single_pair = time_fft_pair(n, args.threads, single=True)

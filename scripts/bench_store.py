@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rough_uq.batch import LevelBatch
-from rough_uq.store import StudyFile, open_study
+from rough_uq.problem.batch import LevelBatch
+from rough_uq.study.store import StudyFile, open_study
 
 QOI = ("contact_area", "clusters")
 FILL_BATCH = 50_000

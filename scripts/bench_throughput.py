@@ -20,9 +20,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
-from rough_uq.config import load_config  # noqa: E402
-from rough_uq.executor import PoolExecutor, SerialExecutor  # noqa: E402
-from rough_uq.pipeline import build_model  # noqa: E402
+from rough_uq.study.config import load_config  # noqa: E402
+from rough_uq.study.executors import PoolExecutor, SerialExecutor  # noqa: E402
+from rough_uq.study.pipeline import build_model  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

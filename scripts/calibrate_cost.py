@@ -1,8 +1,8 @@
-"""Fit the constants of roughuq's cost model (rough_uq.sampler.modelled_cost).
+"""Fit the constants of roughuq's cost model (rough_uq.problem.sampler.modelled_cost).
 
 The estimators plan with a *modelled* cost so that the plan does not depend on
 the speed of the process that drew a sample (see the module docstring of
-rough_uq.sampler). One solve is modelled as
+rough_uq.problem.sampler). One solve is modelled as
 
     (n_iter + COST_EXTRA_ITERATIONS) * (COST_PER_POINT * n^2 log2(n^2) + COST_PER_ITERATION)
 
@@ -24,9 +24,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
-from rough_uq.sampler import COST_EXTRA_ITERATIONS  # noqa: E402
-from rough_uq.solver import solve_contact  # noqa: E402
-from rough_uq.surface import SurfaceSpectrum, sample_surface  # noqa: E402
+from rough_uq.problem.sampler import COST_EXTRA_ITERATIONS  # noqa: E402
+from rough_uq.physics.solver import solve_contact  # noqa: E402
+from rough_uq.physics.surface import SurfaceSpectrum, sample_surface  # noqa: E402
 
 SIZES = (32, 64, 128, 256, 512)
 

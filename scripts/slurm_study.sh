@@ -13,7 +13,7 @@
 # 2. A round: `roughuq mlmc --plan --shards CHUNK --resources` lists the
 #    missing samples as shards, each with its estimated wall time and memory
 #    (from the stored samples' speed and the cost model, see
-#    rough_uq/resources.py); one job array per level computes them, one core
+#    rough_uq/study/resources.py); one job array per level computes them, one core
 #    per task, with --time and --mem = estimate x factor.
 # 3. A job that waits for all arrays of the round (afterany) runs this script
 #    again: it merges the shards that were written and plans the next round.

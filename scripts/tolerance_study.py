@@ -21,9 +21,9 @@ import time
 
 import numpy as np
 
-from rough_uq.qoi import contact_area, count_clusters
-from rough_uq.solver import solve_contact
-from rough_uq.surface import SurfaceSpectrum, sample_surface
+from rough_uq.physics.qoi import contact_area, count_clusters
+from rough_uq.physics.solver import solve_contact
+from rough_uq.physics.surface import SurfaceSpectrum, sample_surface
 
 #: 1 % of the tightest tolerances of SPEC section 6.
 BUDGET = {"area_nodes": 0.002, "area_corrected": 0.002, "clusters4": 0.02, "clusters8": 0.02}

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 
 from rough_uq import __version__
 from rough_uq.cli import main
-from rough_uq.store import FORMAT_VERSION, open_study_readonly
+from rough_uq.study.store import FORMAT_VERSION, open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -136,8 +136,8 @@ def test_study_from_another_config_is_refused_and_untouched(screened):
 def test_estimation_before_screening_is_refused(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config(screening={"levels": 3, "samples": 4}))
-    from rough_uq.config import load_config
-    from rough_uq.pipeline import create_study
+    from rough_uq.study.config import load_config
+    from rough_uq.study.pipeline import create_study
 
     create_study(load_config(config)).close()
     result = run("mlmc", "--tol", "1", expect=2)
@@ -284,8 +284,8 @@ def test_bad_study_files_get_one_line_and_stay_unchanged(screened, damage, messa
 
 
 def test_locked_study_is_refused_and_unchanged(screened):
-    from rough_uq.config import load_config
-    from rough_uq.pipeline import create_study
+    from rough_uq.study.config import load_config
+    from rough_uq.study.pipeline import create_study
 
     before = (screened / "results.h5").read_bytes()
     with create_study(load_config(screened / "tiny.yaml")):  # another writer holds the lock

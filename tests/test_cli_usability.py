@@ -15,7 +15,7 @@ import yaml
 from click.testing import CliRunner
 
 from rough_uq.cli import EXIT_TOL_NOT_MET, main
-from rough_uq.store import FORMAT_VERSION, open_study, open_study_readonly
+from rough_uq.study.store import FORMAT_VERSION, open_study, open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -92,7 +92,7 @@ def test_max_cost_refuses_a_plan_beyond_it_and_stops_a_run_at_it(screened):
 
 
 def test_a_plan_beyond_any_budget_is_refused(screened, monkeypatch):
-    import rough_uq.pipeline as pipeline
+    import rough_uq.study.pipeline as pipeline
 
     monkeypatch.setattr(pipeline, "DEFAULT_COST_CEILING", 1e-9)
     result = run("mc", "--tol", "5", "--workers", "1", expect=2)
@@ -142,7 +142,7 @@ def test_repeated_tolerance_and_shards_without_plan_are_refused(screened):
 def test_interrupted_run_does_not_say_done(screened, monkeypatch):
     """Ctrl-C during a run: status 130, 'stopped after', never 'done' just before 'interrupted'."""
     import rough_uq.cli as cli
-    from rough_uq.executor import SerialExecutor
+    from rough_uq.study.executors import SerialExecutor
 
     class Interrupting(SerialExecutor):
         n_workers = 1
@@ -307,7 +307,7 @@ def test_show_takes_a_run_id_and_refuses_samples_not_stored(screened):
 
 
 def test_report_says_running_while_another_process_holds_the_study(screened):
-    from rough_uq.config import config_hash, load_config, resolved_yaml
+    from rough_uq.study.config import config_hash, load_config, resolved_yaml
 
     config = load_config(screened / "tiny.yaml")
     with open_study(screened / "results.h5", config_text=resolved_yaml(config), config_hash=config_hash(config),
@@ -347,8 +347,8 @@ def test_screening_again_with_more_levels_extends_it_and_the_report_says_so(scre
 
 
 def test_quickstart_is_in_the_small_slope_regime_at_the_classic_relative_load():
-    from rough_uq.config import load_config
-    from rough_uq.pipeline import build_model
+    from rough_uq.study.config import load_config
+    from rough_uq.study.pipeline import build_model
 
     quick = load_config(ROOT / "configs" / "quickstart.yaml")
     classic = load_config(ROOT / "configs" / "classic_area.yaml")

@@ -22,8 +22,8 @@ import pytest
 from click.testing import CliRunner
 
 from rough_uq.cli import main
-from rough_uq.resources import BASE_BYTES, STARTUP_SECONDS
-from rough_uq.store import open_study_readonly
+from rough_uq.study.resources import BASE_BYTES, STARTUP_SECONDS
+from rough_uq.study.store import open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -9,8 +9,8 @@ import pydantic
 import pytest
 import yaml
 
-from rough_uq import config as config_module
-from rough_uq.config import (
+from rough_uq.study import config as config_module
+from rough_uq.study.config import (
     config_from_dict,
     config_from_stored_text,
     config_from_yaml_text,

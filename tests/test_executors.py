@@ -9,12 +9,12 @@ import pytest
 from click.testing import CliRunner
 
 from rough_uq.cli import main
-from rough_uq.config import config_from_dict
-from rough_uq.executor import SerialExecutor, default_workers, make_executor, PoolExecutor
+from rough_uq.study.config import config_from_dict
+from rough_uq.study.executors import SerialExecutor, default_workers, make_executor, PoolExecutor
 from rough_uq.errors import InvalidParameterError
-from rough_uq.pipeline import Study, run_estimation, run_screening
-from rough_uq.progress import Progress
-from rough_uq.store import MemoryStore
+from rough_uq.study.pipeline import Study, run_estimation, run_screening
+from rough_uq.study.progress import Progress
+from rough_uq.study.store import MemoryStore
 from tests.study_configs import tiny_config, write_config
 
 

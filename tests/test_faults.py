@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rough_uq.store import open_study_readonly
+from rough_uq.study.store import open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
 TOL = "0.003"  # mean gap (length unit); reachable on these grids, about 10 s of MLMC

@@ -7,8 +7,8 @@ import pickle
 import numpy as np
 import pytest
 
-from rough_uq import fft as fft_module
-from rough_uq.fft import get_fft
+from rough_uq.physics import fft as fft_module
+from rough_uq.physics.fft import get_fft
 
 
 @pytest.mark.parametrize("single", [False, True])
@@ -64,7 +64,7 @@ def test_plans_from_shared_wisdom_are_the_measured_ones_and_round_alike(tmp_path
         (tmp_path / "wisdom.bin").write_bytes(pickle.dumps(wisdom))
         script = (
             "import pickle, sys, numpy as np\n"
-            "from rough_uq import fft\n"
+            "from rough_uq.physics import fft\n"
             f"fft.use_wisdom(pickle.loads(open({str(tmp_path / 'wisdom.bin')!r}, 'rb').read()))\n"
             "plan = fft.get_fft(48, separate_output=True)\n"
             "assert plan.flags == ('FFTW_MEASURE', 'FFTW_WISDOM_ONLY'), plan.flags\n"

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.estimator import EstimationWarning, mc, mlmc
-from rough_uq.qoi import contact_area, count_clusters, evaluate_qoi, label_clusters
-from rough_uq.reference import full_contact_pressure, westergaard_full_contact_pressure
-from rough_uq.screening import (
+from rough_uq.mlmc.drivers import EstimationWarning, mc, mlmc
+from rough_uq.physics.qoi import contact_area, count_clusters, evaluate_qoi, label_clusters
+from rough_uq.physics.reference import full_contact_pressure, westergaard_full_contact_pressure
+from rough_uq.mlmc.statistics import (
     Rates,
     diagnose,
     fit_rates,
@@ -30,8 +30,8 @@ from rough_uq.screening import (
     plan,
     remaining_bias,
 )
-from rough_uq.solver import resample_pressure, solve_contact
-from rough_uq.surface import SurfaceSpectrum, project_surface, sample_coupled, sample_surface
+from rough_uq.physics.solver import resample_pressure, solve_contact
+from rough_uq.physics.surface import SurfaceSpectrum, project_surface, sample_coupled, sample_surface
 
 L = 1.0
 N = 64
@@ -46,7 +46,7 @@ def surface(seed: int = 0, n: int = N, spectrum: SurfaceSpectrum = SPECTRUM) -> 
 def assert_valid_solution(sol, heights: np.ndarray, load: float, *, tol: float = 1e-8) -> None:
     """Finite fields, the load carried exactly, p >= 0, and the returned fields meet ``tol``.
 
-    The convergence measure of :mod:`rough_uq.solver` is recomputed from the
+    The convergence measure of :mod:`rough_uq.physics.solver` is recomputed from the
     returned pressure and gap (complementarity plus interpenetration, relative
     to ``load * s_rms``), in units of ``load`` and ``s_rms`` so that products
     of tiny or huge numbers neither underflow nor overflow.

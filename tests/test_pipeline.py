@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from rough_uq.config import config_from_dict
+from rough_uq.study.config import config_from_dict
 from rough_uq.errors import InvalidParameterError, StudyFileError
-from rough_uq.executor import Executor, PoolExecutor, SerialExecutor
-from rough_uq.pipeline import (
+from rough_uq.study.executors import Executor, PoolExecutor, SerialExecutor
+from rough_uq.study.pipeline import (
     Study,
     build_model,
     create_study,
@@ -20,12 +20,12 @@ from rough_uq.pipeline import (
     run_estimation,
     run_screening,
 )
-from rough_uq.progress import Progress
-from rough_uq.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage
+from rough_uq.study.progress import Progress
+from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage
 
 MLMC_STAGE = run_stage("mlmc", "test")
 MC_STAGE = run_stage("mc", "test")
-from rough_uq.store import MemoryStore
+from rough_uq.study.store import MemoryStore
 from tests.study_configs import tiny_config
 
 QUIET = Progress()
@@ -292,7 +292,7 @@ def test_screening_again_with_more_levels_extends_the_study(tmp_path):
 
 
 def test_screening_without_decaying_bias_keeps_its_table_and_says_why(monkeypatch):
-    import rough_uq.pipeline as pipeline
+    import rough_uq.study.pipeline as pipeline
     from rough_uq.errors import InvalidParameterError as Invalid
 
     def no_decay(**kwargs):

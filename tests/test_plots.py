@@ -7,16 +7,16 @@ import sys
 import numpy as np
 import pytest
 
-from rough_uq import plots
-from rough_uq.config import config_from_dict
+from rough_uq.report.summary import figures as plots
+from rough_uq.study.config import config_from_dict
 from rough_uq.errors import RoughUQError
-from rough_uq.executor import SerialExecutor
-from rough_uq.pipeline import Study, build_model, run_estimation, run_screening
-from rough_uq.progress import Progress
-from rough_uq.qoi import evaluate_qoi, label_clusters
-from rough_uq.report import study_report
-from rough_uq.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage, solve_sample
-from rough_uq.store import MemoryStore
+from rough_uq.study.executors import SerialExecutor
+from rough_uq.study.pipeline import Study, build_model, run_estimation, run_screening
+from rough_uq.study.progress import Progress
+from rough_uq.physics.qoi import evaluate_qoi, label_clusters
+from rough_uq.report.summary import study_report
+from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage, solve_sample
+from rough_uq.study.store import MemoryStore
 from tests.study_configs import tiny_config
 
 pytest.importorskip("matplotlib")

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import io
 
-import rough_uq.progress as progress_module
-from rough_uq.progress import ETA_MIN_SAMPLES, ETA_MIN_SECONDS, PlainProgress, Progress, make_progress
+import rough_uq.study.progress as progress_module
+from rough_uq.study.progress import ETA_MIN_SAMPLES, ETA_MIN_SECONDS, PlainProgress, Progress, make_progress
 
 
 def test_plain_progress_lines_are_throttled_and_complete():

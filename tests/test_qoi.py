@@ -1,4 +1,4 @@
-"""Tests of rough_uq.qoi on hand-built fields and against a brute-force periodic flood fill."""
+"""Tests of rough_uq.physics.qoi on hand-built fields and against a brute-force periodic flood fill."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from collections import deque
 import numpy as np
 import pytest
 
-from rough_uq import qoi
+from rough_uq.physics import qoi
 from rough_uq.errors import InvalidParameterError
-from rough_uq.qoi import (
+from rough_uq.physics.qoi import (
     PERIMETER_COEFFICIENT,
     QOI_NAMES,
     area_above,
@@ -345,7 +345,7 @@ def hertz_area_errors(n: int, offsets: np.ndarray) -> tuple[float, float]:
     ``offsets`` (fractions of h): the error of one placement oscillates with
     it, the mean over placements is the systematic error.
     """
-    from rough_uq.solver import solve_contact
+    from rough_uq.physics.solver import solve_contact
 
     radius, box = 0.05, 1.0
     force = 4.0 * radius**3 / 3.0

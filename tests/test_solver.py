@@ -5,22 +5,22 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rough_uq.elastic import HalfSpace, westergaard_kernel
+from rough_uq.physics.elastic import HalfSpace, westergaard_kernel
 from rough_uq.errors import InvalidParameterError
-from rough_uq.reference import (
+from rough_uq.physics.reference import (
     full_contact_pressure,
     westergaard_contact_half_width,
     westergaard_full_contact_pressure,
     westergaard_pressure,
 )
-from rough_uq.solver import resample_pressure, solve_contact
+from rough_uq.physics.solver import resample_pressure, solve_contact
 
 L = 1.0
 AMPLITUDE = 0.01
 
 
 def random_surface(n: int, *, seed: int = 0, k_s: int = 16, hurst: float = 0.8) -> np.ndarray:
-    """A self-affine random surface built independently of rough_uq.surface."""
+    """A self-affine random surface built independently of rough_uq.physics.surface."""
     rng = np.random.default_rng(seed)
     k0 = np.fft.fftfreq(n, 1.0 / n)[:, None]
     k1 = np.fft.fftfreq(n, 1.0 / n)[None, :]

@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import rough_uq.solver as solver_module
-from rough_uq.elastic import westergaard_kernel
-from rough_uq.solver import solve_contact
-from rough_uq.surface import SurfaceSpectrum, sample_surface
+import rough_uq.physics.solver as solver_module
+from rough_uq.physics.elastic import westergaard_kernel
+from rough_uq.physics.solver import solve_contact
+from rough_uq.physics.surface import SurfaceSpectrum, sample_surface
 
 #: Both iterations solve to this tolerance, so that their difference measures
 #: the solutions, not the stopping test.

@@ -15,10 +15,10 @@ import h5py
 import numpy as np
 import pytest
 
-from rough_uq import store as store_module
+from rough_uq.study import store as store_module
 from rough_uq.errors import StudyFileError
-from rough_uq.batch import LevelBatch
-from rough_uq.store import (
+from rough_uq.problem.batch import LevelBatch
+from rough_uq.study.store import (
     ALL_STAGES,
     FORMAT,
     FORMAT_VERSION,
@@ -694,8 +694,8 @@ def test_stale_temporary_file_is_removed(tmp_path: Path) -> None:
 
 
 def test_store_and_report_do_not_import_the_solver() -> None:
-    heavy = ("numba", "pyfftw", "rough_uq.solver", "rough_uq.sampler", "rough_uq.fft")
-    code = f"import sys, rough_uq.store, rough_uq.report; print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    heavy = ("numba", "pyfftw", "rough_uq.physics.solver", "rough_uq.problem.sampler", "rough_uq.physics.fft")
+    code = f"import sys, rough_uq.study.store, rough_uq.report.summary; print(sorted(m for m in {heavy!r} if m in sys.modules))"
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
     assert out.stdout.strip() == "[]"

@@ -1,4 +1,4 @@
-"""Tests of rough_uq.surface: the PSD model, the sampler and the MLMC coupling.
+"""Tests of rough_uq.physics.surface: the PSD model, the sampler and the MLMC coupling.
 
 Statistical checks use fixed seeds; their tolerances are four standard errors
 estimated from the samples themselves, and each also asserts that this
@@ -15,7 +15,7 @@ import pytest
 from scipy import stats
 
 from rough_uq.errors import InvalidParameterError
-from rough_uq.surface import (
+from rough_uq.physics.surface import (
     SurfaceSpectrum,
     project_surface,
     sample_coupled,

@@ -5,7 +5,7 @@ this layout (format ``roughuq-study``, version 2)::
 
     /                              attrs: format = "roughuq-study"
     |                                     format_version = 2
-    |                                     config_hash   (sha256 hex, see rough_uq.config.config_hash)
+    |                                     config_hash   (sha256 hex, see rough_uq.study.config.config_hash)
     |                                     code_version  (roughuq version that created the file)
     |                                     created       (ISO 8601 time, UTC)
     |-- config_yaml                scalar string: the resolved config (YAML text)
@@ -123,7 +123,7 @@ from typing import Any, TypeVar
 import h5py
 import numpy as np
 
-from rough_uq.batch import LevelBatch
+from rough_uq.problem.batch import LevelBatch
 from rough_uq.errors import StudyFileError
 
 __all__ = [
@@ -301,7 +301,7 @@ class StudyStore(ABC):
     config_text : str
         The resolved config (YAML) the study was created with.
     config_hash : str
-        Its hash (:func:`rough_uq.config.config_hash`).
+        Its hash (:func:`rough_uq.study.config.config_hash`).
     qoi_names : tuple of str
         Names of the QoI columns of ``fine`` and ``coarse``.
     code_version : str

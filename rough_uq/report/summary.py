@@ -38,8 +38,8 @@ from typing import Any
 import numpy as np
 from rich.markup import escape
 
-from rough_uq.batch import STAGE_SCREENING
-from rough_uq.store import FORMAT_VERSION, StudyStore
+from rough_uq.problem.batch import STAGE_SCREENING
+from rough_uq.study.store import FORMAT_VERSION, StudyStore
 
 __all__ = [
     "MIN_ALPHA",
@@ -127,7 +127,7 @@ def _not_converged(store: StudyStore) -> int:
 
 
 def is_locked_by_running_process(path: str | Path) -> bool:
-    """Whether a live process holds the study's lock (``<file>.lock`` names its pid, see :mod:`rough_uq.store`)."""
+    """Whether a live process holds the study's lock (``<file>.lock`` names its pid, see :mod:`rough_uq.study.store`)."""
     lock = Path(str(path) + ".lock")
     try:
         pid = int(lock.read_text().split()[0])

@@ -1,10 +1,10 @@
 """Where samples are computed: in this process, in a local process pool, or on a dask cluster.
 
 An executor takes work items ``(stage, level, indices)`` of a
-:class:`~rough_uq.sampler.ContactModel` and yields the computed
-:class:`~rough_uq.sampler.LevelBatch` es *as they complete*, in any order.
+:class:`~rough_uq.problem.sampler.ContactModel` and yields the computed
+:class:`~rough_uq.problem.sampler.LevelBatch` es *as they complete*, in any order.
 Every sample depends only on the model and its ``(stage, level, index)``
-(:mod:`rough_uq.sampler`), so the executor cannot change a number: serial,
+(:mod:`rough_uq.problem.sampler`), so the executor cannot change a number: serial,
 pooled and distributed runs store identical samples.
 
 Threads
@@ -37,7 +37,7 @@ from concurrent.futures.process import BrokenProcessPool
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError, RoughUQError
-from rough_uq.sampler import ContactModel, LevelBatch, compute_batch
+from rough_uq.problem.sampler import ContactModel, LevelBatch, compute_batch
 
 __all__ = [
     "Executor",

@@ -5,7 +5,7 @@ Problem (SPEC sections 1-2)
 On an ``n x n`` periodic grid find the pressure ``p >= 0`` with
 ``mean(p) = mean_pressure`` such that the gap
 
-    g = u - s + d,        u = K p  (Westergaard, :mod:`rough_uq.elastic`)
+    g = u - s + d,        u = K p  (Westergaard, :mod:`rough_uq.physics.elastic`)
 
 is zero where ``p > 0`` and non-negative elsewhere. ``s`` are the surface
 heights (larger heights touch first), ``d`` is the rigid-body approach (the
@@ -119,9 +119,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .elastic import HalfSpace, multiply_spectrum
-from .errors import ConvergenceError, InvalidParameterError
-from .fft import RealFFT, get_fft
+from rough_uq.physics.elastic import HalfSpace, multiply_spectrum
+from rough_uq.errors import ConvergenceError, InvalidParameterError
+from rough_uq.physics.fft import RealFFT, get_fft
 
 __all__ = ["ContactSolution", "solve_contact", "resample_pressure"]
 
@@ -515,7 +515,7 @@ def solve_contact(
         the highest node(s), which carry the whole force ``n^2 mean_pressure``
         (the limit is reached well above the smallest representable loads);
         beyond the full-contact load every node is in contact and the
-        pressure is :func:`~rough_uq.reference.full_contact_pressure`. Zero
+        pressure is :func:`~rough_uq.physics.reference.full_contact_pressure`. Zero
         load itself is rejected: with no force there is no contact set to
         find (every ``p = 0`` is admissible and the approach ``d`` is not
         determined), so a defined answer would be an arbitrary convention.

@@ -3,7 +3,7 @@
 Conventions
 -----------
 * The box is ``[0, L)^2`` with ``L = system_size``; a grid of ``n x n`` nodes has
-  node ``(i, j)`` at ``x = (i h, j h)``, ``h = L / n`` (as in :mod:`rough_uq.fft`).
+  node ``(i, j)`` at ``x = (i h, j h)``, ``h = L / n`` (as in :mod:`rough_uq.physics.fft`).
   Heights are in the unit of ``L``. Larger heights stick out further: the
   highest points of ``s`` touch the elastic body first.
 * Wave vectors ``k = (k0, k1)`` are integer pairs counted in periods per box
@@ -58,7 +58,7 @@ from typing import Literal
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError
-from rough_uq.fft import get_fft
+from rough_uq.physics.fft import get_fft
 
 __all__ = [
     "SurfaceSpectrum",

@@ -30,8 +30,8 @@ import math
 
 import numpy as np
 
-from .elastic import westergaard_kernel
-from .errors import InvalidParameterError
+from rough_uq.physics.elastic import westergaard_kernel
+from rough_uq.errors import InvalidParameterError
 
 __all__ = [
     "westergaard_full_contact_pressure",

@@ -3,7 +3,7 @@
 Conventions
 -----------
 * Fields are nodal arrays of shape ``(n0, n1)`` on the periodic grid of
-  :mod:`rough_uq.fft`. A node is *in contact* when its pressure is strictly
+  :mod:`rough_uq.physics.fft`. A node is *in contact* when its pressure is strictly
   positive (``p > 0``); the solver returns exact zeros outside the contact.
 * Values are raw: area fractions in ``[0, 1]``, cluster counts as absolute
   numbers, gaps and pressures in the units of the solution (length unit of

@@ -1,17 +1,17 @@
 """Figures of a study: MLMC rates, cost against tolerance, samples per level, one contact sample.
 
-An edge module like :mod:`rough_uq.report`: it reads the JSON-able dict of
-:func:`~rough_uq.report.study_report` (never the store) and writes PNG files.
+An edge module like :mod:`rough_uq.report.summary`: it reads the JSON-able dict of
+:func:`~rough_uq.report.summary.study_report` (never the store) and writes PNG files.
 matplotlib (the ``plot`` extra) is imported only when a figure is drawn, and
 only its object-oriented API is used (``Figure`` on an Agg canvas): no
 pyplot, no global state, no display needed.
 
 Conventions
 -----------
-* Rates are drawn the way :mod:`rough_uq.screening` fits them: ``log2`` of the
+* Rates are drawn the way :mod:`rough_uq.mlmc.statistics` fits them: ``log2`` of the
   per-level statistic against the level ``l``, with the fitted models
   ``|E[Y_l]| = c_alpha 2^(-alpha l)``, ``V_l = c_beta 2^(-beta l)`` and
-  ``C_l = c_gamma 2^(gamma l)`` (:class:`~rough_uq.screening.Rates`) as
+  ``C_l = c_gamma 2^(gamma l)`` (:class:`~rough_uq.mlmc.statistics.Rates`) as
   straight lines. The top axis names the grid ``n_l`` of each level.
 * Several QoIs share one tolerance axis: cost against tolerance and the
   choice of the loosest / tightest run use the first QoI's tolerance.
@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from rough_uq.errors import RoughUQError
-from rough_uq.qoi import contact_area, label_clusters
-from rough_uq.sampler import ContactModel, is_coupled_stage, solve_sample
+from rough_uq.physics.qoi import contact_area, label_clusters
+from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
 
 __all__ = ["write_report_plots", "write_sample_figure"]
 
@@ -276,7 +276,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
     Parameters
     ----------
     report : dict
-        A :func:`~rough_uq.report.study_report` (or its JSON round trip).
+        A :func:`~rough_uq.report.summary.study_report` (or its JSON round trip).
     directory : str or Path
         Where the files go; created if missing.
 
@@ -332,16 +332,16 @@ def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: i
     """Draw one sample: its heights, its contact pressure and its contact clusters.
 
     The sample is recomputed from its random stream exactly as
-    :func:`~rough_uq.sampler.compute_batch` computes its fine grid (coupled
+    :func:`~rough_uq.problem.sampler.compute_batch` computes its fine grid (coupled
     stages on ``level >= 1`` draw the coupled pair and warm-start from the
     coarse solve).
 
     Parameters
     ----------
     model : ContactModel
-        The study's model (:func:`~rough_uq.pipeline.build_model`).
+        The study's model (:func:`~rough_uq.study.pipeline.build_model`).
     stage, level, index : int
-        The sample's key (:mod:`rough_uq.sampler`).
+        The sample's key (:mod:`rough_uq.problem.sampler`).
     path : str or Path
         PNG file to write; its folder must exist.
 

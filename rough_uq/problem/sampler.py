@@ -48,11 +48,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rough_uq.batch import STAGE_SCREENING, LevelBatch
-from rough_uq.fft import use_wisdom
-from rough_uq.qoi import evaluate_qoi
-from rough_uq.solver import ContactSolution, solve_contact
-from rough_uq.surface import SurfaceSpectrum, sample_coupled, sample_surface
+from rough_uq.problem.batch import STAGE_SCREENING, LevelBatch
+from rough_uq.physics.fft import use_wisdom
+from rough_uq.physics.qoi import evaluate_qoi
+from rough_uq.physics.solver import ContactSolution, solve_contact
+from rough_uq.physics.surface import SurfaceSpectrum, sample_coupled, sample_surface
 
 __all__ = [
     "LevelBatch",
@@ -102,24 +102,24 @@ class ContactModel:
     mean_pressure : float
         Imposed mean pressure (unit of ``e_star``).
     qoi_names : tuple of str
-        Quantities of interest, in column order (:data:`rough_uq.qoi.QOI_NAMES`).
+        Quantities of interest, in column order (:data:`rough_uq.physics.qoi.QOI_NAMES`).
     qoi_scales : tuple of float
         Factor from the raw QoI (area fraction, cluster count, ...) to its
         reported unit (e.g. 100 for percent), one per QoI.
     seed : int
         Study seed.
     tol, max_iter, warm_start, threads
-        Solver settings (:func:`~rough_uq.solver.solve_contact`); with
+        Solver settings (:func:`~rough_uq.physics.solver.solve_contact`); with
         ``warm_start`` the fine solve starts from the coarse pressure.
     connectivity : {4, 8}
         Cluster connectivity.
     critical_pressure : float or None
         Threshold of ``area_above``.
     area_estimator : {"corrected", "nodes"}
-        Estimator of ``contact_area`` (:func:`~rough_uq.qoi.contact_area`).
+        Estimator of ``contact_area`` (:func:`~rough_uq.physics.qoi.contact_area`).
     fft_wisdom : tuple of bytes or None
         FFTW wisdom that every process computing samples plans from
-        (:func:`rough_uq.fft.use_wisdom`), so that all use the same plans;
+        (:func:`rough_uq.physics.fft.use_wisdom`), so that all use the same plans;
         ``None``: ``FFTW_ESTIMATE`` plans. Not part of the model's identity.
     """
 
@@ -265,7 +265,7 @@ def solve_sample(model: ContactModel, *, stage: int, level: int, index: int) -> 
 
     Samples of coupled stages (:func:`is_coupled_stage`) pair the level-``l``
     solve with the coarse solve of the same surface
-    (:func:`~rough_uq.surface.sample_coupled`), and with ``warm_start`` the
+    (:func:`~rough_uq.physics.surface.sample_coupled`), and with ``warm_start`` the
     fine solve starts from the coarse pressure; samples of MC stages and of
     level 0 solve the fine grid only. The result depends only on ``model``
     and ``(stage, level, index)`` (and, at the level of rounding, on the FFT

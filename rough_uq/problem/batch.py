@@ -1,9 +1,9 @@
 """What a batch of level samples carries, without the solver that computes it.
 
 :class:`LevelBatch` and the screening stage key live here rather than in
-:mod:`rough_uq.sampler` so that the store and the report can use them without
+:mod:`rough_uq.problem.sampler` so that the store and the report can use them without
 importing the solver (and with it numba and pyFFTW). Samples, levels and
-stages are described in :mod:`rough_uq.sampler`.
+stages are described in :mod:`rough_uq.problem.sampler`.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """FFTW wisdom kept on disk, so that measured plans are measured once per machine.
 
-The core (:mod:`rough_uq.fft`) measures plans and plans from wisdom; this edge
+The core (:mod:`rough_uq.physics.fft`) measures plans and plans from wisdom; this edge
 module reads and writes the wisdom file. The pipeline calls
 :func:`prepare_wisdom` with the grids of a level before it computes samples
 there and hands the returned bytes to every worker with the contact model, so
@@ -23,7 +23,7 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
-from rough_uq.fft import measure_plans
+from rough_uq.physics.fft import measure_plans
 
 __all__ = ["wisdom_path", "load_wisdom", "prepare_wisdom", "ESTIMATE"]
 

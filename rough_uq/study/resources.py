@@ -9,7 +9,7 @@ Time
 ----
 ``seconds = STARTUP_SECONDS + (n + WARMUP_SAMPLES) * s_l`` for a shard of
 ``n`` samples on level ``l``. The per-sample time ``s_l`` is the modelled cost
-of :mod:`rough_uq.sampler` (grid size and iteration counts) times the speed of
+of :mod:`rough_uq.problem.sampler` (grid size and iteration counts) times the speed of
 the machines that computed the stored samples: the largest, over stored
 levels, of the median ratio of measured wall time to modelled cost (a median,
 so the first sample of a process, which compiles and plans, does not count).
@@ -21,7 +21,7 @@ FFT plans and JIT-cache loading of a fresh process.
 Memory
 ------
 ``BASE_BYTES`` (interpreter and imported libraries) plus
-:func:`~rough_uq.config.solver_memory_bytes` of the fine grid and, for coupled
+:func:`~rough_uq.study.config.solver_memory_bytes` of the fine grid and, for coupled
 samples, of the coarse one. Measured peak RSS of ``roughuq sample --workers
 1`` on the reference machine (quickstart surface): 216 MiB at 32^2 to 128^2,
 257 MiB at 512^2, 373 MiB at 1024^2; the model gives 257 (32^2), 306 and 456 MiB.
@@ -34,8 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.config import solver_memory_bytes
-from rough_uq.sampler import is_coupled_stage, modelled_cost
+from rough_uq.study.config import solver_memory_bytes
+from rough_uq.problem.sampler import is_coupled_stage, modelled_cost
 
 __all__ = [
     "BASE_BYTES",
@@ -100,7 +100,7 @@ def shard_resources(study: object, *, stage: int, levels: list[int]) -> ShardRes
 
     Parameters
     ----------
-    study : rough_uq.pipeline.Study
+    study : rough_uq.study.pipeline.Study
         The study (only read).
     stage : int
         Stage of the shards (decides whether samples are coupled).

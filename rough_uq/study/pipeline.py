@@ -2,7 +2,7 @@
 
 This is the only module that reads the config and meets the store. It
 
-* builds the :class:`~rough_uq.sampler.ContactModel` of a config
+* builds the :class:`~rough_uq.problem.sampler.ContactModel` of a config
   (:func:`build_model`): the mean pressure of a relative load is
   ``relative * E* * rms_slope`` (SPEC section 6), contact and
   ``area_above`` fractions are scaled by 100 for ``percent``, cluster counts
@@ -16,7 +16,7 @@ This is the only module that reads the config and meets the store. It
 * runs the screening (:func:`run_screening`) and MLMC / MC estimation runs
   (:func:`run_estimation`) and stores their records.
 
-Cost used for planning is the modelled cost of :mod:`rough_uq.sampler`
+Cost used for planning is the modelled cost of :mod:`rough_uq.problem.sampler`
 (reference seconds, independent of the process that computed a sample); the
 records carry both it and the measured wall time.
 """
@@ -36,13 +36,13 @@ from typing import Any
 import numpy as np
 
 from rough_uq import __version__
-from rough_uq.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
+from rough_uq.study.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
 from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
-from rough_uq.estimator import BatchDone, Finished, PlanUpdated, RichardsonRefused, iter_mc, iter_mlmc
-from rough_uq.executor import Executor, SerialExecutor
-from rough_uq.fft_wisdom import prepare_wisdom
-from rough_uq.progress import Progress
-from rough_uq.sampler import (
+from rough_uq.mlmc.drivers import BatchDone, Finished, PlanUpdated, RichardsonRefused, iter_mc, iter_mlmc
+from rough_uq.study.executors import Executor, SerialExecutor
+from rough_uq.study.fft_wisdom import prepare_wisdom
+from rough_uq.study.progress import Progress
+from rough_uq.problem.sampler import (
     STAGE_SCREENING,
     ContactModel,
     LevelBatch,
@@ -50,7 +50,7 @@ from rough_uq.sampler import (
     modelled_cost,
     run_stage,
 )
-from rough_uq.screening import (
+from rough_uq.mlmc.statistics import (
     EstimationWarning,
     LevelStatistics,
     Plan,
@@ -61,8 +61,8 @@ from rough_uq.screening import (
     level_statistics,
     plan,
 )
-from rough_uq.store import StudyStore, open_study, open_study_readonly
-from rough_uq.surface import SurfaceSpectrum
+from rough_uq.study.store import StudyStore, open_study, open_study_readonly
+from rough_uq.physics.surface import SurfaceSpectrum
 
 __all__ = [
     "FLUSH_SECONDS",
@@ -162,7 +162,7 @@ class Study:
     def model_for(self, level: int) -> ContactModel:
         """The model, with FFTW wisdom that covers the grids of ``level`` (and its coarse grid).
 
-        Plans are measured once per machine and grid (:mod:`rough_uq.fft_wisdom`)
+        Plans are measured once per machine and grid (:mod:`rough_uq.study.fft_wisdom`)
         and travel with the model to every worker, so all use the same plans.
         """
         grids = {self.model.grid(level)} | ({self.model.grid(level - 1)} if level > 0 else set())
@@ -252,7 +252,7 @@ class StudySampler:
     ----------
     study : Study
     stage : int
-        Stage of the samples (:mod:`rough_uq.sampler`).
+        Stage of the samples (:mod:`rough_uq.problem.sampler`).
     executor : Executor
     progress : Progress
     chunk : int
@@ -645,7 +645,7 @@ def run_id(
     """Name of the run of ``method`` at tolerances ``tol`` and bias share ``theta`` (MC: on ``level``, if given).
 
     The same command gives the same name, hence the same record and the same
-    random stage (:func:`~rough_uq.sampler.run_stage`): rerunning it resumes.
+    random stage (:func:`~rough_uq.problem.sampler.run_stage`): rerunning it resumes.
     A Richardson-extrapolated MLMC run ends in ``_richardson``.
     """
     parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
@@ -731,7 +731,7 @@ def forecast_run(
     :data:`MAX_PLANNED_SAMPLES` samples. ``mc --level`` without a screening
     (or with one whose bias does not decay) predicts nothing (None).
     """
-    from rough_uq.config import solver_memory_bytes
+    from rough_uq.study.config import solver_memory_bytes
 
     config = study.config
     names = config.qoi_names
@@ -1170,7 +1170,7 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
     dict
         ``{"added": n, "duplicates": n}``.
     """
-    from rough_uq.store import DuplicateSampleWarning
+    from rough_uq.study.store import DuplicateSampleWarning
 
     batches: list[LevelBatch] = []
     for path in shards:
@@ -1208,7 +1208,7 @@ def run_sweep(
     executor: Executor,
     progress: Progress,
 ) -> list[dict[str, Any]]:
-    """Plain MC on ``level`` for every config of a sweep (:func:`~rough_uq.config.sweep_configs`).
+    """Plain MC on ``level`` for every config of a sweep (:func:`~rough_uq.study.config.sweep_configs`).
 
     Each value gets its config (``<output stem>.yaml``) and its study file in
     ``directory``; a rerun resumes every study. ``tol`` are ``--tol`` strings

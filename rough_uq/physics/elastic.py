@@ -7,7 +7,7 @@ mode by mode (Westergaard; Stanley & Kato 1997),
     u_hat(q) = 2 / (E* |q|) * p_hat(q),     q = 2 pi k / L,
     u_hat(0) = 0,
 
-``k`` being the integer wave vector in periods per box (see :mod:`rough_uq.fft`
+``k`` being the integer wave vector in periods per box (see :mod:`rough_uq.physics.fft`
 for the transform conventions). The mean displacement is not fixed by the
 kernel: it is the rigid-body approach, a Lagrange multiplier of the contact
 problem. Displacements are in the unit of ``L`` when pressures are in the unit
@@ -19,7 +19,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .fft import get_fft, rfft_wavenumbers
+from rough_uq.physics.fft import get_fft, rfft_wavenumbers
 
 __all__ = ["westergaard_kernel", "HalfSpace"]
 
@@ -74,7 +74,7 @@ class HalfSpace:
         FFTW threads.
     separate_output : bool
         Plans whose result goes to ``fft.output`` instead of overwriting the
-        input ``fft.real`` (see :class:`~rough_uq.fft.RealFFT`).
+        input ``fft.real`` (see :class:`~rough_uq.physics.fft.RealFFT`).
     """
 
     def __init__(

@@ -1,0 +1,7 @@
+"""The contact problem as a level sampler: where physics meets MLMC.
+
+* :mod:`~rough_uq.problem.batch`: :class:`LevelBatch`, what a batch of level samples carries
+  (no solver import, so that the store and the report can use it).
+* :mod:`~rough_uq.problem.sampler`: :class:`ContactModel` and how one coupled sample is
+  computed from its seed (SPEC sections 3 and 7).
+"""
