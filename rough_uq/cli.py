@@ -272,9 +272,11 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
 def _estimation_command(method: str) -> Callable[..., Any]:
     def command(tol: Sequence[str], study_path: str, config_path: str | None, max_cost: float | None,
                 show_plan: bool, shard_size: int | None, with_resources: bool, as_json: bool, workers: int | None,
-                executor: str, scheduler: str | None, quiet: bool, level: int | None = None) -> None:
+                executor: str, scheduler: str | None, quiet: bool, level: int | None = None,
+                choice: str = "mlmc") -> None:
         from rough_uq.study.config import load_config
         from rough_uq.study.pipeline import (
+            choose_method,
             create_study,
             forecast_run,
             missing_samples,
@@ -295,9 +297,10 @@ def _estimation_command(method: str) -> Callable[..., Any]:
         with open_existing_study(study_path, config=config, writable=not show_plan) as study:
             tolerances = parse_tolerances(tol, study.config)
             cap = study.config.estimation.max_cost if max_cost is None else max_cost
+            run_method = _chosen_method(study, choice, method, tolerances, cap, choose_method, quiet or as_json)
             if show_plan:
-                forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level)
-                work = missing_samples(study, method=method, tol=tolerances, max_cost=cap, level=level)
+                forecast_run(study, method=run_method, tol=tolerances, max_cost=cap, level=level)
+                work = missing_samples(study, method=run_method, tol=tolerances, max_cost=cap, level=level)
                 resources = None
                 if with_resources:
                     from rough_uq.study.resources import shard_resources
@@ -306,15 +309,15 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                 _print_plan(work, as_json, shard_size, resources)
                 return
             with _executor(study.config, workers, executor, scheduler) as pool:
-                forecast = forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level,
+                forecast = forecast_run(study, method=run_method, tol=tolerances, max_cost=cap, level=level,
                                         n_workers=getattr(pool, "n_workers", 1))
                 if not as_json:
-                    _print_forecast(forecast, method)
-                record = run_estimation(study, method=method, tol=tolerances, executor=pool,
+                    _print_forecast(forecast, run_method)
+                record = run_estimation(study, method=run_method, tol=tolerances, executor=pool,
                                         progress=_progress(quiet or as_json), max_cost=cap, level=level,
                                         forecast=forecast)
             estimation = study.config.estimation
-            key = run_id(method, study.config.qoi_names, tolerances, estimation.theta, level,
+            key = run_id(run_method, study.config.qoi_names, tolerances, estimation.theta, level,
                          richardson=estimation.richardson)
         with open_existing_study(study_path, writable=False) as study:
             report = study_report(study.store, study.config)  # the same numbers `roughuq report` shows
@@ -324,7 +327,8 @@ def _estimation_command(method: str) -> Callable[..., Any]:
         else:
             _print_run(shown, report)
         if not record["tol_met"]:
-            click.echo(f"tolerance not met ({record['stop_reason']}): {_what_to_change(record, method)}", err=True)
+            click.echo(f"tolerance not met ({record['stop_reason']}): {_what_to_change(record, run_method)}",
+                       err=True)
             sys.exit(EXIT_TOL_NOT_MET)
 
     options = [
@@ -356,10 +360,39 @@ def _estimation_command(method: str) -> Callable[..., Any]:
             "--level", type=click.IntRange(min=0), default=None,
             help="Sample this level (no screening needed; its bias is then not estimated).",
         ))
+    else:
+        options.append(click.option(
+            "--method", "choice", type=click.Choice(METHODS), default="mlmc", show_default=True,
+            help="mlmc: plain MLMC (Richardson if the config's estimation.richardson says so); richardson: "
+                 "Richardson-extrapolated MLMC where the level means allow it; mc: plain MC on the level the "
+                 "bias needs; auto: the cheapest of the three as predicted by the screening (says why).",
+        ))
     command = _user_errors(command)
     for option in reversed(options):
         command = option(command)
     return command
+
+
+#: Choices of ``roughuq mlmc --method``.
+METHODS = ("mlmc", "richardson", "mc", "auto")
+
+
+def _chosen_method(study: Any, choice: str, method: str, tolerances: Any, cap: float | None, choose_method: Any,
+                   quiet: bool) -> str:
+    """The estimator ``--method`` asks for (``mc`` or ``mlmc``); Richardson is set in ``study.config``."""
+    if method != "mlmc" or choice == "mlmc":
+        return method
+    richardson = choice == "richardson"
+    if choice == "auto":
+        chosen = choose_method(study, tol=tolerances, max_cost=cap)
+        if not quiet:
+            click.echo(f"method auto: {chosen.reason}", err=True)
+        method, richardson = chosen.method, chosen.richardson
+    elif choice == "mc":
+        method = "mc"
+    estimation = study.config.estimation.model_copy(update={"richardson": richardson})
+    study.config = study.config.model_copy(update={"estimation": estimation})
+    return method
 
 
 def _what_to_change(record: dict[str, Any], method: str) -> str:

@@ -83,6 +83,8 @@ __all__ = [
     "merge_shards",
     "run_sweep",
     "Forecast",
+    "MethodChoice",
+    "choose_method",
     "forecast_run",
 ]
 
@@ -699,6 +701,9 @@ class Forecast:
         ``cpu_seconds`` shared by the workers.
     memory_bytes : int
         Memory of the solves running at once (one finest solve per worker).
+    is_richardson : bool
+        The prediction is for the Richardson-extrapolated estimate (asked for,
+        and the screening's level means allow it).
     """
 
     finest_level: int
@@ -708,6 +713,7 @@ class Forecast:
     cpu_seconds: float
     wall_seconds: float
     memory_bytes: int
+    is_richardson: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return _jsonable(self.__dict__)
@@ -719,7 +725,7 @@ def _tol_text(names: Sequence[str], tol: np.ndarray) -> str:
 
 def forecast_run(
     study: Study, *, method: str, tol: np.ndarray, max_cost: float | None = None, level: int | None = None,
-    n_workers: int = 1,
+    n_workers: int = 1, richardson: bool | None = None,
 ) -> Forecast | None:
     """Predict a run from the screening, or refuse it before its first sample.
 
@@ -730,6 +736,8 @@ def forecast_run(
     :data:`DEFAULT_COST_CEILING` CPU-seconds, and any plan of more than
     :data:`MAX_PLANNED_SAMPLES` samples. ``mc --level`` without a screening
     (or with one whose bias does not decay) predicts nothing (None).
+    ``richardson`` (default: the config's ``estimation.richardson``) plans
+    the Richardson-extrapolated MLMC estimate where the screening allows it.
     """
     from rough_uq.study.config import solver_memory_bytes
 
@@ -753,9 +761,11 @@ def forecast_run(
                 "so no finest grid can be chosen for a tolerance: screen finer grids (a new study with a larger "
                 "grid.coarsest or more screening.levels), or use `roughuq mc --level L` (bias not estimated)"
             )
+        if richardson is None:
+            richardson = bool(config.estimation.richardson)
         prediction = plan(
             tol=tol, rates=rates, statistics=statistics, theta=config.estimation.theta,
-            max_level=config.grid.max_level,
+            max_level=config.grid.max_level, richardson=richardson and method == "mlmc",
         )
         if not prediction.is_bias_met and not (method == "mc" and level is not None):
             bias = np.asarray(prediction.bias, dtype=float)
@@ -790,6 +800,7 @@ def forecast_run(
         cpu_seconds=cpu_seconds,
         wall_seconds=cpu_seconds / min(n_workers, max(sum(counts), 1)),
         memory_bytes=solver_memory_bytes(config.grid.n_at(int(finest))) * n_workers,
+        is_richardson=bool(prediction.is_richardson),
     )
     total = sum(counts)
     if total > MAX_PLANNED_SAMPLES or not math.isfinite(modelled):
@@ -809,6 +820,60 @@ def forecast_run(
             "or allow it with --max-cost SECONDS"
         )
     return result
+
+
+
+@dataclass(frozen=True)
+class MethodChoice:
+    """What ``roughuq mlmc --method auto`` runs, and why.
+
+    Attributes
+    ----------
+    method : {"mlmc", "mc"}
+        The estimator.
+    richardson : bool
+        Richardson-extrapolated MLMC.
+    reason : str
+        The predicted modelled cost of each candidate, or why it was left out.
+    """
+
+    method: str
+    richardson: bool
+    reason: str
+
+
+def choose_method(study: Study, *, tol: np.ndarray, max_cost: float | None = None) -> MethodChoice:
+    """The cheapest of MLMC, Richardson-extrapolated MLMC and plain MC as predicted by the screening.
+
+    Each candidate is forecast with :func:`forecast_run`; one it refuses (a
+    tolerance out of reach, a cost over ``max_cost``) or, for Richardson, one
+    whose screened level means do not allow extrapolation is left out, and the
+    reason says so. Raises :class:`~rough_uq.errors.EstimationError` when no
+    candidate remains (with the refusal of plain MLMC).
+    """
+    candidates = (("MLMC", "mlmc", False), ("Richardson-extrapolated MLMC", "mlmc", True), ("MC", "mc", False))
+    costs, notes, first_refusal = [], [], None
+    for name, method, richardson in candidates:
+        try:
+            forecast = forecast_run(study, method=method, tol=tol, max_cost=max_cost, richardson=richardson)
+        except EstimationError as exc:
+            first_refusal = first_refusal or exc
+            notes.append(f"{name} left out ({exc})")
+            continue
+        if forecast is None or (richardson and not forecast.is_richardson):
+            notes.append(f"{name} left out (the screened level means do not allow extrapolation)")
+            continue
+        costs.append((forecast.modelled_cost, name, method, richardson))
+    if not costs:
+        raise first_refusal or EstimationError("no estimator can be predicted from the screening")
+    cost, name, method, richardson = min(costs)
+    others = [f"{other} {other_cost:.3g} ref-s" for other_cost, other, _, _ in costs if other != name]
+    reason = f"{name}, predicted {cost:.3g} ref-s (modelled cost)"
+    if others:
+        reason += "; " + ", ".join(others)
+    if notes:
+        reason += "; " + "; ".join(notes)
+    return MethodChoice(method=method, richardson=richardson, reason=reason)
 
 
 def _round_up(value: float) -> float:
