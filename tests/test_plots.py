@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from rough_uq.report.summary import figures as plots
+from rough_uq.report import figures as plots
 from rough_uq.study.config import config_from_dict
 from rough_uq.errors import RoughUQError
 from rough_uq.study.executors import SerialExecutor
