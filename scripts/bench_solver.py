@@ -606,7 +606,7 @@ def render(grid_rows: list[GridRow], warm_rows: list[WarmRow], peer_rows: list[P
             ],
         ),
     ]
-    floor_names = list(grid_rows[0].floor) if grid_rows else []
+    floor_names = list(dict.fromkeys(k for r in grid_rows for k in r.floor))
     parts += [
         "",
         "FFT floor: one double-precision real FFT pair (rfft2 + irfft2), seconds, same grid and threads",
@@ -614,7 +614,7 @@ def render(grid_rows: list[GridRow], warm_rows: list[WarmRow], peer_rows: list[P
             ["n", *floor_names, "fastest", "solver s/iter", "iter/fastest", "solve est. s", "solve meas. s",
              "peak RSS MiB"],
             [
-                [str(r.n), *(f"{r.floor[k]:.3e}" for k in floor_names), r.floor_name,
+                [str(r.n), *(f"{r.floor[k]:.3e}" if k in r.floor else "-" for k in floor_names), r.floor_name,
                  f"{r.seconds_per_iteration:.3e}", f"{r.iteration_over_floor:.2f}",
                  f"{r.estimate_seconds_per_solve:.3f} ({r.estimate_iter} it)",
                  f"{r.seconds_per_solve:.3f} ({r.n_iter} it)", f"{r.peak_rss_mib:.0f}"]
@@ -716,7 +716,6 @@ def main(argv: list[str] | None = None) -> None:
             peer_rows.append(peer_row)
         print(f"[grid {n} done]", file=sys.stderr, flush=True)
 
-    print(render(grid_rows, warm_rows, peer_rows, args))
     if args.json:
         with open(args.json, "w", encoding="utf-8") as handle:
             json.dump(
@@ -732,6 +731,7 @@ def main(argv: list[str] | None = None) -> None:
                 handle,
                 indent=2,
             )
+    print(render(grid_rows, warm_rows, peer_rows, args))
 
 
 if __name__ == "__main__":
