@@ -237,7 +237,7 @@ def test_report_prints_the_load_as_written_and_the_format_version(screened):
     report = run("report", "results.h5").stdout
     assert "load relative: 0.2;" in report and "{'relative'" not in report
     data = json.loads(run("report", "results.h5", "--json").output)
-    assert data["format_version"] == FORMAT_VERSION == 1
+    assert data["format_version"] == FORMAT_VERSION and isinstance(FORMAT_VERSION, int)
 
 
 def test_unfittable_rates_are_said_plainly(tmp_path, monkeypatch):
