@@ -165,10 +165,12 @@ def validate(config_paths: Sequence[str]) -> None:
         grids = [config.grid.n_at(level) for level in range(config.grid.max_level + 1)]
         click.echo(f"{config_path}: valid (schema version {config.schema_version})")
         click.echo(f"  QoIs: {', '.join(f'{n} [{s.unit_label}]' for n, s in config.qoi.items())}")
-        memory = _physical_memory_bytes()
-        here = "" if memory is None else f"; this machine has {memory / 2**30:.1f} GiB"
-        click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about "
-                   f"{solver_memory_bytes(grids[-1]) / 2**20:.0f} MiB per worker{here})")
+        # Information only: a config is valid whatever machine reads it; commands warn before computing.
+        finest, memory = solver_memory_bytes(grids[-1]), _physical_memory_bytes()
+        here = "" if memory is None else f"; this machine has {_memory(memory)}" + (
+            ", too little for it" if finest > memory else "")
+        click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about {_memory(finest)} "
+                   f"per worker{here})")
         click.echo(f"  screening: levels 0..{config.screening.levels - 1}, {config.screening.samples} samples each")
         click.echo(f"  study file: {config.output.path}")
     if n_bad:
@@ -453,6 +455,10 @@ def _print_forecast(forecast: Any, method: str) -> None:
     click.echo(f"forecast: about {_duration(forecast.wall_seconds)} elapsed "
                f"({_duration(forecast.cpu_seconds)} CPU, modelled cost {forecast.modelled_cost:.3g} ref-s), "
                f"memory about {_mib(forecast.memory_bytes)} MiB", err=True)
+
+
+def _memory(n_bytes: float) -> str:
+    return f"{n_bytes / 2**30:.1f} GiB" if n_bytes >= 2**30 else f"{_mib(n_bytes)} MiB"
 
 
 def _mib(n_bytes: float) -> str:

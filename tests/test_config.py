@@ -11,6 +11,7 @@ import yaml
 
 from rough_uq.study import config as config_module
 from rough_uq.study.config import (
+    SOLVER_ARRAYS_PER_NODE,
     config_from_dict,
     config_from_stored_text,
     config_from_yaml_text,
@@ -263,6 +264,56 @@ def test_memory_is_a_run_time_warning_not_a_validation_rule(monkeypatch: pytest.
     # Unknown machine memory: nothing to say.
     monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: None)
     assert memory_warning(config, 2, n_workers=64) is None
+
+
+def _cli(*args: str, expect: tuple[int, ...] = (0,)):
+    from click.testing import CliRunner
+
+    from rough_uq.cli import main
+
+    result = CliRunner().invoke(main, list(args))
+    assert result.exit_code in expect, (result.output, result.stderr, result.exception)
+    return result
+
+
+def _memory_warnings(result) -> list[str]:
+    return [line for line in result.stderr.splitlines() if line.startswith("warning: level")]
+
+
+def test_commands_warn_before_computing_levels_beyond_the_machine(tmp_path, monkeypatch) -> None:
+    from tests.study_configs import tiny_config, write_config
+
+    monkeypatch.chdir(tmp_path)
+    path = str(write_config(tmp_path / "tiny.yaml", tiny_config()))  # grids 8, 16, 32; screens levels 0..2
+    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(16))
+    checked = _cli("validate", path)
+    assert checked.stderr == "" and ": valid" in checked.stdout
+    assert "(finest solve about 0.16 MiB per worker; this machine has 0.039 MiB, too little for it)" in checked.stdout
+
+    (line,) = _memory_warnings(_cli("screen", path, "--workers", "1", "--quiet"))
+    assert line == (
+        f"warning: level 2 (grid 32 x 32) needs about 0.156 MiB per solve ({SOLVER_ARRAYS_PER_NODE} float64 arrays "
+        "of n^2), but this machine has 0.0391 MiB: stay at level <= 1 (a smaller screening.levels), or run on a "
+        "machine with more memory"
+    )
+    (line,) = _memory_warnings(_cli("mc", "--level", "2", "--workers", "1", "--quiet", expect=(0, 3)))
+    assert "grid 32 x 32" in line and "(a smaller --level)" in line
+    (line,) = _memory_warnings(_cli("sample", "--stage", "screening", "--level", "2", "--indices", "8:9",
+                                    "--out", "shard.h5", "--workers", "1", "--quiet"))
+    assert "grid 32 x 32" in line and "this machine has 0.0391 MiB" in line
+    assert not _memory_warnings(_cli("sample", "--stage", "screening", "--level", "1", "--indices", "8:9",
+                                     "--out", "shard1.h5", "--workers", "1", "--quiet"))
+
+    # Not even the coarsest grid fits: every run warns, whatever level it plans.
+    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(8) // 2)
+    (line,) = _memory_warnings(_cli("mlmc", "--workers", "1", "--quiet", expect=(0, 3)))
+    assert "use a smaller grid.coarsest" in line
+
+    # Enough memory for one solve of level 2 but not for two at once.
+    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(32) * 3 // 2)
+    (line,) = _memory_warnings(_cli("sample", "--stage", "screening", "--level", "2", "--indices", "9:11",
+                                    "--out", "shard2.h5", "--workers", "2", "--quiet"))
+    assert "x 2 workers = 0.312 MiB" in line and "use --workers 1" in line
 
 
 # ---------------------------------------------------------------------------
