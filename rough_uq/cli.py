@@ -87,10 +87,44 @@ def _console() -> Any:
     return Console(width=None if is_terminal or os.environ.get("COLUMNS") else 160)
 
 
-def _progress(quiet: bool) -> Any:
-    from rough_uq.study.progress import make_progress
+def _progress(quiet: bool, watch: tuple[Any, Any, str, str] | None = None) -> Any:
+    """Progress output; with ``watch = (config, pool, executor, lower_with)`` also the memory warnings.
 
-    return make_progress(is_quiet=quiet)
+    The pipeline announces every plan (screening levels, MLMC levels added
+    as the run adapts, a shard's level) before computing it; the warning for
+    the finest level still to compute is printed then, even when quiet.
+    """
+    from rough_uq.study.progress import Progress, make_progress
+
+    inner = make_progress(is_quiet=quiet)
+    if watch is None:
+        return inner
+
+    class MemoryWatch(Progress):
+        def __init__(self) -> None:
+            self.checked = -1  # the finest level checked so far
+
+        def start(self, title: str) -> None:
+            inner.start(title)
+
+        def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
+            todo = [int(lv) for lv, planned, done in zip(levels, n_planned, n_done) if planned > done]
+            if todo and max(todo) > self.checked:
+                self.checked = max(todo)
+                config, pool, executor, lower_with = watch
+                _warn_memory(config, self.checked, pool, executor, lower_with=lower_with)
+            inner.plan(levels, n_planned, n_done)
+
+        def advance(self, level: int, n: int) -> None:
+            inner.advance(level, n)
+
+        def note(self, text: str) -> None:
+            inner.note(text)
+
+        def stop(self, *, is_complete: bool = True) -> None:
+            inner.stop(is_complete=is_complete)
+
+    return MemoryWatch()
 
 
 def _executor(config: Any, workers: int | None, executor: str, scheduler: str | None) -> Any:
@@ -308,9 +342,8 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     with create_study(config, out) as study:
         _warm_kernels(study.model, quiet=quiet or as_json)
         with _executor(config, workers, executor, scheduler) as pool:
-            _warn_memory(study.config, study.config.screening.levels - 1, pool, executor,
-                         lower_with="a smaller screening.levels")
-            outcome = run_screening(study, executor=pool, progress=_progress(quiet or as_json))
+            watch = (study.config, pool, executor, "a smaller screening.levels")
+            outcome = run_screening(study, executor=pool, progress=_progress(quiet or as_json, watch))
         path = study.store.path
     record = dict(outcome.record)
     rates = record["rates"]
@@ -372,12 +405,9 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                                         n_workers=getattr(pool, "n_workers", 1))
                 if not as_json:
                     _print_forecast(forecast, method)
-                finest = forecast.finest_level if forecast is not None else level
-                if finest is not None:
-                    _warn_memory(study.config, finest, pool, executor,
-                                 lower_with="a smaller --level" if level is not None else "a looser --tol")
+                watch = (study.config, pool, executor, "a smaller --level" if level is not None else "a looser --tol")
                 record = run_estimation(study, method=method, tol=tolerances, executor=pool,
-                                        progress=_progress(quiet or as_json), max_cost=cap, level=level,
+                                        progress=_progress(quiet or as_json, watch), max_cost=cap, level=level,
                                         forecast=forecast)
             estimation = study.config.estimation
             key = run_id(method, study.config.qoi_names, tolerances, estimation.theta, level,
@@ -586,10 +616,9 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
     wanted = _parse_indices(indices)
     with open_existing_study(study_path, writable=False) as study:
         with _executor(study.config, workers, "local", None) as pool:
-            if 0 <= level <= study.config.grid.max_level:
-                _warn_memory(study.config, level, pool, lower_with="a study with a smaller grid.max_level")
+            watch = (study.config, pool, "local", "a study with a smaller grid.max_level")
             path = compute_shard(study, stage=stage_id, level=level, indices=wanted, out=out, executor=pool,
-                                 progress=_progress(quiet))
+                                 progress=_progress(quiet, watch))
     click.echo(f"{path}: {wanted.size} samples of stage {stage_id}, level {level}")
 
 

@@ -1,7 +1,8 @@
 """The study configuration: a strict, versioned schema read from YAML.
 
 This is the only module that reads YAML and the only one that uses pydantic.
-A study file looks like (every section is a mapping; see ``configs/*.yaml``)::
+A study file looks like (every section is a mapping; see the shipped
+``rough_uq/study/configs/*.yaml``, written out by ``roughuq init NAME``)::
 
     schema_version: 1          # required; the only version this code reads
     seed: 2024                 # study seed (SPEC section 7)
