@@ -87,16 +87,65 @@ def _console() -> Any:
     return Console(width=None if is_terminal or os.environ.get("COLUMNS") else 160)
 
 
-def _progress(quiet: bool) -> Any:
-    from rough_uq.study.progress import make_progress
+def _progress(quiet: bool, watch: tuple[Any, Any, str, str] | None = None) -> Any:
+    """Progress output; with ``watch = (config, pool, executor, lower_with)`` also the memory warnings.
 
-    return make_progress(is_quiet=quiet)
+    The pipeline announces every plan (screening levels, MLMC levels added
+    as the run adapts, a shard's level) before computing it; the warning for
+    the finest level still to compute is printed then, even when quiet.
+    """
+    from rough_uq.study.progress import Progress, make_progress
+
+    inner = make_progress(is_quiet=quiet)
+    if watch is None:
+        return inner
+
+    class MemoryWatch(Progress):
+        def __init__(self) -> None:
+            self.checked = -1  # the finest level checked so far
+
+        def start(self, title: str) -> None:
+            inner.start(title)
+
+        def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
+            todo = [int(lv) for lv, planned, done in zip(levels, n_planned, n_done) if planned > done]
+            if todo and max(todo) > self.checked:
+                self.checked = max(todo)
+                config, pool, executor, lower_with = watch
+                _warn_memory(config, self.checked, pool, executor, lower_with=lower_with)
+            inner.plan(levels, n_planned, n_done)
+
+        def advance(self, level: int, n: int) -> None:
+            inner.advance(level, n)
+
+        def note(self, text: str) -> None:
+            inner.note(text)
+
+        def stop(self, *, is_complete: bool = True) -> None:
+            inner.stop(is_complete=is_complete)
+
+    return MemoryWatch()
 
 
 def _executor(config: Any, workers: int | None, executor: str, scheduler: str | None) -> Any:
     from rough_uq.study.executors import make_executor
 
     return make_executor(executor, workers=workers, threads=config.solver.threads, scheduler=scheduler)
+
+
+def _warn_memory(config: Any, level: int, pool: Any, executor: str = "local", *,
+                 lower_with: str = "a smaller grid.max_level") -> None:
+    """Warn (one line on stderr) if ``level``'s solves, one per local worker, exceed this machine's memory.
+
+    Nothing is said for a dask cluster: its workers run on other machines.
+    """
+    from rough_uq.study.config import memory_warning
+
+    if executor == "dask":
+        return
+    text = memory_warning(config, level, getattr(pool, "n_workers", 1), lower_with=lower_with)
+    if text:
+        click.echo(f"warning: {text}", err=True)
 
 
 def _dump(data: Any) -> None:
@@ -135,7 +184,7 @@ def main() -> None:
 @_user_errors
 def validate(config_paths: Sequence[str]) -> None:
     """Check study configs and summarise each (status 2 if any is invalid)."""
-    from rough_uq.study.config import load_config, solver_memory_bytes
+    from rough_uq.study.config import _physical_memory_bytes, load_config, solver_memory_bytes
 
     n_bad = 0
     for config_path in config_paths:
@@ -150,8 +199,12 @@ def validate(config_paths: Sequence[str]) -> None:
         grids = [config.grid.n_at(level) for level in range(config.grid.max_level + 1)]
         click.echo(f"{config_path}: valid (schema version {config.schema_version})")
         click.echo(f"  QoIs: {', '.join(f'{n} [{s.unit_label}]' for n, s in config.qoi.items())}")
-        click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about "
-                   f"{solver_memory_bytes(grids[-1]) / 2**20:.0f} MiB)")
+        # Information only: a config is valid whatever machine reads it; commands warn before computing.
+        finest, memory = solver_memory_bytes(grids[-1]), _physical_memory_bytes()
+        here = "" if memory is None else f"; this machine has {_memory(memory)}" + (
+            ", too little for it" if finest > memory else "")
+        click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about {_memory(finest)} "
+                   f"per worker{here})")
         click.echo(f"  screening: levels 0..{config.screening.levels - 1}, {config.screening.samples} samples each")
         click.echo(f"  study file: {config.output.path}")
     if n_bad:
@@ -197,11 +250,14 @@ def solve(config_path: str | None, level: int, index: int) -> None:
     screening sample INDEX of LEVEL, i.e. exactly what `roughuq screen` stores.
     The time excludes compiling the kernels (first run only, announced).
     """
-    from rough_uq.study.config import load_config
+    from rough_uq.study.config import config_from_yaml_text, load_config
     from rough_uq.study.pipeline import build_model
     from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch
 
-    config = load_config(config_path or _shipped_config("quickstart.yaml"))
+    if config_path is None:
+        config = config_from_yaml_text(_shipped_config_text("quickstart"), source="quickstart")
+    else:
+        config = load_config(config_path)
     if level > config.grid.max_level:
         raise InvalidParameterError("--level", level, f"an integer in 0..{config.grid.max_level} (grid.max_level)")
     model = build_model(config)
@@ -217,11 +273,49 @@ def solve(config_path: str | None, level: int, index: int) -> None:
     click.echo(f"  solver: {batch.n_iter[0, 0]} iterations ({status}), {seconds:.3f} s")
 
 
-def _shipped_config(name: str) -> str:
-    here = Path(__file__).resolve().parent.parent / "configs" / name
-    if not here.exists():
-        raise RoughUQError(f"shipped config {name} not found next to the package; give a CONFIG path")
-    return str(here)
+#: Configs shipped as package data (``rough_uq/study/configs/NAME.yaml``), for ``roughuq init NAME``.
+SHIPPED_CONFIGS = ("quickstart", "classic-area", "classic-clusters")
+
+
+def _shipped_config_text(name: str) -> str:
+    """The text of a shipped config, read through importlib.resources (works from a wheel too)."""
+    from importlib.resources import files
+
+    if name not in SHIPPED_CONFIGS:
+        raise InvalidParameterError("NAME", name, "one of " + ", ".join(SHIPPED_CONFIGS))
+    return files("rough_uq.study").joinpath("configs", f"{name}.yaml").read_text(encoding="utf-8")
+
+
+@main.command()
+@click.argument("name", required=False)
+@click.option("--out", "out", type=click.Path(dir_okay=False), default=None,
+              help="File to write (default: NAME.yaml in the working directory).")
+@click.option("--force", is_flag=True, help="Overwrite an existing file.")
+@click.option("--list", "show_list", is_flag=True, help="List the shipped configs and exit.")
+@_user_errors
+def init(name: str | None, out: str | None, force: bool, show_list: bool) -> None:
+    """Write a shipped study config to the working directory, to edit and run.
+
+    NAME is one of: quickstart (a small study, about a minute), classic-area,
+    classic-clusters (the classic studies, SPEC section 6). Then e.g.
+    `roughuq screen quickstart.yaml`.
+    """
+    if show_list:
+        for shipped in SHIPPED_CONFIGS:
+            first = _shipped_config_text(shipped).splitlines()[0].lstrip("# ").strip()
+            click.echo(f"{shipped}: {first}")
+        return
+    if name is None:
+        raise InvalidParameterError("NAME", "(none)", "one of " + ", ".join(SHIPPED_CONFIGS) + " (or --list)")
+    text = _shipped_config_text(name)
+    target = Path(out or f"{name}.yaml")
+    if target.exists() and not force:
+        raise RoughUQError(f"{target} already exists; add --force to overwrite it, or --out FILE to write elsewhere")
+    try:
+        target.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise InvalidParameterError("--out", str(target), f"a writable file path ({exc.strerror})") from exc
+    click.echo(f"wrote {target}; next: roughuq screen {target}")
 
 
 @main.command()
@@ -248,7 +342,8 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     with create_study(config, out) as study:
         _warm_kernels(study.model, quiet=quiet or as_json)
         with _executor(config, workers, executor, scheduler) as pool:
-            outcome = run_screening(study, executor=pool, progress=_progress(quiet or as_json))
+            watch = (study.config, pool, executor, "a smaller screening.levels")
+            outcome = run_screening(study, executor=pool, progress=_progress(quiet or as_json, watch))
         path = study.store.path
     record = dict(outcome.record)
     rates = record["rates"]
@@ -313,8 +408,9 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                                         n_workers=getattr(pool, "n_workers", 1))
                 if not as_json:
                     _print_forecast(forecast, run_method)
+                watch = (study.config, pool, executor, "a smaller --level" if level is not None else "a looser --tol")
                 record = run_estimation(study, method=run_method, tol=tolerances, executor=pool,
-                                        progress=_progress(quiet or as_json), max_cost=cap, level=level,
+                                        progress=_progress(quiet or as_json, watch), max_cost=cap, level=level,
                                         forecast=forecast)
             estimation = study.config.estimation
             key = run_id(run_method, study.config.qoi_names, tolerances, estimation.theta, level,
@@ -422,6 +518,10 @@ def _print_forecast(forecast: Any, method: str) -> None:
     click.echo(f"forecast: about {_duration(forecast.wall_seconds)} elapsed "
                f"({_duration(forecast.cpu_seconds)} CPU, modelled cost {forecast.modelled_cost:.3g} ref-s), "
                f"memory about {_mib(forecast.memory_bytes)} MiB", err=True)
+
+
+def _memory(n_bytes: float) -> str:
+    return f"{n_bytes / 2**30:.1f} GiB" if n_bytes >= 2**30 else f"{_mib(n_bytes)} MiB"
 
 
 def _mib(n_bytes: float) -> str:
@@ -549,8 +649,9 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
     wanted = _parse_indices(indices)
     with open_existing_study(study_path, writable=False) as study:
         with _executor(study.config, workers, "local", None) as pool:
+            watch = (study.config, pool, "local", "a study with a smaller grid.max_level")
             path = compute_shard(study, stage=stage_id, level=level, indices=wanted, out=out, executor=pool,
-                                 progress=_progress(quiet))
+                                 progress=_progress(quiet, watch))
     click.echo(f"{path}: {wanted.size} samples of stage {stage_id}, level {level}")
 
 
@@ -588,7 +689,7 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
           directory: str | None, as_json: bool, workers: int | None, quiet: bool) -> None:
     """Plain MC estimates for several values of one config field, one study per value.
 
-    E.g. the box-size question: `roughuq sweep configs/classic_area.yaml --set
+    E.g. the box-size question: `roughuq sweep classic-area.yaml --set
     surface.system_size=1,2,3,4 --fixed-spacing --tol 0.5`. Rerunning resumes.
     """
     from rough_uq.study.config import load_config, sweep_configs
@@ -600,6 +701,9 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
     config = load_config(config_path)
     configs = sweep_configs(config, key=key, values=values.split(","), fixed_spacing=fixed_spacing)
     with _executor(config, workers, "local", None) as pool:
+        largest = max(configs, key=lambda c: c[1].grid.n_at(level) if level <= c[1].grid.max_level else 0)
+        if level <= largest[1].grid.max_level:
+            _warn_memory(largest[1], level, pool, lower_with="a smaller --level")
         rows = run_sweep(configs, directory=directory or f"sweep-{key.rsplit('.', 1)[-1]}", tol=tol, level=level,
                          executor=pool, progress=_progress(quiet or as_json))
     if as_json:

@@ -1,6 +1,6 @@
 """Sample throughput of roughuq's executors: serial against a pool of worker processes.
 
-    python scripts/bench_throughput.py [--config configs/quickstart.yaml] [--level 3] [--samples 24] [--threads 1]
+    python scripts/bench_throughput.py [--config quickstart.yaml] [--level 3] [--samples 24] [--threads 1]
 
 Computes the same samples (stage 0, the given level) in this process and with
 pools of 1..--max-workers spawned workers, prints samples per second and the
@@ -39,7 +39,7 @@ def measure(executor, model, level: int, indices: np.ndarray) -> tuple[float, np
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default=os.path.join(ROOT, "configs", "quickstart.yaml"))
+    parser.add_argument("--config", default=os.path.join(ROOT, "rough_uq", "study", "configs", "quickstart.yaml"))
     parser.add_argument("--level", type=int, default=3)
     parser.add_argument("--samples", type=int, default=24)
     parser.add_argument("--max-workers", type=int, default=os.cpu_count() or 2)

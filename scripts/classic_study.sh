@@ -8,8 +8,9 @@
 # 128, 8-connectivity): screening, then MLMC and MC at a few tolerances
 # (clusters per unit area). Then the reports. Every command resumes where it
 # stopped if the script is interrupted and run again. About an hour on 2 cores.
+# The configs are the shipped ones (`roughuq init`), written into WORKDIR once;
+# edit them there before a rerun to change the study.
 set -euo pipefail
-here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 work="${1:-classic}"
 mkdir -p "$work"
 cd "$work"
@@ -19,7 +20,8 @@ AREA_MC_TOLS=${AREA_MC_TOLS:-"1.0 0.5"}
 CLUSTER_TOLS=${CLUSTER_TOLS:-"40 20 10"}
 CLUSTER_MC_TOLS=${CLUSTER_MC_TOLS:-"40 20 10"}
 
-roughuq screen "$here/configs/classic_area.yaml" --out classic_area.h5
+[ -e classic-area.yaml ] || roughuq init classic-area
+roughuq screen classic-area.yaml --out classic_area.h5
 for tol in $AREA_TOLS; do
     roughuq mlmc --study classic_area.h5 --tol "$tol" || [ $? -eq 3 ]  # 3: tolerance not met, result stored
 done
@@ -27,7 +29,8 @@ for tol in $AREA_MC_TOLS; do
     roughuq mc --study classic_area.h5 --tol "$tol" || [ $? -eq 3 ]
 done
 
-roughuq screen "$here/configs/classic_clusters.yaml" --out classic_clusters.h5
+[ -e classic-clusters.yaml ] || roughuq init classic-clusters
+roughuq screen classic-clusters.yaml --out classic_clusters.h5
 for tol in $CLUSTER_TOLS; do
     roughuq mlmc --study classic_clusters.h5 --tol "$tol" || [ $? -eq 3 ]
 done

@@ -270,7 +270,7 @@ def test_screen_warns_about_non_converged_solves_where_they_happen(tmp_path, mon
 
 
 def test_validate_accepts_several_files_and_fails_if_any_is_bad(tmp_path):
-    shipped = sorted(str(path) for path in (ROOT / "configs").glob("*.yaml"))
+    shipped = sorted(str(path) for path in (ROOT / "rough_uq" / "study" / "configs").glob("*.yaml"))
     assert len(shipped) >= 2
     output = run("validate", *shipped).stdout
     assert output.count(": valid") == len(shipped)
@@ -352,14 +352,14 @@ def test_quickstart_is_in_the_small_slope_regime_at_the_classic_relative_load():
     from rough_uq.study.config import load_config
     from rough_uq.study.pipeline import build_model
 
-    quick = load_config(ROOT / "configs" / "quickstart.yaml")
-    classic = load_config(ROOT / "configs" / "classic_area.yaml")
+    quick = load_config(ROOT / "rough_uq" / "study" / "configs" / "quickstart.yaml")
+    classic = load_config(ROOT / "rough_uq" / "study" / "configs" / "classic-area.yaml")
     model = build_model(quick)
     assert model.spectrum.rms_slope < 0.2
     assert (quick.load.kind, quick.load.value) == (classic.load.kind, classic.load.value) == ("relative", 0.1)
     assert quick.surface.hurst == classic.surface.hurst
     assert model.mean_pressure < 0.05 * quick.material.e_star
-    text = (ROOT / "configs" / "quickstart.yaml").read_text()
+    text = (ROOT / "rough_uq" / "study" / "configs" / "quickstart.yaml").read_text()
     assert yaml.safe_load(text)["surface"]["rms_height"] == quick.surface.rms_height
 
 

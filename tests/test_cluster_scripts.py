@@ -176,7 +176,7 @@ def test_loop_study_survives_a_killed_shard_and_matches_serial(serial, tmp_path)
 @pytest.mark.slow
 def test_quickstart_on_slurm_and_loop_matches_serial(tmp_path):
     """The issue's case: the quickstart at tol 0.3, a lost task, 2-core nodes (minutes)."""
-    config = ROOT / "configs" / "quickstart.yaml"
+    config = ROOT / "rough_uq" / "study" / "configs" / "quickstart.yaml"
     serial_study = tmp_path / "serial.h5"
     run_cli("screen", str(config), "--out", str(serial_study), "--workers", "1", "--quiet")
     run_cli("mlmc", "--study", str(serial_study), "--tol", "0.3", "--workers", "1", "--quiet")

@@ -11,18 +11,21 @@ import yaml
 
 from rough_uq.study import config as config_module
 from rough_uq.study.config import (
+    SOLVER_ARRAYS_PER_NODE,
     config_from_dict,
     config_from_stored_text,
     config_from_yaml_text,
     config_hash,
     load_config,
+    memory_warning,
     resolved_yaml,
     solver_memory_bytes,
 )
 from rough_uq.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
-SHIPPED = sorted((ROOT / "configs").glob("*.yaml"))
+CONFIGS = ROOT / "rough_uq" / "study" / "configs"  # package data: `roughuq init NAME`
+SHIPPED = sorted(CONFIGS.glob("*.yaml"))
 BAD = ROOT / "tests" / "data" / "bad_configs"
 
 # One line per problem: "<field.path>: <what> (got <value>; allowed: <what>)"
@@ -58,7 +61,7 @@ def _message(data: object) -> str:
 
 
 def test_three_configs_are_shipped() -> None:
-    assert {p.name for p in SHIPPED} >= {"quickstart.yaml", "classic_area.yaml", "classic_clusters.yaml"}
+    assert {p.name for p in SHIPPED} >= {"quickstart.yaml", "classic-area.yaml", "classic-clusters.yaml"}
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
@@ -71,7 +74,7 @@ def test_shipped_config_loads_and_round_trips(path: Path) -> None:
 
 
 def test_classic_configs_match_the_reference_setting() -> None:
-    area = load_config(ROOT / "configs" / "classic_area.yaml")
+    area = load_config(CONFIGS / "classic-area.yaml")
     assert (area.surface.k_l, area.surface.k_r, area.surface.k_s) == (2.0, 2.0, 128.0)
     assert area.surface.hurst == 0.8 and area.surface.rms_height == 1.0
     assert area.material.e_star == 1.0
@@ -79,7 +82,7 @@ def test_classic_configs_match_the_reference_setting() -> None:
     assert area.grid.coarsest == 256
     assert area.qoi_names == ("contact_area",) and area.qoi["contact_area"].unit == "percent"
 
-    clusters = load_config(ROOT / "configs" / "classic_clusters.yaml")
+    clusters = load_config(CONFIGS / "classic-clusters.yaml")
     assert clusters.surface.system_size == 3.0
     assert (clusters.surface.k_l, clusters.surface.k_r, clusters.surface.k_s) == (3.0, 3.0, 192.0)
     assert clusters.grid.coarsest == 128
@@ -152,7 +155,6 @@ BAD_CASES = {
     "not_yaml": ("not_yaml.yaml: not valid YAML at line 7", "expected ','"),
     "empty": ("empty.yaml: the file is empty", "got no content"),
     "missing_section": ("material: required section is missing", "got nothing"),
-    "grid_too_large": ("grid.max_level: ", "got 16"),
     "wavenumbers_out_of_order": ("surface.wavenumbers: cut-offs are out of order", "got k_l=4, k_r=2, k_s=16"),
     "screening_too_many_levels": ("screening.levels: ", "got 5"),
     "unknown_qoi": ("qoi.area: unknown quantity of interest", "got 'area'"),
@@ -241,18 +243,79 @@ def test_more_defects(change, expected: str) -> None:
     assert expected in _message(data)
 
 
-def test_memory_check_uses_the_documented_estimate(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_memory_is_a_run_time_warning_not_a_validation_rule(monkeypatch: pytest.MonkeyPatch) -> None:
     assert solver_memory_bytes(1024) == 20 * 8 * 1024**2
-    # Pretend the machine has just enough memory for a 512 x 512 solve.
+    # Pretend the machine has just enough memory for one 512 x 512 solve.
     monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(512))
     data = _base()
-    data["grid"] = {"coarsest": 256, "max_level": 1}
-    data["screening"] = {"levels": 2}
-    config_from_dict(data)
-    data["grid"]["max_level"] = 2
-    message = _message(data)
-    assert message.startswith("grid.max_level: the finest grid 1024 x 1024")
-    assert "allowed: integer <= 1" in message
+    data["grid"] = {"coarsest": 256, "max_level": 2}  # finest 1024 x 1024: four times too much
+    config = config_from_dict(data)  # a cluster config validates on a laptop
+    assert memory_warning(config, 1) is None
+    text = memory_warning(config, 2)
+    assert text.startswith("level 2 (grid 1024 x 1024) needs about 160 MiB per solve")
+    assert "this machine has 40 MiB" in text and "stay at level <= 1 (a smaller grid.max_level)" in text
+    # Two workers on level 1 need two solves at once; one fits.
+    text = memory_warning(config, 1, n_workers=2, lower_with="unused")
+    assert "x 2 workers = 80 MiB" in text and "use --workers 1" in text and "unused" not in text
+    assert memory_warning(config, 0, n_workers=4) is None
+    # Not even the coarsest grid fits.
+    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(128))
+    assert "use a smaller grid.coarsest" in memory_warning(config, 0)
+    # Unknown machine memory: nothing to say.
+    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: None)
+    assert memory_warning(config, 2, n_workers=64) is None
+
+
+def _cli(*args: str, expect: tuple[int, ...] = (0,)):
+    from click.testing import CliRunner
+
+    from rough_uq.cli import main
+
+    result = CliRunner().invoke(main, list(args))
+    assert result.exit_code in expect, (result.output, result.stderr, result.exception)
+    return result
+
+
+def _memory_warnings(result) -> list[str]:
+    return [line for line in result.stderr.splitlines() if line.startswith("warning: level")]
+
+
+def test_commands_warn_before_computing_levels_beyond_the_machine(tmp_path, monkeypatch) -> None:
+    from tests.study_configs import tiny_config, write_config
+
+    monkeypatch.chdir(tmp_path)
+    path = str(write_config(tmp_path / "tiny.yaml", tiny_config()))  # grids 8, 16, 32; screens levels 0..2
+    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(16))
+    checked = _cli("validate", path)
+    assert checked.stderr == "" and ": valid" in checked.stdout
+    assert "(finest solve about 0.16 MiB per worker; this machine has 0.039 MiB, too little for it)" in checked.stdout
+
+    (line,) = _memory_warnings(_cli("screen", path, "--workers", "1", "--quiet"))
+    assert line == (
+        f"warning: level 2 (grid 32 x 32) needs about 0.156 MiB per solve ({SOLVER_ARRAYS_PER_NODE} float64 arrays "
+        "of n^2), but this machine has 0.0391 MiB: stay at level <= 1 (a smaller screening.levels), or run on a "
+        "machine with more memory"
+    )
+    (line,) = _memory_warnings(_cli("mc", "--level", "2", "--workers", "1", "--quiet", expect=(0, 3)))
+    assert "grid 32 x 32" in line and "(a smaller --level)" in line
+    (line,) = _memory_warnings(_cli("sample", "--stage", "screening", "--level", "2", "--indices", "8:9",
+                                    "--out", "shard.h5", "--workers", "1", "--quiet"))
+    assert "grid 32 x 32" in line and "this machine has 0.0391 MiB" in line
+    assert not _memory_warnings(_cli("sample", "--stage", "screening", "--level", "1", "--indices", "8:9",
+                                     "--out", "shard1.h5", "--workers", "1", "--quiet"))
+
+    # Not even the coarsest grid fits: every run warns, whatever level it plans.
+    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(8) // 2)
+    lines = _memory_warnings(_cli("mlmc", "--workers", "1", "--quiet", expect=(0, 3)))
+    assert lines and all("use a smaller grid.coarsest" in line for line in lines)
+    levels = [int(line.split()[2]) for line in lines]
+    assert levels == sorted(set(levels))  # once per level, as the run adds levels
+
+    # Enough memory for one solve of level 2 but not for two at once.
+    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(32) * 3 // 2)
+    (line,) = _memory_warnings(_cli("sample", "--stage", "screening", "--level", "2", "--indices", "9:11",
+                                    "--out", "shard2.h5", "--workers", "2", "--quiet"))
+    assert "x 2 workers = 0.312 MiB" in line and "use --workers 1" in line
 
 
 # ---------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """The study configuration: a strict, versioned schema read from YAML.
 
 This is the only module that reads YAML and the only one that uses pydantic.
-A study file looks like (every section is a mapping; see ``configs/*.yaml``)::
+A study file looks like (every section is a mapping; see the shipped
+``rough_uq/study/configs/*.yaml``, written out by ``roughuq init NAME``)::
 
     schema_version: 1          # required; the only version this code reads
     seed: 2024                 # study seed (SPEC section 7)
@@ -41,9 +42,10 @@ Choices where the specification is silent
 * Memory estimate of the finest grid: a solve holds about
   :data:`SOLVER_ARRAYS_PER_NODE` (= 20) float64 arrays of ``n x n`` (pressure,
   gap, displacement, surface, search direction, residuals, FFT work arrays and
-  the warm-start guess), i.e. ``160 n^2`` bytes. A finest grid whose estimate
-  exceeds the physical memory is rejected; parallel workers multiply the need
-  and are not counted here.
+  the warm-start guess), i.e. ``160 n^2`` bytes. It is not a validation rule
+  (a cluster config must validate on a laptop): :func:`memory_warning` says,
+  when samples of a level are about to be computed here, whether that many
+  solves at once (one per worker) exceed this machine's physical memory.
 * ``output.path`` is a plain string, relative to the working directory.
 * ``config_hash`` hashes the spectrum as resolved wave numbers, so the same
   surface given as wavelengths or as wave numbers has the same hash, and
@@ -105,6 +107,7 @@ __all__ = [
     "config_from_stored_text",
     "resolved_yaml",
     "config_hash",
+    "memory_warning",
     "solver_memory_bytes",
 ]
 
@@ -706,8 +709,42 @@ def _physical_memory_bytes() -> int | None:
         return None
 
 
-def _gib(n_bytes: float) -> str:
-    return f"{n_bytes / 2**30:.1f} GiB"
+def _size(n_bytes: float) -> str:
+    return f"{n_bytes / 2**30:.1f} GiB" if n_bytes >= 2**30 else f"{n_bytes / 2**20:.3g} MiB"
+
+
+def memory_warning(
+    config: StudyConfig, level: int, n_workers: int = 1, *, lower_with: str = "a smaller grid.max_level"
+) -> str | None:
+    """What to say before computing samples of ``level`` on this machine, or None if they fit.
+
+    ``n_workers`` solves run at once, each needing about
+    :func:`solver_memory_bytes` of the level's grid. If together they need
+    more than this machine's physical memory (unknown: no warning), the
+    returned line names the grid, the estimate, the machine's memory and
+    what to change: fewer workers if one solve fits, else a lower level (or
+    another machine); ``lower_with`` says how the caller's command gets to a
+    lower level.
+    """
+    memory = _physical_memory_bytes()
+    n = config.grid.n_at(level)
+    per_solve = solver_memory_bytes(n)
+    n_workers = max(1, int(n_workers))
+    if memory is None or per_solve * n_workers <= memory:
+        return None
+    at_once = f" x {n_workers} workers = {_size(per_solve * n_workers)}" if n_workers > 1 else ""
+    if per_solve <= memory:
+        change = f"use --workers {memory // per_solve}, or run on a machine with more memory"
+    else:
+        fitting = [lv for lv in range(level) if solver_memory_bytes(config.grid.n_at(lv)) <= memory]
+        lower = f"stay at level <= {fitting[-1]} ({lower_with})" if fitting else (
+            "use a smaller grid.coarsest"
+        )
+        change = f"{lower}, or run on a machine with more memory"
+    return (
+        f"level {level} (grid {n} x {n}) needs about {_size(per_solve)} per solve{at_once} "
+        f"({SOLVER_ARRAYS_PER_NODE} float64 arrays of n^2), but this machine has {_size(memory)}: {change}"
+    )
 
 
 class StudyConfig(_Section):
@@ -788,22 +825,6 @@ class StudyConfig(_Section):
                     f"number n_0/2 = {n_0 // 2}, but k_s = {k_s:g}; injection would alias",
                     "injection",
                     f"'truncation', or injection with k_s < {n_0 // 2}",
-                )
-            )
-        memory = _physical_memory_bytes()
-        n_fine = self.grid.finest
-        if memory is not None and solver_memory_bytes(n_fine) > memory:
-            n_max = 0
-            while solver_memory_bytes(self.grid.n_at(n_max + 1)) <= memory:
-                n_max += 1
-            problems.append(
-                _problem(
-                    "grid.max_level",
-                    f"the finest grid {n_fine} x {n_fine} needs about {_gib(solver_memory_bytes(n_fine))} per "
-                    f"solve ({SOLVER_ARRAYS_PER_NODE} float64 arrays of n^2) but this machine has "
-                    f"{_gib(memory)}",
-                    self.grid.max_level,
-                    f"integer <= {n_max}" if solver_memory_bytes(n_0) <= memory else "a smaller grid.coarsest",
                 )
             )
         if self.screening.levels > self.grid.max_level + 1:
