@@ -832,5 +832,23 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
     click.echo(f"{study_path}: dropped {', '.join(run_ids)} (samples kept)")
 
 
+def run() -> None:
+    """The ``roughuq`` program: :func:`main`, and no signal handling left behind once a command has ended.
+
+    Ctrl-C and SIGTERM during a command are handled by the command itself
+    (exit 130 / 143, samples saved). One that arrives after the command has
+    finished, while the interpreter shuts down, would otherwise kill the
+    process with a signal status (or a traceback) although the work is done
+    and saved; from then on both are ignored.
+    """
+    import signal
+
+    try:
+        main()
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    run()
