@@ -1,10 +1,12 @@
 """roughuq: statistics of rough-surface contact with Multilevel Monte Carlo.
 
-The physics core (``fft``, ``elastic``, ``surface``, ``solver``, ``qoi``,
-``reference``) and the estimators (``estimator``, ``screening``) are pure
-numpy/scipy/pyfftw/numba; the edges (``config``, ``store``, ``pipeline``,
-``executor``, ``progress``, ``report``, ``cli``) do the I/O. Importing the
-package has no side effects.
+The core is pure numpy/scipy/pyfftw/numba: :mod:`rough_uq.physics` (FFTs,
+surfaces, the elastic half-space, the contact solver, quantities of interest,
+reference solutions), :mod:`rough_uq.mlmc` (level statistics, rates,
+allocation, the MC/MLMC drivers) and :mod:`rough_uq.problem` (the contact
+problem as a level sampler). The edges do the I/O: :mod:`rough_uq.study`
+(config, study file, executors, pipeline), :mod:`rough_uq.report` and
+:mod:`rough_uq.cli`. Importing the package has no side effects.
 """
 
 from importlib.metadata import PackageNotFoundError, version
