@@ -2,7 +2,7 @@
 
 The core is pure numpy/scipy/pyfftw/numba: :mod:`rough_uq.physics` (FFTs,
 surfaces, the elastic half-space, the contact solver, quantities of interest,
-reference solutions), :mod:`rough_uq.mlmc` (level statistics, rates,
+reference solutions), :mod:`rough_uq.multilevel` (level statistics, rates,
 allocation, the MC/MLMC drivers) and :mod:`rough_uq.problem` (the contact
 problem as a level sampler). The edges do the I/O: :mod:`rough_uq.study`
 (config, study file, executors, pipeline), :mod:`rough_uq.report` and

@@ -13,7 +13,7 @@ import pytest
 from mlmc_problems import GbmEuler, Synthetic, indexed_normals, sample_levels
 
 from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.mlmc.drivers import (
+from rough_uq.multilevel.drivers import (
     BatchDone,
     EstimationResult,
     EstimationWarning,
@@ -29,7 +29,7 @@ from rough_uq.mlmc.drivers import (
     mlmc,
     plan,
 )
-from rough_uq.mlmc.statistics import ratio_instability, richardson_bias, richardson_weight
+from rough_uq.multilevel.statistics import ratio_instability, richardson_bias, richardson_weight
 
 N_REPEATS = 200
 EPS = 0.05

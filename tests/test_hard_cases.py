@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.mlmc.drivers import EstimationWarning, mc, mlmc
+from rough_uq.multilevel.drivers import EstimationWarning, mc, mlmc
 from rough_uq.physics.qoi import contact_area, count_clusters, evaluate_qoi, label_clusters
 from rough_uq.physics.reference import full_contact_pressure, westergaard_full_contact_pressure
-from rough_uq.mlmc.statistics import (
+from rough_uq.multilevel.statistics import (
     Rates,
     diagnose,
     fit_rates,

@@ -1,9 +1,9 @@
 """The architecture as a test: which part of roughuq may import which (STYLE.md, "The shape of the house").
 
-Data flows one way: ``physics`` and ``mlmc`` are siblings that never import
+Data flows one way: ``physics`` and ``multilevel`` are siblings that never import
 each other; ``problem`` (the contact problem as a level sampler) joins them;
 ``study`` (config, store, executors, pipeline), ``report`` and ``cli`` sit
-above. The core (``physics``, ``mlmc``, ``problem``) imports no I/O or UI
+above. The core (``physics``, ``multilevel``, ``problem``) imports no I/O or UI
 library.
 """
 
@@ -17,14 +17,14 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parent.parent / "rough_uq"
-CORE = ("physics", "mlmc", "problem")
+CORE = ("physics", "multilevel", "problem")
 #: The parts of roughuq each part may import (besides itself and ``rough_uq.errors``).
 ALLOWED = {
     "physics": set(),
-    "mlmc": set(),
-    "problem": {"physics", "mlmc"},
-    "study": {"physics", "mlmc", "problem"},
-    "report": {"physics", "mlmc", "problem", "study"},
+    "multilevel": set(),
+    "problem": {"physics", "multilevel"},
+    "study": {"physics", "multilevel", "problem"},
+    "report": {"physics", "multilevel", "problem", "study"},
 }
 EDGE_LIBRARIES = {"h5py", "click", "rich", "yaml", "pydantic", "matplotlib", "distributed", "dask"}
 #: Imported by numba (PyYAML) and pyFFTW (dask) themselves where installed: checked in the source only.

@@ -17,7 +17,7 @@ from mlmc_problems import GbmEuler, Synthetic, sample_levels
 from scipy import stats as scipy_stats
 
 from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.mlmc.statistics import (
+from rough_uq.multilevel.statistics import (
     DROP_MARGIN,
     EstimationWarning,
     Rates,

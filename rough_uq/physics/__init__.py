@@ -1,7 +1,7 @@
 """The physics core: FFTs, rough surfaces, the elastic half-space, the contact solver, quantities of interest.
 
 Pure numpy/scipy/pyFFTW/numba (SPEC sections 1-4); no I/O, never imports
-:mod:`rough_uq.mlmc`.
+:mod:`rough_uq.multilevel`.
 
 * :mod:`~rough_uq.physics.fft`: cached real FFT plans, one normalisation, FFTW wisdom.
 * :mod:`~rough_uq.physics.surface`: the power spectrum and Gaussian random surfaces, coupled across grids.

@@ -38,7 +38,7 @@ import numpy as np
 from rough_uq import __version__
 from rough_uq.study.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
 from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
-from rough_uq.mlmc.drivers import BatchDone, Finished, PlanUpdated, RichardsonRefused, iter_mc, iter_mlmc
+from rough_uq.multilevel.drivers import BatchDone, Finished, PlanUpdated, RichardsonRefused, iter_mc, iter_mlmc
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.fft_wisdom import prepare_wisdom
 from rough_uq.study.progress import Progress
@@ -50,7 +50,7 @@ from rough_uq.problem.sampler import (
     modelled_cost,
     run_stage,
 )
-from rough_uq.mlmc.statistics import (
+from rough_uq.multilevel.statistics import (
     EstimationWarning,
     LevelStatistics,
     Plan,

@@ -1,6 +1,6 @@
 """Monte Carlo and adaptive Multilevel Monte Carlo drivers (SPEC section 5).
 
-Symbols follow SPEC section 5 and :mod:`rough_uq.mlmc.statistics`: ``Q_l`` the
+Symbols follow SPEC section 5 and :mod:`rough_uq.multilevel.statistics`: ``Q_l`` the
 quantity of interest on level ``l`` (mesh ``h_l = h_0 2^-l``),
 ``Y_l = Q_l - Q_{l-1}`` (``Y_0 = Q_0``), ``V_l = Var(Y_l)``, ``C_l`` the mean
 cost of a level-``l`` sample, ``|E[Y_l]| ~ 2^(-alpha l)``,
@@ -46,7 +46,7 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
 1. Start on levels ``0..min_finest_level`` with ``n_initial`` samples each
    (Giles' ``N0``: nothing is known about the levels yet), or from a
    screening table: the finest level and ``N_l`` of
-   :func:`~rough_uq.mlmc.statistics.plan`, at least 2 per level (so that every level
+   :func:`~rough_uq.multilevel.statistics.plan`, at least 2 per level (so that every level
    has a sample variance). With a screening, ``V_l`` of a level the screening
    sampled is the pooled variance of the screening's and the run's ``Y_l``
    (independent samples of the same level), both for the allocation and for
@@ -74,16 +74,16 @@ Richardson extrapolation (``richardson=True``)
 -----------------------------------------------
 The estimate becomes ``sum_{l<L} mean(Y_l) + w mean(Y_L)``,
 ``w = 2^alpha / (2^alpha - 1)`` with the driver's ``alpha`` (see
-:mod:`rough_uq.mlmc.statistics` for the formulas and the remaining-bias estimate).
+:mod:`rough_uq.multilevel.statistics` for the formulas and the remaining-bias estimate).
 While it is *active*, the allocation gives the finest level the variance
 ``w^2 V_L`` and step 3 tests the extrapolated estimate's remaining bias
-(:func:`~rough_uq.mlmc.statistics.richardson_bias`) instead of the plain one. It is
+(:func:`~rough_uq.multilevel.statistics.richardson_bias`) instead of the plain one. It is
 active from the start if the screening's plan is extrapolated
-(:func:`~rough_uq.mlmc.statistics.plan` with ``richardson``), else *pending* (plain
+(:func:`~rough_uq.multilevel.statistics.plan` with ``richardson``), else *pending* (plain
 MLMC) until the run has ``RICHARDSON_MIN_LEVELS`` levels above its base
 level. Each time the samples
 are complete the run's own level means (standard errors from the pooled
-``V_l``) are checked with :func:`~rough_uq.mlmc.statistics.ratio_instability`; a
+``V_l``) are checked with :func:`~rough_uq.multilevel.statistics.ratio_instability`; a
 failed check *refuses* the extrapolation for the rest of the run (a
 :class:`RichardsonRefused` event, ``EstimationResult.richardson =
 "refused"`` with the reason, an :class:`EstimationWarning`) and the run goes
@@ -102,7 +102,7 @@ The same samples give the MLMC estimate of ``Var(Q)``:
 the ``n - 1`` normalisation, so each term is unbiased for
 ``Var(Q_l) - Var(Q_{l-1})``), with standard error
 ``sqrt(sum_l se_l^2)``, ``se_l`` the plug-in fourth-moment standard error of
-:func:`~rough_uq.mlmc.statistics.level_statistics`. Its bias
+:func:`~rough_uq.multilevel.statistics.level_statistics`. Its bias
 ``Var(Q) - Var(Q_L)`` is not controlled.
 """
 
@@ -117,7 +117,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.mlmc.statistics import (
+from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     RICHARDSON_MIN_LEVELS,
     DroppedLevel,
@@ -213,7 +213,7 @@ class RichardsonRefused:
     levels : ndarray of int, shape (n_levels,)
         Levels of the hierarchy when it was refused.
     reason : str
-        Which check failed (:func:`~rough_uq.mlmc.statistics.ratio_instability`).
+        Which check failed (:func:`~rough_uq.multilevel.statistics.ratio_instability`).
     """
 
     levels: np.ndarray
@@ -711,7 +711,7 @@ def iter_mlmc(
         more frequent events and store writes.
     screening : LevelStatistics, optional
         Screening table (from independent samples); sets the initial finest
-        level and ``N_l`` via :func:`~rough_uq.mlmc.statistics.plan`, and its ``V_l``
+        level and ``N_l`` via :func:`~rough_uq.multilevel.statistics.plan`, and its ``V_l``
         are pooled with the run's (module docstring). Its samples are not part
         of the estimate.
     rates : Rates, optional
@@ -727,7 +727,7 @@ def iter_mlmc(
         Level ``b`` the hierarchy starts on (default 0): its samples give
         ``Q_b`` alone (the sampler's coarse values are ignored) and the levels
         below are never sampled. None lets the screening's plan choose it
-        (:func:`~rough_uq.mlmc.statistics.choose_coarsest_level`; 0 without a
+        (:func:`~rough_uq.multilevel.statistics.choose_coarsest_level`; 0 without a
         screening; 0 if ``max_level`` leaves fewer than two levels above the
         chosen one); ``EstimationResult.dropped_levels`` says why.
 
@@ -740,7 +740,7 @@ def iter_mlmc(
     -----
     EstimationWarning
         At the end, for every failed check of
-        :func:`~rough_uq.mlmc.statistics.diagnose`, for zero reported costs and for a
+        :func:`~rough_uq.multilevel.statistics.diagnose`, for zero reported costs and for a
         refused Richardson extrapolation.
     """
     theta = _check_fraction("theta", theta)
@@ -1089,7 +1089,7 @@ def iter_mc(
         The level (grid) to sample.
     theta : float
         Bias share of ``eps^2``; the statistical target is ``(1-theta) eps^2``,
-        as in :func:`~rough_uq.mlmc.statistics.plan`'s MC prediction.
+        as in :func:`~rough_uq.multilevel.statistics.plan`'s MC prediction.
     bias : float or ndarray, optional
         Estimated bias of level ``level`` (e.g. ``Plan.bias`` from the
         screening). MC cannot estimate it from one level; without it the
