@@ -1,19 +1,139 @@
 """roughuq: statistics of rough-surface contact with Multilevel Monte Carlo.
 
+The public Python API, for notebooks and scripts (no config file, no study
+file, no pydantic)::
+
+    import rough_uq
+    spectrum = rough_uq.SurfaceSpectrum(system_size=2, k_l=2, k_r=2, k_s=128, hurst=0.8, rms_height=1)
+    problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.1), qoi=["contact_area"], coarsest=256)
+    result = rough_uq.mlmc(problem, tol=0.2)   # or rough_uq.mc(problem, tol=..., level=...), rough_uq.screen(problem)
+    result.estimate, result.rmse, result.levels
+
+``estimate`` and ``rmse`` have shape ``(n_qoi,)`` (in the QoIs' units, here
+percent), ``levels`` and ``n_samples`` shape ``(n_levels,)``
+(:class:`EstimationResult`). The physics is exported too:
+:class:`SurfaceSpectrum`, :func:`sample_surface`, :func:`sample_coupled`,
+:func:`solve_contact`, the quantities of interest and the errors.
+
 The core is pure numpy/scipy/pyfftw/numba: :mod:`rough_uq.physics` (FFTs,
 surfaces, the elastic half-space, the contact solver, quantities of interest,
 reference solutions), :mod:`rough_uq.multilevel` (level statistics, rates,
 allocation, the MC/MLMC drivers) and :mod:`rough_uq.problem` (the contact
-problem as a level sampler). The edges do the I/O: :mod:`rough_uq.study`
-(config, study file, executors, pipeline), :mod:`rough_uq.report` and
-:mod:`rough_uq.cli`. Importing the package has no side effects.
+problem as a level sampler, and the functions above). The edges do the I/O:
+:mod:`rough_uq.study` (config, study file, executors, pipeline),
+:mod:`rough_uq.report` and :mod:`rough_uq.cli`. Importing the package has no
+side effects and imports none of them: the names below are loaded on first
+use, so that the CLI's commands that need no solver do not load numba and
+pyFFTW.
 """
 
+from __future__ import annotations
+
+import importlib
 from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING
 
 try:
     __version__ = version("roughuq")
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
 
-__all__ = ["__version__"]
+#: Public name -> module that defines it.
+_EXPORTS = {
+    # the contact problem and the estimators on it
+    "ContactProblem": "rough_uq.problem.contact",
+    "RelativeLoad": "rough_uq.problem.loads",
+    "AbsoluteLoad": "rough_uq.problem.loads",
+    "ScreeningResult": "rough_uq.problem.runs",
+    "mlmc": "rough_uq.problem.runs",
+    "mc": "rough_uq.problem.runs",
+    "screen": "rough_uq.problem.runs",
+    "EstimationResult": "rough_uq.multilevel.drivers",
+    "LevelStatistics": "rough_uq.multilevel.statistics",
+    "Rates": "rough_uq.multilevel.statistics",
+    # the physics
+    "SurfaceSpectrum": "rough_uq.physics.surface",
+    "sample_surface": "rough_uq.physics.surface",
+    "sample_coupled": "rough_uq.physics.surface",
+    "solve_contact": "rough_uq.physics.solver",
+    "ContactSolution": "rough_uq.physics.solver",
+    "QOI_NAMES": "rough_uq.physics.qoi",
+    "evaluate_qoi": "rough_uq.physics.qoi",
+    "contact_area": "rough_uq.physics.qoi",
+    "count_clusters": "rough_uq.physics.qoi",
+    "label_clusters": "rough_uq.physics.qoi",
+    "mean_gap": "rough_uq.physics.qoi",
+    "max_pressure": "rough_uq.physics.qoi",
+    "area_above": "rough_uq.physics.qoi",
+    # errors and warnings
+    "RoughUQError": "rough_uq.errors",
+    "InvalidParameterError": "rough_uq.errors",
+    "ConvergenceError": "rough_uq.errors",
+    "EstimationError": "rough_uq.errors",
+    "EstimationWarning": "rough_uq.multilevel.statistics",
+}
+
+__all__ = [
+    "__version__",
+    "ContactProblem",
+    "RelativeLoad",
+    "AbsoluteLoad",
+    "ScreeningResult",
+    "mlmc",
+    "mc",
+    "screen",
+    "EstimationResult",
+    "LevelStatistics",
+    "Rates",
+    "SurfaceSpectrum",
+    "sample_surface",
+    "sample_coupled",
+    "solve_contact",
+    "ContactSolution",
+    "QOI_NAMES",
+    "evaluate_qoi",
+    "contact_area",
+    "count_clusters",
+    "label_clusters",
+    "mean_gap",
+    "max_pressure",
+    "area_above",
+    "RoughUQError",
+    "InvalidParameterError",
+    "ConvergenceError",
+    "EstimationError",
+    "EstimationWarning",
+]
+
+if TYPE_CHECKING:  # for type checkers and IDEs; at run time names load on first use
+    from rough_uq.errors import ConvergenceError, EstimationError, InvalidParameterError, RoughUQError
+    from rough_uq.multilevel.drivers import EstimationResult
+    from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, Rates
+    from rough_uq.physics.qoi import (
+        QOI_NAMES,
+        area_above,
+        contact_area,
+        count_clusters,
+        evaluate_qoi,
+        label_clusters,
+        max_pressure,
+        mean_gap,
+    )
+    from rough_uq.physics.solver import ContactSolution, solve_contact
+    from rough_uq.physics.surface import SurfaceSpectrum, sample_coupled, sample_surface
+    from rough_uq.problem.contact import ContactProblem
+    from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
+    from rough_uq.problem.runs import ScreeningResult, mc, mlmc, screen
+
+
+def __getattr__(name: str) -> object:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'rough_uq' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

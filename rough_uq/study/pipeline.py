@@ -3,10 +3,10 @@
 This is the only module that reads the config and meets the store. It
 
 * builds the :class:`~rough_uq.problem.sampler.ContactModel` of a config
-  (:func:`build_model`): the mean pressure of a relative load is
-  ``relative * E* * rms_slope`` (SPEC section 6), contact and
-  ``area_above`` fractions are scaled by 100 for ``percent``, cluster counts
-  divided by ``L^2`` for ``per_area``;
+  (:func:`build_model`) with the load and unit conversions of
+  :mod:`rough_uq.problem.loads` (a relative load is ``relative * E* *
+  rms_slope``, SPEC section 6; ``percent`` scales fractions by 100,
+  ``per_area`` divides cluster counts by ``L^2``);
 * serves the estimators a sampler backed by the study file
   (:class:`StudySampler`): samples already stored are read back, missing ones
   are computed by the executor and appended as they arrive (at least every
@@ -42,6 +42,8 @@ from rough_uq.multilevel.drivers import BatchDone, Finished, PlanUpdated, Richar
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.fft_wisdom import prepare_wisdom
 from rough_uq.study.progress import Progress
+from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
+from rough_uq.problem.runs import run_id
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
     ContactModel,
@@ -111,18 +113,12 @@ def build_model(config: StudyConfig) -> ContactModel:
         rms_height=surface.rms_height,
     )
     e_star = config.material.e_star
-    if config.load.kind == "relative":
-        mean_pressure = config.load.value * e_star * spectrum.rms_slope
-    else:
-        mean_pressure = config.load.value
+    load = RelativeLoad(config.load.value) if config.load.kind == "relative" else AbsoluteLoad(config.load.value)
+    mean_pressure = load.mean_pressure(spectrum=spectrum, e_star=e_star)
     scales = []
     connectivity, critical_pressure, area_estimator = 4, None, "corrected"
     for name, settings in config.qoi.items():
-        scale = 1.0
-        if getattr(settings, "unit", None) == "percent":
-            scale = 100.0
-        elif getattr(settings, "unit", None) == "per_area":
-            scale = 1.0 / surface.system_size**2
+        scale = qoi_scale(name, getattr(settings, "unit", QOI_UNITS[name][0]), system_size=surface.system_size)
         if name == "clusters":
             connectivity = settings.connectivity
         if name == "area_above":
@@ -633,29 +629,6 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
             )
         tol.append(eps)
     return np.array(tol, dtype=float)
-
-
-def run_id(
-    method: str,
-    names: Sequence[str],
-    tol: np.ndarray,
-    theta: float,
-    level: int | None = None,
-    *,
-    richardson: bool = False,
-) -> str:
-    """Name of the run of ``method`` at tolerances ``tol`` and bias share ``theta`` (MC: on ``level``, if given).
-
-    The same command gives the same name, hence the same record and the same
-    random stage (:func:`~rough_uq.problem.sampler.run_stage`): rerunning it resumes.
-    A Richardson-extrapolated MLMC run ends in ``_richardson``.
-    """
-    parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
-    if level is not None:
-        parts.append(f"level-{level}")
-    if richardson and method == "mlmc":
-        parts.append("richardson")
-    return "_".join(parts)
 
 
 def _estimation_plan(study: Study, tol: np.ndarray) -> tuple[LevelStatistics, Rates, Plan]:

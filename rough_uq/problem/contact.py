@@ -1,0 +1,325 @@
+"""The contact problem of a study, in Python: what one sample computes, and a level sampler of it.
+
+A :class:`ContactProblem` says everything that makes a sample: the random
+surface (:class:`~rough_uq.physics.surface.SurfaceSpectrum`), the load
+(:mod:`rough_uq.problem.loads`), the quantities of interest and their units,
+the grid hierarchy ``n_l = coarsest * 2**l``, the solver settings and the
+seed. It needs no config file, no store and no pydantic; it builds the same
+:class:`~rough_uq.problem.sampler.ContactModel` that the pipeline builds from
+a study config. :class:`ContactSampler` serves its samples to the drivers of
+:mod:`rough_uq.multilevel.drivers`, in this process or on an executor.
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Mapping, Sequence
+from dataclasses import KW_ONLY, dataclass, field
+from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
+
+from rough_uq.errors import InvalidParameterError
+from rough_uq.physics.qoi import AREA_ESTIMATORS, CONNECTIVITIES, QOI_NAMES
+from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
+from rough_uq.problem.batch import LevelBatch
+from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, positive, qoi_scale
+from rough_uq.problem.sampler import ContactModel, compute_batch, is_coupled_stage, modelled_cost
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable
+
+__all__ = ["ContactProblem", "ContactSampler", "BatchExecutor"]
+
+
+class BatchExecutor(Protocol):
+    """Where samples are computed: ``run(model, items)`` yields one :class:`LevelBatch` per item.
+
+    ``items`` are ``(stage, level, indices)``; batches may come in any order.
+    The executors of :mod:`rough_uq.study.executors` have this interface.
+    """
+
+    def run(self, model: ContactModel, items: Sequence[tuple[int, int, np.ndarray]]) -> Iterable[LevelBatch]: ...
+
+
+def integer(name: str, value: object, minimum: int) -> int:
+    """``value`` as an int, or :class:`InvalidParameterError` naming ``name`` unless an integer ``>= minimum``."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise InvalidParameterError(name, value, f"an integer >= {minimum}")
+    return int(value)
+
+
+def _qoi_names(qoi: object) -> tuple[str, ...]:
+    names = (qoi,) if isinstance(qoi, str) else qoi
+    allowed = "a name or a list of distinct names from " + ", ".join(QOI_NAMES)
+    try:
+        names = tuple(names)
+    except TypeError:
+        raise InvalidParameterError("qoi", qoi, allowed) from None
+    if not names or any(name not in QOI_NAMES for name in names) or len(set(names)) != len(names):
+        raise InvalidParameterError("qoi", qoi, allowed)
+    return names
+
+
+def _units(units: object, names: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    if units is None:
+        return ()
+    if not isinstance(units, Mapping):
+        pairs = tuple(units) if isinstance(units, (tuple, list)) else None
+        if pairs is None or not all(isinstance(p, tuple) and len(p) == 2 for p in pairs):
+            allowed = "a mapping from QoI name to unit, e.g. {'contact_area': 'fraction'}"
+            raise InvalidParameterError("units", units, allowed)
+        units = dict(pairs)
+    for name, unit in units.items():
+        if name not in names:
+            raise InvalidParameterError("units", name, "a QoI of this problem: " + ", ".join(names))
+        qoi_scale(name, unit, system_size=1.0)  # refuses a unit the QoI does not have
+    return tuple((name, units[name]) for name in names if name in units)
+
+
+def _choice(name: str, value: object, allowed: tuple) -> object:
+    if isinstance(value, bool) or value not in allowed:
+        raise InvalidParameterError(name, value, " or ".join(repr(a) for a in allowed))
+    return value
+
+
+@dataclass(frozen=True)
+class ContactProblem:
+    """A random contact problem on a hierarchy of grids: what one sample computes.
+
+    Parameters
+    ----------
+    spectrum : SurfaceSpectrum
+        The random surface (carries the box side ``L``, lengths in its unit).
+    load : RelativeLoad or AbsoluteLoad
+        The imposed mean pressure (:mod:`rough_uq.problem.loads`).
+    qoi : str or sequence of str
+        Quantities of interest, in column order of every result (names of
+        :data:`~rough_uq.physics.qoi.QOI_NAMES`). Stored as a tuple.
+    coarsest : int
+        Nodes per side ``n_0`` of level 0, even, ``> 2 k_r`` (the coarsest
+        grid resolves the roll-off). Level ``l`` has ``n_0 2^l`` nodes per side.
+    units : mapping of str to str, optional
+        Unit per QoI where not the default (:data:`~rough_uq.problem.loads.QOI_UNITS`),
+        e.g. ``{"contact_area": "fraction"}``. Stored as a tuple of pairs.
+    e_star : float
+        Effective modulus ``E*`` (defines the pressure unit), > 0. Default 1.
+    max_level : int
+        Finest level MLMC may add, >= 0. Default 4.
+    projection : {"truncation", "injection"}
+        How the coarse surface of a coupled sample is obtained
+        (:func:`~rough_uq.physics.surface.sample_coupled`); injection needs
+        ``k_s < coarsest / 2``.
+    connectivity : {4, 8}
+        Neighbourhood of ``clusters``.
+    area_estimator : {"corrected", "nodes"}
+        Estimator of ``contact_area`` (:func:`~rough_uq.physics.qoi.contact_area`):
+        perimeter-corrected (default) or the node count.
+    critical_pressure : float, optional
+        Threshold of ``area_above`` (unit of ``E*``), > 0; required with it.
+    seed : int
+        Seed of all random streams, >= 0 (SPEC section 7). Default 0.
+    solver_tol : float
+        Relative stopping tolerance of the contact solver, in (0, 1) (the
+        config's ``solver.tol``, default 1e-7).
+    max_iter : int
+        Iterations per solve before a retry (:mod:`rough_uq.problem.sampler`), >= 1.
+    warm_start : bool
+        Start the fine solve of a coupled sample from the coarse pressure.
+    threads : int
+        FFTW / numba threads per solve, >= 1.
+
+    Raises
+    ------
+    InvalidParameterError
+        Naming the field that is out of range.
+    """
+
+    spectrum: SurfaceSpectrum
+    _: KW_ONLY
+    load: RelativeLoad | AbsoluteLoad
+    qoi: tuple[str, ...]
+    coarsest: int
+    units: tuple[tuple[str, str], ...] = ()
+    e_star: float = 1.0
+    max_level: int = 4
+    projection: str = "truncation"
+    connectivity: int = 4
+    area_estimator: str = "corrected"
+    critical_pressure: float | None = None
+    seed: int = 0
+    solver_tol: float = 1e-7
+    max_iter: int = 10_000
+    warm_start: bool = True
+    threads: int = 1
+    _model: ContactModel = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.spectrum, SurfaceSpectrum):
+            raise InvalidParameterError("spectrum", self.spectrum, "a rough_uq.SurfaceSpectrum")
+        if not isinstance(self.load, (RelativeLoad, AbsoluteLoad)):
+            allowed = "rough_uq.RelativeLoad(value) or rough_uq.AbsoluteLoad(value)"
+            raise InvalidParameterError("load", self.load, allowed)
+        set_ = object.__setattr__
+        names = _qoi_names(self.qoi)
+        set_(self, "qoi", names)
+        set_(self, "units", _units(self.units, names))
+        set_(self, "e_star", positive("e_star", self.e_star))
+        self._check_grids()
+        set_(self, "connectivity", int(_choice("connectivity", self.connectivity, CONNECTIVITIES)))
+        _choice("area_estimator", self.area_estimator, AREA_ESTIMATORS)
+        if self.critical_pressure is not None:
+            set_(self, "critical_pressure", positive("critical_pressure", self.critical_pressure))
+        elif "area_above" in names:
+            raise InvalidParameterError("critical_pressure", None, "a number > 0 when 'area_above' is asked for")
+        self._check_solver()
+        set_(self, "_model", self._build_model())
+
+    def _check_grids(self) -> None:
+        set_ = object.__setattr__
+        k_r, k_s = self.spectrum.k_r, self.spectrum.k_s
+        n_0 = integer("coarsest", self.coarsest, 4)
+        if n_0 % 2 or not k_r < n_0 / 2:
+            raise InvalidParameterError(
+                "coarsest", self.coarsest, f"an even integer >= 4 and > 2 k_r = {2 * k_r:g} (Nyquist)"
+            )
+        set_(self, "coarsest", n_0)
+        set_(self, "max_level", integer("max_level", self.max_level, 0))
+        _choice("projection", self.projection, PROJECTIONS)
+        if self.projection == "injection" and not k_s < n_0 / 2:
+            raise InvalidParameterError(
+                "projection", self.projection, f"'truncation', or injection with k_s < coarsest / 2 = {n_0 // 2}"
+            )
+
+    def _check_solver(self) -> None:
+        set_ = object.__setattr__
+        set_(self, "seed", integer("seed", self.seed, 0))
+        tol = self.solver_tol
+        if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not 0 < tol < 1:
+            raise InvalidParameterError("solver_tol", tol, "a number in (0, 1)")
+        set_(self, "solver_tol", float(tol))
+        set_(self, "max_iter", integer("max_iter", self.max_iter, 1))
+        if not isinstance(self.warm_start, (bool, np.bool_)):
+            raise InvalidParameterError("warm_start", self.warm_start, "True or False")
+        set_(self, "warm_start", bool(self.warm_start))
+        set_(self, "threads", integer("threads", self.threads, 1))
+
+    def _build_model(self) -> ContactModel:
+        scales = tuple(
+            qoi_scale(name, unit, system_size=self.spectrum.system_size) for name, unit in zip(self.qoi, self.qoi_units)
+        )
+        return ContactModel(
+            spectrum=self.spectrum,
+            coarsest=self.coarsest,
+            projection=self.projection,
+            e_star=self.e_star,
+            mean_pressure=self.mean_pressure,
+            qoi_names=self.qoi,
+            qoi_scales=scales,
+            seed=self.seed,
+            tol=self.solver_tol,
+            max_iter=self.max_iter,
+            warm_start=self.warm_start,
+            threads=self.threads,
+            connectivity=self.connectivity,
+            critical_pressure=self.critical_pressure,
+            area_estimator=self.area_estimator,
+        )
+
+    @property
+    def mean_pressure(self) -> float:
+        """The imposed mean pressure ``p_mean`` (unit of ``E*``)."""
+        return self.load.mean_pressure(spectrum=self.spectrum, e_star=self.e_star)
+
+    @property
+    def qoi_units(self) -> tuple[str, ...]:
+        """Unit of each QoI, in the order of ``qoi``."""
+        given = dict(self.units)
+        return tuple(given.get(name, QOI_UNITS[name][0]) for name in self.qoi)
+
+    @property
+    def n_qoi(self) -> int:
+        """Number of quantities of interest."""
+        return len(self.qoi)
+
+    @property
+    def model(self) -> ContactModel:
+        """The :class:`~rough_uq.problem.sampler.ContactModel` that computes the samples."""
+        return self._model
+
+    def grid(self, level: int) -> int:
+        """Nodes per side of ``level``, ``coarsest * 2**level``."""
+        return self.coarsest * 2 ** integer("level", level, 0)
+
+    def sampler(self, stage: int, *, executor: BatchExecutor | None = None) -> ContactSampler:
+        """The level sampler (:mod:`rough_uq.multilevel.drivers` contract) of random stage ``stage``.
+
+        Parameters
+        ----------
+        stage : int
+            Stage of the random streams: :data:`~rough_uq.problem.batch.STAGE_SCREENING`
+            (0) or a run's stage (:func:`~rough_uq.problem.sampler.run_stage`). Samples
+            of screening and odd stages are coupled (fine and coarse solve of
+            one surface), of even stages fine only (plain MC).
+        executor : BatchExecutor, optional
+            Where samples are computed (e.g. :mod:`rough_uq.study.executors`);
+            default: in this process.
+        """
+        return ContactSampler(self.model, stage=integer("stage", stage, 0), executor=executor)
+
+
+def _ordered(batches: Sequence[LevelBatch], indices: np.ndarray) -> LevelBatch:
+    """The rows of ``batches`` (in any order) for ``indices``, in the order of ``indices``."""
+    names = ("indices", "fine", "coarse", "cost", "n_iter", "converged")
+    joined = {name: np.concatenate([getattr(b, name) for b in batches]) for name in names}
+    row_of = {int(index): row for row, index in enumerate(joined["indices"])}
+    rows = np.array([row_of[int(index)] for index in indices], dtype=np.int64)
+    return LevelBatch(level=batches[0].level, stage=batches[0].stage, **{n: v[rows] for n, v in joined.items()})
+
+
+class ContactSampler:
+    """Samples of a contact model on one stage, as the estimators ask for them.
+
+    ``sampler(level, indices)`` returns ``(fine, coarse, cost)``: QoIs of
+    shape ``(n, n_qoi)`` in the problem's units and the modelled cost of each
+    sample, shape ``(n,)``, in reference seconds
+    (:func:`~rough_uq.problem.sampler.modelled_cost`, as the pipeline plans with).
+
+    Attributes
+    ----------
+    model : ContactModel
+    stage : int
+    n_samples : int
+        Samples computed so far.
+    n_not_converged : int
+        Samples among them with a solve that did not converge (kept, with
+        the QoIs of the last iterate; :mod:`rough_uq.problem.sampler`).
+    seconds : float
+        Wall time of the samples computed so far (s; summed over workers).
+    """
+
+    def __init__(self, model: ContactModel, *, stage: int, executor: BatchExecutor | None = None) -> None:
+        self.model = model
+        self.stage = stage
+        self.executor = executor
+        self.n_samples = 0
+        self.n_not_converged = 0
+        self.seconds = 0.0
+
+    def batch(self, level: int, indices: np.ndarray) -> LevelBatch:
+        """Samples ``(stage, level, i)`` for ``i`` in ``indices``, in that order, with their solver records."""
+        indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+        if self.executor is None or indices.size <= 1:
+            batch = compute_batch(self.model, stage=self.stage, level=level, indices=indices)
+        else:
+            items = [(self.stage, level, indices[i : i + 1]) for i in range(indices.size)]
+            batch = _ordered(list(self.executor.run(self.model, items)), indices)
+        self.n_samples += batch.n_samples
+        self.n_not_converged += int(np.count_nonzero(~batch.is_converged))
+        self.seconds += float(np.sum(batch.cost))
+        return batch
+
+    def __call__(self, level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        batch = self.batch(level, indices)
+        cost = modelled_cost(self.model, level, batch.n_iter, is_coupled=is_coupled_stage(self.stage))
+        return batch.fine, batch.coarse, cost

@@ -1,0 +1,116 @@
+"""Loads and units of a contact problem: what the user says, in the numbers the solver takes.
+
+Load
+----
+A :class:`RelativeLoad` ``r`` is the mean pressure ``p = r * E* * sqrt(m2)``
+(SPEC section 6), ``m2`` the slope variance of the spectrum
+(:attr:`~rough_uq.physics.surface.SurfaceSpectrum.rms_slope` is ``sqrt(m2)``);
+an :class:`AbsoluteLoad` is ``p`` itself, in the unit of ``E*``.
+
+Units of the quantities of interest
+-----------------------------------
+:data:`QOI_UNITS` lists the units each quantity may be reported in, its
+default first (the config's defaults): ``contact_area`` and ``area_above`` in
+``"percent"`` (or ``"fraction"``), ``clusters`` in ``"per_area"`` (count per
+unit area, ``1 / L^2``; or ``"absolute"``, count per box), ``mean_gap`` in the
+length unit, ``max_pressure`` in the unit of ``E*``. Tolerances are in the
+same units. :func:`qoi_scale` is the factor from the raw value of
+:func:`~rough_uq.physics.qoi.evaluate_qoi` to the unit.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+
+from rough_uq.errors import InvalidParameterError
+from rough_uq.physics.surface import SurfaceSpectrum
+
+__all__ = ["QOI_UNITS", "AbsoluteLoad", "RelativeLoad", "qoi_scale"]
+
+#: Units each quantity of interest may be reported in; the first is the default.
+QOI_UNITS: dict[str, tuple[str, ...]] = {
+    "contact_area": ("percent", "fraction"),
+    "clusters": ("per_area", "absolute"),
+    "mean_gap": ("length",),
+    "max_pressure": ("E*",),
+    "area_above": ("percent", "fraction"),
+}
+
+
+def qoi_scale(name: str, unit: str, *, system_size: float) -> float:
+    """Factor from the raw value of QoI ``name`` to its value in ``unit``.
+
+    Raw values are those of :func:`~rough_uq.physics.qoi.evaluate_qoi`
+    (fractions, counts per box, lengths, pressures).
+
+    Parameters
+    ----------
+    name : str
+        A name of :data:`QOI_UNITS`.
+    unit : str
+        One of ``QOI_UNITS[name]``.
+    system_size : float
+        Box side ``L`` (for ``"per_area"``: counts are divided by ``L^2``).
+
+    Returns
+    -------
+    float
+    """
+    if name not in QOI_UNITS:
+        raise InvalidParameterError("qoi", name, "one of " + ", ".join(QOI_UNITS))
+    if unit not in QOI_UNITS[name]:
+        raise InvalidParameterError(f"units.{name}", unit, " or ".join(repr(u) for u in QOI_UNITS[name]))
+    if unit == "percent":
+        return 100.0
+    if unit == "per_area":
+        return 1.0 / system_size**2
+    return 1.0
+
+
+def positive(name: str, value: object) -> float:
+    """``value`` as a float, or :class:`InvalidParameterError` naming ``name`` unless finite and > 0."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value) and value > 0):
+        raise InvalidParameterError(name, value, "a finite number > 0")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class RelativeLoad:
+    """Mean pressure relative to ``E* sqrt(m2)`` (SPEC section 6).
+
+    Parameters
+    ----------
+    value : float
+        ``p_mean / (E* sqrt(m2))``, dimensionless, > 0 (the classic study uses 0.1).
+    """
+
+    value: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "value", positive("load.relative", self.value))
+
+    def mean_pressure(self, *, spectrum: SurfaceSpectrum, e_star: float) -> float:
+        """The mean pressure ``value * e_star * sqrt(m2)`` (unit of ``E*``)."""
+        return self.value * e_star * spectrum.rms_slope
+
+
+@dataclass(frozen=True)
+class AbsoluteLoad:
+    """Mean pressure given directly.
+
+    Parameters
+    ----------
+    value : float
+        ``p_mean`` in the unit of ``E*``, > 0.
+    """
+
+    value: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "value", positive("load.absolute", self.value))
+
+    def mean_pressure(self, *, spectrum: SurfaceSpectrum, e_star: float) -> float:
+        """The mean pressure ``value`` (unit of ``E*``); ``spectrum`` and ``e_star`` are not used."""
+        return self.value

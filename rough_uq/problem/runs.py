@@ -1,0 +1,356 @@
+"""Screening, MLMC and plain MC on a :class:`~rough_uq.problem.contact.ContactProblem`: the Python front door.
+
+:func:`screen`, :func:`mlmc` and :func:`mc` run the statistics and drivers of
+:mod:`rough_uq.multilevel` on a contact problem, in this process by default
+or on an executor (e.g. :mod:`rough_uq.study.executors`); nothing is written
+to disk.
+
+Random streams
+--------------
+Every sample is computed from ``SeedSequence(seed, spawn_key=(stage, level,
+index))`` (SPEC section 7, :func:`~rough_uq.problem.sampler.sample_rng`).
+Screening samples have stage :data:`~rough_uq.problem.batch.STAGE_SCREENING`;
+an MLMC or MC run has the stage of its name (:func:`run_id`,
+:func:`~rough_uq.problem.sampler.run_stage`), which depends on the method, the
+QoI names, the tolerances, ``theta``, the MC level and Richardson
+extrapolation, exactly as for ``roughuq mlmc`` / ``roughuq mc``. The same
+problem and settings therefore draw the same samples here and in the CLI. (The
+CLI measures FFT plans per machine, this module plans with ``FFTW_ESTIMATE``:
+the numbers agree to rounding, not bit for bit.)
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from rough_uq.errors import InvalidParameterError
+from rough_uq.multilevel import drivers
+from rough_uq.multilevel.drivers import EstimationResult
+from rough_uq.multilevel.statistics import (
+    KURTOSIS_LIMIT,
+    EstimationWarning,
+    LevelStatistics,
+    Rates,
+    diagnose,
+    fit_rates,
+    level_statistics,
+    plan,
+)
+from rough_uq.problem.batch import STAGE_SCREENING
+from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, integer
+from rough_uq.problem.sampler import modelled_cost, run_stage
+
+__all__ = ["ScreeningResult", "mc", "mlmc", "run_id", "screen"]
+
+
+def run_id(
+    method: str,
+    names: Sequence[str],
+    tol: np.ndarray,
+    theta: float,
+    level: int | None = None,
+    *,
+    richardson: bool = False,
+) -> str:
+    """Name of the run of ``method`` at tolerances ``tol`` and bias share ``theta`` (MC: on ``level``, if given).
+
+    The same settings give the same name, hence the same random stage
+    (:func:`~rough_uq.problem.sampler.run_stage`): the CLI resumes a run by
+    rerunning its command, and :func:`mlmc` / :func:`mc` draw the samples the
+    CLI draws. A Richardson-extrapolated MLMC run ends in ``_richardson``.
+    """
+    parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
+    if level is not None:
+        parts.append(f"level-{level}")
+    if richardson and method == "mlmc":
+        parts.append("richardson")
+    return "_".join(parts)
+
+
+@dataclass(frozen=True, eq=False)
+class ScreeningResult:
+    """What a screening measured (:func:`screen`).
+
+    Attributes
+    ----------
+    statistics : LevelStatistics
+        Per-level statistics; QoI arrays of shape ``(n_levels, n_qoi)``, costs
+        in reference seconds (modelled).
+    rates : Rates
+        ``alpha``, ``beta`` (shape ``(n_qoi,)``) and ``gamma`` fitted on levels >= 1.
+    n_not_converged : int
+        Samples with a solve that did not converge (kept).
+    diagnostics : tuple of str
+        Failed checks of :func:`~rough_uq.multilevel.statistics.diagnose`
+        (consistency, kurtosis, coupling), in words; empty when all pass.
+    """
+
+    statistics: LevelStatistics
+    rates: Rates
+    n_not_converged: int
+    diagnostics: tuple[str, ...]
+
+    @property
+    def levels(self) -> np.ndarray:
+        """Screened levels, shape ``(n_levels,)``."""
+        return self.statistics.levels
+
+    @property
+    def n_samples(self) -> np.ndarray:
+        """Samples per screened level, shape ``(n_levels,)``."""
+        return self.statistics.n_samples
+
+
+def _problem(problem: object) -> ContactProblem:
+    if not isinstance(problem, ContactProblem):
+        raise InvalidParameterError("problem", problem, "a rough_uq.ContactProblem")
+    return problem
+
+
+def screen(
+    problem: ContactProblem, *, levels: int = 3, samples: int = 20, executor: BatchExecutor | None = None
+) -> ScreeningResult:
+    """Screening: ``samples`` coupled samples on each of levels ``0..levels-1``, per-level statistics and rates.
+
+    The samples are those of ``roughuq screen`` with the same settings
+    (stage :data:`~rough_uq.problem.batch.STAGE_SCREENING`, indices ``0..samples-1``).
+
+    Parameters
+    ----------
+    problem : ContactProblem
+    levels : int
+        Number of levels screened, >= 3 (default 3, as the config's): the
+        rates are fitted on levels >= 1.
+    samples : int
+        Samples per level, >= 2 (default 20).
+    executor : BatchExecutor, optional
+        Where samples are computed; default in this process.
+
+    Returns
+    -------
+    ScreeningResult
+
+    Raises
+    ------
+    EstimationError
+        The rates cannot be fitted (e.g. every ``E[Y_l]`` is 0).
+    """
+    problem = _problem(problem)
+    levels = integer("levels", levels, 3)
+    samples = integer("samples", samples, 2)
+    sampler = problem.sampler(STAGE_SCREENING, executor=executor)
+    indices = np.arange(samples, dtype=np.int64)
+    batches = [sampler.batch(level, indices) for level in range(levels)]
+    statistics = level_statistics(
+        fine=[b.fine for b in batches],
+        coarse=[b.coarse for b in batches],
+        cost=[modelled_cost(problem.model, b.level, b.n_iter) for b in batches],
+        levels=list(range(levels)),
+    )
+    return ScreeningResult(
+        statistics=statistics,
+        rates=fit_rates(statistics),
+        n_not_converged=sampler.n_not_converged,
+        diagnostics=tuple(diagnose(statistics)),
+    )
+
+
+def _tolerances(tol: object, n_qoi: int) -> np.ndarray:
+    try:
+        values = None if isinstance(tol, (str, bytes, bool)) else np.asarray(tol, dtype=float)
+    except (TypeError, ValueError):
+        values = None
+    if values is not None and values.ndim <= 1 and values.size in (1, n_qoi):
+        values = np.broadcast_to(values.reshape(-1), (n_qoi,)).copy()
+        if np.all(np.isfinite(values)) and np.all(values > 0):
+            return values
+    raise InvalidParameterError("tol", tol, f"a number > 0 or {n_qoi} of them (one per QoI, in its unit)")
+
+
+def _screening_statistics(screening: object) -> LevelStatistics | None:
+    if screening is None or isinstance(screening, LevelStatistics):
+        return screening
+    if isinstance(screening, ScreeningResult):
+        return screening.statistics
+    raise InvalidParameterError("screening", screening, "a ScreeningResult (rough_uq.screen), LevelStatistics or None")
+
+
+def _warn_not_converged(sampler: ContactSampler, method: str) -> None:
+    if sampler.n_not_converged:
+        warnings.warn(
+            f"{method}: {sampler.n_not_converged} of {sampler.n_samples} samples had a solve that did not converge "
+            "(kept with the QoIs of the last iterate); raise max_iter or solver_tol",
+            EstimationWarning,
+            stacklevel=3,
+        )
+
+
+def mlmc(
+    problem: ContactProblem,
+    *,
+    tol: float | Sequence[float] | np.ndarray,
+    theta: float = 0.5,
+    screening: ScreeningResult | LevelStatistics | None = None,
+    richardson: bool = False,
+    n_initial: int = 10,
+    min_finest_level: int = 2,
+    max_cost: float | None = None,
+    batch_size: int | None = 10,
+    rates: Rates | None = None,
+    kurtosis_limit: float = KURTOSIS_LIMIT,
+    executor: BatchExecutor | None = None,
+) -> EstimationResult:
+    """Adaptive MLMC estimate of ``E[Q]`` of a contact problem to RMS tolerance ``tol``.
+
+    Giles' algorithm (:func:`rough_uq.multilevel.drivers.iter_mlmc`) on levels
+    up to ``problem.max_level``. Without ``screening`` it starts on levels
+    ``0..min_finest_level`` with ``n_initial`` samples each; with one (what
+    ``roughuq mlmc`` does) it starts from the screening's plan, pools its
+    variances and drops coarse levels that do not pay
+    (:func:`~rough_uq.multilevel.statistics.choose_coarsest_level`). The random
+    stage is that of ``roughuq mlmc`` with the same QoIs, ``tol``, ``theta``
+    and ``richardson`` (module docstring).
+
+    Parameters
+    ----------
+    problem : ContactProblem
+    tol : float or sequence of float
+        Tolerance ``eps`` on the root-mean-square error, one for all QoIs or
+        one per QoI, in the QoIs' units (e.g. percent of contact area).
+    theta : float
+        Bias share of ``eps^2``, in (0, 1).
+    screening : ScreeningResult or LevelStatistics, optional
+        A screening of the same problem (:func:`screen`).
+    richardson : bool
+        Richardson-extrapolate the finest level where the level means allow
+        it (refused with a reason in the result otherwise).
+    n_initial, min_finest_level, max_cost, batch_size, rates, kurtosis_limit
+        As in :func:`rough_uq.multilevel.drivers.iter_mlmc`; ``max_cost`` and
+        costs are modelled reference seconds. Defaults are the config's.
+    executor : BatchExecutor, optional
+        Where samples are computed; default in this process.
+
+    Returns
+    -------
+    EstimationResult
+        ``estimate``, ``stat_error``, ``bias_estimate``, ``rmse`` of shape
+        ``(n_qoi,)`` in the QoIs' units; ``levels`` and ``n_samples`` of shape
+        ``(n_levels,)``; ``cost`` in reference seconds.
+
+    Warns
+    -----
+    EstimationWarning
+        For failed diagnostics of the run and for samples whose solve did not converge.
+    """
+    problem = _problem(problem)
+    tol = _tolerances(tol, problem.n_qoi)
+    stage = run_stage("mlmc", run_id("mlmc", problem.qoi, tol, theta, richardson=richardson))
+    sampler = problem.sampler(stage, executor=executor)
+    statistics = _screening_statistics(screening)
+    result = drivers.mlmc(
+        sampler,
+        tol=tol,
+        theta=theta,
+        n_initial=n_initial,
+        min_finest_level=min_finest_level,
+        max_level=problem.max_level,
+        max_cost=max_cost,
+        batch_size=batch_size,
+        screening=statistics,
+        rates=rates,
+        kurtosis_limit=kurtosis_limit,
+        richardson=richardson,
+        coarsest_level=None if statistics is not None else 0,
+    )
+    _warn_not_converged(sampler, "mlmc")
+    return result
+
+
+def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, screening, bias):
+    """The level plain MC samples and its bias: ``level`` if given, else the finest level of the screening's plan."""
+    statistics = _screening_statistics(screening)
+    if level is not None:
+        level = integer("level", level, 0)
+        if level > problem.max_level:
+            raise InvalidParameterError("level", level, f"an integer in 0..max_level = {problem.max_level}")
+        return level, bias
+    if statistics is None:
+        raise InvalidParameterError("level", None, "a level to sample, or a screening to choose it from")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
+        rates = screening.rates if isinstance(screening, ScreeningResult) else fit_rates(statistics)
+    prediction = plan(
+        tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=problem.max_level, coarsest_level=None
+    )
+    return prediction.finest_level, prediction.bias if bias is None else bias
+
+
+def mc(
+    problem: ContactProblem,
+    *,
+    tol: float | Sequence[float] | np.ndarray,
+    level: int | None = None,
+    theta: float = 0.5,
+    screening: ScreeningResult | LevelStatistics | None = None,
+    bias: float | Sequence[float] | np.ndarray | None = None,
+    n_initial: int = 10,
+    max_cost: float | None = None,
+    batch_size: int | None = 10,
+    kurtosis_limit: float = KURTOSIS_LIMIT,
+    executor: BatchExecutor | None = None,
+) -> EstimationResult:
+    """Plain Monte Carlo estimate of ``E[Q_level]`` of a contact problem to RMS tolerance ``tol``.
+
+    On ``level`` if given (``roughuq mc --level``: its bias is unknown unless
+    ``bias`` is given; a ``screening`` given too has its variance of ``level``
+    pooled in, which the CLI does not do); otherwise on the finest level the
+    ``screening``'s plan needs for ``tol``, with the plan's bias (``roughuq
+    mc``). The random stage is that of the same CLI command (module docstring).
+
+    Parameters
+    ----------
+    problem : ContactProblem
+    tol : float or sequence of float
+        Tolerance ``eps`` on the root-mean-square error, one for all QoIs or
+        one per QoI, in the QoIs' units.
+    level : int, optional
+        Level to sample, ``0..problem.max_level``; required without ``screening``.
+    theta : float
+        Bias share of ``eps^2``, in (0, 1).
+    screening : ScreeningResult or LevelStatistics, optional
+        A screening of the same problem (:func:`screen`).
+    bias : float or sequence of float, optional
+        Known bias of ``level`` (overrides the plan's).
+    n_initial, max_cost, batch_size, kurtosis_limit
+        As in :func:`rough_uq.multilevel.drivers.iter_mc`. Defaults are the config's.
+    executor : BatchExecutor, optional
+        Where samples are computed; default in this process.
+
+    Returns
+    -------
+    EstimationResult
+        As :func:`mlmc`'s, with ``levels == [level]``.
+    """
+    problem = _problem(problem)
+    tol = _tolerances(tol, problem.n_qoi)
+    mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
+    stage = run_stage("mc", run_id("mc", problem.qoi, tol, theta, level))
+    sampler = problem.sampler(stage, executor=executor)
+    result = drivers.mc(
+        sampler,
+        tol=tol,
+        level=mc_level,
+        theta=theta,
+        bias=bias,
+        n_initial=n_initial,
+        max_cost=max_cost,
+        batch_size=batch_size,
+        screening=_screening_statistics(screening),
+        kurtosis_limit=kurtosis_limit,
+    )
+    _warn_not_converged(sampler, "mc")
+    return result

@@ -1,0 +1,372 @@
+"""The public Python API (``rough_uq.__all__``): names, light import, tiny runs, equality with the CLI pipeline."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import re
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rough_uq
+from rough_uq.problem.batch import STAGE_SCREENING
+from rough_uq.problem.runs import run_id
+from rough_uq.problem.sampler import run_stage
+from rough_uq.study.config import config_from_dict
+from rough_uq.study.executors import Executor, SerialExecutor
+from rough_uq.study.pipeline import Study, build_model, run_estimation, run_screening
+from rough_uq.study.progress import Progress
+from rough_uq.study.store import MemoryStore
+from tests.study_configs import tiny_config
+
+ROOT = Path(__file__).resolve().parent.parent
+
+PUBLIC = [
+    "__version__",
+    "ContactProblem",
+    "RelativeLoad",
+    "AbsoluteLoad",
+    "ScreeningResult",
+    "mlmc",
+    "mc",
+    "screen",
+    "EstimationResult",
+    "LevelStatistics",
+    "Rates",
+    "SurfaceSpectrum",
+    "sample_surface",
+    "sample_coupled",
+    "solve_contact",
+    "ContactSolution",
+    "QOI_NAMES",
+    "evaluate_qoi",
+    "contact_area",
+    "count_clusters",
+    "label_clusters",
+    "mean_gap",
+    "max_pressure",
+    "area_above",
+    "RoughUQError",
+    "InvalidParameterError",
+    "ConvergenceError",
+    "EstimationError",
+    "EstimationWarning",
+]
+
+
+def _problem(**overrides: object) -> rough_uq.ContactProblem:
+    """A problem on grids 16, 32, 64 whose MLMC runs take about a second."""
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    options = dict(load=rough_uq.RelativeLoad(0.2), qoi=["contact_area"], coarsest=16, max_level=2, seed=7)
+    return rough_uq.ContactProblem(spectrum, **(options | overrides))
+
+
+def _tiny_problem(config: dict) -> rough_uq.ContactProblem:
+    """The ContactProblem of ``tests.study_configs.tiny_config()`` (relative load, contact area in percent)."""
+    surface = config["surface"]
+    spectrum = rough_uq.SurfaceSpectrum(
+        system_size=surface["system_size"], hurst=surface["hurst"], rms_height=surface["rms_height"],
+        **surface["wavenumbers"],
+    )
+    return rough_uq.ContactProblem(
+        spectrum,
+        load=rough_uq.RelativeLoad(config["load"]["relative"]),
+        qoi=list(config["qoi"]),
+        coarsest=config["grid"]["coarsest"],
+        max_level=config["grid"]["max_level"],
+        seed=config["seed"],
+        solver_tol=config["solver"]["tol"],
+    )
+
+
+# --------------------------------------------------------------------------
+# Names and imports
+# --------------------------------------------------------------------------
+
+
+def test_public_names_are_pinned_and_resolve():
+    assert rough_uq.__all__ == PUBLIC
+    for name in PUBLIC:
+        assert getattr(rough_uq, name) is not None, name
+    assert set(PUBLIC) <= set(dir(rough_uq))
+    assert rough_uq.mlmc is rough_uq.problem.runs.mlmc
+    assert rough_uq.EstimationResult is rough_uq.multilevel.drivers.EstimationResult
+    with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
+        rough_uq.not_a_name  # noqa: B018
+
+
+def _modules_after(code: str) -> list[str]:
+    probe = "import sys; " + code + "; print(sorted(m for m in {} if m in sys.modules))"
+    heavy = ("pydantic", "h5py", "click", "rich", "yaml", "numba", "pyfftw")
+    out = subprocess.run(
+        [sys.executable, "-c", probe.format(heavy)], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    return eval(out.stdout.strip())  # a printed list of str
+
+
+def test_import_is_light_and_the_api_needs_no_edge_library():
+    assert _modules_after("import rough_uq") == []
+    # Using every public name loads the solver (numba, pyfftw; numba imports PyYAML itself),
+    # never pydantic, h5py, click or rich.
+    used = _modules_after("import rough_uq; [getattr(rough_uq, n) for n in rough_uq.__all__]")
+    assert {"numba", "pyfftw"} <= set(used)
+    assert not {"pydantic", "h5py", "click", "rich"} & set(used)
+
+
+def test_init_imports_no_edge_module():
+    # The problem package is checked by tests/test_layering.py; __init__ only names modules lazily.
+    tree = ast.parse((ROOT / "rough_uq" / "__init__.py").read_text())
+    guarded = {
+        id(child)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING"
+        for child in ast.walk(node)
+    }
+    imported = [
+        alias.name if isinstance(node, ast.Import) else node.module
+        for node in ast.walk(tree)
+        if id(node) not in guarded and isinstance(node, (ast.Import, ast.ImportFrom))
+        for alias in node.names
+    ]
+    assert all(not (name or "").startswith("rough_uq") for name in imported), imported
+    edge = ("rough_uq.study", "rough_uq.report", "rough_uq.cli")
+    module_of = ast.literal_eval(next(
+        node.value for node in tree.body
+        if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "_EXPORTS"
+        or isinstance(node, ast.Assign) and getattr(node.targets[0], "id", "") == "_EXPORTS"
+    ))
+    assert not [m for m in module_of.values() if m.startswith(edge)]
+
+
+# --------------------------------------------------------------------------
+# The problem
+# --------------------------------------------------------------------------
+
+
+def test_relative_load_conversion_and_model_match_the_pipeline():
+    config = tiny_config(
+        material={"e_star": 3.0},
+        qoi={"contact_area": {"unit": "percent"}, "clusters": {"unit": "per_area", "connectivity": 8},
+             "mean_gap": {}},
+    )
+    problem = dataclasses.replace(
+        _tiny_problem(config), e_star=3.0, connectivity=8, qoi=("contact_area", "clusters", "mean_gap")
+    )
+    model = build_model(config_from_dict(config))
+    assert problem.mean_pressure == model.mean_pressure
+    assert problem.mean_pressure == pytest.approx(0.2 * 3.0 * np.sqrt(problem.spectrum.m2), rel=1e-14)
+    assert problem.model == model  # every field, FFT wisdom aside
+    absolute = build_model(config_from_dict(tiny_config(load={"absolute": 0.05})))
+    assert absolute.mean_pressure == rough_uq.AbsoluteLoad(0.05).mean_pressure(spectrum=problem.spectrum, e_star=3.0)
+
+
+def test_units_scale_the_quantities():
+    spectrum = _problem().spectrum
+    percent = _problem()
+    fraction = _problem(units={"contact_area": "fraction"})
+    assert fraction.units == (("contact_area", "fraction"),)
+    assert percent.model.qoi_scales == (100.0,) and fraction.model.qoi_scales == (1.0,)
+    clusters = _problem(qoi="clusters")
+    assert clusters.qoi == ("clusters",) and clusters.qoi_units == ("per_area",)
+    assert clusters.model.qoi_scales == (1.0 / spectrum.system_size**2,)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "field"),
+    [
+        ({"load": 0.1}, "load"),
+        ({"load": rough_uq.AbsoluteLoad}, "load"),
+        ({"qoi": []}, "qoi"),
+        ({"qoi": ["contact_area", "contact_area"]}, "qoi"),
+        ({"qoi": ["area"]}, "qoi"),
+        ({"coarsest": 15}, "coarsest"),
+        ({"coarsest": 4}, "coarsest"),  # 4 / 2 = 2 does not resolve k_r = 2
+        ({"units": {"contact_area": "per_area"}}, "units.contact_area"),
+        ({"units": {"clusters": "absolute"}}, "units"),
+        ({"e_star": 0}, "e_star"),
+        ({"max_level": -1}, "max_level"),
+        ({"projection": "injection"}, "projection"),  # k_s = 8 is not below 16 / 2
+        ({"connectivity": 6}, "connectivity"),
+        ({"area_estimator": "perimeter"}, "area_estimator"),
+        ({"qoi": ["area_above"]}, "critical_pressure"),
+        ({"seed": -1}, "seed"),
+        ({"seed": 1.5}, "seed"),
+        ({"solver_tol": 1.0}, "solver_tol"),
+        ({"max_iter": 0}, "max_iter"),
+        ({"warm_start": "yes"}, "warm_start"),
+        ({"threads": 0}, "threads"),
+    ],
+)
+def test_invalid_settings_name_the_field(overrides, field):
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        _problem(**overrides)
+    assert caught.value.name == field
+
+
+def test_invalid_loads_and_arguments_name_the_field():
+    for load, field in ((rough_uq.RelativeLoad, "load.relative"), (rough_uq.AbsoluteLoad, "load.absolute")):
+        for value in (0.0, -1.0, float("nan"), "0.1"):
+            with pytest.raises(rough_uq.InvalidParameterError) as caught:
+                load(value)
+            assert caught.value.name == field
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.ContactProblem("spectrum", load=rough_uq.RelativeLoad(0.1), qoi=["contact_area"], coarsest=16)
+    assert caught.value.name == "spectrum"
+    problem = _problem()
+    for call, field in (
+        (lambda: rough_uq.mlmc(problem, tol=[0.5, 0.5]), "tol"),
+        (lambda: rough_uq.mlmc(problem, tol=-1.0), "tol"),
+        (lambda: rough_uq.mlmc("problem", tol=1.0), "problem"),
+        (lambda: rough_uq.mc(problem, tol=1.0), "level"),
+        (lambda: rough_uq.mc(problem, tol=1.0, level=3), "level"),
+        (lambda: rough_uq.screen(problem, levels=2), "levels"),
+        (lambda: rough_uq.mlmc(problem, tol=1.0, screening="table"), "screening"),
+    ):
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            call()
+        assert caught.value.name == field
+
+
+def test_problem_is_frozen_and_hashable():
+    problem = _problem()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        problem.seed = 3
+    assert problem == _problem() and hash(problem) == hash(_problem())
+    assert problem != _problem(seed=8)
+    assert problem.grid(2) == 64
+
+
+# --------------------------------------------------------------------------
+# Tiny runs
+# --------------------------------------------------------------------------
+
+
+def test_mlmc_mc_screen_on_small_grids():
+    problem = _problem()
+    result = rough_uq.mlmc(problem, tol=2.0)
+    assert result.method == "mlmc"
+    assert result.estimate.shape == result.rmse.shape == (1,)
+    assert result.levels.shape == result.n_samples.shape and result.levels[0] == 0
+    assert 0 < result.estimate[0] < 100  # percent of the nominal area
+    if result.tol_met:
+        assert result.rmse[0] <= 2.0
+    else:
+        assert result.stop_reason in ("max_level", "max_cost")
+
+    mc = rough_uq.mc(problem, tol=2.0, level=1)
+    assert mc.levels.tolist() == [1] and mc.n_samples[0] >= 10
+    assert mc.estimate.shape == (1,) and not mc.is_bias_estimated
+
+    screening = rough_uq.screen(problem, levels=3, samples=6)
+    assert screening.levels.tolist() == [0, 1, 2] and screening.n_samples.tolist() == [6, 6, 6]
+    assert screening.statistics.mean_fine.shape == (3, 1)
+    assert screening.rates.alpha.shape == (1,) and screening.n_not_converged == 0
+    planned = rough_uq.mc(problem, tol=2.0, screening=screening)
+    assert planned.is_bias_estimated and 0 <= planned.levels[0] <= problem.max_level
+
+
+def test_same_seed_same_estimate_other_seed_other_estimate():
+    first = rough_uq.mlmc(_problem(), tol=2.0)
+    again = rough_uq.mlmc(_problem(), tol=2.0)
+    np.testing.assert_array_equal(again.estimate, first.estimate)
+    np.testing.assert_array_equal(again.n_samples, first.n_samples)
+    other = rough_uq.mlmc(_problem(seed=8), tol=2.0)
+    assert not np.array_equal(other.estimate, first.estimate)
+
+
+class _Reversed(Executor):
+    """Computes the items serially but yields them last first (as a pool may)."""
+
+    def run(self, model, items):
+        return reversed(list(SerialExecutor().run(model, items)))
+
+
+def test_an_executor_computes_the_same_samples():
+    problem = _problem()
+    default = problem.sampler(STAGE_SCREENING)(1, np.arange(4))
+    reordered = problem.sampler(STAGE_SCREENING, executor=_Reversed())(1, np.arange(4))
+    for mine, theirs in zip(default, reordered):
+        np.testing.assert_array_equal(theirs, mine)
+    mc = rough_uq.mc(problem, tol=2.0, level=0)
+    assert rough_uq.mc(problem, tol=2.0, level=0, executor=_Reversed()).estimate == mc.estimate
+
+
+@pytest.mark.slow
+def test_a_process_pool_computes_the_same_estimate():
+    from rough_uq.study.executors import PoolExecutor
+
+    problem = _problem()
+    serial = rough_uq.mlmc(problem, tol=2.0)
+    with PoolExecutor(2) as pool:
+        pooled = rough_uq.mlmc(problem, tol=2.0, executor=pool)
+    np.testing.assert_array_equal(pooled.estimate, serial.estimate)
+    np.testing.assert_array_equal(pooled.n_samples, serial.n_samples)
+
+
+def test_non_converged_samples_are_reported():
+    problem = _problem(max_iter=1, solver_tol=1e-12)
+    with pytest.warns(rough_uq.EstimationWarning, match="did not converge"):
+        rough_uq.mc(problem, tol=100.0, level=0, n_initial=2)
+
+
+# --------------------------------------------------------------------------
+# Equal to the CLI pipeline
+# --------------------------------------------------------------------------
+
+
+def test_api_computes_what_the_pipeline_computes(monkeypatch):
+    # Both plan FFTs the same way (the pipeline otherwise measures plans per machine).
+    monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", "estimate")
+    config = tiny_config()
+    study = Study(config_from_dict(config), MemoryStore(qoi_names=("contact_area",)))
+    quiet = Progress()
+    outcome = run_screening(study, executor=SerialExecutor(), progress=quiet)
+    problem = _tiny_problem(config)
+    screening = rough_uq.screen(problem, levels=config["screening"]["levels"], samples=config["screening"]["samples"])
+    np.testing.assert_array_equal(screening.statistics.mean_diff, outcome.statistics.mean_diff)
+    np.testing.assert_array_equal(screening.statistics.var_diff, outcome.statistics.var_diff)
+    np.testing.assert_array_equal(screening.statistics.mean_cost, outcome.statistics.mean_cost)
+
+    options = dict(n_initial=config["estimation"]["initial_samples"], batch_size=config["estimation"]["batch_size"])
+    for method, level in (("mlmc", None), ("mc", None), ("mc", 1)):
+        record = run_estimation(
+            study, method=method, tol=np.array([2.0]), executor=SerialExecutor(), progress=quiet, level=level
+        )
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", rough_uq.EstimationWarning)
+            if method == "mlmc":
+                result = rough_uq.mlmc(problem, tol=2.0, screening=screening, **options)
+            elif level is None:
+                result = rough_uq.mc(problem, tol=2.0, screening=screening, **options)
+            else:
+                result = rough_uq.mc(problem, tol=2.0, level=level, **options)
+        # The same diagnostics, as warnings here and in the run record there.
+        assert list(dict.fromkeys(str(w.message) for w in caught)) == record["warnings"], (method, level)
+        assert result.levels.tolist() == record["levels"], (method, level)
+        assert result.n_samples.tolist() == record["n_samples"], (method, level)
+        assert result.estimate.tolist() == record["estimate"], (method, level)
+        assert result.rmse.tolist() == record["rmse"], (method, level)
+        name = run_id(method, ("contact_area",), [2.0], 0.5, level)
+        assert run_stage(method, name) == record["stage"]
+
+
+# --------------------------------------------------------------------------
+# The README's example
+# --------------------------------------------------------------------------
+
+
+def test_readme_from_python_example_runs(capsys):
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("\n## From Python\n", 1)[1].split("\n## ", 1)[0]
+    (block,) = re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    namespace: dict[str, object] = {}
+    exec(compile(block, "README.md (From Python)", "exec"), namespace)
+    result = namespace["result"]
+    assert isinstance(result, rough_uq.EstimationResult)
+    assert result.tol_met and result.rmse[0] <= 0.5
+    assert str(result.stop_reason) in capsys.readouterr().out
