@@ -16,6 +16,7 @@ from rough_uq.physics.qoi import (
     area_above,
     contact_area,
     contact_perimeter,
+    cluster_count,
     count_clusters,
     evaluate_qoi,
     label_clusters,
@@ -213,6 +214,23 @@ def test_evaluate_qoi_connectivity() -> None:
     pressure[0, 0] = pressure[5, 5] = 1.0
     assert evaluate_qoi(["clusters"], pressure=pressure)[0] == 2
     assert evaluate_qoi(["clusters"], pressure=pressure, connectivity=8)[0] == 1
+    assert evaluate_qoi(["clusters"], pressure=pressure, connectivity="mean")[0] == 1.5
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_mean_count_is_the_mean_of_the_two_neighbourhoods(seed: int) -> None:
+    # Random maps, some wrapping both boundaries: "mean" is (N4 + N8) / 2, and N8 <= mean <= N4.
+    rng = np.random.default_rng([77, seed])
+    contact = rng.random((24, 24)) < rng.uniform(0.2, 0.6)
+    four, eight = count_clusters(contact, connectivity=4), count_clusters(contact, connectivity=8)
+    mean = cluster_count(contact, "mean")
+    assert mean == 0.5 * (four + eight)
+    assert eight <= mean <= four
+    assert cluster_count(contact, 4) == four and cluster_count(contact, 8) == eight
+    for bad in (6, "8", True, None, "average"):
+        with pytest.raises(InvalidParameterError) as info:
+            cluster_count(contact, bad)
+        assert info.value.name == "connectivity"
 
 
 def test_evaluate_qoi_rejects_bad_requests() -> None:

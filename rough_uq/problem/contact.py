@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError
-from rough_uq.physics.qoi import AREA_ESTIMATORS, CONNECTIVITIES, QOI_NAMES
+from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
 from rough_uq.problem.batch import LevelBatch
 from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, positive, qoi_scale
@@ -110,8 +110,9 @@ class ContactProblem:
         How the coarse surface of a coupled sample is obtained
         (:func:`~rough_uq.physics.surface.sample_coupled`); injection needs
         ``k_s < coarsest / 2``.
-    connectivity : {4, 8}
-        Neighbourhood of ``clusters``.
+    connectivity : {4, 8, "mean"}
+        Neighbourhood of ``clusters``, or the mean of the 4- and 8-connected
+        counts (:func:`~rough_uq.physics.qoi.cluster_count`).
     area_estimator : {"corrected", "nodes"}
         Estimator of ``contact_area`` (:func:`~rough_uq.physics.qoi.contact_area`):
         perimeter-corrected (default) or the node count.
@@ -144,7 +145,7 @@ class ContactProblem:
     e_star: float = 1.0
     max_level: int = 4
     projection: str = "truncation"
-    connectivity: int = 4
+    connectivity: int | str = 4
     area_estimator: str = "corrected"
     critical_pressure: float | None = None
     seed: int = 0
@@ -166,7 +167,7 @@ class ContactProblem:
         set_(self, "units", _units(self.units, names))
         set_(self, "e_star", positive("e_star", self.e_star))
         self._check_grids()
-        set_(self, "connectivity", int(_choice("connectivity", self.connectivity, CONNECTIVITIES)))
+        _choice("connectivity", self.connectivity, CLUSTER_COUNTS)
         _choice("area_estimator", self.area_estimator, AREA_ESTIMATORS)
         if self.critical_pressure is not None:
             set_(self, "critical_pressure", positive("critical_pressure", self.critical_pressure))

@@ -111,8 +111,9 @@ class ContactModel:
     tol, max_iter, warm_start, threads
         Solver settings (:func:`~rough_uq.physics.solver.solve_contact`); with
         ``warm_start`` the fine solve starts from the coarse pressure.
-    connectivity : {4, 8}
-        Cluster connectivity.
+    connectivity : {4, 8, "mean"}
+        Cluster connectivity, or the mean of both counts
+        (:func:`~rough_uq.physics.qoi.cluster_count`).
     critical_pressure : float or None
         Threshold of ``area_above``.
     area_estimator : {"corrected", "nodes"}
@@ -135,7 +136,7 @@ class ContactModel:
     max_iter: int = 10_000
     warm_start: bool = True
     threads: int = 1
-    connectivity: int = 4
+    connectivity: int | str = 4
     critical_pressure: float | None = None
     area_estimator: str = "corrected"
     fft_wisdom: tuple[bytes, ...] | None = field(default=None, repr=False, compare=False)

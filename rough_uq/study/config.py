@@ -486,10 +486,13 @@ class ClustersQoi(_Section):
         description="Count per box (dimensionless) or per unit area (1 / length unit^2)",
         allowed="'absolute' or 'per_area'",
     )
-    connectivity: Literal[4, 8] = _field(
+    connectivity: Literal[4, 8, "mean"] = _field(
         4,
-        description="4: edge neighbours connect; 8: diagonal neighbours connect too",
-        allowed="4 or 8",
+        description=(
+            "4: edge neighbours connect; 8: diagonal neighbours connect too; 'mean': the mean of the 4- and "
+            "8-connected counts, which approach the limit from opposite sides (the classic cluster study's choice)"
+        ),
+        allowed="4, 8 or 'mean'",
     )
     tol: Float | None = _field(
         None, description=_TOL_DESCRIPTION + " (count or 1 / length^2)", allowed="number > 0 or null", gt=0
