@@ -14,16 +14,3 @@ def _fftw_wisdom_in_a_temporary_cache(tmp_path_factory):
     yield
     patch.undo()
 
-
-@pytest.fixture(autouse=True)
-def _signal_handlers_restored():
-    # ``rough_uq.cli.run`` ignores SIGINT/SIGTERM once its command has returned (the
-    # work is saved; the process is exiting). Tests call it in this process, where
-    # that would outlive the test: subprocesses started later inherit "ignore" and a
-    # Ctrl-C sent to them would be lost (tests/test_faults.py).
-    import signal
-
-    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    yield
-    for sig, handler in saved.items():
-        signal.signal(sig, handler)

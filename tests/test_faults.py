@@ -39,9 +39,15 @@ def _roughuq(*args: str, cwd: Path, **kwargs: object) -> subprocess.CompletedPro
                           timeout=300, env=ENV, **kwargs)
 
 
+def _default_sigint() -> None:
+    # A pytest run started in the background (``cmd &`` in a script) ignores SIGINT, and a child
+    # inherits that: Python then installs no KeyboardInterrupt handler and the Ctrl-C tests fail.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(*args: str, cwd: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "rough_uq.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=ENV)
+                            stderr=subprocess.PIPE, text=True, env=ENV, preexec_fn=_default_sigint)
 
 
 def _screened(directory: Path) -> Path:
