@@ -248,7 +248,7 @@ def mlmc(
     """
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi)
-    stage = run_stage("mlmc", run_id("mlmc", problem.qoi, tol, theta, richardson=richardson))
+    stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor)
     statistics = _screening_statistics(screening)
     result = drivers.mlmc(
@@ -338,7 +338,7 @@ def mc(
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi)
     mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
-    stage = run_stage("mc", run_id("mc", problem.qoi, tol, theta, level))
+    stage = run_stage("mc", run_id("mc", problem.columns, tol, theta, level))
     sampler = problem.sampler(stage, executor=executor)
     result = drivers.mc(
         sampler,
