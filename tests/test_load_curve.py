@@ -112,3 +112,144 @@ def test_bad_retry_iter_names_the_field():
     heights, size, _, _, _ = random_surface(0, grids=(32,))
     with pytest.raises(InvalidParameterError, match="retry_iter"):
         solve_load_curve(heights, system_size=size, mean_pressures=[0.1], retry_iter=-1)
+
+
+# --------------------------------------------------------------------------
+# Config, problem and pipeline
+# --------------------------------------------------------------------------
+
+CURVE = [0.2, 0.05, 0.1]  # relative loads, unsorted on purpose
+
+
+def _spectrum():
+    return SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+
+
+def _curve_problem(**overrides):
+    import rough_uq
+
+    loads = [rough_uq.RelativeLoad(v) for v in CURVE]
+    options = dict(load=loads, qoi=["contact_area", "clusters"], coarsest=16, max_level=2, seed=7, solver_tol=1e-10)
+    return rough_uq.ContactProblem(_spectrum(), **(options | overrides))
+
+
+@pytest.mark.parametrize(
+    ("load", "field", "what"),
+    [
+        ({"relative": []}, "load.relative", "at least one load"),
+        ({"relative": [0.1, 0.0]}, "load.relative.1", "> 0"),
+        ({"absolute": [-1.0, 0.1]}, "load.absolute.0", "> 0"),
+        ({"relative": [0.1, "x"]}, "load.relative.1", "> 0"),
+        ({"relative": [0.05, 0.1, 0.05]}, "load.relative", "given once; repeated: 0.05"),
+        ({"relative": [0.1], "absolute": [0.2]}, "load.relative", "exactly once"),
+        ({"relative": {"a": 0.1}}, "load.relative", "a number or a list"),
+    ],
+)
+def test_bad_load_lists_name_the_field(load, field, what):
+    from rough_uq.errors import ConfigError
+    from rough_uq.study.config import config_from_dict
+    from tests.study_configs import tiny_config
+
+    with pytest.raises(ConfigError) as caught:
+        config_from_dict(tiny_config(load=load))
+    line = str(caught.value)
+    assert line.startswith(field + ":") and what in line, line
+
+
+def test_config_curve_columns_and_a_one_element_list_is_the_single_load():
+    from rough_uq.study.config import config_from_dict, config_from_yaml_text, config_hash, resolved_yaml
+    from tests.study_configs import tiny_config
+
+    qoi = {"contact_area": {"tol": 1.0}, "clusters": {"tol": 5.0}}
+    curve = config_from_dict(tiny_config(load={"relative": CURVE}, qoi=qoi))
+    assert curve.load.values == tuple(CURVE) and curve.load.n_loads == 3
+    assert curve.qoi_names == (
+        "contact_area@0.2", "contact_area@0.05", "contact_area@0.1", "clusters@0.2", "clusters@0.05", "clusters@0.1",
+    )
+    assert config_from_yaml_text(resolved_yaml(curve)) == curve
+    single, listed = (config_from_dict(tiny_config(load={"relative": v})) for v in (0.2, [0.2]))
+    assert listed == single and config_hash(listed) == config_hash(single) and single.qoi_names == ("contact_area",)
+
+
+def test_problem_columns_and_model_match_the_pipeline():
+    import rough_uq
+    from rough_uq.study.config import config_from_dict
+    from rough_uq.study.pipeline import build_model
+    from tests.study_configs import tiny_config
+
+    config = config_from_dict(
+        tiny_config(load={"relative": CURVE}, qoi={"contact_area": {}, "clusters": {}}, solver={"tol": 1e-10},
+                    seed=7, grid={"coarsest": 16, "max_level": 2})
+    )
+    problem = _curve_problem()
+    assert problem.columns == config.qoi_names and problem.n_qoi == 6 and problem.n_loads == 3
+    assert problem.model == build_model(config)
+    assert problem.model.loads == tuple(v * _spectrum().rms_slope for v in CURVE)
+    with pytest.raises(InvalidParameterError, match="load"):
+        _curve_problem(load=[])
+    with pytest.raises(InvalidParameterError, match="distinct"):
+        _curve_problem(load=[rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(0.1)])
+    with pytest.raises(InvalidParameterError, match="load"):
+        _curve_problem(load=[rough_uq.RelativeLoad(0.1), rough_uq.AbsoluteLoad(0.2)])
+
+
+@pytest.mark.parametrize("stage_kind", ["mlmc", "mc"])
+def test_curve_columns_equal_single_load_samples(stage_kind):
+    # Each load column of a curve sample is the sample of a single-load problem at that load
+    # (same surface; the warm starts change the path of the solver only).
+    import rough_uq
+    from rough_uq.problem.sampler import compute_batch, run_stage
+
+    stage = run_stage(stage_kind, "curve-test")
+    curve = _curve_problem()
+    batch = compute_batch(curve.model, stage=stage, level=1, indices=np.arange(3))
+    assert batch.fine.shape == (3, 6) and batch.is_converged.all()
+    for j, value in enumerate(CURVE):
+        single = _curve_problem(load=rough_uq.RelativeLoad(value))
+        alone = compute_batch(single.model, stage=stage, level=1, indices=np.arange(3))
+        for part in ("fine", "coarse"):
+            columns = getattr(batch, part)[:, [j, 3 + j]]
+            np.testing.assert_allclose(columns, getattr(alone, part), rtol=1e-9, atol=1e-9, err_msg=f"{part} {value}")
+    order = np.argsort(CURVE)
+    assert np.all(np.diff(batch.fine[:, order], axis=1) > 0)  # the area grows with the load
+
+
+def test_tiny_mlmc_and_mc_give_curves():
+    import rough_uq
+
+    problem = _curve_problem(qoi=["contact_area"])
+    result = rough_uq.mlmc(problem, tol=3.0)
+    assert result.estimate.shape == result.rmse.shape == (3,)
+    order = np.argsort(CURVE)
+    assert np.all(np.diff(result.estimate[order]) > 0)
+    mc = rough_uq.mc(problem, tol=3.0, level=0)
+    assert mc.estimate.shape == (3,) and np.all(np.diff(mc.estimate[order]) > 0)
+
+
+def test_pipeline_study_with_a_curve_stores_columns_and_tolerances_apply_per_column():
+    from rough_uq.study.config import config_from_dict
+    from rough_uq.study.executors import SerialExecutor
+    from rough_uq.study.pipeline import Study, parse_tolerances, run_estimation, run_screening
+    from rough_uq.study.progress import Progress
+    from rough_uq.study.store import MemoryStore
+    from tests.study_configs import tiny_config
+
+    qoi = {"contact_area": {"tol": 2.0}, "mean_gap": {"tol": 0.05}}
+    config = config_from_dict(tiny_config(load={"relative": CURVE}, qoi=qoi))
+    tol = parse_tolerances(None, config)
+    np.testing.assert_array_equal(tol, [2.0] * 3 + [0.05] * 3)
+    tol = parse_tolerances(["contact_area=1.5", "contact_area@0.05=3"], config)
+    np.testing.assert_array_equal(tol, [1.5, 3.0, 1.5, 0.05, 0.05, 0.05])
+    with pytest.raises(InvalidParameterError, match="contact_area@0.3"):
+        parse_tolerances(["contact_area@0.3=1"], config)
+    single_qoi = config_from_dict(tiny_config(load={"relative": CURVE}))
+    np.testing.assert_array_equal(parse_tolerances(["0.7"], single_qoi), [0.7] * 3)
+
+    study = Study(config, MemoryStore(qoi_names=config.qoi_names))
+    outcome = run_screening(study, executor=SerialExecutor(), progress=Progress())
+    assert outcome.statistics.mean_fine.shape == (3, 6)
+    record = run_estimation(study, method="mlmc", tol=parse_tolerances(None, config), executor=SerialExecutor(),
+                            progress=Progress())
+    assert record["qoi_names"] == list(config.qoi_names) and len(record["estimate"]) == 6
+    area = np.array(record["estimate"][:3])
+    assert np.all(np.diff(area[np.argsort(CURVE)]) > 0)

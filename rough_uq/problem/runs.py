@@ -63,6 +63,8 @@ def run_id(
     rerunning its command, and :func:`mlmc` / :func:`mc` draw the samples the
     CLI draws. A Richardson-extrapolated MLMC run ends in ``_richardson``.
     """
+    # A load-curve column "contact_area@0.05" appears as "contact_area-at-0.05": run names are file-safe.
+    names = [name.replace("@", "-at-") for name in names]
     parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
     if level is not None:
         parts.append(f"level-{level}")
