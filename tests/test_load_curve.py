@@ -118,7 +118,7 @@ def test_bad_retry_iter_names_the_field():
 # Config, problem and pipeline
 # --------------------------------------------------------------------------
 
-CURVE = [0.2, 0.05, 0.1]  # relative loads, unsorted on purpose
+CURVE = [0.2, 0.02, 0.1]  # relative loads, unsorted on purpose
 
 
 def _spectrum():
@@ -164,7 +164,7 @@ def test_config_curve_columns_and_a_one_element_list_is_the_single_load():
     curve = config_from_dict(tiny_config(load={"relative": CURVE}, qoi=qoi))
     assert curve.load.values == tuple(CURVE) and curve.load.n_loads == 3
     assert curve.qoi_names == (
-        "contact_area@0.2", "contact_area@0.05", "contact_area@0.1", "clusters@0.2", "clusters@0.05", "clusters@0.1",
+        "contact_area@0.2", "contact_area@0.02", "contact_area@0.1", "clusters@0.2", "clusters@0.02", "clusters@0.1",
     )
     assert config_from_yaml_text(resolved_yaml(curve)) == curve
     single, listed = (config_from_dict(tiny_config(load={"relative": v})) for v in (0.2, [0.2]))
@@ -238,7 +238,7 @@ def test_pipeline_study_with_a_curve_stores_columns_and_tolerances_apply_per_col
     config = config_from_dict(tiny_config(load={"relative": CURVE}, qoi=qoi))
     tol = parse_tolerances(None, config)
     np.testing.assert_array_equal(tol, [2.0] * 3 + [0.05] * 3)
-    tol = parse_tolerances(["contact_area=1.5", "contact_area@0.05=3"], config)
+    tol = parse_tolerances(["contact_area=1.5", "contact_area@0.02=3"], config)
     np.testing.assert_array_equal(tol, [1.5, 3.0, 1.5, 0.05, 0.05, 0.05])
     with pytest.raises(InvalidParameterError, match="contact_area@0.3"):
         parse_tolerances(["contact_area@0.3=1"], config)
@@ -253,3 +253,85 @@ def test_pipeline_study_with_a_curve_stores_columns_and_tolerances_apply_per_col
     assert record["qoi_names"] == list(config.qoi_names) and len(record["estimate"]) == 6
     area = np.array(record["estimate"][:3])
     assert np.all(np.diff(area[np.argsort(CURVE)]) > 0)
+
+
+# --------------------------------------------------------------------------
+# Report: slope fit, tables, figure
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_slope_fit_recovers_a_linear_area_and_bounds_the_error(seed):
+    from rough_uq.report.summary import fit_area_slope
+
+    rng = np.random.default_rng([18, 5, seed])
+    kappa = rng.uniform(1, 3)
+    loads = np.sort(rng.uniform(0.001, 0.2, size=int(rng.integers(3, 8))))
+    exact = kappa * loads
+    # Above 10 % area the curve bends: such points must not enter the fit.
+    area = np.where(exact < 0.1, exact, 0.1 + 0.3 * (exact - 0.1))
+    errors = rng.uniform(1e-5, 1e-4, size=loads.size)  # small enough that no point crosses 10 %
+    fit = fit_area_slope(relative_loads=loads, area=area, area_error=errors)
+    if np.all(exact >= 0.1):
+        assert fit is None
+        return
+    small = exact < 0.1
+    assert fit.kappa == pytest.approx(kappa, rel=1e-12) and fit.n_points == int(small.sum())
+    # Fully correlated errors (every estimate off by +e_i) move kappa by exactly the bound.
+    shifted = fit_area_slope(relative_loads=loads, area=area + errors * small, area_error=errors)
+    assert shifted.n_points == fit.n_points
+    assert shifted.kappa - fit.kappa == pytest.approx(fit.error, rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def curve_study(tmp_path_factory):
+    """A tiny curve study screened and estimated through the real CLI; the path of its study file."""
+    import os
+
+    from click.testing import CliRunner
+
+    from rough_uq.cli import main
+    from tests.study_configs import tiny_config, write_config
+
+    directory = tmp_path_factory.mktemp("curve")
+    qoi = {"contact_area": {"tol": 2.0}, "mean_gap": {"tol": 0.05}}
+    config = tiny_config(load={"relative": CURVE}, qoi=qoi, output={"path": str(directory / "curve.h5")})
+    path = write_config(directory / "curve.yaml", config)
+    previous = os.getcwd()
+    os.chdir(directory)
+    try:
+        study = str(directory / "curve.h5")
+        for args in (["screen", str(path)], ["mlmc", "--study", study, "--tol", "mean_gap@0.02=0.1"],
+                     ["mc", "--study", study]):
+            result = CliRunner().invoke(main, [*args, "--workers", "1", "--quiet"])
+            assert result.exit_code == 0, (args, result.output, result.exception)
+    finally:
+        os.chdir(previous)
+    return directory / "curve.h5"
+
+
+def test_report_shows_the_load_curve_table_and_kappa(curve_study, tmp_path):
+    from click.testing import CliRunner
+
+    from rough_uq.cli import main
+    from rough_uq.study.pipeline import open_existing_study
+    from rough_uq.report.summary import study_report
+
+    with open_existing_study(curve_study, writable=False) as study:
+        report = study_report(study.store, study.config)
+    curves = report["load_curves"]
+    assert [entry["method"] for entry in curves] == ["mlmc", "mc"]
+    for entry, run in zip(curves, report["runs"]):
+        assert entry["loads"] == sorted(CURVE) and entry["relative_loads"] == sorted(CURVE)
+        for j, load in enumerate(entry["loads"]):
+            column = report["qoi_names"].index(f"contact_area@{load!r}")
+            assert entry["curves"]["contact_area"]["estimate"][j] == run["estimate"][column]
+        assert np.all(np.diff(entry["curves"]["contact_area"]["estimate"]) > 0)
+        # The smallest load has less than 10 % contact: kappa is fitted on it.
+        assert entry["kappa"]["n_points"] >= 1 and entry["kappa"]["kappa"] > 0 and entry["kappa"]["error"] > 0
+    mlmc = report["runs"][0]
+    assert mlmc["tol"] == [2.0] * 3 + [0.05, 0.1, 0.05]  # per QoI, one column apart
+
+    output = CliRunner().invoke(main, ["report", str(curve_study), "--plots", str(tmp_path)]).output
+    assert "Load curve of" in output and "kappa =" in output and "contact_area@0.02" in output
+    assert (tmp_path / "load_curve.png").read_bytes().startswith(b"\x89PNG")

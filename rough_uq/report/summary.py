@@ -597,8 +597,8 @@ def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: di
         fit = entry.get("kappa")
         if fit is not None:
             console.print(
-                f"  kappa = {_value_error(fit['kappa'], fit['error'])} in A/A0 = kappa p/(E* sqrt(m2)), "
-                f"fitted through 0 on the {fit['n_points']} loads with A/A0 < {fit['max_area']:g} "
-                f"(Persson: sqrt(8/pi) = {math.sqrt(8 / math.pi):.3f}; numerical studies: about 2)",
+                f"  kappa = {_value_error(fit['kappa'], fit['error'])} in A/A0 = kappa p/(E* sqrt(m2)), fitted "
+                f"through 0\n  on the {fit['n_points']} load(s) with A/A0 < {fit['max_area']:g}; Persson's theory: "
+                f"sqrt(8/pi) = {math.sqrt(8 / math.pi):.3f}, numerical studies: about 2",
                 highlight=False,
             )
