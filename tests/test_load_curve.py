@@ -91,6 +91,27 @@ def test_a_single_load_is_solve_contact(seed):
         assert curve.n_iter[0] == single.n_iter and curve.is_converged == single.converged
 
 
+def test_guesses_per_load_replace_the_sequence():
+    # Each load starts from its own guess (e.g. the coarse solution): exactly the independent warm solve.
+    from rough_uq.physics.surface import sample_coupled
+
+    _, size, slope, _, rng = random_surface(400, grids=(64,))
+    spectrum = SurfaceSpectrum(system_size=size, k_l=1, k_r=2, k_s=40, hurst=0.7, rms_height=1.0)
+    heights, coarse_heights = sample_coupled(spectrum, 64, rng, projection="truncation")
+    loads = np.array([0.1, 0.02, 0.3]) * spectrum.rms_slope
+    coarse = solve_load_curve(coarse_heights, system_size=size, mean_pressures=loads)
+    guesses = [solution.pressure for solution in coarse.solutions]
+    curve = solve_load_curve(heights, system_size=size, mean_pressures=loads, initial_pressures=guesses)
+    for load, guess, solution, n_iter in zip(loads, guesses, curve.solutions, curve.n_iter):
+        alone = solve_contact(heights, system_size=size, mean_pressure=load, initial_pressure=guess)
+        assert np.array_equal(solution.pressure, alone.pressure) and n_iter == alone.n_iter
+    with pytest.raises(InvalidParameterError, match="initial_pressures"):
+        solve_load_curve(heights, system_size=size, mean_pressures=loads, initial_pressures=guesses[:2])
+    with pytest.raises(InvalidParameterError, match="initial_pressure"):
+        solve_load_curve(heights, system_size=size, mean_pressures=loads, initial_pressures=guesses,
+                         initial_pressure=guesses[0])
+
+
 def test_a_solve_that_stops_early_is_flagged_and_continued_with_retry_iter():
     heights, size, slope, _, _ = random_surface(300, grids=(64,))
     loads = [0.05 * slope, 0.2 * slope]

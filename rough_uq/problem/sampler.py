@@ -33,10 +33,12 @@ and reported.
 Load curves
 -----------
 A model with several loads (``mean_pressures``) solves each surface along the
-increasing loads with warm starts
-(:func:`~rough_uq.physics.load_curve.solve_load_curve`), the fine grid and the
-coarse grid alike; the first (smallest) fine load starts from the coarse
-pressure at that load (``warm_start``), the coarse one cold. The QoI vector
+increasing loads (:func:`~rough_uq.physics.load_curve.solve_load_curve`).
+The coarse grid follows the sequence, each load warm-started from the
+previous one. With ``warm_start`` every fine load starts from the coarse
+pressure at the same load, as a single load does (a better guess than the
+previous fine load's: module docstring there); without it the fine grid
+follows the sequence too. The QoI vector
 of a sample then has ``n_qoi_names * n_loads`` columns, QoI-major, in the
 order of ``mean_pressures`` (names in :mod:`rough_uq.problem.loads`). A
 sample's ``n_iter`` and ``converged`` cover all loads of its grid (summed,
@@ -235,8 +237,9 @@ def modelled_cost(model: ContactModel, level: int, n_iter: np.ndarray, *, is_cou
     return cost
 
 
-def _solve(model: ContactModel, heights: np.ndarray, initial: np.ndarray | None) -> LoadCurveSolution:
-    """Solve at every load, continuing a solve once with ``RETRY_FACTOR * max_iter`` iterations if needed."""
+def _solve(model: ContactModel, heights: np.ndarray, initial: LoadCurveSolution | None) -> LoadCurveSolution:
+    """Solve at every load (from ``initial``'s pressure at the same load, if given), continuing a solve once
+    with ``RETRY_FACTOR * max_iter`` iterations if needed."""
     return solve_load_curve(
         heights,
         system_size=model.spectrum.system_size,
@@ -245,14 +248,9 @@ def _solve(model: ContactModel, heights: np.ndarray, initial: np.ndarray | None)
         tol=model.tol,
         max_iter=model.max_iter,
         threads=model.threads,
-        initial_pressure=initial,
+        initial_pressures=None if initial is None else [solution.pressure for solution in initial.solutions],
         retry_iter=RETRY_FACTOR * model.max_iter,
     )
-
-
-def _smallest_load_pressure(curve: LoadCurveSolution) -> np.ndarray:
-    """The pressure at the smallest load, the warm start of the other grid's curve."""
-    return curve.solutions[int(np.argmin(curve.mean_pressures))].pressure
 
 
 def _qoi(model: ContactModel, curve: LoadCurveSolution) -> np.ndarray:
@@ -318,7 +316,7 @@ def solve_sample(model: ContactModel, *, stage: int, level: int, index: int) -> 
     Samples of coupled stages (:func:`is_coupled_stage`) pair the level-``l``
     solve with the coarse solve of the same surface
     (:func:`~rough_uq.physics.surface.sample_coupled`), and with ``warm_start`` the
-    fine solve (of the smallest load) starts from the coarse pressure; samples
+    fine solve (of each load) starts from the coarse pressure; samples
     of MC stages and of level 0 solve the fine grid only. The result depends
     only on ``model`` and ``(stage, level, index)`` (and, at the level of
     rounding, on the FFT plans: every process plans from ``model.fft_wisdom``).
@@ -331,7 +329,7 @@ def solve_sample(model: ContactModel, *, stage: int, level: int, index: int) -> 
         return SampleSolution(heights=heights, fine_curve=_solve(model, heights, None))
     heights, coarse_heights = sample_coupled(model.spectrum, n_fine, rng, projection=model.projection)
     coarse = _solve(model, coarse_heights, None)
-    fine = _solve(model, heights, _smallest_load_pressure(coarse) if model.warm_start else None)
+    fine = _solve(model, heights, coarse if model.warm_start else None)
     return SampleSolution(heights=heights, fine_curve=fine, coarse_curve=coarse)
 
 
