@@ -117,7 +117,8 @@ def _rates_figure(report: dict[str, Any], path: Path) -> Path | None:
     figure = _new_figure(13.0, 3.6 * n_qoi)
     axes = figure.subplots(n_qoi, 3, squeeze=False)
     for q, name in enumerate(names[:n_qoi]):
-        title = f"{name} [{units[name]}]" if name in units else name
+        unit = units.get(name, units.get(name.partition("@")[0]))  # a load-curve column has its QoI's unit
+        title = f"{name} [{unit}]" if unit else name
         ax_mean, ax_var = axes[q, 0], axes[q, 1]
 
         x, y = _log2_points(levels[upper], np.abs(np.asarray(stats["mean_diff"], float))[upper, q])
