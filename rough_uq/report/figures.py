@@ -31,6 +31,7 @@ import numpy as np
 from rough_uq.errors import RoughUQError
 from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
+from rough_uq.report.summary import split_column
 
 __all__ = ["write_report_plots", "write_sample_figure"]
 
@@ -117,7 +118,7 @@ def _rates_figure(report: dict[str, Any], path: Path) -> Path | None:
     figure = _new_figure(13.0, 3.6 * n_qoi)
     axes = figure.subplots(n_qoi, 3, squeeze=False)
     for q, name in enumerate(names[:n_qoi]):
-        unit = units.get(name, units.get(name.partition("@")[0]))  # a load-curve column has its QoI's unit
+        unit = units.get(name, units.get(split_column(name)[0]))  # a load-curve column has its QoI's unit
         title = f"{name} [{unit}]" if unit else name
         ax_mean, ax_var = axes[q, 0], axes[q, 1]
 

@@ -69,6 +69,7 @@ __all__ = [
     "render_report",
     "render_runs",
     "render_screening",
+    "split_column",
     "study_report",
 ]
 
