@@ -49,7 +49,6 @@ __all__ = [
     "load_sequence",
     "load_label",
     "column_names",
-    "split_column",
 ]
 
 #: Separates the QoI name from the load in the name of a load-curve column.
@@ -196,8 +195,3 @@ def column_names(qoi_names: tuple[str, ...], load_values: tuple[float, ...]) -> 
         return tuple(qoi_names)
     return tuple(f"{name}{LOAD_SEPARATOR}{load_label(v)}" for name in qoi_names for v in load_values)
 
-
-def split_column(column: str) -> tuple[str, float | None]:
-    """``(qoi, load)`` of a column name; ``load`` is None for a single-load column."""
-    name, separator, label = column.partition(LOAD_SEPARATOR)
-    return (name, float(label)) if separator else (name, None)
