@@ -112,7 +112,9 @@ def _given_guesses(pressures: np.ndarray, initial_pressure, initial_pressures) -
         raise InvalidParameterError("initial_pressure", "a field", "None when initial_pressures is given")
     if isinstance(initial_pressures, np.ndarray) or len(initial_pressures) != pressures.size:
         raise InvalidParameterError(
-            "initial_pressures", f"{len(initial_pressures)} fields", f"a sequence of {pressures.size} fields, one per load"
+            "initial_pressures",
+            f"{len(initial_pressures)} fields",
+            f"a sequence of {pressures.size} fields, one per load",
         )
     guesses: dict[float, np.ndarray] = {}
     for load, guess in zip(pressures.tolist(), initial_pressures):

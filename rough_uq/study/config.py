@@ -920,7 +920,9 @@ class StudyConfig(_Section):
         if len(values) == 1:
             return tuple((name, name, settings) for name, settings in self.qoi.items())
         return tuple(
-            (f"{name}{LOAD_SEPARATOR}{value!r}", name, settings) for name, settings in self.qoi.items() for value in values
+            (f"{name}{LOAD_SEPARATOR}{value!r}", name, settings)
+            for name, settings in self.qoi.items()
+            for value in values
         )
 
 
