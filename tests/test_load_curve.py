@@ -247,12 +247,9 @@ def test_tiny_mlmc_and_mc_give_curves():
     assert mc.estimate.shape == (3,) and np.all(np.diff(mc.estimate[order]) > 0)
 
 
-def test_pipeline_study_with_a_curve_stores_columns_and_tolerances_apply_per_column():
+def test_tolerances_apply_per_column_unless_a_column_is_named():
     from rough_uq.study.config import config_from_dict
-    from rough_uq.study.executors import SerialExecutor
-    from rough_uq.study.pipeline import Study, parse_tolerances, run_estimation, run_screening
-    from rough_uq.study.progress import Progress
-    from rough_uq.study.store import MemoryStore
+    from rough_uq.study.pipeline import parse_tolerances
     from tests.study_configs import tiny_config
 
     qoi = {"contact_area": {"tol": 2.0}, "mean_gap": {"tol": 0.05}}
@@ -263,17 +260,10 @@ def test_pipeline_study_with_a_curve_stores_columns_and_tolerances_apply_per_col
     np.testing.assert_array_equal(tol, [1.5, 3.0, 1.5, 0.05, 0.05, 0.05])
     with pytest.raises(InvalidParameterError, match="contact_area@0.3"):
         parse_tolerances(["contact_area@0.3=1"], config)
+    with pytest.raises(InvalidParameterError, match="NAME=EPS"):
+        parse_tolerances(["0.7"], config)
     single_qoi = config_from_dict(tiny_config(load={"relative": CURVE}))
     np.testing.assert_array_equal(parse_tolerances(["0.7"], single_qoi), [0.7] * 3)
-
-    study = Study(config, MemoryStore(qoi_names=config.qoi_names))
-    outcome = run_screening(study, executor=SerialExecutor(), progress=Progress())
-    assert outcome.statistics.mean_fine.shape == (3, 6)
-    record = run_estimation(study, method="mlmc", tol=parse_tolerances(None, config), executor=SerialExecutor(),
-                            progress=Progress())
-    assert record["qoi_names"] == list(config.qoi_names) and len(record["estimate"]) == 6
-    area = np.array(record["estimate"][:3])
-    assert np.all(np.diff(area[np.argsort(CURVE)]) > 0)
 
 
 # --------------------------------------------------------------------------
@@ -329,6 +319,19 @@ def curve_study(tmp_path_factory):
     finally:
         os.chdir(previous)
     return directory / "curve.h5"
+
+
+def test_cli_study_stores_one_column_per_qoi_and_load(curve_study):
+    from rough_uq.study.store import open_study_readonly
+
+    with open_study_readonly(curve_study) as store:
+        names = store.qoi_names
+        screening = store.read_screening()
+        runs = store.read_runs()
+    expected = tuple(f"{q}@{v!r}" for q in ("contact_area", "mean_gap") for v in CURVE)
+    assert names == expected and screening["qoi_names"] == list(expected)
+    assert np.shape(screening["statistics"]["mean_fine"]) == (3, 6)
+    assert [run["qoi_names"] for run in runs] == [list(expected)] * 2
 
 
 def test_report_shows_the_load_curve_table_and_kappa(curve_study, tmp_path):
