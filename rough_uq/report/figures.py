@@ -1,4 +1,4 @@
-"""Figures of a study: MLMC rates, cost against tolerance, samples per level, one contact sample.
+"""Figures of a study: MLMC rates, cost against tolerance, samples per level, load curves, one contact sample.
 
 An edge module like :mod:`rough_uq.report.summary`: it reads the JSON-able dict of
 :func:`~rough_uq.report.summary.study_report` (never the store) and writes PNG files.
@@ -31,6 +31,7 @@ import numpy as np
 from rough_uq.errors import RoughUQError
 from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
+from rough_uq.report.summary import split_column
 
 __all__ = ["write_report_plots", "write_sample_figure"]
 
@@ -117,7 +118,8 @@ def _rates_figure(report: dict[str, Any], path: Path) -> Path | None:
     figure = _new_figure(13.0, 3.6 * n_qoi)
     axes = figure.subplots(n_qoi, 3, squeeze=False)
     for q, name in enumerate(names[:n_qoi]):
-        title = f"{name} [{units[name]}]" if name in units else name
+        unit = units.get(name, units.get(split_column(name)[0]))  # a load-curve column has its QoI's unit
+        title = f"{name} [{unit}]" if unit else name
         ax_mean, ax_var = axes[q, 0], axes[q, 1]
 
         x, y = _log2_points(levels[upper], np.abs(np.asarray(stats["mean_diff"], float))[upper, q])
@@ -270,6 +272,38 @@ def _samples_figure(report: dict[str, Any], path: Path) -> Path | None:
     return _save(figure, path)
 
 
+def _load_curve_figure(report: dict[str, Any], path: Path) -> Path | None:
+    """Each QoI of a load-curve study against the relative load, one line with an RMSE band per finished run."""
+    curves = report.get("load_curves") or []
+    if not curves:
+        return None
+    names = list(curves[0]["curves"])
+    units = report.get("config", {}).get("qoi", {})
+    figure = _new_figure(5.5 * len(names), 4.5)
+    axes = figure.subplots(1, len(names), squeeze=False)[0]
+    for ax, name in zip(axes, names):
+        for k, entry in enumerate(curves):
+            load = np.asarray(entry["relative_loads"], dtype=float)
+            value = np.asarray(entry["curves"][name]["estimate"], dtype=float)
+            error = np.asarray(entry["curves"][name]["rmse"], dtype=float)
+            colour = f"C{k % 10}"
+            ax.fill_between(load, value - error, value + error, color=colour, alpha=0.25, linewidth=0)
+            ax.plot(load, value, "o-", color=colour, label=f"{entry['method'].upper()} run {k + 1} (± RMSE)")
+            fit = entry.get("kappa")
+            if name == "contact_area" and fit is not None:
+                scale = 100.0 if units.get(name) == "%" else 1.0
+                span = np.array([0.0, load.max()])
+                ax.plot(span, fit["kappa"] * span * scale, ":", color=colour,
+                        label=f"kappa = {fit['kappa']:.3g} ± {fit['error']:.2g} (A/A0 < {fit['max_area']:g})")
+        unit = units.get(name)
+        ax.set_xlabel("load $p / (E^* \\sqrt{m_2})$")
+        ax.set_ylabel(f"E[{name}]" + (f" [{unit}]" if unit else ""))
+        ax.set_title(f"E[{name}] against the load")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize="x-small")
+    return _save(figure, path)
+
+
 def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Path]:
     """Write the figures of a study report as PNG files.
 
@@ -300,6 +334,12 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             ``N_l`` per level (log scale) of the loosest and the tightest
             finished MLMC run, beside the sample count of a finished MC run
             at the same tolerance where there is one. Needs a finished MLMC run.
+        ``load_curve.png``
+            Per QoI, the estimates of every finished run against the relative
+            load ``p / (E* sqrt(m2))`` with a band of one RMSE, and for the
+            contact area the fitted small-load line ``kappa r``
+            (:func:`~rough_uq.report.summary.fit_area_slope`). Needs a study
+            with several loads and a finished run.
 
         A figure without its data is skipped.
 
@@ -316,6 +356,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
         ("rates.png", _rates_figure),
         ("cost_vs_tol.png", _cost_vs_tol_figure),
         ("samples_per_level.png", _samples_figure),
+        ("load_curve.png", _load_curve_figure),
     ):
         path = draw(report, directory / name)
         if path is not None:
