@@ -1,0 +1,480 @@
+"""MLMC for targets beyond the mean: telescoping sums of per-level statistics.
+
+The mean driver (:mod:`rough_uq.multilevel.drivers`) telescopes sample means
+of ``Y_l = Q_l - Q_{l-1}``. Other targets telescope other statistics of the
+same coupled pairs: the variance telescopes ``h2(Q_l) - h2(Q_{l-1})``
+(:mod:`rough_uq.multilevel.moments`), the distribution function telescopes
+smoothed indicators (:mod:`rough_uq.multilevel.distribution`). This module is
+the part they share: the per-level term, the telescoping estimate with its
+errors, and an adaptive driver.
+
+Symbols
+-------
+Levels and the sampler contract are those of
+:mod:`rough_uq.multilevel.drivers` (``sampler(level, indices) -> (fine,
+coarse, cost)``; contiguous indices from 0 per level). A *target* has
+``n_components`` components (one per QoI for the variance, one per threshold
+for the distribution function), grouped into ``n_groups`` *groups* that each
+carry one tolerance (one per QoI for the variance, a single group for a
+distribution function, whose tolerance is on the maximum over thresholds).
+
+``T_l``
+    The level-``l`` term, a vector of shape ``(n_components,)``: an unbiased
+    (or consistent) estimate from the ``N_l`` level-``l`` pairs of
+    ``E[t_l] = theta_l - theta_{l-1}`` (``theta_l`` the target on level ``l``;
+    on the base level ``T_0`` estimates ``theta_0`` itself).
+``W_l``
+    The per-sample variance of the term, ``W_l = N_l Var(T_l)`` (the role
+    ``V_l`` plays for the mean; for a sample mean they coincide).
+``alpha``, ``beta``, ``gamma``
+    ``|E[T_l]| ~ 2^(-alpha l)`` (maximum over a group's components),
+    ``W_l ~ 2^(-beta l)``, ``C_l ~ 2^(gamma l)``.
+
+Estimate and errors
+-------------------
+The estimate of ``theta_L`` is ``sum_l T_l`` with statistical variance
+``sum_l Var(T_l)`` per component (independent levels). The remaining bias of
+a group is the geometric tail of the ``alpha`` model taken from the three
+finest levels, ``max_i |T_{L-i}| 2^(-i alpha) / (2^alpha - 1)`` with
+``|T|`` the maximum over the group's components (as the mean driver does,
+:func:`rough_uq.multilevel.drivers._driver_bias`). A group meets its
+tolerance ``eps`` when ``max_c Var_c + bias^2 <= eps^2``, the maximum over
+its components: for a distribution function that is the supremum over the
+thresholds of the pointwise mean-square error (not the mean of the squared
+supremum, which is larger; see :mod:`rough_uq.multilevel.distribution`).
+
+Adaptive driver
+---------------
+:func:`adaptive_mlmc` follows the mean driver's algorithm without screening,
+Richardson extrapolation or coarse-level dropping: levels ``0..min_finest_level``
+with ``n_initial`` samples each; after each round of samples the terms are
+recomputed, the rates refitted (floored at ``RATE_FLOOR``), and
+``N_l = ceil((1-theta)^-1 eps^-2 sqrt(W_l/C_l) sum_k sqrt(W_k C_k))``
+(maximum over the components; never fewer than drawn or than ``n_initial``);
+once every level has (within 1 %) its samples, the bias test adds level
+``L+1`` or stops (``"tol_met"``, ``"max_level"``); ``"max_cost"`` stops
+before a batch would exceed ``max_cost``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.multilevel.drivers import (
+    RATE_FLOOR,
+    Sampler,
+    _call_sampler,
+    _check_int,
+    _check_optional_positive,
+    _driver_bias,
+    _fill_costs,
+    _planning_variances,
+)
+from rough_uq.multilevel.statistics import _check_fraction, _fit_line, _readonly, optimal_samples
+
+__all__ = [
+    "LevelTerm",
+    "TargetEstimate",
+    "TermFunction",
+    "adaptive_mlmc",
+    "telescope",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class LevelTerm:
+    """The level-``l`` term ``T_l`` of a telescoping sum, with its variance.
+
+    Attributes
+    ----------
+    mean : ndarray, shape (n_components,)
+        ``T_l`` (an estimate of ``theta_l - theta_{l-1}``, of ``theta_0`` on
+        the base level), in the unit of the target.
+    variance : ndarray, shape (n_components,)
+        Estimated ``Var(T_l)``, >= 0, in the unit of the target squared.
+    n_samples : int
+        ``N_l``, the number of pairs the term was computed from.
+    groups : ndarray of int, shape (n_components,)
+        Tolerance group of each component (``0..n_groups-1``).
+    """
+
+    mean: np.ndarray
+    variance: np.ndarray
+    n_samples: int
+    groups: np.ndarray
+
+    @property
+    def per_sample_variance(self) -> np.ndarray:
+        """``W_l = N_l Var(T_l)``, shape (n_components,)."""
+        return self.n_samples * self.variance
+
+    @property
+    def n_groups(self) -> int:
+        """Number of tolerance groups."""
+        return int(np.max(self.groups)) + 1
+
+
+TermFunction = Callable[[np.ndarray, "np.ndarray | None", int], LevelTerm]
+"""``term(fine, coarse, level) -> LevelTerm``; ``fine``, ``coarse`` of shape (n, n_qoi), ``coarse`` None on the base level."""
+
+
+def group_max(values: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Maximum over each group's components along the last axis: shape (..., n_groups)."""
+    n_groups = int(np.max(groups)) + 1
+    return np.stack([np.max(values[..., groups == g], axis=-1) for g in range(n_groups)], axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class TargetEstimate:
+    """MLMC estimate of a target with its errors.
+
+    Attributes
+    ----------
+    estimate : ndarray, shape (n_components,)
+        ``sum_l T_l``, the estimate of the target on the finest level.
+    stat_error : ndarray, shape (n_components,)
+        ``sqrt(sum_l Var(T_l))``.
+    bias : ndarray, shape (n_groups,)
+        Remaining bias per group (module docstring); 0 with a single level.
+    levels : ndarray of int, shape (n_levels,)
+        Levels ``0..L``.
+    n_samples : ndarray of int, shape (n_levels,)
+        ``N_l``.
+    term_means, term_variances : ndarray, shape (n_levels, n_components)
+        ``T_l`` and ``Var(T_l)``.
+    groups : ndarray of int, shape (n_components,)
+        Tolerance group of each component.
+    alpha, beta : ndarray, shape (n_groups,)
+        Rates used for the bias and the allocation.
+    gamma : float
+        Cost rate used for the allocation.
+    cost : float
+        Total cost of the samples (sum of the sampler's costs).
+    tol : ndarray, shape (n_groups,)
+        Tolerance on the RMS error per group (NaN when none was given).
+    theta : float
+        Bias share of ``eps^2``.
+    stop_reason : str
+        ``"tol_met"``, ``"max_level"``, ``"max_cost"`` or ``"given"`` (from
+        given samples, :func:`telescope`).
+    """
+
+    estimate: np.ndarray
+    stat_error: np.ndarray
+    bias: np.ndarray
+    levels: np.ndarray
+    n_samples: np.ndarray
+    term_means: np.ndarray
+    term_variances: np.ndarray
+    groups: np.ndarray
+    alpha: np.ndarray
+    beta: np.ndarray
+    gamma: float
+    cost: float
+    tol: np.ndarray
+    theta: float
+    stop_reason: str
+
+    @property
+    def rmse(self) -> np.ndarray:
+        """Estimated RMS error per group, ``sqrt(max_c stat_error_c^2 + bias^2)``, shape (n_groups,)."""
+        return np.sqrt(group_max(self.stat_error**2, self.groups) + self.bias**2)
+
+    @property
+    def tol_met(self) -> bool:
+        """``rmse <= tol`` in every group (False without a tolerance)."""
+        return bool(np.all(self.rmse**2 <= self.tol**2 * (1 + 1e-12)))
+
+    @property
+    def finest_level(self) -> int:
+        """``L``."""
+        return int(self.levels[-1])
+
+
+# --------------------------------------------------------------------------
+# Rates and bias of a hierarchy of terms
+# --------------------------------------------------------------------------
+
+
+def _fit_rate(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: float) -> float:
+    """Rate of ``values ~ 2^(-sign rate l)`` on the positive values, floored; the floor when unfittable."""
+    usable = values > 0
+    line = _fit_line(levels[usable], values[usable], rel_se[usable], sign)
+    return RATE_FLOOR if line is None else max(line.rate, RATE_FLOOR)
+
+
+def _term_rates(means: np.ndarray, variances: np.ndarray, n_samples: np.ndarray, groups: np.ndarray):
+    """``alpha``, ``beta`` per group from levels ``>= 1`` (floored at ``RATE_FLOOR``)."""
+    levels = np.arange(len(means))[1:]
+    n = n_samples[1:].astype(float)
+    magnitude = group_max(np.abs(means[1:]), groups)
+    # Relative standard error of the group's largest |T_l| (that of its component).
+    se = group_max(np.sqrt(np.maximum(variances[1:], 0.0)), groups)
+    per_sample = group_max(n[:, None] * np.maximum(variances[1:], 0.0), groups)
+    alpha, beta = [], []
+    for g in range(magnitude.shape[1]):
+        rel_alpha = np.divide(se[:, g], magnitude[:, g], out=np.zeros(len(levels)), where=magnitude[:, g] > 0)
+        alpha.append(_fit_rate(levels, magnitude[:, g], rel_alpha, -1.0))
+        # A variance from n samples has relative error about sqrt(2 / (n - 1)).
+        rel_beta = np.sqrt(2.0 / np.maximum(n - 1.0, 1.0))
+        beta.append(_fit_rate(levels, per_sample[:, g], rel_beta, -1.0))
+    return np.array(alpha), np.array(beta)
+
+
+def _cost_rate(mean_cost: np.ndarray) -> float:
+    levels = np.arange(len(mean_cost))[1:]
+    costs = mean_cost[1:]
+    return _fit_rate(levels, costs, np.zeros(len(levels)), 1.0)
+
+
+def _remaining_bias(means: np.ndarray, groups: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    return _driver_bias(group_max(np.abs(means), groups), alpha)
+
+
+def telescope(
+    terms: Sequence[LevelTerm],
+    *,
+    costs: np.ndarray | None = None,
+    tol: float | np.ndarray | None = None,
+    theta: float = 0.5,
+    alpha: float | np.ndarray | None = None,
+) -> TargetEstimate:
+    """MLMC estimate from the terms of levels ``0..L`` (module docstring).
+
+    Parameters
+    ----------
+    terms : sequence of LevelTerm
+        ``T_0, ..., T_L`` with the same components and groups.
+    costs : ndarray, shape (L+1,), optional
+        Total cost spent per level (for the record; default 0).
+    tol : float or ndarray, shape (n_groups,), optional
+        Tolerance on the RMS error per group, for ``tol_met``.
+    theta : float
+        Bias share of ``eps^2`` (recorded).
+    alpha : float or ndarray, shape (n_groups,), optional
+        Bias rate; default: fitted on the levels ``>= 1`` (floored at 0.5).
+
+    Returns
+    -------
+    TargetEstimate
+        With ``stop_reason = "given"``.
+    """
+    if len(terms) == 0:
+        raise EstimationError("telescope needs the term of at least one level")
+    groups = terms[0].groups
+    if any(t.mean.shape != terms[0].mean.shape or not np.array_equal(t.groups, groups) for t in terms):
+        raise EstimationError("the level terms have different components")
+    means = np.array([t.mean for t in terms])
+    variances = np.array([t.variance for t in terms])
+    n_samples = np.array([t.n_samples for t in terms], dtype=np.int64)
+    fitted_alpha, beta = _term_rates(means, variances, n_samples, groups)
+    n_groups = terms[0].n_groups
+    alpha = fitted_alpha if alpha is None else np.broadcast_to(np.asarray(alpha, dtype=float), (n_groups,))
+    tol_array = np.full(n_groups, np.nan) if tol is None else _check_group_tol(tol, n_groups)
+    return _estimate(
+        means, variances, n_samples, groups, alpha, beta, 0.0,
+        cost=0.0 if costs is None else float(np.sum(costs)), tol=tol_array, theta=_check_fraction("theta", theta),
+        stop_reason="given",
+    )
+
+
+def _estimate(means, variances, n_samples, groups, alpha, beta, gamma, *, cost, tol, theta, stop_reason):
+    return TargetEstimate(
+        estimate=_readonly(np.sum(means, axis=0)),
+        stat_error=_readonly(np.sqrt(np.sum(np.maximum(variances, 0.0), axis=0))),
+        bias=_readonly(_remaining_bias(means, groups, alpha)),
+        levels=_readonly(np.arange(len(means))),
+        n_samples=_readonly(n_samples),
+        term_means=_readonly(means),
+        term_variances=_readonly(variances),
+        groups=_readonly(groups),
+        alpha=_readonly(alpha),
+        beta=_readonly(beta),
+        gamma=float(gamma),
+        cost=float(cost),
+        tol=_readonly(tol),
+        theta=theta,
+        stop_reason=stop_reason,
+    )
+
+
+def _check_group_tol(tol: object, n_groups: int) -> np.ndarray:
+    array = np.atleast_1d(np.asarray(tol, dtype=float))
+    if array.ndim != 1 or not np.all(np.isfinite(array)) or np.any(array <= 0):
+        raise InvalidParameterError("tol", tol, "a positive number or a 1-d array of positive numbers")
+    if array.size == 1:
+        return np.repeat(array, n_groups)
+    if array.size != n_groups:
+        raise InvalidParameterError("tol", tol, f"a scalar or {n_groups} values (one per tolerance group)")
+    return array
+
+
+# --------------------------------------------------------------------------
+# Adaptive driver
+# --------------------------------------------------------------------------
+
+
+class _Level:
+    """The samples of one level and its term, cached until the next batch."""
+
+    def __init__(self, level: int) -> None:
+        self.level = level
+        self.fine: list[np.ndarray] = []
+        self.coarse: list[np.ndarray] = []
+        self.n = 0
+        self.spent = 0.0
+        self._term: LevelTerm | None = None
+
+    def add(self, fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> None:
+        self.fine.append(fine)
+        self.coarse.append(coarse)
+        self.n += len(cost)
+        self.spent += float(np.sum(cost))
+        self._term = None
+
+    def term(self, function: TermFunction) -> LevelTerm:
+        if self._term is None:
+            fine = np.concatenate(self.fine)
+            # The base level is sampled as Q_0 alone; its coarse values are not part of the sum.
+            coarse = None if self.level == 0 else np.concatenate(self.coarse)
+            self.fine, self.coarse = [fine], [] if coarse is None else [coarse]
+            self._term = function(fine, coarse, self.level)
+        return self._term
+
+    @property
+    def mean_cost(self) -> float:
+        return self.spent / self.n if self.n else 0.0
+
+
+def _affordable(levels: list[_Level], level: int, wanted: int, max_cost: float | None, gamma: float) -> int:
+    """Samples to draw now on ``level``: ``wanted`` unless ``max_cost`` forbids it (then possibly 0)."""
+    known = [s for s in levels if s.n > 0 and s.mean_cost > 0]
+    if max_cost is None or not known:
+        return wanted
+    nearest = min(known, key=lambda s: abs(s.level - level))
+    unit = nearest.mean_cost * 2.0 ** (gamma * (level - nearest.level))
+    spent = sum(s.spent for s in levels)
+    return int(min(wanted, max(math.floor((max_cost - spent) / unit), 0)))
+
+
+def _targets(levels, terms, n_initial, tol, theta, beta, gamma) -> list[int]:
+    """Planned ``N_l`` (module docstring) for every level, sampled or not."""
+    groups = terms[0].groups
+    has_data = np.array([s.n > 0 for s in levels])
+    width = len(groups)
+    per_sample = np.zeros((len(levels), width))
+    for s, term in zip(levels, terms):
+        if term is not None:
+            per_sample[s.level] = np.maximum(term.per_sample_variance, 0.0)
+    variances = _planning_variances(per_sample, has_data, beta[groups])
+    costs = _fill_costs(np.array([s.mean_cost for s in levels]), has_data, gamma)
+    budget = (1.0 - theta) * tol[groups] ** 2
+    wanted = np.ceil(np.max(optimal_samples(variances, costs, budget), axis=1))
+    return [max(s.n, int(n), n_initial) for s, n in zip(levels, wanted)]
+
+
+def adaptive_mlmc(
+    sampler: Sampler,
+    *,
+    term: TermFunction,
+    tol: float | np.ndarray,
+    theta: float = 0.5,
+    n_initial: int = 32,
+    min_finest_level: int = 2,
+    max_level: int = 16,
+    max_cost: float | None = None,
+    batch_size: int | None = 10000,
+) -> TargetEstimate:
+    """Adaptive MLMC estimate of a target to an RMS tolerance per group (module docstring).
+
+    Parameters
+    ----------
+    sampler : callable
+        ``sampler(level, indices) -> (fine, coarse, cost)``
+        (:mod:`rough_uq.multilevel.drivers`).
+    term : callable
+        ``term(fine, coarse, level) -> LevelTerm`` (``coarse`` None on level 0).
+    tol : float or ndarray, shape (n_groups,)
+        Tolerance ``eps`` on the RMS error, in the unit of the target.
+    theta : float
+        Bias share of ``eps^2``, in (0, 1).
+    n_initial : int
+        Samples every level gets before its term variance is trusted (>= 4:
+        the unbiased variance of ``h2`` differences needs four).
+    min_finest_level : int
+        The run uses at least levels ``0..min_finest_level`` (>= 1).
+    max_level : int
+        Finest level allowed.
+    max_cost : float, optional
+        Stop before a batch would make the total cost exceed it.
+    batch_size : int, optional
+        Largest number of samples per sampler call.
+
+    Returns
+    -------
+    TargetEstimate
+    """
+    theta = _check_fraction("theta", theta)
+    n_initial = _check_int("n_initial", n_initial, 4)
+    min_finest_level = _check_int("min_finest_level", min_finest_level, 1)
+    max_level = _check_int("max_level", max_level, min_finest_level)
+    batch_cap = math.inf if batch_size is None else _check_int("batch_size", batch_size, 1)
+    max_cost = _check_optional_positive("max_cost", max_cost)
+    _check_group_tol(tol, 1 if np.ndim(tol) == 0 else np.size(tol))
+    levels = [_Level(level) for level in range(min_finest_level + 1)]
+    planned = [n_initial] * len(levels)
+    alpha = beta = np.array([RATE_FLOOR])
+    gamma = RATE_FLOOR
+    tol_groups: np.ndarray | None = None
+    stop_reason = ""
+    while not stop_reason:
+        pending = [s for s in levels if s.n < planned[s.level]]
+        for s in pending:
+            wanted = int(min(planned[s.level] - s.n, batch_cap))
+            n = _affordable(levels, s.level, wanted, max_cost, gamma)
+            if n == 0 or (s.n + n < n_initial):
+                stop_reason = "max_cost"
+                break
+            batch = _call_sampler(sampler, s.level, s.n, n)
+            s.add(batch.fine, batch.coarse, batch.cost)
+        if stop_reason:
+            break
+        terms = [s.term(term) if s.n else None for s in levels]
+        sampled = [t for t in terms if t is not None]
+        if tol_groups is None:
+            tol_groups = _check_group_tol(tol, sampled[0].n_groups)
+        means = np.array([t.mean for t in sampled])
+        variances = np.array([t.variance for t in sampled])
+        n_samples = np.array([t.n_samples for t in sampled])
+        alpha, beta = _term_rates(means, variances, n_samples, sampled[0].groups)
+        gamma = _cost_rate(np.array([s.mean_cost for s in levels if s.n]))
+        planned = _targets(levels, terms, n_initial, tol_groups, theta, beta, gamma)
+        if any(planned[s.level] - s.n > 0.01 * s.n for s in levels):
+            continue
+        bias = _remaining_bias(means, sampled[0].groups, alpha)
+        if np.all(bias <= math.sqrt(theta) * tol_groups):
+            stop_reason = "tol_met"
+        elif len(levels) - 1 >= max_level:
+            stop_reason = "max_level"
+        else:
+            levels.append(_Level(len(levels)))
+            planned = _targets(levels, terms + [None], n_initial, tol_groups, theta, beta, gamma)
+    sampled_levels = [s for s in levels if s.n]
+    if not sampled_levels or sampled_levels[0].level != 0:
+        raise EstimationError("max_cost is too small for the initial samples of level 0")
+    terms = [s.term(term) for s in sampled_levels]
+    groups = terms[0].groups
+    if tol_groups is None:
+        tol_groups = _check_group_tol(tol, terms[0].n_groups)
+    return _estimate(
+        np.array([t.mean for t in terms]),
+        np.array([t.variance for t in terms]),
+        np.array([t.n_samples for t in terms], dtype=np.int64),
+        groups, alpha, beta, gamma,
+        cost=sum(s.spent for s in levels), tol=tol_groups, theta=theta, stop_reason=stop_reason,
+    )
