@@ -63,6 +63,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import ndtri
 
 from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.multilevel.drivers import (
@@ -84,6 +85,9 @@ __all__ = [
     "adaptive_mlmc",
     "telescope",
 ]
+
+#: Probability that pure noise on every component of a group counts as a significant level term.
+SIGNIFICANCE = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -208,18 +212,49 @@ def _fit_rate(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: 
     return RATE_FLOOR if line is None else max(line.rate, RATE_FLOOR)
 
 
+def significance_threshold(n_components: int) -> float:
+    """``z`` beyond which the largest of ``n_components`` standardised level terms is signal, not noise.
+
+    Bonferroni: ``Phi^-1(1 - SIGNIFICANCE / (2 n))``, so that pure noise on
+    every component passes with probability at most ``SIGNIFICANCE``.
+    """
+    return float(ndtri(1.0 - SIGNIFICANCE / (2.0 * n_components)))
+
+
+def _standardised(means: np.ndarray, variances: np.ndarray) -> np.ndarray:
+    """``|T| / sd(T)``: ``inf`` for an exact nonzero term, 0 for an exact zero."""
+    sd = np.sqrt(np.maximum(variances, 0.0))
+    exact = np.where(np.abs(means) > 0, np.inf, 0.0)
+    return np.divide(np.abs(means), sd, out=exact, where=sd > 0)
+
+
+def _significant(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Boolean (n_levels, n_groups): the group's largest standardised ``|T_l|`` is signal."""
+    z = group_max(_standardised(means, variances), groups)
+    limits = np.array([significance_threshold(int(np.sum(groups == g))) for g in range(z.shape[1])])
+    return z > limits
+
+
 def _term_rates(means: np.ndarray, variances: np.ndarray, n_samples: np.ndarray, groups: np.ndarray):
-    """``alpha``, ``beta`` per group from levels ``>= 1`` (floored at ``RATE_FLOOR``)."""
+    """``alpha``, ``beta`` per group from levels ``>= 1`` (floored at ``RATE_FLOOR``).
+
+    ``alpha`` is fitted on the levels whose largest ``|T_l|`` in the group is
+    significant (:func:`significance_threshold`): on finer levels ``|T_l|``
+    is mostly noise, and the maximum of many noisy components (a CDF on a
+    grid) would flatten the fit.
+    """
     levels = np.arange(len(means))[1:]
     n = n_samples[1:].astype(float)
+    sd = np.sqrt(np.maximum(variances[1:], 0.0))
     magnitude = group_max(np.abs(means[1:]), groups)
-    # Relative standard error of the group's largest |T_l| (that of its component).
-    se = group_max(np.sqrt(np.maximum(variances[1:], 0.0)), groups)
-    per_sample = group_max(n[:, None] * np.maximum(variances[1:], 0.0), groups)
+    signal = _significant(means[1:], variances[1:], groups)
+    per_sample = group_max(n[:, None] * sd**2, groups)
     alpha, beta = [], []
     for g in range(magnitude.shape[1]):
-        rel_alpha = np.divide(se[:, g], magnitude[:, g], out=np.zeros(len(levels)), where=magnitude[:, g] > 0)
-        alpha.append(_fit_rate(levels, magnitude[:, g], rel_alpha, -1.0))
+        values = np.where(signal[:, g], magnitude[:, g], 0.0)
+        # The standard error of the group's largest |T_l| is at most its largest sd.
+        rel_alpha = np.divide(np.max(sd[:, groups == g], axis=1), values, out=np.zeros(len(levels)), where=values > 0)
+        alpha.append(_fit_rate(levels, values, rel_alpha, -1.0))
         # A variance from n samples has relative error about sqrt(2 / (n - 1)).
         rel_beta = np.sqrt(2.0 / np.maximum(n - 1.0, 1.0))
         beta.append(_fit_rate(levels, per_sample[:, g], rel_beta, -1.0))
@@ -232,8 +267,29 @@ def _cost_rate(mean_cost: np.ndarray) -> float:
     return _fit_rate(levels, costs, np.zeros(len(levels)), 1.0)
 
 
-def _remaining_bias(means: np.ndarray, groups: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    return _driver_bias(group_max(np.abs(means), groups), alpha)
+def _bias_magnitudes(means: np.ndarray, variances: np.ndarray, groups: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """``|E[T_l]|`` per group for the bias test, shape (n_levels, n_groups) (module docstring).
+
+    The data ``max_c |T_l|`` up to the finest significant level ``k``; above
+    it, where the terms are noise, the smaller of the data and the ``alpha``
+    model anchored at ``k``. Without a significant level ``>= 1``, the data.
+    """
+    magnitude = group_max(np.abs(means), groups)
+    signal = _significant(means, variances, groups)
+    signal[0] = False  # the base level estimates theta_0, not a difference
+    for g in range(magnitude.shape[1]):
+        rows = np.flatnonzero(signal[:, g])
+        if rows.size == 0:
+            continue
+        anchor = rows[-1]
+        above = np.arange(anchor + 1, len(magnitude))
+        model = magnitude[anchor, g] * 2.0 ** (-alpha[g] * (above - anchor))
+        magnitude[above, g] = np.minimum(magnitude[above, g], model)
+    return magnitude
+
+
+def _remaining_bias(means: np.ndarray, variances: np.ndarray, groups: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    return _driver_bias(_bias_magnitudes(means, variances, groups, alpha), alpha)
 
 
 def telescope(
@@ -287,7 +343,7 @@ def _estimate(means, variances, n_samples, groups, alpha, beta, gamma, *, cost, 
     return TargetEstimate(
         estimate=_readonly(np.sum(means, axis=0)),
         stat_error=_readonly(np.sqrt(np.sum(np.maximum(variances, 0.0), axis=0))),
-        bias=_readonly(_remaining_bias(means, groups, alpha)),
+        bias=_readonly(_remaining_bias(means, variances, groups, alpha)),
         levels=_readonly(np.arange(len(means))),
         n_samples=_readonly(n_samples),
         term_means=_readonly(means),
@@ -456,7 +512,7 @@ def adaptive_mlmc(
         planned = _targets(levels, terms, n_initial, tol_groups, theta, beta, gamma)
         if any(planned[s.level] - s.n > 0.01 * s.n for s in levels):
             continue
-        bias = _remaining_bias(means, sampled[0].groups, alpha)
+        bias = _remaining_bias(means, variances, sampled[0].groups, alpha)
         if np.all(bias <= math.sqrt(theta) * tol_groups):
             stop_reason = "tol_met"
         elif len(levels) - 1 >= max_level:
