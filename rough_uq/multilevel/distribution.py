@@ -93,7 +93,9 @@ _BLOCK = 4096
 def smoothed_step(x: np.ndarray) -> np.ndarray:
     """The smooth step ``g(x)`` of the module docstring (dimensionless, same shape as ``x``)."""
     x = np.clip(np.asarray(x, dtype=float), -1.0, 1.0)
-    return 0.5 + 15.0 / 16.0 * x * (1.0 - x**2 * (2.0 / 3.0 - x**2 / 5.0))
+    step = 0.5 + 15.0 / 16.0 * x * (1.0 - x**2 * (2.0 / 3.0 - x**2 / 5.0))
+    # The polynomial rounds to +-1e-16 beyond 0 and 1 near x = -+1; the step is exactly 0 or 1 there.
+    return np.clip(step, 0.0, 1.0)
 
 
 def level_bandwidth(level: int, *, bandwidth: float, bandwidth_rate: float = 1.0) -> float:
