@@ -63,7 +63,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtri
 
 from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.multilevel.drivers import (
@@ -85,9 +84,6 @@ __all__ = [
     "adaptive_mlmc",
     "telescope",
 ]
-
-#: Probability that pure noise on every component of a group counts as a significant level term.
-SIGNIFICANCE = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,53 +208,71 @@ def _fit_rate(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: 
     return RATE_FLOOR if line is None else max(line.rate, RATE_FLOOR)
 
 
-def significance_threshold(n_components: int) -> float:
-    """``z`` beyond which the largest of ``n_components`` standardised level terms is signal, not noise.
+def _signal(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-corrected mean square of ``E[T_l]`` over each group's components and its standard error.
 
-    Bonferroni: ``Phi^-1(1 - SIGNIFICANCE / (2 n))``, so that pure noise on
-    every component passes with probability at most ``SIGNIFICANCE``.
+    ``r2 = mean_c (T_c^2 - Var(T_c))`` is unbiased for ``mean_c E[T_c]^2``;
+    its variance is taken as ``mean_c (4 T_c^2 Var_c + 2 Var_c^2) / m`` (the
+    Gaussian value, components treated as independent: it only weights the
+    fit and decides detectability). Shapes (n_levels, n_groups).
     """
-    return float(ndtri(1.0 - SIGNIFICANCE / (2.0 * n_components)))
+    variances = np.maximum(variances, 0.0)
+    n_groups = int(np.max(groups)) + 1
+    r2, se = [], []
+    for g in range(n_groups):
+        t, v = means[:, groups == g], variances[:, groups == g]
+        r2.append(np.mean(t**2 - v, axis=1))
+        se.append(np.sqrt(np.mean(4.0 * t**2 * v + 2.0 * v**2, axis=1) / t.shape[1]))
+    return np.stack(r2, axis=1), np.stack(se, axis=1)
 
 
-def _standardised(means: np.ndarray, variances: np.ndarray) -> np.ndarray:
-    """``|T| / sd(T)``: ``inf`` for an exact nonzero term, 0 for an exact zero."""
-    sd = np.sqrt(np.maximum(variances, 0.0))
-    exact = np.where(np.abs(means) > 0, np.inf, 0.0)
-    return np.divide(np.abs(means), sd, out=exact, where=sd > 0)
+def _detected(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Boolean (n_levels, n_groups): the level terms differ from 0 by more than their noise.
+
+    ``r2 > se(r2)`` (:func:`_signal`); for a single component that is
+    ``|T| > 2.5 sd(T)`` or so, and pooling many components (a CDF on a
+    grid) detects much smaller terms than any one of them could.
+    """
+    r2, se = _signal(means, variances, groups)
+    return r2 > se
 
 
-def _significant(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> np.ndarray:
-    """Boolean (n_levels, n_groups): the group's largest standardised ``|T_l|`` is signal."""
-    z = group_max(_standardised(means, variances), groups)
-    limits = np.array([significance_threshold(int(np.sum(groups == g))) for g in range(z.shape[1])])
-    return z > limits
+def _fit_alpha(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``alpha`` per group: weighted least squares of ``log2 sqrt(r2)`` on the detected levels ``>= 1``.
+
+    The weights are the inverse variances of ``log2 sqrt(r2)``, so levels
+    where the terms are mostly noise hardly count (the maximum of many noisy
+    components, or the noise of a fine level, would flatten an unweighted
+    fit). Floored at ``RATE_FLOOR``, and the floor where fewer than two
+    levels are detected.
+    """
+    r2, se = _signal(means[1:], variances[1:], groups)
+    levels = np.arange(1, len(means), dtype=float)
+    alpha = []
+    for g in range(r2.shape[1]):
+        use = r2[:, g] > se[:, g]
+        if np.sum(use) < 2:
+            alpha.append(RATE_FLOOR)
+            continue
+        x, y = levels[use], 0.5 * np.log2(r2[use, g])
+        # sd(log2 sqrt(r2)) = sd(r2) / (2 r2 ln 2); an exact term (sd 0) gets a large finite weight.
+        sd = np.maximum(se[use, g] / (2.0 * r2[use, g] * math.log(2.0)), 1e-6)
+        weights = sd**-2
+        x_mean = np.sum(weights * x) / np.sum(weights)
+        slope = np.sum(weights * (x - x_mean) * y) / np.sum(weights * (x - x_mean) ** 2)
+        alpha.append(max(-float(slope), RATE_FLOOR))
+    return np.array(alpha)
 
 
 def _term_rates(means: np.ndarray, variances: np.ndarray, n_samples: np.ndarray, groups: np.ndarray):
-    """``alpha``, ``beta`` per group from levels ``>= 1`` (floored at ``RATE_FLOOR``).
-
-    ``alpha`` is fitted on the levels whose largest ``|T_l|`` in the group is
-    significant (:func:`significance_threshold`): on finer levels ``|T_l|``
-    is mostly noise, and the maximum of many noisy components (a CDF on a
-    grid) would flatten the fit.
-    """
+    """``alpha`` (:func:`_fit_alpha`) and ``beta`` per group from levels ``>= 1``, floored at ``RATE_FLOOR``."""
     levels = np.arange(len(means))[1:]
     n = n_samples[1:].astype(float)
-    sd = np.sqrt(np.maximum(variances[1:], 0.0))
-    magnitude = group_max(np.abs(means[1:]), groups)
-    signal = _significant(means[1:], variances[1:], groups)
-    per_sample = group_max(n[:, None] * sd**2, groups)
-    alpha, beta = [], []
-    for g in range(magnitude.shape[1]):
-        values = np.where(signal[:, g], magnitude[:, g], 0.0)
-        # The standard error of the group's largest |T_l| is at most its largest sd.
-        rel_alpha = np.divide(np.max(sd[:, groups == g], axis=1), values, out=np.zeros(len(levels)), where=values > 0)
-        alpha.append(_fit_rate(levels, values, rel_alpha, -1.0))
-        # A variance from n samples has relative error about sqrt(2 / (n - 1)).
-        rel_beta = np.sqrt(2.0 / np.maximum(n - 1.0, 1.0))
-        beta.append(_fit_rate(levels, per_sample[:, g], rel_beta, -1.0))
-    return np.array(alpha), np.array(beta)
+    per_sample = group_max(n[:, None] * np.maximum(variances[1:], 0.0), groups)
+    # A variance from n samples has relative error about sqrt(2 / (n - 1)).
+    rel_beta = np.sqrt(2.0 / np.maximum(n - 1.0, 1.0))
+    beta = [_fit_rate(levels, per_sample[:, g], rel_beta, -1.0) for g in range(per_sample.shape[1])]
+    return _fit_alpha(means, variances, groups), np.array(beta)
 
 
 def _cost_rate(mean_cost: np.ndarray) -> float:
@@ -270,12 +284,13 @@ def _cost_rate(mean_cost: np.ndarray) -> float:
 def _bias_magnitudes(means: np.ndarray, variances: np.ndarray, groups: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     """``|E[T_l]|`` per group for the bias test, shape (n_levels, n_groups) (module docstring).
 
-    The data ``max_c |T_l|`` up to the finest significant level ``k``; above
-    it, where the terms are noise, the smaller of the data and the ``alpha``
-    model anchored at ``k``. Without a significant level ``>= 1``, the data.
+    The data ``max_c |T_l|`` up to the finest detected level ``k``
+    (:func:`_detected`); above it, where the terms are noise, the smaller of
+    the data and the ``alpha`` model anchored at ``k``. Without a detected
+    level ``>= 1``, the data.
     """
     magnitude = group_max(np.abs(means), groups)
-    signal = _significant(means, variances, groups)
+    signal = _detected(means, variances, groups)
     signal[0] = False  # the base level estimates theta_0, not a difference
     for g in range(magnitude.shape[1]):
         rows = np.flatnonzero(signal[:, g])
