@@ -87,10 +87,8 @@ def test_level_terms_telescope_to_the_smoothed_cdf_of_the_finest_level():
     z, w = rng.normal(size=500), rng.normal(size=500)
     values = [z + 2.0**-level * w for level in range(4)]
     s = np.linspace(-2, 2, 9)
-    total = sum(
-        cdf_level_term(values[level], None if level == 0 else values[level - 1], level, thresholds=s, bandwidth=0.3).mean
-        for level in range(4)
-    )
+    coarse = [None] + values[:-1]
+    total = sum(cdf_level_term(values[k], coarse[k], k, thresholds=s, bandwidth=0.3).mean for k in range(4))
     delta = level_bandwidth(3, bandwidth=0.3)
     np.testing.assert_allclose(total, np.mean(smoothed_step((s - values[3][:, None]) / delta), axis=0), atol=1e-13)
     term = cdf_level_term(values[2], values[1], 2, thresholds=s, bandwidth=0.3)

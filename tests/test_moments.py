@@ -154,7 +154,8 @@ def test_central_moment_level_terms_are_unbiased_and_their_variance_consistent(o
 
 
 def variance_runs(kind: str, tol: float, n_repeats: int):
-    return [(problem, mlmc_variance(problem, tol=tol)) for problem in (PerturbedLimit(kind=kind, seed=s) for s in range(n_repeats))]
+    problems = [PerturbedLimit(kind=kind, seed=seed) for seed in range(n_repeats)]
+    return [(problem, mlmc_variance(problem, tol=tol)) for problem in problems]
 
 
 @pytest.mark.parametrize(("kind", "tol", "n_repeats"), [("gaussian", 0.05, 100), ("gamma", 0.2, 40)])

@@ -106,7 +106,9 @@ def level_bandwidth(level: int, *, bandwidth: float, bandwidth_rate: float = 1.0
 def _check_thresholds(thresholds: object) -> np.ndarray:
     array = np.asarray(thresholds, dtype=float)
     if array.ndim != 1 or array.size < 2 or not np.all(np.isfinite(array)) or np.any(np.diff(array) <= 0):
-        raise InvalidParameterError("thresholds", thresholds, "a 1-d array of at least two finite, strictly increasing values")
+        raise InvalidParameterError(
+            "thresholds", thresholds, "a 1-d array of at least two finite, strictly increasing values"
+        )
     return array
 
 
@@ -175,7 +177,9 @@ def cdf_level_term(
     x = _column(fine, qoi, "fine")
     y = None if coarse is None else _column(coarse, qoi, "coarse")
     if y is not None and (y.shape != x.shape or level < 1):
-        raise InvalidParameterError("coarse", f"{y.shape[0]} samples on level {level}", "one per fine sample, level >= 1")
+        raise InvalidParameterError(
+            "coarse", f"{y.shape[0]} samples on level {level}", "one per fine sample, on a level >= 1"
+        )
     n = len(x)
     delta_x = level_bandwidth(level, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
     delta_y = level_bandwidth(level - 1, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
@@ -278,7 +282,9 @@ class CdfEstimate:
         return self.target.tol_met
 
 
-def _cdf_estimate(target: TargetEstimate, thresholds: np.ndarray, bandwidth: float, bandwidth_rate: float) -> CdfEstimate:
+def _cdf_estimate(
+    target: TargetEstimate, thresholds: np.ndarray, bandwidth: float, bandwidth_rate: float
+) -> CdfEstimate:
     raw = target.estimate
     return CdfEstimate(
         thresholds=_readonly(thresholds),
@@ -288,7 +294,7 @@ def _cdf_estimate(target: TargetEstimate, thresholds: np.ndarray, bandwidth: flo
         bias=float(target.bias[0]),
         rmse=float(target.rmse[0]),
         bandwidths=_readonly(
-            [level_bandwidth(int(l), bandwidth=bandwidth, bandwidth_rate=bandwidth_rate) for l in target.levels]
+            [level_bandwidth(int(level), bandwidth=bandwidth, bandwidth_rate=bandwidth_rate) for level in target.levels]
         ),
         target=target,
     )
@@ -322,11 +328,9 @@ def cdf_from_samples(
     s = _check_thresholds(thresholds)
     if len(fine) != len(coarse) or len(fine) == 0:
         raise EstimationError(f"fine and coarse need one entry per level, got {len(fine)} and {len(coarse)}")
+    options = {"thresholds": s, "bandwidth": bandwidth, "bandwidth_rate": bandwidth_rate, "qoi": qoi}
     terms = [
-        cdf_level_term(
-            f, None if level == 0 else c, level, thresholds=s, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate, qoi=qoi
-        )
-        for level, (f, c) in enumerate(zip(fine, coarse))
+        cdf_level_term(f, None if level == 0 else c, level, **options) for level, (f, c) in enumerate(zip(fine, coarse))
     ]
     return _cdf_estimate(telescope(terms, tol=tol), s, bandwidth, bandwidth_rate)
 

@@ -120,7 +120,7 @@ class LevelTerm:
 
 
 TermFunction = Callable[[np.ndarray, "np.ndarray | None", int], LevelTerm]
-"""``term(fine, coarse, level) -> LevelTerm``; ``fine``, ``coarse`` of shape (n, n_qoi), ``coarse`` None on the base level."""
+"""``term(fine, coarse, level) -> LevelTerm``; ``fine``, ``coarse`` shape (n, n_qoi), ``coarse`` None on level 0."""
 
 
 def group_max(values: np.ndarray, groups: np.ndarray) -> np.ndarray:
