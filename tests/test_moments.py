@@ -21,6 +21,7 @@ from rough_uq.multilevel.moments import (
     h2_difference_variance,
     h3,
     h4,
+    mlmc_central_moment,
     mlmc_variance,
     variance_from_samples,
     variance_level_term,
@@ -197,6 +198,19 @@ def test_mlmc_variance_error_and_cost_follow_the_tolerance(kind):
     # level's worth (factor 2) at either end, so allow 0.5 on the slope of -2.
     assert abs(error_rate - 1.0) < 0.45
     assert abs(cost_rate + 2.0) < 0.5
+
+
+def test_mlmc_fourth_central_moment_is_within_tolerance():
+    # Gaussian limit: mu4(Q_l) = 3 (1 + 4^-l)^2 -> 3, level terms decay like 4^-l.
+    tol, n_repeats = 0.6, 30
+    errors = []
+    for seed in range(n_repeats):
+        result = mlmc_central_moment(PerturbedLimit(seed=seed), order=4, tol=tol)
+        assert result.stop_reason == "tol_met" and result.tol_met
+        errors.append(result.estimate[0] - 3.0)
+    assert math.sqrt(np.mean(np.square(errors))) <= tol * rms_slack(n_repeats)
+    with pytest.raises(InvalidParameterError, match="order"):
+        mlmc_central_moment(PerturbedLimit(), order=2, tol=tol)
 
 
 def test_variance_from_given_samples_telescopes_to_var_q_l():

@@ -50,9 +50,10 @@ Third and fourth moments
 ``mu3`` and ``mu4``. Their variance is estimated to leading order in ``1/n``
 from the influence functions ``psi_k(x) = (x - mu)^k - mu_k - k mu_(k-1) (x -
 mu)``: ``Var(T_l) ~ Var(psi_k(X) - psi_k(Y)) / n`` with sample moments
-plugged in (consistent, not unbiased). Skewness ``mu3 / mu2^(3/2)`` and
-kurtosis ``mu4 / mu2^2`` follow from the telescoped moments; their errors are
-not propagated here.
+plugged in (consistent, not unbiased); :func:`mlmc_central_moment` runs the
+adaptive driver on them. Skewness ``mu3 / mu2^(3/2)`` and kurtosis ``mu4 /
+mu2^2`` follow from the telescoped moments; their errors are not propagated
+here.
 """
 
 from __future__ import annotations
@@ -72,6 +73,7 @@ __all__ = [
     "h3",
     "h4",
     "h2_difference_variance",
+    "mlmc_central_moment",
     "mlmc_variance",
     "variance_from_samples",
     "variance_level_term",
@@ -310,3 +312,20 @@ def mlmc_variance(sampler: Sampler, *, tol: float | np.ndarray, **options: objec
         One component per QoI.
     """
     return adaptive_mlmc(sampler, term=variance_level_term, tol=tol, **options)
+
+
+def mlmc_central_moment(sampler: Sampler, *, order: int, tol: float | np.ndarray, **options: object) -> TargetEstimate:
+    """Adaptive MLMC estimate of the central moment ``mu_order`` (3 or 4) of ``Q`` to the RMS tolerance ``tol``.
+
+    The level terms are :func:`central_moment_level_term` (their variance is
+    the leading-order estimate of the module docstring); ``options`` as for
+    :func:`mlmc_variance`. Skewness and kurtosis follow by dividing by the
+    power of :func:`mlmc_variance`'s estimate.
+    """
+    if order not in (3, 4):
+        raise InvalidParameterError("order", order, "3 or 4 (use mlmc_variance for the variance)")
+
+    def term(fine: np.ndarray, coarse: np.ndarray | None, level: int) -> LevelTerm:
+        return central_moment_level_term(fine, coarse, level, order=order)
+
+    return adaptive_mlmc(sampler, term=term, tol=tol, **options)

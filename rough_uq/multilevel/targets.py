@@ -340,9 +340,7 @@ def telescope(
     groups = terms[0].groups
     if any(t.mean.shape != terms[0].mean.shape or not np.array_equal(t.groups, groups) for t in terms):
         raise EstimationError("the level terms have different components")
-    means = np.array([t.mean for t in terms])
-    variances = np.array([t.variance for t in terms])
-    n_samples = np.array([t.n_samples for t in terms], dtype=np.int64)
+    means, variances, n_samples = _stack(terms)
     fitted_alpha, beta = _term_rates(means, variances, n_samples, groups)
     n_groups = terms[0].n_groups
     alpha = fitted_alpha if alpha is None else np.broadcast_to(np.asarray(alpha, dtype=float), (n_groups,))
@@ -433,6 +431,20 @@ def _affordable(levels: list[_Level], level: int, wanted: int, max_cost: float |
     return int(min(wanted, max(math.floor((max_cost - spent) / unit), 0)))
 
 
+def _draw(sampler, levels: list[_Level], planned: list[int], batch_cap, max_cost, gamma: float, n_initial: int) -> bool:
+    """Draw the missing samples level by level; False if ``max_cost`` stopped it (module docstring)."""
+    for s in levels:
+        while s.n < planned[s.level]:
+            wanted = int(min(planned[s.level] - s.n, batch_cap))
+            n = _affordable(levels, s.level, wanted, max_cost, gamma)
+            # A level is not started unless it can get the samples its term variance needs.
+            if n == 0 or s.n + n < n_initial:
+                return False
+            batch = _call_sampler(sampler, s.level, s.n, n)
+            s.add(batch.fine, batch.coarse, batch.cost)
+    return True
+
+
 def _targets(levels, terms, n_initial, tol, theta, beta, gamma) -> list[int]:
     """Planned ``N_l`` (module docstring) for every level, sampled or not."""
     groups = terms[0].groups
@@ -499,29 +511,18 @@ def adaptive_mlmc(
     _check_group_tol(tol, 1 if np.ndim(tol) == 0 else np.size(tol))
     levels = [_Level(level) for level in range(min_finest_level + 1)]
     planned = [n_initial] * len(levels)
-    alpha = beta = np.array([RATE_FLOOR])
     gamma = RATE_FLOOR
     tol_groups: np.ndarray | None = None
     stop_reason = ""
     while not stop_reason:
-        pending = [s for s in levels if s.n < planned[s.level]]
-        for s in pending:
-            wanted = int(min(planned[s.level] - s.n, batch_cap))
-            n = _affordable(levels, s.level, wanted, max_cost, gamma)
-            if n == 0 or (s.n + n < n_initial):
-                stop_reason = "max_cost"
-                break
-            batch = _call_sampler(sampler, s.level, s.n, n)
-            s.add(batch.fine, batch.coarse, batch.cost)
-        if stop_reason:
+        if not _draw(sampler, levels, planned, batch_cap, max_cost, gamma, n_initial):
+            stop_reason = "max_cost"
             break
         terms = [s.term(term) if s.n else None for s in levels]
         sampled = [t for t in terms if t is not None]
         if tol_groups is None:
             tol_groups = _check_group_tol(tol, sampled[0].n_groups)
-        means = np.array([t.mean for t in sampled])
-        variances = np.array([t.variance for t in sampled])
-        n_samples = np.array([t.n_samples for t in sampled])
+        means, variances, n_samples = _stack(sampled)
         alpha, beta = _term_rates(means, variances, n_samples, sampled[0].groups)
         gamma = _cost_rate(np.array([s.mean_cost for s in levels if s.n]))
         planned = _targets(levels, terms, n_initial, tol_groups, theta, beta, gamma)
@@ -542,10 +543,20 @@ def adaptive_mlmc(
     groups = terms[0].groups
     if tol_groups is None:
         tol_groups = _check_group_tol(tol, terms[0].n_groups)
+    means, variances, n_samples = _stack(terms)
+    # Rates of the final samples (a run stopped by max_cost may not have refitted them).
+    alpha, beta = _term_rates(means, variances, n_samples, groups)
+    gamma = _cost_rate(np.array([s.mean_cost for s in sampled_levels]))
     return _estimate(
+        means, variances, n_samples, groups, alpha, beta, gamma,
+        cost=sum(s.spent for s in levels), tol=tol_groups, theta=theta, stop_reason=stop_reason,
+    )
+
+
+def _stack(terms: Sequence[LevelTerm]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``T_l``, ``Var(T_l)`` (shape (n_levels, n_components)) and ``N_l`` of consecutive levels."""
+    return (
         np.array([t.mean for t in terms]),
         np.array([t.variance for t in terms]),
         np.array([t.n_samples for t in terms], dtype=np.int64),
-        groups, alpha, beta, gamma,
-        cost=sum(s.spent for s in levels), tol=tol_groups, theta=theta, stop_reason=stop_reason,
     )
