@@ -215,3 +215,23 @@ def test_too_few_samples_and_unbracketed_quantiles_are_refused():
     middle = quantiles(result, probabilities=[0.5])
     # The band cdf +- rmse stays inside the grid here; a band leaving the grid is reported as infinite.
     assert np.isfinite(middle.lower[0]) and np.isfinite(middle.upper[0])
+
+
+def test_a_fixed_bandwidth_converges_to_the_smoothed_cdf():
+    # bandwidth_rate = 0: the telescoped sum is E[g((s - Q_L)/delta)], the smoothed CDF of Q_L,
+    # here Q_3 ~ N(0, 1 + 4^-3), computed by quadrature.
+    problem = PerturbedLimit(seed=9)
+    s = np.linspace(-2.0, 2.0, 9)
+    drawn = [problem(level, np.arange(40_000)) for level in range(4)]
+    result = cdf_from_samples(
+        fine=[d[0] for d in drawn], coarse=[d[1] for d in drawn], thresholds=s, bandwidth=1.0, bandwidth_rate=0.0
+    )
+    assert np.all(result.bandwidths == 1.0)
+    spread = math.sqrt(1.0 + 4.0**-3)
+    smoothed = [
+        integrate.quad(lambda q, t=t: smoothed_step((t - q) / 1.0) * stats.norm.pdf(q, scale=spread), -10, 10)[0]
+        for t in s
+    ]
+    assert np.all(np.abs(result.cdf_raw - smoothed) < 4.0 * result.stat_error)
+    # ... which differs from F itself by about delta^2 f'(s) / 14 = 0.017, beyond the statistical error.
+    assert np.max(np.abs(smoothed - stats.norm.cdf(s, scale=spread))) > 4 * np.max(result.stat_error)

@@ -287,7 +287,7 @@ def test_telescope_refuses_mismatched_terms():
         telescope([a, b])
     with pytest.raises(EstimationError, match="at least one level"):
         telescope([])
-    with pytest.raises(InvalidParameterError, match="one per tolerance group"):
+    with pytest.raises(InvalidParameterError, match="a scalar or 2 values"):
         telescope([a], tol=[0.1, 0.1, 0.1])
     with pytest.raises(InvalidParameterError, match="batch_size"):
         adaptive_mlmc(PerturbedLimit(), term=variance_level_term, tol=0.1, batch_size=0)

@@ -27,17 +27,33 @@ distribution function, whose tolerance is on the maximum over thresholds).
     The per-sample variance of the term, ``W_l = N_l Var(T_l)`` (the role
     ``V_l`` plays for the mean; for a sample mean they coincide).
 ``alpha``, ``beta``, ``gamma``
-    ``|E[T_l]| ~ 2^(-alpha l)`` (maximum over a group's components),
-    ``W_l ~ 2^(-beta l)``, ``C_l ~ 2^(gamma l)``.
+    ``|E[T_l]| ~ 2^(-alpha l)`` (every component of a group alike),
+    ``W_l ~ 2^(-beta l)`` (maximum over a group's components),
+    ``C_l ~ 2^(gamma l)``; all floored at ``RATE_FLOOR`` (0.5) as in the
+    mean driver.
 
 Estimate and errors
 -------------------
 The estimate of ``theta_L`` is ``sum_l T_l`` with statistical variance
-``sum_l Var(T_l)`` per component (independent levels). The remaining bias of
-a group is the geometric tail of the ``alpha`` model taken from the three
-finest levels, ``max_i |T_{L-i}| 2^(-i alpha) / (2^alpha - 1)`` with
-``|T|`` the maximum over the group's components (as the mean driver does,
-:func:`rough_uq.multilevel.drivers._driver_bias`). A group meets its
+``sum_l Var(T_l)`` per component (independent levels).
+
+A group with many components (a CDF on a grid) makes the mean driver's bias
+logic unreliable: the maximum over the components of ``|T_l|`` is, on the
+finer levels, mostly the maximum of the noise. So each level's terms are
+summarised by ``r2_l = mean_c (T_c^2 - Var(T_c))``, an unbiased estimate of
+the mean square of ``E[T_l]`` over the group, pooled over all its components.
+A level is *detected* when ``r2_l`` exceeds its standard error (for a single
+component about ``|T_l| > 2.5 sd(T_l)``); ``alpha`` is the weighted
+least-squares slope of ``log2 sqrt(r2_l)`` over the detected levels ``>= 1``
+(weights: inverse variances, so noisy levels hardly count; the floor with
+fewer than two). The remaining bias is the geometric tail of the ``alpha``
+model from the three finest levels, ``max_i b_{L-i} 2^(-i alpha) / (2^alpha
+- 1)`` (:func:`rough_uq.multilevel.drivers._driver_bias`), with ``b_l =
+max_c |T_c|`` up to the finest detected level ``k`` and, above it, the
+smaller of that and the model ``b_k 2^(-alpha (l - k))``: where the terms
+are noise, the data bound the bias only loosely, and the model extrapolated
+from measured terms is the better estimate (as :func:`~rough_uq.multilevel.statistics.plan`
+uses the model by default). A group meets its
 tolerance ``eps`` when ``max_c Var_c + bias^2 <= eps^2``, the maximum over
 its components: for a distribution function that is the supremum over the
 thresholds of the pointwise mean-square error (not the mean of the squared
@@ -47,8 +63,8 @@ Adaptive driver
 ---------------
 :func:`adaptive_mlmc` follows the mean driver's algorithm without screening,
 Richardson extrapolation or coarse-level dropping: levels ``0..min_finest_level``
-with ``n_initial`` samples each; after each round of samples the terms are
-recomputed, the rates refitted (floored at ``RATE_FLOOR``), and
+with ``n_initial`` samples each; after each round of samples (drawn in
+batches of at most ``batch_size``) the terms are recomputed, the rates refitted (floored at ``RATE_FLOOR``), and
 ``N_l = ceil((1-theta)^-1 eps^-2 sqrt(W_l/C_l) sum_k sqrt(W_k C_k))``
 (maximum over the components; never fewer than drawn or than ``n_initial``);
 once every level has (within 1 %) its samples, the bias test adds level
@@ -64,7 +80,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.errors import EstimationError
 from rough_uq.multilevel.drivers import (
     RATE_FLOOR,
     Sampler,
@@ -75,7 +91,7 @@ from rough_uq.multilevel.drivers import (
     _fill_costs,
     _planning_variances,
 )
-from rough_uq.multilevel.statistics import _check_fraction, _fit_line, _readonly, optimal_samples
+from rough_uq.multilevel.statistics import _check_fraction, _check_tol, _fit_line, _readonly, optimal_samples
 
 __all__ = [
     "LevelTerm",
@@ -344,7 +360,7 @@ def telescope(
     fitted_alpha, beta = _term_rates(means, variances, n_samples, groups)
     n_groups = terms[0].n_groups
     alpha = fitted_alpha if alpha is None else np.broadcast_to(np.asarray(alpha, dtype=float), (n_groups,))
-    tol_array = np.full(n_groups, np.nan) if tol is None else _check_group_tol(tol, n_groups)
+    tol_array = np.full(n_groups, np.nan) if tol is None else _check_tol(tol, n_groups)
     return _estimate(
         means, variances, n_samples, groups, alpha, beta, 0.0,
         cost=0.0 if costs is None else float(np.sum(costs)), tol=tol_array, theta=_check_fraction("theta", theta),
@@ -370,17 +386,6 @@ def _estimate(means, variances, n_samples, groups, alpha, beta, gamma, *, cost, 
         theta=theta,
         stop_reason=stop_reason,
     )
-
-
-def _check_group_tol(tol: object, n_groups: int) -> np.ndarray:
-    array = np.atleast_1d(np.asarray(tol, dtype=float))
-    if array.ndim != 1 or not np.all(np.isfinite(array)) or np.any(array <= 0):
-        raise InvalidParameterError("tol", tol, "a positive number or a 1-d array of positive numbers")
-    if array.size == 1:
-        return np.repeat(array, n_groups)
-    if array.size != n_groups:
-        raise InvalidParameterError("tol", tol, f"a scalar or {n_groups} values (one per tolerance group)")
-    return array
 
 
 # --------------------------------------------------------------------------
@@ -508,7 +513,7 @@ def adaptive_mlmc(
     max_level = _check_int("max_level", max_level, min_finest_level)
     batch_cap = math.inf if batch_size is None else _check_int("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
-    _check_group_tol(tol, 1 if np.ndim(tol) == 0 else np.size(tol))
+    _check_tol(tol, None)  # fails early; the number of groups is known after the first batch
     levels = [_Level(level) for level in range(min_finest_level + 1)]
     planned = [n_initial] * len(levels)
     gamma = RATE_FLOOR
@@ -521,7 +526,7 @@ def adaptive_mlmc(
         terms = [s.term(term) if s.n else None for s in levels]
         sampled = [t for t in terms if t is not None]
         if tol_groups is None:
-            tol_groups = _check_group_tol(tol, sampled[0].n_groups)
+            tol_groups = _check_tol(tol, sampled[0].n_groups)
         means, variances, n_samples = _stack(sampled)
         alpha, beta = _term_rates(means, variances, n_samples, sampled[0].groups)
         gamma = _cost_rate(np.array([s.mean_cost for s in levels if s.n]))
@@ -542,7 +547,7 @@ def adaptive_mlmc(
     terms = [s.term(term) for s in sampled_levels]
     groups = terms[0].groups
     if tol_groups is None:
-        tol_groups = _check_group_tol(tol, terms[0].n_groups)
+        tol_groups = _check_tol(tol, terms[0].n_groups)
     means, variances, n_samples = _stack(terms)
     # Rates of the final samples (a run stopped by max_cost may not have refitted them).
     alpha, beta = _term_rates(means, variances, n_samples, groups)
