@@ -153,18 +153,22 @@ def _pair(fine: object, coarse: object | None, minimum: int) -> tuple[np.ndarray
     return x, y
 
 
-def _difference_power_sums(x: np.ndarray, y: np.ndarray | None) -> dict[str, np.ndarray]:
-    """``P11, P22, P20, P02`` of ``D = X - Y``, ``S = X + Y`` (``D = S = X`` without ``Y``)."""
+def _h2_difference(x: np.ndarray, y: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``T = h2(x) - h2(y)`` and the unbiased estimate ``T^2 - U4`` of its variance (module docstring).
+
+    From the power sums ``P_pq`` of ``D = X - Y``, ``S = X + Y`` (``D = S =
+    X`` without ``Y``); needs ``n >= 4``.
+    """
+    n = x.shape[0]
     d = x if y is None else x - y
     s = x if y is None else x + y
     d = d - np.mean(d, axis=0)
     s = s - np.mean(s, axis=0)
-    return {
-        "11": np.sum(d * s, axis=0),
-        "22": np.sum(d**2 * s**2, axis=0),
-        "20": np.sum(d**2, axis=0),
-        "02": np.sum(s**2, axis=0),
-    }
+    p11, p22 = np.sum(d * s, axis=0), np.sum(d**2 * s**2, axis=0)
+    p20, p02 = np.sum(d**2, axis=0), np.sum(s**2, axis=0)
+    u4 = ((n - 1) * (n - 2) * p11**2 - n * (n - 1) * p22 + p20 * p02) / (n * (n - 1) * (n - 2) * (n - 3))
+    term = p11 / (n - 1)
+    return term, term**2 - u4
 
 
 def h2_difference_variance(fine: np.ndarray, coarse: np.ndarray | None = None) -> float | np.ndarray:
@@ -182,13 +186,7 @@ def h2_difference_variance(fine: np.ndarray, coarse: np.ndarray | None = None) -
         ``T^2 - U4`` (module docstring), unclipped: it may be negative
         when the true variance is small next to its sampling error.
     """
-    x, y = _pair(fine, coarse, 4)
-    n = x.shape[0]
-    p = _difference_power_sums(x, y)
-    u4 = ((n - 1) * (n - 2) * p["11"] ** 2 - n * (n - 1) * p["22"] + p["20"] * p["02"]) / (
-        n * (n - 1) * (n - 2) * (n - 3)
-    )
-    return _shape_like((p["11"] / (n - 1)) ** 2 - u4, fine)
+    return _shape_like(_h2_difference(*_pair(fine, coarse, 4))[1], fine)
 
 
 def variance_level_term(fine: np.ndarray, coarse: np.ndarray | None, level: int = 0) -> LevelTerm:
@@ -208,13 +206,11 @@ def variance_level_term(fine: np.ndarray, coarse: np.ndarray | None, level: int 
         One component and one tolerance group per QoI.
     """
     x, y = _pair(fine, coarse, 4)
-    n = x.shape[0]
-    p = _difference_power_sums(x, y)
-    variance = np.atleast_1d(h2_difference_variance(x, y))
+    term, variance = _h2_difference(x, y)
     return LevelTerm(
-        mean=_readonly(p["11"] / (n - 1)),
+        mean=_readonly(term),
         variance=_readonly(np.maximum(variance, 0.0)),
-        n_samples=n,
+        n_samples=x.shape[0],
         groups=_readonly(np.arange(x.shape[1])),
     )
 

@@ -139,7 +139,7 @@ TermFunction = Callable[[np.ndarray, "np.ndarray | None", int], LevelTerm]
 """``term(fine, coarse, level) -> LevelTerm``; ``fine``, ``coarse`` shape (n, n_qoi), ``coarse`` None on level 0."""
 
 
-def group_max(values: np.ndarray, groups: np.ndarray) -> np.ndarray:
+def _group_max(values: np.ndarray, groups: np.ndarray) -> np.ndarray:
     """Maximum over each group's components along the last axis: shape (..., n_groups)."""
     n_groups = int(np.max(groups)) + 1
     return np.stack([np.max(values[..., groups == g], axis=-1) for g in range(n_groups)], axis=-1)
@@ -199,7 +199,7 @@ class TargetEstimate:
     @property
     def rmse(self) -> np.ndarray:
         """Estimated RMS error per group, ``sqrt(max_c stat_error_c^2 + bias^2)``, shape (n_groups,)."""
-        return np.sqrt(group_max(self.stat_error**2, self.groups) + self.bias**2)
+        return np.sqrt(_group_max(self.stat_error**2, self.groups) + self.bias**2)
 
     @property
     def tol_met(self) -> bool:
@@ -242,14 +242,13 @@ def _signal(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> tup
     return np.stack(r2, axis=1), np.stack(se, axis=1)
 
 
-def _detected(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> np.ndarray:
-    """Boolean (n_levels, n_groups): the level terms differ from 0 by more than their noise.
+def _is_detected(r2: np.ndarray, se: np.ndarray) -> np.ndarray:
+    """The level terms differ from 0 by more than their noise: ``r2 > se(r2)`` (:func:`_signal`).
 
-    ``r2 > se(r2)`` (:func:`_signal`); for a single component that is
-    ``|T| > 2.5 sd(T)`` or so, and pooling many components (a CDF on a
-    grid) detects much smaller terms than any one of them could.
+    For a single component that is ``|T| > 2.5 sd(T)`` or so; pooling many
+    components (a CDF on a grid) detects much smaller terms than any one of
+    them could.
     """
-    r2, se = _signal(means, variances, groups)
     return r2 > se
 
 
@@ -266,7 +265,7 @@ def _fit_alpha(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> 
     levels = np.arange(1, len(means), dtype=float)
     alpha = []
     for g in range(r2.shape[1]):
-        use = r2[:, g] > se[:, g]
+        use = _is_detected(r2[:, g], se[:, g])
         if np.sum(use) < 2:
             alpha.append(RATE_FLOOR)
             continue
@@ -284,7 +283,7 @@ def _term_rates(means: np.ndarray, variances: np.ndarray, n_samples: np.ndarray,
     """``alpha`` (:func:`_fit_alpha`) and ``beta`` per group from levels ``>= 1``, floored at ``RATE_FLOOR``."""
     levels = np.arange(len(means))[1:]
     n = n_samples[1:].astype(float)
-    per_sample = group_max(n[:, None] * np.maximum(variances[1:], 0.0), groups)
+    per_sample = _group_max(n[:, None] * np.maximum(variances[1:], 0.0), groups)
     # A variance from n samples has relative error about sqrt(2 / (n - 1)).
     rel_beta = np.sqrt(2.0 / np.maximum(n - 1.0, 1.0))
     beta = [_fit_rate(levels, per_sample[:, g], rel_beta, -1.0) for g in range(per_sample.shape[1])]
@@ -301,12 +300,12 @@ def _bias_magnitudes(means: np.ndarray, variances: np.ndarray, groups: np.ndarra
     """``|E[T_l]|`` per group for the bias test, shape (n_levels, n_groups) (module docstring).
 
     The data ``max_c |T_l|`` up to the finest detected level ``k``
-    (:func:`_detected`); above it, where the terms are noise, the smaller of
+    (:func:`_is_detected`); above it, where the terms are noise, the smaller of
     the data and the ``alpha`` model anchored at ``k``. Without a detected
     level ``>= 1``, the data.
     """
-    magnitude = group_max(np.abs(means), groups)
-    signal = _detected(means, variances, groups)
+    magnitude = _group_max(np.abs(means), groups)
+    signal = _is_detected(*_signal(means, variances, groups))
     signal[0] = False  # the base level estimates theta_0, not a difference
     for g in range(magnitude.shape[1]):
         rows = np.flatnonzero(signal[:, g])
@@ -436,7 +435,15 @@ def _affordable(levels: list[_Level], level: int, wanted: int, max_cost: float |
     return int(min(wanted, max(math.floor((max_cost - spent) / unit), 0)))
 
 
-def _draw(sampler, levels: list[_Level], planned: list[int], batch_cap, max_cost, gamma: float, n_initial: int) -> bool:
+def _draw(
+    sampler: Sampler,
+    levels: list[_Level],
+    planned: list[int],
+    batch_cap: float,
+    max_cost: float | None,
+    gamma: float,
+    n_initial: int,
+) -> bool:
     """Draw the missing samples level by level; False if ``max_cost`` stopped it (module docstring)."""
     for s in levels:
         while s.n < planned[s.level]:
@@ -450,7 +457,15 @@ def _draw(sampler, levels: list[_Level], planned: list[int], batch_cap, max_cost
     return True
 
 
-def _targets(levels, terms, n_initial, tol, theta, beta, gamma) -> list[int]:
+def _targets(
+    levels: list[_Level],
+    terms: list[LevelTerm | None],
+    n_initial: int,
+    tol: np.ndarray,
+    theta: float,
+    beta: np.ndarray,
+    gamma: float,
+) -> list[int]:
     """Planned ``N_l`` (module docstring) for every level, sampled or not."""
     groups = terms[0].groups
     has_data = np.array([s.n > 0 for s in levels])
