@@ -206,6 +206,8 @@ def test_bad_options_are_refused(options, field):
 def test_too_few_samples_and_unbracketed_quantiles_are_refused():
     with pytest.raises(InvalidParameterError, match="at least 2 samples"):
         cdf_level_term(np.zeros(1), None, 0, thresholds=[0.0, 1.0], bandwidth=0.5)
+    with pytest.raises(InvalidParameterError, match="finite"):
+        cdf_level_term(np.array([0.0, np.nan]), None, 0, thresholds=[0.0, 1.0], bandwidth=0.5)
     fine = PerturbedLimit(scale=0.0)(0, np.arange(1000))[0]
     result = cdf_from_samples(fine=[fine], coarse=[fine], thresholds=[-0.5, 0.0, 0.5], bandwidth=0.1)
     with pytest.raises(EstimationError, match="do not bracket"):

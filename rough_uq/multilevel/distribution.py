@@ -126,6 +126,8 @@ def _column(values: np.ndarray, qoi: int, name: str) -> np.ndarray:
         raise InvalidParameterError("qoi", qoi, f"a column index of {name}, shape {np.shape(values)}")
     if array.shape[0] < 2:
         raise InvalidParameterError(name, f"{array.shape[0]} samples", "at least 2 samples")
+    if not np.all(np.isfinite(array[:, qoi])):
+        raise InvalidParameterError(name, "non-finite values", "finite values")
     return array[:, qoi]
 
 
