@@ -26,7 +26,8 @@ from rough_uq.multilevel.moments import (
     variance_from_samples,
     variance_level_term,
 )
-from rough_uq.multilevel.targets import LevelTerm, adaptive_mlmc, telescope
+from rough_uq.multilevel.statistics import optimal_samples
+from rough_uq.multilevel.targets import LevelTerm, adaptive_mlmc, sample_plan, telescope
 
 THETA = 0.5
 
@@ -228,6 +229,25 @@ def test_variance_from_given_samples_telescopes_to_var_q_l():
     assert abs(result.alpha[0] - 2.0) < 0.5
     exact_bias = problem.variance(3) - problem.variance()
     assert result.bias[0] == pytest.approx(exact_bias, rel=0.5)
+
+
+def test_the_sample_plan_is_the_mean_formula_with_the_variance_of_the_h2_terms():
+    problem = PerturbedLimit(seed=6)
+    terms, costs = [], []
+    for level in range(4):
+        fine, coarse, cost = problem(level, np.arange(500))
+        terms.append(variance_level_term(fine, None if level == 0 else coarse, level))
+        costs.append(np.mean(cost))
+    costs = np.array(costs)
+    tol = 0.05
+    n_planned = sample_plan(terms, costs=costs, tol=tol)
+    per_sample = np.array([[t.per_sample_variance[0]] for t in terms])
+    expected = np.ceil(optimal_samples(per_sample, costs, np.array([0.5 * tol**2])))[:, 0]
+    np.testing.assert_array_equal(n_planned, expected)
+    # The plan meets the statistical share of the tolerance with the screened W_l.
+    assert np.sum(per_sample[:, 0] / n_planned) <= 0.5 * tol**2
+    with pytest.raises(EstimationError, match="one value per level"):
+        sample_plan(terms, costs=costs[:2], tol=tol)
 
 
 def test_max_level_and_max_cost_stop_honestly():

@@ -98,6 +98,7 @@ __all__ = [
     "TargetEstimate",
     "TermFunction",
     "adaptive_mlmc",
+    "sample_plan",
     "telescope",
 ]
 
@@ -476,9 +477,50 @@ def _targets(
             per_sample[s.level] = np.maximum(term.per_sample_variance, 0.0)
     variances = _planning_variances(per_sample, has_data, beta[groups])
     costs = _fill_costs(np.array([s.mean_cost for s in levels]), has_data, gamma)
-    budget = (1.0 - theta) * tol[groups] ** 2
-    wanted = np.ceil(np.max(optimal_samples(variances, costs, budget), axis=1))
+    wanted = _allocate(variances, costs, groups, tol, theta)
     return [max(s.n, int(n), n_initial) for s, n in zip(levels, wanted)]
+
+
+def _allocate(per_sample: np.ndarray, costs: np.ndarray, groups: np.ndarray, tol: np.ndarray, theta: float):
+    """``N_l`` of SPEC section 5 with ``W_l`` for ``V_l``, maximised over the components (real, rounded up)."""
+    budget = (1.0 - theta) * tol[groups] ** 2
+    return np.ceil(np.max(optimal_samples(per_sample, costs, budget), axis=1))
+
+
+def sample_plan(
+    terms: Sequence[LevelTerm], *, costs: np.ndarray, tol: float | np.ndarray, theta: float = 0.5
+) -> np.ndarray:
+    """Optimal ``N_l`` for a tolerance, from screened terms of levels ``0..L`` (module docstring).
+
+    ``N_l = ceil((1-theta)^-1 eps^-2 sqrt(W_l/C_l) sum_k sqrt(W_k C_k))``,
+    the mean's formula with ``W_l = N_l Var(T_l)`` in place of ``V_l``,
+    maximised over the components (each against its group's ``eps``).
+
+    Parameters
+    ----------
+    terms : sequence of LevelTerm
+        ``T_0, ..., T_L`` (e.g. from a screening).
+    costs : ndarray, shape (L+1,)
+        ``C_l``, the cost of one level-``l`` sample (> 0).
+    tol : float or ndarray, shape (n_groups,)
+        Tolerance on the RMS error per group.
+    theta : float
+        Bias share of ``eps^2``.
+
+    Returns
+    -------
+    ndarray of int, shape (L+1,)
+        At least 1 per level.
+    """
+    _, variances, n_samples = _stack(terms)
+    groups = terms[0].groups
+    per_sample = n_samples[:, None] * np.maximum(variances, 0.0)
+    costs = np.asarray(costs, dtype=float)
+    if costs.shape != (len(terms),):
+        raise EstimationError(f"costs need one value per level ({len(terms)}), got shape {costs.shape}")
+    tol_groups = _check_tol(tol, terms[0].n_groups)
+    wanted = _allocate(per_sample, costs, groups, tol_groups, _check_fraction("theta", theta))
+    return np.maximum(wanted, 1).astype(np.int64)
 
 
 def adaptive_mlmc(
