@@ -59,7 +59,10 @@ interpolated between thresholds. Its error bar comes from the band ``cdf
 +- rmse`` (the sup-norm RMS error): ``lower`` is where the upper band
 reaches ``p``, ``upper`` where the lower band does (``-inf``/``+inf`` where
 the band leaves the grid). To first order ``(upper - lower) / 2 = rmse /
-f(q_p)``, the delta-method error.
+f(q_p)``, the delta-method error. The linear interpolation between
+thresholds is not part of the error bar: choose a grid whose spacing is well
+below it (a distribution with atoms, e.g. a deterministic ``Q``, shows the
+interpolation alone).
 """
 
 from __future__ import annotations
