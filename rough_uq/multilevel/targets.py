@@ -1,0 +1,624 @@
+"""MLMC for targets beyond the mean: telescoping sums of per-level statistics.
+
+The mean driver (:mod:`rough_uq.multilevel.drivers`) telescopes sample means
+of ``Y_l = Q_l - Q_{l-1}``. Other targets telescope other statistics of the
+same coupled pairs: the variance telescopes ``h2(Q_l) - h2(Q_{l-1})``
+(:mod:`rough_uq.multilevel.moments`), the distribution function telescopes
+smoothed indicators (:mod:`rough_uq.multilevel.distribution`). This module is
+the part they share: the per-level term, the telescoping estimate with its
+errors, and an adaptive driver.
+
+Symbols
+-------
+Levels and the sampler contract are those of
+:mod:`rough_uq.multilevel.drivers` (``sampler(level, indices) -> (fine,
+coarse, cost)``; contiguous indices from 0 per level). A *target* has
+``n_components`` components (one per QoI for the variance, one per threshold
+for the distribution function), grouped into ``n_groups`` *groups* that each
+carry one tolerance (one per QoI for the variance, a single group for a
+distribution function, whose tolerance is on the maximum over thresholds).
+
+``T_l``
+    The level-``l`` term, a vector of shape ``(n_components,)``: an unbiased
+    (or consistent) estimate from the ``N_l`` level-``l`` pairs of
+    ``E[t_l] = theta_l - theta_{l-1}`` (``theta_l`` the target on level ``l``;
+    on the base level ``T_0`` estimates ``theta_0`` itself).
+``W_l``
+    The per-sample variance of the term, ``W_l = N_l Var(T_l)`` (the role
+    ``V_l`` plays for the mean; for a sample mean they coincide).
+``alpha``, ``beta``, ``gamma``
+    ``|E[T_l]| ~ 2^(-alpha l)`` (every component of a group alike),
+    ``W_l ~ 2^(-beta l)`` (maximum over a group's components),
+    ``C_l ~ 2^(gamma l)``; all floored at ``RATE_FLOOR`` (0.5) as in the
+    mean driver.
+
+Estimate and errors
+-------------------
+The estimate of ``theta_L`` is ``sum_l T_l`` with statistical variance
+``sum_l Var(T_l)`` per component (independent levels).
+
+A group with many components (a CDF on a grid) makes the mean driver's bias
+logic unreliable: the maximum over the components of ``|T_l|`` is, on the
+finer levels, mostly the maximum of the noise. So each level's terms are
+summarised by ``r2_l = mean_c (T_c^2 - Var(T_c))``, an unbiased estimate of
+the mean square of ``E[T_l]`` over the group, pooled over all its components.
+A level is *detected* when ``r2_l`` exceeds its standard error (for a single
+component about ``|T_l| > 2.5 sd(T_l)``); ``alpha`` is the weighted
+least-squares slope of ``log2 sqrt(r2_l)`` over the detected levels ``>= 1``
+(weights: inverse variances, so noisy levels hardly count; the floor with
+fewer than two). The remaining bias is the geometric tail of the ``alpha``
+model from the three finest levels, ``max_i b_{L-i} 2^(-i alpha) / (2^alpha
+- 1)`` (:func:`rough_uq.multilevel.drivers._driver_bias`), with ``b_l =
+max_c |T_c|`` up to the finest detected level ``k`` and, above it, the
+smaller of that and the model ``b_k 2^(-alpha (l - k))``: where the terms
+are noise, the data bound the bias only loosely, and the model extrapolated
+from measured terms is the better estimate (as :func:`~rough_uq.multilevel.statistics.plan`
+uses the model by default). A group meets its
+tolerance ``eps`` when ``max_c Var_c + bias^2 <= eps^2``, the maximum over
+its components: for a distribution function that is the supremum over the
+thresholds of the pointwise mean-square error (not the mean of the squared
+supremum, which is larger; see :mod:`rough_uq.multilevel.distribution`).
+
+Adaptive driver
+---------------
+:func:`adaptive_mlmc` follows the mean driver's algorithm without screening,
+Richardson extrapolation or coarse-level dropping: levels ``0..min_finest_level``
+with ``n_initial`` samples each; after each round of samples (drawn in
+batches of at most ``batch_size``) the terms are recomputed, the rates refitted (floored at ``RATE_FLOOR``), and
+``N_l = ceil((1-theta)^-1 eps^-2 sqrt(W_l/C_l) sum_k sqrt(W_k C_k))``
+(maximum over the components; never fewer than drawn or than ``n_initial``);
+once every level has (within 1 %) its samples, the bias test adds level
+``L+1`` or stops (``"tol_met"``, ``"max_level"``); ``"max_cost"`` stops
+before a batch would exceed ``max_cost``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from rough_uq.errors import EstimationError
+from rough_uq.multilevel.drivers import (
+    RATE_FLOOR,
+    Sampler,
+    _call_sampler,
+    _check_int,
+    _check_optional_positive,
+    _driver_bias,
+    _fill_costs,
+    _planning_variances,
+)
+from rough_uq.multilevel.statistics import _check_fraction, _check_tol, _fit_line, _readonly, optimal_samples
+
+__all__ = [
+    "LevelTerm",
+    "TargetEstimate",
+    "TermFunction",
+    "adaptive_mlmc",
+    "sample_plan",
+    "telescope",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class LevelTerm:
+    """The level-``l`` term ``T_l`` of a telescoping sum, with its variance.
+
+    Attributes
+    ----------
+    mean : ndarray, shape (n_components,)
+        ``T_l`` (an estimate of ``theta_l - theta_{l-1}``, of ``theta_0`` on
+        the base level), in the unit of the target.
+    variance : ndarray, shape (n_components,)
+        Estimated ``Var(T_l)``, >= 0, in the unit of the target squared.
+    n_samples : int
+        ``N_l``, the number of pairs the term was computed from.
+    groups : ndarray of int, shape (n_components,)
+        Tolerance group of each component (``0..n_groups-1``).
+    """
+
+    mean: np.ndarray
+    variance: np.ndarray
+    n_samples: int
+    groups: np.ndarray
+
+    @property
+    def per_sample_variance(self) -> np.ndarray:
+        """``W_l = N_l Var(T_l)``, shape (n_components,)."""
+        return self.n_samples * self.variance
+
+    @property
+    def n_groups(self) -> int:
+        """Number of tolerance groups."""
+        return int(np.max(self.groups)) + 1
+
+
+TermFunction = Callable[[np.ndarray, "np.ndarray | None", int], LevelTerm]
+"""``term(fine, coarse, level) -> LevelTerm``; ``fine``, ``coarse`` shape (n, n_qoi), ``coarse`` None on level 0."""
+
+
+def _group_max(values: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Maximum over each group's components along the last axis: shape (..., n_groups)."""
+    n_groups = int(np.max(groups)) + 1
+    return np.stack([np.max(values[..., groups == g], axis=-1) for g in range(n_groups)], axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class TargetEstimate:
+    """MLMC estimate of a target with its errors.
+
+    Attributes
+    ----------
+    estimate : ndarray, shape (n_components,)
+        ``sum_l T_l``, the estimate of the target on the finest level.
+    stat_error : ndarray, shape (n_components,)
+        ``sqrt(sum_l Var(T_l))``.
+    bias : ndarray, shape (n_groups,)
+        Remaining bias per group (module docstring); 0 with a single level.
+    levels : ndarray of int, shape (n_levels,)
+        Levels ``0..L``.
+    n_samples : ndarray of int, shape (n_levels,)
+        ``N_l``.
+    term_means, term_variances : ndarray, shape (n_levels, n_components)
+        ``T_l`` and ``Var(T_l)``.
+    groups : ndarray of int, shape (n_components,)
+        Tolerance group of each component.
+    alpha, beta : ndarray, shape (n_groups,)
+        Rates used for the bias and the allocation.
+    gamma : float
+        Cost rate used for the allocation.
+    cost : float
+        Total cost of the samples (sum of the sampler's costs).
+    tol : ndarray, shape (n_groups,)
+        Tolerance on the RMS error per group (NaN when none was given).
+    theta : float
+        Bias share of ``eps^2``.
+    stop_reason : str
+        ``"tol_met"``, ``"max_level"``, ``"max_cost"`` or ``"given"`` (from
+        given samples, :func:`telescope`).
+    """
+
+    estimate: np.ndarray
+    stat_error: np.ndarray
+    bias: np.ndarray
+    levels: np.ndarray
+    n_samples: np.ndarray
+    term_means: np.ndarray
+    term_variances: np.ndarray
+    groups: np.ndarray
+    alpha: np.ndarray
+    beta: np.ndarray
+    gamma: float
+    cost: float
+    tol: np.ndarray
+    theta: float
+    stop_reason: str
+
+    @property
+    def rmse(self) -> np.ndarray:
+        """Estimated RMS error per group, ``sqrt(max_c stat_error_c^2 + bias^2)``, shape (n_groups,)."""
+        return np.sqrt(_group_max(self.stat_error**2, self.groups) + self.bias**2)
+
+    @property
+    def tol_met(self) -> bool:
+        """``rmse <= tol`` in every group (False without a tolerance)."""
+        return bool(np.all(self.rmse**2 <= self.tol**2 * (1 + 1e-12)))
+
+    @property
+    def finest_level(self) -> int:
+        """``L``."""
+        return int(self.levels[-1])
+
+
+# --------------------------------------------------------------------------
+# Rates and bias of a hierarchy of terms
+# --------------------------------------------------------------------------
+
+
+def _fit_rate(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: float) -> float:
+    """Rate of ``values ~ 2^(-sign rate l)`` on the positive values, floored; the floor when unfittable."""
+    usable = values > 0
+    line = _fit_line(levels[usable], values[usable], rel_se[usable], sign)
+    return RATE_FLOOR if line is None else max(line.rate, RATE_FLOOR)
+
+
+def _signal(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-corrected mean square of ``E[T_l]`` over each group's components and its standard error.
+
+    ``r2 = mean_c (T_c^2 - Var(T_c))`` is unbiased for ``mean_c E[T_c]^2``;
+    its variance is taken as ``mean_c (4 T_c^2 Var_c + 2 Var_c^2) / m`` (the
+    Gaussian value, components treated as independent: it only weights the
+    fit and decides detectability). Shapes (n_levels, n_groups).
+    """
+    variances = np.maximum(variances, 0.0)
+    n_groups = int(np.max(groups)) + 1
+    r2, se = [], []
+    for g in range(n_groups):
+        t, v = means[:, groups == g], variances[:, groups == g]
+        r2.append(np.mean(t**2 - v, axis=1))
+        se.append(np.sqrt(np.mean(4.0 * t**2 * v + 2.0 * v**2, axis=1) / t.shape[1]))
+    return np.stack(r2, axis=1), np.stack(se, axis=1)
+
+
+def _is_detected(r2: np.ndarray, se: np.ndarray) -> np.ndarray:
+    """The level terms differ from 0 by more than their noise: ``r2 > se(r2)`` (:func:`_signal`).
+
+    For a single component that is ``|T| > 2.5 sd(T)`` or so; pooling many
+    components (a CDF on a grid) detects much smaller terms than any one of
+    them could.
+    """
+    return r2 > se
+
+
+def _fit_alpha(means: np.ndarray, variances: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``alpha`` per group: weighted least squares of ``log2 sqrt(r2)`` on the detected levels ``>= 1``.
+
+    The weights are the inverse variances of ``log2 sqrt(r2)``, so levels
+    where the terms are mostly noise hardly count (the maximum of many noisy
+    components, or the noise of a fine level, would flatten an unweighted
+    fit). Floored at ``RATE_FLOOR``, and the floor where fewer than two
+    levels are detected.
+    """
+    r2, se = _signal(means[1:], variances[1:], groups)
+    levels = np.arange(1, len(means), dtype=float)
+    alpha = []
+    for g in range(r2.shape[1]):
+        use = _is_detected(r2[:, g], se[:, g])
+        if np.sum(use) < 2:
+            alpha.append(RATE_FLOOR)
+            continue
+        x, y = levels[use], 0.5 * np.log2(r2[use, g])
+        # sd(log2 sqrt(r2)) = sd(r2) / (2 r2 ln 2); an exact term (sd 0) gets a large finite weight.
+        sd = np.maximum(se[use, g] / (2.0 * r2[use, g] * math.log(2.0)), 1e-6)
+        weights = sd**-2
+        x_mean = np.sum(weights * x) / np.sum(weights)
+        slope = np.sum(weights * (x - x_mean) * y) / np.sum(weights * (x - x_mean) ** 2)
+        alpha.append(max(-float(slope), RATE_FLOOR))
+    return np.array(alpha)
+
+
+def _term_rates(means: np.ndarray, variances: np.ndarray, n_samples: np.ndarray, groups: np.ndarray):
+    """``alpha`` (:func:`_fit_alpha`) and ``beta`` per group from levels ``>= 1``, floored at ``RATE_FLOOR``."""
+    levels = np.arange(len(means))[1:]
+    n = n_samples[1:].astype(float)
+    per_sample = _group_max(n[:, None] * np.maximum(variances[1:], 0.0), groups)
+    # A variance from n samples has relative error about sqrt(2 / (n - 1)).
+    rel_beta = np.sqrt(2.0 / np.maximum(n - 1.0, 1.0))
+    beta = [_fit_rate(levels, per_sample[:, g], rel_beta, -1.0) for g in range(per_sample.shape[1])]
+    return _fit_alpha(means, variances, groups), np.array(beta)
+
+
+def _cost_rate(mean_cost: np.ndarray) -> float:
+    levels = np.arange(len(mean_cost))[1:]
+    costs = mean_cost[1:]
+    return _fit_rate(levels, costs, np.zeros(len(levels)), 1.0)
+
+
+def _bias_magnitudes(means: np.ndarray, variances: np.ndarray, groups: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """``|E[T_l]|`` per group for the bias test, shape (n_levels, n_groups) (module docstring).
+
+    The data ``max_c |T_l|`` up to the finest detected level ``k``
+    (:func:`_is_detected`); above it, where the terms are noise, the smaller of
+    the data and the ``alpha`` model anchored at ``k``. Without a detected
+    level ``>= 1``, the data.
+    """
+    magnitude = _group_max(np.abs(means), groups)
+    signal = _is_detected(*_signal(means, variances, groups))
+    signal[0] = False  # the base level estimates theta_0, not a difference
+    for g in range(magnitude.shape[1]):
+        rows = np.flatnonzero(signal[:, g])
+        if rows.size == 0:
+            continue
+        anchor = rows[-1]
+        above = np.arange(anchor + 1, len(magnitude))
+        model = magnitude[anchor, g] * 2.0 ** (-alpha[g] * (above - anchor))
+        magnitude[above, g] = np.minimum(magnitude[above, g], model)
+    return magnitude
+
+
+def _remaining_bias(means: np.ndarray, variances: np.ndarray, groups: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    return _driver_bias(_bias_magnitudes(means, variances, groups, alpha), alpha)
+
+
+def telescope(
+    terms: Sequence[LevelTerm],
+    *,
+    costs: np.ndarray | None = None,
+    tol: float | np.ndarray | None = None,
+    theta: float = 0.5,
+    alpha: float | np.ndarray | None = None,
+) -> TargetEstimate:
+    """MLMC estimate from the terms of levels ``0..L`` (module docstring).
+
+    Parameters
+    ----------
+    terms : sequence of LevelTerm
+        ``T_0, ..., T_L`` with the same components and groups.
+    costs : ndarray, shape (L+1,), optional
+        Total cost spent per level (for the record; default 0).
+    tol : float or ndarray, shape (n_groups,), optional
+        Tolerance on the RMS error per group, for ``tol_met``.
+    theta : float
+        Bias share of ``eps^2`` (recorded).
+    alpha : float or ndarray, shape (n_groups,), optional
+        Bias rate; default: fitted on the levels ``>= 1`` (floored at 0.5).
+
+    Returns
+    -------
+    TargetEstimate
+        With ``stop_reason = "given"``.
+    """
+    if len(terms) == 0:
+        raise EstimationError("telescope needs the term of at least one level")
+    groups = terms[0].groups
+    if any(t.mean.shape != terms[0].mean.shape or not np.array_equal(t.groups, groups) for t in terms):
+        raise EstimationError("the level terms have different components")
+    means, variances, n_samples = _stack(terms)
+    fitted_alpha, beta = _term_rates(means, variances, n_samples, groups)
+    n_groups = terms[0].n_groups
+    alpha = fitted_alpha if alpha is None else np.broadcast_to(np.asarray(alpha, dtype=float), (n_groups,))
+    tol_array = np.full(n_groups, np.nan) if tol is None else _check_tol(tol, n_groups)
+    return _estimate(
+        means, variances, n_samples, groups, alpha, beta, 0.0,
+        cost=0.0 if costs is None else float(np.sum(costs)), tol=tol_array, theta=_check_fraction("theta", theta),
+        stop_reason="given",
+    )
+
+
+def _estimate(means, variances, n_samples, groups, alpha, beta, gamma, *, cost, tol, theta, stop_reason):
+    return TargetEstimate(
+        estimate=_readonly(np.sum(means, axis=0)),
+        stat_error=_readonly(np.sqrt(np.sum(np.maximum(variances, 0.0), axis=0))),
+        bias=_readonly(_remaining_bias(means, variances, groups, alpha)),
+        levels=_readonly(np.arange(len(means))),
+        n_samples=_readonly(n_samples),
+        term_means=_readonly(means),
+        term_variances=_readonly(variances),
+        groups=_readonly(groups),
+        alpha=_readonly(alpha),
+        beta=_readonly(beta),
+        gamma=float(gamma),
+        cost=float(cost),
+        tol=_readonly(tol),
+        theta=theta,
+        stop_reason=stop_reason,
+    )
+
+
+# --------------------------------------------------------------------------
+# Adaptive driver
+# --------------------------------------------------------------------------
+
+
+class _Level:
+    """The samples of one level and its term, cached until the next batch."""
+
+    def __init__(self, level: int) -> None:
+        self.level = level
+        self.fine: list[np.ndarray] = []
+        self.coarse: list[np.ndarray] = []
+        self.n = 0
+        self.spent = 0.0
+        self._term: LevelTerm | None = None
+
+    def add(self, fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> None:
+        self.fine.append(fine)
+        self.coarse.append(coarse)
+        self.n += len(cost)
+        self.spent += float(np.sum(cost))
+        self._term = None
+
+    def term(self, function: TermFunction) -> LevelTerm:
+        if self._term is None:
+            fine = np.concatenate(self.fine)
+            # The base level is sampled as Q_0 alone; its coarse values are not part of the sum.
+            coarse = None if self.level == 0 else np.concatenate(self.coarse)
+            self.fine, self.coarse = [fine], [] if coarse is None else [coarse]
+            self._term = function(fine, coarse, self.level)
+        return self._term
+
+    @property
+    def mean_cost(self) -> float:
+        return self.spent / self.n if self.n else 0.0
+
+
+def _affordable(levels: list[_Level], level: int, wanted: int, max_cost: float | None, gamma: float) -> int:
+    """Samples to draw now on ``level``: ``wanted`` unless ``max_cost`` forbids it (then possibly 0)."""
+    known = [s for s in levels if s.n > 0 and s.mean_cost > 0]
+    if max_cost is None or not known:
+        return wanted
+    nearest = min(known, key=lambda s: abs(s.level - level))
+    unit = nearest.mean_cost * 2.0 ** (gamma * (level - nearest.level))
+    spent = sum(s.spent for s in levels)
+    return int(min(wanted, max(math.floor((max_cost - spent) / unit), 0)))
+
+
+def _draw(
+    sampler: Sampler,
+    levels: list[_Level],
+    planned: list[int],
+    batch_cap: float,
+    max_cost: float | None,
+    gamma: float,
+    n_initial: int,
+) -> bool:
+    """Draw the missing samples level by level; False if ``max_cost`` stopped it (module docstring)."""
+    for s in levels:
+        while s.n < planned[s.level]:
+            wanted = int(min(planned[s.level] - s.n, batch_cap))
+            n = _affordable(levels, s.level, wanted, max_cost, gamma)
+            # A level is not started unless it can get the samples its term variance needs.
+            if n == 0 or s.n + n < n_initial:
+                return False
+            batch = _call_sampler(sampler, s.level, s.n, n)
+            s.add(batch.fine, batch.coarse, batch.cost)
+    return True
+
+
+def _targets(
+    levels: list[_Level],
+    terms: list[LevelTerm | None],
+    n_initial: int,
+    tol: np.ndarray,
+    theta: float,
+    beta: np.ndarray,
+    gamma: float,
+) -> list[int]:
+    """Planned ``N_l`` (module docstring) for every level, sampled or not."""
+    groups = terms[0].groups
+    has_data = np.array([s.n > 0 for s in levels])
+    width = len(groups)
+    per_sample = np.zeros((len(levels), width))
+    for s, term in zip(levels, terms):
+        if term is not None:
+            per_sample[s.level] = np.maximum(term.per_sample_variance, 0.0)
+    variances = _planning_variances(per_sample, has_data, beta[groups])
+    costs = _fill_costs(np.array([s.mean_cost for s in levels]), has_data, gamma)
+    wanted = _allocate(variances, costs, groups, tol, theta)
+    return [max(s.n, int(n), n_initial) for s, n in zip(levels, wanted)]
+
+
+def _allocate(per_sample: np.ndarray, costs: np.ndarray, groups: np.ndarray, tol: np.ndarray, theta: float):
+    """``N_l`` of SPEC section 5 with ``W_l`` for ``V_l``, maximised over the components (real, rounded up)."""
+    budget = (1.0 - theta) * tol[groups] ** 2
+    return np.ceil(np.max(optimal_samples(per_sample, costs, budget), axis=1))
+
+
+def sample_plan(
+    terms: Sequence[LevelTerm], *, costs: np.ndarray, tol: float | np.ndarray, theta: float = 0.5
+) -> np.ndarray:
+    """Optimal ``N_l`` for a tolerance, from screened terms of levels ``0..L`` (module docstring).
+
+    ``N_l = ceil((1-theta)^-1 eps^-2 sqrt(W_l/C_l) sum_k sqrt(W_k C_k))``,
+    the mean's formula with ``W_l = N_l Var(T_l)`` in place of ``V_l``,
+    maximised over the components (each against its group's ``eps``).
+
+    Parameters
+    ----------
+    terms : sequence of LevelTerm
+        ``T_0, ..., T_L`` (e.g. from a screening).
+    costs : ndarray, shape (L+1,)
+        ``C_l``, the cost of one level-``l`` sample (> 0).
+    tol : float or ndarray, shape (n_groups,)
+        Tolerance on the RMS error per group.
+    theta : float
+        Bias share of ``eps^2``.
+
+    Returns
+    -------
+    ndarray of int, shape (L+1,)
+        At least 1 per level.
+    """
+    _, variances, n_samples = _stack(terms)
+    groups = terms[0].groups
+    per_sample = n_samples[:, None] * np.maximum(variances, 0.0)
+    costs = np.asarray(costs, dtype=float)
+    if costs.shape != (len(terms),):
+        raise EstimationError(f"costs need one value per level ({len(terms)}), got shape {costs.shape}")
+    tol_groups = _check_tol(tol, terms[0].n_groups)
+    wanted = _allocate(per_sample, costs, groups, tol_groups, _check_fraction("theta", theta))
+    return np.maximum(wanted, 1).astype(np.int64)
+
+
+def adaptive_mlmc(
+    sampler: Sampler,
+    *,
+    term: TermFunction,
+    tol: float | np.ndarray,
+    theta: float = 0.5,
+    n_initial: int = 32,
+    min_finest_level: int = 2,
+    max_level: int = 16,
+    max_cost: float | None = None,
+    batch_size: int | None = 10000,
+) -> TargetEstimate:
+    """Adaptive MLMC estimate of a target to an RMS tolerance per group (module docstring).
+
+    Parameters
+    ----------
+    sampler : callable
+        ``sampler(level, indices) -> (fine, coarse, cost)``
+        (:mod:`rough_uq.multilevel.drivers`).
+    term : callable
+        ``term(fine, coarse, level) -> LevelTerm`` (``coarse`` None on level 0).
+    tol : float or ndarray, shape (n_groups,)
+        Tolerance ``eps`` on the RMS error, in the unit of the target.
+    theta : float
+        Bias share of ``eps^2``, in (0, 1).
+    n_initial : int
+        Samples every level gets before its term variance is trusted (>= 4:
+        the unbiased variance of ``h2`` differences needs four).
+    min_finest_level : int
+        The run uses at least levels ``0..min_finest_level`` (>= 1).
+    max_level : int
+        Finest level allowed.
+    max_cost : float, optional
+        Stop before a batch would make the total cost exceed it.
+    batch_size : int, optional
+        Largest number of samples per sampler call.
+
+    Returns
+    -------
+    TargetEstimate
+    """
+    theta = _check_fraction("theta", theta)
+    n_initial = _check_int("n_initial", n_initial, 4)
+    min_finest_level = _check_int("min_finest_level", min_finest_level, 1)
+    max_level = _check_int("max_level", max_level, min_finest_level)
+    batch_cap = math.inf if batch_size is None else _check_int("batch_size", batch_size, 1)
+    max_cost = _check_optional_positive("max_cost", max_cost)
+    _check_tol(tol, None)  # fails early; the number of groups is known after the first batch
+    levels = [_Level(level) for level in range(min_finest_level + 1)]
+    planned = [n_initial] * len(levels)
+    gamma = RATE_FLOOR
+    tol_groups: np.ndarray | None = None
+    stop_reason = ""
+    while not stop_reason:
+        if not _draw(sampler, levels, planned, batch_cap, max_cost, gamma, n_initial):
+            stop_reason = "max_cost"
+            break
+        terms = [s.term(term) if s.n else None for s in levels]
+        sampled = [t for t in terms if t is not None]
+        if tol_groups is None:
+            tol_groups = _check_tol(tol, sampled[0].n_groups)
+        means, variances, n_samples = _stack(sampled)
+        alpha, beta = _term_rates(means, variances, n_samples, sampled[0].groups)
+        gamma = _cost_rate(np.array([s.mean_cost for s in levels if s.n]))
+        planned = _targets(levels, terms, n_initial, tol_groups, theta, beta, gamma)
+        if any(planned[s.level] - s.n > 0.01 * s.n for s in levels):
+            continue
+        bias = _remaining_bias(means, variances, sampled[0].groups, alpha)
+        if np.all(bias <= math.sqrt(theta) * tol_groups):
+            stop_reason = "tol_met"
+        elif len(levels) - 1 >= max_level:
+            stop_reason = "max_level"
+        else:
+            levels.append(_Level(len(levels)))
+            planned = _targets(levels, terms + [None], n_initial, tol_groups, theta, beta, gamma)
+    sampled_levels = [s for s in levels if s.n]
+    if not sampled_levels or sampled_levels[0].level != 0:
+        raise EstimationError("max_cost is too small for the initial samples of level 0")
+    terms = [s.term(term) for s in sampled_levels]
+    groups = terms[0].groups
+    if tol_groups is None:
+        tol_groups = _check_tol(tol, terms[0].n_groups)
+    means, variances, n_samples = _stack(terms)
+    # Rates of the final samples (a run stopped by max_cost may not have refitted them).
+    alpha, beta = _term_rates(means, variances, n_samples, groups)
+    gamma = _cost_rate(np.array([s.mean_cost for s in sampled_levels]))
+    return _estimate(
+        means, variances, n_samples, groups, alpha, beta, gamma,
+        cost=sum(s.spent for s in levels), tol=tol_groups, theta=theta, stop_reason=stop_reason,
+    )
+
+
+def _stack(terms: Sequence[LevelTerm]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``T_l``, ``Var(T_l)`` (shape (n_levels, n_components)) and ``N_l`` of consecutive levels."""
+    return (
+        np.array([t.mean for t in terms]),
+        np.array([t.variance for t in terms]),
+        np.array([t.n_samples for t in terms], dtype=np.int64),
+    )

@@ -1,0 +1,241 @@
+"""The smoothed-indicator MLMC distribution function and its quantiles on known answers.
+
+Statistical checks are seeded; each states where its slack comes from.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from moment_problems import PerturbedLimit
+from scipy import integrate, stats
+from scipy.optimize import isotonic_regression
+
+from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.multilevel.distribution import (
+    cdf_from_samples,
+    cdf_level_term,
+    isotonic,
+    level_bandwidth,
+    mlmc_cdf,
+    quantiles,
+    smoothed_step,
+)
+
+THETA = 0.5
+BANDWIDTH = 0.5
+PROBABILITIES = (0.05, 0.5, 0.95)
+
+
+def rms_slack(n_repeats: int) -> float:
+    # The mean of n squared errors has relative sd <= sqrt(2/n) for Gaussian errors; three of those.
+    return math.sqrt(1.0 + 3.0 * math.sqrt(2.0 / n_repeats))
+
+
+def grid(problem: PerturbedLimit, n_thresholds: int = 41) -> np.ndarray:
+    # Half a unit beyond the 0.5% and 99.5% quantiles: the estimated CDF must cross 5% and 95%
+    # inside the grid even in runs whose error at the ends is twice the tolerance.
+    return np.linspace(problem.limit.ppf(0.005) - 0.5, problem.limit.ppf(0.995) + 0.5, n_thresholds)
+
+
+# --------------------------------------------------------------------------
+# The smooth step and the projection
+# --------------------------------------------------------------------------
+
+
+def test_the_smooth_step_is_a_symmetric_twice_differentiable_monotone_step():
+    x = np.linspace(-1.5, 1.5, 3001)
+    g = smoothed_step(x)
+    assert np.all(np.diff(g) >= 0)
+    assert np.all(g[x <= -1] == 0) and np.all(g[x >= 1] == 1) and smoothed_step(0.0) == 0.5
+    np.testing.assert_allclose(smoothed_step(-x), 1 - g, atol=1e-15)
+    # g' = 15/16 (1 - t^2)^2 vanishes to second order at 1: 1 - g(1 - h) = 5/4 h^3 + O(h^4).
+    h = 1e-3
+    assert (1 - smoothed_step(1 - h)) / h**3 == pytest.approx(1.25, rel=1e-2)
+
+
+def test_the_smoothing_bias_is_the_documented_second_order_term():
+    # E[g((s - Z)/delta)] - F(s) = delta^2 f'(s) / 14 + O(delta^4) for Z ~ N(0, 1).
+    s = 0.7
+    residuals = []
+    deltas = np.array([0.4, 0.2, 0.1])
+    for delta in deltas:
+        smoothed, _ = integrate.quad(
+            lambda z, d=delta: smoothed_step((s - z) / d) * stats.norm.pdf(z), -12, 12, points=[s - delta, s + delta],
+            epsabs=1e-14, epsrel=1e-14,
+        )
+        slope = -s * stats.norm.pdf(s)
+        residuals.append(abs(smoothed - stats.norm.cdf(s) - delta**2 * slope / 14))
+    rate = np.polyfit(np.log2(deltas), np.log2(residuals), 1)[0]
+    assert rate == pytest.approx(4.0, abs=0.3)
+
+
+def test_isotonic_is_the_least_squares_projection_and_a_sup_norm_contraction():
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        m = int(rng.integers(1, 60))
+        truth = np.sort(rng.uniform(size=m))
+        noisy = truth + rng.normal(scale=rng.uniform(0.01, 0.3), size=m)
+        projected = isotonic(noisy)
+        np.testing.assert_allclose(projected, isotonic_regression(noisy).x, atol=1e-12)
+        assert np.all(np.diff(projected) >= 0)
+        assert np.max(np.abs(projected - truth)) <= np.max(np.abs(noisy - truth)) + 1e-12
+
+
+def test_level_terms_telescope_to_the_smoothed_cdf_of_the_finest_level():
+    rng = np.random.default_rng(8)
+    z, w = rng.normal(size=500), rng.normal(size=500)
+    values = [z + 2.0**-level * w for level in range(4)]
+    s = np.linspace(-2, 2, 9)
+    coarse = [None] + values[:-1]
+    total = sum(cdf_level_term(values[k], coarse[k], k, thresholds=s, bandwidth=0.3).mean for k in range(4))
+    delta = level_bandwidth(3, bandwidth=0.3)
+    np.testing.assert_allclose(total, np.mean(smoothed_step((s - values[3][:, None]) / delta), axis=0), atol=1e-13)
+    term = cdf_level_term(values[2], values[1], 2, thresholds=s, bandwidth=0.3)
+    direct = smoothed_step((s - values[2][:, None]) / 0.075) - smoothed_step((s - values[1][:, None]) / 0.15)
+    np.testing.assert_allclose(term.variance, np.var(direct, axis=0, ddof=1) / 500, rtol=1e-10)
+    assert term.groups.tolist() == [0] * 9
+
+
+# --------------------------------------------------------------------------
+# Known answers
+# --------------------------------------------------------------------------
+
+
+def cdf_runs(kind: str, tol: float, n_repeats: int, n_thresholds: int = 41):
+    s = grid(PerturbedLimit(kind=kind), n_thresholds)
+    runs = []
+    for seed in range(n_repeats):
+        problem = PerturbedLimit(kind=kind, seed=seed)
+        runs.append((problem, mlmc_cdf(problem, thresholds=s, tol=tol, bandwidth=BANDWIDTH)))
+    return s, runs
+
+
+def sup_pointwise_rmse(s: np.ndarray, runs) -> float:
+    errors = np.array([result.cdf - problem.limit.cdf(s) for problem, result in runs])
+    return float(np.max(np.sqrt(np.mean(errors**2, axis=0))))
+
+
+@pytest.mark.parametrize(("kind", "tol", "n_repeats"), [("gaussian", 0.03, 60), ("gamma", 0.03, 40)])
+def test_mlmc_cdf_and_quantiles_are_within_tolerance(kind, tol, n_repeats):
+    s, runs = cdf_runs(kind, tol, n_repeats)
+    assert sup_pointwise_rmse(s, runs) <= tol * rms_slack(n_repeats)
+    limit = runs[0][0].limit
+    q_errors, half_widths = [], []
+    for problem, result in runs:
+        assert result.stop_reason == "tol_met" and result.tol_met and result.rmse <= tol
+        assert result.bias <= math.sqrt(THETA) * tol
+        assert np.all(np.diff(result.cdf) >= 0) and result.cdf[0] >= 0 and result.cdf[-1] <= 1
+        truth = limit.cdf(s)
+        # The projection never increases the sup-norm error (module docstring).
+        assert np.max(np.abs(result.cdf - truth)) <= np.max(np.abs(result.cdf_raw - truth)) + 1e-12
+        found = quantiles(result, probabilities=PROBABILITIES)
+        assert np.all(found.lower <= found.values) and np.all(found.values <= found.upper)
+        q_errors.append(found.values - limit.ppf(PROBABILITIES))
+        half_widths.append(found.half_width)
+    q_rmse = np.sqrt(np.mean(np.square(q_errors), axis=0))
+    # The quantile tolerance implied by the CDF's: tol / f(q_p) (delta method), and the
+    # reported error bars are at least as wide as the errors on average.
+    density = limit.pdf(limit.ppf(PROBABILITIES))
+    assert np.all(q_rmse <= tol / density * rms_slack(n_repeats))
+    assert np.all(q_rmse <= np.mean(half_widths, axis=0) * rms_slack(n_repeats))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["gaussian", "gamma"])
+def test_mlmc_cdf_error_and_cost_follow_the_tolerance(kind):
+    # Sup-norm RMSE ~ tol; with beta = 1 = gamma the cost grows like tol^-2 log(tol)^2 (SPEC section 5).
+    tols = np.array([0.04, 0.02, 0.01])
+    n_repeats = 30
+    rmse, cost = [], []
+    for tol in tols:
+        s, runs = cdf_runs(kind, float(tol), n_repeats)
+        rmse.append(sup_pointwise_rmse(s, runs))
+        cost.append(np.mean([result.target.cost for _, result in runs]))
+        assert rmse[-1] <= tol * rms_slack(n_repeats)
+    error_rate = np.polyfit(np.log2(tols), np.log2(rmse), 1)[0]
+    cost_rate = np.polyfit(np.log2(tols), np.log2(cost), 1)[0]
+    # log2 of an RMSE over 30 runs has sd ~ 0.19; the slope over two octaves ~ 0.13: four of those.
+    assert abs(error_rate - 1.0) < 0.55
+    # -2 for the tol^-2 part, the log(tol)^2 factor adds about -0.6 over these octaves; discrete
+    # levels add up to a factor 2 at either end (0.5 on the slope).
+    assert -3.1 < cost_rate < -1.5
+
+
+def test_quantile_error_bars_follow_the_delta_method():
+    # One level, many samples: no bias, and the band cdf +- rmse crosses p at q_p -+ rmse / f(q_p).
+    problem = PerturbedLimit(seed=3, scale=0.0)
+    fine, _, _ = problem(0, np.arange(200_000))
+    s = np.linspace(-3, 3, 241)
+    result = cdf_from_samples(fine=[fine], coarse=[np.zeros_like(fine)], thresholds=s, bandwidth=0.01)
+    assert result.bias == 0 and result.rmse == pytest.approx(np.max(result.stat_error))
+    found = quantiles(result, probabilities=PROBABILITIES)
+    density = stats.norm.pdf(found.values)
+    np.testing.assert_allclose(found.half_width * density / result.rmse, 1.0, rtol=0.05)
+    assert np.all(np.abs(found.values - stats.norm.ppf(PROBABILITIES)) < 4 * found.half_width)
+
+
+# --------------------------------------------------------------------------
+# Bad input
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("thresholds", [[0.0, 1.0, 1.0], [1.0, 0.0], [0.5], [[0.0, 1.0]], [0.0, np.nan]])
+def test_thresholds_must_increase(thresholds):
+    with pytest.raises(InvalidParameterError, match="thresholds"):
+        mlmc_cdf(PerturbedLimit(), thresholds=thresholds, tol=0.1, bandwidth=0.5)
+
+
+@pytest.mark.parametrize(
+    ("options", "field"),
+    [
+        ({"tol": 0.0}, "tol"),
+        ({"tol": -0.1}, "tol"),
+        ({"tol": [0.1, 0.1]}, "tol"),
+        ({"bandwidth": 0.0}, "bandwidth"),
+        ({"bandwidth_rate": -1.0}, "bandwidth_rate"),
+        ({"qoi": 1}, "qoi"),
+    ],
+)
+def test_bad_options_are_refused(options, field):
+    arguments = {"thresholds": [0.0, 1.0], "tol": 0.1, "bandwidth": 0.5, **options}
+    with pytest.raises(InvalidParameterError, match=field):
+        mlmc_cdf(PerturbedLimit(), **arguments)
+
+
+def test_too_few_samples_and_unbracketed_quantiles_are_refused():
+    with pytest.raises(InvalidParameterError, match="at least 2 samples"):
+        cdf_level_term(np.zeros(1), None, 0, thresholds=[0.0, 1.0], bandwidth=0.5)
+    with pytest.raises(InvalidParameterError, match="finite"):
+        cdf_level_term(np.array([0.0, np.nan]), None, 0, thresholds=[0.0, 1.0], bandwidth=0.5)
+    fine = PerturbedLimit(scale=0.0)(0, np.arange(1000))[0]
+    result = cdf_from_samples(fine=[fine], coarse=[fine], thresholds=[-0.5, 0.0, 0.5], bandwidth=0.1)
+    with pytest.raises(EstimationError, match="do not bracket"):
+        quantiles(result, probabilities=[0.05])
+    with pytest.raises(InvalidParameterError, match="probabilities"):
+        quantiles(result, probabilities=[0.0, 0.5])
+    middle = quantiles(result, probabilities=[0.5])
+    # The band cdf +- rmse stays inside the grid here; a band leaving the grid is reported as infinite.
+    assert np.isfinite(middle.lower[0]) and np.isfinite(middle.upper[0])
+
+
+def test_a_fixed_bandwidth_converges_to_the_smoothed_cdf():
+    # bandwidth_rate = 0: the telescoped sum is E[g((s - Q_L)/delta)], the smoothed CDF of Q_L,
+    # here Q_3 ~ N(0, 1 + 4^-3), computed by quadrature.
+    problem = PerturbedLimit(seed=9)
+    s = np.linspace(-2.0, 2.0, 9)
+    drawn = [problem(level, np.arange(40_000)) for level in range(4)]
+    result = cdf_from_samples(
+        fine=[d[0] for d in drawn], coarse=[d[1] for d in drawn], thresholds=s, bandwidth=1.0, bandwidth_rate=0.0
+    )
+    assert np.all(result.bandwidths == 1.0)
+    spread = math.sqrt(1.0 + 4.0**-3)
+    smoothed = [
+        integrate.quad(lambda q, t=t: smoothed_step((t - q) / 1.0) * stats.norm.pdf(q, scale=spread), -10, 10)[0]
+        for t in s
+    ]
+    assert np.all(np.abs(result.cdf_raw - smoothed) < 4.0 * result.stat_error)
+    # ... which differs from F itself by about delta^2 f'(s) / 14 = 0.017, beyond the statistical error.
+    assert np.max(np.abs(smoothed - stats.norm.cdf(s, scale=spread))) > 4 * np.max(result.stat_error)

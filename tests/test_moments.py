@@ -1,0 +1,313 @@
+"""h-statistics, the variance of h2 level terms, and the MLMC variance estimator on known answers.
+
+Exactness is checked by enumerating every sample of a small discrete
+distribution; statistical checks are seeded and their slack is a stated
+number of standard errors.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+from moment_problems import PerturbedLimit
+
+from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.multilevel.moments import (
+    central_moment_level_term,
+    h2,
+    h2_difference_variance,
+    h3,
+    h4,
+    mlmc_central_moment,
+    mlmc_variance,
+    variance_from_samples,
+    variance_level_term,
+)
+from rough_uq.multilevel.statistics import optimal_samples
+from rough_uq.multilevel.targets import LevelTerm, adaptive_mlmc, sample_plan, telescope
+
+THETA = 0.5
+
+
+def enumerate_samples(support: np.ndarray, probabilities: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every sample of size ``n`` (as columns, shape (n, n_support^n, ...)) and its probability."""
+    rows = np.array(list(itertools.product(range(len(support)), repeat=n)))
+    return np.moveaxis(support[rows], 0, 1), np.prod(probabilities[rows], axis=1)
+
+
+def rms_slack(n_repeats: int) -> float:
+    # The mean of n squared errors has relative sd <= sqrt(2/n) for Gaussian errors; three of those.
+    return math.sqrt(1.0 + 3.0 * math.sqrt(2.0 / n_repeats))
+
+
+# --------------------------------------------------------------------------
+# Exactness
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [4, 5, 7])
+def test_h_statistics_are_unbiased_over_all_samples(n):
+    support = np.array([0.0, 1.0, 3.0, -2.5])
+    probabilities = np.array([0.4, 0.3, 0.2, 0.1])
+    samples, weights = enumerate_samples(support, probabilities, n)
+    mean = probabilities @ support
+    for statistic, order in ((h2, 2), (h3, 3), (h4, 4)):
+        expectation = weights @ statistic(samples)
+        exact = probabilities @ (support - mean) ** order
+        assert expectation == pytest.approx(exact, rel=1e-12), statistic.__name__
+
+
+def test_h_statistics_of_a_column_and_of_a_1d_sample_agree():
+    sample = np.random.default_rng(3).gamma(2.0, size=50)
+    for statistic in (h2, h3, h4):
+        assert isinstance(statistic(sample), float)
+        assert statistic(sample) == pytest.approx(statistic(np.stack([sample, 2 * sample], axis=1))[0], rel=1e-14)
+    assert h2(sample) == pytest.approx(np.var(sample, ddof=1), rel=1e-14)
+
+
+BIVARIATE = (np.array([[0.0, 1.0], [1.0, 0.0], [2.0, 3.0], [-1.0, 1.5]]), np.array([0.25, 0.25, 1 / 3, 1 / 6]))
+
+
+@pytest.mark.parametrize("n", [4, 5, 6])
+def test_variance_of_the_h2_difference_is_estimated_without_bias(n):
+    support, probabilities = BIVARIATE
+    samples, weights = enumerate_samples(support, probabilities, n)
+    fine, coarse = samples[..., 0], samples[..., 1]
+    term = h2(fine) - h2(coarse)
+    exact = weights @ term**2 - (weights @ term) ** 2
+    assert weights @ h2_difference_variance(fine, coarse) == pytest.approx(exact, rel=1e-12)
+    # The closed form of the module docstring, from the moments of D = X - Y, S = X + Y.
+    d, s = support[:, 0] - support[:, 1], support[:, 0] + support[:, 1]
+    d, s = d - probabilities @ d, s - probabilities @ s
+    mu22, cov, var_d, var_s = (probabilities @ v for v in (d**2 * s**2, d * s, d**2, s**2))
+    closed = mu22 / n - (n - 2) / (n * (n - 1)) * cov**2 + var_d * var_s / (n * (n - 1))
+    assert exact == pytest.approx(closed, rel=1e-12)
+
+
+def test_variance_of_h2_alone_is_estimated_without_bias():
+    support, probabilities = BIVARIATE[0][:, 0], BIVARIATE[1]
+    samples, weights = enumerate_samples(support, probabilities, 5)
+    exact = weights @ h2(samples) ** 2 - (weights @ h2(samples)) ** 2
+    assert weights @ h2_difference_variance(samples) == pytest.approx(exact, rel=1e-12)
+
+
+def test_the_variance_level_term_is_the_h2_difference():
+    rng = np.random.default_rng(11)
+    fine = rng.normal(size=(30, 2))
+    coarse = fine + 0.1 * rng.normal(size=(30, 2))
+    term = variance_level_term(fine, coarse, 3)
+    np.testing.assert_allclose(term.mean, h2(fine) - h2(coarse), rtol=1e-12)
+    np.testing.assert_allclose(term.variance, np.maximum(h2_difference_variance(fine, coarse), 0), rtol=1e-12)
+    assert term.n_samples == 30 and term.groups.tolist() == [0, 1]
+    base = variance_level_term(fine, None)
+    np.testing.assert_allclose(base.mean, h2(fine), rtol=1e-12)
+
+
+# --------------------------------------------------------------------------
+# Brute-force repetitions
+# --------------------------------------------------------------------------
+
+
+def coupled_pairs(rng: np.random.Generator, n: int, repeats: int) -> tuple[np.ndarray, np.ndarray]:
+    """``repeats`` samples (columns) of ``n`` skewed, coupled pairs ``X = Z + W/4``, ``Y = Z + W/2``."""
+    z = rng.gamma(2.0, size=(n, repeats))
+    w = rng.normal(size=(n, repeats))
+    return z + 0.25 * w, z + 0.5 * w
+
+
+@pytest.mark.parametrize("n", [6, 40])
+def test_estimated_variance_of_the_h2_difference_matches_repetitions(n):
+    repeats = 40_000
+    fine, coarse = coupled_pairs(np.random.default_rng(n), n, repeats)
+    term = h2(fine) - h2(coarse)
+    estimated = h2_difference_variance(fine, coarse)
+    empirical = np.var(term, ddof=1)
+    # Standard errors: of the mean of the estimates, and of a sample variance (fourth moment).
+    se_estimated = np.std(estimated, ddof=1) / math.sqrt(repeats)
+    centred = term - term.mean()
+    se_empirical = math.sqrt((np.mean(centred**4) - empirical**2) / repeats)
+    assert abs(np.mean(estimated) - empirical) < 4.0 * math.hypot(se_estimated, se_empirical)
+
+
+@pytest.mark.parametrize("order", [3, 4])
+def test_central_moment_level_terms_are_unbiased_and_their_variance_consistent(order):
+    n, repeats = 400, 4000
+    fine, coarse = coupled_pairs(np.random.default_rng(order), n, repeats)
+    exact = {}  # central moments of Z + c W, Z ~ Gamma(2), W ~ N(0, 1), from the cumulants
+    for c in (0.25, 0.5):
+        k2, k3, k4 = 2.0 + c**2, 4.0, 12.0  # cumulants of Gamma(2) plus those of N(0, c^2)
+        exact[c] = k3 if order == 3 else k4 + 3 * k2**2
+    # One column per repetition: the term treats columns as independent QoIs.
+    term = central_moment_level_term(fine, coarse, order=order)
+    means = term.mean
+    assert abs(means.mean() - (exact[0.25] - exact[0.5])) < 4.0 * means.std(ddof=1) / math.sqrt(repeats)
+    # The influence-function variance is consistent: at n = 400 its O(1/n) relative bias is
+    # below 2%, next to the 4-standard-error band of the ratio (about 9% for 4000 repeats).
+    ratio = np.mean(term.variance) / np.var(means, ddof=1)
+    assert abs(ratio - 1.0) < 4.0 * math.sqrt(2.0 / (repeats - 1)) + 0.02
+
+
+# --------------------------------------------------------------------------
+# MLMC variance on known answers
+# --------------------------------------------------------------------------
+
+
+def variance_runs(kind: str, tol: float, n_repeats: int):
+    problems = [PerturbedLimit(kind=kind, seed=seed) for seed in range(n_repeats)]
+    return [(problem, mlmc_variance(problem, tol=tol)) for problem in problems]
+
+
+@pytest.mark.parametrize(("kind", "tol", "n_repeats"), [("gaussian", 0.05, 100), ("gamma", 0.2, 40)])
+def test_mlmc_variance_rms_error_is_within_tolerance(kind, tol, n_repeats):
+    runs = variance_runs(kind, tol, n_repeats)
+    errors = np.array([result.estimate[0] - problem.variance() for problem, result in runs])
+    assert math.sqrt(np.mean(errors**2)) <= tol * rms_slack(n_repeats)
+    for problem, result in runs:
+        assert result.stop_reason == "tol_met" and result.tol_met
+        assert result.rmse[0] <= tol and result.bias[0] <= math.sqrt(THETA) * tol
+        assert result.stat_error[0] ** 2 <= (1 - THETA) * tol**2 * 1.01  # within the driver's 1% slack
+    # The statistical error is calibrated: z = (estimate - Var(Q_L)) / stat_error has mean square
+    # about 1 (chi-square over n_repeats, sd sqrt(2/n); four of those).
+    z = np.array([(r.estimate[0] - p.variance(r.finest_level)) / r.stat_error[0] for p, r in runs])
+    assert abs(np.mean(z**2) - 1.0) < 4.0 * math.sqrt(2.0 / n_repeats)
+    # The true remaining bias c^2 4^-L / 3 meets its share in all but a few runs (noisy bias test).
+    too_coarse = sum(p.variance(r.finest_level) - p.variance() > math.sqrt(THETA) * tol for p, r in runs)
+    assert too_coarse <= 0.05 * n_repeats
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["gaussian", "gamma"])
+def test_mlmc_variance_error_and_cost_follow_the_tolerance(kind):
+    # RMSE ~ tol and, with beta = 2 > gamma = 1, cost ~ tol^-2 (SPEC section 5).
+    scale = 1.0 if kind == "gaussian" else 4.0
+    tols = scale * np.array([0.08, 0.04, 0.02])
+    n_repeats = 40
+    rmse, cost = [], []
+    for tol in tols:
+        runs = variance_runs(kind, float(tol), n_repeats)
+        errors = [r.estimate[0] - p.variance() for p, r in runs]
+        rmse.append(math.sqrt(np.mean(np.square(errors))))
+        cost.append(np.mean([r.cost for _, r in runs]))
+        assert rmse[-1] <= tol * rms_slack(n_repeats)
+    error_rate = np.polyfit(np.log2(tols), np.log2(rmse), 1)[0]
+    cost_rate = np.polyfit(np.log2(tols), np.log2(cost), 1)[0]
+    # Each RMSE has relative sd ~ 1/sqrt(2 n) = 0.11 (0.16 in log2); the slope over two octaves
+    # has sd ~ 0.16 / sqrt(2) = 0.11: four of those. Cost: discrete levels add up to one
+    # level's worth (factor 2) at either end, so allow 0.5 on the slope of -2.
+    assert abs(error_rate - 1.0) < 0.45
+    assert abs(cost_rate + 2.0) < 0.5
+
+
+def test_mlmc_fourth_central_moment_is_within_tolerance():
+    # Gaussian limit: mu4(Q_l) = 3 (1 + 4^-l)^2 -> 3, level terms decay like 4^-l.
+    tol, n_repeats = 0.6, 30
+    errors = []
+    for seed in range(n_repeats):
+        result = mlmc_central_moment(PerturbedLimit(seed=seed), order=4, tol=tol)
+        assert result.stop_reason == "tol_met" and result.tol_met
+        errors.append(result.estimate[0] - 3.0)
+    assert math.sqrt(np.mean(np.square(errors))) <= tol * rms_slack(n_repeats)
+    with pytest.raises(InvalidParameterError, match="order"):
+        mlmc_central_moment(PerturbedLimit(), order=2, tol=tol)
+
+
+def test_variance_from_given_samples_telescopes_to_var_q_l():
+    problem = PerturbedLimit(seed=5)
+    n = 20_000
+    fine, coarse = [], []
+    for level in range(4):
+        f, c, _ = problem(level, np.arange(n))
+        fine.append(f)
+        coarse.append(c)
+    result = variance_from_samples(fine=fine, coarse=coarse, tol=0.05)
+    assert result.stop_reason == "given" and result.levels.tolist() == [0, 1, 2, 3]
+    assert abs(result.estimate[0] - problem.variance(3)) < 4.0 * result.stat_error[0]
+    # alpha of Var(Q_l) - Var(Q_l-1) = -3 c^2 4^-l is 2; the fit sees it within noise.
+    assert abs(result.alpha[0] - 2.0) < 0.5
+    exact_bias = problem.variance(3) - problem.variance()
+    assert result.bias[0] == pytest.approx(exact_bias, rel=0.5)
+
+
+def test_the_sample_plan_is_the_mean_formula_with_the_variance_of_the_h2_terms():
+    problem = PerturbedLimit(seed=6)
+    terms, costs = [], []
+    for level in range(4):
+        fine, coarse, cost = problem(level, np.arange(500))
+        terms.append(variance_level_term(fine, None if level == 0 else coarse, level))
+        costs.append(np.mean(cost))
+    costs = np.array(costs)
+    tol = 0.05
+    n_planned = sample_plan(terms, costs=costs, tol=tol)
+    per_sample = np.array([[t.per_sample_variance[0]] for t in terms])
+    expected = np.ceil(optimal_samples(per_sample, costs, np.array([0.5 * tol**2])))[:, 0]
+    np.testing.assert_array_equal(n_planned, expected)
+    # The plan meets the statistical share of the tolerance with the screened W_l.
+    assert np.sum(per_sample[:, 0] / n_planned) <= 0.5 * tol**2
+    with pytest.raises(EstimationError, match="one value per level"):
+        sample_plan(terms, costs=costs[:2], tol=tol)
+
+
+def test_max_level_and_max_cost_stop_honestly():
+    problem = PerturbedLimit(scale=4.0)
+    # Var(Q_2) - Var(Q) = 16 / 16 is far above the bias share of 0.3, which level 2 cannot meet.
+    result = mlmc_variance(problem, tol=0.3, max_level=2)
+    assert result.stop_reason == "max_level" and not result.tol_met and result.finest_level == 2
+    capped = mlmc_variance(problem, tol=0.005, max_cost=20_000.0)
+    assert capped.stop_reason == "max_cost" and capped.cost <= 20_000.0 and not capped.tol_met
+
+
+def test_several_qois_get_one_tolerance_each():
+    def two(level, indices):
+        fine, coarse, cost = PerturbedLimit(seed=2)(level, indices)
+        return np.stack([fine, 3 * fine], axis=1), np.stack([coarse, 3 * coarse], axis=1), cost
+
+    result = mlmc_variance(two, tol=[0.05, 0.45])
+    assert result.estimate.shape == (2,) and result.tol.tolist() == [0.05, 0.45]
+    assert result.tol_met
+    assert result.estimate[1] == pytest.approx(9 * result.estimate[0], rel=1e-12)
+
+
+# --------------------------------------------------------------------------
+# Bad input
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("tol", [0.0, -1.0, float("nan"), [0.1, 0.0]])
+def test_non_positive_tolerances_are_refused(tol):
+    with pytest.raises(InvalidParameterError, match="tol"):
+        mlmc_variance(PerturbedLimit(), tol=tol)
+
+
+def test_too_few_samples_and_bad_shapes_are_refused():
+    with pytest.raises(InvalidParameterError, match="at least 4 samples"):
+        h2_difference_variance(np.arange(3.0), np.arange(3.0))
+    with pytest.raises(InvalidParameterError, match="at least 3 samples"):
+        h3(np.arange(2.0))
+    with pytest.raises(InvalidParameterError, match="coarse"):
+        variance_level_term(np.zeros((5, 2)), np.zeros((5, 1)))
+    with pytest.raises(InvalidParameterError, match="finite"):
+        h2(np.array([1.0, np.inf, 2.0]))
+    with pytest.raises(InvalidParameterError, match="order"):
+        central_moment_level_term(np.zeros(10), None, order=5)
+    with pytest.raises(InvalidParameterError, match="n_initial"):
+        mlmc_variance(PerturbedLimit(), tol=0.1, n_initial=3)
+    with pytest.raises(InvalidParameterError, match="theta"):
+        mlmc_variance(PerturbedLimit(), tol=0.1, theta=1.0)
+    with pytest.raises(EstimationError, match="one entry per level"):
+        variance_from_samples(fine=[np.zeros(5)], coarse=[])
+
+
+def test_telescope_refuses_mismatched_terms():
+    a = LevelTerm(mean=np.zeros(2), variance=np.zeros(2), n_samples=4, groups=np.arange(2))
+    b = LevelTerm(mean=np.zeros(3), variance=np.zeros(3), n_samples=4, groups=np.arange(3))
+    with pytest.raises(EstimationError, match="different components"):
+        telescope([a, b])
+    with pytest.raises(EstimationError, match="at least one level"):
+        telescope([])
+    with pytest.raises(InvalidParameterError, match="a scalar or 2 values"):
+        telescope([a], tol=[0.1, 0.1, 0.1])
+    with pytest.raises(InvalidParameterError, match="batch_size"):
+        adaptive_mlmc(PerturbedLimit(), term=variance_level_term, tol=0.1, batch_size=0)
