@@ -8,6 +8,8 @@ file, no pydantic)::
     problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.1), qoi=["contact_area"], coarsest=256)
     result = rough_uq.mlmc(problem, tol=0.2)   # or rough_uq.mc(problem, tol=..., level=...), rough_uq.screen(problem)
     result.estimate, result.rmse, result.levels
+    spread = rough_uq.variance(problem, tol=0.5)  # Var(Q), in the QoI's unit squared
+    law = rough_uq.distribution(problem, tol=0.05, thresholds=numpy.linspace(15, 25, 41))  # CDF, quantiles
 
 ``estimate`` and ``rmse`` have shape ``(n_qoi,)`` (in the QoIs' units, here
 percent), ``levels`` and ``n_samples`` shape ``(n_levels,)``
@@ -48,7 +50,13 @@ _EXPORTS = {
     "mlmc": "rough_uq.problem.runs",
     "mc": "rough_uq.problem.runs",
     "screen": "rough_uq.problem.runs",
+    "variance": "rough_uq.problem.distribution",
+    "distribution": "rough_uq.problem.distribution",
+    "DistributionResult": "rough_uq.problem.distribution",
     "EstimationResult": "rough_uq.multilevel.drivers",
+    "TargetEstimate": "rough_uq.multilevel.targets",
+    "CdfEstimate": "rough_uq.multilevel.distribution",
+    "Quantiles": "rough_uq.multilevel.distribution",
     "LevelStatistics": "rough_uq.multilevel.statistics",
     "Rates": "rough_uq.multilevel.statistics",
     # the physics
@@ -57,6 +65,8 @@ _EXPORTS = {
     "sample_coupled": "rough_uq.physics.surface",
     "solve_contact": "rough_uq.physics.solver",
     "ContactSolution": "rough_uq.physics.solver",
+    "solve_load_curve": "rough_uq.physics.load_curve",
+    "LoadCurveSolution": "rough_uq.physics.load_curve",
     "QOI_NAMES": "rough_uq.physics.qoi",
     "evaluate_qoi": "rough_uq.physics.qoi",
     "contact_area": "rough_uq.physics.qoi",
@@ -82,7 +92,13 @@ __all__ = [
     "mlmc",
     "mc",
     "screen",
+    "variance",
+    "distribution",
+    "DistributionResult",
     "EstimationResult",
+    "TargetEstimate",
+    "CdfEstimate",
+    "Quantiles",
     "LevelStatistics",
     "Rates",
     "SurfaceSpectrum",
@@ -90,6 +106,8 @@ __all__ = [
     "sample_coupled",
     "solve_contact",
     "ContactSolution",
+    "solve_load_curve",
+    "LoadCurveSolution",
     "QOI_NAMES",
     "evaluate_qoi",
     "contact_area",
@@ -107,7 +125,9 @@ __all__ = [
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time names load on first use
     from rough_uq.errors import ConvergenceError, EstimationError, InvalidParameterError, RoughUQError
+    from rough_uq.multilevel.distribution import CdfEstimate, Quantiles
     from rough_uq.multilevel.drivers import EstimationResult
+    from rough_uq.multilevel.targets import TargetEstimate
     from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, Rates
     from rough_uq.physics.qoi import (
         QOI_NAMES,
@@ -119,9 +139,11 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time names load on first
         max_pressure,
         mean_gap,
     )
+    from rough_uq.physics.load_curve import LoadCurveSolution, solve_load_curve
     from rough_uq.physics.solver import ContactSolution, solve_contact
     from rough_uq.physics.surface import SurfaceSpectrum, sample_coupled, sample_surface
     from rough_uq.problem.contact import ContactProblem
+    from rough_uq.problem.distribution import DistributionResult, distribution, variance
     from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
     from rough_uq.problem.runs import ScreeningResult, mc, mlmc, screen
 

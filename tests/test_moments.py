@@ -311,3 +311,14 @@ def test_telescope_refuses_mismatched_terms():
         telescope([a], tol=[0.1, 0.1, 0.1])
     with pytest.raises(InvalidParameterError, match="batch_size"):
         adaptive_mlmc(PerturbedLimit(), term=variance_level_term, tol=0.1, batch_size=0)
+
+
+def test_a_batch_cap_below_n_initial_only_splits_the_initial_samples():
+    # A batch cap is not a budget: the initial samples arrive in several batches, and the
+    # estimate is the one drawn without a cap (samples are keyed by index, not by batch).
+    problem = PerturbedLimit(seed=3)
+    capped = mlmc_variance(problem, tol=0.1, n_initial=32, batch_size=10)
+    uncapped = mlmc_variance(problem, tol=0.1, n_initial=32, batch_size=None)
+    assert capped.stop_reason == "tol_met"
+    np.testing.assert_array_equal(capped.n_samples, uncapped.n_samples)
+    np.testing.assert_array_equal(capped.estimate, uncapped.estimate)

@@ -450,8 +450,9 @@ def _draw(
         while s.n < planned[s.level]:
             wanted = int(min(planned[s.level] - s.n, batch_cap))
             n = _affordable(levels, s.level, wanted, max_cost, gamma)
-            # A level is not started unless it can get the samples its term variance needs.
-            if n == 0 or s.n + n < n_initial:
+            # A level is not started unless the budget allows the samples its term variance needs
+            # (a batch cap below n_initial only splits them into several batches).
+            if n == 0 or (n < wanted and s.n + n < n_initial):
                 return False
             batch = _call_sampler(sampler, s.level, s.n, n)
             s.add(batch.fine, batch.coarse, batch.cost)

@@ -1,0 +1,201 @@
+"""Beyond the mean on a :class:`~rough_uq.problem.contact.ContactProblem`: variance, CDF and quantiles.
+
+:func:`variance` and :func:`distribution` run the adaptive MLMC driver of
+:mod:`rough_uq.multilevel.targets` on a contact problem, with the level terms
+of :mod:`rough_uq.multilevel.moments` (unbiased ``h2`` differences) and
+:mod:`rough_uq.multilevel.distribution` (smoothed indicators), in this process
+or on an executor; nothing is written to disk.
+
+Random streams
+--------------
+As for :func:`rough_uq.mlmc` (:mod:`rough_uq.problem.runs`): every sample
+comes from ``SeedSequence(seed, spawn_key=(stage, level, index))``, with a
+coupled stage named after the target, the columns, the tolerance and
+``theta`` (``run_id("variance", ...)``, ``run_id("cdf", ...)``). The same
+problem and settings draw the same samples; a variance run and a mean run
+never share samples.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from rough_uq.errors import InvalidParameterError
+from rough_uq.multilevel.distribution import CdfEstimate, Quantiles, mlmc_cdf, quantiles
+from rough_uq.multilevel.moments import mlmc_variance
+from rough_uq.multilevel.targets import TargetEstimate
+from rough_uq.problem.contact import BatchExecutor, ContactProblem
+from rough_uq.problem.runs import _problem, _tolerances, _warn_not_converged, run_id
+from rough_uq.problem.sampler import run_stage
+
+__all__ = ["DistributionResult", "distribution", "variance"]
+
+#: Quantiles reported by default: the 5 %, 50 % and 95 % points.
+DEFAULT_PROBABILITIES = (0.05, 0.5, 0.95)
+
+
+def variance(
+    problem: ContactProblem,
+    *,
+    tol: float | Sequence[float] | np.ndarray,
+    theta: float = 0.5,
+    n_initial: int = 32,
+    min_finest_level: int | None = None,
+    max_cost: float | None = None,
+    batch_size: int | None = 10,
+    executor: BatchExecutor | None = None,
+) -> TargetEstimate:
+    """Adaptive MLMC estimate of ``Var(Q)`` of every column of a contact problem to RMS tolerance ``tol``.
+
+    Parameters
+    ----------
+    problem : ContactProblem
+    tol : float or sequence of float
+        Tolerance on the RMS error of the variance, one for all columns or
+        one per column, in the square of each QoI's unit (e.g. percent^2 for
+        the contact area).
+    theta : float
+        Bias share of ``tol^2``, in (0, 1).
+    n_initial, min_finest_level, max_cost, batch_size
+        As in :func:`rough_uq.multilevel.targets.adaptive_mlmc`; costs are
+        modelled reference seconds. ``n_initial`` is at least 4;
+        ``min_finest_level`` defaults to 2, or ``problem.max_level`` if smaller.
+    executor : BatchExecutor, optional
+        Where samples are computed; default in this process.
+
+    Returns
+    -------
+    TargetEstimate
+        ``estimate``, ``stat_error``, ``bias``, ``rmse`` of shape ``(n_qoi,)``
+        (the variances, in the QoIs' units squared); ``levels`` and
+        ``n_samples`` of shape ``(n_levels,)``.
+    """
+    problem = _problem(problem)
+    tol = _tolerances(tol, problem.n_qoi)
+    stage = run_stage("mlmc", run_id("variance", problem.columns, tol, theta))
+    sampler = problem.sampler(stage, executor=executor)
+    result = mlmc_variance(
+        sampler,
+        tol=tol,
+        theta=theta,
+        n_initial=n_initial,
+        min_finest_level=_min_finest_level(problem, min_finest_level),
+        max_level=problem.max_level,
+        max_cost=max_cost,
+        batch_size=batch_size,
+    )
+    _warn_not_converged(sampler, "variance")
+    return result
+
+
+@dataclass(frozen=True, eq=False)
+class DistributionResult:
+    """What :func:`distribution` estimated for one column.
+
+    Attributes
+    ----------
+    column : str
+        The QoI column (e.g. ``"contact_area"``).
+    cdf : CdfEstimate
+        ``thresholds`` and the monotone ``cdf`` (shape ``(n_thresholds,)``),
+        its sup-norm ``rmse`` and the levels and samples used.
+    """
+
+    column: str
+    cdf: CdfEstimate
+
+    def quantiles(self, probabilities: Sequence[float] = DEFAULT_PROBABILITIES) -> Quantiles:
+        """Quantiles at ``probabilities`` (default 5 %, 50 %, 95 %) with error bars, in the column's unit.
+
+        Raises
+        ------
+        EstimationError
+            If the estimated CDF does not cross a probability inside the
+            thresholds (the message names it; the CDF itself stays usable).
+        """
+        return quantiles(self.cdf, probabilities=probabilities)
+
+
+def _min_finest_level(problem: ContactProblem, min_finest_level: int | None) -> int:
+    return min(2, problem.max_level) if min_finest_level is None else min_finest_level
+
+
+def _column_index(problem: ContactProblem, column: str | None) -> int:
+    if column is None:
+        return 0
+    if column not in problem.columns:
+        raise InvalidParameterError("column", column, f"one of {', '.join(problem.columns)}")
+    return problem.columns.index(column)
+
+
+def _default_bandwidth(thresholds: np.ndarray) -> float:
+    """Twice the mean spacing of the thresholds: the level-0 smoothing width when none is given."""
+    if thresholds.ndim != 1 or thresholds.size < 2:
+        raise InvalidParameterError("thresholds", thresholds, "at least two increasing values")
+    return 2.0 * float(thresholds[-1] - thresholds[0]) / (thresholds.size - 1)
+
+
+def distribution(
+    problem: ContactProblem,
+    *,
+    tol: float,
+    thresholds: Sequence[float] | np.ndarray,
+    column: str | None = None,
+    bandwidth: float | None = None,
+    theta: float = 0.5,
+    n_initial: int = 32,
+    min_finest_level: int | None = None,
+    max_cost: float | None = None,
+    batch_size: int | None = 10,
+    executor: BatchExecutor | None = None,
+) -> DistributionResult:
+    """Adaptive MLMC estimate of the distribution function ``F(s) = P(Q <= s)`` and quantiles of one column.
+
+    Parameters
+    ----------
+    problem : ContactProblem
+    tol : float
+        Tolerance on the largest RMS error of ``F`` over the thresholds (dimensionless).
+    thresholds : sequence of float
+        Strictly increasing values ``s_j`` in the column's unit; they must
+        bracket the quantiles asked for, with a spacing well below the
+        quantiles' error bars (:mod:`rough_uq.multilevel.distribution`).
+    column : str, optional
+        Column of ``problem.columns``; default the first.
+    bandwidth : float, optional
+        Smoothing width on level 0, halved per level (the column's unit);
+        default twice the mean threshold spacing.
+    theta, n_initial, min_finest_level, max_cost, batch_size, executor
+        As for :func:`variance`.
+
+    Returns
+    -------
+    DistributionResult
+        ``cdf`` and, by :meth:`DistributionResult.quantiles`, the quantiles.
+    """
+    problem = _problem(problem)
+    index = _column_index(problem, column)
+    s = np.asarray(thresholds, dtype=float)
+    width = _default_bandwidth(s) if bandwidth is None else bandwidth
+    tol_array = _tolerances(tol, 1)
+    name = problem.columns[index]
+    stage = run_stage("mlmc", run_id("cdf", [name], tol_array, theta))
+    sampler = problem.sampler(stage, executor=executor)
+    estimate = mlmc_cdf(
+        sampler,
+        thresholds=s,
+        tol=float(tol_array[0]),
+        bandwidth=width,
+        qoi=index,
+        theta=theta,
+        n_initial=n_initial,
+        min_finest_level=_min_finest_level(problem, min_finest_level),
+        max_level=problem.max_level,
+        max_cost=max_cost,
+        batch_size=batch_size,
+    )
+    _warn_not_converged(sampler, "distribution")
+    return DistributionResult(column=name, cdf=estimate)

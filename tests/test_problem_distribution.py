@@ -1,0 +1,85 @@
+"""Variance, distribution function and quantiles of a contact problem (rough_uq.variance / rough_uq.distribution).
+
+Each estimate is checked against plain Monte Carlo on the finest level the
+run used, from samples of another random stage, with a tolerance of three
+combined standard errors (the run's RMSE and the MC sample's standard error).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import rough_uq
+from rough_uq.multilevel.moments import h2, h2_difference_variance
+
+#: A random stage no run uses (runs have hashed stages), for the plain MC checks.
+CHECK_STAGE = 4242
+
+
+def _problem(**overrides: object) -> rough_uq.ContactProblem:
+    """A band-limited problem on grids 16 and 32: a run takes a few seconds."""
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    options = dict(load=rough_uq.RelativeLoad(0.2), qoi=["contact_area"], coarsest=16, max_level=1, seed=3)
+    return rough_uq.ContactProblem(spectrum, **(options | overrides))
+
+
+def _plain_mc(problem: rough_uq.ContactProblem, level: int, n: int) -> np.ndarray:
+    """``n`` values of ``Q_level`` (shape (n, n_qoi)) from the check stage."""
+    fine, _, _ = problem.sampler(CHECK_STAGE)(level, np.arange(n, dtype=np.int64))
+    return np.asarray(fine).reshape(n, -1)
+
+
+def test_variance_agrees_with_plain_mc_on_the_finest_level():
+    problem = _problem()
+    result = rough_uq.variance(problem, tol=2.0)
+    assert result.estimate.shape == result.rmse.shape == (1,)
+    assert result.levels[-1] <= problem.max_level and result.n_samples.shape == result.levels.shape
+    values = _plain_mc(problem, int(result.levels[-1]), 300)
+    mc_variance = h2(values)
+    mc_error = np.sqrt(h2_difference_variance(values))
+    assert np.all(np.abs(result.estimate - mc_variance) <= 3 * np.sqrt(result.rmse**2 + mc_error**2))
+    assert np.all(result.estimate > 0)
+
+
+def test_distribution_is_monotone_and_agrees_with_the_empirical_cdf():
+    problem = _problem()
+    thresholds = np.linspace(0.0, 100.0, 101)
+    result = rough_uq.distribution(problem, tol=0.08, thresholds=thresholds)
+    cdf = result.cdf.cdf
+    assert result.column == "contact_area"
+    assert np.all(np.diff(cdf) >= 0) and cdf[0] >= 0 and cdf[-1] <= 1
+    n = 300
+    values = _plain_mc(problem, int(result.cdf.levels[-1]), n)[:, 0]
+    empirical = np.mean(values[:, None] <= thresholds[None, :], axis=0)
+    # The smoothed estimate is compared where the empirical CDF is not at a jump of its own.
+    mc_error = np.sqrt(empirical * (1 - empirical) / n)
+    allowed = 3 * np.sqrt(result.cdf.rmse**2 + mc_error**2) + 1.0 / n
+    assert np.all(np.abs(cdf - empirical) <= allowed)
+    q = result.quantiles()
+    assert np.all(np.diff(q.values) > 0)
+    assert np.all(q.lower <= q.values) and np.all(q.values <= q.upper)
+
+
+def test_the_same_problem_draws_the_same_samples():
+    problem = _problem(max_level=1)
+    first = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(0, 100, 51), n_initial=8)
+    again = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(0, 100, 51), n_initial=8)
+    np.testing.assert_array_equal(first.cdf.cdf, again.cdf.cdf)
+    np.testing.assert_array_equal(first.cdf.n_samples, again.cdf.n_samples)
+
+
+def test_bad_column_and_unbracketed_quantiles_say_what_is_wrong():
+    problem = _problem()
+    with pytest.raises(rough_uq.InvalidParameterError, match="column"):
+        rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(0, 100, 11), column="clusters")
+    with pytest.raises(rough_uq.InvalidParameterError, match="thresholds"):
+        rough_uq.distribution(problem, tol=0.2, thresholds=[5.0])
+    with pytest.raises(rough_uq.InvalidParameterError, match="tol"):
+        rough_uq.variance(problem, tol=-1.0)
+    # Thresholds far below the contact area: the CDF is 0 on the grid, no quantile is bracketed,
+    # and the estimate stays available.
+    result = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(0, 1, 11), n_initial=8)
+    assert np.all(result.cdf.cdf == 0)
+    with pytest.raises(rough_uq.EstimationError, match="bracket"):
+        result.quantiles()
