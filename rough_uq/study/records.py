@@ -351,14 +351,13 @@ class LevelTable:
         )
 
 
-def _tuples(array: Any) -> Any:
-    """A numpy array (any shape) as nested tuples of Python numbers."""
-    value = np.asarray(array).tolist()
-    return _as_tuples(value)
-
-
-def _as_tuples(value: Any) -> Any:
-    return tuple(_as_tuples(item) for item in value) if isinstance(value, list) else value
+def _tuples(value: Any) -> Any:
+    """Arrays, lists and tuples (nested, possibly ragged) as nested tuples of Python numbers."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        return tuple(_tuples(item) for item in value)
+    return value.item() if isinstance(value, np.generic) else value
 
 
 _PER_QOI_RATES = ("alpha", "alpha_se", "beta", "beta_se")
@@ -678,6 +677,31 @@ class RunOutcome:
     richardson_reason: str | None = None
     dropped_levels: tuple[DroppedLevel, ...] | None = None
     diagnostics: tuple[Diagnostic, ...] = ()
+
+    @classmethod
+    def from_result(
+        cls, result: Any, *, mean_seconds: Sequence[float], seconds: float, elapsed: float, mc_cost: float,
+        seconds_per_cost: float, n_computed: int, n_not_converged: int, diagnostics: Sequence[Diagnostic],
+    ) -> RunOutcome:
+        """The outcome of an :class:`~rough_uq.multilevel.drivers.EstimationResult` and what the pipeline measured.
+
+        ``mean_seconds`` are the CPU-seconds per sample of each level, ``seconds``
+        their total over the run's samples; ``mc_cost`` (modelled) is converted
+        to CPU-seconds with ``seconds_per_cost``.
+        """
+        vectors = {key: _tuples(np.atleast_1d(getattr(result, key)))
+                   for key in (*_OUTCOME_VECTORS, "rmse", *_OUTCOME_MOMENTS)}
+        return cls(
+            finished=utc_timestamp(), **vectors, is_bias_estimated=_tuples(result.is_bias_estimated),
+            levels=_tuples(result.levels), n_samples=_tuples(result.n_samples), cost=_tuples(result.cost),
+            seconds=seconds, elapsed=elapsed, mc_cost=_tuples(mc_cost), mc_seconds_predicted=_tuples(mc_cost * seconds_per_cost),
+            n_computed=n_computed, n_not_converged=n_not_converged, tol_met=_tuples(result.tol_met),
+            stop_reason=result.stop_reason, richardson=result.richardson, richardson_reason=result.richardson_reason,
+            dropped_levels=tuple(DroppedLevel(int(d.level), d.reason) for d in result.dropped_levels),
+            rates=None if result.rates is None else RatesRecord.from_rates(result.rates),
+            statistics=LevelTable.from_statistics(result.statistics, mean_seconds),
+            diagnostics=tuple(diagnostics),
+        )
 
     @property
     def work_ratio(self) -> float:
