@@ -22,6 +22,7 @@ from rough_uq.study.pipeline import (
     run_screening,
 )
 from rough_uq.study.progress import Progress
+from rough_uq.study.records import read_run_records, read_screening_record
 from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage
 
 MLMC_STAGE = run_stage("mlmc", "test")
@@ -95,6 +96,7 @@ def test_screening_stores_every_sample_and_resumes_without_recomputing():
     assert again.record.n_computed == 0
     assert again.record.statistics == replace(first.record.statistics,
                                               mean_seconds=again.record.statistics.mean_seconds)
+    assert read_screening_record(study.store) == again.record  # what is stored is what was returned
     rates = first.record.rates
     assert all(np.isfinite(rates.alpha)) and np.isfinite(rates.gamma)
     assert [p.tol[0] for p in first.record.predictions] == [4.0, 2.0, 1.0, 0.5, 0.25]
@@ -260,6 +262,7 @@ def test_study_file_roundtrip_and_mismatch(tmp_path):
     with open_existing_study(path, writable=False) as study:
         (run,) = study.store.read_runs()
         assert run["estimate"] == list(record.outcome.estimate)
+        assert read_run_records(study.store) == [record]
     other = config_from_dict(tiny_config(seed=1))
     with pytest.raises(StudyFileError, match="another config"):
         open_existing_study(path, config=other)
