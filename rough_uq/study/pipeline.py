@@ -644,22 +644,19 @@ def forecast_run(
     ``richardson`` (default: the config's ``estimation.richardson``) plans
     the Richardson-extrapolated MLMC estimate where the screening allows it.
     """
-    from rough_uq.study.config import solver_memory_bytes
-
     config = study.config
-    names = config.qoi_names
     tol = np.asarray(tol, dtype=float)
     screening = read_screening_record(study.store)
-    if method == "mc" and level is not None and screening is None:
+    is_given_level = method == "mc" and level is not None
+    if is_given_level and screening is None:
         return None
     with np.errstate(all="ignore"):
         statistics, _ = screening_statistics(study)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", EstimationWarning)
             rates = fit_rates(statistics)
-        alpha = np.atleast_1d(rates.alpha)
-        stalled = [f"{name} (alpha = {a:.2g})" for name, a in zip(names, alpha) if not a > 0]
-        if stalled and method == "mc" and level is not None:
+        stalled = _stalled(config.qoi_names, rates)
+        if stalled and is_given_level:
             return None  # MC on a given level needs no bias model, and there is none to predict from
         if stalled:
             raise EstimationError(
@@ -673,31 +670,59 @@ def forecast_run(
             tol=tol, rates=rates, statistics=statistics, theta=config.estimation.theta,
             max_level=config.grid.max_level, richardson=richardson and method == "mlmc",
         )
-        if not prediction.is_bias_met and not (method == "mc" and level is not None):
-            bias = np.asarray(prediction.bias, dtype=float)
-            reachable = bias / math.sqrt(config.estimation.theta)
-            raise EstimationError(
-                f"--tol {_tol_text(names, tol)} cannot be reached: on the finest grid allowed "
-                f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
-                f"screening predicts a bias of {_tol_text(names, bias)}; the smallest reachable tolerance is about "
-                f"{_tol_text(names, [_round_up(x) for x in reachable])} (or screen a study with a larger "
-                "grid.max_level)"
-            )
-        if method == "mc":
-            finest = prediction.finest_level if level is None else int(level)
-            counts = (max(int(prediction.mc_n_samples), 2),)
-            fine_cost = prediction.mc_cost / max(prediction.mc_n_samples, 1)
-            if level is not None:
-                fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
-            modelled = counts[0] * float(fine_cost)
-        else:
-            finest = prediction.finest_level
-            counts = tuple(max(int(n), 2) for n in prediction.n_samples)
-            modelled = float(np.sum(np.array(counts) * prediction.costs))
+        if not prediction.is_bias_met and not is_given_level:
+            raise _unreachable(config, tol, prediction)
+        finest, counts, modelled = _planned_samples(method, level, prediction, rates)
     seconds_per_cost = float((screening.seconds_per_cost if screening is not None else None) or 1.0)
+    forecast = _forecast(config, finest=finest, counts=counts, modelled=modelled, seconds_per_cost=seconds_per_cost,
+                         n_workers=n_workers, is_richardson=bool(prediction.is_richardson))
+    _check_budget(config.qoi_names, tol, forecast, max_cost)
+    return forecast
+
+
+def _stalled(names: Sequence[str], rates: Rates) -> list[str]:
+    """The QoIs whose fitted bias does not decay, with their ``alpha``, in words."""
+    return [f"{name} (alpha = {a:.2g})" for name, a in zip(names, np.atleast_1d(rates.alpha)) if not a > 0]
+
+
+def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan) -> EstimationError:
+    """The refusal of a tolerance whose bias the finest allowed grid cannot reach, with the smallest reachable one."""
+    names = config.qoi_names
+    bias = np.asarray(prediction.bias, dtype=float)
+    reachable = bias / math.sqrt(config.estimation.theta)
+    return EstimationError(
+        f"--tol {_tol_text(names, tol)} cannot be reached: on the finest grid allowed "
+        f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
+        f"screening predicts a bias of {_tol_text(names, bias)}; the smallest reachable tolerance is about "
+        f"{_tol_text(names, [_round_up(x) for x in reachable])} (or screen a study with a larger "
+        "grid.max_level)"
+    )
+
+
+def _planned_samples(
+    method: str, level: int | None, prediction: Plan, rates: Rates
+) -> tuple[int, tuple[int, ...], float]:
+    """Finest level, samples per level (at least 2 each) and modelled cost of the run ``prediction`` plans."""
+    if method == "mc":
+        finest = prediction.finest_level if level is None else int(level)
+        counts = (max(int(prediction.mc_n_samples), 2),)
+        fine_cost = prediction.mc_cost / max(prediction.mc_n_samples, 1)
+        if level is not None:
+            fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
+        return finest, counts, counts[0] * float(fine_cost)
+    counts = tuple(max(int(n), 2) for n in prediction.n_samples)
+    return prediction.finest_level, counts, float(np.sum(np.array(counts) * prediction.costs))
+
+
+def _forecast(
+    config: StudyConfig, *, finest: int, counts: tuple[int, ...], modelled: float, seconds_per_cost: float,
+    n_workers: int, is_richardson: bool,
+) -> Forecast:
+    from rough_uq.study.config import solver_memory_bytes
+
     cpu_seconds = modelled * seconds_per_cost
     n_workers = max(1, int(n_workers))
-    result = Forecast(
+    return Forecast(
         finest_level=int(finest),
         grid=config.grid.n_at(int(finest)),
         n_samples=counts,
@@ -705,9 +730,13 @@ def forecast_run(
         cpu_seconds=cpu_seconds,
         wall_seconds=cpu_seconds / min(n_workers, max(sum(counts), 1)),
         memory_bytes=solver_memory_bytes(config.grid.n_at(int(finest))) * n_workers,
-        is_richardson=bool(prediction.is_richardson),
+        is_richardson=is_richardson,
     )
-    total = sum(counts)
+
+
+def _check_budget(names: Sequence[str], tol: np.ndarray, forecast: Forecast, max_cost: float | None) -> None:
+    """Refuse a forecast beyond any budget, over ``max_cost``, or (without it) over :data:`DEFAULT_COST_CEILING`."""
+    total, modelled, cpu_seconds = sum(forecast.n_samples), forecast.modelled_cost, forecast.cpu_seconds
     if total > MAX_PLANNED_SAMPLES or not math.isfinite(modelled):
         raise EstimationError(
             f"--tol {_tol_text(names, tol)} needs about {total:.3g} samples ({_hours(cpu_seconds)} CPU); "
@@ -721,10 +750,9 @@ def forecast_run(
     if max_cost is None and cpu_seconds > DEFAULT_COST_CEILING:
         raise EstimationError(
             f"--tol {_tol_text(names, tol)} is predicted to take {_hours(cpu_seconds)} of CPU time "
-            f"({sum(counts)} samples), more than the default ceiling of {_hours(DEFAULT_COST_CEILING)}: loosen --tol, "
+            f"({total} samples), more than the default ceiling of {_hours(DEFAULT_COST_CEILING)}: loosen --tol, "
             "or allow it with --max-cost SECONDS"
         )
-    return result
 
 
 
