@@ -577,7 +577,7 @@ def _ranges(indices: Any) -> list[str]:
 
 
 def _print_run(run: Any, report: dict[str, Any]) -> None:
-    """A finished run (a :class:`~rough_uq.report.summary.ReportedRun`) as `roughuq report` shows it, then its warnings."""
+    """A finished :class:`~rough_uq.report.summary.ReportedRun` as `roughuq report` shows it, then its warnings."""
     from rough_uq.report.summary import format_run
 
     for line in format_run(run.record, report["qoi_names"], report["config"]["qoi"],

@@ -1018,7 +1018,8 @@ def run_estimation(
     study.store.write_run(key, record.to_json())
     title = f"{method} " + ", ".join(f"{n}={t:g}" for n, t in zip(study.config.qoi_names, tol))
     result, diagnostics = _follow(events, progress, title)
-    outcome = _outcome(study, method=method, key=key, sampler=sampler, result=result, diagnostics=diagnostics, started=started)
+    outcome = _outcome(study, method=method, key=key, sampler=sampler, result=result, diagnostics=diagnostics,
+                       started=started)
     record = replace(record, status="finished", outcome=outcome)
     study.store.write_run(key, record.to_json())
     return record

@@ -694,7 +694,8 @@ class RunOutcome:
         return cls(
             finished=utc_timestamp(), **vectors, is_bias_estimated=_tuples(result.is_bias_estimated),
             levels=_tuples(result.levels), n_samples=_tuples(result.n_samples), cost=_tuples(result.cost),
-            seconds=seconds, elapsed=elapsed, mc_cost=_tuples(mc_cost), mc_seconds_predicted=_tuples(mc_cost * seconds_per_cost),
+            seconds=seconds, elapsed=elapsed, mc_cost=_tuples(mc_cost),
+            mc_seconds_predicted=_tuples(mc_cost * seconds_per_cost),
             n_computed=n_computed, n_not_converged=n_not_converged, tol_met=_tuples(result.tol_met),
             stop_reason=result.stop_reason, richardson=result.richardson, richardson_reason=result.richardson_reason,
             dropped_levels=tuple(DroppedLevel(int(d.level), d.reason) for d in result.dropped_levels),
