@@ -93,7 +93,7 @@ def test_stored_runs_have_the_fields_of_their_kind():
     assert [d.kind for d in richardson.outcome.diagnostics] == ["coupling", "richardson"]
 
 
-def test_the_store_gives_typed_records(tmp_path):
+def test_the_store_gives_typed_records():
     store = MemoryStore(qoi_names=("contact_area", "clusters"))
     assert read_screening_record(store) is None and read_run_records(store) == []
     store.write_screening(_screening_data())
