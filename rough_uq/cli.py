@@ -267,8 +267,9 @@ def solve(config_path: str | None, level: int, index: int) -> None:
     batch = compute_batch(model, stage=STAGE_SCREENING, level=level, indices=[index])
     seconds = time.perf_counter() - start
     n = model.grid(level)
-    click.echo(f"grid {n} x {n}, mean pressure {model.mean_pressure:.4g} (E* = {model.e_star:g})")
-    for name, settings, value in zip(config.qoi_names, config.qoi.values(), batch.fine[0]):
+    pressures = ", ".join(f"{p:.4g}" for p in model.loads)
+    click.echo(f"grid {n} x {n}, mean pressure {pressures} (E* = {model.e_star:g})")
+    for (name, _, settings), value in zip(config.qoi_columns, batch.fine[0]):
         click.echo(f"  {name}: {value:.6g} {settings.unit_label}")
     status = "converged" if batch.converged[0, 0] else "NOT converged"
     click.echo(f"  solver: {batch.n_iter[0, 0]} iterations ({status}), {seconds:.3f} s")

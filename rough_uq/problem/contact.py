@@ -23,7 +23,15 @@ from rough_uq.errors import InvalidParameterError
 from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
 from rough_uq.problem.batch import LevelBatch
-from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, positive, qoi_scale
+from rough_uq.problem.loads import (
+    QOI_UNITS,
+    AbsoluteLoad,
+    RelativeLoad,
+    column_names,
+    load_sequence,
+    positive,
+    qoi_scale,
+)
 from rough_uq.problem.sampler import ContactModel, compute_batch, is_coupled_stage, modelled_cost
 
 if TYPE_CHECKING:
@@ -91,8 +99,13 @@ class ContactProblem:
     ----------
     spectrum : SurfaceSpectrum
         The random surface (carries the box side ``L``, lengths in its unit).
-    load : RelativeLoad or AbsoluteLoad
-        The imposed mean pressure (:mod:`rough_uq.problem.loads`).
+    load : RelativeLoad, AbsoluteLoad, or a sequence of them
+        The imposed mean pressure (:mod:`rough_uq.problem.loads`), or a load
+        curve: distinct loads of one kind, e.g.
+        ``[RelativeLoad(0.01), RelativeLoad(0.05), RelativeLoad(0.1)]``
+        (stored as a tuple). Each surface is then solved along the increasing
+        loads with warm starts, and every QoI becomes one result column per
+        load, named ``<qoi>@<load>`` (:attr:`columns`).
     qoi : str or sequence of str
         Quantities of interest, in column order of every result (names of
         :data:`~rough_uq.physics.qoi.QOI_NAMES`). Stored as a tuple.
@@ -158,10 +171,10 @@ class ContactProblem:
     def __post_init__(self) -> None:
         if not isinstance(self.spectrum, SurfaceSpectrum):
             raise InvalidParameterError("spectrum", self.spectrum, "a rough_uq.SurfaceSpectrum")
-        if not isinstance(self.load, (RelativeLoad, AbsoluteLoad)):
-            allowed = "rough_uq.RelativeLoad(value) or rough_uq.AbsoluteLoad(value)"
-            raise InvalidParameterError("load", self.load, allowed)
         set_ = object.__setattr__
+        loads = load_sequence(self.load)
+        if not isinstance(self.load, (RelativeLoad, AbsoluteLoad)):
+            set_(self, "load", loads)
         names = _qoi_names(self.qoi)
         set_(self, "qoi", names)
         set_(self, "units", _units(self.units, names))
@@ -214,7 +227,8 @@ class ContactProblem:
             coarsest=self.coarsest,
             projection=self.projection,
             e_star=self.e_star,
-            mean_pressure=self.mean_pressure,
+            mean_pressure=self.mean_pressures[0],
+            mean_pressures=self.mean_pressures if self.n_loads > 1 else (),
             qoi_names=self.qoi,
             qoi_scales=scales,
             seed=self.seed,
@@ -228,9 +242,29 @@ class ContactProblem:
         )
 
     @property
+    def loads(self) -> tuple[RelativeLoad | AbsoluteLoad, ...]:
+        """The loads, in column order (one for a single load)."""
+        return load_sequence(self.load)
+
+    @property
+    def n_loads(self) -> int:
+        """Number of loads per surface."""
+        return len(self.loads)
+
+    @property
+    def mean_pressures(self) -> tuple[float, ...]:
+        """The imposed mean pressure of every load (unit of ``E*``), in column order."""
+        return tuple(load.mean_pressure(spectrum=self.spectrum, e_star=self.e_star) for load in self.loads)
+
+    @property
     def mean_pressure(self) -> float:
-        """The imposed mean pressure ``p_mean`` (unit of ``E*``)."""
-        return self.load.mean_pressure(spectrum=self.spectrum, e_star=self.e_star)
+        """The imposed mean pressure ``p_mean`` (unit of ``E*``); of the first load for a load curve."""
+        return self.mean_pressures[0]
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """Names of the result columns: ``qoi``, or ``<qoi>@<load>`` per load for a load curve, QoI-major."""
+        return column_names(self.qoi, tuple(load.value for load in self.loads))
 
     @property
     def qoi_units(self) -> tuple[str, ...]:
@@ -240,8 +274,8 @@ class ContactProblem:
 
     @property
     def n_qoi(self) -> int:
-        """Number of quantities of interest."""
-        return len(self.qoi)
+        """Number of result columns (:attr:`columns`): quantities of interest times loads."""
+        return len(self.columns)
 
     @property
     def model(self) -> ContactModel:

@@ -7,6 +7,19 @@ A :class:`RelativeLoad` ``r`` is the mean pressure ``p = r * E* * sqrt(m2)``
 (:attr:`~rough_uq.physics.surface.SurfaceSpectrum.rms_slope` is ``sqrt(m2)``);
 an :class:`AbsoluteLoad` is ``p`` itself, in the unit of ``E*``.
 
+Load curves
+-----------
+A problem may carry several loads of one kind (:func:`load_sequence`): each
+surface is then solved along the increasing loads with warm starts
+(:func:`~rough_uq.physics.load_curve.solve_load_curve`) and every quantity of
+interest becomes a curve, one result column per load. The columns are named
+``<qoi>@<load>`` (:func:`column_names`), ``<load>`` the load as given (the
+relative value, or the absolute pressure), written as Python's shortest
+round-trip form of the float (``contact_area@0.05``, ``clusters@1e-05``), so
+that distinct loads never share a name. Columns are QoI-major: all loads of
+the first QoI in the given order, then those of the next. A single load keeps
+the bare QoI names, so single-load problems and their files are unchanged.
+
 Units of the quantities of interest
 -----------------------------------
 :data:`QOI_UNITS` lists the units each quantity may be reported in, its
@@ -27,7 +40,19 @@ from dataclasses import dataclass
 from rough_uq.errors import InvalidParameterError
 from rough_uq.physics.surface import SurfaceSpectrum
 
-__all__ = ["QOI_UNITS", "AbsoluteLoad", "RelativeLoad", "qoi_scale"]
+__all__ = [
+    "QOI_UNITS",
+    "AbsoluteLoad",
+    "RelativeLoad",
+    "LOAD_SEPARATOR",
+    "qoi_scale",
+    "load_sequence",
+    "load_label",
+    "column_names",
+]
+
+#: Separates the QoI name from the load in the name of a load-curve column.
+LOAD_SEPARATOR = "@"
 
 #: Units each quantity of interest may be reported in; the first is the default.
 QOI_UNITS: dict[str, tuple[str, ...]] = {
@@ -114,3 +139,59 @@ class AbsoluteLoad:
     def mean_pressure(self, *, spectrum: SurfaceSpectrum, e_star: float) -> float:
         """The mean pressure ``value`` (unit of ``E*``); ``spectrum`` and ``e_star`` are not used."""
         return self.value
+
+
+_LOAD_ALLOWED = (
+    "rough_uq.RelativeLoad(value), rough_uq.AbsoluteLoad(value), or a non-empty list of distinct loads "
+    "of one kind (a load curve)"
+)
+
+
+def load_sequence(load: object) -> tuple[RelativeLoad | AbsoluteLoad, ...]:
+    """The loads of a problem: ``(load,)`` for one load, the tuple of a load curve.
+
+    Parameters
+    ----------
+    load : RelativeLoad, AbsoluteLoad or sequence of them
+        One load, or a load curve: a non-empty sequence of distinct loads,
+        all relative or all absolute, in any order.
+
+    Raises
+    ------
+    InvalidParameterError
+        Naming ``load``: an empty sequence, mixed kinds, repeated values or
+        anything that is not a load.
+    """
+    if isinstance(load, (RelativeLoad, AbsoluteLoad)):
+        return (load,)
+    if not isinstance(load, (list, tuple)) or not load:
+        raise InvalidParameterError("load", load, _LOAD_ALLOWED)
+    loads = tuple(load)
+    kinds = {type(item) for item in loads}
+    if len(kinds) != 1 or not kinds <= {RelativeLoad, AbsoluteLoad}:
+        raise InvalidParameterError("load", load, _LOAD_ALLOWED)
+    values = [item.value for item in loads]
+    if len(set(values)) != len(values):
+        raise InvalidParameterError("load", load, "distinct load values (each load once)")
+    return loads
+
+
+def load_label(value: float) -> str:
+    """The load ``value`` as written in column names: the shortest float repr (``0.05``, ``1e-05``)."""
+    return repr(float(value))
+
+
+def column_names(qoi_names: tuple[str, ...], load_values: tuple[float, ...]) -> tuple[str, ...]:
+    """Names of the result columns: ``qoi_names`` for one load, else ``<qoi>@<load>``, QoI-major.
+
+    Parameters
+    ----------
+    qoi_names : tuple of str
+        The quantities of interest, in order.
+    load_values : tuple of float
+        The loads as given (relative values or absolute pressures), in order.
+    """
+    if len(load_values) == 1:
+        return tuple(qoi_names)
+    return tuple(f"{name}{LOAD_SEPARATOR}{load_label(v)}" for name in qoi_names for v in load_values)
+

@@ -63,6 +63,8 @@ def run_id(
     rerunning its command, and :func:`mlmc` / :func:`mc` draw the samples the
     CLI draws. A Richardson-extrapolated MLMC run ends in ``_richardson``.
     """
+    # A load-curve column "contact_area@0.05" appears as "contact_area-at-0.05": run names are file-safe.
+    names = [name.replace("@", "-at-") for name in names]
     parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
     if level is not None:
         parts.append(f"level-{level}")
@@ -248,7 +250,7 @@ def mlmc(
     """
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi)
-    stage = run_stage("mlmc", run_id("mlmc", problem.qoi, tol, theta, richardson=richardson))
+    stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor)
     statistics = _screening_statistics(screening)
     result = drivers.mlmc(
@@ -338,7 +340,7 @@ def mc(
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi)
     mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
-    stage = run_stage("mc", run_id("mc", problem.qoi, tol, theta, level))
+    stage = run_stage("mc", run_id("mc", problem.columns, tol, theta, level))
     sampler = problem.sampler(stage, executor=executor)
     result = drivers.mc(
         sampler,

@@ -30,6 +30,20 @@ the grid sizes and solver iteration counts, with constants fitted once on the
 reference machine. The measured wall time is kept beside it (``LevelBatch.cost``)
 and reported.
 
+Load curves
+-----------
+A model with several loads (``mean_pressures``) solves each surface along the
+increasing loads (:func:`~rough_uq.physics.load_curve.solve_load_curve`).
+The coarse grid follows the sequence, each load warm-started from the
+previous one. With ``warm_start`` every fine load starts from the coarse
+pressure at the same load, as a single load does (a better guess than the
+previous fine load's: module docstring there); without it the fine grid
+follows the sequence too. The QoI vector
+of a sample then has ``n_qoi_names * n_loads`` columns, QoI-major, in the
+order of ``mean_pressures`` (names in :mod:`rough_uq.problem.loads`). A
+sample's ``n_iter`` and ``converged`` cover all loads of its grid (summed,
+and all converged).
+
 Non-convergence
 ---------------
 A solve that does not reach ``tol`` within ``max_iter`` is continued from
@@ -50,8 +64,9 @@ import numpy as np
 
 from rough_uq.problem.batch import STAGE_SCREENING, LevelBatch
 from rough_uq.physics.fft import use_wisdom
+from rough_uq.physics.load_curve import LoadCurveSolution, solve_load_curve
 from rough_uq.physics.qoi import evaluate_qoi
-from rough_uq.physics.solver import ContactSolution, solve_contact
+from rough_uq.physics.solver import ContactSolution
 from rough_uq.physics.surface import SurfaceSpectrum, sample_coupled, sample_surface
 
 __all__ = [
@@ -100,9 +115,11 @@ class ContactModel:
     e_star : float
         Effective modulus (pressure unit).
     mean_pressure : float
-        Imposed mean pressure (unit of ``e_star``).
+        Imposed mean pressure (unit of ``e_star``); with a load curve the
+        first of ``mean_pressures``.
     qoi_names : tuple of str
-        Quantities of interest, in column order (:data:`rough_uq.physics.qoi.QOI_NAMES`).
+        Quantities of interest, in column order (:data:`rough_uq.physics.qoi.QOI_NAMES`);
+        with a load curve each one is a block of ``n_loads`` columns.
     qoi_scales : tuple of float
         Factor from the raw QoI (area fraction, cluster count, ...) to its
         reported unit (e.g. 100 for percent), one per QoI.
@@ -122,6 +139,9 @@ class ContactModel:
         FFTW wisdom that every process computing samples plans from
         (:func:`rough_uq.physics.fft.use_wisdom`), so that all use the same plans;
         ``None``: ``FFTW_ESTIMATE`` plans. Not part of the model's identity.
+    mean_pressures : tuple of float
+        The loads of a load curve (unit of ``e_star``), distinct, in column
+        order (module docstring); empty for the single load ``mean_pressure``.
     """
 
     spectrum: SurfaceSpectrum
@@ -140,15 +160,30 @@ class ContactModel:
     critical_pressure: float | None = None
     area_estimator: str = "corrected"
     fft_wisdom: tuple[bytes, ...] | None = field(default=None, repr=False, compare=False)
+    mean_pressures: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.mean_pressures and self.mean_pressures[0] != self.mean_pressure:
+            raise ValueError("ContactModel.mean_pressure must be the first of mean_pressures")
 
     def grid(self, level: int) -> int:
         """Nodes per side of ``level``."""
         return self.coarsest * 2**level
 
     @property
+    def loads(self) -> tuple[float, ...]:
+        """The mean pressures solved per surface, in column order (one for a single load)."""
+        return self.mean_pressures or (self.mean_pressure,)
+
+    @property
+    def n_loads(self) -> int:
+        """Number of loads per surface."""
+        return len(self.loads)
+
+    @property
     def n_qoi(self) -> int:
-        """Number of quantities of interest."""
-        return len(self.qoi_names)
+        """Number of result columns: quantities of interest times loads."""
+        return len(self.qoi_names) * self.n_loads
 
 
 def run_stage(method: str, run_id: str) -> int:
@@ -202,38 +237,38 @@ def modelled_cost(model: ContactModel, level: int, n_iter: np.ndarray, *, is_cou
     return cost
 
 
-def _solve(model: ContactModel, heights: np.ndarray, initial: np.ndarray | None) -> tuple[ContactSolution, int]:
-    """Solve, continuing once with ``RETRY_FACTOR * max_iter`` iterations if needed; total iterations."""
-    options = dict(
+def _solve(model: ContactModel, heights: np.ndarray, initial: LoadCurveSolution | None) -> LoadCurveSolution:
+    """Solve at every load (from ``initial``'s pressure at the same load, if given), continuing a solve once
+    with ``RETRY_FACTOR * max_iter`` iterations if needed."""
+    return solve_load_curve(
+        heights,
         system_size=model.spectrum.system_size,
-        mean_pressure=model.mean_pressure,
+        mean_pressures=model.loads,
         e_star=model.e_star,
         tol=model.tol,
+        max_iter=model.max_iter,
         threads=model.threads,
+        initial_pressures=None if initial is None else [solution.pressure for solution in initial.solutions],
+        retry_iter=RETRY_FACTOR * model.max_iter,
     )
-    solution = solve_contact(heights, max_iter=model.max_iter, initial_pressure=initial, **options)
-    n_iter = solution.n_iter
-    if not solution.converged:
-        solution = solve_contact(
-            heights,
-            max_iter=RETRY_FACTOR * model.max_iter,
-            initial_pressure=solution.pressure,
-            **options,
-        )
-        n_iter += solution.n_iter
-    return solution, n_iter
 
 
-def _qoi(model: ContactModel, solution: ContactSolution) -> np.ndarray:
-    values = evaluate_qoi(
-        model.qoi_names,
-        pressure=solution.pressure,
-        gap=solution.gap,
-        connectivity=model.connectivity,
-        critical_pressure=model.critical_pressure,
-        area_estimator=model.area_estimator,
-    )
-    return values * np.asarray(model.qoi_scales)
+def _qoi(model: ContactModel, curve: LoadCurveSolution) -> np.ndarray:
+    """QoIs of every load, shape (n_qoi_names * n_loads,), QoI-major."""
+    values = np.array(
+        [
+            evaluate_qoi(
+                model.qoi_names,
+                pressure=solution.pressure,
+                gap=solution.gap,
+                connectivity=model.connectivity,
+                critical_pressure=model.critical_pressure,
+                area_estimator=model.area_estimator,
+            )
+            for solution in curve.solutions
+        ]
+    )  # (n_loads, n_qoi_names)
+    return (values * np.asarray(model.qoi_scales)).T.reshape(-1)
 
 
 @dataclass(frozen=True)
@@ -244,21 +279,35 @@ class SampleSolution:
     ----------
     heights : ndarray, shape (n_l, n_l)
         The surface on the sample's grid.
-    fine : ContactSolution
-        Its contact solution.
-    n_iter : int
-        Iterations of the fine solve, retry included.
-    coarse : ContactSolution or None
-        The solution on the coarser grid of the same surface (coupled samples).
-    coarse_n_iter : int
-        Iterations of the coarse solve (0 without one).
+    fine_curve : LoadCurveSolution
+        Its contact solutions, one per load (in the model's load order).
+    coarse_curve : LoadCurveSolution or None
+        The solutions on the coarser grid of the same surface (coupled samples).
     """
 
     heights: np.ndarray
-    fine: ContactSolution
-    n_iter: int
-    coarse: ContactSolution | None = None
-    coarse_n_iter: int = 0
+    fine_curve: LoadCurveSolution
+    coarse_curve: LoadCurveSolution | None = None
+
+    @property
+    def fine(self) -> ContactSolution:
+        """The fine solution at the first load."""
+        return self.fine_curve.solutions[0]
+
+    @property
+    def n_iter(self) -> int:
+        """Iterations of the fine solves, retries included."""
+        return self.fine_curve.total_iter
+
+    @property
+    def coarse(self) -> ContactSolution | None:
+        """The coarse solution at the first load (coupled samples)."""
+        return None if self.coarse_curve is None else self.coarse_curve.solutions[0]
+
+    @property
+    def coarse_n_iter(self) -> int:
+        """Iterations of the coarse solves (0 without them)."""
+        return 0 if self.coarse_curve is None else self.coarse_curve.total_iter
 
 
 def solve_sample(model: ContactModel, *, stage: int, level: int, index: int) -> SampleSolution:
@@ -267,22 +316,21 @@ def solve_sample(model: ContactModel, *, stage: int, level: int, index: int) -> 
     Samples of coupled stages (:func:`is_coupled_stage`) pair the level-``l``
     solve with the coarse solve of the same surface
     (:func:`~rough_uq.physics.surface.sample_coupled`), and with ``warm_start`` the
-    fine solve starts from the coarse pressure; samples of MC stages and of
-    level 0 solve the fine grid only. The result depends only on ``model``
-    and ``(stage, level, index)`` (and, at the level of rounding, on the FFT
-    plans: every process plans from ``model.fft_wisdom``).
+    fine solve (of each load) starts from the coarse pressure; samples
+    of MC stages and of level 0 solve the fine grid only. The result depends
+    only on ``model`` and ``(stage, level, index)`` (and, at the level of
+    rounding, on the FFT plans: every process plans from ``model.fft_wisdom``).
     """
     use_wisdom(model.fft_wisdom)
     rng = sample_rng(model.seed, stage, level, index)
     n_fine = model.grid(level)
     if not (is_coupled_stage(stage) and level > 0):
         heights = sample_surface(model.spectrum, n_fine, rng)
-        solution, n_iter = _solve(model, heights, None)
-        return SampleSolution(heights=heights, fine=solution, n_iter=n_iter)
+        return SampleSolution(heights=heights, fine_curve=_solve(model, heights, None))
     heights, coarse_heights = sample_coupled(model.spectrum, n_fine, rng, projection=model.projection)
-    coarse, coarse_n_iter = _solve(model, coarse_heights, None)
-    solution, n_iter = _solve(model, heights, coarse.pressure if model.warm_start else None)
-    return SampleSolution(heights=heights, fine=solution, n_iter=n_iter, coarse=coarse, coarse_n_iter=coarse_n_iter)
+    coarse = _solve(model, coarse_heights, None)
+    fine = _solve(model, heights, coarse if model.warm_start else None)
+    return SampleSolution(heights=heights, fine_curve=fine, coarse_curve=coarse)
 
 
 def compute_batch(model: ContactModel, *, stage: int, level: int, indices: np.ndarray) -> LevelBatch:
@@ -304,12 +352,12 @@ def compute_batch(model: ContactModel, *, stage: int, level: int, indices: np.nd
     for row, index in enumerate(indices):
         start = time.perf_counter()
         sample = solve_sample(model, stage=stage, level=level, index=int(index))
-        fine[row] = _qoi(model, sample.fine)
+        fine[row] = _qoi(model, sample.fine_curve)
         n_iter[row] = (sample.n_iter, sample.coarse_n_iter)
-        converged[row, 0] = sample.fine.converged
-        if sample.coarse is not None:
-            coarse[row] = _qoi(model, sample.coarse)
-            converged[row, 1] = sample.coarse.converged
+        converged[row, 0] = sample.fine_curve.is_converged
+        if sample.coarse_curve is not None:
+            coarse[row] = _qoi(model, sample.coarse_curve)
+            converged[row, 1] = sample.coarse_curve.is_converged
         cost[row] = time.perf_counter() - start
     return LevelBatch(
         level=level,

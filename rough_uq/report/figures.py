@@ -1,4 +1,4 @@
-"""Figures of a study: MLMC rates, cost against tolerance, samples per level, one contact sample.
+"""Figures of a study: MLMC rates, cost against tolerance, samples per level, load curves, one contact sample.
 
 An edge module like :mod:`rough_uq.report.summary`: it reads the JSON-able dict of
 :func:`~rough_uq.report.summary.study_report` (never the store), as the typed
@@ -33,6 +33,7 @@ import numpy as np
 from rough_uq.errors import RoughUQError
 from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
+from rough_uq.report.summary import split_column
 from rough_uq.study.records import RunRecord, ScreeningRecord
 
 __all__ = ["write_report_plots", "write_sample_figure"]
@@ -98,13 +99,18 @@ def _fit_line(ax: Any, levels: Sequence[int], constant: float, rate: float, labe
 
 @dataclass(frozen=True)
 class _Drawn:
-    """What the report figures draw: the typed records and the labels of a report."""
+    """What the report figures draw: the typed records and the labels of a report.
+
+    ``load_curves`` are the report's ``load_curves`` entries as they are
+    (numbers derived from the finished runs, not records).
+    """
 
     screening: ScreeningRecord | None
     runs: tuple[RunRecord, ...]
     qoi_names: tuple[str, ...]
     units: dict[str, str]
     grids: tuple[int, ...]
+    load_curves: tuple[dict[str, Any], ...] = ()
 
     @classmethod
     def of(cls, report: dict[str, Any]) -> _Drawn:
@@ -113,7 +119,8 @@ class _Drawn:
         config = report.get("config", {})
         names = report.get("qoi_names") or (screening.qoi_names if screening is not None else ())
         return cls(screening, tuple(RunRecord.from_json(run) for run in report.get("runs") or []), tuple(names),
-                   dict(config.get("qoi", {})), tuple(config.get("grids", [])))
+                   dict(config.get("qoi", {})), tuple(config.get("grids", [])),
+                   tuple(report.get("load_curves") or ()))
 
     def finished(self, method: str) -> list[RunRecord]:
         return [run for run in self.runs if run.is_finished and run.method == method]
@@ -137,7 +144,8 @@ def _rates_figure(drawn: _Drawn, path: Path) -> Path | None:
     figure = _new_figure(13.0, 3.6 * n_qoi)
     axes = figure.subplots(n_qoi, 3, squeeze=False)
     for q, name in enumerate(names[:n_qoi]):
-        title = f"{name} [{drawn.units[name]}]" if name in drawn.units else name
+        unit = drawn.units.get(name, drawn.units.get(split_column(name)[0]))  # a load-curve column: its QoI's
+        title = f"{name} [{unit}]" if unit else name
         _bias_panel(axes[q, 0], stats, rates, q, span_alpha[q], upper, title)
         _variance_panel(axes[q, 1], stats, rates, q, span_beta[q], upper, title)
         for ax in (axes[q, 0], axes[q, 1]):
@@ -283,6 +291,38 @@ def _samples_figure(drawn: _Drawn, path: Path) -> Path | None:
     return _save(figure, path)
 
 
+def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
+    """Each QoI of a load-curve study against the relative load, one line with an RMSE band per finished run."""
+    curves = drawn.load_curves
+    if not curves:
+        return None
+    names = list(curves[0]["curves"])
+    units = drawn.units
+    figure = _new_figure(5.5 * len(names), 4.5)
+    axes = figure.subplots(1, len(names), squeeze=False)[0]
+    for ax, name in zip(axes, names):
+        for k, entry in enumerate(curves):
+            load = np.asarray(entry["relative_loads"], dtype=float)
+            value = np.asarray(entry["curves"][name]["estimate"], dtype=float)
+            error = np.asarray(entry["curves"][name]["rmse"], dtype=float)
+            colour = f"C{k % 10}"
+            ax.fill_between(load, value - error, value + error, color=colour, alpha=0.25, linewidth=0)
+            ax.plot(load, value, "o-", color=colour, label=f"{entry['method'].upper()} run {k + 1} (± RMSE)")
+            fit = entry.get("kappa")
+            if name == "contact_area" and fit is not None:
+                scale = 100.0 if units.get(name) == "%" else 1.0
+                span = np.array([0.0, load.max()])
+                ax.plot(span, fit["kappa"] * span * scale, ":", color=colour,
+                        label=f"kappa = {fit['kappa']:.3g} ± {fit['error']:.2g} (A/A0 < {fit['max_area']:g})")
+        unit = units.get(name)
+        ax.set_xlabel("load $p / (E^* \\sqrt{m_2})$")
+        ax.set_ylabel(f"E[{name}]" + (f" [{unit}]" if unit else ""))
+        ax.set_title(f"E[{name}] against the load")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize="x-small")
+    return _save(figure, path)
+
+
 def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Path]:
     """Write the figures of a study report as PNG files.
 
@@ -313,6 +353,12 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             ``N_l`` per level (log scale) of the loosest and the tightest
             finished MLMC run, beside the sample count of a finished MC run
             at the same tolerance where there is one. Needs a finished MLMC run.
+        ``load_curve.png``
+            Per QoI, the estimates of every finished run against the relative
+            load ``p / (E* sqrt(m2))`` with a band of one RMSE, and for the
+            contact area the fitted small-load line ``kappa r``
+            (:func:`~rough_uq.report.summary.fit_area_slope`). Needs a study
+            with several loads and a finished run.
 
         A figure without its data is skipped.
 
@@ -330,6 +376,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
         ("rates.png", _rates_figure),
         ("cost_vs_tol.png", _cost_vs_tol_figure),
         ("samples_per_level.png", _samples_figure),
+        ("load_curve.png", _load_curve_figure),
     ):
         path = draw(drawn, directory / name)
         if path is not None:

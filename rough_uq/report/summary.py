@@ -31,6 +31,15 @@ The report reads the typed records of :mod:`rough_uq.study.records`; its
 JSON form (:func:`study_report`) is the records' ``to_json`` with the derived
 numbers added (the screening's ``complexity``, a run's ``work_ratio``,
 ``mc_seconds_measured`` and ``measured_ratio``).
+
+Load curves
+-----------
+A study with several loads has one column per QoI and load
+(``contact_area@0.05``, :mod:`rough_uq.problem.loads`). :func:`load_curves`
+regroups every finished run's columns into curves over the increasing load,
+with the estimates' RMS errors, and :func:`fit_area_slope` fits the slope
+``kappa`` of ``A / A0 = kappa p / (E* sqrt(m2))`` at small loads (see there
+for the choice of loads and the error).
 """
 
 from __future__ import annotations
@@ -42,9 +51,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from rich.markup import escape
 
 from rough_uq.problem.batch import STAGE_SCREENING
+from rough_uq.study.config import LOAD_SEPARATOR
 from rough_uq.study.records import (
     MIN_ALPHA,
     RATE_TIE,
@@ -61,7 +72,12 @@ __all__ = [
     "MIN_ALPHA",
     "RATE_TIE",
     "ReportedRun",
+    "SLOPE_MAX_AREA",
+    "SlopeFit",
     "complexity",
+    "fit_area_slope",
+    "load_curves",
+    "render_load_curves",
     "derive_runs",
     "format_run",
     "is_locked_by_running_process",
@@ -70,6 +86,7 @@ __all__ = [
     "render_runs",
     "render_screening",
     "screening_json",
+    "split_column",
     "study_report",
 ]
 
@@ -80,9 +97,12 @@ _STOP_REASONS = {
 }
 
 
-def load_text(load: dict[str, float]) -> str:
-    """The load as it is written in a config, e.g. ``relative: 0.1``."""
-    return ", ".join(f"{kind}: {value:g}" for kind, value in load.items())
+def load_text(load: dict[str, Any]) -> str:
+    """The load as it is written in a config, e.g. ``relative: 0.1`` or ``relative: [0.01, 0.1]``."""
+    def text(value: Any) -> str:
+        return "[" + ", ".join(f"{v:g}" for v in value) + "]" if isinstance(value, (list, tuple)) else f"{value:g}"
+
+    return ", ".join(f"{kind}: {text(value)}" for kind, value in load.items())
 
 
 def _config_summary(config: Any) -> dict[str, Any]:
@@ -251,6 +271,7 @@ def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
         "is_running": is_running,
         "n_not_converged": n_not_converged,
         "warnings": _report_warnings(screening, runs, n_not_converged),
+        "load_curves": load_curves(list(store.qoi_names), [run.record for run in runs], config),
     }
 
 
@@ -295,6 +316,11 @@ def _seconds(value: float | None, unit: str = "s") -> str:
 
 def _unit(label: str) -> str:
     return "" if label in ("fraction", "") else f" {label}"
+
+
+def _column_unit(units: dict[str, str], column: str) -> str:
+    """Unit label of a result column: its QoI's (a load-curve column ``qoi@load`` has the unit of ``qoi``)."""
+    return units.get(column, units.get(split_column(column)[0], ""))
 
 
 def _tol_text(names: Sequence[str], tol: Sequence[float]) -> str:
@@ -342,7 +368,7 @@ def _qoi_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]
     rmse = outcome.rmse[q]
     relation = "<=" if rmse <= tol * (1 + 1e-12) else ">"
     bias = f"bias {_g(outcome.bias_estimate[q], 2)}" if outcome.is_bias_estimated else "bias not estimated"
-    return (f"  {name} = {_value_error(outcome.estimate[q], outcome.stat_error[q])}{_unit(units.get(name, ''))} "
+    return (f"  {name} = {_value_error(outcome.estimate[q], outcome.stat_error[q])}{_unit(_column_unit(units, name))} "
             f"(RMSE {_g(rmse, 2)} {relation} tol {_g(tol)}, {bias})")
 
 
@@ -364,7 +390,7 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
     console.print(f"screened levels {stats.levels[0]}..{stats.levels[-1]}, {screening.n_screened} samples each",
                   highlight=False)
     for q, name in enumerate(qoi_names):
-        console.print(_screening_table(stats, q, name, units.get(name)))
+        console.print(_screening_table(stats, q, name, _column_unit(units, name)))
     table = _table("Time per sample")
     for column in ("level", "grid", "modelled cost", "measured"):
         table.add_column(column, justify="right")
@@ -457,7 +483,173 @@ def render_report(report: dict[str, Any], console: Any) -> None:
         console.print("no screening yet: run `roughuq screen CONFIG`")
     if report["runs"]:
         render_runs(console, [ReportedRun.from_json(run) for run in report["runs"]], report["qoi_names"], units)
+    if report.get("load_curves"):
+        render_load_curves(console, report["load_curves"], units)
     if report.get("dropped_runs"):
         console.print(f"dropped runs (their samples stay): {', '.join(report['dropped_runs'])}", highlight=False)
     for text in report["warnings"]:
         console.print(f"[yellow]warning:[/yellow] {escape(text)}", highlight=False)
+
+
+# ---------------------------------------------------------------------------
+# Load curves
+# ---------------------------------------------------------------------------
+
+#: Loads whose contact area is below this fraction of the nominal area enter the slope fit.
+SLOPE_MAX_AREA = 0.1
+
+
+@dataclass(frozen=True)
+class SlopeFit:
+    """The slope ``kappa`` of ``A / A0 = kappa * p / (E* sqrt(m2))`` at small loads (:func:`fit_area_slope`).
+
+    Attributes
+    ----------
+    kappa : float
+        Fitted slope (dimensionless).
+    error : float
+        Bound on its RMS error from the estimates' RMS errors (dimensionless).
+    n_points : int
+        Loads used.
+    max_area : float
+        Area fraction below which loads were used.
+    """
+
+    kappa: float
+    error: float
+    n_points: int
+    max_area: float
+
+
+def fit_area_slope(
+    *, relative_loads: np.ndarray, area: np.ndarray, area_error: np.ndarray, max_area: float = SLOPE_MAX_AREA
+) -> SlopeFit | None:
+    """Least-squares slope through the origin of the area fraction against the relative load, at small loads.
+
+    Fits ``a_i = kappa r_i`` on the loads with ``a_i < max_area``:
+    ``kappa = sum(r_i a_i) / sum(r_i^2)``. Through the origin because
+    ``A = 0`` at zero load; on small loads only because the relation is the
+    small-load asymptote (the area grows more slowly than linearly as the
+    contact spreads). The estimates of one run share their surfaces, so their
+    errors are correlated in an unknown way; the error of ``kappa`` is the
+    bound that holds for any correlation, ``sum(r_i e_i) / sum(r_i^2)``
+    (``e_i`` the estimates' RMS errors; equal to the exact error if they are
+    fully correlated, at most ``sqrt(n)`` times it if independent).
+
+    Parameters
+    ----------
+    relative_loads : ndarray, shape (n_loads,)
+        ``r = p / (E* sqrt(m2))``, dimensionless, > 0.
+    area, area_error : ndarray, shape (n_loads,)
+        Estimated contact-area fraction ``A / A0`` (dimensionless) and its RMS error.
+    max_area : float
+        Largest area fraction used.
+
+    Returns
+    -------
+    SlopeFit or None
+        None when no load has ``area < max_area``.
+    """
+    r, a, e = (np.asarray(x, dtype=float) for x in (relative_loads, area, area_error))
+    small = a < max_area
+    if not np.any(small):
+        return None
+    r, a, e = r[small], a[small], e[small]
+    denominator = float(np.sum(r * r))
+    return SlopeFit(
+        kappa=float(np.sum(r * a)) / denominator,
+        error=float(np.sum(r * np.abs(e))) / denominator,
+        n_points=int(small.sum()),
+        max_area=max_area,
+    )
+
+
+def split_column(column: str) -> tuple[str, float | None]:
+    """``(qoi, load)`` of a result column name; ``load`` is None for a single-load column."""
+    name, separator, label = column.partition(LOAD_SEPARATOR)
+    return (name, float(label)) if separator else (name, None)
+
+
+def _relative_loads(config: Any, loads: np.ndarray) -> np.ndarray:
+    """The loads as ``p / (E* sqrt(m2))`` (converting absolute pressures with the spectrum's ``m2``)."""
+    if config.load.kind == "relative":
+        return loads
+    # Here only: the spectrum pulls in the FFTs, which the report otherwise does not need.
+    from rough_uq.physics.surface import SurfaceSpectrum
+
+    surface = config.surface
+    spectrum = SurfaceSpectrum(system_size=surface.system_size, k_l=surface.k_l, k_r=surface.k_r, k_s=surface.k_s,
+                               hurst=surface.hurst, rms_height=surface.rms_height)
+    return loads / (config.material.e_star * spectrum.rms_slope)
+
+
+def _area_fraction_scale(config: Any) -> float:
+    """Factor from the stored contact area to a fraction (percent: 1/100)."""
+    settings = config.qoi.get("contact_area")
+    return 0.01 if settings is not None and settings.unit == "percent" else 1.0
+
+
+def load_curves(qoi_names: Sequence[str], runs: Sequence[RunRecord], config: Any) -> list[dict[str, Any]]:
+    """Every finished run's estimates as curves over the increasing load (empty for a single-load study).
+
+    Returns
+    -------
+    list of dict
+        Per finished run: ``run_id``, ``method``, ``loads`` (as given in the
+        config, increasing), ``relative_loads`` (``p / (E* sqrt(m2))``),
+        ``curves`` (QoI name -> ``{"estimate", "rmse", "stat_error"}``, lists
+        over the loads), and ``kappa`` (:class:`SlopeFit` as a dict, or None
+        without ``contact_area`` or without a load of area below
+        :data:`SLOPE_MAX_AREA`).
+    """
+    if not any(split_column(name)[1] is not None for name in qoi_names):
+        return []
+    loads = np.array(sorted({split_column(name)[1] for name in qoi_names}))
+    relative = _relative_loads(config, loads)
+    out = []
+    for run in runs:
+        if not run.is_finished:
+            continue
+        outcome = run.outcome
+        curves: dict[str, dict[str, list[float]]] = {}
+        for q, name in enumerate(qoi_names):
+            qoi, load = split_column(name)
+            curve = curves.setdefault(qoi, {key: [math.nan] * loads.size for key in ("estimate", "rmse", "stat_error")})
+            j = int(np.searchsorted(loads, load))
+            curve["estimate"][j], curve["rmse"][j] = outcome.estimate[q], outcome.rmse[q]
+            curve["stat_error"][j] = outcome.stat_error[q]
+        kappa = None
+        if "contact_area" in curves:
+            scale = _area_fraction_scale(config)
+            area = curves["contact_area"]
+            fit = fit_area_slope(relative_loads=relative, area=np.array(area["estimate"]) * scale,
+                                 area_error=np.array(area["rmse"]) * scale)
+            kappa = None if fit is None else dict(vars(fit))
+        out.append({"run_id": run.run_id, "method": run.method, "loads": loads.tolist(),
+                    "relative_loads": relative.tolist(), "curves": curves, "kappa": kappa})
+    return out
+
+
+def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: dict[str, str] | None = None) -> None:
+    """One table per finished run: each QoI's estimate ± RMSE against the load, and the fitted ``kappa``."""
+    units = units or {}
+    for entry in curves:
+        table = _table(escape(f"Load curve of {entry['run_id']} (estimate ± RMSE)"))
+        table.add_column("load", justify="right")
+        table.add_column("p/(E* sqrt(m2))", justify="right")
+        names = list(entry["curves"])
+        for name in names:
+            unit = units.get(name, "")
+            table.add_column(escape(name + (f" [{unit}]" if unit else "")), justify="right")
+        for j, load in enumerate(entry["loads"]):
+            cells = [_value_error(entry["curves"][n]["estimate"][j], entry["curves"][n]["rmse"][j]) for n in names]
+            table.add_row(_g(load, 4), _g(entry["relative_loads"][j], 4), *cells)
+        console.print(table)
+        fit = entry.get("kappa")
+        if fit is not None:
+            console.print(
+                f"  kappa = {_value_error(fit['kappa'], fit['error'])} in A/A0 = kappa p/(E* sqrt(m2)), fitted "
+                f"through 0\n  on the {fit['n_points']} load(s) with A/A0 < {fit['max_area']:g}; Persson's theory: "
+                f"sqrt(8/pi) = {math.sqrt(8 / math.pi):.3f}, numerical studies: about 2",
+                highlight=False,
+            )

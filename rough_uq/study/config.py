@@ -13,7 +13,7 @@ A study file looks like (every section is a mapping; see the shipped
       hurst: 0.8
       rms_height: 1.0          # length unit
     material: {e_star: 1.0}    # pressure unit
-    load: {relative: 0.1}      # or {absolute: <mean pressure, unit of E*>}
+    load: {relative: 0.1}      # or {absolute: <mean pressure, unit of E*>}; a list = a load curve
     qoi:
       contact_area: {unit: percent, tol: 0.5}
     grid: {coarsest: 256, max_level: 3}
@@ -113,6 +113,10 @@ __all__ = [
 
 SCHEMA_VERSION = 1
 """The config schema version this code reads and writes."""
+
+LOAD_SEPARATOR = "@"
+"""Separates QoI and load in a load-curve column name (as :data:`rough_uq.problem.loads.LOAD_SEPARATOR`,
+which the config may not import: it stays free of the core)."""
 
 SOLVER_ARRAYS_PER_NODE = 20
 """Estimated number of float64 ``n x n`` arrays alive during one solve."""
@@ -355,21 +359,71 @@ class MaterialConfig(_Section):
     )
 
 
-class LoadConfig(_Section):
-    """The imposed mean pressure, relative to E* sqrt(m2) or absolute."""
+_LOAD_ALLOWED = "number > 0, or a non-empty list of distinct numbers > 0 (a load curve)"
 
-    relative: Float | None = _field(
+
+def _load_value(value: object) -> object:
+    """A load field as given: None, a number > 0, or a load curve (a list of distinct numbers > 0).
+
+    A one-element list is the single load itself, so ``[0.1]`` and ``0.1``
+    are the same study (same resolved config, same hash, bare QoI names).
+    """
+    if value is None:
+        return None
+    is_number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
+    if is_number(value):
+        if not (math.isfinite(value) and value > 0):
+            _fail([_problem("", "must be a finite number > 0", value, _LOAD_ALLOWED)])
+        return float(value)
+    if not isinstance(value, (list, tuple)):
+        _fail([_problem("", "must be a number or a list of numbers", value, _LOAD_ALLOWED)])
+    if not value:
+        _fail([_problem("", "a load curve needs at least one load", _Described("an empty list"), _LOAD_ALLOWED)])
+    problems = [
+        _problem(str(i), "must be a finite number > 0", v, "number > 0")
+        for i, v in enumerate(value)
+        if not (is_number(v) and math.isfinite(v) and v > 0)
+    ]
+    if problems:
+        _fail(problems)
+    values = [float(v) for v in value]
+    repeated = sorted({v for v in values if values.count(v) > 1})
+    if repeated:
+        what = "each load of a load curve must be given once; repeated: " + ", ".join(f"{v:g}" for v in repeated)
+        _fail([_problem("", what, list(value), _LOAD_ALLOWED)])
+    return values[0] if len(values) == 1 else values
+
+
+class LoadConfig(_Section):
+    """The imposed mean pressure, relative to E* sqrt(m2) or absolute; one load or a load curve.
+
+    A list of loads (e.g. ``relative: [0.01, 0.02, 0.05, 0.1]``) is a load
+    curve: each surface is solved along the increasing loads with warm
+    starts and every quantity of interest becomes one column per load, named
+    ``<qoi>@<load>`` (``contact_area@0.05``; :mod:`rough_uq.problem.loads`),
+    in the order given. A quantity's ``tol`` applies to each of its columns:
+    the whole curve is estimated to that RMS error at every load. ``roughuq
+    mlmc --tol NAME@LOAD=EPS`` sets one column apart.
+    """
+
+    relative: float | list[float] | None = _field(
         None,
-        description="Mean pressure p_mean / (E* sqrt(m2)), m2 from the spectral model (dimensionless)",
-        allowed="number > 0",
-        gt=0,
+        description=(
+            "Mean pressure p_mean / (E* sqrt(m2)), m2 from the spectral model (dimensionless); "
+            "a list of distinct values is a load curve"
+        ),
+        allowed=_LOAD_ALLOWED,
     )
-    absolute: Float | None = _field(
+    absolute: float | list[float] | None = _field(
         None,
-        description="Mean pressure p_mean (pressure unit, i.e. unit of E*)",
-        allowed="number > 0",
-        gt=0,
+        description="Mean pressure p_mean (pressure unit, i.e. unit of E*); a list of distinct values is a load curve",
+        allowed=_LOAD_ALLOWED,
     )
+
+    @field_validator("relative", "absolute", mode="before")
+    @classmethod
+    def _check_value(cls, value: object) -> object:
+        return _load_value(value)
 
     @model_validator(mode="after")
     def _check_one(self) -> LoadConfig:
@@ -393,11 +447,21 @@ class LoadConfig(_Section):
         return "relative" if self.relative is not None else "absolute"
 
     @property
-    def value(self) -> float:
-        """The given load (dimensionless if relative, unit of E* if absolute)."""
+    def value(self) -> float | tuple[float, ...]:
+        """The given load (dimensionless if relative, unit of E* if absolute); a tuple for a load curve."""
+        values = self.values
+        return values[0] if len(values) == 1 else values
+
+    @property
+    def values(self) -> tuple[float, ...]:
+        """The given loads, in order (one for a single load)."""
         value = self.relative if self.relative is not None else self.absolute
-        assert value is not None  # guaranteed by the validator
-        return value
+        return tuple(value) if isinstance(value, list) else (value,)  # type: ignore[arg-type]
+
+    @property
+    def n_loads(self) -> int:
+        """Number of loads per surface."""
+        return len(self.values)
 
 
 class SolverConfig(_Section):
@@ -845,8 +909,21 @@ class StudyConfig(_Section):
 
     @property
     def qoi_names(self) -> tuple[str, ...]:
-        """Names of the quantities of interest, in column order."""
-        return tuple(self.qoi)
+        """Names of the result columns, in order: the quantities of interest, or with a load curve
+        ``<qoi>@<load>`` for each quantity and load, QoI-major (:class:`LoadConfig`)."""
+        return tuple(column for column, _, _ in self.qoi_columns)
+
+    @property
+    def qoi_columns(self) -> tuple[tuple[str, str, Any], ...]:
+        """``(column name, QoI name, QoI settings)`` of every result column, in column order."""
+        values = self.load.values
+        if len(values) == 1:
+            return tuple((name, name, settings) for name, settings in self.qoi.items())
+        return tuple(
+            (f"{name}{LOAD_SEPARATOR}{value!r}", name, settings)
+            for name, settings in self.qoi.items()
+            for value in values
+        )
 
 
 # ---------------------------------------------------------------------------

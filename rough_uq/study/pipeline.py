@@ -130,8 +130,8 @@ def build_model(config: StudyConfig) -> ContactModel:
         rms_height=surface.rms_height,
     )
     e_star = config.material.e_star
-    load = RelativeLoad(config.load.value) if config.load.kind == "relative" else AbsoluteLoad(config.load.value)
-    mean_pressure = load.mean_pressure(spectrum=spectrum, e_star=e_star)
+    kind = RelativeLoad if config.load.kind == "relative" else AbsoluteLoad
+    pressures = tuple(kind(value).mean_pressure(spectrum=spectrum, e_star=e_star) for value in config.load.values)
     scales = []
     connectivity, critical_pressure, area_estimator = 4, None, "corrected"
     for name, settings in config.qoi.items():
@@ -148,8 +148,9 @@ def build_model(config: StudyConfig) -> ContactModel:
         coarsest=config.grid.coarsest,
         projection=config.grid.projection,
         e_star=e_star,
-        mean_pressure=mean_pressure,
-        qoi_names=config.qoi_names,
+        mean_pressure=pressures[0],
+        mean_pressures=pressures if len(pressures) > 1 else (),
+        qoi_names=tuple(config.qoi),
         qoi_scales=tuple(scales),
         seed=config.seed,
         tol=config.solver.tol,
@@ -458,9 +459,9 @@ def screening_statistics(study: Study, sampler: StudySampler | None = None) -> t
 
 
 def _base_tolerance(config: StudyConfig, statistics: LevelStatistics) -> np.ndarray:
-    """Per QoI: its configured tol, or 1% of the finest screened mean (its standard deviation if that is 0)."""
+    """Per column: its QoI's configured tol, or 1% of the finest screened mean (its standard deviation if that is 0)."""
     base = []
-    for q, settings in enumerate(config.qoi.values()):
+    for q, (_, _, settings) in enumerate(config.qoi_columns):
         tol = getattr(settings, "tol", None)
         if tol is None:
             mean = abs(float(statistics.mean_fine[-1, q]))
@@ -560,12 +561,16 @@ def _predictions(
 
 
 def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.ndarray:
-    """Tolerances per QoI from ``--tol`` values (``EPS`` or ``NAME=EPS``), falling back to the config's.
+    """Tolerances per column from ``--tol`` values (``EPS`` or ``NAME=EPS``), falling back to the config's.
 
-    A bare number is allowed only for a single QoI. Raises
-    :class:`~rough_uq.errors.InvalidParameterError` naming what is wrong.
+    A bare number is allowed only for a single QoI (with a load curve: for
+    each of its load columns). With a load curve, ``NAME`` may be a QoI (its
+    tolerance for every load) or one column ``QOI@LOAD``, which takes
+    precedence. Raises :class:`~rough_uq.errors.InvalidParameterError` naming
+    what is wrong.
     """
-    names = config.qoi_names
+    columns = config.qoi_columns
+    names = tuple(config.qoi) + tuple(column for column, _, _ in columns if column not in config.qoi)
     given: dict[str, float] = {}
     for text in values or ():
         for part in str(text).split(","):
@@ -574,11 +579,11 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
                 continue
             name, _, number = part.rpartition("=")
             if not name:
-                if len(names) != 1:
+                if len(config.qoi) != 1:
                     raise InvalidParameterError(
-                        "--tol", part, f"NAME=EPS pairs, one per QoI ({', '.join(names)}), with several QoIs"
+                        "--tol", part, f"NAME=EPS pairs, one per QoI ({', '.join(config.qoi)}), with several QoIs"
                     )
-                name = names[0]
+                name = next(iter(config.qoi))
             if name not in names:
                 raise InvalidParameterError("--tol", part, f"a QoI of this study: {', '.join(names)}")
             try:
@@ -592,8 +597,8 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
                                             f"{given[name]:g}")
             given[name] = eps
     tol = []
-    for name, settings in config.qoi.items():
-        eps = given.get(name, getattr(settings, "tol", None))
+    for column, name, settings in columns:
+        eps = given.get(column, given.get(name, getattr(settings, "tol", None)))
         if eps is None:
             raise InvalidParameterError(
                 "--tol", name, f"a tolerance for every QoI: give --tol {name}=EPS or set qoi.{name}.tol"

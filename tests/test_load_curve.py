@@ -1,0 +1,361 @@
+"""Load curves: warm-started sequences of solves equal independent solves; curve configs, problems and reports."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rough_uq.errors import InvalidParameterError
+from rough_uq.physics.load_curve import solve_load_curve
+from rough_uq.physics.solver import solve_contact
+from rough_uq.physics.surface import SurfaceSpectrum, sample_surface
+
+#: Both the sequence and the cold solves go to this tolerance, so that their
+#: difference measures the solutions, not the stopping test.
+TOL = 1e-10
+
+
+def random_surface(seed: int, grids=(32, 64, 128)):
+    """``(heights, system_size, rms_slope, description)`` of a seeded random surface."""
+    rng = np.random.default_rng([18, seed])
+    n = int(rng.choice(grids))
+    size = float(10 ** rng.uniform(-1, 1))
+    k_s = int(rng.integers(2, n // 2 + 1))
+    k_r = int(rng.integers(1, k_s + 1))
+    k_l = int(rng.integers(0, k_r + 1))
+    spectrum = SurfaceSpectrum(
+        system_size=size, k_l=k_l, k_r=k_r, k_s=k_s, hurst=float(rng.uniform(0, 1)),
+        rms_height=float(10 ** rng.uniform(-2, 2)),
+    )
+    return sample_surface(spectrum, n, rng), size, spectrum.rms_slope, f"seed {seed}: {n}^2, {spectrum}", rng
+
+
+def assert_same_solution(solution, cold, description):
+    assert solution.converged and cold.converged, f"{description}: {solution.message} / {cold.message}"
+    difference = np.linalg.norm(solution.pressure - cold.pressure) / np.linalg.norm(cold.pressure)
+    assert difference < 1e-6, f"{description}: pressure differs from the cold solve by {difference:.2e}"
+    n_differ = int(np.count_nonzero(solution.contact != cold.contact))
+    assert n_differ == 0, f"{description}: {n_differ} nodes differ in the contact set"
+
+
+@pytest.mark.parametrize("block", range(2))
+def test_each_point_equals_an_independent_cold_solve(block):
+    # Relative loads from 1e-3 (a few nodes) to 3 (full contact on most spectra), drawn unsorted.
+    fractions = []
+    for seed in range(6 * block, 6 * (block + 1)):
+        heights, size, slope, description, rng = random_surface(seed)
+        relative = 10 ** rng.uniform(-3, np.log10(3), size=int(rng.integers(2, 6)))
+        loads = relative * slope
+        curve = solve_load_curve(heights, system_size=size, mean_pressures=loads, tol=TOL)
+        assert curve.n_loads == loads.size and np.array_equal(curve.mean_pressures, loads)
+        for load, solution in zip(loads, curve.solutions):
+            cold = solve_contact(heights, system_size=size, mean_pressure=load, tol=TOL)
+            assert_same_solution(solution, cold, f"{description}, load {load:.3g}")
+            assert solution.pressure.mean() == pytest.approx(load, rel=1e-12)
+            fractions.append(solution.contact.mean())
+    # The draws span nearly empty to (nearly) full contact sets.
+    assert min(fractions) < 0.02 and max(fractions) > 0.9
+
+
+def test_unsorted_loads_come_back_in_the_callers_order_and_warm_starts_save_iterations():
+    heights, size, slope, description, _ = random_surface(100, grids=(128,))
+    loads = np.array([0.2, 0.01, 0.05, 0.1, 0.02]) * slope
+    curve = solve_load_curve(heights, system_size=size, mean_pressures=loads, tol=TOL)
+    areas = np.array([s.contact.mean() for s in curve.solutions])
+    order = np.argsort(loads)
+    assert np.all(np.diff(areas[order]) > 0), f"{description}: area not increasing with the load"
+    cold_iter = [solve_contact(heights, system_size=size, mean_pressure=p, tol=TOL).n_iter for p in loads]
+    # The smallest load starts cold in both; every other one starts from a neighbour.
+    assert curve.n_iter[order[0]] == cold_iter[order[0]]
+    assert curve.total_iter < sum(cold_iter), f"{description}: {curve.n_iter} vs cold {cold_iter}"
+
+
+def test_duplicate_loads_share_one_solve():
+    heights, size, slope, _, _ = random_surface(101, grids=(64,))
+    loads = [0.1 * slope, 0.05 * slope, 0.1 * slope]
+    curve = solve_load_curve(heights, system_size=size, mean_pressures=loads, tol=TOL)
+    assert curve.solutions[0] is curve.solutions[2]
+    assert curve.n_iter[0] > 0 and curve.n_iter[2] == 0
+    assert np.array_equal(curve.converged, [True, True, True])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_single_load_is_solve_contact(seed):
+    heights, size, slope, _, rng = random_surface(200 + seed)
+    load = float(10 ** rng.uniform(-2, 0)) * slope
+    guess = np.abs(heights) + 0.0  # any non-negative field is a valid warm start
+    for initial in (None, guess):
+        curve = solve_load_curve(heights, system_size=size, mean_pressures=[load], initial_pressure=initial)
+        single = solve_contact(heights, system_size=size, mean_pressure=load, initial_pressure=initial)
+        assert np.array_equal(curve.solutions[0].pressure, single.pressure)
+        assert curve.n_iter[0] == single.n_iter and curve.is_converged == single.converged
+
+
+def test_guesses_per_load_replace_the_sequence():
+    # Each load starts from its own guess (e.g. the coarse solution): exactly the independent warm solve.
+    from rough_uq.physics.surface import sample_coupled
+
+    _, size, slope, _, rng = random_surface(400, grids=(64,))
+    spectrum = SurfaceSpectrum(system_size=size, k_l=1, k_r=2, k_s=40, hurst=0.7, rms_height=1.0)
+    heights, coarse_heights = sample_coupled(spectrum, 64, rng, projection="truncation")
+    loads = np.array([0.1, 0.02, 0.3]) * spectrum.rms_slope
+    coarse = solve_load_curve(coarse_heights, system_size=size, mean_pressures=loads)
+    guesses = [solution.pressure for solution in coarse.solutions]
+    curve = solve_load_curve(heights, system_size=size, mean_pressures=loads, initial_pressures=guesses)
+    for load, guess, solution, n_iter in zip(loads, guesses, curve.solutions, curve.n_iter):
+        alone = solve_contact(heights, system_size=size, mean_pressure=load, initial_pressure=guess)
+        assert np.array_equal(solution.pressure, alone.pressure) and n_iter == alone.n_iter
+    with pytest.raises(InvalidParameterError, match="initial_pressures"):
+        solve_load_curve(heights, system_size=size, mean_pressures=loads, initial_pressures=guesses[:2])
+    with pytest.raises(InvalidParameterError, match="initial_pressure"):
+        solve_load_curve(heights, system_size=size, mean_pressures=loads, initial_pressures=guesses,
+                         initial_pressure=guesses[0])
+
+
+def test_a_solve_that_stops_early_is_flagged_and_continued_with_retry_iter():
+    heights, size, slope, _, _ = random_surface(300, grids=(64,))
+    loads = [0.05 * slope, 0.2 * slope]
+    short = solve_load_curve(heights, system_size=size, mean_pressures=loads, tol=TOL, max_iter=2)
+    assert not short.converged.any() and not short.is_converged
+    assert np.array_equal(short.n_iter, [2, 2])
+    retried = solve_load_curve(heights, system_size=size, mean_pressures=loads, tol=TOL, max_iter=2, retry_iter=500)
+    assert retried.is_converged and np.all(retried.n_iter > 2)
+
+
+@pytest.mark.parametrize("bad", [[], [0.1, 0.0], [0.1, -1.0], [0.1, float("nan")], "0.1", [True], None])
+def test_bad_mean_pressures_name_the_field(bad):
+    heights, size, _, _, _ = random_surface(0, grids=(32,))
+    with pytest.raises(InvalidParameterError, match="mean_pressures"):
+        solve_load_curve(heights, system_size=size, mean_pressures=bad)
+
+
+def test_bad_retry_iter_names_the_field():
+    heights, size, _, _, _ = random_surface(0, grids=(32,))
+    with pytest.raises(InvalidParameterError, match="retry_iter"):
+        solve_load_curve(heights, system_size=size, mean_pressures=[0.1], retry_iter=-1)
+
+
+# --------------------------------------------------------------------------
+# Config, problem and pipeline
+# --------------------------------------------------------------------------
+
+CURVE = [0.2, 0.02, 0.1]  # relative loads, unsorted on purpose
+
+
+def _spectrum():
+    return SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+
+
+def _curve_problem(**overrides):
+    import rough_uq
+
+    loads = [rough_uq.RelativeLoad(v) for v in CURVE]
+    options = dict(load=loads, qoi=["contact_area", "clusters"], coarsest=16, max_level=2, seed=7, solver_tol=1e-10)
+    return rough_uq.ContactProblem(_spectrum(), **(options | overrides))
+
+
+@pytest.mark.parametrize(
+    ("load", "field", "what"),
+    [
+        ({"relative": []}, "load.relative", "at least one load"),
+        ({"relative": [0.1, 0.0]}, "load.relative.1", "> 0"),
+        ({"absolute": [-1.0, 0.1]}, "load.absolute.0", "> 0"),
+        ({"relative": [0.1, "x"]}, "load.relative.1", "> 0"),
+        ({"relative": [0.05, 0.1, 0.05]}, "load.relative", "given once; repeated: 0.05"),
+        ({"relative": [0.1], "absolute": [0.2]}, "load.relative", "exactly once"),
+        ({"relative": {"a": 0.1}}, "load.relative", "a number or a list"),
+    ],
+)
+def test_bad_load_lists_name_the_field(load, field, what):
+    from rough_uq.errors import ConfigError
+    from rough_uq.study.config import config_from_dict
+    from tests.study_configs import tiny_config
+
+    with pytest.raises(ConfigError) as caught:
+        config_from_dict(tiny_config(load=load))
+    line = str(caught.value)
+    assert line.startswith(field + ":") and what in line, line
+
+
+def test_config_curve_columns_and_a_one_element_list_is_the_single_load():
+    from rough_uq.study.config import config_from_dict, config_from_yaml_text, config_hash, resolved_yaml
+    from tests.study_configs import tiny_config
+
+    qoi = {"contact_area": {"tol": 1.0}, "clusters": {"tol": 5.0}}
+    curve = config_from_dict(tiny_config(load={"relative": CURVE}, qoi=qoi))
+    assert curve.load.values == tuple(CURVE) and curve.load.n_loads == 3
+    assert curve.qoi_names == (
+        "contact_area@0.2", "contact_area@0.02", "contact_area@0.1", "clusters@0.2", "clusters@0.02", "clusters@0.1",
+    )
+    assert config_from_yaml_text(resolved_yaml(curve)) == curve
+    single, listed = (config_from_dict(tiny_config(load={"relative": v})) for v in (0.2, [0.2]))
+    assert listed == single and config_hash(listed) == config_hash(single) and single.qoi_names == ("contact_area",)
+
+
+def test_problem_columns_and_model_match_the_pipeline():
+    import rough_uq
+    from rough_uq.study.config import config_from_dict
+    from rough_uq.study.pipeline import build_model
+    from tests.study_configs import tiny_config
+
+    config = config_from_dict(
+        tiny_config(load={"relative": CURVE}, qoi={"contact_area": {}, "clusters": {}}, solver={"tol": 1e-10},
+                    seed=7, grid={"coarsest": 16, "max_level": 2})
+    )
+    problem = _curve_problem()
+    assert problem.columns == config.qoi_names and problem.n_qoi == 6 and problem.n_loads == 3
+    assert problem.model == build_model(config)
+    assert problem.model.loads == tuple(v * _spectrum().rms_slope for v in CURVE)
+    with pytest.raises(InvalidParameterError, match="load"):
+        _curve_problem(load=[])
+    with pytest.raises(InvalidParameterError, match="distinct"):
+        _curve_problem(load=[rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(0.1)])
+    with pytest.raises(InvalidParameterError, match="load"):
+        _curve_problem(load=[rough_uq.RelativeLoad(0.1), rough_uq.AbsoluteLoad(0.2)])
+
+
+@pytest.mark.parametrize("stage_kind", ["mlmc", "mc"])
+def test_curve_columns_equal_single_load_samples(stage_kind):
+    # Each load column of a curve sample is the sample of a single-load problem at that load
+    # (same surface; the warm starts change the path of the solver only).
+    import rough_uq
+    from rough_uq.problem.sampler import compute_batch, run_stage
+
+    stage = run_stage(stage_kind, "curve-test")
+    curve = _curve_problem()
+    batch = compute_batch(curve.model, stage=stage, level=1, indices=np.arange(3))
+    assert batch.fine.shape == (3, 6) and batch.is_converged.all()
+    for j, value in enumerate(CURVE):
+        single = _curve_problem(load=rough_uq.RelativeLoad(value))
+        alone = compute_batch(single.model, stage=stage, level=1, indices=np.arange(3))
+        for part in ("fine", "coarse"):
+            columns = getattr(batch, part)[:, [j, 3 + j]]
+            np.testing.assert_allclose(columns, getattr(alone, part), rtol=1e-9, atol=1e-9, err_msg=f"{part} {value}")
+    order = np.argsort(CURVE)
+    assert np.all(np.diff(batch.fine[:, order], axis=1) > 0)  # the area grows with the load
+
+
+def test_tiny_mlmc_and_mc_give_curves():
+    import rough_uq
+
+    problem = _curve_problem(qoi=["contact_area"])
+    result = rough_uq.mlmc(problem, tol=3.0)
+    assert result.estimate.shape == result.rmse.shape == (3,)
+    order = np.argsort(CURVE)
+    assert np.all(np.diff(result.estimate[order]) > 0)
+    mc = rough_uq.mc(problem, tol=3.0, level=0)
+    assert mc.estimate.shape == (3,) and np.all(np.diff(mc.estimate[order]) > 0)
+
+
+def test_tolerances_apply_per_column_unless_a_column_is_named():
+    from rough_uq.study.config import config_from_dict
+    from rough_uq.study.pipeline import parse_tolerances
+    from tests.study_configs import tiny_config
+
+    qoi = {"contact_area": {"tol": 2.0}, "mean_gap": {"tol": 0.05}}
+    config = config_from_dict(tiny_config(load={"relative": CURVE}, qoi=qoi))
+    tol = parse_tolerances(None, config)
+    np.testing.assert_array_equal(tol, [2.0] * 3 + [0.05] * 3)
+    tol = parse_tolerances(["contact_area=1.5", "contact_area@0.02=3"], config)
+    np.testing.assert_array_equal(tol, [1.5, 3.0, 1.5, 0.05, 0.05, 0.05])
+    with pytest.raises(InvalidParameterError, match="contact_area@0.3"):
+        parse_tolerances(["contact_area@0.3=1"], config)
+    with pytest.raises(InvalidParameterError, match="NAME=EPS"):
+        parse_tolerances(["0.7"], config)
+    single_qoi = config_from_dict(tiny_config(load={"relative": CURVE}))
+    np.testing.assert_array_equal(parse_tolerances(["0.7"], single_qoi), [0.7] * 3)
+
+
+# --------------------------------------------------------------------------
+# Report: slope fit, tables, figure
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_slope_fit_recovers_a_linear_area_and_bounds_the_error(seed):
+    from rough_uq.report.summary import fit_area_slope
+
+    rng = np.random.default_rng([18, 5, seed])
+    kappa = rng.uniform(1, 3)
+    loads = np.sort(rng.uniform(0.001, 0.2, size=int(rng.integers(3, 8))))
+    exact = kappa * loads
+    # Above 10 % area the curve bends: such points must not enter the fit.
+    area = np.where(exact < 0.1, exact, 0.1 + 0.3 * (exact - 0.1))
+    errors = rng.uniform(1e-5, 1e-4, size=loads.size)  # small enough that no point crosses 10 %
+    fit = fit_area_slope(relative_loads=loads, area=area, area_error=errors)
+    if np.all(exact >= 0.1):
+        assert fit is None
+        return
+    small = exact < 0.1
+    assert fit.kappa == pytest.approx(kappa, rel=1e-12) and fit.n_points == int(small.sum())
+    # Fully correlated errors (every estimate off by +e_i) move kappa by exactly the bound.
+    shifted = fit_area_slope(relative_loads=loads, area=area + errors * small, area_error=errors)
+    assert shifted.n_points == fit.n_points
+    assert shifted.kappa - fit.kappa == pytest.approx(fit.error, rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def curve_study(tmp_path_factory):
+    """A tiny curve study screened and estimated through the real CLI; the path of its study file."""
+    import os
+
+    from click.testing import CliRunner
+
+    from rough_uq.cli import main
+    from tests.study_configs import tiny_config, write_config
+
+    directory = tmp_path_factory.mktemp("curve")
+    qoi = {"contact_area": {"tol": 2.0}, "mean_gap": {"tol": 0.05}}
+    config = tiny_config(load={"relative": CURVE}, qoi=qoi, output={"path": str(directory / "curve.h5")})
+    path = write_config(directory / "curve.yaml", config)
+    previous = os.getcwd()
+    os.chdir(directory)
+    try:
+        study = str(directory / "curve.h5")
+        for args in (["screen", str(path)], ["mlmc", "--study", study, "--tol", "mean_gap@0.02=0.1"],
+                     ["mc", "--study", study]):
+            result = CliRunner().invoke(main, [*args, "--workers", "1", "--quiet"])
+            assert result.exit_code == 0, (args, result.output, result.exception)
+    finally:
+        os.chdir(previous)
+    return directory / "curve.h5"
+
+
+def test_cli_study_stores_one_column_per_qoi_and_load(curve_study):
+    from rough_uq.study.store import open_study_readonly
+
+    with open_study_readonly(curve_study) as store:
+        names = store.qoi_names
+        screening = store.read_screening()
+        runs = store.read_runs()
+    expected = tuple(f"{q}@{v!r}" for q in ("contact_area", "mean_gap") for v in CURVE)
+    assert names == expected and screening["qoi_names"] == list(expected)
+    assert np.shape(screening["statistics"]["mean_fine"]) == (3, 6)
+    assert [run["qoi_names"] for run in runs] == [list(expected)] * 2
+
+
+def test_report_shows_the_load_curve_table_and_kappa(curve_study, tmp_path):
+    from click.testing import CliRunner
+
+    from rough_uq.cli import main
+    from rough_uq.study.pipeline import open_existing_study
+    from rough_uq.report.summary import study_report
+
+    with open_existing_study(curve_study, writable=False) as study:
+        report = study_report(study.store, study.config)
+    curves = report["load_curves"]
+    assert [entry["method"] for entry in curves] == ["mlmc", "mc"]
+    for entry, run in zip(curves, report["runs"]):
+        assert entry["loads"] == sorted(CURVE) and entry["relative_loads"] == sorted(CURVE)
+        for j, load in enumerate(entry["loads"]):
+            column = report["qoi_names"].index(f"contact_area@{load!r}")
+            assert entry["curves"]["contact_area"]["estimate"][j] == run["estimate"][column]
+        assert np.all(np.diff(entry["curves"]["contact_area"]["estimate"]) > 0)
+        # The smallest load has less than 10 % contact: kappa is fitted on it.
+        assert entry["kappa"]["n_points"] >= 1 and entry["kappa"]["kappa"] > 0 and entry["kappa"]["error"] > 0
+    mlmc = report["runs"][0]
+    assert mlmc["tol"] == [2.0] * 3 + [0.05, 0.1, 0.05]  # per QoI, one column apart
+
+    output = CliRunner().invoke(main, ["report", str(curve_study), "--plots", str(tmp_path)]).output
+    assert "Load curve of" in output and "kappa =" in output and "contact_area@0.02" in output
+    assert (tmp_path / "load_curve.png").read_bytes().startswith(b"\x89PNG")
