@@ -14,7 +14,10 @@ This is the only module that reads the config and meets the store. It
   so an interrupted run loses at most a few seconds of work and its rerun
   replays the same decisions from the stored samples;
 * runs the screening (:func:`run_screening`) and MLMC / MC estimation runs
-  (:func:`run_estimation`) and stores their records.
+  (:func:`run_estimation`) and stores their records, the typed records of
+  :mod:`rough_uq.study.records`; the multilevel core's ``EstimationWarning``\ s
+  are collected here into the records' diagnostics, never passed on as
+  warnings.
 
 Cost used for planning is the modelled cost of :mod:`rough_uq.problem.sampler`
 (reference seconds, independent of the process that computed a sample); the
