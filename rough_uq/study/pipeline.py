@@ -15,9 +15,9 @@ This is the only module that reads the config and meets the store. It
   replays the same decisions from the stored samples;
 * runs the screening (:func:`run_screening`) and MLMC / MC estimation runs
   (:func:`run_estimation`) and stores their records, the typed records of
-  :mod:`rough_uq.study.records`; the multilevel core's ``EstimationWarning``\ s
-  are collected here into the records' diagnostics, never passed on as
-  warnings.
+  :mod:`rough_uq.study.records`; the warnings of the multilevel core
+  (``EstimationWarning``) are collected here into the records' diagnostics,
+  never passed on as warnings.
 
 Cost used for planning is the modelled cost of :mod:`rough_uq.problem.sampler`
 (reference seconds, independent of the process that computed a sample); the
@@ -382,7 +382,7 @@ def _concatenate(batches: Sequence[LevelBatch]) -> LevelBatch:
 
 @contextmanager
 def _collecting_diagnostics() -> Iterator[list[Diagnostic]]:
-    """Collect the warnings raised inside (the core's ``EstimationWarning``\\ s) as :class:`Diagnostic`\\ s.
+    """Collect the warnings raised inside (the core's ``EstimationWarning``) as :class:`Diagnostic` entries.
 
     The multilevel core reports its checks as warnings; records carry them as
     fields, so they are caught here, at the pipeline boundary, and never
