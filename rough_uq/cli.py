@@ -23,6 +23,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -337,7 +338,7 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     """
     from rough_uq.study.config import load_config
     from rough_uq.study.pipeline import create_study, run_screening
-    from rough_uq.report.summary import complexity, render_screening
+    from rough_uq.report.summary import render_screening, screening_json
 
     config = load_config(config_path)
     with create_study(config, out) as study:
@@ -346,20 +347,18 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
             watch = (study.config, pool, executor, "a smaller screening.levels")
             outcome = run_screening(study, executor=pool, progress=_progress(quiet or as_json, watch))
         path = study.store.path
-    record = dict(outcome.record)
-    rates = record["rates"]
-    record["complexity"] = [complexity(a, b, rates["gamma"]) for a, b in zip(rates["alpha"], rates["beta"])]
+    record = outcome.record
     if as_json:
-        _dump(record)
+        _dump(screening_json(record))
         return
     console = _console()
     grids = [config.grid.n_at(level) for level in range(config.grid.max_level + 1)]
     units = {name: settings.unit_label for name, settings in config.qoi.items()}
-    render_screening(console, {**record, "grids": grids}, config.qoi_names, units)
-    for text in record["warnings"]:
-        click.echo(f"warning: {text}", err=True)
-    if record.get("n_not_converged"):
-        click.echo(f"warning: {record['n_not_converged']} screening samples have a solve that did not converge "
+    render_screening(console, record, config.qoi_names, units, grids=grids)
+    for diagnostic in record.diagnostics:
+        click.echo(f"warning: {diagnostic.message}", err=True)
+    if record.n_not_converged:
+        click.echo(f"warning: {record.n_not_converged} screening samples have a solve that did not converge "
                    f"within solver.max_iter (even after the retry); raise solver.max_iter or loosen solver.tol",
                    err=True)
     console.print(f"study file: {path}")
@@ -381,7 +380,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
             run_estimation,
             run_id,
         )
-        from rough_uq.report.summary import study_report
+        from rough_uq.report.summary import ReportedRun, study_report
 
         if shard_size is not None and not show_plan:
             raise InvalidParameterError("--shards", shard_size, "only with --plan (it splits the plan into shards)")
@@ -422,9 +421,10 @@ def _estimation_command(method: str) -> Callable[..., Any]:
         if as_json:
             _dump(shown)
         else:
-            _print_run(shown, report)
-        if not record["tol_met"]:
-            click.echo(f"tolerance not met ({record['stop_reason']}): {_what_to_change(record, run_method)}",
+            _print_run(ReportedRun.from_json(shown), report)
+        outcome = record.outcome
+        if not outcome.tol_met:
+            click.echo(f"tolerance not met ({outcome.stop_reason}): {_what_to_change(outcome.stop_reason)}",
                        err=True)
             sys.exit(EXIT_TOL_NOT_MET)
 
@@ -492,8 +492,7 @@ def _chosen_method(study: Any, choice: str, method: str, tolerances: Any, cap: f
     return method
 
 
-def _what_to_change(record: dict[str, Any], method: str) -> str:
-    reason = record["stop_reason"]
+def _what_to_change(reason: str) -> str:
     if reason == "max_cost":
         return "the run reached --max-cost; raise --max-cost (or estimation.max_cost) or loosen --tol"
     if reason == "bias":
@@ -578,15 +577,18 @@ def _ranges(indices: Any) -> list[str]:
     return out
 
 
-def _print_run(record: dict[str, Any], report: dict[str, Any]) -> None:
+def _print_run(run: Any, report: dict[str, Any]) -> None:
+    """A finished :class:`~rough_uq.report.summary.ReportedRun` as `roughuq report` shows it, then its warnings."""
     from rough_uq.report.summary import format_run
 
-    for line in format_run(record, report["qoi_names"], report["config"]["qoi"]):
+    for line in format_run(run.record, report["qoi_names"], report["config"]["qoi"],
+                           measured_ratio=run.measured_ratio):
         click.echo(line)
-    for text in record["warnings"]:
-        click.echo(f"warning: {text}", err=True)
-    if record["n_not_converged"]:
-        click.echo(f"warning: {record['n_not_converged']} samples with a non-converged solve are included", err=True)
+    outcome = run.record.outcome
+    for diagnostic in outcome.diagnostics:
+        click.echo(f"warning: {diagnostic.message}", err=True)
+    if outcome.n_not_converged:
+        click.echo(f"warning: {outcome.n_not_converged} samples with a non-converged solve are included", err=True)
 
 
 main.command(name="mlmc", help="Multilevel Monte Carlo to a tolerance; samples and result go to the study file.")(
@@ -708,7 +710,7 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
         rows = run_sweep(configs, directory=directory or f"sweep-{key.rsplit('.', 1)[-1]}", tol=tol, level=level,
                          executor=pool, progress=_progress(quiet or as_json))
     if as_json:
-        _dump(rows)
+        _dump([row.to_json() for row in rows])
         return
     from rich.table import Table
 
@@ -716,10 +718,11 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
     for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "CPU"):
         table.add_column(column, justify="right")
     for row in rows:
-        for q, name in enumerate(row["qoi_names"]):
-            table.add_row(row["value"], str(row["grid"]), name,
-                          f"{row['estimate'][q]:.5g} ± {row['stat_error'][q]:.2g}", str(row["n_samples"][0]),
-                          f"{row['seconds']:.3g} s CPU")
+        outcome = row.run.outcome
+        for q, name in enumerate(row.run.qoi_names):
+            table.add_row(row.value, str(row.grid), name,
+                          f"{outcome.estimate[q]:.5g} ± {outcome.stat_error[q]:.2g}", str(outcome.n_samples[0]),
+                          f"{outcome.seconds:.3g} s CPU")
     _console().print(table)
 
 
@@ -761,16 +764,19 @@ def _writing(target: str, write: Callable[[], Any]) -> Any:
 
 def _stage_of(study: Any, text: str) -> int:
     """``--stage``: 'screening', a run id (as `roughuq report` prints it) or a stage number."""
+    from rough_uq.study.records import read_run_records
+
     if text == "screening":
         return 0
-    for run in study.store.read_runs():
-        if run["run_id"] == text:
-            return int(run["stage"])
+    runs = read_run_records(study.store)
+    for run in runs:
+        if run.run_id == text and run.stage is not None:
+            return run.stage
     try:
         stage = int(text)
     except ValueError:
-        runs = ", ".join(run["run_id"] for run in study.store.read_runs()) or "none"
-        raise InvalidParameterError("--stage", text, f"'screening', a run id of this study ({runs}) "
+        known = ", ".join(run.run_id for run in runs) or "none"
+        raise InvalidParameterError("--stage", text, f"'screening', a run id of this study ({known}) "
                                     "or a stage number") from None
     if stage < 0:
         raise InvalidParameterError("--stage", text, "'screening', a run id or a non-negative stage number")
@@ -820,16 +826,16 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
     again brings it back and reuses its stored samples.
     """
     from rough_uq.study.pipeline import open_existing_study
+    from rough_uq.study.records import read_run_records
 
     with open_existing_study(study_path) as study:
-        runs = {run["run_id"]: run for run in study.store.read_runs()}
+        runs = {run.run_id: run for run in read_run_records(study.store)}
         for key in run_ids:
-            if key not in runs or runs[key].get("status") == "dropped":
-                known = ", ".join(k for k, run in runs.items() if run.get("status") != "dropped") or "none"
+            if key not in runs or runs[key].status == "dropped":
+                known = ", ".join(k for k, run in runs.items() if run.status != "dropped") or "none"
                 raise InvalidParameterError("RUN_ID", key, f"a run of this study ({known})")
         for key in run_ids:
-            record = {k: v for k, v in runs[key].items() if k != "run_id"}
-            study.store.write_run(key, {**record, "status": "dropped"})
+            study.store.write_run(key, replace(runs[key], status="dropped").to_json())
     click.echo(f"{study_path}: dropped {', '.join(run_ids)} (samples kept)")
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from rough_uq.study.pipeline import (
     run_screening,
 )
 from rough_uq.study.progress import Progress
+from rough_uq.study.records import read_run_records, read_screening_record
 from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage
 
 MLMC_STAGE = run_stage("mlmc", "test")
@@ -87,17 +89,17 @@ def test_coupled_coarse_value_is_a_level_below_sample_in_distribution():
 def test_screening_stores_every_sample_and_resumes_without_recomputing():
     study = _study()
     first = run_screening(study, executor=SerialExecutor(), progress=QUIET)
-    assert first.record["n_computed"] == 3 * 8
+    assert first.record.n_computed == 3 * 8
     for level in range(3):
         assert list(study.store.sample_indices(level=level, stage=STAGE_SCREENING)) == list(range(8))
     again = run_screening(study, executor=SerialExecutor(), progress=QUIET)
-    assert again.record["n_computed"] == 0
-    assert again.record["statistics"] == first.record["statistics"] | {
-        "mean_seconds": again.record["statistics"]["mean_seconds"]
-    }
-    rates = first.record["rates"]
-    assert all(np.isfinite(rates["alpha"])) and np.isfinite(rates["gamma"])
-    assert [p["tol"][0] for p in first.record["predictions"]] == [4.0, 2.0, 1.0, 0.5, 0.25]
+    assert again.record.n_computed == 0
+    assert again.record.statistics == replace(first.record.statistics,
+                                              mean_seconds=again.record.statistics.mean_seconds)
+    assert read_screening_record(study.store) == again.record  # what is stored is what was returned
+    rates = first.record.rates
+    assert all(np.isfinite(rates.alpha)) and np.isfinite(rates.gamma)
+    assert [p.tol[0] for p in first.record.predictions] == [4.0, 2.0, 1.0, 0.5, 0.25]
 
 
 def test_mlmc_same_config_same_numbers_and_seed_matters():
@@ -107,10 +109,11 @@ def test_mlmc_same_config_same_numbers_and_seed_matters():
         records.append(run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(),
                                       progress=QUIET))
     a, b, c = records
-    assert a["status"] == "finished"
-    assert a["estimate"] == b["estimate"] and a["n_samples"] == b["n_samples"] and a["cost"] == b["cost"]
-    assert a["estimate"] != c["estimate"]
-    assert a["stat_error"][0] > 0 and a["cost"] > 0 and a["seconds"] > 0
+    assert a.status == "finished"
+    a, b, c = a.outcome, b.outcome, c.outcome
+    assert a.estimate == b.estimate and a.n_samples == b.n_samples and a.cost == b.cost
+    assert a.estimate != c.estimate
+    assert a.stat_error[0] > 0 and a.cost > 0 and a.seconds > 0
 
 
 def test_pool_and_serial_store_identical_samples():
@@ -121,9 +124,9 @@ def test_pool_and_serial_store_identical_samples():
         pooled_record = run_estimation(pooled, method="mlmc", tol=np.array([2.0]), executor=pool, progress=QUIET)
     serial_record = run_estimation(serial, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(),
                                    progress=QUIET)
-    assert pooled_record["estimate"] == serial_record["estimate"]
-    assert pooled_record["n_samples"] == serial_record["n_samples"]
-    for stage in (STAGE_SCREENING, pooled_record["stage"]):
+    assert pooled_record.outcome.estimate == serial_record.outcome.estimate
+    assert pooled_record.outcome.n_samples == serial_record.outcome.n_samples
+    for stage in (STAGE_SCREENING, pooled_record.stage):
         for level in range(3):
             x = serial.store.read_samples(level=level, stage=stage)
             y = pooled.store.read_samples(level=level, stage=stage)
@@ -160,9 +163,9 @@ def test_interrupted_mlmc_resumes_to_the_uninterrupted_result(n_items):
     (run,) = study.store.read_runs()
     assert run["status"] == "running"
     resumed = run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
-    assert resumed["n_computed"] == sum(reference["n_samples"]) - n_items
+    assert resumed.outcome.n_computed == sum(reference.outcome.n_samples) - n_items
     for key in ("estimate", "stat_error", "bias_estimate", "n_samples", "cost"):
-        assert resumed[key] == reference[key], key
+        assert getattr(resumed.outcome, key) == getattr(reference.outcome, key), key
     (run,) = study.store.read_runs()
     assert run["status"] == "finished"
 
@@ -172,26 +175,26 @@ def test_every_run_has_its_own_random_stage():
     loose = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
     tight = run_estimation(study, method="mlmc", tol=np.array([0.5]), executor=SerialExecutor(), progress=QUIET)
     mc = run_estimation(study, method="mc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
-    stages = {STAGE_SCREENING, loose["stage"], tight["stage"], mc["stage"]}
+    stages = {STAGE_SCREENING, loose.stage, tight.stage, mc.stage}
     assert len(stages) == 4
-    assert is_coupled_stage(loose["stage"]) and is_coupled_stage(tight["stage"]) and not is_coupled_stage(mc["stage"])
-    assert tight["n_computed"] == sum(tight["n_samples"])  # nothing shared with the looser run
+    assert is_coupled_stage(loose.stage) and is_coupled_stage(tight.stage) and not is_coupled_stage(mc.stage)
+    assert tight.outcome.n_computed == sum(tight.outcome.n_samples)  # nothing shared with the looser run
     assert len(study.store.read_runs()) == 3
     for level in range(3):
-        first = study.store.read_samples(level=level, stage=loose["stage"]).fine
-        second = study.store.read_samples(level=level, stage=tight["stage"]).fine
+        first = study.store.read_samples(level=level, stage=loose.stage).fine
+        second = study.store.read_samples(level=level, stage=tight.stage).fine
         assert not np.array_equal(first[:3], second[:3])
 
 
 def test_mc_runs_uncoupled_on_the_planned_level():
     study = _screened()
     record = run_estimation(study, method="mc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
-    (level,) = record["levels"]
-    assert level == record["level"]
-    batch = study.store.read_samples(level=level, stage=record["stage"])
-    assert batch.n_samples == record["n_samples"][0]
+    (level,) = record.outcome.levels
+    assert level == record.level
+    batch = study.store.read_samples(level=level, stage=record.stage)
+    assert batch.n_samples == record.outcome.n_samples[0]
     assert np.all(batch.coarse == 0) and np.all(batch.n_iter[:, 1] == 0)
-    assert record["is_bias_estimated"]
+    assert record.outcome.is_bias_estimated
 
 
 def test_missing_samples_shrinks_as_samples_are_stored():
@@ -207,11 +210,11 @@ def test_missing_samples_shrinks_as_samples_are_stored():
     for level, indices in after.items():
         assert indices.size == 0 or indices[0] >= before[level].size
     record = run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
-    assert record["stage"] == work.stage
+    assert record.stage == work.stage
     assert missing_samples(study, method="mlmc", tol=np.array([1.0])).n_missing == 0
     # The run computed only what was not stored (the first plan may ask for more than the run ends up using).
-    stored = [before[level].size for level in record["levels"]]
-    assert record["n_computed"] == sum(max(0, n - s) for n, s in zip(record["n_samples"], stored))
+    stored = [before[level].size for level in record.outcome.levels]
+    assert record.outcome.n_computed == sum(max(0, n - s) for n, s in zip(record.outcome.n_samples, stored))
 
 
 def test_estimation_needs_a_screening():
@@ -225,7 +228,7 @@ def test_non_converged_solves_are_retried_flagged_and_reported():
     batch = study.store.read_samples(level=2, stage=STAGE_SCREENING)
     assert not batch.converged[:, 0].any()
     assert np.all(batch.n_iter[:, 0] == 1 + 10)  # max_iter, then the retry with 10 x max_iter
-    assert outcome.record["n_not_converged"] == 3 * 8
+    assert outcome.record.n_not_converged == 3 * 8
     assert np.all(np.isfinite(batch.fine))
 
 
@@ -258,7 +261,8 @@ def test_study_file_roundtrip_and_mismatch(tmp_path):
         record = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
     with open_existing_study(path, writable=False) as study:
         (run,) = study.store.read_runs()
-        assert run["estimate"] == record["estimate"]
+        assert run["estimate"] == list(record.outcome.estimate)
+        assert read_run_records(study.store) == [record]
     other = config_from_dict(tiny_config(seed=1))
     with pytest.raises(StudyFileError, match="another config"):
         open_existing_study(path, config=other)
@@ -281,14 +285,13 @@ def test_screening_again_with_more_levels_extends_the_study(tmp_path):
     more = config_from_dict(tiny_config(grid=grid, screening={"levels": 4, "samples": 8}))
     with create_study(more, path) as study:  # same samples, same study
         outcome = run_screening(study, executor=SerialExecutor(), progress=QUIET)
-    assert outcome.record["n_computed"] == 4 * 8 - 3 * 6
+    assert outcome.record.n_computed == 4 * 8 - 3 * 6
     with open_existing_study(path) as study:  # its stored config still says 3 levels
         assert study.config.screening.levels == 3
         record = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(),
                                 progress=QUIET)
-    assert record["predicted"]["finest_level"] >= 0
-    statistics = record["screening_rates"]
-    assert statistics["levels_gamma"] == [1, 2, 3]  # the rates come from the four screened levels
+    assert record.predicted.finest_level >= 0
+    assert record.screening_rates.levels_gamma == (1, 2, 3)  # the rates come from the four screened levels
 
 
 def test_screening_without_decaying_bias_keeps_its_table_and_says_why(monkeypatch):
@@ -300,5 +303,6 @@ def test_screening_without_decaying_bias_keeps_its_table_and_says_why(monkeypatc
 
     monkeypatch.setattr(pipeline, "plan", no_decay)
     outcome = run_screening(_study(), executor=SerialExecutor(), progress=QUIET)
-    assert outcome.record["predictions"] == []
-    assert any("no cost prediction" in text and "screening.levels" in text for text in outcome.record["warnings"])
+    assert outcome.record.predictions == ()
+    (why,) = [d for d in outcome.record.diagnostics if d.kind == "prediction"]
+    assert "no cost prediction" in why.message and "screening.levels" in why.message

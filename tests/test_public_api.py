@@ -354,13 +354,15 @@ def test_api_computes_what_the_pipeline_computes(monkeypatch):
             else:
                 result = rough_uq.mc(problem, tol=2.0, level=level, **options)
         # The same diagnostics, as warnings here and in the run record there.
-        assert list(dict.fromkeys(str(w.message) for w in caught)) == record["warnings"], (method, level)
-        assert result.levels.tolist() == record["levels"], (method, level)
-        assert result.n_samples.tolist() == record["n_samples"], (method, level)
-        assert result.estimate.tolist() == record["estimate"], (method, level)
-        assert result.rmse.tolist() == record["rmse"], (method, level)
+        outcome = record.outcome
+        assert list(dict.fromkeys(str(w.message) for w in caught)) == [d.message for d in outcome.diagnostics], (
+            method, level)
+        assert tuple(result.levels.tolist()) == outcome.levels, (method, level)
+        assert tuple(result.n_samples.tolist()) == outcome.n_samples, (method, level)
+        assert tuple(result.estimate.tolist()) == outcome.estimate, (method, level)
+        assert tuple(result.rmse.tolist()) == outcome.rmse, (method, level)
         name = run_id(method, ("contact_area",), [2.0], 0.5, level)
-        assert run_stage(method, name) == record["stage"]
+        assert run_stage(method, name) == record.stage
 
 
 # --------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """Figures of a study: MLMC rates, cost against tolerance, samples per level, load curves, one contact sample.
 
 An edge module like :mod:`rough_uq.report.summary`: it reads the JSON-able dict of
-:func:`~rough_uq.report.summary.study_report` (never the store) and writes PNG files.
+:func:`~rough_uq.report.summary.study_report` (never the store), as the typed
+records of :mod:`rough_uq.study.records`, and writes PNG files.
 matplotlib (the ``plot`` extra) is imported only when a figure is drawn, and
 only its object-oriented API is used (``Figure`` on an Agg canvas): no
 pyplot, no global state, no display needed.
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +34,7 @@ from rough_uq.errors import RoughUQError
 from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
 from rough_uq.report.summary import split_column
+from rough_uq.study.records import RunRecord, ScreeningRecord
 
 __all__ = ["write_report_plots", "write_sample_figure"]
 
@@ -94,95 +97,116 @@ def _fit_line(ax: Any, levels: Sequence[int], constant: float, rate: float, labe
 # ---------------------------------------------------------------------------
 
 
-def _rates_figure(report: dict[str, Any], path: Path) -> Path | None:
-    screening = report.get("screening")
-    if not screening or not screening.get("statistics"):
+@dataclass(frozen=True)
+class _Drawn:
+    """What the report figures draw: the typed records and the labels of a report.
+
+    ``load_curves`` are the report's ``load_curves`` entries as they are
+    (numbers derived from the finished runs, not records).
+    """
+
+    screening: ScreeningRecord | None
+    runs: tuple[RunRecord, ...]
+    qoi_names: tuple[str, ...]
+    units: dict[str, str]
+    grids: tuple[int, ...]
+    load_curves: tuple[dict[str, Any], ...] = ()
+
+    @classmethod
+    def of(cls, report: dict[str, Any]) -> _Drawn:
+        data = report.get("screening")
+        screening = ScreeningRecord.from_json(data) if data else None
+        config = report.get("config", {})
+        names = report.get("qoi_names") or (screening.qoi_names if screening is not None else ())
+        return cls(screening, tuple(RunRecord.from_json(run) for run in report.get("runs") or []), tuple(names),
+                   dict(config.get("qoi", {})), tuple(config.get("grids", [])),
+                   tuple(report.get("load_curves") or ()))
+
+    def finished(self, method: str) -> list[RunRecord]:
+        return [run for run in self.runs if run.is_finished and run.method == method]
+
+
+def _rates_figure(drawn: _Drawn, path: Path) -> Path | None:
+    screening = drawn.screening
+    if screening is None or not screening.statistics.levels:
         return None
-    stats = screening["statistics"]
-    rates = screening.get("rates") or {}
-    names = list(report.get("qoi_names") or screening.get("qoi_names") or [])
-    units = report.get("config", {}).get("qoi", {})
-    grids = report.get("config", {}).get("grids", [])
-    levels = np.asarray(stats["levels"], dtype=int)
-    if levels.size == 0:
-        return None
-    n_qoi = len(stats["mean_diff"][0])
-    names += [f"QoI {q}" for q in range(len(names), n_qoi)]
+    stats, rates = screening.statistics, screening.rates
+    levels = np.asarray(stats.levels, dtype=int)
+    n_qoi = stats.n_qoi
+    names = list(drawn.qoi_names) + [f"QoI {q}" for q in range(len(drawn.qoi_names), n_qoi)]
     upper = levels >= 1
     # Each line spans the levels its fit used (recorded by the screening), else the levels >= 1.
     default_span = levels[upper] if np.any(upper) else levels
-    span_alpha = rates.get("levels_alpha") or [default_span] * n_qoi
-    span_beta = rates.get("levels_beta") or [default_span] * n_qoi
-    span_gamma = rates.get("levels_gamma") or default_span
+    span_alpha = rates.levels_alpha or [default_span] * n_qoi
+    span_beta = rates.levels_beta or [default_span] * n_qoi
+    span_gamma = rates.levels_gamma or default_span
 
     figure = _new_figure(13.0, 3.6 * n_qoi)
     axes = figure.subplots(n_qoi, 3, squeeze=False)
     for q, name in enumerate(names[:n_qoi]):
-        unit = units.get(name, units.get(split_column(name)[0]))  # a load-curve column has its QoI's unit
+        unit = drawn.units.get(name, drawn.units.get(split_column(name)[0]))  # a load-curve column: its QoI's
         title = f"{name} [{unit}]" if unit else name
-        ax_mean, ax_var = axes[q, 0], axes[q, 1]
-
-        x, y = _log2_points(levels[upper], np.abs(np.asarray(stats["mean_diff"], float))[upper, q])
-        ax_mean.plot(x, y, "o-", color="C0", label="$|E[Y_l]|$")
-        if "alpha" in rates:
-            alpha = rates["alpha"][q]
-            _fit_line(ax_mean, span_alpha[q], rates["c_alpha"][q], -alpha,
-                      rf"$c_\alpha 2^{{-\alpha l}}$, $\alpha$ = {alpha:.2f} ± {rates['alpha_se'][q]:.2f}", "C0")
-        ax_mean.set_title(f"{title}: bias")
-        ax_mean.set_ylabel(r"$\log_2 |E[Y_l]|$")
-
-        x, y = _log2_points(levels[upper], np.asarray(stats["var_diff"], float)[upper, q])
-        ax_var.plot(x, y, "o-", color="C1", label=r"$V_l = \mathrm{Var}(Y_l)$")
-        x, y = _log2_points(levels, np.asarray(stats["var_fine"], float)[:, q])
-        ax_var.plot(x, y, "s:", color="C2", label=r"$\mathrm{Var}(Q_l)$")
-        if "beta" in rates:
-            beta = rates["beta"][q]
-            _fit_line(ax_var, span_beta[q], rates["c_beta"][q], -beta,
-                      rf"$c_\beta 2^{{-\beta l}}$, $\beta$ = {beta:.2f} ± {rates['beta_se'][q]:.2f}", "C1")
-        ax_var.set_title(f"{title}: variance")
-        ax_var.set_ylabel(r"$\log_2$ variance")
-
-        for ax in (ax_mean, ax_var):
+        _bias_panel(axes[q, 0], stats, rates, q, span_alpha[q], upper, title)
+        _variance_panel(axes[q, 1], stats, rates, q, span_beta[q], upper, title)
+        for ax in (axes[q, 0], axes[q, 1]):
             ax.set_xlabel("level $l$")
-            _label_grids(ax, levels, grids)
+            _label_grids(ax, levels, drawn.grids)
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize="small")
-
-    ax_cost = axes[0, 2]
-    x, y = _log2_points(levels, stats["mean_cost"])
-    ax_cost.plot(x, y, "o-", color="C3", label="$C_l$ modelled cost (ref-s)")
-    seconds = stats.get("mean_seconds") or []
-    if len(seconds) == levels.size:
-        x, y = _log2_points(levels, seconds)
-        ax_cost.plot(x, y, "s:", color="C4", label="CPU-s per sample (measured)")
-    if "gamma" in rates:
-        gamma = rates["gamma"]
-        _fit_line(ax_cost, span_gamma, rates["c_gamma"], gamma,
-                  rf"$c_\gamma 2^{{\gamma l}}$, $\gamma$ = {gamma:.2f} ± {rates['gamma_se']:.2f}", "C3")
-    ax_cost.set_title("cost per sample")
-    ax_cost.set_xlabel("level $l$")
-    ax_cost.set_ylabel(r"$\log_2$ ref-s or CPU-s")
-    _label_grids(ax_cost, levels, grids)
-    ax_cost.grid(True, alpha=0.3)
-    ax_cost.legend(fontsize="small")
+    _cost_panel(axes[0, 2], stats, rates, span_gamma, drawn.grids)
     for q in range(1, n_qoi):
         axes[q, 2].set_visible(False)
     return _save(figure, path)
 
 
-def _finished(report: dict[str, Any], method: str) -> list[dict[str, Any]]:
-    return [
-        run for run in report.get("runs") or []
-        if run.get("status") == "finished" and run.get("method") == method
-    ]
+def _bias_panel(ax: Any, stats: Any, rates: Any, q: int, span: Sequence[int], upper: np.ndarray, title: str) -> None:
+    levels = np.asarray(stats.levels, dtype=int)
+    x, y = _log2_points(levels[upper], np.abs(np.asarray(stats.mean_diff, float))[upper, q])
+    ax.plot(x, y, "o-", color="C0", label="$|E[Y_l]|$")
+    alpha = rates.alpha[q]
+    _fit_line(ax, span, rates.c_alpha[q], -alpha,
+              rf"$c_\alpha 2^{{-\alpha l}}$, $\alpha$ = {alpha:.2f} ± {rates.alpha_se[q]:.2f}", "C0")
+    ax.set_title(f"{title}: bias")
+    ax.set_ylabel(r"$\log_2 |E[Y_l]|$")
 
 
-def _tol_label(report: dict[str, Any]) -> str:
-    names = report.get("qoi_names") or []
-    if not names:
+def _variance_panel(ax: Any, stats: Any, rates: Any, q: int, span: Sequence[int], upper: np.ndarray,
+                    title: str) -> None:
+    levels = np.asarray(stats.levels, dtype=int)
+    x, y = _log2_points(levels[upper], np.asarray(stats.var_diff, float)[upper, q])
+    ax.plot(x, y, "o-", color="C1", label=r"$V_l = \mathrm{Var}(Y_l)$")
+    x, y = _log2_points(levels, np.asarray(stats.var_fine, float)[:, q])
+    ax.plot(x, y, "s:", color="C2", label=r"$\mathrm{Var}(Q_l)$")
+    beta = rates.beta[q]
+    _fit_line(ax, span, rates.c_beta[q], -beta,
+              rf"$c_\beta 2^{{-\beta l}}$, $\beta$ = {beta:.2f} ± {rates.beta_se[q]:.2f}", "C1")
+    ax.set_title(f"{title}: variance")
+    ax.set_ylabel(r"$\log_2$ variance")
+
+
+def _cost_panel(ax: Any, stats: Any, rates: Any, span: Sequence[int], grids: Sequence[int]) -> None:
+    levels = np.asarray(stats.levels, dtype=int)
+    x, y = _log2_points(levels, stats.mean_cost)
+    ax.plot(x, y, "o-", color="C3", label="$C_l$ modelled cost (ref-s)")
+    if len(stats.mean_seconds) == levels.size:
+        x, y = _log2_points(levels, stats.mean_seconds)
+        ax.plot(x, y, "s:", color="C4", label="CPU-s per sample (measured)")
+    _fit_line(ax, span, rates.c_gamma, rates.gamma,
+              rf"$c_\gamma 2^{{\gamma l}}$, $\gamma$ = {rates.gamma:.2f} ± {rates.gamma_se:.2f}", "C3")
+    ax.set_title("cost per sample")
+    ax.set_xlabel("level $l$")
+    ax.set_ylabel(r"$\log_2$ ref-s or CPU-s")
+    _label_grids(ax, levels, grids)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small")
+
+
+def _tol_label(drawn: _Drawn) -> str:
+    if not drawn.qoi_names:
         return "tolerance"
-    unit = report.get("config", {}).get("qoi", {}).get(names[0])
-    return f"tolerance on {names[0]}" + (f" [{unit}]" if unit else "")
+    name = drawn.qoi_names[0]
+    unit = drawn.units.get(name)
+    return f"tolerance on {name}" + (f" [{unit}]" if unit else "")
 
 
 def _positive(value: object) -> bool:
@@ -190,25 +214,21 @@ def _positive(value: object) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
 
 
-def _cost_vs_tol_figure(report: dict[str, Any], path: Path) -> Path | None:
-    screening = report.get("screening") or {}
-    predictions = sorted(screening.get("predictions") or [], key=lambda p: p["tol"][0])
-    complexity = (screening.get("complexity") or [{}])[0]
-    mc_exponent = complexity.get("mc_exponent")
+def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
+    screening = drawn.screening
+    predictions = sorted(screening.predictions if screening else (), key=lambda p: p.tol[0])
+    complexity = screening.complexity[0] if screening is not None and screening.complexity else None
+    mc_exponent = complexity.mc_exponent if complexity is not None else None
+    regime = f" ({complexity.mlmc_regime})" if complexity is not None else ""
     series = [  # (points, style, colour, label)
-        (
-            [(p["tol"][0], p["mlmc_seconds"]) for p in predictions if _positive(p.get("mlmc_seconds"))],
-            "-", "C0",
-            "MLMC predicted CPU-s" + (f" ({complexity['mlmc_regime']})" if "mlmc_regime" in complexity else ""),
-        ),
-        (
-            [(p["tol"][0], p["mc_seconds"]) for p in predictions if _positive(p.get("mc_seconds"))],
-            "--", "C3", "MC predicted CPU-s" + (f" (eps^-{mc_exponent:.2f})" if _positive(mc_exponent) else ""),
-        ),
+        ([(p.tol[0], p.mlmc_seconds) for p in predictions if _positive(p.mlmc_seconds)],
+         "-", "C0", "MLMC predicted CPU-s" + regime),
+        ([(p.tol[0], p.mc_seconds) for p in predictions if _positive(p.mc_seconds)],
+         "--", "C3", "MC predicted CPU-s" + (f" (eps^-{mc_exponent:.2f})" if _positive(mc_exponent) else "")),
     ]
     for method, style, colour in (("mlmc", "o", "C0"), ("mc", "s", "C3")):
-        runs = [run for run in _finished(report, method) if _positive(run.get("seconds"))]
-        points = sorted((run["tol"][0], run["seconds"]) for run in runs)
+        points = sorted((run.tol[0], run.outcome.seconds) for run in drawn.finished(method)
+                        if _positive(run.outcome.seconds))
         series.append((points, style, colour, f"{method.upper()} measured CPU-s"))
     if not any(points for points, *_ in series):
         return None
@@ -224,7 +244,7 @@ def _cost_vs_tol_figure(report: dict[str, Any], path: Path) -> Path | None:
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.xaxis.set_minor_formatter(NullFormatter())
-    ax.set_xlabel(_tol_label(report))
+    ax.set_xlabel(_tol_label(drawn))
     ax.set_ylabel("CPU-seconds of the samples")
     ax.set_title("CPU time against tolerance")
     ax.grid(True, which="both", alpha=0.3)
@@ -232,53 +252,52 @@ def _cost_vs_tol_figure(report: dict[str, Any], path: Path) -> Path | None:
     return _save(figure, path)
 
 
-def _samples_figure(report: dict[str, Any], path: Path) -> Path | None:
-    mlmc = sorted(_finished(report, "mlmc"), key=lambda run: run["tol"][0], reverse=True)
+def _samples_figure(drawn: _Drawn, path: Path) -> Path | None:
+    mlmc = sorted(drawn.finished("mlmc"), key=lambda run: run.tol[0], reverse=True)
     if not mlmc:
         return None
     shown = [mlmc[0]] if len(mlmc) == 1 else [mlmc[0], mlmc[-1]]
-    mc_by_tol = {tuple(run["tol"]): run for run in _finished(report, "mc")}
-    grids = report.get("config", {}).get("grids", [])
+    mc_by_tol = {run.tol: run.outcome for run in drawn.finished("mc")}
 
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
     figure = _new_figure(5.5 * len(shown), 4.5)
     axes = figure.subplots(1, len(shown), squeeze=False, sharey=True)[0]
     for ax, run in zip(axes, shown):
-        mc = mc_by_tol.get(tuple(run["tol"]))
+        mc = mc_by_tol.get(run.tol)
         width = 0.4 if mc is not None else 0.8
         shift = -0.2 if mc is not None else 0.0
-        levels = np.asarray(run["levels"], dtype=float)
-        bars = ax.bar(levels + shift, run["n_samples"], width=width, color="C0", label="MLMC $N_l$")
+        levels = np.asarray(run.outcome.levels, dtype=float)
+        bars = ax.bar(levels + shift, run.outcome.n_samples, width=width, color="C0", label="MLMC $N_l$")
         ax.bar_label(bars, fontsize="small")
         if mc is not None:
-            bars = ax.bar(np.asarray(mc["levels"], dtype=float) + 0.2, mc["n_samples"], width=width, color="C3",
+            bars = ax.bar(np.asarray(mc.levels, dtype=float) + 0.2, mc.n_samples, width=width, color="C3",
                           label="MC $N$")
             ax.bar_label(bars, fontsize="small")
         ax.set_yscale("log")
         ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
         ax.yaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("level $l$")
-        all_levels = sorted(set(run["levels"]) | set(mc["levels"] if mc is not None else []))
-        _label_grids(ax, all_levels, grids)
-        ax.set_title("tol " + ", ".join(f"{t:g}" for t in run["tol"]))
+        all_levels = sorted(set(run.outcome.levels) | set(mc.levels if mc is not None else []))
+        _label_grids(ax, all_levels, drawn.grids)
+        ax.set_title("tol " + ", ".join(f"{t:g}" for t in run.tol))
         ax.grid(True, axis="y", which="both", alpha=0.3)
         ax.legend(fontsize="small")
     axes[0].set_ylabel("samples per level")
     # Shared by the panels; from below 1 so that a bar of N = 1 shows, with room for the bar labels on top.
-    counts = [n for run in shown for n in run["n_samples"]]
-    counts += [n for run in shown if tuple(run["tol"]) in mc_by_tol for n in mc_by_tol[tuple(run["tol"])]["n_samples"]]
+    counts = [n for run in shown for n in run.outcome.n_samples]
+    counts += [n for run in shown if run.tol in mc_by_tol for n in mc_by_tol[run.tol].n_samples]
     axes[0].set_ylim(0.7, 2.0 * max(counts))
     return _save(figure, path)
 
 
-def _load_curve_figure(report: dict[str, Any], path: Path) -> Path | None:
+def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
     """Each QoI of a load-curve study against the relative load, one line with an RMSE band per finished run."""
-    curves = report.get("load_curves") or []
+    curves = drawn.load_curves
     if not curves:
         return None
     names = list(curves[0]["curves"])
-    units = report.get("config", {}).get("qoi", {})
+    units = drawn.units
     figure = _new_figure(5.5 * len(names), 4.5)
     axes = figure.subplots(1, len(names), squeeze=False)[0]
     for ax, name in zip(axes, names):
@@ -349,6 +368,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
         If matplotlib is not installed.
     """
     _matplotlib()
+    drawn = _Drawn.of(report)
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     written = []
@@ -358,7 +378,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
         ("samples_per_level.png", _samples_figure),
         ("load_curve.png", _load_curve_figure),
     ):
-        path = draw(report, directory / name)
+        path = draw(drawn, directory / name)
         if path is not None:
             written.append(path)
     return written

@@ -20,11 +20,17 @@ Three kinds of time, each with one name and unit everywhere:
 Complexity (SPEC section 5): plain MC to RMS error ``eps`` costs
 ``eps^-(2 + gamma/alpha)``; MLMC costs ``eps^-2`` if ``beta > gamma``,
 ``eps^-2 log(eps)^2`` if ``beta == gamma`` and ``eps^-(2 + (gamma - beta)/alpha)``
-if ``beta < gamma``. The exponents are computed per QoI from the fitted rates;
+if ``beta < gamma``. The exponents are computed per QoI from the fitted rates
+(:func:`~rough_uq.study.records.complexity`, defined once with the records);
 ``beta`` and ``gamma`` are called equal when they differ by less than
 :data:`RATE_TIE` (about the standard error of a screening fit). A bias that
 does not decay (``alpha`` at most :data:`MIN_ALPHA`) has no exponent: the
 report says so instead of printing a meaningless number.
+
+The report reads the typed records of :mod:`rough_uq.study.records`; its
+JSON form (:func:`study_report`) is the records' ``to_json`` with the derived
+numbers added (the screening's ``complexity``, a run's ``work_ratio``,
+``mc_seconds_measured`` and ``measured_ratio``).
 
 Load curves
 -----------
@@ -41,21 +47,31 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
-
-from dataclasses import dataclass
 
 import numpy as np
 from rich.markup import escape
 
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.study.config import LOAD_SEPARATOR
+from rough_uq.study.records import (
+    MIN_ALPHA,
+    RATE_TIE,
+    RunRecord,
+    ScreeningRecord,
+    complexity,
+    count_not_converged,
+    read_run_records,
+    read_screening_record,
+)
 from rough_uq.study.store import FORMAT_VERSION, StudyStore
 
 __all__ = [
     "MIN_ALPHA",
     "RATE_TIE",
+    "ReportedRun",
     "SLOPE_MAX_AREA",
     "SlopeFit",
     "complexity",
@@ -69,39 +85,16 @@ __all__ = [
     "render_report",
     "render_runs",
     "render_screening",
+    "screening_json",
     "split_column",
     "study_report",
 ]
-
-RATE_TIE = 0.1
-#: Fitted bias rates at or below this are "not fitted": the bias does not decay (measurably).
-MIN_ALPHA = 0.05
 
 _STOP_REASONS = {
     "max_level": "the bias needs a grid finer than grid.max_level",
     "max_cost": "stopped at --max-cost",
     "bias": "the bias of this level is larger than the tolerance allows",
 }
-
-
-def complexity(alpha: float | None, beta: float | None, gamma: float | None) -> dict[str, Any]:
-    """Cost exponents of MC and MLMC in ``1/eps`` (None, with the reason, where a rate is not fitted)."""
-    if alpha is None or not math.isfinite(alpha) or alpha <= MIN_ALPHA:
-        return {"mc_exponent": None, "mlmc_exponent": None,
-                "mlmc_regime": "not fitted: the bias does not decay over the screened levels"}
-    if gamma is None or not math.isfinite(gamma):
-        return {"mc_exponent": None, "mlmc_exponent": None, "mlmc_regime": "not fitted: no cost rate gamma"}
-    mc = 2.0 + gamma / alpha
-    if beta is None or not math.isfinite(beta):
-        return {"mc_exponent": mc, "mlmc_exponent": None, "mlmc_regime": "not fitted: no variance rate beta"}
-    if abs(beta - gamma) < RATE_TIE:
-        mlmc, regime = 2.0, "eps^-2 log(eps)^2 (beta = gamma)"
-    elif beta > gamma:
-        mlmc, regime = 2.0, "eps^-2 (beta > gamma)"
-    else:
-        mlmc = 2.0 + (gamma - beta) / alpha
-        regime = f"eps^-{mlmc:.2f} (beta < gamma)"
-    return {"mc_exponent": mc, "mlmc_exponent": mlmc, "mlmc_regime": regime}
 
 
 def load_text(load: dict[str, Any]) -> str:
@@ -131,9 +124,9 @@ def _config_summary(config: Any) -> dict[str, Any]:
     }
 
 
-def _sample_counts(store: StudyStore, runs: Sequence[dict[str, Any]]) -> dict[str, dict[str, int]]:
+def _sample_counts(store: StudyStore, runs: Sequence[RunRecord]) -> dict[str, dict[str, int]]:
     """Stored samples per stage (named by its run) and level."""
-    names = {run["stage"]: run["run_id"] for run in runs if "stage" in run}
+    names = {run.stage: run.run_id for run in runs if run.stage is not None}
     names[STAGE_SCREENING] = "screening"
     counts: dict[str, dict[str, int]] = {}
     for level in store.levels():
@@ -144,7 +137,7 @@ def _sample_counts(store: StudyStore, runs: Sequence[dict[str, Any]]) -> dict[st
 
 
 def _not_converged(store: StudyStore) -> int:
-    return int(sum(np.count_nonzero(~store.read_samples(level=level).is_converged) for level in store.levels()))
+    return count_not_converged(store.read_samples(level=level) for level in store.levels())
 
 
 def is_locked_by_running_process(path: str | Path) -> bool:
@@ -165,59 +158,104 @@ def is_locked_by_running_process(path: str | Path) -> bool:
     return True
 
 
-def derive_runs(runs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Runs with what is derived from them (copies): MC/MLMC ratios, predicted and measured.
+@dataclass(frozen=True)
+class ReportedRun:
+    """A run as the report shows it: its record, and the measured plain MC at its tolerances if any.
 
-    ``work_ratio``: predicted plain-MC modelled cost over the run's modelled
-    cost. Where a finished MC run at the same tolerances exists,
-    ``mc_seconds_measured`` (its CPU-seconds) and ``measured_ratio`` (over the
-    MLMC run's CPU-seconds). Dropped runs (``roughuq drop``) are left out.
+    Attributes
+    ----------
+    record : RunRecord
+        Its status is as seen now (``running`` / ``interrupted`` for an unfinished run).
+    mc_seconds_measured : float or None
+        CPU-seconds of a finished MC run at the same tolerances (MLMC runs only).
     """
-    runs = [dict(run) for run in runs if run.get("status") != "dropped"]
-    measured_mc = {
-        tuple(run["tol"]): run["seconds"] for run in runs if run["method"] == "mc" and run.get("status") == "finished"
-    }
-    for run in runs:
-        if run.get("status") != "finished":
-            continue
-        run["work_ratio"] = run["mc_cost"] / run["cost"] if run["cost"] > 0 else math.inf
-        if run["method"] == "mlmc" and tuple(run["tol"]) in measured_mc:
-            run["mc_seconds_measured"] = measured_mc[tuple(run["tol"])]
-            run["measured_ratio"] = run["mc_seconds_measured"] / run["seconds"] if run["seconds"] > 0 else math.inf
-    return runs
+
+    record: RunRecord
+    mc_seconds_measured: float | None = None
+
+    @property
+    def measured_ratio(self) -> float | None:
+        """Measured MC over MLMC CPU-seconds (None without a measured MC run)."""
+        if self.mc_seconds_measured is None or self.record.outcome is None:
+            return None
+        seconds = self.record.outcome.seconds
+        return self.mc_seconds_measured / seconds if seconds > 0 else math.inf
+
+    def to_json(self) -> dict[str, Any]:
+        """The run as ``roughuq report --json`` lists it: ``run_id``, the stored record, the derived ratios."""
+        data = {"run_id": self.record.run_id, **self.record.to_json()}
+        if self.record.is_finished:
+            data["work_ratio"] = self.record.outcome.work_ratio
+        if self.mc_seconds_measured is not None:
+            data["mc_seconds_measured"] = self.mc_seconds_measured
+            data["measured_ratio"] = self.measured_ratio
+        return data
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> ReportedRun:
+        """Read an entry of the report's ``runs`` (the derived ratios are recomputed, not read)."""
+        measured = data.get("mc_seconds_measured")
+        return cls(RunRecord.from_json(data), None if measured is None else float(measured))
 
 
-def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
-    """Everything ``roughuq report`` shows, as a JSON-able dict (see :func:`derive_runs` for the ratios)."""
-    screening = store.read_screening()
-    if screening is not None:
-        rates = screening["rates"]
-        screening = dict(screening)
-        screening["complexity"] = [
-            complexity(a, b, rates["gamma"]) for a, b in zip(rates["alpha"], rates["beta"])
-        ]
-    stored_runs = store.read_runs()
-    runs = derive_runs(stored_runs)
-    path = getattr(store, "path", "")
-    is_running = bool(path) and is_locked_by_running_process(path)
-    warnings = list(screening.get("warnings", [])) if screening else []
+def derive_runs(runs: Sequence[RunRecord]) -> list[ReportedRun]:
+    """The runs a report shows, with what is derived from them: MC/MLMC ratios, predicted and measured.
+
+    ``work_ratio`` (:attr:`~rough_uq.study.records.RunOutcome.work_ratio`):
+    predicted plain-MC modelled cost over the run's modelled cost. Where a
+    finished MC run at the same tolerances exists, ``mc_seconds_measured``
+    (its CPU-seconds) and ``measured_ratio`` (over the MLMC run's
+    CPU-seconds). Dropped runs (``roughuq drop``) are left out.
+    """
+    kept = [run for run in runs if run.status != "dropped"]
+    measured_mc = {run.tol: run.outcome.seconds for run in kept if run.method == "mc" and run.is_finished}
+    return [
+        ReportedRun(run, measured_mc.get(run.tol) if run.method == "mlmc" and run.is_finished else None)
+        for run in kept
+    ]
+
+
+def _seen_status(run: ReportedRun, is_running: bool) -> ReportedRun:
+    """An unfinished run is ``running`` while a live process holds the study, else ``interrupted``."""
+    if run.record.status == "finished":
+        return run
+    return replace(run, record=replace(run.record, status="running" if is_running else "interrupted"))
+
+
+def _report_warnings(screening: ScreeningRecord | None, runs: Sequence[ReportedRun], n_not_converged: int) -> list[str]:
+    warnings = [d.message for d in screening.diagnostics] if screening is not None else []
     for run in runs:
-        warnings += [f"{run['run_id']}: {text}" for text in run.get("warnings", [])]
-        if run.get("status") != "finished":
-            if is_running:
-                run["status"] = "running"
-            else:
-                run["status"] = "interrupted"
-                warnings.append(
-                    f"{run['run_id']}: interrupted; rerun the same command to resume, or "
-                    f"`roughuq drop {run['run_id']}` to forget it"
-                )
-    n_not_converged = _not_converged(store)
+        record = run.record
+        diagnostics = record.outcome.diagnostics if record.outcome is not None else ()
+        warnings += [f"{record.run_id}: {d.message}" for d in diagnostics]
+        if record.status == "interrupted":
+            warnings.append(
+                f"{record.run_id}: interrupted; rerun the same command to resume, or "
+                f"`roughuq drop {record.run_id}` to forget it"
+            )
     if n_not_converged:
         warnings.append(
             f"{n_not_converged} stored samples have a solve that did not converge even after the retry; "
             "their QoIs (from the last iterate) are included"
         )
+    return warnings
+
+
+def screening_json(screening: ScreeningRecord | None) -> dict[str, Any] | None:
+    """The screening as ``roughuq screen --json`` and ``report --json`` show it: the record and its complexity."""
+    if screening is None:
+        return None
+    return {**screening.to_json(), "complexity": [c.to_json() for c in screening.complexity]}
+
+
+def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
+    """Everything ``roughuq report`` shows, as a JSON-able dict (see :func:`derive_runs` for the ratios)."""
+    screening = read_screening_record(store)
+    stored_runs = read_run_records(store)
+    path = getattr(store, "path", "")
+    is_running = bool(path) and is_locked_by_running_process(path)
+    runs = [_seen_status(run, is_running) for run in derive_runs(stored_runs)]
+    n_not_converged = _not_converged(store)
     return {
         "path": str(path),
         "format_version": FORMAT_VERSION,
@@ -227,13 +265,13 @@ def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
         "config": _config_summary(config),
         "qoi_names": list(store.qoi_names),
         "samples": _sample_counts(store, stored_runs),
-        "screening": screening,
-        "runs": runs,
-        "dropped_runs": [run["run_id"] for run in stored_runs if run.get("status") == "dropped"],
+        "screening": screening_json(screening),
+        "runs": [run.to_json() for run in runs],
+        "dropped_runs": [run.run_id for run in stored_runs if run.status == "dropped"],
         "is_running": is_running,
         "n_not_converged": n_not_converged,
-        "warnings": warnings,
-        "load_curves": load_curves(list(store.qoi_names), runs, config),
+        "warnings": _report_warnings(screening, runs, n_not_converged),
+        "load_curves": load_curves(list(store.qoi_names), [run.record for run in runs], config),
     }
 
 
@@ -289,47 +327,49 @@ def _tol_text(names: Sequence[str], tol: Sequence[float]) -> str:
     return ", ".join(f"{name}={eps:g}" for name, eps in zip(names, tol))
 
 
-def format_run(run: dict[str, Any], qoi_names: Sequence[str], units: dict[str, str]) -> list[str]:
-    """A run as a few lines of at most about 80 characters (one summary line per QoI)."""
-    head = f"{run['method']} {_tol_text(qoi_names, run['tol'])}"
-    status = run.get("status")
-    if status != "finished":
-        if status == "running":
+def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], *,
+               measured_ratio: float | None = None) -> list[str]:
+    """A run as a few lines of at most about 80 characters (one summary line per QoI).
+
+    ``measured_ratio`` is the measured MC/MLMC ratio (:attr:`ReportedRun.measured_ratio`) where known.
+    """
+    head = f"{run.method} {_tol_text(qoi_names, run.tol)}"
+    outcome = run.outcome
+    if run.status != "finished" or outcome is None:
+        if run.status == "running":
             return [f"{head}: running (another process is computing it)"]
         return [f"{head}: interrupted; rerun the same command to resume"]
-    levels = run["levels"]
-    if run["method"] == "mc":
-        where = f"level {levels[-1]}, N {run['n_samples'][-1]}"
+    levels = outcome.levels
+    if run.method == "mc":
+        where = f"level {levels[-1]}, N {outcome.n_samples[-1]}"
     else:
-        where = f"levels {levels[0]}..{levels[-1]}, N_l {' '.join(str(n) for n in run['n_samples'])}"
-    reason = run["stop_reason"]
-    if run.get("tol_met", reason == "tol_met"):
+        where = f"levels {levels[0]}..{levels[-1]}, N_l {' '.join(str(n) for n in outcome.n_samples)}"
+    reason = outcome.stop_reason
+    if outcome.tol_met:
         lines = [f"{head}: tolerance met", f"  {where}"]
     else:
         lines = [f"{head}: NOT MET ({reason})", f"  {_STOP_REASONS.get(reason, reason)}; {where}"]
-    rmse = run.get("rmse") or [
-        math.hypot(s, b) for s, b in zip(run["stat_error"], run["bias_estimate"])
-    ]
-    has_bias = run.get("is_bias_estimated", True)
-    for q, name in enumerate(qoi_names):
-        relation = "<=" if rmse[q] <= run["tol"][q] * (1 + 1e-12) else ">"
-        bias = f"bias {_g(run['bias_estimate'][q], 2)}" if has_bias else "bias not estimated"
-        lines.append(
-            f"  {name} = {_value_error(run['estimate'][q], run['stat_error'][q])}{_unit(_column_unit(units, name))} "
-            f"(RMSE {_g(rmse[q], 2)} {relation} tol {_g(run['tol'][q])}, {bias})"
-        )
-    elapsed = run.get("elapsed")
+    lines += [_qoi_line(outcome, q, name, run.tol[q], units) for q, name in enumerate(qoi_names)]
     lines.append(
-        f"  time: elapsed {_seconds(elapsed)}; samples {_seconds(run['seconds'], 'CPU')}; "
-        f"modelled cost {_g(run['cost'])} ref-s"
+        f"  time: elapsed {_seconds(outcome.elapsed)}; samples {_seconds(outcome.seconds, 'CPU')}; "
+        f"modelled cost {_g(outcome.cost)} ref-s"
     )
-    if run["method"] == "mlmc":
-        text = (f"  plain MC: {_seconds(run['mc_seconds_predicted'], 'CPU')} predicted; "
-                f"MC/MLMC {_g(run.get('work_ratio'), 2)} predicted")
-        if "measured_ratio" in run:
-            text += f", {_g(run['measured_ratio'], 2)} measured"
+    if run.method == "mlmc":
+        text = (f"  plain MC: {_seconds(outcome.mc_seconds_predicted, 'CPU')} predicted; "
+                f"MC/MLMC {_g(outcome.work_ratio, 2)} predicted")
+        if measured_ratio is not None:
+            text += f", {_g(measured_ratio, 2)} measured"
         lines.append(text)
     return lines
+
+
+def _qoi_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]) -> str:
+    """``  name = value ± error unit (RMSE r <= tol t, bias b)`` for QoI ``q`` of a finished run."""
+    rmse = outcome.rmse[q]
+    relation = "<=" if rmse <= tol * (1 + 1e-12) else ">"
+    bias = f"bias {_g(outcome.bias_estimate[q], 2)}" if outcome.is_bias_estimated else "bias not estimated"
+    return (f"  {name} = {_value_error(outcome.estimate[q], outcome.stat_error[q])}{_unit(_column_unit(units, name))} "
+            f"(RMSE {_g(rmse, 2)} {relation} tol {_g(tol)}, {bias})")
 
 
 def _table(title: str) -> Any:
@@ -339,77 +379,86 @@ def _table(title: str) -> Any:
     return Table(title=title, box=box.SIMPLE_HEAD, title_justify="left", pad_edge=False)
 
 
-def render_screening(console: Any, screening: dict[str, Any], qoi_names: Sequence[str],
-                     units: dict[str, str] | None = None) -> None:
-    """The per-level screening tables, the rates with their complexity, and the cost predictions."""
+def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequence[str],
+                     units: dict[str, str] | None = None, *, grids: Sequence[int] = ()) -> None:
+    """The per-level screening tables, the rates with their complexity, and the cost predictions.
+
+    ``grids`` are the nodes per side of each level (``-`` where not given).
+    """
     units = units or {}
-    stats = screening["statistics"]
-    grids = screening.get("grids")
-    levels = stats["levels"]
-    console.print(f"screened levels {levels[0]}..{levels[-1]}, {min(stats['n_samples'])} samples each",
+    stats = screening.statistics
+    console.print(f"screened levels {stats.levels[0]}..{stats.levels[-1]}, {screening.n_screened} samples each",
                   highlight=False)
     for q, name in enumerate(qoi_names):
-        unit = _column_unit(units, name)
-        table = _table(escape(f"Screening of {name}" + (f" [{unit}]" if unit else "") + " per level"))
-        for column in ("level", "N", "mean Q", "var Q", "mean Y", "var Y", "kurt", "check"):
-            table.add_column(column, justify="right")
-        for i, level in enumerate(stats["levels"]):
-            table.add_row(
-                str(level), str(stats["n_samples"][i]),
-                _g(stats["mean_fine"][i][q], 4), _g(stats["var_fine"][i][q]),
-                _g(stats["mean_diff"][i][q]), _g(stats["var_diff"][i][q]),
-                _g(stats["kurtosis"][i][q]), _g(stats["consistency"][i][q], 2),
-            )
-        console.print(table)
+        console.print(_screening_table(stats, q, name, _column_unit(units, name)))
     table = _table("Time per sample")
     for column in ("level", "grid", "modelled cost", "measured"):
         table.add_column(column, justify="right")
-    for i, level in enumerate(stats["levels"]):
-        grid = str(grids[level]) if grids and level < len(grids) else "-"
-        table.add_row(str(level), grid, f"{_g(stats['mean_cost'][i])} ref-s", _seconds(stats["mean_seconds"][i], "CPU"))
+    for i, level in enumerate(stats.levels):
+        grid = str(grids[level]) if level < len(grids) else "-"
+        table.add_row(str(level), grid, f"{_g(stats.mean_cost[i])} ref-s", _seconds(stats.mean_seconds[i], "CPU"))
     console.print(table)
+    _print_rates(console, screening, qoi_names)
+    if screening.predictions:
+        console.print(_predictions_table(screening))
 
-    rates = screening["rates"]
+
+def _screening_table(stats: Any, q: int, name: str, unit: str | None) -> Any:
+    table = _table(escape(f"Screening of {name}" + (f" [{unit}]" if unit else "") + " per level"))
+    for column in ("level", "N", "mean Q", "var Q", "mean Y", "var Y", "kurt", "check"):
+        table.add_column(column, justify="right")
+    for i, level in enumerate(stats.levels):
+        table.add_row(
+            str(level), str(stats.n_samples[i]),
+            _g(stats.mean_fine[i][q], 4), _g(stats.var_fine[i][q]),
+            _g(stats.mean_diff[i][q]), _g(stats.var_diff[i][q]),
+            _g(stats.kurtosis[i][q]), _g(stats.consistency[i][q], 2),
+        )
+    return table
+
+
+def _print_rates(console: Any, screening: ScreeningRecord, qoi_names: Sequence[str]) -> None:
+    rates = screening.rates
     console.print("Rates: |E[Y_l]| ~ 2^(-alpha l), Var(Y_l) ~ 2^(-beta l), cost ~ 2^(gamma l)")
-    console.print(f"  gamma = {_pm(rates['gamma'], rates['gamma_se'])} (cost)")
+    console.print(f"  gamma = {_pm(rates.gamma, rates.gamma_se)} (cost)")
     for q, name in enumerate(qoi_names):
-        c = screening["complexity"][q]
-        alpha, beta = rates["alpha"][q], rates["beta"][q]
-        alpha_text = _pm(alpha, rates["alpha_se"][q]) if c["mc_exponent"] is not None else f"{_g(alpha, 2)} (no decay)"
-        console.print(f"  {name}: alpha = {alpha_text}, beta = {_pm(beta, rates['beta_se'][q])}")
-        if c["mc_exponent"] is None:
-            console.print(f"    {c['mlmc_regime']}")
+        c = screening.complexity[q]
+        alpha, beta = rates.alpha[q], rates.beta[q]
+        alpha_text = _pm(alpha, rates.alpha_se[q]) if c.mc_exponent is not None else f"{_g(alpha, 2)} (no decay)"
+        console.print(f"  {name}: alpha = {alpha_text}, beta = {_pm(beta, rates.beta_se[q])}")
+        if c.mc_exponent is None:
+            console.print(f"    {c.mlmc_regime}")
         else:
-            console.print(f"    cost to RMSE eps: MC eps^-{c['mc_exponent']:.2f}, MLMC {c['mlmc_regime']}")
+            console.print(f"    cost to RMSE eps: MC eps^-{c.mc_exponent:.2f}, MLMC {c.mlmc_regime}")
 
-    if not screening["predictions"]:
-        return
+
+def _predictions_table(screening: ScreeningRecord) -> Any:
     table = _table("Predicted from the screening (CPU time of the samples)")
     for column in ("tol", "levels", "N_l", "MLMC", "MC", "MC/MLMC"):
         table.add_column(column, justify="right")
-    for p in screening["predictions"]:
+    for p in screening.predictions:
         table.add_row(
-            ", ".join(_g(t) for t in p["tol"]),
-            f"0..{p['finest_level']}",
-            " ".join(str(n) for n in p["n_samples"]),
-            _seconds(p["mlmc_seconds"]),
-            _seconds(p["mc_seconds"]),
-            _g(p["work_ratio"]),
+            ", ".join(_g(t) for t in p.tol),
+            f"0..{p.finest_level}",
+            " ".join(str(n) for n in p.n_samples),
+            _seconds(p.mlmc_seconds),
+            _seconds(p.mc_seconds),
+            _g(p.work_ratio),
         )
-    console.print(table)
+    return table
 
 
-def render_runs(console: Any, runs: Sequence[dict[str, Any]], qoi_names: Sequence[str],
+def render_runs(console: Any, runs: Sequence[ReportedRun], qoi_names: Sequence[str],
                 units: dict[str, str] | None = None) -> None:
     """Every run as a block of lines (:func:`format_run`)."""
     console.print("[bold]Estimation runs[/bold]")
     for run in runs:
-        for line in format_run(run, qoi_names, units or {}):
+        for line in format_run(run.record, qoi_names, units or {}, measured_ratio=run.measured_ratio):
             console.print(escape(line), highlight=False, soft_wrap=False)
 
 
 def render_report(report: dict[str, Any], console: Any) -> None:
-    """Print a :func:`study_report` with rich."""
+    """Print a :func:`study_report` (or its JSON round trip) with rich."""
     config = report["config"]
     grids = config["grids"]
     units = config["qoi"]
@@ -428,11 +477,12 @@ def render_report(report: dict[str, Any], console: Any) -> None:
     )
     console.print(f"samples stored: {counts or 'none'}", highlight=False)
     if report["screening"] is not None:
-        render_screening(console, {**report["screening"], "grids": grids}, report["qoi_names"], units)
+        screening = ScreeningRecord.from_json(report["screening"])
+        render_screening(console, screening, report["qoi_names"], units, grids=grids)
     else:
         console.print("no screening yet: run `roughuq screen CONFIG`")
     if report["runs"]:
-        render_runs(console, report["runs"], report["qoi_names"], units)
+        render_runs(console, [ReportedRun.from_json(run) for run in report["runs"]], report["qoi_names"], units)
     if report.get("load_curves"):
         render_load_curves(console, report["load_curves"], units)
     if report.get("dropped_runs"):
@@ -539,7 +589,7 @@ def _area_fraction_scale(config: Any) -> float:
     return 0.01 if settings is not None and settings.unit == "percent" else 1.0
 
 
-def load_curves(qoi_names: Sequence[str], runs: Sequence[dict[str, Any]], config: Any) -> list[dict[str, Any]]:
+def load_curves(qoi_names: Sequence[str], runs: Sequence[RunRecord], config: Any) -> list[dict[str, Any]]:
     """Every finished run's estimates as curves over the increasing load (empty for a single-load study).
 
     Returns
@@ -558,16 +608,16 @@ def load_curves(qoi_names: Sequence[str], runs: Sequence[dict[str, Any]], config
     relative = _relative_loads(config, loads)
     out = []
     for run in runs:
-        if run.get("status") != "finished":
+        if not run.is_finished:
             continue
-        rmse = run.get("rmse") or [math.hypot(s, b) for s, b in zip(run["stat_error"], run["bias_estimate"])]
+        outcome = run.outcome
         curves: dict[str, dict[str, list[float]]] = {}
         for q, name in enumerate(qoi_names):
             qoi, load = split_column(name)
             curve = curves.setdefault(qoi, {key: [math.nan] * loads.size for key in ("estimate", "rmse", "stat_error")})
             j = int(np.searchsorted(loads, load))
-            curve["estimate"][j], curve["rmse"][j] = run["estimate"][q], rmse[q]
-            curve["stat_error"][j] = run["stat_error"][q]
+            curve["estimate"][j], curve["rmse"][j] = outcome.estimate[q], outcome.rmse[q]
+            curve["stat_error"][j] = outcome.stat_error[q]
         kappa = None
         if "contact_area" in curves:
             scale = _area_fraction_scale(config)
@@ -575,7 +625,7 @@ def load_curves(qoi_names: Sequence[str], runs: Sequence[dict[str, Any]], config
             fit = fit_area_slope(relative_loads=relative, area=np.array(area["estimate"]) * scale,
                                  area_error=np.array(area["rmse"]) * scale)
             kappa = None if fit is None else dict(vars(fit))
-        out.append({"run_id": run["run_id"], "method": run["method"], "loads": loads.tolist(),
+        out.append({"run_id": run.run_id, "method": run.method, "loads": loads.tolist(),
                     "relative_loads": relative.tolist(), "curves": curves, "kappa": kappa})
     return out
 

@@ -14,7 +14,10 @@ This is the only module that reads the config and meets the store. It
   so an interrupted run loses at most a few seconds of work and its rerun
   replays the same decisions from the stored samples;
 * runs the screening (:func:`run_screening`) and MLMC / MC estimation runs
-  (:func:`run_estimation`) and stores their records.
+  (:func:`run_estimation`) and stores their records, the typed records of
+  :mod:`rough_uq.study.records`; the warnings of the multilevel core
+  (``EstimationWarning``) are collected here into the records' diagnostics,
+  never passed on as warnings.
 
 Cost used for planning is the modelled cost of :mod:`rough_uq.problem.sampler`
 (reference seconds, independent of the process that computed a sample); the
@@ -28,8 +31,8 @@ import os
 import time
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +45,21 @@ from rough_uq.multilevel.drivers import BatchDone, Finished, PlanUpdated, Richar
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.fft_wisdom import prepare_wisdom
 from rough_uq.study.progress import Progress
+from rough_uq.study.records import (
+    Diagnostic,
+    DroppedLevel,
+    Forecast,
+    LevelTable,
+    PlanRecord,
+    RatesRecord,
+    RunOutcome,
+    RunRecord,
+    ScreeningRecord,
+    count_not_converged,
+    read_run_records,
+    read_screening_record,
+    utc_timestamp,
+)
 from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
 from rough_uq.problem.runs import run_id
 from rough_uq.problem.sampler import (
@@ -84,6 +102,8 @@ __all__ = [
     "compute_shard",
     "merge_shards",
     "run_sweep",
+    "ScreeningOutcome",
+    "SweepRow",
     "Forecast",
     "MethodChoice",
     "choose_method",
@@ -356,79 +376,28 @@ def _concatenate(batches: Sequence[LevelBatch]) -> LevelBatch:
 
 
 # ---------------------------------------------------------------------------
-# Records (JSON-able dicts stored in the study file)
+# Diagnostics: the core's warnings as typed entries of the records
 # ---------------------------------------------------------------------------
 
 
-def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+@contextmanager
+def _collecting_diagnostics() -> Iterator[list[Diagnostic]]:
+    """Collect the warnings raised inside (the core's ``EstimationWarning``) as :class:`Diagnostic` entries.
+
+    The multilevel core reports its checks as warnings; records carry them as
+    fields, so they are caught here, at the pipeline boundary, and never
+    reach the user's warning filters. The list fills when the block ends.
+    """
+    diagnostics: list[Diagnostic] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", EstimationWarning)
+        yield diagnostics
+    diagnostics.extend(Diagnostic(str(w.message)) for w in caught)
 
 
-def _jsonable(value: object) -> object:
-    """JSON-friendly copy: arrays to lists, numpy scalars to Python numbers."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Mapping):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    return value
-
-
-def statistics_record(statistics: LevelStatistics, seconds: Sequence[float]) -> dict[str, Any]:
-    """The screening table as a dict of per-level lists (per-QoI entries are lists)."""
-    return _jsonable(
-        {
-            "levels": statistics.levels,
-            "n_samples": statistics.n_samples,
-            "mean_fine": statistics.mean_fine,
-            "var_fine": statistics.var_fine,
-            "mean_diff": statistics.mean_diff,
-            "var_diff": statistics.var_diff,
-            "kurtosis": statistics.kurtosis,
-            "consistency": statistics.consistency,
-            "mean_cost": statistics.mean_cost,
-            "mean_seconds": list(seconds),
-        }
-    )
-
-
-def rates_record(rates: Rates) -> dict[str, Any]:
-    """Fitted rates as a dict (per-QoI values are lists)."""
-    return _jsonable(
-        {
-            "alpha": rates.alpha,
-            "alpha_se": rates.alpha_se,
-            "beta": rates.beta,
-            "beta_se": rates.beta_se,
-            "gamma": rates.gamma,
-            "gamma_se": rates.gamma_se,
-            "c_alpha": rates.c_alpha,
-            "c_beta": rates.c_beta,
-            "c_gamma": rates.c_gamma,
-            "levels_alpha": rates.levels_alpha,
-            "levels_beta": rates.levels_beta,
-            "levels_gamma": rates.levels_gamma,
-        }
-    )
-
-
-def _plan_record(prediction: Plan, seconds_per_cost: float) -> dict[str, Any]:
-    return _jsonable(
-        {
-            "tol": prediction.tol,
-            "finest_level": prediction.finest_level,
-            "n_samples": prediction.n_samples,
-            "mlmc_cost": prediction.cost,
-            "mc_cost": prediction.mc_cost,
-            "mlmc_seconds": prediction.cost * seconds_per_cost,
-            "mc_seconds": prediction.mc_cost * seconds_per_cost,
-            "work_ratio": prediction.work_ratio,
-            "is_bias_met": prediction.is_bias_met,
-        }
-    )
+def _unique(diagnostics: Sequence[Diagnostic]) -> tuple[Diagnostic, ...]:
+    """``diagnostics`` without repeats, in first-seen order."""
+    return tuple(dict.fromkeys(diagnostics))
 
 
 # ---------------------------------------------------------------------------
@@ -442,11 +411,7 @@ class ScreeningOutcome:
 
     statistics: LevelStatistics
     rates: Rates
-    record: dict[str, Any]
-
-
-def _not_converged(batches: Sequence[LevelBatch]) -> int:
-    return int(sum(np.count_nonzero(~b.is_converged) for b in batches))
+    record: ScreeningRecord
 
 
 def _seconds_per_cost(batches: Sequence[LevelBatch], model: ContactModel) -> float:
@@ -475,10 +440,10 @@ def screening_statistics(study: Study, sampler: StudySampler | None = None) -> t
     levels = list(range(config.screening.levels))
     indices = np.arange(config.screening.samples)
     if sampler is None:
-        record = study.store.read_screening()
+        record = read_screening_record(study.store)
         if record is not None:
-            levels = [int(level) for level in record["statistics"]["levels"]]
-            indices = np.arange(int(min(record["statistics"]["n_samples"])))
+            levels = list(record.statistics.levels)
+            indices = np.arange(record.n_screened)
         sampler = StudySampler(study, stage=STAGE_SCREENING, executor=SerialExecutor(), progress=Progress())
         for level in levels:
             if sampler.missing(level, indices).size:
@@ -530,24 +495,51 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
     progress.start("screening")
     try:
         progress.plan(levels, [n] * len(levels), [n - sampler.missing(l, np.arange(n)).size for l in levels])
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", EstimationWarning)
+        with _collecting_diagnostics() as caught:
             statistics, batches = screening_statistics(study, sampler)
-            try:
-                rates = fit_rates(statistics)
-            except EstimationError as exc:
-                raise EstimationError(
-                    f"screening cannot fit the rates: {exc}; screen more levels (screening.levels) or "
-                    f"more samples (screening.samples)"
-                ) from None
+            rates = _screening_rates(statistics)
     except BaseException:
         progress.stop(is_complete=False)
         raise
     progress.stop()
     seconds_per_cost = _seconds_per_cost(batches, study.model)
+    predictions, problems = _predictions(config, statistics, rates, seconds_per_cost)
+    checks = [Diagnostic(text) for text in (*diagnose(statistics), *problems)]
+    coarsest = choose_coarsest_level(statistics)
+    record = ScreeningRecord(
+        created=utc_timestamp(),
+        code_version=__version__,
+        qoi_names=tuple(config.qoi_names),
+        statistics=LevelTable.from_statistics(statistics, [float(np.mean(b.cost)) for b in batches]),
+        rates=RatesRecord.from_rates(rates),
+        predictions=predictions,
+        seconds_per_cost=seconds_per_cost,
+        n_not_converged=count_not_converged(batches),
+        n_computed=sampler.n_computed,
+        diagnostics=_unique(caught + checks),
+        coarsest_level=int(coarsest.level),
+        dropped_levels=tuple(DroppedLevel(int(d.level), d.reason) for d in coarsest.dropped),
+    )
+    study.store.write_screening(record.to_json())
+    return ScreeningOutcome(statistics, rates, record)
+
+
+def _screening_rates(statistics: LevelStatistics) -> Rates:
+    try:
+        return fit_rates(statistics)
+    except EstimationError as exc:
+        raise EstimationError(
+            f"screening cannot fit the rates: {exc}; screen more levels (screening.levels) or "
+            f"more samples (screening.samples)"
+        ) from None
+
+
+def _predictions(
+    config: StudyConfig, statistics: LevelStatistics, rates: Rates, seconds_per_cost: float
+) -> tuple[tuple[PlanRecord, ...], list[str]]:
+    """Plans for the multiples :data:`PREDICTION_FACTORS` of the base tolerance, and why any is missing."""
     base = _base_tolerance(config, statistics)
     predictions = []
-    problems = []
     for factor in PREDICTION_FACTORS:
         try:
             prediction = plan(
@@ -561,27 +553,9 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
         except RoughUQError as exc:
             # E.g. a bias that does not decay yet (alpha <= 0 on pre-asymptotic
             # levels): keep the table and rates, say why nothing can be predicted.
-            problems.append(_no_prediction(config.qoi_names, rates, exc))
-            break
-        predictions.append(_plan_record(prediction, seconds_per_cost))
-    messages = list(dict.fromkeys([str(w.message) for w in caught] + list(diagnose(statistics)) + problems))
-    coarsest = choose_coarsest_level(statistics)
-    record = {
-        "created": _now(),
-        "code_version": __version__,
-        "qoi_names": list(config.qoi_names),
-        "statistics": statistics_record(statistics, [float(np.mean(b.cost)) for b in batches]),
-        "rates": rates_record(rates),
-        "predictions": predictions,
-        "coarsest_level": coarsest.level,
-        "dropped_levels": [{"level": d.level, "reason": d.reason} for d in coarsest.dropped],
-        "seconds_per_cost": seconds_per_cost,
-        "n_not_converged": _not_converged(batches),
-        "n_computed": sampler.n_computed,
-        "warnings": messages,
-    }
-    study.store.write_screening(record)
-    return ScreeningOutcome(statistics, rates, record)
+            return tuple(predictions), [_no_prediction(config.qoi_names, rates, exc)]
+        predictions.append(PlanRecord.from_plan(prediction, seconds_per_cost))
+    return tuple(predictions), []
 
 
 # ---------------------------------------------------------------------------
@@ -658,45 +632,6 @@ MAX_PLANNED_SAMPLES = 10**7
 DEFAULT_COST_CEILING = 7 * 24 * 3600.0
 
 
-@dataclass(frozen=True)
-class Forecast:
-    """What a run will need, predicted from the screening before its first sample.
-
-    Attributes
-    ----------
-    finest_level : int
-        Finest level the bias needs (MC: the level it samples).
-    grid : int
-        Nodes per side of that level.
-    n_samples : tuple of int
-        Samples per level ``0..finest_level`` (MC: one entry, the finest level).
-    modelled_cost : float
-        Predicted modelled cost (reference seconds).
-    cpu_seconds : float
-        Predicted CPU-seconds of the samples (modelled cost times the
-        screening's measured seconds per modelled second).
-    wall_seconds : float
-        ``cpu_seconds`` shared by the workers.
-    memory_bytes : int
-        Memory of the solves running at once (one finest solve per worker).
-    is_richardson : bool
-        The prediction is for the Richardson-extrapolated estimate (asked for,
-        and the screening's level means allow it).
-    """
-
-    finest_level: int
-    grid: int
-    n_samples: tuple[int, ...]
-    modelled_cost: float
-    cpu_seconds: float
-    wall_seconds: float
-    memory_bytes: int
-    is_richardson: bool = False
-
-    def as_dict(self) -> dict[str, Any]:
-        return _jsonable(self.__dict__)
-
-
 def _tol_text(names: Sequence[str], tol: np.ndarray) -> str:
     return ", ".join(f"{name}={eps:.3g}" for name, eps in zip(names, tol))
 
@@ -717,21 +652,19 @@ def forecast_run(
     ``richardson`` (default: the config's ``estimation.richardson``) plans
     the Richardson-extrapolated MLMC estimate where the screening allows it.
     """
-    from rough_uq.study.config import solver_memory_bytes
-
     config = study.config
-    names = config.qoi_names
     tol = np.asarray(tol, dtype=float)
-    if method == "mc" and level is not None and study.store.read_screening() is None:
+    screening = read_screening_record(study.store)
+    is_given_level = method == "mc" and level is not None
+    if is_given_level and screening is None:
         return None
     with np.errstate(all="ignore"):
         statistics, _ = screening_statistics(study)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", EstimationWarning)
             rates = fit_rates(statistics)
-        alpha = np.atleast_1d(rates.alpha)
-        stalled = [f"{name} (alpha = {a:.2g})" for name, a in zip(names, alpha) if not a > 0]
-        if stalled and method == "mc" and level is not None:
+        stalled = _stalled(config.qoi_names, rates)
+        if stalled and is_given_level:
             return None  # MC on a given level needs no bias model, and there is none to predict from
         if stalled:
             raise EstimationError(
@@ -745,32 +678,59 @@ def forecast_run(
             tol=tol, rates=rates, statistics=statistics, theta=config.estimation.theta,
             max_level=config.grid.max_level, richardson=richardson and method == "mlmc",
         )
-        if not prediction.is_bias_met and not (method == "mc" and level is not None):
-            bias = np.asarray(prediction.bias, dtype=float)
-            reachable = bias / math.sqrt(config.estimation.theta)
-            raise EstimationError(
-                f"--tol {_tol_text(names, tol)} cannot be reached: on the finest grid allowed "
-                f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
-                f"screening predicts a bias of {_tol_text(names, bias)}; the smallest reachable tolerance is about "
-                f"{_tol_text(names, [_round_up(x) for x in reachable])} (or screen a study with a larger "
-                "grid.max_level)"
-            )
-        if method == "mc":
-            finest = prediction.finest_level if level is None else int(level)
-            counts = (max(int(prediction.mc_n_samples), 2),)
-            fine_cost = prediction.mc_cost / max(prediction.mc_n_samples, 1)
-            if level is not None:
-                fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
-            modelled = counts[0] * float(fine_cost)
-        else:
-            finest = prediction.finest_level
-            counts = tuple(max(int(n), 2) for n in prediction.n_samples)
-            modelled = float(np.sum(np.array(counts) * prediction.costs))
-    record = study.store.read_screening() or {}
-    seconds_per_cost = float(record.get("seconds_per_cost") or 1.0)
+        if not prediction.is_bias_met and not is_given_level:
+            raise _unreachable(config, tol, prediction)
+        finest, counts, modelled = _planned_samples(method, level, prediction, rates)
+    seconds_per_cost = float((screening.seconds_per_cost if screening is not None else None) or 1.0)
+    forecast = _forecast(config, finest=finest, counts=counts, modelled=modelled, seconds_per_cost=seconds_per_cost,
+                         n_workers=n_workers, is_richardson=bool(prediction.is_richardson))
+    _check_budget(config.qoi_names, tol, forecast, max_cost)
+    return forecast
+
+
+def _stalled(names: Sequence[str], rates: Rates) -> list[str]:
+    """The QoIs whose fitted bias does not decay, with their ``alpha``, in words."""
+    return [f"{name} (alpha = {a:.2g})" for name, a in zip(names, np.atleast_1d(rates.alpha)) if not a > 0]
+
+
+def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan) -> EstimationError:
+    """The refusal of a tolerance whose bias the finest allowed grid cannot reach, with the smallest reachable one."""
+    names = config.qoi_names
+    bias = np.asarray(prediction.bias, dtype=float)
+    reachable = bias / math.sqrt(config.estimation.theta)
+    return EstimationError(
+        f"--tol {_tol_text(names, tol)} cannot be reached: on the finest grid allowed "
+        f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
+        f"screening predicts a bias of {_tol_text(names, bias)}; the smallest reachable tolerance is about "
+        f"{_tol_text(names, [_round_up(x) for x in reachable])} (or screen a study with a larger "
+        "grid.max_level)"
+    )
+
+
+def _planned_samples(
+    method: str, level: int | None, prediction: Plan, rates: Rates
+) -> tuple[int, tuple[int, ...], float]:
+    """Finest level, samples per level (at least 2 each) and modelled cost of the run ``prediction`` plans."""
+    if method == "mc":
+        finest = prediction.finest_level if level is None else int(level)
+        counts = (max(int(prediction.mc_n_samples), 2),)
+        fine_cost = prediction.mc_cost / max(prediction.mc_n_samples, 1)
+        if level is not None:
+            fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
+        return finest, counts, counts[0] * float(fine_cost)
+    counts = tuple(max(int(n), 2) for n in prediction.n_samples)
+    return prediction.finest_level, counts, float(np.sum(np.array(counts) * prediction.costs))
+
+
+def _forecast(
+    config: StudyConfig, *, finest: int, counts: tuple[int, ...], modelled: float, seconds_per_cost: float,
+    n_workers: int, is_richardson: bool,
+) -> Forecast:
+    from rough_uq.study.config import solver_memory_bytes
+
     cpu_seconds = modelled * seconds_per_cost
     n_workers = max(1, int(n_workers))
-    result = Forecast(
+    return Forecast(
         finest_level=int(finest),
         grid=config.grid.n_at(int(finest)),
         n_samples=counts,
@@ -778,9 +738,13 @@ def forecast_run(
         cpu_seconds=cpu_seconds,
         wall_seconds=cpu_seconds / min(n_workers, max(sum(counts), 1)),
         memory_bytes=solver_memory_bytes(config.grid.n_at(int(finest))) * n_workers,
-        is_richardson=bool(prediction.is_richardson),
+        is_richardson=is_richardson,
     )
-    total = sum(counts)
+
+
+def _check_budget(names: Sequence[str], tol: np.ndarray, forecast: Forecast, max_cost: float | None) -> None:
+    """Refuse a forecast beyond any budget, over ``max_cost``, or (without it) over :data:`DEFAULT_COST_CEILING`."""
+    total, modelled, cpu_seconds = sum(forecast.n_samples), forecast.modelled_cost, forecast.cpu_seconds
     if total > MAX_PLANNED_SAMPLES or not math.isfinite(modelled):
         raise EstimationError(
             f"--tol {_tol_text(names, tol)} needs about {total:.3g} samples ({_hours(cpu_seconds)} CPU); "
@@ -794,10 +758,9 @@ def forecast_run(
     if max_cost is None and cpu_seconds > DEFAULT_COST_CEILING:
         raise EstimationError(
             f"--tol {_tol_text(names, tol)} is predicted to take {_hours(cpu_seconds)} of CPU time "
-            f"({sum(counts)} samples), more than the default ceiling of {_hours(DEFAULT_COST_CEILING)}: loosen --tol, "
+            f"({total} samples), more than the default ceiling of {_hours(DEFAULT_COST_CEILING)}: loosen --tol, "
             "or allow it with --max-cost SECONDS"
         )
-    return result
 
 
 
@@ -939,16 +902,6 @@ def missing_samples(
     return WorkPlan(key, stage, {})
 
 
-def _measured(sampler: StudySampler, levels: np.ndarray, n_samples: np.ndarray) -> tuple[float, int]:
-    """Wall seconds and non-converged count of the first ``N_l`` samples of each level."""
-    seconds, not_converged = 0.0, 0
-    for level, n in zip(levels, n_samples):
-        batch = sampler.samples(int(level), np.arange(int(n)))
-        seconds += float(np.sum(batch.cost))
-        not_converged += int(np.count_nonzero(~batch.is_converged))
-    return seconds, not_converged
-
-
 def _events(
     study: Study,
     *,
@@ -958,6 +911,7 @@ def _events(
     max_cost: float | None,
     level: int | None = None,
 ) -> tuple[Iterator[object], dict[str, Any]]:
+    """The estimator's event stream and the run's context (``level``, ``screening_rates``, ``predicted``)."""
     config = study.config
     estimation = config.estimation
     options = dict(
@@ -971,14 +925,16 @@ def _events(
         # An explicit level needs no screening; the bias of that level is then unknown.
         return iter_mc(sampler, level=level, **options), {"level": level}
     statistics, rates, prediction = _estimation_plan(study, tol)
-    context = {"screening_rates": rates_record(rates), "predicted": _plan_record(prediction, 1.0)}
+    context: dict[str, Any] = {
+        "screening_rates": RatesRecord.from_rates(rates), "predicted": PlanRecord.from_plan(prediction, 1.0)
+    }
     if method == "mlmc":
         events = iter_mlmc(
             sampler, max_level=config.grid.max_level, screening=statistics, richardson=estimation.richardson,
             coarsest_level=None, **options,
         )
     else:
-        context["level"] = prediction.finest_level
+        context["level"] = int(prediction.finest_level)
         events = iter_mc(
             sampler, level=prediction.finest_level, bias=prediction.bias, screening=statistics, **options
         )
@@ -988,9 +944,9 @@ def _events(
 def _elapsed(study: Study, key: str, sampler: StudySampler, seconds: float) -> float:
     """Wall seconds of the run: this command's, or the first finish's when this rerun computed nothing."""
     if sampler.n_computed == 0:
-        for run in study.store.read_runs():
-            if run["run_id"] == key and run.get("elapsed") is not None:
-                return float(run["elapsed"])
+        for run in read_run_records(study.store):
+            if run.run_id == key and run.outcome is not None and run.outcome.elapsed is not None:
+                return float(run.outcome.elapsed)
     return seconds
 
 
@@ -1006,12 +962,11 @@ def _pooled_mc_cost(study: Study, sampler: StudySampler, result: Any) -> float:
     finest = int(result.levels[-1])
     n_run = int(result.n_samples[-1])
     values = [sampler.samples(finest, np.arange(n_run)).fine]
-    record = study.store.read_screening()
-    if record is not None:
-        screened = [int(level) for level in record["statistics"]["levels"]]
-        below = [level for level in screened if level <= finest]
+    screening = read_screening_record(study.store)
+    if screening is not None:
+        below = [level for level in screening.statistics.levels if level <= finest]
         if below:
-            n = int(min(record["statistics"]["n_samples"]))
+            n = screening.n_screened
             values.append(study.store.read_samples(level=below[-1], stage=STAGE_SCREENING).fine[:n])
     groups = [v for v in values if v.shape[0] >= 2]
     if not groups:
@@ -1038,7 +993,7 @@ def run_estimation(
     max_cost: float | None = None,
     level: int | None = None,
     forecast: Forecast | None = None,
-) -> dict[str, Any]:
+) -> RunRecord:
     """Run MLMC (``method="mlmc"``) or plain MC (``"mc"``) to ``tol`` and store its record.
 
     ``forecast`` (:func:`forecast_run`, which the CLI calls first to refuse
@@ -1055,42 +1010,66 @@ def run_estimation(
 
     Returns
     -------
-    dict
-        The run record (see ``roughuq report --json``).
+    RunRecord
+        The finished run (``roughuq report --json`` shows its ``to_json``).
     """
+    _check_run_arguments(study, method, level)
+    tol = np.asarray(tol, dtype=float)
+    max_cost = study.config.estimation.max_cost if max_cost is None else max_cost
+    estimation = study.config.estimation
+    key = run_id(method, study.config.qoi_names, tol, estimation.theta, level, richardson=estimation.richardson)
+    started = time.monotonic()
+    sampler = StudySampler(study, stage=run_stage(method, key), executor=executor, progress=progress)
+    events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost, level=level)
+    record = _started_record(study, key=key, method=method, tol=tol, stage=sampler.stage, max_cost=max_cost,
+                             context=context, forecast=forecast)
+    study.store.write_run(key, record.to_json())
+    title = f"{method} " + ", ".join(f"{n}={t:g}" for n, t in zip(study.config.qoi_names, tol))
+    result, diagnostics = _follow(events, progress, title)
+    outcome = _outcome(study, method=method, key=key, sampler=sampler, result=result, diagnostics=diagnostics,
+                       started=started)
+    record = replace(record, status="finished", outcome=outcome)
+    study.store.write_run(key, record.to_json())
+    return record
+
+
+def _check_run_arguments(study: Study, method: str, level: int | None) -> None:
     if method not in ("mlmc", "mc"):
         raise ValueError(f"method must be 'mlmc' or 'mc', got {method!r}")
-    if level is not None and (method != "mc" or not 0 <= level <= study.config.grid.max_level):
-        raise InvalidParameterError("--level", level, f"with mc only, an integer in 0..{study.config.grid.max_level}")
+    max_level = study.config.grid.max_level
+    if level is not None and (method != "mc" or not 0 <= level <= max_level):
+        raise InvalidParameterError("--level", level, f"with mc only, an integer in 0..{max_level}")
+
+
+def _started_record(
+    study: Study, *, key: str, method: str, tol: np.ndarray, stage: int, max_cost: float | None,
+    context: Mapping[str, Any], forecast: Forecast | None,
+) -> RunRecord:
+    """The record of a run that starts: its settings and context, no outcome."""
     config = study.config
-    names = config.qoi_names
-    tol = np.asarray(tol, dtype=float)
-    max_cost = config.estimation.max_cost if max_cost is None else max_cost
-    key = run_id(method, names, tol, config.estimation.theta, level, richardson=config.estimation.richardson)
-    started = time.monotonic()
-    stage = run_stage(method, key)
-    sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
-    events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost, level=level)
-    context["forecast"] = forecast.as_dict() if forecast is not None else None
-    record: dict[str, Any] = {
-        "method": method,
-        "stage": stage,
-        "status": "running",
-        "started": _now(),
-        "code_version": __version__,
-        "qoi_names": list(names),
-        "tol": tol.tolist(),
-        "theta": config.estimation.theta,
-        "initial_samples": config.estimation.initial_samples,
-        "max_cost": max_cost,
+    return RunRecord(
+        run_id=key,
+        method=method,
+        status="running",
+        tol=tuple(tol.tolist()),
+        started=utc_timestamp(),
+        code_version=__version__,
+        qoi_names=tuple(config.qoi_names),
+        theta=config.estimation.theta,
+        max_cost=max_cost,
+        stage=stage,
+        initial_samples=config.estimation.initial_samples,
+        forecast=forecast,
         **context,
-    }
-    study.store.write_run(key, record)
-    progress.start(f"{method} " + ", ".join(f"{n}={t:g}" for n, t in zip(names, tol)))
+    )
+
+
+def _follow(events: Iterator[object], progress: Progress, title: str) -> tuple[Any, list[Diagnostic]]:
+    """Drive the estimator's events with progress; its result and the diagnostics it raised."""
+    progress.start(title)
     result = None
     try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", EstimationWarning)
+        with _collecting_diagnostics() as diagnostics:
             for event in events:
                 if isinstance(event, PlanUpdated):
                     progress.plan(event.levels, event.n_planned, event.n_done)
@@ -1102,51 +1081,36 @@ def run_estimation(
         progress.stop(is_complete=False)
         raise
     progress.stop()
-    assert result is not None  # the event stream always ends with Finished
-    seconds, n_not_converged = _measured(sampler, result.levels, result.n_samples)
+    if result is None:  # pragma: no cover - the event stream always ends with Finished
+        raise RoughUQError("the estimator stopped without a result")
+    return result, diagnostics
+
+
+def _outcome(
+    study: Study, *, method: str, key: str, sampler: StudySampler, result: Any, diagnostics: Sequence[Diagnostic],
+    started: float,
+) -> RunOutcome:
+    """What the finished run found, with the seconds and non-converged solves of the samples it used."""
+    used = [sampler.samples(int(l), np.arange(int(n))) for l, n in zip(result.levels, result.n_samples)]
+    seconds = 0.0
+    for batch in used:  # summed level by level, as the records always have been
+        seconds += float(np.sum(batch.cost))
     seconds_per_cost = seconds / result.cost if result.cost > 0 else 1.0
-    screening_record = study.store.read_screening()
-    if screening_record is not None and screening_record.get("seconds_per_cost"):
-        seconds_per_cost = float(screening_record["seconds_per_cost"])  # robust to the pool's start-up
+    screening = read_screening_record(study.store)
+    if screening is not None and screening.seconds_per_cost:
+        seconds_per_cost = float(screening.seconds_per_cost)  # robust to the pool's start-up
     mc_cost = _pooled_mc_cost(study, sampler, result) if method == "mlmc" else result.mc_cost
-    record.update(
-        _jsonable(
-            {
-                "status": "finished",
-                "finished": _now(),
-                "estimate": np.atleast_1d(result.estimate),
-                "stat_error": np.atleast_1d(result.stat_error),
-                "bias_estimate": np.atleast_1d(result.bias_estimate),
-                "is_bias_estimated": result.is_bias_estimated,
-                "rmse": np.atleast_1d(result.rmse),
-                "variance": np.atleast_1d(result.variance),
-                "variance_error": np.atleast_1d(result.variance_error),
-                "levels": result.levels,
-                "n_samples": result.n_samples,
-                "cost": result.cost,
-                "seconds": seconds,
-                "elapsed": _elapsed(study, key, sampler, time.monotonic() - started),
-                "mc_cost": mc_cost,
-                "mc_seconds_predicted": mc_cost * seconds_per_cost,
-                "n_computed": sampler.n_computed,
-                "n_not_converged": n_not_converged,
-                "tol_met": result.tol_met,
-                "stop_reason": result.stop_reason,
-                "richardson": result.richardson,
-                "richardson_reason": result.richardson_reason,
-                "dropped_levels": [{"level": d.level, "reason": d.reason} for d in result.dropped_levels],
-                "rates": rates_record(result.rates) if result.rates is not None else None,
-                "statistics": statistics_record(
-                    result.statistics,
-                    [float(np.mean(sampler.samples(int(l), np.arange(int(n))).cost))
-                     for l, n in zip(result.levels, result.n_samples)],
-                ),
-                "warnings": list(dict.fromkeys(str(w.message) for w in caught)),
-            }
-        )
+    return RunOutcome.from_result(
+        result,
+        mean_seconds=[float(np.mean(batch.cost)) for batch in used],
+        seconds=seconds,
+        elapsed=_elapsed(study, key, sampler, time.monotonic() - started),
+        mc_cost=mc_cost,
+        seconds_per_cost=seconds_per_cost,
+        n_computed=sampler.n_computed,
+        n_not_converged=count_not_converged(used),
+        diagnostics=_unique(diagnostics),
     )
-    study.store.write_run(key, record)
-    return record
 
 
 # ---------------------------------------------------------------------------
@@ -1242,6 +1206,33 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
 # ---------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class SweepRow:
+    """One value of a sweep (:func:`run_sweep`): where its study lives and its MC run.
+
+    Attributes
+    ----------
+    value : str
+        The value of the swept field, as given.
+    config, study : str
+        Paths of its resolved config and its study file.
+    grid : int
+        Nodes per side of the sampled level.
+    run : RunRecord
+    """
+
+    value: str
+    config: str
+    study: str
+    grid: int
+    run: RunRecord
+
+    def to_json(self) -> dict[str, Any]:
+        """The row as ``roughuq sweep --json`` prints it: the location keys, then the run record's."""
+        return {"value": self.value, "config": self.config, "study": self.study, "grid": self.grid,
+                **self.run.to_json()}
+
+
 def run_sweep(
     configs: Sequence[tuple[str, StudyConfig]],
     *,
@@ -1250,17 +1241,12 @@ def run_sweep(
     level: int,
     executor: Executor,
     progress: Progress,
-) -> list[dict[str, Any]]:
+) -> list[SweepRow]:
     """Plain MC on ``level`` for every config of a sweep (:func:`~rough_uq.study.config.sweep_configs`).
 
     Each value gets its config (``<output stem>.yaml``) and its study file in
     ``directory``; a rerun resumes every study. ``tol`` are ``--tol`` strings
     (:func:`parse_tolerances`, per config).
-
-    Returns
-    -------
-    list of dict
-        Per value: ``value``, ``config``, ``study``, ``grid`` and the MC run record.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -1278,8 +1264,6 @@ def run_sweep(
                 progress=progress,
                 level=level,
             )
-        rows.append(
-            {"value": value, "config": str(config_path), "study": str(study_path), "grid": config.grid.n_at(level),
-             **record}
-        )
+        rows.append(SweepRow(value=value, config=str(config_path), study=str(study_path),
+                             grid=config.grid.n_at(level), run=record))
     return rows

@@ -93,7 +93,11 @@ Choices where the specification is silent
 * ``sample_indices`` returns a sorted int64 array.
 * Records (screening, runs) must be JSON-able mappings; numpy scalars and
   arrays are accepted and come back as Python numbers and lists, NaN and
-  infinities survive. ``read_runs`` adds the ``run_id`` key.
+  infinities survive. ``read_runs`` adds the ``run_id`` key. The store does
+  not interpret them: the pipeline writes the ``to_json`` of the typed
+  records of :mod:`rough_uq.study.records` and reads them back with
+  :func:`~rough_uq.study.records.read_screening_record` and
+  :func:`~rough_uq.study.records.read_run_records`.
 * Opening for writing with ``create=True`` creates missing parent
   directories.
 * HDF5's own file locking is switched off (``locking=False``): the sidecar
@@ -115,7 +119,6 @@ import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from datetime import datetime, timezone
 from pathlib import Path
 from types import TracebackType
 from typing import Any, TypeVar
@@ -125,6 +128,7 @@ import numpy as np
 
 from rough_uq.problem.batch import LevelBatch
 from rough_uq.errors import StudyFileError
+from rough_uq.study.records import utc_timestamp
 
 __all__ = [
     "FORMAT",
@@ -514,7 +518,7 @@ class MemoryStore(StudyStore):
         self.config_text = config_text
         self.config_hash = config_hash
         self.code_version = code_version
-        self.created = _now()
+        self.created = utc_timestamp()
         self._samples: dict[int, list[dict[str, np.ndarray]]] = {}
         self._records: dict[tuple[str, ...], str] = {}
 
@@ -548,10 +552,6 @@ class MemoryStore(StudyStore):
 # ---------------------------------------------------------------------------
 # HDF5 file
 # ---------------------------------------------------------------------------
-
-
-def _now() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
 def _fsync_path(path: Path, *, directory: bool = False) -> None:
@@ -718,7 +718,7 @@ def _write_header(
     f.attrs["format_version"] = np.int64(FORMAT_VERSION)
     f.attrs["config_hash"] = config_hash
     f.attrs["code_version"] = code_version
-    f.attrs["created"] = _now()
+    f.attrs["created"] = utc_timestamp()
     f.create_dataset("config_yaml", data=config_text, dtype=h5py.string_dtype())
     f.create_dataset("qoi_names", data=list(qoi_names), dtype=h5py.string_dtype())
     f.create_group("samples")
