@@ -33,6 +33,20 @@ Symbols (SPEC section 5):
     Bias share of ``eps^2``: the bias must stay below ``sqrt(theta) eps`` and
     the estimator variance below ``(1 - theta) eps^2`` (default 1/2).
 
+Fitting alpha
+-------------
+The bias rate matters beyond the data (the tail sum below), so it is fitted
+on the levels whose means look asymptotic: the window starts with the two
+finest usable levels, provided their means have one sign and decay, and
+extends to coarser levels while the next pair has the same sign, decays, and
+its local rate ``log2 |E[Y_l-1] / E[Y_l]|`` agrees with the window's fitted
+rate within ``RATIO_LOG2_TOLERANCE`` plus two standard errors. The levels
+before the window are pre-asymptotic (their faster early decay would make the
+fitted rate, and so the predicted bias of the finest levels, too optimistic).
+When the two finest means change sign or do not decay, no window can be
+anchored and every usable level is fitted, as a plain least-squares line
+(``Rates.levels_alpha`` says which levels were used).
+
 Remaining bias
 --------------
 The bias of an estimator whose finest level is ``L`` is
@@ -49,10 +63,9 @@ differences change sign); the measured mean catches a model that falls short
 of the finest level (a line fitted on pre-asymptotic levels that decay
 faster than the finest ones). Giles' code takes instead the largest of the
 three finest means scaled by ``2^(-i alpha)``; on a hierarchy whose means rise
-before they decay (the classic cluster count: 25, 64, 13, -0.6 on 192^2 ...
-1536^2) that rule is driven by the top of the rise and predicts 2.0 per unit
-area on 1536^2 where the 3072^2 check measures 1.3, the model 0.65 (README,
-"The classic study").
+before they decay that rule is driven by the top of the rise (README, "The
+classic study": 2.0 clusters per unit area on 1536^2 where a 3072^2 check
+measures 1.3).
 
 Coarsest useful level
 ---------------------
@@ -702,12 +715,43 @@ def _fit_line(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: 
     return _Line(rate=sign * slope, constant=2.0**intercept, se=se, levels=tuple(int(level) for level in levels))
 
 
+def _asymptotic_window(levels: np.ndarray, means: np.ndarray, rel_se: np.ndarray) -> np.ndarray:
+    """Indices of the levels the bias rate is fitted on (module docstring, "Fitting alpha").
+
+    ``levels`` increasing, ``means`` the signed ``mean(Y_l)`` (nonzero),
+    ``rel_se`` their standard errors relative to ``|mean|``.
+    """
+    rows = np.arange(len(levels))
+
+    def is_decaying_pair(coarse: int, fine: int) -> bool:
+        return (
+            levels[fine] - levels[coarse] == 1
+            and np.sign(means[fine]) == np.sign(means[coarse])
+            and abs(means[fine]) < abs(means[coarse])
+        )
+
+    if len(rows) < 3 or not is_decaying_pair(len(rows) - 2, len(rows) - 1):
+        return rows  # nothing to leave out, or no asymptotic pair to anchor a window on
+    finest = len(rows) - 1
+    start = finest - 1
+    while start > 0 and is_decaying_pair(start - 1, start):
+        window = slice(start, finest + 1)
+        rate = -np.polyfit(levels[window], np.log2(np.abs(means[window])), 1)[0]
+        local = math.log2(abs(means[start - 1]) / abs(means[start]))
+        noise = math.hypot(rel_se[start - 1], rel_se[start]) / math.log(2.0)
+        if abs(local - rate) > RATIO_LOG2_TOLERANCE + 2.0 * noise:
+            break
+        start -= 1
+    return rows[start:]
+
+
 def _fit_alpha(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Line | None, str]:
     use = (statistics.levels >= min_level) & (statistics.n_samples >= 2)
     mean = np.abs(statistics.mean_diff[:, q])
     usable = use & (mean > 0)
     rel_se = np.sqrt(statistics.var_diff[usable, q] / statistics.n_samples[usable]) / mean[usable]
-    line = _fit_line(statistics.levels[usable], mean[usable], rel_se, -1.0)
+    window = _asymptotic_window(statistics.levels[usable], statistics.mean_diff[usable, q], rel_se)
+    line = _fit_line(statistics.levels[usable][window], mean[usable][window], rel_se[window], -1.0)
     zero = statistics.levels[use & (mean == 0)].tolist()
     return line, f"levels with E[Q_l - Q_l-1] = 0 (unusable): {zero}" if zero else ""
 
@@ -739,7 +783,9 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1) -> Rates:
 
     Ordinary least squares of ``log2 |E[Y_l]|``, ``log2 V_l`` and
     ``log2 C_l`` against the level index ``l`` (equivalently against
-    ``log2(h_l/h_0) = -l``), over the levels ``l >= min_level``.
+    ``log2(h_l/h_0) = -l``), over the levels ``l >= min_level``; for
+    ``alpha``, over those of them whose means look asymptotic (module
+    docstring, "Fitting alpha").
 
     Parameters
     ----------
