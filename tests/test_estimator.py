@@ -163,9 +163,12 @@ def test_events_follow_the_contract():
     assert any(isinstance(e, PlanUpdated) and e.reason == "new level" for e in events)
 
 
-def test_a_cached_rerun_replays_the_same_requests():
-    # A sampler backed by a store: computes each (level, index) once, then serves it.
+@pytest.mark.parametrize("has_screening", [False, True])
+def test_a_cached_rerun_replays_the_same_requests(has_screening):
+    # A sampler backed by a store: computes each (level, index) once, then serves it. With a
+    # screening, the pooled means and variances must replay the same decisions too.
     problem = Synthetic(seed=23)
+    screening = level_statistics(**sample_levels(Synthetic(seed=24), range(4), 20)) if has_screening else None
     store: dict[tuple[int, int], tuple[float, float, float]] = {}
     computed: list[int] = []
 
@@ -181,9 +184,13 @@ def test_a_cached_rerun_replays_the_same_requests():
     def requests(events):
         return [(e.level, e.indices[0], len(e.indices)) for e in events if isinstance(e, BatchDone)]
 
-    first = list(iter_mlmc(cached, tol=0.1, batch_size=100))
+    # The first run is interrupted after a few batches; the rerun resumes from the store.
+    interrupted = iter_mlmc(cached, tol=0.05, batch_size=100, screening=screening)
+    for _ in zip(range(4), interrupted):
+        pass
+    first = list(iter_mlmc(cached, tol=0.05, batch_size=100, screening=screening))
     n_computed = sum(computed)
-    second = list(iter_mlmc(cached, tol=0.1, batch_size=100))
+    second = list(iter_mlmc(cached, tol=0.05, batch_size=100, screening=screening))
     assert sum(computed) == n_computed  # nothing recomputed
     assert requests(second) == requests(first)
     assert second[-1].result.estimate == first[-1].result.estimate
