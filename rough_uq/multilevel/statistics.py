@@ -41,8 +41,9 @@ finest usable levels, provided their means have one sign and decay, and
 extends to coarser levels while the next pair has the same sign, decays, and
 its local rate ``log2 |E[Y_l-1] / E[Y_l]|`` agrees with the window's fitted
 rate within ``RATIO_LOG2_TOLERANCE`` plus two standard errors. The levels
-before the window are pre-asymptotic (their faster early decay would make the
-fitted rate, and so the predicted bias of the finest levels, too optimistic).
+before the window are pre-asymptotic: their different early decay would pull
+the rate away from the asymptotic one (a faster one makes the predicted bias
+of the finest levels too optimistic).
 When the two finest means change sign or do not decay, no window can be
 anchored and every usable level is fitted, as a plain least-squares line
 (``Rates.levels_alpha`` says which levels were used).
@@ -1332,8 +1333,9 @@ def plan(
     -----
     ``L`` is the smallest level whose remaining bias
     ``|E[Y_L]| / (2^alpha - 1)`` is at most ``sqrt(theta) eps``, maximised
-    over the QoIs (``|E[Y_L]|`` as ``bias_from`` says). ``N_l = ceil((1-theta)^-1 eps^-2 sqrt(V_l/C_l) sum_k
-    sqrt(V_k C_k))``, maximised over the QoIs, at least 1. Plain MC needs
+    over the QoIs (``|E[Y_L]|`` as ``bias_from`` says). ``N_l =
+    ceil((1-theta)^-1 eps^-2 sqrt(V_l/C_l) sum_k sqrt(V_k C_k))``, maximised
+    over the QoIs, at least 1. Plain MC needs
     ``(1-theta)^-1 eps^-2 Var(Q_L)`` samples of cost ``C_L / (1 + 2^-gamma)``
     (the fine solve only, see :func:`fine_cost_share`); ``Var(Q_L)`` comes
     from the screening at ``L`` or, beyond it, from the finest screened level
