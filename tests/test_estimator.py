@@ -29,7 +29,7 @@ from rough_uq.multilevel.drivers import (
     mlmc,
     plan,
 )
-from rough_uq.multilevel.statistics import ratio_instability, richardson_bias, richardson_weight
+from rough_uq.multilevel.statistics import estimated_bias, ratio_instability, richardson_bias, richardson_weight
 
 N_REPEATS = 200
 EPS = 0.05
@@ -163,9 +163,12 @@ def test_events_follow_the_contract():
     assert any(isinstance(e, PlanUpdated) and e.reason == "new level" for e in events)
 
 
-def test_a_cached_rerun_replays_the_same_requests():
-    # A sampler backed by a store: computes each (level, index) once, then serves it.
+@pytest.mark.parametrize("has_screening", [False, True])
+def test_a_cached_rerun_replays_the_same_requests(has_screening):
+    # A sampler backed by a store: computes each (level, index) once, then serves it. With a
+    # screening, the pooled means and variances must replay the same decisions too.
     problem = Synthetic(seed=23)
+    screening = level_statistics(**sample_levels(Synthetic(seed=24), range(4), 20)) if has_screening else None
     store: dict[tuple[int, int], tuple[float, float, float]] = {}
     computed: list[int] = []
 
@@ -181,9 +184,13 @@ def test_a_cached_rerun_replays_the_same_requests():
     def requests(events):
         return [(e.level, e.indices[0], len(e.indices)) for e in events if isinstance(e, BatchDone)]
 
-    first = list(iter_mlmc(cached, tol=0.1, batch_size=100))
+    # The first run is interrupted after a few batches; the rerun resumes from the store.
+    interrupted = iter_mlmc(cached, tol=0.05, batch_size=100, screening=screening)
+    for _ in zip(range(4), interrupted):
+        pass
+    first = list(iter_mlmc(cached, tol=0.05, batch_size=100, screening=screening))
     n_computed = sum(computed)
-    second = list(iter_mlmc(cached, tol=0.1, batch_size=100))
+    second = list(iter_mlmc(cached, tol=0.05, batch_size=100, screening=screening))
     assert sum(computed) == n_computed  # nothing recomputed
     assert requests(second) == requests(first)
     assert second[-1].result.estimate == first[-1].result.estimate
@@ -250,6 +257,40 @@ def test_mlmc_pools_the_screening_variances_with_its_own():
     assert result.stat_error != pytest.approx(
         math.sqrt(np.sum(result.statistics.var_diff[:, 0] / result.statistics.n_samples)), rel=1e-3
     )
+
+
+# The finest level L = 5 gets the run's floor of 2 samples: their mean of Y_5 has a standard
+# deviation of half E[Y_5] = 2^-5, so on its own it often exceeds the bias limit sqrt(theta) eps
+# (12 of the 40 runs below stopped at max_level before the screening's 20 samples of the level
+# were pooled in).
+NOISY_EPS = 0.07
+
+
+def noisy_run(seed: int):
+    table = level_statistics(**sample_levels(Synthetic(seed=20_000 + seed, **STEEP), range(6), 20))
+    return table, run_quietly(mlmc, Synthetic(seed=seed, **STEEP), tol=NOISY_EPS, screening=table, max_level=5)[0]
+
+
+def test_mlmc_pools_the_screening_means_into_its_bias_estimate():
+    table, result = noisy_run(0)
+    finest = result.finest_level
+    assert finest == 5 and result.n_samples[-1] == 2
+    n, m = result.n_samples[-1], table.n_samples[finest]
+    pooled = (n * result.statistics.mean_diff[-1, 0] + m * table.mean_diff[finest, 0]) / (n + m)
+    expected = estimated_bias(rates=result.rates, level=finest, mean_diff=np.array([pooled]))[0]
+    assert result.bias_estimate == pytest.approx(expected, rel=1e-12)
+    own = estimated_bias(rates=result.rates, level=finest, mean_diff=result.statistics.mean_diff[-1])[0]
+    assert result.bias_estimate != pytest.approx(own, rel=1e-3)
+
+
+def test_noisy_finest_levels_meet_the_tolerance_with_the_pooled_means():
+    runs = [noisy_run(seed)[1] for seed in range(40)]
+    assert all(result.n_samples[-1] == 2 for result in runs)
+    # The true remaining bias of level 5 is 2^-5 = 0.031 <= sqrt(theta) eps = 0.049. A run may
+    # still miss it when the screening's means are off by two standard errors (all 40 met here).
+    assert sum(result.tol_met for result in runs) >= 38
+    errors = np.array([result.estimate - Synthetic(**STEEP).mean() for result in runs])
+    assert math.sqrt(np.mean(errors**2)) <= NOISY_EPS * rms_slack(len(errors))
 
 
 @pytest.mark.parametrize("level", [3, 5])  # screened (0..3) and beyond the screening

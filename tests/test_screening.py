@@ -6,6 +6,7 @@ errors unless stated otherwise.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 from pathlib import Path
@@ -23,6 +24,7 @@ from rough_uq.multilevel.statistics import (
     Rates,
     choose_coarsest_level,
     diagnose,
+    estimated_bias,
     fit_rates,
     level_statistics,
     plan,
@@ -181,6 +183,77 @@ def test_fit_rates_refuses_too_few_usable_levels():
     flat = level_statistics(fine=[q, q, q], coarse=[0 * q, q, q], cost=[np.ones(100)] * 3)
     with pytest.raises(EstimationError, match=r"unusable\): \[1, 2\]"):
         fit_rates(flat)
+
+
+# Pre-asymptotic hierarchy: E[Y_l] = 16 * 8^-l + 2^-l. The fast term dominates levels 1-2,
+# the slow one (the asymptotic rate alpha = 1) from level 3 on; V_l tiny, so means are exact
+# to about 1e-3 relative.
+PRE_ASYMPTOTIC = {"alpha": 3.0, "a": 16.0, "b": 1.0, "alpha2": 1.0, "beta": 2.0, "v1": 1e-4}
+
+
+def plain_alpha_fit(table):
+    """alpha and c_alpha of a least-squares line through every level >= 1 (the old fit)."""
+    slope, intercept = np.polyfit(table.levels[1:], np.log2(np.abs(table.mean_diff[1:, 0])), 1)
+    return -slope, 2.0**intercept
+
+
+def test_alpha_is_fitted_on_the_asymptotic_levels_only():
+    problem = Synthetic(seed=21, **PRE_ASYMPTOTIC)
+    table = level_statistics(**sample_levels(problem, range(5), 50))
+    rates = fit_rates(table)
+    # Local rates log2 |E[Y_l-1] / E[Y_l]|: 2.3, 1.7, 1.2; the first differs from the window's by > 0.5.
+    assert rates.levels_alpha == ((2, 3, 4),)
+    old_alpha, _ = plain_alpha_fit(table)
+    assert 1.0 < rates.alpha[0] < old_alpha
+    # So the predicted tail beyond the finest screened level is nearer the truth than before.
+    truth = problem.mean() - problem.mean(4)
+    old_prediction = remaining_bias(table.mean_diff[4], np.array([old_alpha]))[0]
+    new_prediction = estimated_bias(rates=rates, level=4, mean_diff=table.mean_diff[4])[0]
+    assert old_prediction < new_prediction < truth
+
+
+def test_alpha_is_fitted_on_every_level_without_an_asymptotic_pair():
+    # Geometric means: the window spans every level (the rates of test_fit_rates_recovers... too).
+    geometric = level_statistics(**sample_levels(Synthetic(seed=22, v1=1e-4), range(5), 50))
+    assert fit_rates(geometric).levels_alpha == ((1, 2, 3, 4),)
+    # The two finest means change sign (E[Y_l] = 2^-l - 12 * 4^-l: -0.0625 on level 3, +0.0156
+    # on level 4, as the classic cluster count's): no window can be anchored, nothing is left out.
+    crossing = Synthetic(seed=23, a=1.0, alpha=1.0, b=-12.0, alpha2=2.0, v1=1e-4)
+    table = level_statistics(**sample_levels(crossing, range(5), 50))
+    assert np.sign(table.mean_diff[3, 0]) != np.sign(table.mean_diff[4, 0])
+    rates = fit_rates(table)
+    assert rates.levels_alpha == ((1, 2, 3, 4),)
+    assert rates.alpha[0] == pytest.approx(plain_alpha_fit(table)[0], rel=1e-9)
+
+
+def test_estimated_bias_is_the_larger_of_model_and_measured_mean():
+    rates = Rates(alpha=[1.0, 2.0], beta=2.0, gamma=1.0, c_alpha=[1.0, 8.0], c_beta=1.0, c_gamma=1.0)
+    # Level 3: model 1/8 and 8/64; measured -0.5 (QoI 0, above its model) and 0.01 (QoI 1, below).
+    bias = estimated_bias(rates=rates, level=3, mean_diff=np.array([-0.5, 0.01]))
+    np.testing.assert_allclose(bias, [0.5 / 1.0, 0.125 / 3.0])
+    np.testing.assert_allclose(estimated_bias(rates=rates, level=3), [0.125, 0.125 / 3.0])
+
+
+def test_plan_on_a_pre_asymptotic_hierarchy_picks_fewer_levels_with_too_much_bias():
+    problem = Synthetic(seed=24, **PRE_ASYMPTOTIC)
+    table = level_statistics(**sample_levels(problem, range(5), 50))
+    old_alpha, old_c = plain_alpha_fit(table)
+    old_rates = dataclasses.replace(fit_rates(table), alpha=np.array([old_alpha]), c_alpha=np.array([old_c]))
+    rates = fit_rates(table)
+    eps_grid = np.geomspace(0.5, 0.02, 12)
+    old_misses = new_misses = 0
+    for eps in eps_grid:
+        limit = math.sqrt(0.5) * eps
+        old = plan(tol=eps, rates=old_rates, statistics=table, bias_from="model", max_level=10)
+        new = plan(tol=eps, rates=rates, statistics=table, max_level=10)
+        assert new.finest_level >= old.finest_level
+        # The default plan's bias on a screened level is the estimated_bias of its screened mean.
+        if new.finest_level <= 4:
+            expected = estimated_bias(rates=rates, level=new.finest_level, mean_diff=table.mean_diff[new.finest_level])
+            np.testing.assert_allclose(new.bias, expected)
+        old_misses += problem.mean() - problem.mean(old.finest_level) > limit
+        new_misses += problem.mean() - problem.mean(new.finest_level) > limit
+    assert new_misses < old_misses
 
 
 # --------------------------------------------------------------------------

@@ -47,11 +47,14 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    (Giles' ``N0``: nothing is known about the levels yet), or from a
    screening table: the finest level and ``N_l`` of
    :func:`~rough_uq.multilevel.statistics.plan`, at least 2 per level (so that every level
-   has a sample variance). With a screening, ``V_l`` of a level the screening
-   sampled is the pooled variance of the screening's and the run's ``Y_l``
-   (independent samples of the same level), both for the allocation and for
-   the statistical error; the estimate itself uses the run's samples only.
-   Without a screening, every level keeps at least ``n_initial`` samples.
+   has a sample variance). With a screening, the screening's and the run's
+   ``Y_l`` of a level both sampled are independent samples of the same
+   level: ``V_l`` is their pooled variance, for the allocation and for the
+   statistical error, and ``E[Y_l]`` their count-weighted mean, for the bias
+   estimate and the fit of ``alpha`` (step 3; its standard error
+   ``sqrt(V_l / (N_run + N_screening))`` for the Richardson ratio check). The
+   estimate itself uses the run's samples only. Without a screening, every
+   level keeps at least ``n_initial`` samples.
 2. Draw the missing samples level by level in batches of at most
    ``batch_size``; after each round re-estimate ``V_l``, ``C_l`` and refit the
    rates (unless given), and update ``N_l = ceil((1-theta)^-1 eps^-2
@@ -59,11 +62,14 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    samples already drawn). For ``l >= 2``, ``V_l`` is floored at
    ``V_{l-1} 2^-beta / 2`` so that a few lucky samples cannot starve a level.
 3. Once every level has (nearly, within 1%) its planned samples, estimate
-   the remaining bias ``max_{i=0,1,2} |E[Y_{L-i}]| 2^(-i alpha) / (2^alpha - 1)``
-   (the tail sum of the ``alpha`` model, taken from the three finest levels to
-   be robust against one level whose mean happens to be near 0). If it
-   exceeds ``sqrt(theta) eps`` for some QoI, add level ``L+1`` with
-   ``V_{L+1} = V_L 2^-beta``, ``C_{L+1} = C_L 2^gamma`` and go to 2.
+   the remaining bias ``max(c_alpha 2^(-alpha L), |E[Y_L]|) / (2^alpha - 1)``
+   (:func:`~rough_uq.multilevel.statistics.estimated_bias`: the tail sum of
+   the ``alpha`` model, whose least-squares line through all levels above the
+   base is robust against a finest mean that happens to be near 0, and never
+   below what the finest level measured; the rule :func:`plan` uses too, so
+   a run and the screening's prediction agree). If it exceeds ``sqrt(theta)
+   eps`` for some QoI, add level ``L+1`` with ``V_{L+1} = V_L 2^-beta``,
+   ``C_{L+1} = C_L 2^gamma`` and go to 2.
 4. Stop when all planned samples are drawn and the bias test passes
    (``stop_reason = "tol_met"``), when the bias test fails on ``max_level``
    (``"max_level"``), or before a batch would exceed ``max_cost``
@@ -135,6 +141,7 @@ from rough_uq.multilevel.statistics import (
     _readonly,
     _check_tol,
     diagnose,
+    estimated_bias,
     fine_cost_share,
     fit_rates,
     level_statistics,
@@ -469,12 +476,20 @@ def _floor_rates(n_qoi: int) -> Rates:
     )
 
 
-def _lenient_rates(statistics: LevelStatistics, fallback: Rates | None, min_level: int = 1) -> Rates:
+def _lenient_rates(
+    statistics: LevelStatistics,
+    fallback: Rates | None,
+    min_level: int = 1,
+    bias_statistics: LevelStatistics | None = None,
+) -> Rates:
     """Rates for the driver: fitted on levels >= 1 where possible (floored), else the fallback.
 
-    A rate that cannot be fitted keeps the fallback's value (the screening rates, or
+    ``alpha`` is fitted on ``bias_statistics`` if given (the run's means pooled
+    with the screening's), ``beta`` and ``gamma`` on ``statistics``. A rate
+    that cannot be fitted keeps the fallback's value (the screening rates, or
     the floor), with its standard error and empty ``levels_*``.
     """
+    means = statistics if bias_statistics is None else bias_statistics
     n_qoi = statistics.n_qoi
     base = fallback if fallback is not None else _floor_rates(n_qoi)
     alpha, c_alpha, alpha_se = np.array(base.alpha), np.array(base.c_alpha), np.array(base.alpha_se)
@@ -482,7 +497,7 @@ def _lenient_rates(statistics: LevelStatistics, fallback: Rates | None, min_leve
     levels_alpha = list(base.levels_alpha) or [()] * n_qoi
     levels_beta = list(base.levels_beta) or [()] * n_qoi
     for q in range(n_qoi):
-        line, _ = _fit_alpha(statistics, q, min_level)
+        line, _ = _fit_alpha(means, q, min_level)
         if line is not None:
             alpha[q], c_alpha[q], alpha_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
             levels_alpha[q] = line.levels
@@ -548,13 +563,13 @@ def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.nda
     return variances
 
 
-def _driver_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """Remaining bias from the (up to) three finest levels ``>= 1``; rows are levels ``0..L``."""
-    finest = len(mean_diff) - 1
-    terms = [np.abs(mean_diff[finest - i]) * 2.0 ** (-i * alpha) for i in range(3) if finest - i >= 1]
-    if not terms:
-        return np.zeros(mean_diff.shape[1])
-    return remaining_bias(np.max(terms, axis=0), alpha)
+def _hierarchy_bias(hierarchy: _Hierarchy, n_qoi: int, driver: Rates, is_richardson: bool) -> np.ndarray:
+    """Remaining bias of the run's estimate (plain or extrapolated) from the pooled level means."""
+    means, _ = hierarchy.bias_means(n_qoi)
+    means = means[hierarchy.base :]  # row 0 is the base level, whose Y is Q
+    if is_richardson:
+        return richardson_bias(means[1:], driver.alpha)
+    return estimated_bias(rates=driver, level=hierarchy.n_levels - 1, mean_diff=means[-1])
 
 
 def _pooled_variance(run_var: np.ndarray, n_run: int, prior_var: np.ndarray, n_prior: int) -> np.ndarray:
@@ -566,9 +581,11 @@ def _pooled_variance(run_var: np.ndarray, n_run: int, prior_var: np.ndarray, n_p
 class _Hierarchy:
     """Mutable state of one MLMC run: the samples, the plan, the spent cost.
 
-    ``floor`` is the fewest samples any level gets; ``prior_var`` and
-    ``prior_n`` (keyed by level) are the screening's ``V_l`` and sample
-    counts, pooled with the run's samples in :meth:`variances`.
+    ``floor`` is the fewest samples any level gets; ``prior_var``,
+    ``prior_mean`` and ``prior_n`` (keyed by level) are the screening's
+    ``V_l``, ``E[Y_l]`` and sample counts, pooled with the run's samples in
+    :meth:`variances` (allocation and statistical error) and
+    :meth:`bias_means` (bias estimate and rate ``alpha``; module docstring).
     """
 
     def __init__(self, n_levels: int, floor: int, prior: LevelStatistics | None = None, base: int = 0) -> None:
@@ -578,13 +595,15 @@ class _Hierarchy:
         self.floor = floor
         self.spent = 0.0
         self.prior_var: dict[int, np.ndarray] = {}
+        self.prior_mean: dict[int, np.ndarray] = {}
         self.prior_n: dict[int, int] = {}
         if prior is not None:
             for row, level in enumerate(prior.levels):
                 if prior.n_samples[row] >= 2 and level >= base:
-                    # The base level is sampled as Q_base: its prior is the screening's Var(Q).
-                    variance = prior.var_fine[row] if level == base else prior.var_diff[row]
-                    self.prior_var[int(level)] = variance
+                    # The base level is sampled as Q_base: its prior is the screening's Q, not Y.
+                    is_base = level == base
+                    self.prior_var[int(level)] = prior.var_fine[row] if is_base else prior.var_diff[row]
+                    self.prior_mean[int(level)] = prior.mean_fine[row] if is_base else prior.mean_diff[row]
                     self.prior_n[int(level)] = int(prior.n_samples[row])
 
     def add_level(self) -> None:
@@ -596,6 +615,48 @@ class _Hierarchy:
         if level not in self.prior_var:
             return run_var
         return _pooled_variance(run_var, n_run, self.prior_var[level], self.prior_n[level])
+
+    def bias_means(self, n_qoi: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pooled ``E[Y_l]`` of levels ``0..L`` and their standard errors, shapes (n_levels, n_qoi).
+
+        Where the screening sampled a level, its samples and the run's are
+        independent draws of the same ``Y_l``: the mean is their
+        count-weighted mean, its error ``sqrt(V_l / (N_run + N_screening))``
+        with the pooled ``V_l``. Elsewhere the run's own (zeros, error inf,
+        on a level without samples).
+        """
+        means = np.zeros((self.n_levels, n_qoi))
+        errors = np.full((self.n_levels, n_qoi), np.inf)
+        for s in self.samples:
+            n_prior = self.prior_n.get(s.level, 0)
+            n_total = s.n + n_prior
+            if n_total == 0:
+                continue
+            run_mean = s.moments().mean_diff if s.n else np.zeros(n_qoi)
+            means[s.level] = (s.n * run_mean + n_prior * self.prior_mean.get(s.level, 0.0)) / n_total
+            if s.n >= 2 or n_prior:
+                run_var = s.moments().var_diff if s.n else np.zeros(n_qoi)
+                errors[s.level] = np.sqrt(self.variances(s.level, run_var, s.n) / n_total)
+        return means, errors
+
+    def bias_statistics(self, statistics: LevelStatistics) -> LevelStatistics:
+        """``statistics`` (the run's) with ``mean_diff``, ``var_diff`` and ``n_samples`` pooled, for ``alpha``."""
+        if not self.prior_n:
+            return statistics
+        n_qoi = statistics.n_qoi
+        means, _ = self.bias_means(n_qoi)
+        var_diff = np.array(statistics.var_diff)
+        n_samples = np.array(statistics.n_samples)
+        for row, level in enumerate(statistics.levels):
+            level = int(level)
+            var_diff[row] = self.variances(level, statistics.var_diff[row], int(statistics.n_samples[row]))
+            n_samples[row] += self.prior_n.get(level, 0)
+        return dataclasses.replace(
+            statistics,
+            mean_diff=_readonly(means[statistics.levels]),
+            var_diff=_readonly(var_diff),
+            n_samples=_readonly(n_samples),
+        )
 
     def has_variance(self, level: int) -> bool:
         return level >= self.base and (self.samples[level].n >= 2 or level in self.prior_var)
@@ -622,10 +683,6 @@ class _Hierarchy:
     def statistics(self) -> LevelStatistics:
         sampled = self.sampled()
         return _assemble([s.level for s in sampled], [s.moments() for s in sampled], base_level=self.base)
-
-    def mean_diff(self, n_qoi: int) -> np.ndarray:
-        """``E[Y_l]`` of levels ``0..L`` (zeros on levels not sampled), shape (n_levels, n_qoi)."""
-        return np.array([s.moments().mean_diff if s.n else np.zeros(n_qoi) for s in self.samples])
 
 
 def _per_sample_cost(hierarchy: _Hierarchy, level: int, gamma: float) -> float:
@@ -832,7 +889,7 @@ def _mlmc_events(
         nonlocal driver
         statistics = hierarchy.statistics()
         if rates is None:
-            driver = _lenient_rates(statistics, fallback, base + 1)
+            driver = _lenient_rates(statistics, fallback, base + 1, hierarchy.bias_statistics(statistics))
         has_data = np.array([hierarchy.has_variance(s.level) for s in hierarchy.samples])
         var_diff = np.zeros((hierarchy.n_levels, n_qoi))
         mean_cost = np.zeros(hierarchy.n_levels)
@@ -913,11 +970,7 @@ def _mlmc_events(
                 if hierarchy.targets != targets:
                     yield hierarchy.plan_event("richardson")
                     continue
-        mean_diff = hierarchy.mean_diff(n_qoi)[base:]  # row 0 is the base level
-        if extrapolation == "active":
-            bias = richardson_bias(mean_diff[1:], driver.alpha)
-        else:
-            bias = _driver_bias(mean_diff, driver.alpha)
+        bias = _hierarchy_bias(hierarchy, n_qoi, driver, extrapolation == "active")
         if np.all(bias <= math.sqrt(theta) * tol):
             if is_complete:
                 stop_reason = "tol_met"
@@ -971,9 +1024,7 @@ def _mlmc_result(
     weights = np.ones_like(statistics.mean_diff)
     if extrapolation == "active":
         weights[-1] = richardson_weight(driver.alpha)
-        bias = richardson_bias(statistics.mean_diff[1:], driver.alpha)
-    else:
-        bias = _driver_bias(statistics.mean_diff, driver.alpha)
+    bias = _hierarchy_bias(hierarchy, statistics.n_qoi, driver, extrapolation == "active")
     estimate = np.sum(weights * statistics.mean_diff, axis=0)
     stat_variance = np.sum(weights**2 * var_diff / n, axis=0)
     finest = statistics.n_levels - 1
@@ -1017,13 +1068,12 @@ def _screening_instability(screening: LevelStatistics, base: int) -> str:
 
 
 def _run_instability(hierarchy: _Hierarchy) -> str:
-    """Why the run's means of levels >= 1 (standard errors from the pooled V_l) are not stable ("" if they are)."""
-    rows = [s for s in hierarchy.samples[hierarchy.base + 1 :] if s.n >= 2]
-    if not rows:
+    """Why the pooled means of the run's levels above its base are not stable ("" if they are)."""
+    levels = [s.level for s in hierarchy.samples[hierarchy.base + 1 :] if s.n >= 2]
+    if not levels:
         return ratio_instability(np.zeros((0, 1)), np.zeros((0, 1)), [])
-    means = np.array([s.moments().mean_diff for s in rows])
-    errors = np.array([np.sqrt(hierarchy.variances(s.level, s.moments().var_diff, s.n) / s.n) for s in rows])
-    return ratio_instability(means, errors, [s.level for s in rows])
+    means, errors = hierarchy.bias_means(hierarchy.samples[levels[0]].moments().mean_diff.size)
+    return ratio_instability(means[levels], errors[levels], levels)
 
 
 def mlmc(sampler: Sampler, *, tol: float | np.ndarray, **options: object) -> EstimationResult:
