@@ -69,16 +69,16 @@ def test_classic_area_variance_and_quantiles_agree_with_plain_mc_on_the_finest_l
     monkeypatch.chdir(tmp_path)
     config = _classic_config(tmp_path)
     variance = json.loads(run("mlmc", "--config", str(config), "--study", "classic.h5", "--tol-var", "0.03",
-                              "--json", "-q", expect=(0, 3)).output)
+                              "--json", "-q", expect=(0, 3)).stdout)
     cdf = json.loads(run("mlmc", "--study", "classic.h5", "--tol-cdf", "0.05", "--json", "-q",
-                         expect=(0, 3)).output)
+                         expect=(0, 3)).stdout)
     assert variance["tol_met"] and cdf["tol_met"], (variance["rmse"], variance["stop_reason"], cdf["rmse"])
     finest = variance["levels"][-1]
     assert cdf["levels"][-1] == finest
 
     # Plain MC on that level, samples of another stage (an MC run's), about 100 of them.
     mc = json.loads(run("mc", "--study", "classic.h5", "--level", str(finest), "--tol", "0.06", "--json",
-                        "-q").output)
+                        "-q").stdout)
     samples = stage_samples(tmp_path / "classic.h5", stage=mc["stage"], level=finest).fine[:, 0]
     assert samples.size == mc["n_samples"][0] >= 40
 
@@ -107,3 +107,188 @@ def test_classic_area_variance_and_quantiles_agree_with_plain_mc_on_the_finest_l
           + "; ".join(f"q({q['probability']}) = {q['value']:.3f} [{q['lower']:.3f}, {q['upper']:.3f}]"
                       for q in distribution["quantiles"])
           + f" (sup RMSE {cdf['rmse'][0]:.3g}, N_l {cdf['n_samples']})")
+
+
+# ---------------------------------------------------------------------------
+# Tiny studies (fast)
+# ---------------------------------------------------------------------------
+
+
+def _exit_status(record: dict) -> int:
+    return 0 if record["tol_met"] else 3
+
+
+def _levels(path: Path, record: RunRecord) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The fine and coarse values a finished run used, read back from the study file."""
+    fine, coarse = [], []
+    for level, n in zip(record.outcome.levels, record.outcome.n_samples):
+        batch = stage_samples(path, stage=record.stage, level=level)
+        order = np.argsort(batch.indices)[:n]
+        assert np.array_equal(batch.indices[order], np.arange(n))
+        fine.append(batch.fine[order])
+        coarse.append(batch.coarse[order])
+    return fine, coarse
+
+
+def test_variance_run_stores_the_telescoped_h_statistics_of_its_own_samples(tiny):
+    from rough_uq.multilevel.moments import variance_from_samples
+    from rough_uq.problem.runs import run_id
+    from rough_uq.problem.sampler import run_stage
+
+    result = run("mlmc", "--config", str(tiny), "--tol-var", "contact_area=60", "--workers", "1", "--json",
+                 expect=(0, 3))
+    shown = json.loads(result.stdout)
+    assert result.exit_code == _exit_status(shown)
+    key = run_id("variance", ["contact_area"], np.array([60.0]), 0.5)
+    assert shown["run_id"] == key and shown["method"] == "variance"
+    record = stored_runs(tiny.parent / "results.h5")[key]
+    assert record.stage == run_stage("mlmc", key) == shown["stage"]  # the stage rough_uq.variance draws from
+    fine, coarse = _levels(tiny.parent / "results.h5", record)
+    expected = variance_from_samples(fine=fine, coarse=coarse, tol=60.0)
+    outcome = record.outcome
+    np.testing.assert_allclose(outcome.estimate, expected.estimate, rtol=1e-12)
+    np.testing.assert_allclose(outcome.stat_error, expected.stat_error, rtol=1e-12)
+    assert outcome.tol_met == (outcome.rmse[0] <= 60.0) and outcome.variance is None and outcome.statistics is None
+    assert outcome.cost > 0 and outcome.mc_cost > 0 and outcome.n_computed == sum(outcome.n_samples)
+
+
+def test_cdf_run_stores_cdf_band_and_quantiles_of_its_own_samples(tiny):
+    from rough_uq.multilevel.distribution import cdf_from_samples, quantiles
+
+    result = run("mlmc", "--config", str(tiny), "--tol-cdf", "0.3", "--thresholds", TINY_THRESHOLDS,
+                 "--probabilities", "0.05,0.5", "--workers", "1", "--json", expect=(0, 3))
+    shown = json.loads(result.stdout)
+    assert result.exit_code == _exit_status(shown)
+    record = stored_runs(tiny.parent / "results.h5")[shown["run_id"]]
+    assert record.method == "cdf" and record.qoi_names == ("contact_area",) and record.tol == (0.3,)
+    distribution = record.outcome.distribution
+    s = np.linspace(25, 60, 36)
+    np.testing.assert_allclose(distribution.thresholds, s)
+    fine, coarse = _levels(tiny.parent / "results.h5", record)
+    expected = cdf_from_samples(fine=fine, coarse=coarse, thresholds=s, bandwidth=2.0, tol=0.3)
+    np.testing.assert_allclose(distribution.cdf, expected.cdf, atol=1e-12)
+    np.testing.assert_allclose(record.outcome.estimate, expected.cdf_raw, atol=1e-12)
+    np.testing.assert_allclose(distribution.cdf_upper, np.clip(expected.cdf + expected.rmse, 0, 1), atol=1e-12)
+    np.testing.assert_allclose(distribution.cdf_lower, np.clip(expected.cdf - expected.rmse, 0, 1), atol=1e-12)
+    assert record.outcome.rmse == pytest.approx((expected.rmse,))
+    wanted = quantiles(expected, probabilities=[0.05, 0.5])
+    assert [q.probability for q in distribution.quantiles] == [0.05, 0.5]
+    np.testing.assert_allclose([q.value for q in distribution.quantiles], wanted.values)
+    for q, lower, upper in zip(distribution.quantiles, wanted.lower, wanted.upper):
+        assert q.lower == (lower if np.isfinite(lower) else None) and q.upper == (upper if np.isfinite(upper) else None)
+
+
+def _interrupt_after(monkeypatch, n_batches: int) -> None:
+    """Make the study sampler raise KeyboardInterrupt (as Ctrl-C would) after ``n_batches`` computed batches."""
+    from rough_uq.study import pipeline
+
+    original = pipeline.StudySampler.compute
+    calls = {"n": 0}
+
+    def compute(self, level, indices):
+        if self.missing(level, indices).size:
+            calls["n"] += 1
+            if calls["n"] > n_batches:
+                raise KeyboardInterrupt
+        return original(self, level, indices)
+
+    monkeypatch.setattr(pipeline.StudySampler, "compute", compute)
+
+
+_VOLATILE = ("finished", "started", "elapsed", "seconds", "mc_seconds_predicted", "n_computed")
+
+
+@pytest.mark.parametrize("target", [("--tol-var", "60"), ("--tol-cdf", "0.3", "--thresholds", TINY_THRESHOLDS)],
+                         ids=["variance", "cdf"])
+def test_an_interrupted_run_resumes_to_the_record_of_an_uninterrupted_one(tiny, monkeypatch, target):
+    whole = run("mlmc", "--config", str(tiny), *target, "--study", "whole.h5", "--workers", "1", "--json", "-q",
+                expect=(0, 3))
+    with monkeypatch.context() as patch:
+        _interrupt_after(patch, 3)
+        stopped = run("mlmc", "--config", str(tiny), *target, "--study", "resumed.h5", "--workers", "1", "-q",
+                      expect=130)
+        assert "every completed sample is saved" in stopped.stderr
+    partial = stored_runs(tiny.parent / "resumed.h5")
+    assert [r.status for r in partial.values()] == ["running"]
+    resumed = run("mlmc", *target, "--study", "resumed.h5", "--workers", "1", "--json", "-q",
+                  expect=whole.exit_code)
+    first, second = json.loads(whole.stdout), json.loads(resumed.stdout)
+    assert 0 < second["n_computed"] < first["n_computed"]
+    assert {k: v for k, v in first.items() if k not in _VOLATILE} == {
+        k: v for k, v in second.items() if k not in _VOLATILE}
+
+
+def test_two_workers_give_the_numbers_of_one(tiny):
+    args = ("mlmc", "--config", str(tiny), "--tol-var", "60", "--json", "-q")
+    one = json.loads(run(*args, "--study", "one.h5", "--workers", "1", expect=(0, 3)).stdout)
+    two = json.loads(run(*args, "--study", "two.h5", "--workers", "2", expect=(0, 3)).stdout)
+    for key in ("estimate", "stat_error", "bias_estimate", "rmse", "n_samples", "cost", "stage"):
+        assert one[key] == two[key], key
+
+
+def test_report_shows_variance_and_distribution_tables_json_and_the_cdf_figure(tiny):
+    run("mlmc", "--config", str(tiny), "--tol-var", "60", "--workers", "1", "-q", expect=(0, 3))
+    run("mlmc", "--tol-cdf", "0.3", "--thresholds", TINY_THRESHOLDS, "--workers", "1", "-q", expect=(0, 3))
+    runs = stored_runs(tiny.parent / "results.h5")
+    cdf = next(r for r in runs.values() if r.method == "cdf")
+    text = run("report", "results.h5").output
+    assert "Variance" in text and "Distribution" in text and "%^2" in text
+    q05 = cdf.outcome.distribution.quantiles[0]
+    assert f"q(0.05) = {q05.value:.4g}" in text
+    report = json.loads(run("report", "results.h5", "--json").stdout)
+    by_method = {entry["method"]: entry for entry in report["runs"]}
+    assert by_method["cdf"]["distribution"]["cdf"] == list(cdf.outcome.distribution.cdf)
+    assert by_method["variance"]["estimate"] == list(next(
+        r for r in runs.values() if r.method == "variance").outcome.estimate)
+    assert RunRecord.from_json(by_method["cdf"]) == cdf
+    written = json.loads(run("report", "results.h5", "--json", "--plots", "figures").stdout)["plots"]
+    figure = tiny.parent / "figures" / "cdf_contact_area.png"
+    assert str(figure) in written or "figures/cdf_contact_area.png" in written
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cdf_thresholds_and_probabilities_come_from_the_config(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    estimation = {"initial_samples": 4, "batch_size": 4, "distribution": {"contact_area": {
+        "thresholds": {"start": 25, "stop": 60, "count": 36}, "probabilities": [0.25, 0.75]}}}
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(estimation=estimation))
+    shown = json.loads(run("mlmc", "--config", str(config), "--tol-cdf", "0.3", "--workers", "1", "--json", "-q",
+                           expect=(0, 3)).stdout)
+    assert shown["distribution"]["thresholds"] == pytest.approx(np.linspace(25, 60, 36).tolist())
+    assert [q["probability"] for q in shown["distribution"]["quantiles"]] == [0.25, 0.75]
+
+
+BAD_OPTIONS = [
+    (("--tol", "5", "--tol-var", "1"), "exactly one of --tol"),
+    (("--tol-var", "1", "--tol-cdf", "0.1", "--thresholds", "1:2:3"), "exactly one of --tol"),
+    (("--tol-cdf", "0.1"), "--thresholds START:STOP:COUNT"),
+    (("--tol-cdf", "0.1", "--thresholds", "60:25:36"), "START < STOP"),
+    (("--tol-cdf", "0.1", "--thresholds", "25:60:1"), "COUNT >= 2"),
+    (("--tol-cdf", "0.1", "--thresholds", "25:60"), "START:STOP:COUNT"),
+    (("--tol-cdf", "0.1", "--thresholds", "a:b:c"), "START:STOP:COUNT"),
+    (("--tol-cdf", "0.1", "--thresholds", "25:60:2.5"), "START:STOP:COUNT"),
+    (("--tol-cdf", "1.5", "--thresholds", TINY_THRESHOLDS), "a number in (0, 1)"),
+    (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--qoi", "clusters"), "one result column"),
+    (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--probabilities", "0.5,1"), "in (0, 1)"),
+    (("--tol", "5", "--thresholds", TINY_THRESHOLDS), "only with --tol-cdf"),
+    (("--tol-var", "-1"), "positive"),
+    (("--tol-var", "area=1"), "a QoI of this study"),
+    (("--tol-var", "1", "--plan"), "they are for runs of the mean"),
+    (("--tol-var", "1", "--method", "auto"), "they are for runs of the mean"),
+]
+
+
+@pytest.mark.parametrize("options, text", BAD_OPTIONS, ids=[" ".join(o) for o, _ in BAD_OPTIONS])
+def test_bad_options_are_one_line_status_2_and_compute_nothing(tiny, options, text):
+    result = run("mlmc", "--config", str(tiny), *options, "--workers", "1", expect=2)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and text in lines[0], result.stderr
+    if (tiny.parent / "results.h5").exists():
+        assert stored_runs(tiny.parent / "results.h5") == {}
+
+
+def test_too_few_initial_samples_for_a_target_run_name_the_config_field(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(estimation={"initial_samples": 3}))
+    result = run("mlmc", "--config", str(config), "--tol-var", "1", "--workers", "1", expect=2)
+    assert "estimation.initial_samples" in result.stderr and ">= 4" in result.stderr
