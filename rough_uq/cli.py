@@ -1,5 +1,10 @@
 """The ``roughuq`` command line: thin click commands over :mod:`rough_uq.study.pipeline`.
 
+``roughuq mlmc`` estimates the mean (``--tol``), the variance (``--tol-var``,
+on the RMS error of ``Var(Q)``, the QoI's unit squared) or one QoI's
+distribution function with quantiles (``--tol-cdf``, on the largest RMS error
+of ``F`` over ``--thresholds``); exactly one of them per run.
+
 Exit status (also in ``roughuq --help`` and the README):
 
 * 0: done (for ``mlmc`` / ``mc``: the tolerance was met);
@@ -597,7 +602,9 @@ def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi
         _print_run(ReportedRun.from_json(shown), report)
     outcome = record.outcome
     if not outcome.tol_met:
-        click.echo(f"tolerance not met ({outcome.stop_reason}): {_what_to_change(outcome.stop_reason)}", err=True)
+        option = "--tol-var" if target == "variance" else "--tol-cdf"
+        click.echo(f"tolerance not met ({outcome.stop_reason}): {_what_to_change(outcome.stop_reason, option)}",
+                   err=True)
         sys.exit(EXIT_TOL_NOT_MET)
 
 
@@ -623,16 +630,16 @@ def _chosen_method(study: Any, choice: str, method: str, tolerances: Any, cap: f
     return method
 
 
-def _what_to_change(reason: str) -> str:
+def _what_to_change(reason: str, option: str = "--tol") -> str:
     if reason == "max_cost":
-        return "the run reached --max-cost; raise --max-cost (or estimation.max_cost) or loosen --tol"
+        return f"the run reached --max-cost; raise --max-cost (or estimation.max_cost) or loosen {option}"
     if reason == "bias":
-        return ("the bias on this level exceeds the tolerance's share; loosen --tol, use `roughuq mlmc`, or "
+        return (f"the bias on this level exceeds the tolerance's share; loosen {option}, use `roughuq mlmc`, or "
                 "a study with a larger grid.max_level")
     if reason == "max_level":
-        return ("the bias needs a grid finer than grid.max_level; loosen --tol, or screen a new study with a "
+        return (f"the bias needs a grid finer than grid.max_level; loosen {option}, or screen a new study with a "
                 "larger grid.max_level")
-    return "loosen --tol, raise --max-cost, or use a study with a larger grid.max_level"
+    return f"loosen {option}, raise --max-cost, or use a study with a larger grid.max_level"
 
 
 def _print_forecast(forecast: Any, method: str) -> None:
