@@ -292,3 +292,27 @@ def test_too_few_initial_samples_for_a_target_run_name_the_config_field(tmp_path
     config = write_config(tmp_path / "tiny.yaml", tiny_config(estimation={"initial_samples": 3}))
     result = run("mlmc", "--config", str(config), "--tol-var", "1", "--workers", "1", expect=2)
     assert "estimation.initial_samples" in result.stderr and ">= 4" in result.stderr
+
+
+def test_a_cdf_record_round_trips_and_a_malformed_quantile_is_refused_by_its_path():
+    from rough_uq.errors import InvalidParameterError
+
+    data = {
+        "method": "cdf", "status": "finished", "tol": [0.1], "qoi_names": ["contact_area"], "finished": "now",
+        "estimate": [0.1, 0.6, 1.02], "stat_error": [0.01, 0.02, 0.01], "bias_estimate": [0.01],
+        "is_bias_estimated": True, "rmse": [0.03], "levels": [0, 1], "n_samples": [8, 4], "cost": 1.5,
+        "seconds": 2, "mc_cost": 3.0, "mc_seconds_predicted": 6.0, "n_computed": 12, "n_not_converged": 0,
+        "tol_met": True, "stop_reason": "tol_met",
+        "distribution": {"column": "contact_area", "thresholds": [1, 2, 3], "cdf": [0.1, 0.6, 1.0],
+                         "cdf_lower": [0.07, 0.57, 0.97], "cdf_upper": [0.13, 0.63, 1.0], "bandwidths": [2, 1],
+                         "quantiles": [{"probability": 0.5, "value": 1.8, "lower": 1.74, "upper": None}]},
+    }
+    record = RunRecord.from_json(data, run_id="cdf_x")
+    assert record.outcome.variance is None and record.outcome.statistics is None
+    assert record.outcome.distribution.quantiles[0].upper is None
+    assert record.to_json() == {**data, "max_cost": None, "forecast": None,
+                                "rates": None, "warnings": []}
+    data["distribution"]["quantiles"][0]["lower"] = "low"
+    with pytest.raises(InvalidParameterError) as info:
+        RunRecord.from_json(data, run_id="cdf_x")
+    assert info.value.name == "run cdf_x.distribution.quantiles[0].lower"
