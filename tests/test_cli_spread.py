@@ -57,20 +57,21 @@ def _classic_config(tmp_path: Path) -> Path:
     config = yaml.safe_load((tmp_path / "classic-area.yaml").read_text())
     config["grid"]["max_level"] = 2
     config["estimation"]["initial_samples"] = 20
-    # The area is about 19.3 +- 0.4 %: the grid brackets its 5 % and 95 % quantiles with a spacing of 0.05 %.
-    config["estimation"]["distribution"] = {"contact_area": {"thresholds": {"start": 17.5, "stop": 21.5, "count": 81},
+    # The area is about 19.3 +- 0.4 %: the grid brackets its 5 % and 95 % quantiles with a spacing of 0.1 %.
+    config["estimation"]["distribution"] = {"contact_area": {"thresholds": {"start": 17.5, "stop": 21.5, "count": 41},
                                                              "probabilities": [0.05, 0.5, 0.95]}}
     config["output"]["path"] = "classic.h5"
     return write_config(tmp_path / "classic.yaml", config)
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)
 def test_classic_area_variance_and_quantiles_agree_with_plain_mc_on_the_finest_level(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = _classic_config(tmp_path)
     variance = json.loads(run("mlmc", "--config", str(config), "--study", "classic.h5", "--tol-var", "0.03",
                               "--json", "-q", expect=(0, 3)).stdout)
-    cdf = json.loads(run("mlmc", "--study", "classic.h5", "--tol-cdf", "0.05", "--json", "-q",
+    cdf = json.loads(run("mlmc", "--study", "classic.h5", "--tol-cdf", "0.1", "--json", "-q",
                          expect=(0, 3)).stdout)
     assert variance["tol_met"] and cdf["tol_met"], (variance["rmse"], variance["stop_reason"], cdf["rmse"])
     finest = variance["levels"][-1]
