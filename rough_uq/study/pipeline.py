@@ -13,8 +13,10 @@ This is the only module that reads the config and meets the store. It
   :data:`FLUSH_SECONDS`, and at the end of each batch the estimator asks for),
   so an interrupted run loses at most a few seconds of work and its rerun
   replays the same decisions from the stored samples;
-* runs the screening (:func:`run_screening`) and MLMC / MC estimation runs
-  (:func:`run_estimation`) and stores their records, the typed records of
+* runs the screening (:func:`run_screening`), MLMC / MC estimation runs of
+  the mean (:func:`run_estimation`) and MLMC runs of the variance and of a
+  distribution function with quantiles (:func:`run_target`, the targets of
+  :mod:`rough_uq.multilevel.targets`), and stores their records, the typed records of
   :mod:`rough_uq.study.records`; the warnings of the multilevel core
   (``EstimationWarning``) are collected here into the records' diagnostics,
   never passed on as warnings.
