@@ -377,12 +377,12 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                 qoi: str | None = None, thresholds: str | None = None, probabilities: str | None = None) -> None:
         target = _target_of(tol, tol_var, tol_cdf, qoi=qoi, thresholds=thresholds, probabilities=probabilities)
         if target is not None:
-            if choice != "mlmc" or show_plan or shard_size is not None or with_resources:
-                raise InvalidParameterError(
-                    f"--tol-{'var' if target == 'variance' else 'cdf'}", "with " + _mean_only_options(
-                        choice, show_plan, shard_size, with_resources),
-                    "without --method, --plan, --shards or --resources (they are for runs of the mean)",
-                )
+            mean_only = _mean_only_options(choice, show_plan, shard_size, with_resources)
+            if mean_only:
+                name, value = mean_only[0]
+                option = "--tol-var" if target == "variance" else "--tol-cdf"
+                raise InvalidParameterError(name, value, f"not with {option}: --method, --plan, --shards and "
+                                            "--resources are for runs of the mean (--tol)")
             _run_target(target, tol_var=tol_var, tol_cdf=tol_cdf, qoi=qoi, thresholds=thresholds,
                         probabilities=probabilities, study_path=study_path, config_path=config_path,
                         max_cost=max_cost, as_json=as_json, workers=workers, executor=executor, scheduler=scheduler,
@@ -507,10 +507,13 @@ def _estimation_command(method: str) -> Callable[..., Any]:
 
 def _target_of(tol: Sequence[str], tol_var: Sequence[str], tol_cdf: str | None, **cdf_options: str | None) -> str | None:
     """``variance``, ``cdf`` or None (the mean) from the tolerance options; at most one kind may be given."""
-    given = [name for name, value in (("--tol", tol), ("--tol-var", tol_var), ("--tol-cdf", tol_cdf)) if value]
+    options = (("--tol", tol), ("--tol-var", tol_var), ("--tol-cdf", tol_cdf))
+    given = [(name, value) for name, value in options if value]
     if len(given) > 1:
-        raise InvalidParameterError(" / ".join(given), "all given", "exactly one of --tol (mean), --tol-var "
-                                    "(variance) or --tol-cdf (distribution function)")
+        text = " ".join(f"{name} {' '.join(value) if isinstance(value, (tuple, list)) else value}"
+                        for name, value in given)
+        raise InvalidParameterError(" / ".join(name for name, _ in given), text, "exactly one of --tol (mean), "
+                                    "--tol-var (variance) or --tol-cdf (distribution function)")
     extra = [f"--{name}" for name, value in cdf_options.items() if value is not None]
     if extra and tol_cdf is None:
         raise InvalidParameterError(extra[0], cdf_options[extra[0][2:]], "only with --tol-cdf")
@@ -519,11 +522,12 @@ def _target_of(tol: Sequence[str], tol_var: Sequence[str], tol_cdf: str | None, 
     return "cdf" if tol_cdf is not None else None
 
 
-def _mean_only_options(choice: str, show_plan: bool, shard_size: int | None, with_resources: bool) -> str:
-    given = [f"--method {choice}"] if choice != "mlmc" else []
-    given += [name for name, flag in (("--plan", show_plan), ("--shards", shard_size is not None),
-                                      ("--resources", with_resources)) if flag]
-    return " ".join(given)
+def _mean_only_options(choice: str, show_plan: bool, shard_size: int | None,
+                       with_resources: bool) -> list[tuple[str, Any]]:
+    """The options given that only runs of the mean take, as ``(name, value)``."""
+    given = [("--method", choice, choice != "mlmc"), ("--plan", True, show_plan),
+             ("--shards", shard_size, shard_size is not None), ("--resources", True, with_resources)]
+    return [(name, value) for name, value, is_given in given if is_given]
 
 
 def _cdf_tolerance(text: str) -> Any:
