@@ -338,3 +338,22 @@ def test_bad_distribution_settings_in_the_config_name_the_field(tmp_path, distri
     result = run("validate", str(config), expect=2)
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: {field}: "), result.stderr
+
+
+def test_the_cli_and_the_python_front_door_draw_the_same_samples_and_agree(tiny, monkeypatch):
+    import rough_uq
+
+    monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", "estimate")  # the Python API plans FFTs with FFTW_ESTIMATE
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.2), qoi=["contact_area"], coarsest=8,
+                                      max_level=2, seed=2026, solver_tol=1e-8)
+    cli = json.loads(run("mlmc", "--config", str(tiny), "--tol-var", "60", "--workers", "1", "--json", "-q",
+                         expect=(0, 3)).stdout)
+    python = rough_uq.variance(problem, tol=60, n_initial=4, batch_size=4)
+    assert cli["n_samples"] == python.n_samples.tolist()
+    np.testing.assert_allclose(cli["estimate"], python.estimate, rtol=1e-9)
+    cli = json.loads(run("mlmc", "--tol-cdf", "0.3", "--thresholds", TINY_THRESHOLDS, "--workers", "1", "--json",
+                         "-q", expect=(0, 3)).stdout)
+    python = rough_uq.distribution(problem, tol=0.3, thresholds=np.linspace(25, 60, 36), n_initial=4, batch_size=4)
+    assert cli["n_samples"] == python.cdf.n_samples.tolist()
+    np.testing.assert_allclose(cli["distribution"]["cdf"], python.cdf.cdf, atol=1e-9)
