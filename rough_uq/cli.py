@@ -1,5 +1,10 @@
 """The ``roughuq`` command line: thin click commands over :mod:`rough_uq.study.pipeline`.
 
+``roughuq mlmc`` estimates the mean (``--tol``), the variance (``--tol-var``,
+on the RMS error of ``Var(Q)``, the QoI's unit squared) or one QoI's
+distribution function with quantiles (``--tol-cdf``, on the largest RMS error
+of ``F`` over ``--thresholds``); exactly one of them per run.
+
 Exit status (also in ``roughuq --help`` and the README):
 
 * 0: done (for ``mlmc`` / ``mc``: the tolerance was met);
@@ -368,7 +373,21 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     def command(tol: Sequence[str], study_path: str, config_path: str | None, max_cost: float | None,
                 show_plan: bool, shard_size: int | None, with_resources: bool, as_json: bool, workers: int | None,
                 executor: str, scheduler: str | None, quiet: bool, level: int | None = None,
-                choice: str = "mlmc") -> None:
+                choice: str = "mlmc", tol_var: Sequence[str] = (), tol_cdf: str | None = None,
+                qoi: str | None = None, thresholds: str | None = None, probabilities: str | None = None) -> None:
+        target = _target_of(tol, tol_var, tol_cdf, qoi=qoi, thresholds=thresholds, probabilities=probabilities)
+        if target is not None:
+            mean_only = _mean_only_options(choice, show_plan, shard_size, with_resources)
+            if mean_only:
+                name, value = mean_only[0]
+                option = "--tol-var" if target == "variance" else "--tol-cdf"
+                raise InvalidParameterError(name, value, f"not with {option}: --method, --plan, --shards and "
+                                            "--resources are for runs of the mean (--tol)")
+            _run_target(target, tol_var=tol_var, tol_cdf=tol_cdf, qoi=qoi, thresholds=thresholds,
+                        probabilities=probabilities, study_path=study_path, config_path=config_path,
+                        max_cost=max_cost, as_json=as_json, workers=workers, executor=executor, scheduler=scheduler,
+                        quiet=quiet)
+            return
         from rough_uq.study.config import load_config
         from rough_uq.study.pipeline import (
             choose_method,
@@ -458,6 +477,22 @@ def _estimation_command(method: str) -> Callable[..., Any]:
             help="Sample this level (no screening needed; its bias is then not estimated).",
         ))
     else:
+        options += [
+            click.option("--tol-var", "tol_var", multiple=True, metavar="EPS|NAME=EPS",
+                         help="Estimate Var(Q) instead of the mean: tolerance on the RMS error of the variance, "
+                              "in the QoI's unit squared (e.g. %^2), a number (single QoI) or NAME=EPS per QoI."),
+            click.option("--tol-cdf", "tol_cdf", default=None, metavar="EPS",
+                         help="Estimate the distribution function F(s) = P(Q <= s) of --qoi on --thresholds, and "
+                              "its quantiles: tolerance on the largest RMS error of F over the thresholds "
+                              "(dimensionless, in (0, 1))."),
+            click.option("--qoi", "qoi", default=None, metavar="NAME",
+                         help="With --tol-cdf: the QoI column (default: the only one)."),
+            click.option("--thresholds", "thresholds", default=None, metavar="START:STOP:COUNT",
+                         help="With --tol-cdf: COUNT equally spaced values s from START to STOP in the QoI's unit "
+                              "(default: the config's estimation.distribution.NAME.thresholds)."),
+            click.option("--probabilities", "probabilities", default=None, metavar="P,P,...",
+                         help="With --tol-cdf: the quantiles reported (default: the config's, else 0.05,0.5,0.95)."),
+        ]
         options.append(click.option(
             "--method", "choice", type=click.Choice(METHODS), default="mlmc", show_default=True,
             help="mlmc: plain MLMC (Richardson if the config's estimation.richardson says so); richardson: "
@@ -468,6 +503,113 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     for option in reversed(options):
         command = option(command)
     return command
+
+
+def _target_of(tol: Sequence[str], tol_var: Sequence[str], tol_cdf: str | None, **cdf_options: str | None) -> str | None:
+    """``variance``, ``cdf`` or None (the mean) from the tolerance options; at most one kind may be given."""
+    options = (("--tol", tol), ("--tol-var", tol_var), ("--tol-cdf", tol_cdf))
+    given = [(name, value) for name, value in options if value]
+    if len(given) > 1:
+        text = " ".join(f"{name} {' '.join(value) if isinstance(value, (tuple, list)) else value}"
+                        for name, value in given)
+        raise InvalidParameterError(" / ".join(name for name, _ in given), text, "exactly one of --tol (mean), "
+                                    "--tol-var (variance) or --tol-cdf (distribution function)")
+    extra = [f"--{name}" for name, value in cdf_options.items() if value is not None]
+    if extra and tol_cdf is None:
+        raise InvalidParameterError(extra[0], cdf_options[extra[0][2:]], "only with --tol-cdf")
+    if tol_var:
+        return "variance"
+    return "cdf" if tol_cdf is not None else None
+
+
+def _mean_only_options(choice: str, show_plan: bool, shard_size: int | None,
+                       with_resources: bool) -> list[tuple[str, Any]]:
+    """The options given that only runs of the mean take, as ``(name, value)``."""
+    given = [("--method", choice, choice != "mlmc"), ("--plan", True, show_plan),
+             ("--shards", shard_size, shard_size is not None), ("--resources", True, with_resources)]
+    return [(name, value) for name, value, is_given in given if is_given]
+
+
+def _cdf_tolerance(text: str) -> Any:
+    """``--tol-cdf``: one number in (0, 1), as the array of one tolerance the pipeline takes."""
+    import numpy as np
+
+    try:
+        eps = float(text)
+    except ValueError:
+        eps = math.nan
+    if not 0 < eps < 1:
+        raise InvalidParameterError("--tol-cdf", text, "a number in (0, 1): the RMS error of F = P(Q <= s)")
+    return np.array([eps])
+
+
+def _thresholds(text: str | None) -> Any:
+    """``--thresholds START:STOP:COUNT`` as the array of COUNT equally spaced values (None if not given)."""
+    import numpy as np
+
+    if text is None:
+        return None
+    allowed = "START:STOP:COUNT with START < STOP and an integer COUNT >= 2, in the QoI's unit (e.g. 15:25:41)"
+    parts = text.split(":")
+    try:
+        start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
+    except (ValueError, IndexError):
+        raise InvalidParameterError("--thresholds", text, allowed) from None
+    if len(parts) != 3 or not (math.isfinite(start) and math.isfinite(stop) and start < stop and count >= 2):
+        raise InvalidParameterError("--thresholds", text, allowed)
+    return np.linspace(start, stop, count)
+
+
+def _probabilities(text: str | None) -> tuple[float, ...] | None:
+    """``--probabilities P,P,...`` (None if not given)."""
+    if text is None:
+        return None
+    try:
+        values = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or not all(0 < p < 1 for p in values):
+        raise InvalidParameterError("--probabilities", text, "comma-separated numbers in (0, 1), e.g. 0.05,0.95")
+    return values
+
+
+def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi: str | None,
+                thresholds: str | None, probabilities: str | None, study_path: str, config_path: str | None,
+                max_cost: float | None, as_json: bool, workers: int | None, executor: str, scheduler: str | None,
+                quiet: bool) -> None:
+    """``roughuq mlmc --tol-var`` / ``--tol-cdf``: run the target, print it as `roughuq report` does, exit 3 if missed."""
+    from rough_uq.study.config import load_config
+    from rough_uq.study.pipeline import cdf_request, create_study, open_existing_study, parse_tolerances, run_target
+    from rough_uq.report.summary import ReportedRun, study_report
+
+    grid, wanted = _thresholds(thresholds), _probabilities(probabilities)
+    config = load_config(config_path) if config_path else None
+    if config is not None and not Path(study_path).exists():
+        create_study(config, study_path).close()  # target runs need no screening
+    with open_existing_study(study_path, config=config) as study:
+        request = None
+        if target == "variance":
+            tolerances = parse_tolerances(tol_var, study.config, option="--tol-var", use_config=False)
+        else:
+            tolerances = _cdf_tolerance(tol_cdf)
+            request = cdf_request(study.config, column=qoi, thresholds=grid, probabilities=wanted)
+        with _executor(study.config, workers, executor, scheduler) as pool:
+            watch = (study.config, pool, executor, "a looser tolerance")
+            record = run_target(study, target=target, tol=tolerances, executor=pool, request=request,
+                                progress=_progress(quiet or as_json, watch), max_cost=max_cost)
+    with open_existing_study(study_path, writable=False) as study:
+        report = study_report(study.store, study.config)
+    shown = next(run for run in report["runs"] if run["run_id"] == record.run_id)
+    if as_json:
+        _dump(shown)
+    else:
+        _print_run(ReportedRun.from_json(shown), report)
+    outcome = record.outcome
+    if not outcome.tol_met:
+        option = "--tol-var" if target == "variance" else "--tol-cdf"
+        click.echo(f"tolerance not met ({outcome.stop_reason}): {_what_to_change(outcome.stop_reason, option)}",
+                   err=True)
+        sys.exit(EXIT_TOL_NOT_MET)
 
 
 #: Choices of ``roughuq mlmc --method``.
@@ -492,16 +634,16 @@ def _chosen_method(study: Any, choice: str, method: str, tolerances: Any, cap: f
     return method
 
 
-def _what_to_change(reason: str) -> str:
+def _what_to_change(reason: str, option: str = "--tol") -> str:
     if reason == "max_cost":
-        return "the run reached --max-cost; raise --max-cost (or estimation.max_cost) or loosen --tol"
+        return f"the run reached --max-cost; raise --max-cost (or estimation.max_cost) or loosen {option}"
     if reason == "bias":
-        return ("the bias on this level exceeds the tolerance's share; loosen --tol, use `roughuq mlmc`, or "
+        return (f"the bias on this level exceeds the tolerance's share; loosen {option}, use `roughuq mlmc`, or "
                 "a study with a larger grid.max_level")
     if reason == "max_level":
-        return ("the bias needs a grid finer than grid.max_level; loosen --tol, or screen a new study with a "
+        return (f"the bias needs a grid finer than grid.max_level; loosen {option}, or screen a new study with a "
                 "larger grid.max_level")
-    return "loosen --tol, raise --max-cost, or use a study with a larger grid.max_level"
+    return f"loosen {option}, raise --max-cost, or use a study with a larger grid.max_level"
 
 
 def _print_forecast(forecast: Any, method: str) -> None:

@@ -1,4 +1,4 @@
-"""Figures of a study: MLMC rates, cost against tolerance, samples per level, load curves, one contact sample.
+"""Figures of a study: MLMC rates, cost against tolerance, samples per level, load curves, CDFs, one contact sample.
 
 An edge module like :mod:`rough_uq.report.summary`: it reads the JSON-able dict of
 :func:`~rough_uq.report.summary.study_report` (never the store), as the typed
@@ -323,6 +323,49 @@ def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
     return _save(figure, path)
 
 
+def _cdf_figure(runs: Sequence[RunRecord], column: str, unit: str | None, path: Path) -> Path:
+    """The CDF of ``column`` from every finished cdf run: the monotone estimate, its RMSE band, the quantiles."""
+    figure = _new_figure(6.4, 4.8)
+    ax = figure.subplots()
+    for k, run in enumerate(runs):
+        distribution = run.outcome.distribution
+        colour = f"C{k % 10}"
+        s = np.asarray(distribution.thresholds, dtype=float)
+        ax.fill_between(s, distribution.cdf_lower, distribution.cdf_upper, color=colour, alpha=0.25, linewidth=0,
+                        step=None)
+        ax.plot(s, distribution.cdf, "-", color=colour,
+                label=f"MLMC, tol {run.tol[0]:g}: sup RMSE {run.outcome.rmse[0]:.2g} (band)")
+        for quantile in distribution.quantiles:
+            if quantile.value is None:
+                continue
+            # The error bar reaches the grid's end where the band does not cross p inside it.
+            low = s[0] if quantile.lower is None else quantile.lower
+            high = s[-1] if quantile.upper is None else quantile.upper
+            ax.errorbar([quantile.value], [quantile.probability],
+                        xerr=[[quantile.value - low], [high - quantile.value]], fmt="o", color=colour, capsize=3)
+    ax.set_xlabel(f"s [{unit}]" if unit else "s")
+    ax.set_ylabel(f"F(s) = P({column} <= s)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(f"distribution of {column}, quantiles with error bars")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small")
+    return _save(figure, path)
+
+
+def _cdf_figures(drawn: _Drawn, directory: Path) -> list[Path]:
+    """One ``cdf_<column>.png`` per column with finished cdf runs (``@`` of a load column as ``-at-``)."""
+    by_column: dict[str, list[RunRecord]] = {}
+    for run in drawn.finished("cdf"):
+        if run.outcome.distribution is not None:
+            by_column.setdefault(run.outcome.distribution.column, []).append(run)
+    written = []
+    for column, runs in by_column.items():
+        unit = drawn.units.get(column, drawn.units.get(split_column(column)[0]))
+        name = "cdf_" + column.replace("@", "-at-") + ".png"
+        written.append(_cdf_figure(runs, column, unit, directory / name))
+    return written
+
+
 def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Path]:
     """Write the figures of a study report as PNG files.
 
@@ -359,6 +402,11 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             contact area the fitted small-load line ``kappa r``
             (:func:`~rough_uq.report.summary.fit_area_slope`). Needs a study
             with several loads and a finished run.
+        ``cdf_<column>.png``
+            Per column with finished ``cdf`` runs (``roughuq mlmc
+            --tol-cdf``): the monotone CDF estimate against the thresholds
+            with its band ``cdf +- sup-norm RMSE``, and the quantiles with
+            their error bars (cut at the grid where the band leaves it).
 
         A figure without its data is skipped.
 
@@ -381,7 +429,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
         path = draw(drawn, directory / name)
         if path is not None:
             written.append(path)
-    return written
+    return written + _cdf_figures(drawn, directory)
 
 
 # ---------------------------------------------------------------------------

@@ -84,11 +84,16 @@ __all__ = [
     "load_text",
     "render_report",
     "render_runs",
+    "render_targets",
+    "TARGET_METHODS",
     "render_screening",
     "screening_json",
     "split_column",
     "study_report",
 ]
+
+#: Run methods whose estimate is not the mean (their outcome is read differently).
+TARGET_METHODS = ("variance", "cdf")
 
 _STOP_REASONS = {
     "max_level": "the bias needs a grid finer than grid.max_level",
@@ -333,6 +338,8 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
 
     ``measured_ratio`` is the measured MC/MLMC ratio (:attr:`ReportedRun.measured_ratio`) where known.
     """
+    if run.method in TARGET_METHODS and run.qoi_names:
+        qoi_names = run.qoi_names  # a cdf run has one column, whatever the study's
     head = f"{run.method} {_tol_text(qoi_names, run.tol)}"
     outcome = run.outcome
     if run.status != "finished" or outcome is None:
@@ -349,12 +356,17 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
         lines = [f"{head}: tolerance met", f"  {where}"]
     else:
         lines = [f"{head}: NOT MET ({reason})", f"  {_STOP_REASONS.get(reason, reason)}; {where}"]
-    lines += [_qoi_line(outcome, q, name, run.tol[q], units) for q, name in enumerate(qoi_names)]
+    if run.method == "variance":
+        lines += [_variance_line(outcome, q, name, run.tol[q], units) for q, name in enumerate(qoi_names)]
+    elif run.method == "cdf":
+        lines += _cdf_lines(outcome, run.tol[0], units)
+    else:
+        lines += [_qoi_line(outcome, q, name, run.tol[q], units) for q, name in enumerate(qoi_names)]
     lines.append(
         f"  time: elapsed {_seconds(outcome.elapsed)}; samples {_seconds(outcome.seconds, 'CPU')}; "
         f"modelled cost {_g(outcome.cost)} ref-s"
     )
-    if run.method == "mlmc":
+    if run.method != "mc":
         text = (f"  plain MC: {_seconds(outcome.mc_seconds_predicted, 'CPU')} predicted; "
                 f"MC/MLMC {_g(outcome.work_ratio, 2)} predicted")
         if measured_ratio is not None:
@@ -370,6 +382,48 @@ def _qoi_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]
     bias = f"bias {_g(outcome.bias_estimate[q], 2)}" if outcome.is_bias_estimated else "bias not estimated"
     return (f"  {name} = {_value_error(outcome.estimate[q], outcome.stat_error[q])}{_unit(_column_unit(units, name))} "
             f"(RMSE {_g(rmse, 2)} {relation} tol {_g(tol)}, {bias})")
+
+
+def _squared(unit: str) -> str:
+    """The unit of a variance: ``%^2``, ``(per unit area)^2``; empty for a dimensionless QoI."""
+    if unit in ("", "fraction"):
+        return ""
+    return f" {unit}^2" if " " not in unit else f" ({unit})^2"
+
+
+def _variance_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]) -> str:
+    """``  Var(name) = value ± error unit^2 (RMSE r <= tol t, bias b)`` for column ``q`` of a variance run."""
+    rmse = outcome.rmse[q]
+    relation = "<=" if rmse <= tol * (1 + 1e-12) else ">"
+    bias = f"bias {_g(outcome.bias_estimate[q], 2)}" if outcome.is_bias_estimated else "bias not estimated"
+    return (f"  Var({name}) = {_value_error(outcome.estimate[q], outcome.stat_error[q])}"
+            f"{_squared(_column_unit(units, name))} (RMSE {_g(rmse, 2)} {relation} tol {_g(tol)}, {bias})")
+
+
+def _quantile_text(quantile: Any, unit: str) -> str:
+    """``q(0.05) = 17.9 [17.5, 18.3] %``; an open end of the error bar is ``-inf`` / ``inf``."""
+    if quantile.value is None:
+        return f"q({quantile.probability:g}) not bracketed by the thresholds"
+    lower = "-inf" if quantile.lower is None else _g(quantile.lower, 4)
+    upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
+    return f"q({quantile.probability:g}) = {_g(quantile.value, 4)} [{lower}, {upper}]{_unit(unit)}"
+
+
+def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
+    """The thresholds, the sup-norm error and the quantiles of a cdf run."""
+    distribution = outcome.distribution
+    if distribution is None:  # pragma: no cover - the pipeline always stores it
+        return []
+    unit = _column_unit(units, distribution.column)
+    s = distribution.thresholds
+    rmse = outcome.rmse[0]
+    relation = "<=" if rmse <= tol * (1 + 1e-12) else ">"
+    lines = [
+        f"  F(s) = P({distribution.column} <= s) at {len(s)} thresholds {_g(s[0], 4)} .. {_g(s[-1], 4)}{_unit(unit)}",
+        f"  sup-norm RMSE {_g(rmse, 2)} {relation} tol {_g(tol)} (stat. {_g(max(outcome.stat_error), 2)}, "
+        f"bias {_g(outcome.bias_estimate[0], 2)})",
+    ]
+    return lines + [f"  {_quantile_text(q, unit)}" for q in distribution.quantiles]
 
 
 def _table(title: str) -> Any:
@@ -457,6 +511,62 @@ def render_runs(console: Any, runs: Sequence[ReportedRun], qoi_names: Sequence[s
             console.print(escape(line), highlight=False, soft_wrap=False)
 
 
+def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
+    """Every finished variance run, one row per QoI column."""
+    table = _table("Variance (MLMC, RMSE on Var(Q))")
+    for column in ("QoI", "Var(Q) ± stat.", "sd(Q)", "RMSE", "tol", "bias", "levels", "N_l", "met"):
+        table.add_column(column, justify="right")
+    for run in runs:
+        outcome = run.outcome
+        for q, name in enumerate(run.qoi_names or ()):
+            variance = outcome.estimate[q]
+            table.add_row(
+                escape(name + _squared(_column_unit(units, name))),
+                _value_error(variance, outcome.stat_error[q]),
+                _g(math.sqrt(variance), 4) if variance >= 0 else "-",
+                _g(outcome.rmse[q], 2), _g(run.tol[q]), _g(outcome.bias_estimate[q], 2),
+                f"0..{outcome.levels[-1]}", " ".join(str(n) for n in outcome.n_samples),
+                "yes" if outcome.tol_met else "no",
+            )
+    return table
+
+
+def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
+    """Every finished cdf run, one row per quantile (its error bar from the sup-norm RMSE band)."""
+    table = _table("Distribution (MLMC CDF, quantiles with error bars)")
+    for column in ("QoI", "p", "q_p", "error bar", "sup RMSE", "tol", "levels", "N_l", "met"):
+        table.add_column(column, justify="right")
+    for run in runs:
+        outcome, distribution = run.outcome, run.outcome.distribution
+        unit = _column_unit(units, distribution.column)
+        for quantile in distribution.quantiles or (None,):
+            value, bar = "-", "-"
+            if quantile is not None and quantile.value is not None:
+                value = _g(quantile.value, 4)
+                lower = "-inf" if quantile.lower is None else _g(quantile.lower, 4)
+                upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
+                bar = f"[{lower}, {upper}]"
+            table.add_row(
+                escape(distribution.column + (f" [{unit}]" if _unit(unit) else "")),
+                "-" if quantile is None else _g(quantile.probability), value, bar,
+                _g(outcome.rmse[0], 2), _g(run.tol[0]), f"0..{outcome.levels[-1]}",
+                " ".join(str(n) for n in outcome.n_samples), "yes" if outcome.tol_met else "no",
+            )
+    return table
+
+
+def render_targets(console: Any, runs: Sequence[RunRecord], units: dict[str, str] | None = None) -> None:
+    """The "Variance" and "Distribution" tables of the finished variance and cdf runs (nothing without any)."""
+    units = units or {}
+    finished = [run for run in runs if run.is_finished]
+    variance = [run for run in finished if run.method == "variance"]
+    cdf = [run for run in finished if run.method == "cdf" and run.outcome.distribution is not None]
+    if variance:
+        console.print(_variance_table(variance, units))
+    if cdf:
+        console.print(_distribution_table(cdf, units))
+
+
 def render_report(report: dict[str, Any], console: Any) -> None:
     """Print a :func:`study_report` (or its JSON round trip) with rich."""
     config = report["config"]
@@ -482,7 +592,9 @@ def render_report(report: dict[str, Any], console: Any) -> None:
     else:
         console.print("no screening yet: run `roughuq screen CONFIG`")
     if report["runs"]:
-        render_runs(console, [ReportedRun.from_json(run) for run in report["runs"]], report["qoi_names"], units)
+        reported = [ReportedRun.from_json(run) for run in report["runs"]]
+        render_runs(console, reported, report["qoi_names"], units)
+        render_targets(console, [run.record for run in reported], units)
     if report.get("load_curves"):
         render_load_curves(console, report["load_curves"], units)
     if report.get("dropped_runs"):
@@ -608,7 +720,7 @@ def load_curves(qoi_names: Sequence[str], runs: Sequence[RunRecord], config: Any
     relative = _relative_loads(config, loads)
     out = []
     for run in runs:
-        if not run.is_finished:
+        if not run.is_finished or run.method in TARGET_METHODS:
             continue
         outcome = run.outcome
         curves: dict[str, dict[str, list[float]]] = {}

@@ -64,6 +64,8 @@ import os
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+import typing
+from dataclasses import dataclass
 from typing import Annotated, Any, Literal, Union
 
 import yaml
@@ -100,6 +102,8 @@ __all__ = [
     "GridConfig",
     "ScreeningConfig",
     "EstimationConfig",
+    "DistributionConfig",
+    "ThresholdGrid",
     "OutputConfig",
     "StudyConfig",
     "load_config",
@@ -709,6 +713,49 @@ class ScreeningConfig(_Section):
     )
 
 
+class ThresholdGrid(_Section):
+    """Equally spaced thresholds ``s_j`` of a distribution function, in the QoI's unit."""
+
+    start: Float = _field(description="First threshold (the QoI's unit)", allowed="a number < stop")
+    stop: Float = _field(description="Last threshold (the QoI's unit)", allowed="a number > start")
+    count: Int = _field(description="Number of thresholds, ends included (count)", allowed="integer >= 2", ge=2)
+
+    @model_validator(mode="after")
+    def _increasing(self) -> ThresholdGrid:
+        if not self.stop > self.start:
+            _fail([_problem("stop", "must be larger than start", self.stop, f"a number > start = {self.start:g}")])
+        return self
+
+    def values(self) -> list[float]:
+        """The thresholds, ``count`` values from ``start`` to ``stop`` (the QoI's unit)."""
+        step = (self.stop - self.start) / (self.count - 1)
+        return [self.start + j * step for j in range(self.count - 1)] + [self.stop]
+
+
+class DistributionConfig(_Section):
+    """Settings of ``roughuq mlmc --tol-cdf`` for one QoI: where the CDF is estimated and which quantiles."""
+
+    thresholds: ThresholdGrid | None = _field(
+        None,
+        description="Grid of values s where F(s) = P(Q <= s) is estimated (the QoI's unit); it must bracket "
+        "the quantiles, with a spacing well below their error bars; null = give --thresholds",
+        allowed="a mapping with keys start, stop, count, or null",
+    )
+    probabilities: tuple[Float, ...] = _field(
+        (0.05, 0.5, 0.95),
+        description="Probabilities p of the quantiles q_p reported (dimensionless)",
+        allowed="a non-empty list of distinct numbers in (0, 1)",
+        min_length=1,
+    )
+
+    @field_validator("probabilities")
+    @classmethod
+    def _in_unit_interval(cls, value: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(0 < p < 1 for p in value) or len(set(value)) != len(value):
+            raise PydanticCustomError("probabilities", "must be distinct numbers strictly between 0 and 1")
+        return value
+
+
 class EstimationConfig(_Section):
     """The estimation runs (SPEC section 5)."""
 
@@ -745,6 +792,11 @@ class EstimationConfig(_Section):
         description="MLMC: Richardson-extrapolate the finest level, w = 2^alpha / (2^alpha - 1), where the "
         "level means decay with stable ratios; refused with a message (plain MLMC) where they do not",
         allowed="true or false",
+    )
+    distribution: dict[str, DistributionConfig] = _field(
+        {},
+        description="Per QoI name, the thresholds and quantile probabilities of `roughuq mlmc --tol-cdf` runs",
+        allowed="a mapping of QoI names of the qoi section to {thresholds, probabilities}",
     )
 
 
@@ -903,6 +955,10 @@ class StudyConfig(_Section):
                     f"integer >= 2 and <= grid.max_level + 1 = {self.grid.max_level + 1}",
                 )
             )
+        for name in self.estimation.distribution:
+            if name not in self.qoi:
+                problems.append(_problem(f"estimation.distribution.{name}", "not a QoI of this study", name,
+                                         f"a QoI of the qoi section: {', '.join(self.qoi)}"))
         if problems:
             _fail(problems)
         return self
@@ -962,6 +1018,13 @@ def _model_of(annotation: object) -> type[BaseModel] | None:
 _QOI_MAPPING = object()  # marks the qoi mapping while walking a location
 
 
+@dataclass(frozen=True)
+class _NamedSections:
+    """Marks a mapping of names to ``section`` models (``estimation.distribution``) while walking a location."""
+
+    section: type[BaseModel] | None
+
+
 def _walk(loc: tuple[str, ...]) -> tuple[type[BaseModel] | None, Any]:
     """The model that holds the last element of ``loc``, and its FieldInfo (None if not a field)."""
     model: Any = StudyConfig
@@ -974,12 +1037,23 @@ def _walk(loc: tuple[str, ...]) -> tuple[type[BaseModel] | None, Any]:
             if is_last:
                 return None, None
             continue
+        if isinstance(model, _NamedSections):
+            model = model.section
+            if is_last:
+                return None, None
+            continue
         info = model.model_fields.get(part)
         if info is None or info.exclude:
             return (model if is_last else None), None
         if is_last:
             return model, info
-        model = _QOI_MAPPING if (model is StudyConfig and part == "qoi") else _model_of(info.annotation)
+        if model is StudyConfig and part == "qoi":
+            model = _QOI_MAPPING
+        elif typing.get_origin(info.annotation) is dict:
+            # A mapping of names to sections (estimation.distribution): skip the name.
+            model = _NamedSections(_model_of(info.annotation))
+        else:
+            model = _model_of(info.annotation)
     return model, None
 
 

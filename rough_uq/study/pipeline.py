@@ -13,8 +13,10 @@ This is the only module that reads the config and meets the store. It
   :data:`FLUSH_SECONDS`, and at the end of each batch the estimator asks for),
   so an interrupted run loses at most a few seconds of work and its rerun
   replays the same decisions from the stored samples;
-* runs the screening (:func:`run_screening`) and MLMC / MC estimation runs
-  (:func:`run_estimation`) and stores their records, the typed records of
+* runs the screening (:func:`run_screening`), MLMC / MC estimation runs of
+  the mean (:func:`run_estimation`) and MLMC runs of the variance and of a
+  distribution function with quantiles (:func:`run_target`, the targets of
+  :mod:`rough_uq.multilevel.targets`), and stores their records, the typed records of
   :mod:`rough_uq.study.records`; the warnings of the multilevel core
   (``EstimationWarning``) are collected here into the records' diagnostics,
   never passed on as warnings.
@@ -47,10 +49,12 @@ from rough_uq.study.fft_wisdom import prepare_wisdom
 from rough_uq.study.progress import Progress
 from rough_uq.study.records import (
     Diagnostic,
+    DistributionRecord,
     DroppedLevel,
     Forecast,
     LevelTable,
     PlanRecord,
+    QuantileRecord,
     RatesRecord,
     RunOutcome,
     RunRecord,
@@ -61,6 +65,9 @@ from rough_uq.study.records import (
     utc_timestamp,
 )
 from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
+from rough_uq.multilevel.distribution import cdf_level_term, mlmc_cdf, quantiles
+from rough_uq.multilevel.moments import mlmc_variance, variance_level_term
+from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, _default_bandwidth
 from rough_uq.problem.runs import run_id
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
@@ -95,6 +102,11 @@ __all__ = [
     "parse_tolerances",
     "run_screening",
     "run_estimation",
+    "run_target",
+    "target_run_id",
+    "cdf_request",
+    "CdfRequest",
+    "TARGETS",
     "screening_statistics",
     "missing_samples",
     "WorkPlan",
@@ -563,14 +575,17 @@ def _predictions(
 # ---------------------------------------------------------------------------
 
 
-def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.ndarray:
+def parse_tolerances(
+    values: Sequence[str] | None, config: StudyConfig, *, option: str = "--tol", use_config: bool = True
+) -> np.ndarray:
     """Tolerances per column from ``--tol`` values (``EPS`` or ``NAME=EPS``), falling back to the config's.
 
     A bare number is allowed only for a single QoI (with a load curve: for
     each of its load columns). With a load curve, ``NAME`` may be a QoI (its
     tolerance for every load) or one column ``QOI@LOAD``, which takes
     precedence. Raises :class:`~rough_uq.errors.InvalidParameterError` naming
-    what is wrong.
+    ``option`` and what is wrong. ``use_config=False`` (``--tol-var``, whose
+    unit is the QoI's squared) ignores the config's ``qoi.<name>.tol``.
     """
     columns = config.qoi_columns
     names = tuple(config.qoi) + tuple(column for column, _, _ in columns if column not in config.qoi)
@@ -584,28 +599,28 @@ def parse_tolerances(values: Sequence[str] | None, config: StudyConfig) -> np.nd
             if not name:
                 if len(config.qoi) != 1:
                     raise InvalidParameterError(
-                        "--tol", part, f"NAME=EPS pairs, one per QoI ({', '.join(config.qoi)}), with several QoIs"
+                        option, part, f"NAME=EPS pairs, one per QoI ({', '.join(config.qoi)}), with several QoIs"
                     )
                 name = next(iter(config.qoi))
             if name not in names:
-                raise InvalidParameterError("--tol", part, f"a QoI of this study: {', '.join(names)}")
+                raise InvalidParameterError(option, part, f"a QoI of this study: {', '.join(names)}")
             try:
                 eps = float(number)
             except ValueError:
-                raise InvalidParameterError("--tol", part, "a positive number, e.g. 0.2 or contact_area=0.2") from None
+                raise InvalidParameterError(option, part, "a positive number, e.g. 0.2 or contact_area=0.2") from None
             if not (math.isfinite(eps) and eps > 0):
-                raise InvalidParameterError("--tol", part, "a positive, finite number")
+                raise InvalidParameterError(option, part, "a positive, finite number")
             if name in given:
-                raise InvalidParameterError("--tol", part, f"one tolerance per QoI; {name} was already given "
+                raise InvalidParameterError(option, part, f"one tolerance per QoI; {name} was already given "
                                             f"{given[name]:g}")
             given[name] = eps
     tol = []
     for column, name, settings in columns:
-        eps = given.get(column, given.get(name, getattr(settings, "tol", None)))
+        configured = getattr(settings, "tol", None) if use_config else None
+        eps = given.get(column, given.get(name, configured))
         if eps is None:
-            raise InvalidParameterError(
-                "--tol", name, f"a tolerance for every QoI: give --tol {name}=EPS or set qoi.{name}.tol"
-            )
+            where = f" or set qoi.{name}.tol" if use_config else ""
+            raise InvalidParameterError(option, name, f"a tolerance for every QoI: give {option} {name}=EPS{where}")
         tol.append(eps)
     return np.array(tol, dtype=float)
 
@@ -1110,6 +1125,292 @@ def _outcome(
         n_computed=sampler.n_computed,
         n_not_converged=count_not_converged(used),
         diagnostics=_unique(diagnostics),
+    )
+
+
+# ---------------------------------------------------------------------------
+# Targets beyond the mean: variance and distribution function
+# ---------------------------------------------------------------------------
+
+#: Targets of :func:`run_target` (``roughuq mlmc --tol-var`` / ``--tol-cdf``).
+TARGETS = ("variance", "cdf")
+#: Fewest initial samples per level of a target run: the variance of a level's variance term needs four.
+MIN_TARGET_SAMPLES = 4
+
+
+@dataclass(frozen=True)
+class CdfRequest:
+    """What a ``cdf`` run estimates: one column's distribution function on a grid, and which quantiles.
+
+    Attributes
+    ----------
+    column : str
+        A result column of the study (``config.qoi_names``).
+    thresholds : ndarray, shape (m,)
+        Strictly increasing ``s_j``, the column's unit.
+    probabilities : tuple of float
+        ``p`` of the quantiles reported, in (0, 1).
+    """
+
+    column: str
+    thresholds: np.ndarray
+    probabilities: tuple[float, ...]
+
+
+def cdf_request(
+    config: StudyConfig,
+    *,
+    column: str | None,
+    thresholds: Sequence[float] | None = None,
+    probabilities: Sequence[float] | None = None,
+) -> CdfRequest:
+    """The column, thresholds and probabilities of a ``cdf`` run: as given, else from ``estimation.distribution``.
+
+    Raises :class:`~rough_uq.errors.InvalidParameterError` naming ``--qoi`` or
+    ``--thresholds`` when the column is unknown or no thresholds are given
+    (saying how to give them).
+    """
+    names = config.qoi_names
+    if column is None and len(names) == 1:
+        column = names[0]
+    if column not in names:
+        raise InvalidParameterError("--qoi", column, f"one result column of this study: {', '.join(names)}")
+    settings = config.estimation.distribution.get(_qoi_of(config, column))
+    if thresholds is None and (settings is None or settings.thresholds is None):
+        raise InvalidParameterError(
+            "--thresholds", None, f"the values s where F(s) = P({column} <= s) is estimated: give --thresholds "
+            f"START:STOP:COUNT (the QoI's unit) or set estimation.distribution.{_qoi_of(config, column)}.thresholds "
+            "in the config",
+        )
+    values = np.asarray(settings.thresholds.values() if thresholds is None else thresholds, dtype=float)
+    if values.ndim != 1 or values.size < 2 or not np.all(np.isfinite(values)) or np.any(np.diff(values) <= 0):
+        raise InvalidParameterError("--thresholds", thresholds, "at least two finite, strictly increasing values")
+    if probabilities is None:
+        probabilities = DEFAULT_PROBABILITIES if settings is None else settings.probabilities
+    p = tuple(float(x) for x in probabilities)
+    if not p or not all(0 < x < 1 for x in p):
+        raise InvalidParameterError("--probabilities", probabilities, "numbers strictly between 0 and 1")
+    return CdfRequest(column=column, thresholds=values, probabilities=p)
+
+
+def _qoi_of(config: StudyConfig, column: str) -> str:
+    """The QoI name of a result column (a load-curve column ``qoi@load`` belongs to ``qoi``)."""
+    return next(name for col, name, _ in config.qoi_columns if col == column)
+
+
+def target_run_id(study: Study, *, target: str, tol: np.ndarray, request: CdfRequest | None = None) -> str:
+    """Name of a variance or cdf run; the same as :func:`rough_uq.variance` / :func:`rough_uq.distribution`
+    give it, so the CLI and the Python API draw the same samples.
+
+    A ``cdf`` run is named by its column, ``tol`` and ``theta``, not by its
+    thresholds: a rerun with other thresholds reuses the samples and replaces
+    the record.
+    """
+    if target not in TARGETS:
+        raise ValueError(f"target must be one of {TARGETS}, got {target!r}")
+    columns = study.config.qoi_names if target == "variance" else [request.column]
+    return run_id(target, columns, np.asarray(tol, dtype=float), study.config.estimation.theta)
+
+
+class _PlannedSampler:
+    """A sampler that announces every batch to the progress before the study sampler computes it.
+
+    The targets' adaptive driver does not publish its plan, so the progress
+    shows per level the samples asked for so far (bars that grow as the run
+    adapts), which is also what the CLI's memory warning watches.
+    """
+
+    def __init__(self, sampler: StudySampler, progress: Progress) -> None:
+        self.sampler = sampler
+        self.progress = progress
+        self.asked: dict[int, int] = {}
+
+    def __call__(self, level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        done = dict(self.asked)  # every earlier batch is complete
+        # Samples of this batch already stored (a resumed run) count as done.
+        done[level] = done.get(level, 0) + int(indices.size - self.sampler.missing(level, indices).size)
+        self.asked[level] = self.asked.get(level, 0) + int(indices.size)
+        levels = sorted(self.asked)
+        self.progress.plan(levels, [self.asked[lv] for lv in levels], [done.get(lv, 0) for lv in levels])
+        return self.sampler(level, indices)
+
+
+def run_target(
+    study: Study,
+    *,
+    target: str,
+    tol: np.ndarray,
+    executor: Executor,
+    progress: Progress,
+    max_cost: float | None = None,
+    request: CdfRequest | None = None,
+) -> RunRecord:
+    """Run MLMC for the variance of every column (``target="variance"``) or one column's CDF (``"cdf"``).
+
+    The adaptive driver of :mod:`rough_uq.multilevel.targets` runs on levels
+    ``0..min(2, grid.max_level)`` first with ``estimation.initial_samples``
+    samples each (at least :data:`MIN_TARGET_SAMPLES`), adding levels up to
+    ``grid.max_level``; no screening is needed. Samples come through a
+    :class:`StudySampler` of the run's stage, so an interrupted run resumes
+    and the same config gives the same numbers with any number of workers.
+
+    Parameters
+    ----------
+    target : {"variance", "cdf"}
+    tol : ndarray
+        ``variance``: RMS tolerance per column, the QoI's unit squared;
+        ``cdf``: shape (1,), tolerance on the largest RMS error of ``F`` over
+        the thresholds (dimensionless).
+    max_cost : float, optional
+        Modelled reference seconds; default ``estimation.max_cost``.
+    request : CdfRequest
+        ``cdf`` only (:func:`cdf_request`).
+
+    Returns
+    -------
+    RunRecord
+        Method ``target``; stored as ``running`` when it starts and
+        ``finished`` when it ends.
+    """
+    tol = np.asarray(tol, dtype=float)
+    if target == "cdf" and (request is None or tol.shape != (1,)):
+        raise InvalidParameterError("--tol-cdf", tol.tolist(), "one number, with the column and thresholds")
+    estimation = study.config.estimation
+    if estimation.initial_samples < MIN_TARGET_SAMPLES:
+        raise InvalidParameterError(
+            "estimation.initial_samples", estimation.initial_samples,
+            f"an integer >= {MIN_TARGET_SAMPLES} for variance and cdf runs (the variance of a level's "
+            "variance term needs four samples)",
+        )
+    max_cost = estimation.max_cost if max_cost is None else max_cost
+    key = target_run_id(study, target=target, tol=tol, request=request)
+    started = time.monotonic()
+    sampler = StudySampler(study, stage=run_stage("mlmc", key), executor=executor, progress=progress)
+    names = study.config.qoi_names if target == "variance" else (request.column,)
+    record = RunRecord(
+        run_id=key, method=target, status="running", tol=tuple(tol.tolist()), started=utc_timestamp(),
+        code_version=__version__, qoi_names=tuple(names), theta=estimation.theta, max_cost=max_cost,
+        stage=sampler.stage, initial_samples=estimation.initial_samples,
+    )
+    study.store.write_run(key, record.to_json())
+    title = f"{target} " + ", ".join(f"{n}={t:g}" for n, t in zip(names, tol))
+    result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
+    outcome = _target_outcome(study, key=key, target=target, sampler=sampler, result=result, request=request,
+                              diagnostics=diagnostics, started=started)
+    record = replace(record, status="finished", outcome=outcome)
+    study.store.write_run(key, record.to_json())
+    return record
+
+
+def _follow_target(
+    study: Study, target: str, tol: np.ndarray, sampler: StudySampler, progress: Progress, title: str,
+    max_cost: float | None, request: CdfRequest | None,
+) -> tuple[Any, list[Diagnostic]]:
+    """Run the targets' adaptive driver with progress; its estimate and the diagnostics it raised."""
+    config = study.config
+    options = dict(
+        theta=config.estimation.theta, n_initial=config.estimation.initial_samples,
+        min_finest_level=min(2, config.grid.max_level), max_level=config.grid.max_level, max_cost=max_cost,
+        batch_size=config.estimation.batch_size,
+    )
+    planned = _PlannedSampler(sampler, progress)
+    progress.start(title)
+    try:
+        with _collecting_diagnostics() as diagnostics:
+            if target == "variance":
+                result = mlmc_variance(planned, tol=tol, **options)
+            else:
+                s = request.thresholds
+                result = mlmc_cdf(planned, thresholds=s, tol=float(tol[0]), bandwidth=_default_bandwidth(s),
+                                  qoi=config.qoi_names.index(request.column), **options)
+    except BaseException:
+        progress.stop(is_complete=False)
+        raise
+    progress.stop()
+    return result, diagnostics
+
+
+def _target_outcome(
+    study: Study, *, key: str, target: str, sampler: StudySampler, result: Any, request: CdfRequest | None,
+    diagnostics: Sequence[Diagnostic], started: float,
+) -> RunOutcome:
+    """The outcome of a variance run (a :class:`TargetEstimate`) or a cdf run (a :class:`CdfEstimate`)."""
+    estimate = result if target == "variance" else result.target
+    used = [sampler.samples(int(l), np.arange(int(n))) for l, n in zip(estimate.levels, estimate.n_samples)]
+    seconds = float(sum(float(np.sum(batch.cost)) for batch in used))
+    seconds_per_cost = seconds / estimate.cost if estimate.cost > 0 else 1.0
+    screening = read_screening_record(study.store)
+    if screening is not None and screening.seconds_per_cost:
+        seconds_per_cost = float(screening.seconds_per_cost)
+    mc_cost = _target_mc_cost(study, estimate, used[-1], result if target == "cdf" else None, request)
+    extra: list[Diagnostic] = []
+    distribution = None if target == "variance" else _distribution_record(result, request, extra)
+    return RunOutcome(
+        finished=utc_timestamp(),
+        estimate=_floats(estimate.estimate), stat_error=_floats(estimate.stat_error),
+        bias_estimate=_floats(estimate.bias), is_bias_estimated=len(estimate.levels) > 1,
+        rmse=_floats(estimate.rmse), levels=tuple(int(l) for l in estimate.levels),
+        n_samples=tuple(int(n) for n in estimate.n_samples), cost=float(estimate.cost), seconds=seconds,
+        mc_cost=mc_cost, mc_seconds_predicted=mc_cost * seconds_per_cost, n_computed=sampler.n_computed,
+        n_not_converged=count_not_converged(used), tol_met=bool(estimate.tol_met), stop_reason=estimate.stop_reason,
+        elapsed=_elapsed(study, key, sampler, time.monotonic() - started),
+        diagnostics=_unique([*diagnostics, *extra]), distribution=distribution,
+    )
+
+
+def _floats(values: Any) -> tuple[float, ...]:
+    return tuple(float(v) for v in np.atleast_1d(values))
+
+
+def _target_mc_cost(
+    study: Study, estimate: Any, finest: LevelBatch, cdf: Any, request: CdfRequest | None
+) -> float:
+    """Modelled cost of plain MC on the run's finest level to the run's tolerance.
+
+    ``N = max (per-sample variance of the single-level term) / ((1 - theta) tol^2)``,
+    the per-sample variance from the run's own ``Q_L`` values (the level-0
+    term of the target computed on level ``L``'s values, with ``L``'s
+    bandwidth for a CDF), times the mean modelled cost of one uncoupled
+    level-``L`` solve.
+    """
+    level = int(estimate.levels[-1])
+    if cdf is None:
+        term = variance_level_term(finest.fine, None)
+    else:
+        index = study.config.qoi_names.index(request.column)
+        term = cdf_level_term(finest.fine, None, level, thresholds=request.thresholds,
+                              bandwidth=float(cdf.bandwidths[0]), qoi=index)
+    budget = (1.0 - estimate.theta) * np.asarray(estimate.tol, dtype=float)[term.groups] ** 2
+    n_mc = max(float(np.max(np.ceil(term.per_sample_variance / budget))), 1.0)
+    per_sample = float(np.mean(modelled_cost(study.model, level, finest.n_iter, is_coupled=False)))
+    return n_mc * per_sample
+
+
+def _bound(value: float) -> float | None:
+    """A quantile's error-bar end, None where it is beyond the thresholds (infinite)."""
+    return float(value) if math.isfinite(value) else None
+
+
+def _distribution_record(cdf: Any, request: CdfRequest, diagnostics: list[Diagnostic]) -> DistributionRecord:
+    """Thresholds, monotone CDF with its band and the quantiles; a quantile the grid does not bracket is a diagnostic."""
+    rows = []
+    for p in request.probabilities:
+        try:
+            q = quantiles(cdf, probabilities=[p])
+        except EstimationError as exc:
+            diagnostics.append(Diagnostic(f"quantile p = {p:g} of {request.column}: {exc}"))
+            rows.append(QuantileRecord(probability=p, value=None, lower=None, upper=None))
+            continue
+        rows.append(QuantileRecord(probability=p, value=float(q.values[0]), lower=_bound(q.lower[0]),
+                                   upper=_bound(q.upper[0])))
+    return DistributionRecord(
+        column=request.column,
+        thresholds=_floats(cdf.thresholds),
+        cdf=_floats(cdf.cdf),
+        cdf_lower=_floats(np.clip(cdf.cdf - cdf.rmse, 0.0, 1.0)),
+        cdf_upper=_floats(np.clip(cdf.cdf + cdf.rmse, 0.0, 1.0)),
+        bandwidths=_floats(cdf.bandwidths),
+        quantiles=tuple(rows),
     )
 
 

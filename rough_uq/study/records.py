@@ -12,7 +12,12 @@ Older layouts
 Keys added since the first study files are optional when read: a run's
 ``stage``, ``initial_samples``, ``elapsed``, ``forecast``, ``richardson``,
 ``richardson_reason`` and ``dropped_levels``, the screening's
-``coarsest_level`` and ``dropped_levels``. A record read without them writes
+``coarsest_level`` and ``dropped_levels``. Runs of the targets beyond the
+mean (``method`` ``variance`` or ``cdf``, :class:`RunOutcome`) add optional
+keys and leave out the mean run's ``variance``, ``variance_error`` and
+``statistics``, which are therefore optional too; a file with such runs keeps
+format version 2 (an older roughuq refuses the new methods by name when it
+reads them, rather than misreading them). A record read without them writes
 them back only where a value is known (``None`` keys stay absent), except the
 keys the pipeline has always written as ``null`` (``max_cost``, ``forecast``,
 a run's ``rates``). Where a run record lacks ``rmse``, ``tol_met`` or
@@ -50,10 +55,13 @@ __all__ = [
     "RUN_STATUSES",
     "Complexity",
     "Diagnostic",
+    "DistributionRecord",
     "DroppedLevel",
     "Forecast",
     "LevelTable",
     "PlanRecord",
+    "QuantileRecord",
+    "RUN_METHODS",
     "RatesRecord",
     "RunOutcome",
     "RunRecord",
@@ -615,6 +623,87 @@ class ScreeningRecord:
         )
 
 
+def _optional_number(value: object, where: str) -> Number | None:
+    """A number or JSON null (an unbounded end of an error bar)."""
+    return None if value is None else _number(value, where)
+
+
+@dataclass(frozen=True)
+class QuantileRecord:
+    """A quantile ``q_p`` of a ``cdf`` run with its error bar (:mod:`rough_uq.multilevel.distribution`).
+
+    Attributes
+    ----------
+    probability : float
+        ``p`` in (0, 1).
+    value : float or None
+        ``q_p`` in the QoI's unit; None when the CDF does not reach ``p`` on
+        the thresholds (a diagnostic of the run says so).
+    lower, upper : float or None
+        Where the band ``cdf +- rmse`` reaches ``p``; None where that is
+        beyond the thresholds (the error bar is open on that side).
+    """
+
+    probability: Number
+    value: Number | None
+    lower: Number | None
+    upper: Number | None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"probability": self.probability, "value": self.value, "lower": self.lower, "upper": self.upper}
+
+    @classmethod
+    def from_json(cls, data: object, where: str = "quantile") -> QuantileRecord:
+        fields = _Fields(data, where)
+        return cls(
+            probability=fields.required("probability", _number),
+            **{key: _optional_number(fields.data.get(key), f"{where}.{key}") for key in ("value", "lower", "upper")},
+        )
+
+
+@dataclass(frozen=True)
+class DistributionRecord:
+    """The distribution function of one QoI column estimated by a ``cdf`` run.
+
+    Attributes
+    ----------
+    column : str
+        The QoI column.
+    thresholds : tuple of float, shape (m,)
+        ``s_j``, the column's unit.
+    cdf : tuple of float, shape (m,)
+        The monotone estimate of ``F(s_j) = P(Q <= s_j)`` in [0, 1].
+    cdf_lower, cdf_upper : tuple of float, shape (m,)
+        The band ``cdf -+ rmse`` (the run's sup-norm RMS error), clipped to [0, 1].
+    bandwidths : tuple of float, shape (n_levels,)
+        Smoothing width ``delta_l`` per level, the column's unit.
+    quantiles : tuple of QuantileRecord
+    """
+
+    column: str
+    thresholds: tuple[Number, ...]
+    cdf: tuple[Number, ...]
+    cdf_lower: tuple[Number, ...]
+    cdf_upper: tuple[Number, ...]
+    bandwidths: tuple[Number, ...]
+    quantiles: tuple[QuantileRecord, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        keys = ("column", "thresholds", "cdf", "cdf_lower", "cdf_upper", "bandwidths")
+        return {**{key: _lists(getattr(self, key)) for key in keys},
+                "quantiles": [q.to_json() for q in self.quantiles]}
+
+    @classmethod
+    def from_json(cls, data: object, where: str = "distribution") -> DistributionRecord:
+        fields = _Fields(data, where)
+        return cls(
+            column=fields.required("column", _text),
+            **{key: fields.required(key, _numbers)
+               for key in ("thresholds", "cdf", "cdf_lower", "cdf_upper", "bandwidths")},
+            quantiles=fields.optional("quantiles", _each(QuantileRecord.from_json), ()),
+        )
+
+
 #: Keys of a finished run's outcome, in the order they are stored.
 _OUTCOME_VECTORS = ("estimate", "stat_error", "bias_estimate")
 _OUTCOME_MOMENTS = ("variance", "variance_error")
@@ -624,14 +713,24 @@ _OUTCOME_MOMENTS = ("variance", "variance_error")
 class RunOutcome:
     """What a finished run found and spent (SPEC section 5: estimate, errors, bias, cost, MC cost).
 
+    What ``estimate`` means depends on the run's method: ``E[Q]`` (``mlmc``,
+    ``mc``), ``Var(Q)`` in the QoI's unit squared (``variance``), or the
+    telescoped CDF ``F(s_j)`` before its monotone projection (``cdf``, one
+    value per threshold; :attr:`distribution` holds the thresholds, the
+    monotone CDF, its band and the quantiles).
+
     Attributes
     ----------
     finished : str
         When it finished (:func:`utc_timestamp`).
-    estimate, stat_error, bias_estimate, rmse : tuple of float, shape (n_qoi,)
+    estimate, stat_error : tuple of float
+        Shape (n_qoi,); for a ``cdf`` run (n_thresholds,).
+    bias_estimate, rmse : tuple of float, shape (n_qoi,)
+        For a ``cdf`` run shape (1,): the sup-norm over the thresholds.
     is_bias_estimated : bool
-    variance, variance_error : tuple of float, shape (n_qoi,)
-        MLMC estimate of ``Var(Q)`` and its standard error.
+    variance, variance_error : tuple of float, shape (n_qoi,), or None
+        Mean runs: MLMC estimate of ``Var(Q)`` and its standard error (None
+        for ``variance`` and ``cdf`` runs, whose estimate it is or replaces).
     levels, n_samples : tuple of int
     cost : float
         Modelled cost (reference seconds).
@@ -648,8 +747,11 @@ class RunOutcome:
     dropped_levels : tuple of DroppedLevel or None
     rates : RatesRecord or None
         Rates refitted on the run's levels (MLMC only).
-    statistics : LevelTable
+    statistics : LevelTable or None
+        Mean runs: the per-level statistics (None for ``variance`` and ``cdf`` runs).
     diagnostics : tuple of Diagnostic
+    distribution : DistributionRecord or None
+        ``cdf`` runs: thresholds, monotone CDF with its band, quantiles.
     """
 
     finished: str
@@ -658,8 +760,6 @@ class RunOutcome:
     bias_estimate: tuple[Number, ...]
     is_bias_estimated: bool
     rmse: tuple[Number, ...]
-    variance: tuple[Number, ...]
-    variance_error: tuple[Number, ...]
     levels: tuple[int, ...]
     n_samples: tuple[int, ...]
     cost: Number
@@ -670,13 +770,16 @@ class RunOutcome:
     n_not_converged: int
     tol_met: bool
     stop_reason: str
-    statistics: LevelTable
+    variance: tuple[Number, ...] | None = None
+    variance_error: tuple[Number, ...] | None = None
+    statistics: LevelTable | None = None
     rates: RatesRecord | None = None
     elapsed: Number | None = None
     richardson: str | None = None
     richardson_reason: str | None = None
     dropped_levels: tuple[DroppedLevel, ...] | None = None
     diagnostics: tuple[Diagnostic, ...] = ()
+    distribution: DistributionRecord | None = None
 
     @classmethod
     def from_result(
@@ -721,19 +824,22 @@ class RunOutcome:
                                                     "richardson_reason")),
             ("dropped_levels", dropped),
             ("rates", None if self.rates is None else self.rates.to_json()),
-            ("statistics", self.statistics.to_json()),
+            ("statistics", None if self.statistics is None else self.statistics.to_json()),
+            ("distribution", None if self.distribution is None else self.distribution.to_json()),
             ("warnings", [d.to_json() for d in self.diagnostics]),
         ]
 
     @classmethod
     def from_json(cls, data: object, where: str = "run") -> RunOutcome:
         fields = _Fields(data, where)
-        vectors = {key: fields.required(key, _numbers) for key in (*_OUTCOME_VECTORS, *_OUTCOME_MOMENTS)}
+        vectors = {key: fields.required(key, _numbers) for key in _OUTCOME_VECTORS}
+        moments = {key: fields.optional(key, _numbers) for key in _OUTCOME_MOMENTS}
         stop_reason = fields.required("stop_reason", _text)
         rmse = tuple(math.hypot(s, b) for s, b in zip(vectors["stat_error"], vectors["bias_estimate"]))
         return cls(
             finished=fields.required("finished", _text),
             **vectors,
+            **moments,
             is_bias_estimated=fields.optional("is_bias_estimated", _flag, True),
             rmse=fields.optional("rmse", _numbers, rmse),
             levels=fields.required("levels", _integers),
@@ -743,8 +849,9 @@ class RunOutcome:
             n_not_converged=fields.required("n_not_converged", _integer),
             tol_met=fields.optional("tol_met", _flag, stop_reason == "tol_met"),
             stop_reason=stop_reason,
-            statistics=fields.required("statistics", LevelTable.from_json),
+            statistics=fields.optional("statistics", LevelTable.from_json),
             rates=fields.optional("rates", RatesRecord.from_json),
+            distribution=fields.optional("distribution", DistributionRecord.from_json),
             elapsed=fields.optional("elapsed", _number),
             richardson=fields.optional("richardson", _text),
             richardson_reason=fields.optional("richardson_reason", _text),
@@ -757,13 +864,17 @@ def _status(value: object, where: str) -> str:
     return value if value in RUN_STATUSES else _fail(where, value, ", ".join(RUN_STATUSES))
 
 
+#: Estimators of a run: the mean (``mlmc``, ``mc``) and the targets beyond it (``variance``, ``cdf``).
+RUN_METHODS = ("mlmc", "mc", "variance", "cdf")
+
+
 def _method(value: object, where: str) -> str:
-    return value if value in ("mlmc", "mc") else _fail(where, value, "mlmc or mc")
+    return value if value in RUN_METHODS else _fail(where, value, ", ".join(RUN_METHODS))
 
 
 @dataclass(frozen=True)
 class RunRecord:
-    """An MLMC or MC estimation run: its settings, and its outcome once finished.
+    """An estimation run (MLMC, MC, or an MLMC variance or CDF run): its settings, and its outcome once finished.
 
     The record is stored when the run starts (``status = "running"``, no
     outcome) and again when it ends (``"finished"``); ``roughuq drop`` marks
@@ -773,7 +884,9 @@ class RunRecord:
     ----------
     run_id : str
         Its name in the study (:func:`~rough_uq.problem.runs.run_id`); not part of the stored text.
-    method : {"mlmc", "mc"}
+    method : {"mlmc", "mc", "variance", "cdf"}
+        ``variance`` and ``cdf`` are the MLMC targets beyond the mean
+        (:class:`RunOutcome` says what their outcome holds).
     status : {"running", "finished", "dropped", "interrupted"}
     tol : tuple of float, shape (n_qoi,)
     started, code_version : str or None

@@ -1,0 +1,359 @@
+"""Beyond the mean through the real CLI: `roughuq mlmc --tol-var / --tol-cdf`, their records and the report."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from rough_uq.cli import main
+from rough_uq.multilevel.distribution import level_bandwidth, smoothed_step
+from rough_uq.multilevel.moments import variance_level_term
+from rough_uq.study.records import RunRecord
+from rough_uq.study.store import open_study_readonly
+from tests.study_configs import tiny_config, write_config
+
+#: Thresholds that bracket the tiny study's contact area (about 35-55 % on its grids), in percent.
+TINY_THRESHOLDS = "25:60:36"
+
+
+def run(*args: str, expect: int | tuple[int, ...] = 0) -> object:
+    result = CliRunner().invoke(main, list(args))
+    allowed = (expect,) if isinstance(expect, int) else expect
+    assert result.exit_code in allowed, (result.output, result.stderr, result.exception)
+    return result
+
+
+def stored_runs(path: Path) -> dict[str, RunRecord]:
+    with open_study_readonly(path) as store:
+        return {data["run_id"]: RunRecord.from_json(data) for data in store.read_runs()}
+
+
+def stage_samples(path: Path, *, stage: int, level: int) -> object:
+    with open_study_readonly(path) as store:
+        return store.read_samples(level=level, stage=stage)
+
+
+@pytest.fixture
+def tiny(tmp_path, monkeypatch):
+    """A tiny study config in a fresh working directory (target runs need no screening)."""
+    monkeypatch.chdir(tmp_path)
+    return write_config(tmp_path / "tiny.yaml", tiny_config())
+
+
+# ---------------------------------------------------------------------------
+# The classic setting (slow): variance and 5 % / 95 % quantiles against plain MC
+# ---------------------------------------------------------------------------
+
+
+def _classic_config(tmp_path: Path) -> Path:
+    """The shipped classic-area config on its three coarsest grids (256^2 ... 1024^2).
+
+    On these grids the CDF's discretisation bias (the area shifts by about
+    0.1 % per level, a quarter of its standard deviation) is estimated at
+    about 0.12 in the sup norm, so the CDF tolerance is 0.25: a tighter one
+    stops at grid.max_level (status 3).
+    """
+    run("init", "classic-area")
+    config = yaml.safe_load((tmp_path / "classic-area.yaml").read_text())
+    config["grid"]["max_level"] = 2
+    config["estimation"]["initial_samples"] = 20
+    # The area is about 19.3 +- 0.4 %: the grid brackets its 5 % and 95 % quantiles with a spacing of 0.1 %.
+    config["estimation"]["distribution"] = {"contact_area": {"thresholds": {"start": 17.5, "stop": 21.5, "count": 41},
+                                                             "probabilities": [0.05, 0.5, 0.95]}}
+    config["output"]["path"] = "classic.h5"
+    return write_config(tmp_path / "classic.yaml", config)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_classic_area_variance_and_quantiles_agree_with_plain_mc_on_the_finest_level(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = _classic_config(tmp_path)
+    variance = json.loads(run("mlmc", "--config", str(config), "--study", "classic.h5", "--tol-var", "0.03",
+                              "--json", "-q", expect=(0, 3)).stdout)
+    cdf = json.loads(run("mlmc", "--study", "classic.h5", "--tol-cdf", "0.25", "--json", "-q",
+                         expect=(0, 3)).stdout)
+    assert variance["tol_met"] and cdf["tol_met"], (variance["rmse"], variance["stop_reason"], cdf["rmse"])
+    finest = variance["levels"][-1]
+    assert cdf["levels"][-1] == finest
+
+    # Plain MC on that level, samples of another stage (an MC run's), about 100 of them.
+    mc = json.loads(run("mc", "--study", "classic.h5", "--level", str(finest), "--tol", "0.06", "--json",
+                        "-q").stdout)
+    samples = stage_samples(tmp_path / "classic.h5", stage=mc["stage"], level=finest).fine[:, 0]
+    assert samples.size == mc["n_samples"][0] >= 40
+
+    # Var(Q_L): the MLMC telescoping sum against the unbiased sample variance, within 3 combined standard errors.
+    term = variance_level_term(samples[:, None], None)
+    combined = math.hypot(variance["stat_error"][0], math.sqrt(term.variance[0]))
+    assert abs(variance["estimate"][0] - term.mean[0]) <= 3 * combined
+
+    # The quantiles: at q_p the MC estimate of the same smoothed CDF (bandwidth of level L) is p, within
+    # 3 combined standard errors (the MLMC's largest statistical error over the grid, the MC's binomial one).
+    distribution = cdf["distribution"]
+    delta = distribution["bandwidths"][-1]
+    assert delta == pytest.approx(level_bandwidth(finest, bandwidth=distribution["bandwidths"][0]))
+    for quantile in distribution["quantiles"]:
+        if quantile["probability"] not in (0.05, 0.95):
+            continue
+        smoothed = smoothed_step((quantile["value"] - samples) / delta)
+        mc_se = np.std(smoothed, ddof=1) / math.sqrt(samples.size)
+        combined = math.hypot(max(cdf["stat_error"]), mc_se)
+        assert abs(np.mean(smoothed) - quantile["probability"]) <= 3 * combined, quantile
+        assert (quantile["lower"] or -math.inf) < quantile["value"] < (quantile["upper"] or math.inf)
+    print(f"\nclassic (levels 0..{finest}): Var = {variance['estimate'][0]:.4f} ± {variance['stat_error'][0]:.4f} "
+          f"(RMSE {variance['rmse'][0]:.3g}, N_l {variance['n_samples']}), MC {term.mean[0]:.4f} ± "
+          f"{math.sqrt(term.variance[0]):.4f} (N {samples.size}); quantiles "
+          + "; ".join(f"q({q['probability']}) = {q['value']:.3f} [{q['lower']}, {q['upper']}]"
+                      for q in distribution["quantiles"])
+          + f" (sup RMSE {cdf['rmse'][0]:.3g}, N_l {cdf['n_samples']})")
+
+
+# ---------------------------------------------------------------------------
+# Tiny studies (fast)
+# ---------------------------------------------------------------------------
+
+
+def _exit_status(record: dict) -> int:
+    return 0 if record["tol_met"] else 3
+
+
+def _levels(path: Path, record: RunRecord) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The fine and coarse values a finished run used, read back from the study file."""
+    fine, coarse = [], []
+    for level, n in zip(record.outcome.levels, record.outcome.n_samples):
+        batch = stage_samples(path, stage=record.stage, level=level)
+        order = np.argsort(batch.indices)[:n]
+        assert np.array_equal(batch.indices[order], np.arange(n))
+        fine.append(batch.fine[order])
+        coarse.append(batch.coarse[order])
+    return fine, coarse
+
+
+def test_variance_run_stores_the_telescoped_h_statistics_of_its_own_samples(tiny):
+    from rough_uq.multilevel.moments import variance_from_samples
+    from rough_uq.problem.runs import run_id
+    from rough_uq.problem.sampler import run_stage
+
+    result = run("mlmc", "--config", str(tiny), "--tol-var", "contact_area=60", "--workers", "1", "--json",
+                 expect=(0, 3))
+    shown = json.loads(result.stdout)
+    assert result.exit_code == _exit_status(shown)
+    key = run_id("variance", ["contact_area"], np.array([60.0]), 0.5)
+    assert shown["run_id"] == key and shown["method"] == "variance"
+    record = stored_runs(tiny.parent / "results.h5")[key]
+    assert record.stage == run_stage("mlmc", key) == shown["stage"]  # the stage rough_uq.variance draws from
+    fine, coarse = _levels(tiny.parent / "results.h5", record)
+    expected = variance_from_samples(fine=fine, coarse=coarse, tol=60.0)
+    outcome = record.outcome
+    np.testing.assert_allclose(outcome.estimate, expected.estimate, rtol=1e-12)
+    np.testing.assert_allclose(outcome.stat_error, expected.stat_error, rtol=1e-12)
+    assert outcome.tol_met == (outcome.rmse[0] <= 60.0) and outcome.variance is None and outcome.statistics is None
+    assert outcome.cost > 0 and outcome.mc_cost > 0 and outcome.n_computed == sum(outcome.n_samples)
+
+
+def test_cdf_run_stores_cdf_band_and_quantiles_of_its_own_samples(tiny):
+    from rough_uq.multilevel.distribution import cdf_from_samples, quantiles
+
+    result = run("mlmc", "--config", str(tiny), "--tol-cdf", "0.3", "--thresholds", TINY_THRESHOLDS,
+                 "--probabilities", "0.05,0.5", "--workers", "1", "--json", expect=(0, 3))
+    shown = json.loads(result.stdout)
+    assert result.exit_code == _exit_status(shown)
+    record = stored_runs(tiny.parent / "results.h5")[shown["run_id"]]
+    assert record.method == "cdf" and record.qoi_names == ("contact_area",) and record.tol == (0.3,)
+    distribution = record.outcome.distribution
+    s = np.linspace(25, 60, 36)
+    np.testing.assert_allclose(distribution.thresholds, s)
+    fine, coarse = _levels(tiny.parent / "results.h5", record)
+    expected = cdf_from_samples(fine=fine, coarse=coarse, thresholds=s, bandwidth=2.0, tol=0.3)
+    np.testing.assert_allclose(distribution.cdf, expected.cdf, atol=1e-12)
+    np.testing.assert_allclose(record.outcome.estimate, expected.cdf_raw, atol=1e-12)
+    np.testing.assert_allclose(distribution.cdf_upper, np.clip(expected.cdf + expected.rmse, 0, 1), atol=1e-12)
+    np.testing.assert_allclose(distribution.cdf_lower, np.clip(expected.cdf - expected.rmse, 0, 1), atol=1e-12)
+    assert record.outcome.rmse == pytest.approx((expected.rmse,))
+    wanted = quantiles(expected, probabilities=[0.05, 0.5])
+    assert [q.probability for q in distribution.quantiles] == [0.05, 0.5]
+    np.testing.assert_allclose([q.value for q in distribution.quantiles], wanted.values)
+    for q, lower, upper in zip(distribution.quantiles, wanted.lower, wanted.upper):
+        assert q.lower == (lower if np.isfinite(lower) else None) and q.upper == (upper if np.isfinite(upper) else None)
+
+
+def _interrupt_after(monkeypatch, n_batches: int) -> None:
+    """Make the study sampler raise KeyboardInterrupt (as Ctrl-C would) after ``n_batches`` computed batches."""
+    from rough_uq.study import pipeline
+
+    original = pipeline.StudySampler.compute
+    calls = {"n": 0}
+
+    def compute(self, level, indices):
+        if self.missing(level, indices).size:
+            calls["n"] += 1
+            if calls["n"] > n_batches:
+                raise KeyboardInterrupt
+        return original(self, level, indices)
+
+    monkeypatch.setattr(pipeline.StudySampler, "compute", compute)
+
+
+_VOLATILE = ("finished", "started", "elapsed", "seconds", "mc_seconds_predicted", "n_computed")
+
+
+@pytest.mark.parametrize("target", [("--tol-var", "60"), ("--tol-cdf", "0.3", "--thresholds", TINY_THRESHOLDS)],
+                         ids=["variance", "cdf"])
+def test_an_interrupted_run_resumes_to_the_record_of_an_uninterrupted_one(tiny, monkeypatch, target):
+    whole = run("mlmc", "--config", str(tiny), *target, "--study", "whole.h5", "--workers", "1", "--json", "-q",
+                expect=(0, 3))
+    with monkeypatch.context() as patch:
+        _interrupt_after(patch, 3)
+        stopped = run("mlmc", "--config", str(tiny), *target, "--study", "resumed.h5", "--workers", "1", "-q",
+                      expect=130)
+        assert "every completed sample is saved" in stopped.stderr
+    partial = stored_runs(tiny.parent / "resumed.h5")
+    assert [r.status for r in partial.values()] == ["running"]
+    resumed = run("mlmc", *target, "--study", "resumed.h5", "--workers", "1", "--json", "-q",
+                  expect=whole.exit_code)
+    first, second = json.loads(whole.stdout), json.loads(resumed.stdout)
+    assert 0 < second["n_computed"] < first["n_computed"]
+    assert {k: v for k, v in first.items() if k not in _VOLATILE} == {
+        k: v for k, v in second.items() if k not in _VOLATILE}
+
+
+def test_two_workers_give_the_numbers_of_one(tiny):
+    args = ("mlmc", "--config", str(tiny), "--tol-var", "60", "--json", "-q")
+    one = json.loads(run(*args, "--study", "one.h5", "--workers", "1", expect=(0, 3)).stdout)
+    two = json.loads(run(*args, "--study", "two.h5", "--workers", "2", expect=(0, 3)).stdout)
+    for key in ("estimate", "stat_error", "bias_estimate", "rmse", "n_samples", "cost", "stage"):
+        assert one[key] == two[key], key
+
+
+def test_report_shows_variance_and_distribution_tables_json_and_the_cdf_figure(tiny):
+    run("mlmc", "--config", str(tiny), "--tol-var", "60", "--workers", "1", "-q", expect=(0, 3))
+    run("mlmc", "--tol-cdf", "0.3", "--thresholds", TINY_THRESHOLDS, "--workers", "1", "-q", expect=(0, 3))
+    runs = stored_runs(tiny.parent / "results.h5")
+    cdf = next(r for r in runs.values() if r.method == "cdf")
+    text = run("report", "results.h5").output
+    assert "Variance" in text and "Distribution" in text and "%^2" in text
+    q05 = cdf.outcome.distribution.quantiles[0]
+    assert f"q(0.05) = {q05.value:.4g}" in text
+    report = json.loads(run("report", "results.h5", "--json").stdout)
+    by_method = {entry["method"]: entry for entry in report["runs"]}
+    assert by_method["cdf"]["distribution"]["cdf"] == list(cdf.outcome.distribution.cdf)
+    assert by_method["variance"]["estimate"] == list(next(
+        r for r in runs.values() if r.method == "variance").outcome.estimate)
+    assert RunRecord.from_json(by_method["cdf"]) == cdf
+    written = json.loads(run("report", "results.h5", "--json", "--plots", "figures").stdout)["plots"]
+    figure = tiny.parent / "figures" / "cdf_contact_area.png"
+    assert str(figure) in written or "figures/cdf_contact_area.png" in written
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cdf_thresholds_and_probabilities_come_from_the_config(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    estimation = {"initial_samples": 4, "batch_size": 4, "distribution": {"contact_area": {
+        "thresholds": {"start": 25, "stop": 60, "count": 36}, "probabilities": [0.25, 0.75]}}}
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(estimation=estimation))
+    shown = json.loads(run("mlmc", "--config", str(config), "--tol-cdf", "0.3", "--workers", "1", "--json", "-q",
+                           expect=(0, 3)).stdout)
+    assert shown["distribution"]["thresholds"] == pytest.approx(np.linspace(25, 60, 36).tolist())
+    assert [q["probability"] for q in shown["distribution"]["quantiles"]] == [0.25, 0.75]
+
+
+BAD_OPTIONS = [
+    (("--tol", "5", "--tol-var", "1"), "exactly one of --tol"),
+    (("--tol-var", "1", "--tol-cdf", "0.1", "--thresholds", "1:2:3"), "exactly one of --tol"),
+    (("--tol-cdf", "0.1"), "--thresholds START:STOP:COUNT"),
+    (("--tol-cdf", "0.1", "--thresholds", "60:25:36"), "START < STOP"),
+    (("--tol-cdf", "0.1", "--thresholds", "25:60:1"), "COUNT >= 2"),
+    (("--tol-cdf", "0.1", "--thresholds", "25:60"), "START:STOP:COUNT"),
+    (("--tol-cdf", "0.1", "--thresholds", "a:b:c"), "START:STOP:COUNT"),
+    (("--tol-cdf", "0.1", "--thresholds", "25:60:2.5"), "START:STOP:COUNT"),
+    (("--tol-cdf", "1.5", "--thresholds", TINY_THRESHOLDS), "a number in (0, 1)"),
+    (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--qoi", "clusters"), "one result column"),
+    (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--probabilities", "0.5,1"), "in (0, 1)"),
+    (("--tol", "5", "--thresholds", TINY_THRESHOLDS), "only with --tol-cdf"),
+    (("--tol-var", "-1"), "positive"),
+    (("--tol-var", "area=1"), "a QoI of this study"),
+    (("--tol-var", "1", "--plan"), "--plan: got True; allowed: not with --tol-var"),
+    (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--method", "auto"),
+     "--method: got 'auto'; allowed: not with --tol-cdf"),
+]
+
+
+@pytest.mark.parametrize("options, text", BAD_OPTIONS, ids=[" ".join(o) for o, _ in BAD_OPTIONS])
+def test_bad_options_are_one_line_status_2_and_compute_nothing(tiny, options, text):
+    result = run("mlmc", "--config", str(tiny), *options, "--workers", "1", expect=2)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and text in lines[0], result.stderr
+    if (tiny.parent / "results.h5").exists():
+        assert stored_runs(tiny.parent / "results.h5") == {}
+
+
+def test_too_few_initial_samples_for_a_target_run_name_the_config_field(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(estimation={"initial_samples": 3}))
+    result = run("mlmc", "--config", str(config), "--tol-var", "1", "--workers", "1", expect=2)
+    assert "estimation.initial_samples" in result.stderr and ">= 4" in result.stderr
+
+
+def test_a_cdf_record_round_trips_and_a_malformed_quantile_is_refused_by_its_path():
+    from rough_uq.errors import InvalidParameterError
+
+    data = {
+        "method": "cdf", "status": "finished", "tol": [0.1], "qoi_names": ["contact_area"], "finished": "now",
+        "estimate": [0.1, 0.6, 1.02], "stat_error": [0.01, 0.02, 0.01], "bias_estimate": [0.01],
+        "is_bias_estimated": True, "rmse": [0.03], "levels": [0, 1], "n_samples": [8, 4], "cost": 1.5,
+        "seconds": 2, "mc_cost": 3.0, "mc_seconds_predicted": 6.0, "n_computed": 12, "n_not_converged": 0,
+        "tol_met": True, "stop_reason": "tol_met",
+        "distribution": {"column": "contact_area", "thresholds": [1, 2, 3], "cdf": [0.1, 0.6, 1.0],
+                         "cdf_lower": [0.07, 0.57, 0.97], "cdf_upper": [0.13, 0.63, 1.0], "bandwidths": [2, 1],
+                         "quantiles": [{"probability": 0.5, "value": 1.8, "lower": 1.74, "upper": None}]},
+    }
+    record = RunRecord.from_json(data, run_id="cdf_x")
+    assert record.outcome.variance is None and record.outcome.statistics is None
+    assert record.outcome.distribution.quantiles[0].upper is None
+    assert record.to_json() == {**data, "max_cost": None, "forecast": None,
+                                "rates": None, "warnings": []}
+    data["distribution"]["quantiles"][0]["lower"] = "low"
+    with pytest.raises(InvalidParameterError) as info:
+        RunRecord.from_json(data, run_id="cdf_x")
+    assert info.value.name == "run cdf_x.distribution.quantiles[0].lower"
+
+
+@pytest.mark.parametrize("distribution, field", [
+    ({"contact_area": {"thresholds": {"start": 60, "stop": 25, "count": 36}}},
+     "estimation.distribution.contact_area.thresholds.stop"),
+    ({"contact_area": {"thresholds": {"start": 25, "stop": 60, "count": 1}}},
+     "estimation.distribution.contact_area.thresholds.count"),
+    ({"contact_area": {"probabilities": [0.5, 1.0]}}, "estimation.distribution.contact_area.probabilities"),
+    ({"clusters": {}}, "estimation.distribution.clusters"),
+], ids=["decreasing", "one threshold", "probability 1", "not a QoI"])
+def test_bad_distribution_settings_in_the_config_name_the_field(tmp_path, distribution, field):
+    config = write_config(tmp_path / "bad.yaml", tiny_config(estimation={"distribution": distribution}))
+    result = run("validate", str(config), expect=2)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {field}: "), result.stderr
+
+
+def test_the_cli_and_the_python_front_door_draw_the_same_samples_and_agree(tiny, monkeypatch):
+    import rough_uq
+
+    monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", "estimate")  # the Python API plans FFTs with FFTW_ESTIMATE
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.2), qoi=["contact_area"], coarsest=8,
+                                      max_level=2, seed=2026, solver_tol=1e-8)
+    cli = json.loads(run("mlmc", "--config", str(tiny), "--tol-var", "60", "--workers", "1", "--json", "-q",
+                         expect=(0, 3)).stdout)
+    python = rough_uq.variance(problem, tol=60, n_initial=4, batch_size=4)
+    assert cli["n_samples"] == python.n_samples.tolist()
+    np.testing.assert_allclose(cli["estimate"], python.estimate, rtol=1e-9)
+    cli = json.loads(run("mlmc", "--tol-cdf", "0.3", "--thresholds", TINY_THRESHOLDS, "--workers", "1", "--json",
+                         "-q", expect=(0, 3)).stdout)
+    python = rough_uq.distribution(problem, tol=0.3, thresholds=np.linspace(25, 60, 36), n_initial=4, batch_size=4)
+    assert cli["n_samples"] == python.cdf.n_samples.tolist()
+    np.testing.assert_allclose(cli["distribution"]["cdf"], python.cdf.cdf, atol=1e-9)
