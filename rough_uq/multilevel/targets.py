@@ -48,7 +48,7 @@ least-squares slope of ``log2 sqrt(r2_l)`` over the detected levels ``>= 1``
 (weights: inverse variances, so noisy levels hardly count; the floor with
 fewer than two). The remaining bias is the geometric tail of the ``alpha``
 model from the three finest levels, ``max_i b_{L-i} 2^(-i alpha) / (2^alpha
-- 1)`` (:func:`rough_uq.multilevel.drivers._driver_bias`), with ``b_l =
+- 1)`` (:func:`_tail_bias`), with ``b_l =
 max_c |T_c|`` up to the finest detected level ``k`` and, above it, the
 smaller of that and the model ``b_k 2^(-alpha (l - k))``: where the terms
 are noise, the data bound the bias only loosely, and the model extrapolated
@@ -87,11 +87,17 @@ from rough_uq.multilevel.drivers import (
     _call_sampler,
     _check_int,
     _check_optional_positive,
-    _driver_bias,
     _fill_costs,
     _planning_variances,
 )
-from rough_uq.multilevel.statistics import _check_fraction, _check_tol, _fit_line, _readonly, optimal_samples
+from rough_uq.multilevel.statistics import (
+    _check_fraction,
+    _check_tol,
+    _fit_line,
+    _readonly,
+    optimal_samples,
+    remaining_bias,
+)
 
 __all__ = [
     "LevelTerm",
@@ -319,8 +325,23 @@ def _bias_magnitudes(means: np.ndarray, variances: np.ndarray, groups: np.ndarra
     return magnitude
 
 
+def _tail_bias(magnitudes: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Geometric tail of the ``alpha`` model from the three finest levels ``>= 1`` (module docstring).
+
+    ``magnitudes`` has shape (n_levels, n_groups), rows the levels ``0..L``;
+    returns shape (n_groups,), zeros when only level 0 exists.
+    """
+    finest = len(magnitudes) - 1
+    # Each of the three finest levels predicts |E[T_L]|; the largest prediction is the safe one.
+    levels = range(max(finest - 2, 1), finest + 1)
+    predicted = [magnitudes[level] * 2.0 ** (-(finest - level) * alpha) for level in levels]
+    if not predicted:
+        return np.zeros(magnitudes.shape[1])
+    return remaining_bias(np.max(predicted, axis=0), alpha)
+
+
 def _remaining_bias(means: np.ndarray, variances: np.ndarray, groups: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    return _driver_bias(_bias_magnitudes(means, variances, groups, alpha), alpha)
+    return _tail_bias(_bias_magnitudes(means, variances, groups, alpha), alpha)
 
 
 def telescope(
