@@ -738,6 +738,18 @@ def _batch_size(hierarchy: _Hierarchy, level: int, wanted: int, max_cost: float 
 # --------------------------------------------------------------------------
 
 
+@dataclass(frozen=True, eq=False)
+class _Options:
+    """Checked arguments every run takes: ``tol`` (shape (n_qoi,) or (1,)), ``theta``, ``n_initial``,
+    ``screening``, ``kurtosis_limit`` (:func:`iter_mlmc`, :func:`iter_mc`)."""
+
+    tol: np.ndarray
+    theta: float
+    n_initial: int
+    screening: LevelStatistics | None
+    kurtosis_limit: float
+
+
 class _Run:
     """What MC and MLMC runs share: the hierarchy, the tolerance, the QoI count, the stop reason.
 
@@ -957,24 +969,31 @@ def iter_mlmc(
         remaining_bias(np.zeros(rates.n_qoi), rates.alpha)  # alpha <= 0 cannot meet any tolerance
         if screening is not None and rates.n_qoi != screening.n_qoi:
             raise EstimationError(f"rates have {rates.n_qoi} QoIs, the screening {screening.n_qoi}")
-    return _drive(
-        functools.partial(
-            _MlmcRun,
-            tol=tol,
-            theta=theta,
-            n_initial=n_initial,
-            min_finest_level=min_finest_level,
-            max_level=max_level,
-            screening=screening,
-            rates=rates,
-            kurtosis_limit=float(kurtosis_limit),
-            richardson=bool(richardson),
-            coarsest_level=None if coarsest_level is None else _check_int("coarsest_level", coarsest_level, 0),
-        ),
-        sampler,
-        batch_cap=batch_size if batch_size is not None else math.inf,
-        max_cost=max_cost,
+    options = _MlmcOptions(
+        tol=tol,
+        theta=theta,
+        n_initial=n_initial,
+        min_finest_level=min_finest_level,
+        max_level=max_level,
+        screening=screening,
+        rates=rates,
+        kurtosis_limit=float(kurtosis_limit),
+        richardson=bool(richardson),
+        coarsest_level=None if coarsest_level is None else _check_int("coarsest_level", coarsest_level, 0),
     )
+    batch_cap = batch_size if batch_size is not None else math.inf
+    return _drive(functools.partial(_MlmcRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
+
+
+@dataclass(frozen=True, eq=False)
+class _MlmcOptions(_Options):
+    """The checked arguments of :func:`iter_mlmc` that shape the run (see there)."""
+
+    min_finest_level: int
+    max_level: int
+    rates: Rates | None
+    richardson: bool
+    coarsest_level: int | None
 
 
 @dataclass(frozen=True, eq=False)
@@ -995,31 +1014,22 @@ class _MlmcStart:
     refusal: str = ""
 
 
-def _mlmc_start(
-    *,
-    tol: np.ndarray,
-    theta: float,
-    n_initial: int,
-    max_level: int,
-    screening: LevelStatistics | None,
-    rates: Rates | None,
-    richardson: bool,
-    coarsest_level: int | None,
-) -> _MlmcStart:
+def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
     """Giles' ``N0`` on every level without a screening; else the screening's plan (module docstring, step 1)."""
+    screening, rates, richardson = options.screening, options.rates, options.richardson
     if screening is None:
         pending = "pending" if richardson else "off"
-        return _MlmcStart(coarsest_level or 0, (), (), n_initial, rates, pending)
+        return _MlmcStart(options.coarsest_level or 0, (), (), options.n_initial, rates, pending)
     screening_rates = rates if rates is not None else _lenient_rates(screening, None)
 
     def planned(coarsest: int | None) -> Plan:
         return plan(
-            tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level,
-            richardson=richardson, coarsest_level=coarsest,
+            tol=options.tol, rates=screening_rates, statistics=screening, theta=options.theta,
+            max_level=options.max_level, richardson=richardson, coarsest_level=coarsest,
         )
 
-    initial = planned(coarsest_level)
-    if coarsest_level is None and initial.coarsest_level + 2 > max_level:
+    initial = planned(options.coarsest_level)
+    if options.coarsest_level is None and initial.coarsest_level + 2 > options.max_level:
         # The rates need two levels above the base; max_level leaves no room for them.
         initial = planned(0)
     base = initial.coarsest_level
@@ -1038,34 +1048,19 @@ class _MlmcRun(_Run):
     ratios), ``"active"`` or ``"refused"`` (``refusal`` says why).
     """
 
-    def __init__(
-        self,
-        *,
-        tol: np.ndarray,
-        theta: float,
-        n_initial: int,
-        min_finest_level: int,
-        max_level: int,
-        screening: LevelStatistics | None,
-        rates: Rates | None,
-        kurtosis_limit: float,
-        richardson: bool,
-        coarsest_level: int | None,
-    ) -> None:
-        start = _mlmc_start(
-            tol=tol, theta=theta, n_initial=n_initial, max_level=max_level, screening=screening, rates=rates,
-            richardson=richardson, coarsest_level=coarsest_level,
-        )
+    def __init__(self, options: _MlmcOptions) -> None:
+        start = _mlmc_start(options)
         # Two levels above the base to fit the rates from.
-        n_levels = max(min_finest_level + 1, start.base + 3, len(start.targets))
-        if n_levels - 1 > max_level:
-            raise InvalidParameterError("coarsest_level", coarsest_level, f"at most max_level - 2 = {max_level - 2}")
-        hierarchy = _Hierarchy(n_levels, start.floor, screening, start.base)
+        n_levels = max(options.min_finest_level + 1, start.base + 3, len(start.targets))
+        if n_levels - 1 > options.max_level:
+            raise InvalidParameterError(
+                "coarsest_level", options.coarsest_level, f"at most max_level - 2 = {options.max_level - 2}"
+            )
+        hierarchy = _Hierarchy(n_levels, start.floor, options.screening, start.base)
         hierarchy.targets[: len(start.targets)] = start.targets
-        super().__init__(hierarchy, tol)
-        self.theta, self.max_level, self.kurtosis_limit = theta, max_level, kurtosis_limit
-        self.rates, self.fallback, self.dropped = rates, start.fallback, start.dropped
-        self.driver = start.fallback if start.fallback is not None else _floor_rates(tol.size)
+        super().__init__(hierarchy, options.tol)
+        self.options, self.fallback, self.dropped = options, start.fallback, start.dropped
+        self.driver = start.fallback if start.fallback is not None else _floor_rates(options.tol.size)
         self.extrapolation, self.refusal = start.extrapolation, start.refusal
 
     @property
@@ -1087,14 +1082,14 @@ class _MlmcRun(_Run):
         hierarchy = self.hierarchy
         base = hierarchy.base
         statistics = hierarchy.statistics()
-        if self.rates is None:
+        if self.options.rates is None:
             self.driver = _lenient_rates(statistics, self.fallback, base + 1, hierarchy.bias_statistics(statistics))
         var_diff, has_data, mean_cost = hierarchy.planning_inputs(self.n_qoi)
         variances = _planning_variances(var_diff, has_data, self.driver.beta, base)
         if self.extrapolation == "active":
             variances[-1] = variances[-1] * richardson_weight(self.driver.alpha) ** 2
         costs = _fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), self.driver.gamma)
-        budget = (1.0 - self.theta) * self.tol**2
+        budget = (1.0 - self.options.theta) * self.tol**2
         wanted = np.zeros(hierarchy.n_levels)
         wanted[base:] = np.ceil(np.max(optimal_samples(variances[base:], costs[base:], budget), axis=1))
         hierarchy.targets = [
@@ -1117,11 +1112,11 @@ class _MlmcRun(_Run):
             is_replanned = yield from self._check_richardson()
             if is_replanned:
                 return
-        if np.all(self.bias() <= math.sqrt(self.theta) * self.tol):
+        if np.all(self.bias() <= math.sqrt(self.options.theta) * self.tol):
             if is_complete:
                 self.stop_reason = "tol_met"
             return
-        if hierarchy.n_levels - 1 >= self.max_level:
+        if hierarchy.n_levels - 1 >= self.options.max_level:
             if is_complete:
                 self.stop_reason = "max_level"
             return
@@ -1158,7 +1153,7 @@ class _MlmcRun(_Run):
             yield RichardsonRefused(levels=hierarchy.levels(), reason=self.refusal)
         statistics = hierarchy.statistics()
         result = _mlmc_result(self, statistics)
-        for message in diagnose(statistics, kurtosis_limit=self.kurtosis_limit):
+        for message in diagnose(statistics, kurtosis_limit=self.options.kurtosis_limit):
             warnings.warn(f"mlmc: {message}", EstimationWarning, stacklevel=3)
         if self.extrapolation == "refused":
             warnings.warn(
@@ -1194,11 +1189,11 @@ def _mlmc_result(run: _MlmcRun, statistics: LevelStatistics) -> EstimationResult
         n_samples=statistics.n_samples,
         levels=statistics.levels,
         cost=hierarchy.spent,
-        mc_cost=_predicted_mc_cost(statistics, driver.gamma, tol, run.theta),
+        mc_cost=_predicted_mc_cost(statistics, driver.gamma, tol, run.options.theta),
         statistics=statistics,
         rates=driver,
         tol=_readonly(tol),
-        theta=run.theta,
+        theta=run.options.theta,
         tol_met=bool(np.all(stat_variance + bias**2 <= tol**2 * (1 + 1e-12))),
         stop_reason=run.stop_reason,
         is_bias_estimated=True,
@@ -1332,21 +1327,17 @@ def iter_mc(
         bias = np.atleast_1d(np.abs(np.asarray(bias, dtype=float)))
         if bias.ndim != 1 or not np.all(np.isfinite(bias)):
             raise InvalidParameterError("bias", bias, "a finite number or 1-d array (one per QoI)")
-    return _drive(
-        functools.partial(
-            _McRun,
-            tol=tol,
-            level=level,
-            theta=theta,
-            bias=bias,
-            n_initial=n_initial,
-            screening=screening,
-            kurtosis_limit=float(kurtosis_limit),
-        ),
-        sampler,
-        batch_cap=batch_size if batch_size is not None else math.inf,
-        max_cost=max_cost,
+    options = _McOptions(
+        tol=tol,
+        level=level,
+        theta=theta,
+        bias=bias,
+        n_initial=n_initial,
+        screening=screening,
+        kurtosis_limit=float(kurtosis_limit),
     )
+    batch_cap = batch_size if batch_size is not None else math.inf
+    return _drive(functools.partial(_McRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
 
 
 def _mc_screened_variance(screening: LevelStatistics, level: int) -> tuple[np.ndarray, float | np.ndarray]:
@@ -1365,32 +1356,32 @@ def _mc_screened_variance(screening: LevelStatistics, level: int) -> tuple[np.nd
     return np.zeros(screening.n_qoi), 0.0
 
 
+@dataclass(frozen=True, eq=False)
+class _McOptions(_Options):
+    """The checked arguments of :func:`iter_mc` that shape the run (see there)."""
+
+    level: int
+    bias: np.ndarray | None
+
+
 class _McRun(_Run):
     """Plain MC on ``level``: a hierarchy whose base is ``level``, so its samples are ``Q_level`` alone.
 
-    ``bias`` is the bias given to :func:`iter_mc` (None if unknown).
+    ``bias`` is the bias given to :func:`iter_mc` (None if unknown), one per
+    QoI once their number is known.
     """
 
-    def __init__(
-        self,
-        *,
-        tol: np.ndarray,
-        level: int,
-        theta: float,
-        bias: np.ndarray | None,
-        n_initial: int,
-        screening: LevelStatistics | None,
-        kurtosis_limit: float,
-    ) -> None:
-        floor = n_initial if screening is None else MIN_LEVEL_SAMPLES
+    def __init__(self, options: _McOptions) -> None:
+        screening, level, tol = options.screening, options.level, options.tol
+        floor = options.n_initial if screening is None else MIN_LEVEL_SAMPLES
         # The hierarchy pools the screening's Var(Q_level), if it sampled the level, as MLMC's base level.
         hierarchy = _Hierarchy(level + 1, floor, screening, base=level, reported_from=level)
         super().__init__(hierarchy, tol)
-        self.level, self.theta, self.bias, self.kurtosis_limit = level, theta, bias, kurtosis_limit
+        self.options, self.level, self.theta, self.bias = options, level, options.theta, options.bias
         self.var_floor: float | np.ndarray = 0.0
         if screening is not None:
             first_var, self.var_floor = _mc_screened_variance(screening, level)
-            first = np.max(np.ceil(first_var / ((1.0 - theta) * tol**2)))
+            first = np.max(np.ceil(first_var / ((1.0 - self.theta) * tol**2)))
             hierarchy.targets[level] = max(int(min(first, _MAX_COUNT)), floor)
 
     @property
@@ -1427,10 +1418,11 @@ class _McRun(_Run):
     def finish(self) -> Iterator[Event]:
         moments = self.samples.moments()
         result = _mc_result(self)
-        if np.any(moments.kurtosis > self.kurtosis_limit):
+        limit = self.options.kurtosis_limit
+        if np.any(moments.kurtosis > limit):
             warnings.warn(
                 f"mc: kurtosis {float(np.max(moments.kurtosis)):.3g} of Q on level {self.level} exceeds "
-                f"{self.kurtosis_limit:g}; the variance and error estimates are unreliable",
+                f"{limit:g}; the variance and error estimates are unreliable",
                 EstimationWarning,
                 stacklevel=3,
             )
