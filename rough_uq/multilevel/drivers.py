@@ -39,6 +39,16 @@ and finally :class:`Finished` (the :class:`EstimationResult`). The CLI
 consumes them for progress bars and store writes; :func:`mlmc` and
 :func:`mc` simply run them to the end.
 
+One loop serves both (``_drive``): a run holds a hierarchy of levels (its
+samples, planned ``N_l`` and spent cost) and, round after round, draws the
+missing samples of every level in batches, re-plans ``N_l`` and, once the
+samples are (nearly) complete, decides whether to stop. What differs is the
+run's state object: the MLMC run (``_MlmcRun``) refits the rates, allocates
+over the levels, checks the Richardson ratios and the bias and may add a
+level; plain MC (``_McRun``) is the one-level hierarchy at its level, sampled
+as ``Q_level`` alone, whose ``N`` follows ``Var(Q_level)`` and which stops once
+its samples are drawn.
+
 Adaptive MLMC
 -------------
 Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
@@ -563,6 +573,7 @@ def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.nda
             variances[level] = np.maximum(variances[level], 0.5 * extrapolated)
     return variances
 
+
 def _pooled_variance(run_var: np.ndarray, n_run: int, prior_var: np.ndarray, n_prior: int) -> np.ndarray:
     """Variance pooled from two independent sample sets of one distribution (``n - 1`` weights)."""
     dof_run = max(n_run - 1, 0)
@@ -740,8 +751,10 @@ def _batch_size(hierarchy: _Hierarchy, level: int, wanted: int, max_cost: float 
 
 @dataclass(frozen=True, eq=False)
 class _Options:
-    """Checked arguments every run takes: ``tol`` (shape (n_qoi,) or (1,)), ``theta``, ``n_initial``,
-    ``screening``, ``kurtosis_limit`` (:func:`iter_mlmc`, :func:`iter_mc`)."""
+    """The checked arguments every run takes (:func:`iter_mlmc`, :func:`iter_mc`).
+
+    ``tol`` has shape (n_qoi,), or (1,) while the number of QoIs is unknown.
+    """
 
     tol: np.ndarray
     theta: float
@@ -759,16 +772,20 @@ class _Run:
     one-level hierarchy at its level.
     """
 
-    def __init__(self, hierarchy: _Hierarchy, tol: np.ndarray) -> None:
+    def __init__(self, hierarchy: _Hierarchy, options: _Options) -> None:
         self.hierarchy = hierarchy
-        self.tol = tol
+        self.options = options
+        self.tol = options.tol
         self.n_qoi: int | None = None
         self.is_scalar = False
         self.stop_reason = ""
 
     @property
     def cost_rate(self) -> float:
-        """``gamma`` for predicting the cost of a level not sampled yet."""
+        """``gamma`` for predicting the cost of a level from the nearest sampled one.
+
+        Any value serves a run that samples one level only (``2^(gamma 0) = 1``).
+        """
         return RATE_FLOOR
 
     def accept(self, batch: _Batch, level: int) -> None:
@@ -797,7 +814,9 @@ class _Run:
         raise NotImplementedError
 
 
-def _draw(run: _Run, sampler: Sampler, samples: _LevelSamples, batch_cap: float, max_cost: float | None) -> _Batch | None:
+def _draw(
+    run: _Run, sampler: Sampler, samples: _LevelSamples, batch_cap: float, max_cost: float | None
+) -> _Batch | None:
     """Draw and store the next batch of one level; None if ``max_cost`` forbids it."""
     hierarchy = run.hierarchy
     level = samples.level
@@ -827,7 +846,9 @@ def _batch_event(hierarchy: _Hierarchy, level: int, batch: _Batch) -> BatchDone:
     )
 
 
-def _drive(make_run: Callable[[], _Run], sampler: Sampler, *, batch_cap: float, max_cost: float | None) -> Iterator[Event]:
+def _drive(
+    make_run: Callable[[], _Run], sampler: Sampler, *, batch_cap: float, max_cost: float | None
+) -> Iterator[Event]:
     """The run's events: rounds of batches, each followed by a new plan, until a stop reason is set.
 
     ``make_run`` is called on the first event, so that errors in the run's
@@ -1058,8 +1079,8 @@ class _MlmcRun(_Run):
             )
         hierarchy = _Hierarchy(n_levels, start.floor, options.screening, start.base)
         hierarchy.targets[: len(start.targets)] = start.targets
-        super().__init__(hierarchy, options.tol)
-        self.options, self.fallback, self.dropped = options, start.fallback, start.dropped
+        super().__init__(hierarchy, options)
+        self.fallback, self.dropped = start.fallback, start.dropped
         self.driver = start.fallback if start.fallback is not None else _floor_rates(options.tol.size)
         self.extrapolation, self.refusal = start.extrapolation, start.refusal
 
@@ -1255,7 +1276,6 @@ def _final(events: Iterator[Event]) -> EstimationResult:
     raise EstimationError("the estimator stopped without a result")  # pragma: no cover - generator bug
 
 
-
 # --------------------------------------------------------------------------
 # Plain Monte Carlo: the one-level hierarchy at its level
 # --------------------------------------------------------------------------
@@ -1376,12 +1396,12 @@ class _McRun(_Run):
         floor = options.n_initial if screening is None else MIN_LEVEL_SAMPLES
         # The hierarchy pools the screening's Var(Q_level), if it sampled the level, as MLMC's base level.
         hierarchy = _Hierarchy(level + 1, floor, screening, base=level, reported_from=level)
-        super().__init__(hierarchy, tol)
-        self.options, self.level, self.theta, self.bias = options, level, options.theta, options.bias
+        super().__init__(hierarchy, options)
+        self.level, self.bias = level, options.bias
         self.var_floor: float | np.ndarray = 0.0
         if screening is not None:
             first_var, self.var_floor = _mc_screened_variance(screening, level)
-            first = np.max(np.ceil(first_var / ((1.0 - self.theta) * tol**2)))
+            first = np.max(np.ceil(first_var / ((1.0 - options.theta) * tol**2)))
             hierarchy.targets[level] = max(int(min(first, _MAX_COUNT)), floor)
 
     @property
@@ -1398,7 +1418,8 @@ class _McRun(_Run):
 
     def replan(self) -> None:
         """``N = ceil((1-theta)^-1 eps^-2 Var(Q_level))``, maximum over QoIs, never below the drawn or the floor."""
-        wanted = np.max(np.ceil(np.maximum(self.variance(), self.var_floor) / ((1.0 - self.theta) * self.tol**2)))
+        budget = (1.0 - self.options.theta) * self.tol**2
+        wanted = np.max(np.ceil(np.maximum(self.variance(), self.var_floor) / budget))
         n = max(self.samples.n, int(min(wanted, _MAX_COUNT)), self.hierarchy.floor)
         self.hierarchy.targets[self.level] = n
 
@@ -1431,10 +1452,10 @@ class _McRun(_Run):
 
 def _mc_result(run: _McRun) -> EstimationResult:
     moments = run.samples.moments()
-    # The statistics describe Q alone (coarse values stored as zeros), numbered from level 0.
+    # A table of Q alone (coarse values stored as zeros), with base level 0 as MC tables always had.
     statistics = _assemble([run.level], [moments])
     is_scalar = run.is_scalar
-    budget = (1.0 - run.theta) * run.tol**2
+    budget = (1.0 - run.options.theta) * run.tol**2
     mc_n = float(np.max(np.minimum(np.ceil(run.variance() / budget), _MAX_COUNT)))
     return EstimationResult(
         method="mc",
@@ -1450,7 +1471,7 @@ def _mc_result(run: _McRun) -> EstimationResult:
         statistics=statistics,
         rates=None,
         tol=_readonly(run.tol),
-        theta=run.theta,
+        theta=run.options.theta,
         tol_met=run.is_tol_met(),
         stop_reason=run.stop_reason,
         is_bias_estimated=run.bias is not None,

@@ -1537,7 +1537,10 @@ def _allocate(
 def _mc_samples(
     statistics: LevelStatistics | None, variances: np.ndarray, finest_level: int, budget: np.ndarray
 ) -> int:
-    """Samples plain MC on ``finest_level`` needs: ``Var(Q_L)`` of the finest screened level up to ``L``, else ``V_0``."""
+    """Samples plain MC on level ``L`` needs (:func:`plan`, Notes).
+
+    ``Var(Q_L)`` is that of the finest level screened up to ``L``, else ``V_0``.
+    """
     var_q = variances[0]
     if statistics is not None:
         rows = [row for row in range(statistics.n_levels) if statistics.levels[row] <= finest_level]
