@@ -148,6 +148,7 @@ from rough_uq.multilevel.statistics import (
     _fit_beta,
     _fit_gamma,
     _level_moments,
+    _Line,
     _Moments,
     _readonly,
     _check_tol,
@@ -501,46 +502,71 @@ def _lenient_rates(
     the floor), with its standard error and empty ``levels_*``.
     """
     means = statistics if bias_statistics is None else bias_statistics
-    n_qoi = statistics.n_qoi
-    base = fallback if fallback is not None else _floor_rates(n_qoi)
-    alpha, c_alpha, alpha_se = np.array(base.alpha), np.array(base.c_alpha), np.array(base.alpha_se)
-    beta, c_beta, beta_se = np.array(base.beta), np.array(base.c_beta), np.array(base.beta_se)
-    levels_alpha = list(base.levels_alpha) or [()] * n_qoi
-    levels_beta = list(base.levels_beta) or [()] * n_qoi
-    for q in range(n_qoi):
-        line, _ = _fit_alpha(means, q, min_level)
+    base = fallback if fallback is not None else _floor_rates(statistics.n_qoi)
+    qois = range(statistics.n_qoi)
+    alpha = _lenient_fit(
+        [_fit_alpha(means, q, min_level)[0] for q in qois], base.alpha, base.c_alpha, base.alpha_se, base.levels_alpha
+    )
+    beta = _lenient_fit(
+        [_fit_beta(statistics, q, min_level)[0] for q in qois], base.beta, base.c_beta, base.beta_se, base.levels_beta
+    )
+    gamma = _lenient_gamma(statistics, base, min_level, is_anchored=fallback is None)
+    return Rates(
+        alpha=alpha.rate,
+        beta=beta.rate,
+        gamma=gamma.rate,
+        c_alpha=alpha.constant,
+        c_beta=beta.constant,
+        c_gamma=gamma.constant,
+        alpha_se=alpha.se,
+        beta_se=beta.se,
+        gamma_se=gamma.se,
+        levels_alpha=alpha.levels,
+        levels_beta=beta.levels,
+        levels_gamma=gamma.levels,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class _QoiRates:
+    """A per-QoI rate model: rates, constants and standard errors of shape (n_qoi,), and the levels fitted."""
+
+    rate: np.ndarray
+    constant: np.ndarray
+    se: np.ndarray
+    levels: tuple[tuple[int, ...], ...]
+
+
+def _lenient_fit(
+    lines: list[_Line | None],
+    rate: np.ndarray,
+    constant: np.ndarray,
+    se: np.ndarray,
+    levels: tuple[tuple[int, ...], ...],
+) -> _QoiRates:
+    """The fitted ``lines`` (one per QoI, rates floored), the fallback's values where a line is None."""
+    rate, constant, se = np.array(rate), np.array(constant), np.array(se)
+    fitted_levels = list(levels) or [()] * len(lines)
+    for q, line in enumerate(lines):
         if line is not None:
-            alpha[q], c_alpha[q], alpha_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
-            levels_alpha[q] = line.levels
-        line, _ = _fit_beta(statistics, q, min_level)
-        if line is not None:
-            beta[q], c_beta[q], beta_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
-            levels_beta[q] = line.levels
-    gamma, c_gamma, gamma_se, levels_gamma = base.gamma, base.c_gamma, base.gamma_se, base.levels_gamma
+            rate[q], constant[q], se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
+            fitted_levels[q] = line.levels
+    return _QoiRates(rate=rate, constant=constant, se=se, levels=tuple(fitted_levels))
+
+
+def _lenient_gamma(statistics: LevelStatistics, base: Rates, min_level: int, *, is_anchored: bool) -> _Line:
+    """``gamma`` fitted (floored), else the fallback's; ``is_anchored``: put a fallback's ``c_gamma`` on the data."""
     line, _ = _fit_gamma(statistics, min_level)
     if line is not None:
-        gamma, c_gamma, gamma_se, levels_gamma = max(line.rate, RATE_FLOOR), line.constant, line.se, line.levels
-    elif fallback is None:
+        return _Line(rate=max(line.rate, RATE_FLOOR), constant=line.constant, se=line.se, levels=line.levels)
+    c_gamma = base.c_gamma
+    known = np.flatnonzero(statistics.mean_cost > 0)
+    if is_anchored and known.size:
         # Anchor the cost model at the finest level with a measured cost, so that
         # extrapolated costs stay on the scale of the measured ones.
-        known = np.flatnonzero(statistics.mean_cost > 0)
-        if known.size:
-            top = known[-1]
-            c_gamma = statistics.mean_cost[top] * 2.0 ** (-gamma * statistics.levels[top])
-    return Rates(
-        alpha=alpha,
-        beta=beta,
-        gamma=gamma,
-        c_alpha=c_alpha,
-        c_beta=c_beta,
-        c_gamma=c_gamma,
-        alpha_se=alpha_se,
-        beta_se=beta_se,
-        gamma_se=gamma_se,
-        levels_alpha=tuple(levels_alpha),
-        levels_beta=tuple(levels_beta),
-        levels_gamma=levels_gamma,
-    )
+        top = known[-1]
+        c_gamma = statistics.mean_cost[top] * 2.0 ** (-base.gamma * statistics.levels[top])
+    return _Line(rate=base.gamma, constant=c_gamma, se=base.gamma_se, levels=base.levels_gamma)
 
 
 def _fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np.ndarray:
@@ -1039,27 +1065,33 @@ def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
     """Giles' ``N0`` on every level without a screening; else the screening's plan (module docstring, step 1)."""
     screening, rates, richardson = options.screening, options.rates, options.richardson
     if screening is None:
-        pending = "pending" if richardson else "off"
-        return _MlmcStart(options.coarsest_level or 0, (), (), options.n_initial, rates, pending)
-    screening_rates = rates if rates is not None else _lenient_rates(screening, None)
-
-    def planned(coarsest: int | None) -> Plan:
-        return plan(
-            tol=options.tol, rates=screening_rates, statistics=screening, theta=options.theta,
-            max_level=options.max_level, richardson=richardson, coarsest_level=coarsest,
+        return _MlmcStart(
+            base=options.coarsest_level or 0, dropped=(), targets=(), floor=options.n_initial, fallback=rates,
+            extrapolation="pending" if richardson else "off",
         )
-
-    initial = planned(options.coarsest_level)
+    screening_rates = rates if rates is not None else _lenient_rates(screening, None)
+    initial = _screening_plan(options, screening_rates, options.coarsest_level)
     if options.coarsest_level is None and initial.coarsest_level + 2 > options.max_level:
         # The rates need two levels above the base; max_level leaves no room for them.
-        initial = planned(0)
+        initial = _screening_plan(options, screening_rates, 0)
     base = initial.coarsest_level
     targets = tuple(max(int(n), MIN_LEVEL_SAMPLES) if level >= base else 0 for level, n in enumerate(initial.n_samples))
     extrapolation, refusal = "off", ""
     if richardson:
         refusal = _screening_instability(screening, base)
         extrapolation = "refused" if refusal else ("active" if initial.is_richardson else "pending")
-    return _MlmcStart(base, initial.dropped_levels, targets, MIN_LEVEL_SAMPLES, screening_rates, extrapolation, refusal)
+    return _MlmcStart(
+        base=base, dropped=initial.dropped_levels, targets=targets, floor=MIN_LEVEL_SAMPLES,
+        fallback=screening_rates, extrapolation=extrapolation, refusal=refusal,
+    )
+
+
+def _screening_plan(options: _MlmcOptions, rates: Rates, coarsest_level: int | None) -> Plan:
+    """:func:`~rough_uq.multilevel.statistics.plan` on the screening, with the run's options."""
+    return plan(
+        tol=options.tol, rates=rates, statistics=options.screening, theta=options.theta,
+        max_level=options.max_level, richardson=options.richardson, coarsest_level=coarsest_level,
+    )
 
 
 class _MlmcRun(_Run):
