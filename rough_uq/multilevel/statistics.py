@@ -118,6 +118,17 @@ stable; :func:`ratio_instability` says why they are not (too few levels, a
 mean indistinguishable from zero, a change of sign, no decay, or successive
 ratios differing by more than a factor ``2^RATIO_LOG2_TOLERANCE`` beyond
 their noise), and callers fall back to plain MLMC.
+
+The plan
+--------
+:func:`plan` goes in steps, one function each: the finest level is the first
+whose remaining bias (``_BiasModel``, as ``bias_from`` says) is within
+``sqrt(theta) eps`` (``_finest_level``); with ``richardson`` the extrapolated
+estimate may need fewer levels (``_richardson_level``); the base level is
+given or chosen (``_plan_base``, :func:`choose_coarsest_level`); ``V_l`` and
+``C_l`` come from the explicit arguments, the screening or the rate models
+(``_level_inputs``); then the allocation (``_allocate``,
+:func:`optimal_samples`) and the prediction for plain MC (``_mc_samples``).
 """
 
 from __future__ import annotations
