@@ -39,6 +39,16 @@ and finally :class:`Finished` (the :class:`EstimationResult`). The CLI
 consumes them for progress bars and store writes; :func:`mlmc` and
 :func:`mc` simply run them to the end.
 
+One loop serves both (``_drive``): a run holds a hierarchy of levels (its
+samples, planned ``N_l`` and spent cost) and, round after round, draws the
+missing samples of every level in batches, re-plans ``N_l`` and, once the
+samples are (nearly) complete, decides whether to stop. What differs is the
+run's state object: the MLMC run (``_MlmcRun``) refits the rates, allocates
+over the levels, checks the Richardson ratios and the bias and may add a
+level; plain MC (``_McRun``) is the one-level hierarchy at its level, sampled
+as ``Q_level`` alone, whose ``N`` follows ``Var(Q_level)`` and which stops once
+its samples are drawn.
+
 Adaptive MLMC
 -------------
 Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
@@ -115,6 +125,7 @@ the ``n - 1`` normalisation, so each term is unbiased for
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import warnings
 from collections.abc import Callable, Iterator
@@ -137,6 +148,7 @@ from rough_uq.multilevel.statistics import (
     _fit_beta,
     _fit_gamma,
     _level_moments,
+    _Line,
     _Moments,
     _readonly,
     _check_tol,
@@ -460,7 +472,7 @@ def _shape_out(values: np.ndarray, is_scalar: bool) -> float | np.ndarray:
 
 
 # --------------------------------------------------------------------------
-# MLMC driver internals
+# Rates and allocation of a run
 # --------------------------------------------------------------------------
 
 
@@ -490,46 +502,71 @@ def _lenient_rates(
     the floor), with its standard error and empty ``levels_*``.
     """
     means = statistics if bias_statistics is None else bias_statistics
-    n_qoi = statistics.n_qoi
-    base = fallback if fallback is not None else _floor_rates(n_qoi)
-    alpha, c_alpha, alpha_se = np.array(base.alpha), np.array(base.c_alpha), np.array(base.alpha_se)
-    beta, c_beta, beta_se = np.array(base.beta), np.array(base.c_beta), np.array(base.beta_se)
-    levels_alpha = list(base.levels_alpha) or [()] * n_qoi
-    levels_beta = list(base.levels_beta) or [()] * n_qoi
-    for q in range(n_qoi):
-        line, _ = _fit_alpha(means, q, min_level)
+    base = fallback if fallback is not None else _floor_rates(statistics.n_qoi)
+    qois = range(statistics.n_qoi)
+    alpha = _lenient_fit(
+        [_fit_alpha(means, q, min_level)[0] for q in qois], base.alpha, base.c_alpha, base.alpha_se, base.levels_alpha
+    )
+    beta = _lenient_fit(
+        [_fit_beta(statistics, q, min_level)[0] for q in qois], base.beta, base.c_beta, base.beta_se, base.levels_beta
+    )
+    gamma = _lenient_gamma(statistics, base, min_level, is_anchored=fallback is None)
+    return Rates(
+        alpha=alpha.rate,
+        beta=beta.rate,
+        gamma=gamma.rate,
+        c_alpha=alpha.constant,
+        c_beta=beta.constant,
+        c_gamma=gamma.constant,
+        alpha_se=alpha.se,
+        beta_se=beta.se,
+        gamma_se=gamma.se,
+        levels_alpha=alpha.levels,
+        levels_beta=beta.levels,
+        levels_gamma=gamma.levels,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class _QoiRates:
+    """A per-QoI rate model: rates, constants and standard errors of shape (n_qoi,), and the levels fitted."""
+
+    rate: np.ndarray
+    constant: np.ndarray
+    se: np.ndarray
+    levels: tuple[tuple[int, ...], ...]
+
+
+def _lenient_fit(
+    lines: list[_Line | None],
+    rate: np.ndarray,
+    constant: np.ndarray,
+    se: np.ndarray,
+    levels: tuple[tuple[int, ...], ...],
+) -> _QoiRates:
+    """The fitted ``lines`` (one per QoI, rates floored), the fallback's values where a line is None."""
+    rate, constant, se = np.array(rate), np.array(constant), np.array(se)
+    fitted_levels = list(levels) or [()] * len(lines)
+    for q, line in enumerate(lines):
         if line is not None:
-            alpha[q], c_alpha[q], alpha_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
-            levels_alpha[q] = line.levels
-        line, _ = _fit_beta(statistics, q, min_level)
-        if line is not None:
-            beta[q], c_beta[q], beta_se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
-            levels_beta[q] = line.levels
-    gamma, c_gamma, gamma_se, levels_gamma = base.gamma, base.c_gamma, base.gamma_se, base.levels_gamma
+            rate[q], constant[q], se[q] = max(line.rate, RATE_FLOOR), line.constant, line.se
+            fitted_levels[q] = line.levels
+    return _QoiRates(rate=rate, constant=constant, se=se, levels=tuple(fitted_levels))
+
+
+def _lenient_gamma(statistics: LevelStatistics, base: Rates, min_level: int, *, is_anchored: bool) -> _Line:
+    """``gamma`` fitted (floored), else the fallback's; ``is_anchored``: put a fallback's ``c_gamma`` on the data."""
     line, _ = _fit_gamma(statistics, min_level)
     if line is not None:
-        gamma, c_gamma, gamma_se, levels_gamma = max(line.rate, RATE_FLOOR), line.constant, line.se, line.levels
-    elif fallback is None:
+        return _Line(rate=max(line.rate, RATE_FLOOR), constant=line.constant, se=line.se, levels=line.levels)
+    c_gamma = base.c_gamma
+    known = np.flatnonzero(statistics.mean_cost > 0)
+    if is_anchored and known.size:
         # Anchor the cost model at the finest level with a measured cost, so that
         # extrapolated costs stay on the scale of the measured ones.
-        known = np.flatnonzero(statistics.mean_cost > 0)
-        if known.size:
-            top = known[-1]
-            c_gamma = statistics.mean_cost[top] * 2.0 ** (-gamma * statistics.levels[top])
-    return Rates(
-        alpha=alpha,
-        beta=beta,
-        gamma=gamma,
-        c_alpha=c_alpha,
-        c_beta=c_beta,
-        c_gamma=c_gamma,
-        alpha_se=alpha_se,
-        beta_se=beta_se,
-        gamma_se=gamma_se,
-        levels_alpha=tuple(levels_alpha),
-        levels_beta=tuple(levels_beta),
-        levels_gamma=levels_gamma,
-    )
+        top = known[-1]
+        c_gamma = statistics.mean_cost[top] * 2.0 ** (-base.gamma * statistics.levels[top])
+    return _Line(rate=base.gamma, constant=c_gamma, se=base.gamma_se, levels=base.levels_gamma)
 
 
 def _fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np.ndarray:
@@ -563,37 +600,39 @@ def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.nda
     return variances
 
 
-def _hierarchy_bias(hierarchy: _Hierarchy, n_qoi: int, driver: Rates, is_richardson: bool) -> np.ndarray:
-    """Remaining bias of the run's estimate (plain or extrapolated) from the pooled level means."""
-    means, _ = hierarchy.bias_means(n_qoi)
-    means = means[hierarchy.base :]  # row 0 is the base level, whose Y is Q
-    if is_richardson:
-        return richardson_bias(means[1:], driver.alpha)
-    return estimated_bias(rates=driver, level=hierarchy.n_levels - 1, mean_diff=means[-1])
-
-
 def _pooled_variance(run_var: np.ndarray, n_run: int, prior_var: np.ndarray, n_prior: int) -> np.ndarray:
     """Variance pooled from two independent sample sets of one distribution (``n - 1`` weights)."""
     dof_run = max(n_run - 1, 0)
     return (dof_run * run_var + (n_prior - 1) * prior_var) / (dof_run + n_prior - 1)
 
 
-class _Hierarchy:
-    """Mutable state of one MLMC run: the samples, the plan, the spent cost.
+# --------------------------------------------------------------------------
+# The hierarchy: samples, plan and spent cost of a run
+# --------------------------------------------------------------------------
 
-    ``floor`` is the fewest samples any level gets; ``prior_var``,
-    ``prior_mean`` and ``prior_n`` (keyed by level) are the screening's
-    ``V_l``, ``E[Y_l]`` and sample counts, pooled with the run's samples in
-    :meth:`variances` (allocation and statistical error) and
-    :meth:`bias_means` (bias estimate and rate ``alpha``; module docstring).
+
+class _Hierarchy:
+    """Mutable state of one run: the samples of levels ``0..L``, the plan, the spent cost.
+
+    ``base`` is the level the telescoping sum starts on (sampled as ``Q_base``;
+    levels below it get no samples); ``floor`` is the fewest samples any level
+    from ``base`` on gets; ``prior_var``, ``prior_mean`` and ``prior_n``
+    (keyed by level) are the screening's ``V_l``, ``E[Y_l]`` and sample
+    counts, pooled with the run's samples in :meth:`variances` (allocation and
+    statistical error) and :meth:`bias_means` (bias estimate and rate
+    ``alpha``; module docstring). Events report the levels from
+    ``reported_from`` on (MC: its one level; MLMC: all, from 0).
     """
 
-    def __init__(self, n_levels: int, floor: int, prior: LevelStatistics | None = None, base: int = 0) -> None:
+    def __init__(
+        self, n_levels: int, floor: int, prior: LevelStatistics | None = None, base: int = 0, reported_from: int = 0
+    ) -> None:
         self.samples = [_LevelSamples(level) for level in range(n_levels)]
         self.base = base
         self.targets = [floor if level >= base else 0 for level in range(n_levels)]
         self.floor = floor
         self.spent = 0.0
+        self.reported_from = reported_from
         self.prior_var: dict[int, np.ndarray] = {}
         self.prior_mean: dict[int, np.ndarray] = {}
         self.prior_n: dict[int, int] = {}
@@ -658,6 +697,19 @@ class _Hierarchy:
             n_samples=_readonly(n_samples),
         )
 
+    def planning_inputs(self, n_qoi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pooled ``V_l`` (shape (n_levels, n_qoi)), which levels have one, and mean costs ``C_l`` (0 if unsampled)."""
+        has_data = np.array([self.has_variance(s.level) for s in self.samples])
+        var_diff = np.zeros((self.n_levels, n_qoi))
+        mean_cost = np.zeros(self.n_levels)
+        for s in self.samples:
+            run_var = s.moments().var_diff if s.n > 0 else np.zeros(n_qoi)
+            if has_data[s.level]:
+                var_diff[s.level] = self.variances(s.level, run_var, s.n)
+            if s.n > 0:
+                mean_cost[s.level] = s.moments().mean_cost
+        return var_diff, has_data, mean_cost
+
     def has_variance(self, level: int) -> bool:
         return level >= self.base and (self.samples[level].n >= 2 or level in self.prior_var)
 
@@ -666,16 +718,27 @@ class _Hierarchy:
         return len(self.samples)
 
     def levels(self) -> np.ndarray:
-        return _readonly(np.arange(self.n_levels))
+        return _readonly(np.arange(self.reported_from, self.n_levels))
 
     def n_done(self) -> np.ndarray:
-        return _readonly(np.array([s.n for s in self.samples], dtype=np.int64))
+        return _readonly(np.array([s.n for s in self.samples[self.reported_from :]], dtype=np.int64))
 
     def n_planned(self) -> np.ndarray:
-        return _readonly(np.array(self.targets, dtype=np.int64))
+        return _readonly(np.array(self.targets[self.reported_from :], dtype=np.int64))
 
     def plan_event(self, reason: str) -> PlanUpdated:
         return PlanUpdated(levels=self.levels(), n_planned=self.n_planned(), n_done=self.n_done(), reason=reason)
+
+    def pending(self) -> list[_LevelSamples]:
+        """Levels with fewer samples than planned, coarsest first."""
+        return [s for s in self.samples if s.n < self.targets[s.level]]
+
+    def is_nearly_complete(self) -> bool:
+        """Every level within 1 % of its planned samples (Giles' test before the bias check)."""
+        return not any(self.targets[s.level] - s.n > 0.01 * s.n for s in self.samples)
+
+    def is_complete(self) -> bool:
+        return all(s.n >= self.targets[s.level] for s in self.samples)
 
     def sampled(self) -> list[_LevelSamples]:
         return [s for s in self.samples if s.n > 0]
@@ -707,14 +770,155 @@ def _batch_size(hierarchy: _Hierarchy, level: int, wanted: int, max_cost: float 
     return n if hierarchy.samples[level].n + n >= 2 else 0
 
 
+# --------------------------------------------------------------------------
+# The driver loop, shared by MC and MLMC
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class _Options:
+    """The checked arguments every run takes (:func:`iter_mlmc`, :func:`iter_mc`).
+
+    ``tol`` has shape (n_qoi,), or (1,) while the number of QoIs is unknown.
+    """
+
+    tol: np.ndarray
+    theta: float
+    n_initial: int
+    screening: LevelStatistics | None
+    kurtosis_limit: float
+
+
+class _Run:
+    """What MC and MLMC runs share: the hierarchy, the tolerance, the QoI count, the stop reason.
+
+    :func:`_drive` runs the loop; a subclass decides the plan (:meth:`replan`),
+    what happens once a round of samples is (nearly) complete
+    (:meth:`after_round`) and the result (:meth:`finish`). MC is the
+    one-level hierarchy at its level.
+    """
+
+    def __init__(self, hierarchy: _Hierarchy, options: _Options) -> None:
+        self.hierarchy = hierarchy
+        self.options = options
+        self.tol = options.tol
+        self.n_qoi: int | None = None
+        self.is_scalar = False
+        self.stop_reason = ""
+
+    @property
+    def cost_rate(self) -> float:
+        """``gamma`` for predicting the cost of a level from the nearest sampled one.
+
+        Any value serves a run that samples one level only (``2^(gamma 0) = 1``).
+        """
+        return RATE_FLOOR
+
+    def accept(self, batch: _Batch, level: int) -> None:
+        """Check a batch's number of QoIs; the first batch fixes it."""
+        if self.n_qoi is None:
+            self.n_qoi, self.is_scalar = batch.fine.shape[1], batch.is_scalar
+            self.tol = _check_tol(self.tol, self.n_qoi)
+            self.on_qoi_count(self.n_qoi)
+        elif batch.fine.shape[1] != self.n_qoi:
+            raise EstimationError(f"sampler returned {batch.fine.shape[1]} QoIs on level {level}, earlier {self.n_qoi}")
+
+    def on_qoi_count(self, n_qoi: int) -> None:
+        """Check what depends on the number of QoIs, once it is known."""
+
+    def start(self) -> Iterator[Event]:
+        """Events right after the initial plan."""
+        return iter(())
+
+    def replan(self) -> None:
+        raise NotImplementedError
+
+    def after_round(self) -> Iterator[Event]:
+        raise NotImplementedError
+
+    def finish(self) -> Iterator[Event]:
+        raise NotImplementedError
+
+
+def _draw(
+    run: _Run, sampler: Sampler, samples: _LevelSamples, batch_cap: float, max_cost: float | None
+) -> _Batch | None:
+    """Draw and store the next batch of one level; None if ``max_cost`` forbids it."""
+    hierarchy = run.hierarchy
+    level = samples.level
+    wanted = int(min(hierarchy.targets[level] - samples.n, batch_cap))
+    n = _batch_size(hierarchy, level, wanted, max_cost, run.cost_rate)
+    if n == 0:
+        return None
+    batch = _call_sampler(sampler, level, samples.n, n)
+    run.accept(batch, level)
+    # The base level is sampled as Q_base: its coarse values are not part of the sum.
+    coarse = np.zeros_like(batch.fine) if level == hierarchy.base else batch.coarse
+    samples.add(batch.fine, coarse, batch.cost)
+    hierarchy.spent += float(np.sum(batch.cost))
+    return batch
+
+
+def _batch_event(hierarchy: _Hierarchy, level: int, batch: _Batch) -> BatchDone:
+    return BatchDone(
+        level=level,
+        indices=_readonly(batch.indices),
+        fine=_readonly(batch.fine),
+        coarse=_readonly(batch.coarse),
+        cost=_readonly(batch.cost),
+        levels=hierarchy.levels(),
+        n_done=hierarchy.n_done(),
+        n_planned=hierarchy.n_planned(),
+    )
+
+
+def _drive(
+    make_run: Callable[[], _Run], sampler: Sampler, *, batch_cap: float, max_cost: float | None
+) -> Iterator[Event]:
+    """The run's events: rounds of batches, each followed by a new plan, until a stop reason is set.
+
+    ``make_run`` is called on the first event, so that errors in the run's
+    set-up surface where the events are consumed. Warnings of
+    :meth:`_Run.finish` use ``stacklevel=3``: finish, this loop, the consumer.
+    """
+    run = make_run()
+    hierarchy = run.hierarchy
+    yield hierarchy.plan_event("initial")
+    yield from run.start()
+    while not run.stop_reason:
+        pending = hierarchy.pending()
+        for samples in pending:
+            batch = _draw(run, sampler, samples, batch_cap, max_cost)
+            if batch is None:
+                run.stop_reason = "max_cost"
+                break
+            yield _batch_event(hierarchy, samples.level, batch)
+        if run.stop_reason:
+            break
+        if pending:
+            before = list(hierarchy.targets)
+            run.replan()
+            if hierarchy.targets != before:
+                yield hierarchy.plan_event("variance")
+            if not hierarchy.is_nearly_complete():
+                continue
+        yield from run.after_round()
+    yield from run.finish()
+
+
 def _warn_zero_cost(statistics: LevelStatistics) -> None:
     if np.any(statistics.mean_cost <= 0):
         warnings.warn(
             f"the sampler reported zero cost on levels {statistics.levels[statistics.mean_cost <= 0].tolist()}; "
             "the sample allocation uses costs extrapolated with the cost rate instead",
             EstimationWarning,
-            stacklevel=3,
+            stacklevel=4,  # this function, finish, the loop, the consumer
         )
+
+
+# --------------------------------------------------------------------------
+# Adaptive MLMC
+# --------------------------------------------------------------------------
 
 
 def iter_mlmc(
@@ -812,209 +1016,210 @@ def iter_mlmc(
         remaining_bias(np.zeros(rates.n_qoi), rates.alpha)  # alpha <= 0 cannot meet any tolerance
         if screening is not None and rates.n_qoi != screening.n_qoi:
             raise EstimationError(f"rates have {rates.n_qoi} QoIs, the screening {screening.n_qoi}")
-    return _mlmc_events(
-        sampler,
+    options = _MlmcOptions(
         tol=tol,
         theta=theta,
         n_initial=n_initial,
         min_finest_level=min_finest_level,
         max_level=max_level,
-        max_cost=max_cost,
-        batch_size=batch_size,
         screening=screening,
         rates=rates,
         kurtosis_limit=float(kurtosis_limit),
         richardson=bool(richardson),
         coarsest_level=None if coarsest_level is None else _check_int("coarsest_level", coarsest_level, 0),
     )
+    batch_cap = batch_size if batch_size is not None else math.inf
+    return _drive(functools.partial(_MlmcRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
 
 
-def _mlmc_events(
-    sampler: Sampler,
-    *,
-    tol: np.ndarray,
-    theta: float,
-    n_initial: int,
-    min_finest_level: int,
-    max_level: int,
-    max_cost: float | None,
-    batch_size: int | None,
-    screening: LevelStatistics | None,
-    rates: Rates | None,
-    kurtosis_limit: float,
-    richardson: bool,
-    coarsest_level: int | None,
-) -> Iterator[Event]:
-    budget_cap = batch_size if batch_size is not None else math.inf
-    fallback = rates
-    initial_targets: list[int] = []
-    floor = n_initial
-    # Richardson state: "off", "pending" (too few levels to check), "active" or "refused".
-    extrapolation, refusal = ("pending" if richardson else "off"), ""
-    if screening is not None:
-        screening_rates = rates if rates is not None else _lenient_rates(screening, None)
-        fallback = screening_rates
-        initial = plan(
-            tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level,
-            richardson=richardson, coarsest_level=coarsest_level,
+@dataclass(frozen=True, eq=False)
+class _MlmcOptions(_Options):
+    """The checked arguments of :func:`iter_mlmc` that shape the run (see there)."""
+
+    min_finest_level: int
+    max_level: int
+    rates: Rates | None
+    richardson: bool
+    coarsest_level: int | None
+
+
+@dataclass(frozen=True, eq=False)
+class _MlmcStart:
+    """How an MLMC run begins (:func:`_mlmc_start`).
+
+    ``targets`` are the initial ``N_l`` of levels ``0, 1, ...`` (empty: every
+    level gets ``floor``); ``fallback`` the rates used where the run's cannot
+    be fitted; ``extrapolation`` the Richardson state (:class:`_MlmcRun`).
+    """
+
+    base: int
+    dropped: tuple[DroppedLevel, ...]
+    targets: tuple[int, ...]
+    floor: int
+    fallback: Rates | None
+    extrapolation: str
+    refusal: str = ""
+
+
+def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
+    """Giles' ``N0`` on every level without a screening; else the screening's plan (module docstring, step 1)."""
+    screening, rates, richardson = options.screening, options.rates, options.richardson
+    if screening is None:
+        return _MlmcStart(
+            base=options.coarsest_level or 0, dropped=(), targets=(), floor=options.n_initial, fallback=rates,
+            extrapolation="pending" if richardson else "off",
         )
-        if coarsest_level is None and initial.coarsest_level + 2 > max_level:
-            # The rates need two levels above the base; max_level leaves no room for them.
-            initial = plan(
-                tol=tol, rates=screening_rates, statistics=screening, theta=theta, max_level=max_level,
-                richardson=richardson, coarsest_level=0,
-            )
-        floor = MIN_LEVEL_SAMPLES
-        base, dropped = initial.coarsest_level, initial.dropped_levels
-        initial_targets = [max(int(n), floor) if level >= base else 0 for level, n in enumerate(initial.n_samples)]
-        if richardson:
-            refusal = _screening_instability(screening, base)
-            extrapolation = "refused" if refusal else ("active" if initial.is_richardson else "pending")
-    else:
-        base, dropped = (coarsest_level or 0), ()
-    # Two levels above the base to fit the rates from.
-    n_levels = max(min_finest_level + 1, base + 3, len(initial_targets))
-    if n_levels - 1 > max_level:
-        raise InvalidParameterError("coarsest_level", coarsest_level, f"at most max_level - 2 = {max_level - 2}")
-    hierarchy = _Hierarchy(n_levels, floor, screening, base)
-    hierarchy.targets[: len(initial_targets)] = initial_targets
-    driver = fallback if fallback is not None else _floor_rates(tol.size)
-    is_scalar = False
-    n_qoi: int | None = None
-    yield hierarchy.plan_event("initial")
-    if extrapolation == "refused":
-        yield RichardsonRefused(levels=hierarchy.levels(), reason=refusal)
+    screening_rates = rates if rates is not None else _lenient_rates(screening, None)
+    initial = _screening_plan(options, screening_rates, options.coarsest_level)
+    if options.coarsest_level is None and initial.coarsest_level + 2 > options.max_level:
+        # The rates need two levels above the base; max_level leaves no room for them.
+        initial = _screening_plan(options, screening_rates, 0)
+    base = initial.coarsest_level
+    targets = tuple(max(int(n), MIN_LEVEL_SAMPLES) if level >= base else 0 for level, n in enumerate(initial.n_samples))
+    extrapolation, refusal = "off", ""
+    if richardson:
+        refusal = _screening_instability(screening, base)
+        extrapolation = "refused" if refusal else ("active" if initial.is_richardson else "pending")
+    return _MlmcStart(
+        base=base, dropped=initial.dropped_levels, targets=targets, floor=MIN_LEVEL_SAMPLES,
+        fallback=screening_rates, extrapolation=extrapolation, refusal=refusal,
+    )
 
-    def replan() -> None:
-        nonlocal driver
+
+def _screening_plan(options: _MlmcOptions, rates: Rates, coarsest_level: int | None) -> Plan:
+    """:func:`~rough_uq.multilevel.statistics.plan` on the screening, with the run's options."""
+    return plan(
+        tol=options.tol, rates=rates, statistics=options.screening, theta=options.theta,
+        max_level=options.max_level, richardson=options.richardson, coarsest_level=coarsest_level,
+    )
+
+
+class _MlmcRun(_Run):
+    """An adaptive MLMC run (module docstring): its rates, Richardson state and bias test.
+
+    ``extrapolation`` is ``"off"``, ``"pending"`` (too few levels to check the
+    ratios), ``"active"`` or ``"refused"`` (``refusal`` says why).
+    """
+
+    def __init__(self, options: _MlmcOptions) -> None:
+        start = _mlmc_start(options)
+        # Two levels above the base to fit the rates from.
+        n_levels = max(options.min_finest_level + 1, start.base + 3, len(start.targets))
+        if n_levels - 1 > options.max_level:
+            raise InvalidParameterError(
+                "coarsest_level", options.coarsest_level, f"at most max_level - 2 = {options.max_level - 2}"
+            )
+        hierarchy = _Hierarchy(n_levels, start.floor, options.screening, start.base)
+        hierarchy.targets[: len(start.targets)] = start.targets
+        super().__init__(hierarchy, options)
+        self.fallback, self.dropped = start.fallback, start.dropped
+        self.driver = start.fallback if start.fallback is not None else _floor_rates(options.tol.size)
+        self.extrapolation, self.refusal = start.extrapolation, start.refusal
+
+    @property
+    def cost_rate(self) -> float:
+        return self.driver.gamma
+
+    def on_qoi_count(self, n_qoi: int) -> None:
+        if self.fallback is not None and self.fallback.n_qoi != n_qoi:
+            raise EstimationError(f"the rates/screening have {self.fallback.n_qoi} QoIs, the sampler {n_qoi}")
+        if self.driver.n_qoi != n_qoi:
+            self.driver = _floor_rates(n_qoi)
+
+    def start(self) -> Iterator[Event]:
+        if self.extrapolation == "refused":
+            yield RichardsonRefused(levels=self.hierarchy.levels(), reason=self.refusal)
+
+    def replan(self) -> None:
+        """Refit the rates (unless given) and set ``N_l`` from the pooled ``V_l`` (module docstring, step 2)."""
+        hierarchy = self.hierarchy
+        base = hierarchy.base
         statistics = hierarchy.statistics()
-        if rates is None:
-            driver = _lenient_rates(statistics, fallback, base + 1, hierarchy.bias_statistics(statistics))
-        has_data = np.array([hierarchy.has_variance(s.level) for s in hierarchy.samples])
-        var_diff = np.zeros((hierarchy.n_levels, n_qoi))
-        mean_cost = np.zeros(hierarchy.n_levels)
-        for s in hierarchy.samples:
-            run_var = s.moments().var_diff if s.n > 0 else np.zeros(n_qoi)
-            if has_data[s.level]:
-                var_diff[s.level] = hierarchy.variances(s.level, run_var, s.n)
-            if s.n > 0:
-                mean_cost[s.level] = s.moments().mean_cost
-        variances = _planning_variances(var_diff, has_data, driver.beta, base)
-        if extrapolation == "active":
-            variances[-1] = variances[-1] * richardson_weight(driver.alpha) ** 2
-        costs = _fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), driver.gamma)
+        if self.options.rates is None:
+            self.driver = _lenient_rates(statistics, self.fallback, base + 1, hierarchy.bias_statistics(statistics))
+        var_diff, has_data, mean_cost = hierarchy.planning_inputs(self.n_qoi)
+        variances = _planning_variances(var_diff, has_data, self.driver.beta, base)
+        if self.extrapolation == "active":
+            variances[-1] = variances[-1] * richardson_weight(self.driver.alpha) ** 2
+        costs = _fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), self.driver.gamma)
+        budget = (1.0 - self.options.theta) * self.tol**2
         wanted = np.zeros(hierarchy.n_levels)
-        wanted[base:] = np.ceil(np.max(optimal_samples(variances[base:], costs[base:], (1.0 - theta) * tol**2), axis=1))
+        wanted[base:] = np.ceil(np.max(optimal_samples(variances[base:], costs[base:], budget), axis=1))
         hierarchy.targets = [
             max(s.n, int(n), hierarchy.floor) if s.level >= base else 0 for s, n in zip(hierarchy.samples, wanted)
         ]
 
-    stop_reason = ""
-    while not stop_reason:
-        pending = [s for s in hierarchy.samples if s.n < hierarchy.targets[s.level]]
-        for level_samples in pending:
-            level = level_samples.level
-            wanted = int(min(hierarchy.targets[level] - level_samples.n, budget_cap))
-            n = _batch_size(hierarchy, level, wanted, max_cost, driver.gamma)
-            if n == 0:
-                stop_reason = "max_cost"
-                break
-            batch = _call_sampler(sampler, level, level_samples.n, n)
-            if n_qoi is None:
-                n_qoi, is_scalar = batch.fine.shape[1], batch.is_scalar
-                tol = _check_tol(tol, n_qoi)
-                if fallback is not None and fallback.n_qoi != n_qoi:
-                    raise EstimationError(f"the rates/screening have {fallback.n_qoi} QoIs, the sampler {n_qoi}")
-                if driver.n_qoi != n_qoi:
-                    driver = _floor_rates(n_qoi)
-            elif batch.fine.shape[1] != n_qoi:
-                raise EstimationError(f"sampler returned {batch.fine.shape[1]} QoIs on level {level}, earlier {n_qoi}")
-            # The base level is sampled as Q_base: its coarse values are not part of the sum.
-            coarse = np.zeros_like(batch.fine) if level == base else batch.coarse
-            level_samples.add(batch.fine, coarse, batch.cost)
-            hierarchy.spent += float(np.sum(batch.cost))
-            yield BatchDone(
-                level=level,
-                indices=_readonly(batch.indices),
-                fine=_readonly(batch.fine),
-                coarse=_readonly(batch.coarse),
-                cost=_readonly(batch.cost),
-                levels=hierarchy.levels(),
-                n_done=hierarchy.n_done(),
-                n_planned=hierarchy.n_planned(),
-            )
-        if stop_reason:
-            break
-        if pending:
-            before = list(hierarchy.targets)
-            replan()
-            if hierarchy.targets != before:
-                yield hierarchy.plan_event("variance")
-            missing = [hierarchy.targets[s.level] - s.n for s in hierarchy.samples]
-            if any(m > 0.01 * s.n for m, s in zip(missing, hierarchy.samples)):
-                continue
-        is_complete = all(s.n >= hierarchy.targets[s.level] for s in hierarchy.samples)
-        if extrapolation in ("pending", "active") and is_complete:
-            reason = _run_instability(hierarchy)
-            enough = hierarchy.n_levels - 1 - base >= RICHARDSON_MIN_LEVELS
-            before = extrapolation
-            if reason and enough:
-                extrapolation, refusal = "refused", reason
-                yield RichardsonRefused(levels=hierarchy.levels(), reason=reason)
-            else:
-                # Too few levels above the base to check the ratios: plain MLMC until there are.
-                extrapolation = "pending" if reason else "active"
-            if extrapolation != before:
-                targets = list(hierarchy.targets)
-                replan()
-                if hierarchy.targets != targets:
-                    yield hierarchy.plan_event("richardson")
-                    continue
-        bias = _hierarchy_bias(hierarchy, n_qoi, driver, extrapolation == "active")
-        if np.all(bias <= math.sqrt(theta) * tol):
+    def bias(self) -> np.ndarray:
+        """Remaining bias of the run's estimate (plain or extrapolated) from the pooled level means."""
+        means, _ = self.hierarchy.bias_means(self.n_qoi)
+        means = means[self.hierarchy.base :]  # row 0 is the base level, whose Y is Q
+        if self.extrapolation == "active":
+            return richardson_bias(means[1:], self.driver.alpha)
+        return estimated_bias(rates=self.driver, level=self.hierarchy.n_levels - 1, mean_diff=means[-1])
+
+    def after_round(self) -> Iterator[Event]:
+        """Check the extrapolation, then the bias: stop, or add a level (module docstring, steps 3 and 4)."""
+        hierarchy = self.hierarchy
+        is_complete = hierarchy.is_complete()
+        if self.extrapolation in ("pending", "active") and is_complete:
+            is_replanned = yield from self._check_richardson()
+            if is_replanned:
+                return
+        if np.all(self.bias() <= math.sqrt(self.options.theta) * self.tol):
             if is_complete:
-                stop_reason = "tol_met"
-            continue
-        if hierarchy.n_levels - 1 >= max_level:
+                self.stop_reason = "tol_met"
+            return
+        if hierarchy.n_levels - 1 >= self.options.max_level:
             if is_complete:
-                stop_reason = "max_level"
-            continue
+                self.stop_reason = "max_level"
+            return
         hierarchy.add_level()
-        replan()
+        self.replan()
         yield hierarchy.plan_event("new level")
 
-    if extrapolation == "pending":
-        refusal = _run_instability(hierarchy) or "the ratios were never checked"
-        extrapolation = "refused"
-        yield RichardsonRefused(levels=hierarchy.levels(), reason=refusal)
-    statistics = hierarchy.statistics()
-    result = _mlmc_result(
-        hierarchy, statistics, driver, tol, theta, is_scalar, stop_reason, extrapolation, refusal
-    )
-    result = dataclasses.replace(result, dropped_levels=dropped)
-    for message in diagnose(statistics, kurtosis_limit=kurtosis_limit):
-        warnings.warn(f"mlmc: {message}", EstimationWarning, stacklevel=2)
-    if extrapolation == "refused":
-        warnings.warn(
-            f"mlmc: Richardson extrapolation refused, the estimate is plain MLMC: {refusal}",
-            EstimationWarning,
-            stacklevel=2,
-        )
-    _warn_zero_cost(statistics)
-    yield Finished(result=result)
+    def _check_richardson(self) -> Iterator[Event]:
+        """Activate or refuse the extrapolation on the run's means; returns whether the plan changed."""
+        hierarchy = self.hierarchy
+        reason = _run_instability(hierarchy)
+        enough = hierarchy.n_levels - 1 - hierarchy.base >= RICHARDSON_MIN_LEVELS
+        before = self.extrapolation
+        if reason and enough:
+            self.extrapolation, self.refusal = "refused", reason
+            yield RichardsonRefused(levels=hierarchy.levels(), reason=reason)
+        else:
+            # Too few levels above the base to check the ratios: plain MLMC until there are.
+            self.extrapolation = "pending" if reason else "active"
+        if self.extrapolation == before:
+            return False
+        targets = list(hierarchy.targets)
+        self.replan()
+        if hierarchy.targets == targets:
+            return False
+        yield hierarchy.plan_event("richardson")
+        return True
+
+    def finish(self) -> Iterator[Event]:
+        hierarchy = self.hierarchy
+        if self.extrapolation == "pending":
+            self.refusal = _run_instability(hierarchy) or "the ratios were never checked"
+            self.extrapolation = "refused"
+            yield RichardsonRefused(levels=hierarchy.levels(), reason=self.refusal)
+        statistics = hierarchy.statistics()
+        result = _mlmc_result(self, statistics)
+        for message in diagnose(statistics, kurtosis_limit=self.options.kurtosis_limit):
+            warnings.warn(f"mlmc: {message}", EstimationWarning, stacklevel=3)
+        if self.extrapolation == "refused":
+            warnings.warn(
+                f"mlmc: Richardson extrapolation refused, the estimate is plain MLMC: {self.refusal}",
+                EstimationWarning,
+                stacklevel=3,
+            )
+        _warn_zero_cost(statistics)
+        yield Finished(result=result)
 
 
-def _mlmc_result(
-    hierarchy: _Hierarchy,
-    statistics: LevelStatistics,
-    driver: Rates,
-    tol: np.ndarray,
-    theta: float,
-    is_scalar: bool,
-    stop_reason: str,
-    extrapolation: str = "off",
-    refusal: str = "",
-) -> EstimationResult:
+def _mlmc_result(run: _MlmcRun, statistics: LevelStatistics) -> EstimationResult:
+    hierarchy, driver, tol, is_scalar = run.hierarchy, run.driver, run.tol, run.is_scalar
     n = statistics.n_samples[:, None]
     var_diff = np.array(
         [hierarchy.variances(int(level), statistics.var_diff[row], int(statistics.n_samples[row]))
@@ -1022,16 +1227,11 @@ def _mlmc_result(
     )
     # Levels are sampled in order, so the sampled ones are 0..L without gaps.
     weights = np.ones_like(statistics.mean_diff)
-    if extrapolation == "active":
+    if run.extrapolation == "active":
         weights[-1] = richardson_weight(driver.alpha)
-    bias = _hierarchy_bias(hierarchy, statistics.n_qoi, driver, extrapolation == "active")
+    bias = run.bias()
     estimate = np.sum(weights * statistics.mean_diff, axis=0)
     stat_variance = np.sum(weights**2 * var_diff / n, axis=0)
-    finest = statistics.n_levels - 1
-    costs = _fill_costs(statistics.mean_cost, np.ones(statistics.n_levels, dtype=bool), driver.gamma)
-    budget = (1.0 - theta) * tol**2
-    mc_n = float(np.max(np.minimum(np.ceil(statistics.var_fine[finest] / budget), _MAX_COUNT)))
-    mc_cost = mc_n * costs[finest] * fine_cost_share(driver.gamma, finest)
     return EstimationResult(
         method="mlmc",
         estimate=_shape_out(estimate, is_scalar),
@@ -1042,17 +1242,27 @@ def _mlmc_result(
         n_samples=statistics.n_samples,
         levels=statistics.levels,
         cost=hierarchy.spent,
-        mc_cost=float(mc_cost),
+        mc_cost=_predicted_mc_cost(statistics, driver.gamma, tol, run.options.theta),
         statistics=statistics,
         rates=driver,
         tol=_readonly(tol),
-        theta=theta,
+        theta=run.options.theta,
         tol_met=bool(np.all(stat_variance + bias**2 <= tol**2 * (1 + 1e-12))),
-        stop_reason=stop_reason,
+        stop_reason=run.stop_reason,
         is_bias_estimated=True,
-        richardson={"active": "applied", "refused": "refused"}.get(extrapolation, "off"),
-        richardson_reason=refusal,
+        richardson={"active": "applied", "refused": "refused"}.get(run.extrapolation, "off"),
+        richardson_reason=run.refusal,
+        dropped_levels=run.dropped,
     )
+
+
+def _predicted_mc_cost(statistics: LevelStatistics, gamma: float, tol: np.ndarray, theta: float) -> float:
+    """Cost of plain MC on the finest level for the same tolerance (fine solves only)."""
+    finest = statistics.n_levels - 1
+    costs = _fill_costs(statistics.mean_cost, np.ones(statistics.n_levels, dtype=bool), gamma)
+    budget = (1.0 - theta) * tol**2
+    mc_n = float(np.max(np.minimum(np.ceil(statistics.var_fine[finest] / budget), _MAX_COUNT)))
+    return float(mc_n * costs[finest] * fine_cost_share(gamma, finest))
 
 
 def _screening_instability(screening: LevelStatistics, base: int) -> str:
@@ -1099,7 +1309,7 @@ def _final(events: Iterator[Event]) -> EstimationResult:
 
 
 # --------------------------------------------------------------------------
-# Plain Monte Carlo
+# Plain Monte Carlo: the one-level hierarchy at its level
 # --------------------------------------------------------------------------
 
 
@@ -1169,145 +1379,135 @@ def iter_mc(
         bias = np.atleast_1d(np.abs(np.asarray(bias, dtype=float)))
         if bias.ndim != 1 or not np.all(np.isfinite(bias)):
             raise InvalidParameterError("bias", bias, "a finite number or 1-d array (one per QoI)")
-    return _mc_events(
-        sampler,
+    options = _McOptions(
         tol=tol,
         level=level,
         theta=theta,
         bias=bias,
         n_initial=n_initial,
-        max_cost=max_cost,
-        batch_size=batch_size,
         screening=screening,
         kurtosis_limit=float(kurtosis_limit),
     )
+    batch_cap = batch_size if batch_size is not None else math.inf
+    return _drive(functools.partial(_McRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
 
 
-def _mc_events(
-    sampler: Sampler,
-    *,
-    tol: np.ndarray,
-    level: int,
-    theta: float,
-    bias: np.ndarray | None,
-    n_initial: int,
-    max_cost: float | None,
-    batch_size: int | None,
-    screening: LevelStatistics | None,
-    kurtosis_limit: float,
-) -> Iterator[Event]:
-    budget_cap = batch_size if batch_size is not None else math.inf
-    samples = _LevelSamples(level)
-    floor = n_initial
-    prior: tuple[np.ndarray, int] | None = None  # Var(Q_level) of the screening and its sample count
-    var_floor = 0.0
-    if screening is not None:
-        floor = MIN_LEVEL_SAMPLES
-        usable = np.flatnonzero(screening.n_samples >= 2)
-        same = usable[screening.levels[usable] == level]
-        if same.size:
-            prior = (screening.var_fine[same[0]], int(screening.n_samples[same[0]]))
-            first_var = prior[0]
-        elif usable.size:
-            first_var = screening.var_fine[usable[-1]]
-            var_floor = 0.5 * first_var
-        else:
-            first_var = np.zeros(screening.n_qoi)
-        first = np.max(np.ceil(first_var / ((1.0 - theta) * tol**2)))
-        target = max(int(min(first, _MAX_COUNT)), floor)
-    else:
-        target = floor
+def _mc_screened_variance(screening: LevelStatistics, level: int) -> tuple[np.ndarray, float | np.ndarray]:
+    """``Var(Q_level)`` the screening predicts, and the floor of the run's planning variance.
 
-    def variance() -> np.ndarray:
+    The level's own screened variance (no floor: the run pools it instead);
+    else that of the finest screened level, half of which floors the run's;
+    zeros without a level screened with two or more samples.
+    """
+    usable = np.flatnonzero(screening.n_samples >= 2)
+    same = usable[screening.levels[usable] == level]
+    if same.size:
+        return screening.var_fine[same[0]], 0.0
+    if usable.size:
+        return screening.var_fine[usable[-1]], 0.5 * screening.var_fine[usable[-1]]
+    return np.zeros(screening.n_qoi), 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class _McOptions(_Options):
+    """The checked arguments of :func:`iter_mc` that shape the run (see there)."""
+
+    level: int
+    bias: np.ndarray | None
+
+
+class _McRun(_Run):
+    """Plain MC on ``level``: a hierarchy whose base is ``level``, so its samples are ``Q_level`` alone.
+
+    ``bias`` is the bias given to :func:`iter_mc` (None if unknown), one per
+    QoI once their number is known.
+    """
+
+    def __init__(self, options: _McOptions) -> None:
+        screening, level, tol = options.screening, options.level, options.tol
+        floor = options.n_initial if screening is None else MIN_LEVEL_SAMPLES
+        # The hierarchy pools the screening's Var(Q_level), if it sampled the level, as MLMC's base level.
+        hierarchy = _Hierarchy(level + 1, floor, screening, base=level, reported_from=level)
+        super().__init__(hierarchy, options)
+        self.level, self.bias = level, options.bias
+        self.var_floor: float | np.ndarray = 0.0
+        if screening is not None:
+            first_var, self.var_floor = _mc_screened_variance(screening, level)
+            first = np.max(np.ceil(first_var / ((1.0 - options.theta) * tol**2)))
+            hierarchy.targets[level] = max(int(min(first, _MAX_COUNT)), floor)
+
+    @property
+    def samples(self) -> _LevelSamples:
+        return self.hierarchy.samples[self.level]
+
+    def on_qoi_count(self, n_qoi: int) -> None:
+        if self.bias is not None:
+            self.bias = _check_bias(self.bias, n_qoi)
+
+    def variance(self) -> np.ndarray:
         """``Var(Q_level)``: the run's, pooled with the screening's where it sampled the level."""
-        run_var = samples.moments().var_fine
-        return run_var if prior is None else _pooled_variance(run_var, samples.n, *prior)
-    spent = 0.0
-    n_qoi: int | None = None
-    is_scalar = False
-    levels = _readonly(np.array([level]))
+        return self.hierarchy.variances(self.level, self.samples.moments().var_fine, self.samples.n)
 
-    def progress() -> dict[str, np.ndarray]:
-        return {
-            "levels": levels,
-            "n_done": _readonly(np.array([samples.n])),
-            "n_planned": _readonly(np.array([target])),
-        }
+    def replan(self) -> None:
+        """``N = ceil((1-theta)^-1 eps^-2 Var(Q_level))``, maximum over QoIs, never below the drawn or the floor."""
+        budget = (1.0 - self.options.theta) * self.tol**2
+        wanted = np.max(np.ceil(np.maximum(self.variance(), self.var_floor) / budget))
+        n = max(self.samples.n, int(min(wanted, _MAX_COUNT)), self.hierarchy.floor)
+        self.hierarchy.targets[self.level] = n
 
-    yield PlanUpdated(reason="initial", **progress())
-    stop_reason = ""
-    while samples.n < target:
-        n = int(min(target - samples.n, budget_cap))
-        if max_cost is not None and samples.n > 0:
-            unit = samples.moments().mean_cost
-            if unit > 0:
-                n = min(n, max(math.floor((max_cost - spent) / unit), 0))
-                n = n if samples.n + n >= 2 else 0
-        if n == 0:
-            stop_reason = "max_cost"
-            break
-        batch = _call_sampler(sampler, level, samples.n, n)
-        if n_qoi is None:
-            n_qoi, is_scalar = batch.fine.shape[1], batch.is_scalar
-            tol = _check_tol(tol, n_qoi)
-            if bias is not None:
-                bias = _check_bias(bias, n_qoi)
-        elif batch.fine.shape[1] != n_qoi:
-            raise EstimationError(f"sampler returned {batch.fine.shape[1]} QoIs on level {level}, earlier {n_qoi}")
-        # Plain MC uses Q alone; storing zeros as coarse makes the statistics describe Q.
-        samples.add(batch.fine, np.zeros_like(batch.fine), batch.cost)
-        spent += float(np.sum(batch.cost))
-        yield BatchDone(
-            level=level,
-            indices=_readonly(batch.indices),
-            fine=_readonly(batch.fine),
-            coarse=_readonly(batch.coarse),
-            cost=_readonly(batch.cost),
-            **progress(),
-        )
-        wanted = np.max(np.ceil(np.maximum(variance(), var_floor) / ((1.0 - theta) * tol**2)))
-        new_target = max(samples.n, int(min(wanted, _MAX_COUNT)), floor)
-        if new_target != target:
-            target = new_target
-            yield PlanUpdated(reason="variance", **progress())
+    def bias_values(self) -> np.ndarray:
+        return self.bias if self.bias is not None else np.zeros(self.n_qoi)
 
-    statistics = _assemble([level], [samples.moments()])
-    moments = samples.moments()
-    stat_variance = variance() / samples.n
-    is_bias_estimated = bias is not None
-    bias_values = bias if bias is not None else np.zeros(n_qoi)
-    tol_met = bool(np.all(stat_variance + bias_values**2 <= tol**2 * (1 + 1e-12)))
-    if not stop_reason:
-        stop_reason = "tol_met" if tol_met else "bias"
-    budget = (1.0 - theta) * tol**2
-    mc_n = float(np.max(np.minimum(np.ceil(variance() / budget), _MAX_COUNT)))
-    result = EstimationResult(
+    def is_tol_met(self) -> bool:
+        stat_variance = self.variance() / self.samples.n
+        return bool(np.all(stat_variance + self.bias_values() ** 2 <= self.tol**2 * (1 + 1e-12)))
+
+    def after_round(self) -> Iterator[Event]:
+        # MC has no level to add: once the samples are drawn, only the given bias can fail.
+        if self.hierarchy.is_complete():
+            self.stop_reason = "tol_met" if self.is_tol_met() else "bias"
+        yield from ()
+
+    def finish(self) -> Iterator[Event]:
+        moments = self.samples.moments()
+        result = _mc_result(self)
+        limit = self.options.kurtosis_limit
+        if np.any(moments.kurtosis > limit):
+            warnings.warn(
+                f"mc: kurtosis {float(np.max(moments.kurtosis)):.3g} of Q on level {self.level} exceeds "
+                f"{limit:g}; the variance and error estimates are unreliable",
+                EstimationWarning,
+                stacklevel=3,
+            )
+        yield Finished(result=result)
+
+
+def _mc_result(run: _McRun) -> EstimationResult:
+    moments = run.samples.moments()
+    # A table of Q alone (coarse values stored as zeros), with base level 0 as MC tables always had.
+    statistics = _assemble([run.level], [moments])
+    is_scalar = run.is_scalar
+    budget = (1.0 - run.options.theta) * run.tol**2
+    mc_n = float(np.max(np.minimum(np.ceil(run.variance() / budget), _MAX_COUNT)))
+    return EstimationResult(
         method="mc",
         estimate=_shape_out(moments.mean_fine, is_scalar),
-        stat_error=_shape_out(np.sqrt(stat_variance), is_scalar),
-        bias_estimate=_shape_out(bias_values, is_scalar),
+        stat_error=_shape_out(np.sqrt(run.variance() / run.samples.n), is_scalar),
+        bias_estimate=_shape_out(run.bias_values(), is_scalar),
         variance=_shape_out(moments.var_fine, is_scalar),
         variance_error=_shape_out(moments.var_delta_se, is_scalar),
         n_samples=statistics.n_samples,
         levels=statistics.levels,
-        cost=spent,
+        cost=run.hierarchy.spent,
         mc_cost=float(mc_n * moments.mean_cost),
         statistics=statistics,
         rates=None,
-        tol=_readonly(tol),
-        theta=theta,
-        tol_met=tol_met,
-        stop_reason=stop_reason,
-        is_bias_estimated=is_bias_estimated,
+        tol=_readonly(run.tol),
+        theta=run.options.theta,
+        tol_met=run.is_tol_met(),
+        stop_reason=run.stop_reason,
+        is_bias_estimated=run.bias is not None,
     )
-    if np.any(moments.kurtosis > kurtosis_limit):
-        warnings.warn(
-            f"mc: kurtosis {float(np.max(moments.kurtosis)):.3g} of Q on level {level} exceeds "
-            f"{kurtosis_limit:g}; the variance and error estimates are unreliable",
-            EstimationWarning,
-            stacklevel=2,
-        )
-    yield Finished(result=result)
 
 
 def _check_bias(bias: np.ndarray, n_qoi: int) -> np.ndarray:

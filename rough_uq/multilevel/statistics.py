@@ -118,6 +118,17 @@ stable; :func:`ratio_instability` says why they are not (too few levels, a
 mean indistinguishable from zero, a change of sign, no decay, or successive
 ratios differing by more than a factor ``2^RATIO_LOG2_TOLERANCE`` beyond
 their noise), and callers fall back to plain MLMC.
+
+The plan
+--------
+:func:`plan` goes in steps, one function each: the finest level is the first
+whose remaining bias (``_BiasModel``, as ``bias_from`` says) is within
+``sqrt(theta) eps`` (``_finest_level``); with ``richardson`` the extrapolated
+estimate may need fewer levels (``_richardson_level``); the base level is
+given or chosen (``_plan_base``, :func:`choose_coarsest_level`); ``V_l`` and
+``C_l`` come from the explicit arguments, the screening or the rate models
+(``_level_inputs``); then the allocation (``_allocate``,
+:func:`optimal_samples`) and the prediction for plain MC (``_mc_samples``).
 """
 
 from __future__ import annotations
@@ -1348,46 +1359,16 @@ def plan(
     if statistics is not None and statistics.n_qoi != n_qoi:
         raise EstimationError(f"rates have {n_qoi} QoIs, the statistics {statistics.n_qoi}")
     tol = _check_tol(tol, n_qoi)
-    if variances is not None:
-        variances = np.asarray(variances, dtype=float)
-        variances = variances[:, None] if variances.ndim == 1 else variances
-        if variances.ndim != 2 or variances.shape[1] != n_qoi or np.any(variances < 0):
-            raise InvalidParameterError("variances", variances, f"non-negative values of shape (n_levels, {n_qoi})")
-    if costs is not None:
-        costs = np.asarray(costs, dtype=float)
-        if costs.ndim != 1 or np.any(costs <= 0):
-            raise InvalidParameterError("costs", costs, "positive values of shape (n_levels,)")
-
-    def screened(level: int) -> int | None:
-        if statistics is None:
-            return None
-        row = statistics.index(level)
-        return row if row is not None and statistics.n_samples[row] >= 2 else None
-
-    def bias_at(level: int) -> np.ndarray:
-        row = screened(level) if level >= 1 else None
-        if bias_from == "data" and row is not None:
-            return remaining_bias(statistics.mean_diff[row], rates.alpha)
-        measured = statistics.mean_diff[row] if bias_from == "both" and row is not None else None
-        return estimated_bias(rates=rates, level=level, mean_diff=measured)
-
+    variances = _explicit_variances(variances, n_qoi)
+    costs = _explicit_costs(costs)
+    bias_model = _BiasModel(rates=rates, statistics=statistics, bias_from=bias_from)
     bias_limit = math.sqrt(theta) * tol
     if finest_level is None:
-        if np.any(rates.alpha <= 0):
-            remaining_bias(rates.c_alpha, rates.alpha)  # raises the explanatory error
-        # Beyond the data the model bias halves every 1/alpha levels, so this cap is never binding
-        # for sane inputs; it only keeps a runaway search finite.
-        top = (0 if statistics is None else int(statistics.levels[-1])) + 200
-        cap = top if max_level is None else int(max_level)
-        finest_level = cap
-        for level in range(cap + 1):
-            if np.all(bias_at(level) <= bias_limit):
-                finest_level = level
-                break
+        finest_level = _finest_level(bias_model, bias_limit, max_level)
     finest_level = int(finest_level)
     if finest_level < 0:
         raise InvalidParameterError("finest_level", finest_level, "a non-negative integer")
-    bias = bias_at(finest_level)
+    bias = bias_model.at(finest_level)
     is_richardson, richardson_note = False, ""
     if richardson:
         is_plain_met = bool(np.all(bias <= bias_limit))
@@ -1397,20 +1378,137 @@ def plan(
         else:
             finest_level, bias = extrapolated
             is_richardson = True
+    base, dropped = _plan_base(statistics, coarsest_level, finest_level)
+    inputs = _level_inputs(
+        statistics=statistics, rates=rates, variances=variances, costs=costs, finest_level=finest_level, base=base
+    )
+    budget = (1.0 - theta) * tol**2
+    weighted = np.array(inputs.variances)
+    if is_richardson:
+        weighted[-1] *= richardson_weight(rates.alpha) ** 2
+    n_samples, stat_variance = _allocate(weighted, inputs.costs, budget, base)
+    mc_n = _mc_samples(statistics, inputs.variances, finest_level, budget)
+    mc_cost = mc_n * inputs.costs[finest_level] * fine_cost_share(rates.gamma, finest_level)
+    return Plan(
+        tol=_readonly(tol),
+        theta=theta,
+        finest_level=finest_level,
+        n_samples=_readonly(n_samples),
+        variances=_readonly(inputs.variances),
+        costs=_readonly(inputs.costs),
+        is_extrapolated=_readonly(inputs.is_extrapolated),
+        bias=_readonly(bias),
+        is_bias_met=bool(np.all(bias <= bias_limit)),
+        stat_variance=_readonly(stat_variance),
+        cost=float(np.sum(n_samples * inputs.costs)),
+        mc_n_samples=mc_n,
+        mc_cost=float(mc_cost),
+        is_richardson=is_richardson,
+        richardson_note=richardson_note,
+        coarsest_level=base,
+        dropped_levels=dropped,
+    )
 
+
+def _explicit_variances(variances: np.ndarray | None, n_qoi: int) -> np.ndarray | None:
+    """``variances`` given to :func:`plan` as shape (n_levels, n_qoi), checked."""
+    if variances is None:
+        return None
+    variances = np.asarray(variances, dtype=float)
+    variances = variances[:, None] if variances.ndim == 1 else variances
+    if variances.ndim != 2 or variances.shape[1] != n_qoi or np.any(variances < 0):
+        raise InvalidParameterError("variances", variances, f"non-negative values of shape (n_levels, {n_qoi})")
+    return variances
+
+
+def _explicit_costs(costs: np.ndarray | None) -> np.ndarray | None:
+    """``costs`` given to :func:`plan`, checked."""
+    if costs is None:
+        return None
+    costs = np.asarray(costs, dtype=float)
+    if costs.ndim != 1 or np.any(costs <= 0):
+        raise InvalidParameterError("costs", costs, "positive values of shape (n_levels,)")
+    return costs
+
+
+def _screened_row(statistics: LevelStatistics | None, level: int) -> int | None:
+    """Row of ``level`` in the screening if it was screened with two or more samples, else None."""
+    if statistics is None:
+        return None
+    row = statistics.index(level)
+    return row if row is not None and statistics.n_samples[row] >= 2 else None
+
+
+@dataclass(frozen=True, eq=False)
+class _BiasModel:
+    """The remaining bias :func:`plan` predicts for a finest level (``bias_from``: see :func:`plan`)."""
+
+    rates: Rates
+    statistics: LevelStatistics | None
+    bias_from: str
+
+    def at(self, level: int) -> np.ndarray:
+        """Remaining bias, shape (n_qoi,), of an estimator whose finest level is ``level``."""
+        row = _screened_row(self.statistics, level) if level >= 1 else None
+        if self.bias_from == "data" and row is not None:
+            return remaining_bias(self.statistics.mean_diff[row], self.rates.alpha)
+        measured = self.statistics.mean_diff[row] if self.bias_from == "both" and row is not None else None
+        return estimated_bias(rates=self.rates, level=level, mean_diff=measured)
+
+
+def _finest_level(bias_model: _BiasModel, bias_limit: np.ndarray, max_level: int | None) -> int:
+    """The smallest level whose remaining bias is within ``bias_limit`` (``max_level`` if none is)."""
+    rates, statistics = bias_model.rates, bias_model.statistics
+    if np.any(rates.alpha <= 0):
+        remaining_bias(rates.c_alpha, rates.alpha)  # raises the explanatory error
+    # Beyond the data the model bias halves every 1/alpha levels, so this cap is never binding
+    # for sane inputs; it only keeps a runaway search finite.
+    top = (0 if statistics is None else int(statistics.levels[-1])) + 200
+    cap = top if max_level is None else int(max_level)
+    for level in range(cap + 1):
+        if np.all(bias_model.at(level) <= bias_limit):
+            return level
+    return cap
+
+
+def _plan_base(
+    statistics: LevelStatistics | None, coarsest_level: int | None, finest_level: int
+) -> tuple[int, tuple[DroppedLevel, ...]]:
+    """The level :func:`plan`'s hierarchy starts on, and the dropped levels below it."""
     dropped: tuple[DroppedLevel, ...] = ()
     if coarsest_level is None:
         choice = choose_coarsest_level(statistics) if statistics is not None else CoarsestLevel(0, (), 1.0)
         coarsest_level, dropped = choice.level, choice.dropped
     base = min(int(coarsest_level), finest_level)
-    if base < 0 or (base > 0 and screened(base) is None):
+    if base < 0 or (base > 0 and _screened_row(statistics, base) is None):
         raise InvalidParameterError("coarsest_level", coarsest_level, "0 or a screened level")
-    dropped = tuple(d for d in dropped if d.level < base)
-    level_variances = np.zeros((finest_level + 1, n_qoi))
+    return base, tuple(d for d in dropped if d.level < base)
+
+
+@dataclass(frozen=True, eq=False)
+class _LevelInputs:
+    """``V_l`` (shape (L+1, n_qoi)), ``C_l`` (shape (L+1,)) and where they are extrapolated, for :func:`plan`."""
+
+    variances: np.ndarray
+    costs: np.ndarray
+    is_extrapolated: np.ndarray
+
+
+def _level_inputs(
+    *,
+    statistics: LevelStatistics | None,
+    rates: Rates,
+    variances: np.ndarray | None,
+    costs: np.ndarray | None,
+    finest_level: int,
+    base: int,
+) -> _LevelInputs:
+    """``V_l`` and ``C_l`` of levels ``0..L``: given, else screened, else from the rate models."""
+    level_variances = np.zeros((finest_level + 1, rates.n_qoi))
     level_costs = np.empty(finest_level + 1)
     is_extrapolated = np.zeros(finest_level + 1, dtype=bool)
     for level in range(finest_level + 1):
-        row = screened(level)
+        row = _screened_row(statistics, level)
         if level < base:
             pass
         elif level == base and base > 0:
@@ -1429,50 +1527,38 @@ def plan(
         else:
             level_costs[level] = rates.cost_model(level)
             is_extrapolated[level] = True
-
     if np.any(level_costs <= 0):
         raise EstimationError(
             f"plan needs positive costs; got C_l = {level_costs.tolist()} (check the rates' c_gamma)"
         )
-    budget = (1.0 - theta) * tol**2
-    weighted = np.array(level_variances)
-    if is_richardson:
-        weighted[-1] *= richardson_weight(rates.alpha) ** 2
-    n_real = np.zeros_like(weighted)
-    n_real[base:] = optimal_samples(weighted[base:], level_costs[base:], budget)
+    return _LevelInputs(variances=level_variances, costs=level_costs, is_extrapolated=is_extrapolated)
+
+
+def _allocate(
+    variances: np.ndarray, costs: np.ndarray, budget: np.ndarray, base: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``N_l`` (maximum over QoIs, at least 1 from ``base`` on, 0 below) and the predicted ``sum_l V_l / N_l``."""
+    n_real = np.zeros_like(variances)
+    n_real[base:] = optimal_samples(variances[base:], costs[base:], budget)
     n_samples = np.maximum(np.ceil(np.max(n_real, axis=1)), 1.0).astype(np.int64)
     n_samples[:base] = 0
-    stat_variance = np.sum(weighted[base:] / n_samples[base:, None], axis=0)
+    return n_samples, np.sum(variances[base:] / n_samples[base:, None], axis=0)
 
-    # Plain MC on level L.
-    var_q = level_variances[0]
+
+def _mc_samples(
+    statistics: LevelStatistics | None, variances: np.ndarray, finest_level: int, budget: np.ndarray
+) -> int:
+    """Samples plain MC on level ``L`` needs (:func:`plan`, Notes).
+
+    ``Var(Q_L)`` is that of the finest level screened up to ``L``, else ``V_0``.
+    """
+    var_q = variances[0]
     if statistics is not None:
         rows = [row for row in range(statistics.n_levels) if statistics.levels[row] <= finest_level]
         rows = [row for row in rows if statistics.n_samples[row] >= 2]
         if rows:
             var_q = statistics.var_fine[rows[-1]]
-    mc_n = int(np.max(np.minimum(np.ceil(var_q / budget), _MAX_COUNT)))
-    mc_cost = mc_n * level_costs[finest_level] * fine_cost_share(rates.gamma, finest_level)
-
-    return Plan(
-        tol=_readonly(tol),
-        theta=theta,
-        finest_level=finest_level,
-        n_samples=_readonly(n_samples),
-        variances=_readonly(level_variances),
-        costs=_readonly(level_costs),
-        is_extrapolated=_readonly(is_extrapolated),
-        bias=_readonly(bias),
-        is_bias_met=bool(np.all(bias <= bias_limit)),
-        stat_variance=_readonly(stat_variance),
-        cost=float(np.sum(n_samples * level_costs)),
-        mc_n_samples=mc_n,
-        mc_cost=float(mc_cost),
-        is_richardson=is_richardson,
-        richardson_note=richardson_note,
-        coarsest_level=base,
-        dropped_levels=dropped,
-    )
+    return int(np.max(np.minimum(np.ceil(var_q / budget), _MAX_COUNT)))
 
 
 def _richardson_level(
