@@ -24,6 +24,14 @@ from rough_uq.physics.surface import SurfaceSpectrum, sample_surface
 #: the solutions, not the stopping test.
 TOL = 1e-10
 
+#: The same for the classic samples of 2048^2 and 3072^2: with 4-9 million nodes,
+#: some contact edge node carries a pressure of the order of tol times the mean
+#: (measured: classic 2048^2, default_rng([99, 0]), one node with 1.4e-7 of the
+#: mean pressure and a gap of 5e-9 RMS heights at tol 1e-10 in the
+#: preconditioned solution, 0 in the plain one; both are solutions to that
+#: tolerance). At 1e-12 the two contact sets are identical.
+TOL_LARGE = 1e-12
+
 
 def random_problem(seed: int, grids=(32, 64, 128, 256)):
     """``(heights, system_size, mean_pressure, description)`` of a seeded random problem."""
@@ -43,11 +51,11 @@ def random_problem(seed: int, grids=(32, 64, 128, 256)):
     return heights, size, relative_load * spectrum.rms_slope, description
 
 
-def assert_agrees_with_plain(heights, size, pressure, description, **options):
-    solution = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=TOL, **options)
+def assert_agrees_with_plain(heights, size, pressure, description, tol=TOL, **options):
+    solution = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=tol, **options)
     assert solution.converged, f"{description}: {solution.message}"
     assert solution.path == "preconditioned", f"{description}: {solution.message}"
-    plain = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=TOL, precondition=False, **options)
+    plain = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=tol, precondition=False, **options)
     assert plain.converged and plain.path == "plain", f"{description}: {plain.message}"
     difference = np.linalg.norm(solution.pressure - plain.pressure) / np.linalg.norm(plain.pressure)
     assert difference < 1e-6, f"{description}: pressure differs from plain Polonsky-Keer by {difference:.2e}"
@@ -128,4 +136,4 @@ def test_classic_samples_at_2048_and_3072(size, n, seed):
     spectrum = SurfaceSpectrum(system_size=size, k_l=size, k_r=size, k_s=64 * size, hurst=0.8, rms_height=1)
     heights = sample_surface(spectrum, n, np.random.default_rng([99, seed]))
     description = f"classic L = {size}, {n}^2, default_rng([99, {seed}])"
-    assert_agrees_with_plain(heights, size, 0.1 * spectrum.rms_slope, description, threads=2)
+    assert_agrees_with_plain(heights, size, 0.1 * spectrum.rms_slope, description, tol=TOL_LARGE, threads=2)
