@@ -399,7 +399,6 @@ def _estimation_command(method: str) -> Callable[..., Any]:
             run_estimation,
             run_id,
         )
-        from rough_uq.report.summary import ReportedRun, study_report
 
         if shard_size is not None and not show_plan:
             raise InvalidParameterError("--shards", shard_size, "only with --plan (it splits the plan into shards)")
@@ -434,18 +433,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
             estimation = study.config.estimation
             key = run_id(run_method, study.config.qoi_names, tolerances, estimation.theta, level,
                          richardson=estimation.richardson)
-        with open_existing_study(study_path, writable=False) as study:
-            report = study_report(study.store, study.config)  # the same numbers `roughuq report` shows
-        shown = next(run for run in report["runs"] if run["run_id"] == key)
-        if as_json:
-            _dump(shown)
-        else:
-            _print_run(ReportedRun.from_json(shown), report)
-        outcome = record.outcome
-        if not outcome.tol_met:
-            click.echo(f"tolerance not met ({outcome.stop_reason}): {_what_to_change(outcome.stop_reason)}",
-                       err=True)
-            sys.exit(EXIT_TOL_NOT_MET)
+        _show_finished_run(study_path, key, record.outcome, as_json=as_json, option="--tol")
 
     options = [
         click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS",
@@ -580,7 +568,6 @@ def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi
     """``roughuq mlmc --tol-var`` / ``--tol-cdf``: run the target, print it as `roughuq report` does, exit 3 if missed."""
     from rough_uq.study.config import load_config
     from rough_uq.study.pipeline import cdf_request, create_study, open_existing_study, parse_tolerances, run_target
-    from rough_uq.report.summary import ReportedRun, study_report
 
     grid, wanted = _thresholds(thresholds), _probabilities(probabilities)
     config = load_config(config_path) if config_path else None
@@ -597,19 +584,8 @@ def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi
             watch = (study.config, pool, executor, "a looser tolerance")
             record = run_target(study, target=target, tol=tolerances, executor=pool, request=request,
                                 progress=_progress(quiet or as_json, watch), max_cost=max_cost)
-    with open_existing_study(study_path, writable=False) as study:
-        report = study_report(study.store, study.config)
-    shown = next(run for run in report["runs"] if run["run_id"] == record.run_id)
-    if as_json:
-        _dump(shown)
-    else:
-        _print_run(ReportedRun.from_json(shown), report)
-    outcome = record.outcome
-    if not outcome.tol_met:
-        option = "--tol-var" if target == "variance" else "--tol-cdf"
-        click.echo(f"tolerance not met ({outcome.stop_reason}): {_what_to_change(outcome.stop_reason, option)}",
-                   err=True)
-        sys.exit(EXIT_TOL_NOT_MET)
+    option = "--tol-var" if target == "variance" else "--tol-cdf"
+    _show_finished_run(study_path, record.run_id, record.outcome, as_json=as_json, option=option)
 
 
 #: Choices of ``roughuq mlmc --method``.
@@ -632,6 +608,24 @@ def _chosen_method(study: Any, choice: str, method: str, tolerances: Any, cap: f
     estimation = study.config.estimation.model_copy(update={"richardson": richardson})
     study.config = study.config.model_copy(update={"estimation": estimation})
     return method
+
+
+def _show_finished_run(study_path: str, run_id: str, outcome: Any, *, as_json: bool, option: str) -> None:
+    """Print a finished run as `roughuq report` does (the same numbers); exit 3 if its tolerance was not met."""
+    from rough_uq.report.summary import ReportedRun, study_report
+    from rough_uq.study.pipeline import open_existing_study
+
+    with open_existing_study(study_path, writable=False) as study:
+        report = study_report(study.store, study.config)
+    shown = next(run for run in report["runs"] if run["run_id"] == run_id)
+    if as_json:
+        _dump(shown)
+    else:
+        _print_run(ReportedRun.from_json(shown), report)
+    if not outcome.tol_met:
+        click.echo(f"tolerance not met ({outcome.stop_reason}): {_what_to_change(outcome.stop_reason, option)}",
+                   err=True)
+        sys.exit(EXIT_TOL_NOT_MET)
 
 
 def _what_to_change(reason: str, option: str = "--tol") -> str:
