@@ -55,8 +55,37 @@ class _Terminated(KeyboardInterrupt):
     """SIGTERM (a batch system's time limit, ``kill``): stop as cleanly as on Ctrl-C."""
 
 
+class _StopRequest:
+    """The signal that asked the running command to stop, if any.
+
+    A signal handler's exception is lost when the signal lands while Python
+    runs a callback it cannot propagate from (a weakref callback, a
+    ``__del__``: "Exception ignored in ..."); the command would then run to
+    its end. Recording the request lets the next batch boundary raise it
+    again (:func:`_check_stop`, called by the progress of every command).
+    """
+
+    signum: int | None = None
+
+
+_STOP = _StopRequest()
+
+
+def _stop_exception(signum: int) -> KeyboardInterrupt:
+    import signal
+
+    return _Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
 def _raise_terminated(signum: int, frame: object) -> None:
-    raise _Terminated()
+    _STOP.signum = signum
+    raise _stop_exception(signum)
+
+
+def _check_stop() -> None:
+    """Raise the recorded stop request (a Ctrl-C or SIGTERM whose first raise was swallowed)."""
+    if _STOP.signum is not None:
+        raise _stop_exception(_STOP.signum)
 
 
 def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
@@ -68,7 +97,13 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
     @functools.wraps(command)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         on_main_thread = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGTERM, _raise_terminated) if on_main_thread else None
+        _STOP.signum = None
+        previous = {}
+        if on_main_thread:
+            previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, _raise_terminated)
+            # Ctrl-C is taken over only where Python's default handler has it (not where it is ignored).
+            if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+                previous[signal.SIGINT] = signal.signal(signal.SIGINT, _raise_terminated)
         try:
             return command(*args, **kwargs)
         except RoughUQError as exc:
@@ -79,8 +114,8 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             click.echo(f"{what}: every completed sample is saved; run the same command to continue", err=True)
             sys.exit(status)
         finally:
-            if on_main_thread:
-                signal.signal(signal.SIGTERM, previous)
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
 
     return wrapper
 
@@ -102,7 +137,7 @@ def _progress(quiet: bool, watch: tuple[Any, Any, str, str] | None = None) -> An
     """
     from rough_uq.study.progress import Progress, make_progress
 
-    inner = make_progress(is_quiet=quiet)
+    inner = _stop_aware(make_progress(is_quiet=quiet))
     if watch is None:
         return inner
 
@@ -131,6 +166,31 @@ def _progress(quiet: bool, watch: tuple[Any, Any, str, str] | None = None) -> An
             inner.stop(is_complete=is_complete)
 
     return MemoryWatch()
+
+
+def _stop_aware(inner: Any) -> Any:
+    """``inner`` progress that raises a recorded stop request at every plan and batch (:class:`_StopRequest`)."""
+    from rough_uq.study.progress import Progress
+
+    class StopAware(Progress):
+        def start(self, title: str) -> None:
+            inner.start(title)
+
+        def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
+            _check_stop()
+            inner.plan(levels, n_planned, n_done)
+
+        def advance(self, level: int, n: int) -> None:
+            inner.advance(level, n)
+            _check_stop()
+
+        def note(self, text: str) -> None:
+            inner.note(text)
+
+        def stop(self, *, is_complete: bool = True) -> None:
+            inner.stop(is_complete=is_complete)
+
+    return StopAware()
 
 
 def _executor(config: Any, workers: int | None, executor: str, scheduler: str | None) -> Any:

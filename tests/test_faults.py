@@ -189,3 +189,30 @@ def test_bash_loop_script_completes_a_study_like_an_uninterrupted_run(tmp_path):
     assert final["n_computed"] == 0
     for key in ("estimate", "stat_error", "n_samples", "cost"):
         assert final[key] == expected[key], key
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_swallowed_by_a_callback_is_raised_at_the_next_batch(sig, monkeypatch):
+    # A signal that lands in a weakref callback or __del__ has its exception printed as
+    # "Exception ignored" and dropped (seen: SIGTERM during a pool run, which then finished
+    # with status 0). The request is recorded; the command's progress raises it again at
+    # its next batch, and the command ends with the signal's status.
+    from click.testing import CliRunner
+
+    import rough_uq.cli as cli
+
+    def command() -> None:
+        progress = cli._progress(quiet=True)
+        try:
+            cli._raise_terminated(sig, None)
+        except KeyboardInterrupt:
+            pass  # what Python does with an exception raised in a weakref callback
+        progress.advance(0, 1)
+        raise AssertionError("the recorded stop was not raised")
+
+    wrapped = cli._user_errors(command)
+    result = CliRunner().invoke(cli.click.command()(wrapped))
+    assert result.exit_code == {signal.SIGINT: 130, signal.SIGTERM: 143}[sig], result.output
+    assert "every completed sample is saved" in result.stderr
+    # The next command starts with no stop request.
+    assert cli._user_errors(lambda: "ran")() == "ran"
