@@ -375,13 +375,18 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     return lines
 
 
-def _qoi_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]) -> str:
-    """``  name = value ± error unit (RMSE r <= tol t, bias b)`` for QoI ``q`` of a finished run."""
+def _estimate_line(outcome: Any, q: int, label: str, unit: str, tol: float) -> str:
+    """``  label = value ± error unit (RMSE r <= tol t, bias b)`` for column ``q`` of a finished run."""
     rmse = outcome.rmse[q]
     relation = "<=" if rmse <= tol * (1 + 1e-12) else ">"
     bias = f"bias {_g(outcome.bias_estimate[q], 2)}" if outcome.is_bias_estimated else "bias not estimated"
-    return (f"  {name} = {_value_error(outcome.estimate[q], outcome.stat_error[q])}{_unit(_column_unit(units, name))} "
+    return (f"  {label} = {_value_error(outcome.estimate[q], outcome.stat_error[q])}{unit} "
             f"(RMSE {_g(rmse, 2)} {relation} tol {_g(tol)}, {bias})")
+
+
+def _qoi_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]) -> str:
+    """``  name = value ± error unit (RMSE r <= tol t, bias b)`` for QoI ``q`` of a finished run."""
+    return _estimate_line(outcome, q, name, _unit(_column_unit(units, name)), tol)
 
 
 def _squared(unit: str) -> str:
@@ -393,11 +398,7 @@ def _squared(unit: str) -> str:
 
 def _variance_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]) -> str:
     """``  Var(name) = value ± error unit^2 (RMSE r <= tol t, bias b)`` for column ``q`` of a variance run."""
-    rmse = outcome.rmse[q]
-    relation = "<=" if rmse <= tol * (1 + 1e-12) else ">"
-    bias = f"bias {_g(outcome.bias_estimate[q], 2)}" if outcome.is_bias_estimated else "bias not estimated"
-    return (f"  Var({name}) = {_value_error(outcome.estimate[q], outcome.stat_error[q])}"
-            f"{_squared(_column_unit(units, name))} (RMSE {_g(rmse, 2)} {relation} tol {_g(tol)}, {bias})")
+    return _estimate_line(outcome, q, f"Var({name})", _squared(_column_unit(units, name)), tol)
 
 
 def _quantile_text(quantile: Any, unit: str) -> str:
