@@ -26,15 +26,73 @@ import numpy as np
 from rough_uq.errors import InvalidParameterError
 from rough_uq.multilevel.distribution import CdfEstimate, Quantiles, mlmc_cdf, quantiles
 from rough_uq.multilevel.moments import mlmc_variance
+from rough_uq.multilevel.drivers import Sampler
 from rough_uq.multilevel.targets import TargetEstimate
 from rough_uq.problem.contact import BatchExecutor, ContactProblem
 from rough_uq.problem.runs import _problem, _tolerances, _warn_not_converged, run_id
 from rough_uq.problem.sampler import run_stage
 
-__all__ = ["DistributionResult", "distribution", "variance"]
+__all__ = ["DistributionResult", "distribution", "estimate_target", "variance"]
 
 #: Quantiles reported by default: the 5 %, 50 % and 95 % points.
 DEFAULT_PROBABILITIES = (0.05, 0.5, 0.95)
+
+#: The targets :func:`estimate_target` runs.
+TARGETS = ("variance", "cdf")
+
+
+def estimate_target(
+    sampler: Sampler,
+    *,
+    target: str,
+    tol: np.ndarray,
+    max_level: int,
+    thresholds: Sequence[float] | np.ndarray | None = None,
+    qoi: int = 0,
+    bandwidth: float | None = None,
+    theta: float = 0.5,
+    n_initial: int = 32,
+    min_finest_level: int | None = None,
+    max_cost: float | None = None,
+    batch_size: int | None = 10,
+) -> TargetEstimate | CdfEstimate:
+    """The adaptive driver of ``target`` on a level sampler, with the defaults of this module.
+
+    The one place the front door (:func:`variance`, :func:`distribution`)
+    and the study pipeline (``roughuq mlmc --tol-var / --tol-cdf``) run a
+    target from, so that both make the same decisions on the same samples.
+
+    Parameters
+    ----------
+    sampler : callable
+        ``sampler(level, indices) -> (fine, coarse, cost)``.
+    target : str
+        ``"variance"`` (every column) or ``"cdf"`` (column ``qoi`` on ``thresholds``).
+    tol : ndarray
+        Tolerances: one per column (variance) or one (cdf, dimensionless).
+    max_level : int
+        Finest level allowed.
+    thresholds, qoi, bandwidth
+        For ``"cdf"``: as in :func:`distribution` (``bandwidth`` default twice
+        the mean threshold spacing).
+    theta, n_initial, min_finest_level, max_cost, batch_size
+        As for :func:`variance` (``min_finest_level`` default ``min(2, max_level)``).
+    """
+    options = dict(
+        theta=theta,
+        n_initial=n_initial,
+        min_finest_level=min(2, max_level) if min_finest_level is None else min_finest_level,
+        max_level=max_level,
+        max_cost=max_cost,
+        batch_size=batch_size,
+    )
+    if target == "variance":
+        return mlmc_variance(sampler, tol=tol, **options)
+    if target != "cdf":
+        raise InvalidParameterError("target", target, f"one of {', '.join(TARGETS)}")
+    s = np.asarray(thresholds, dtype=float)
+    width = _default_bandwidth(s) if bandwidth is None else bandwidth
+    return mlmc_cdf(sampler, thresholds=s, tol=float(np.asarray(tol).reshape(-1)[0]), bandwidth=width, qoi=qoi, **options)
 
 
 def variance(
@@ -77,15 +135,9 @@ def variance(
     tol = _tolerances(tol, problem.n_qoi)
     stage = run_stage("mlmc", run_id("variance", problem.columns, tol, theta))
     sampler = problem.sampler(stage, executor=executor)
-    result = mlmc_variance(
-        sampler,
-        tol=tol,
-        theta=theta,
-        n_initial=n_initial,
-        min_finest_level=_min_finest_level(problem, min_finest_level),
-        max_level=problem.max_level,
-        max_cost=max_cost,
-        batch_size=batch_size,
+    result = estimate_target(
+        sampler, target="variance", tol=tol, max_level=problem.max_level, theta=theta, n_initial=n_initial,
+        min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size,
     )
     _warn_not_converged(sampler, "variance")
     return result
@@ -117,10 +169,6 @@ class DistributionResult:
             thresholds (the message names it; the CDF itself stays usable).
         """
         return quantiles(self.cdf, probabilities=probabilities)
-
-
-def _min_finest_level(problem: ContactProblem, min_finest_level: int | None) -> int:
-    return min(2, problem.max_level) if min_finest_level is None else min_finest_level
 
 
 def _column_index(problem: ContactProblem, column: str | None) -> int:
@@ -178,23 +226,13 @@ def distribution(
     """
     problem = _problem(problem)
     index = _column_index(problem, column)
-    s = np.asarray(thresholds, dtype=float)
-    width = _default_bandwidth(s) if bandwidth is None else bandwidth
     tol_array = _tolerances(tol, 1)
     name = problem.columns[index]
     stage = run_stage("mlmc", run_id("cdf", [name], tol_array, theta))
     sampler = problem.sampler(stage, executor=executor)
-    estimate = mlmc_cdf(
-        sampler,
-        thresholds=s,
-        tol=float(tol_array[0]),
-        bandwidth=width,
-        qoi=index,
-        theta=theta,
-        n_initial=n_initial,
-        min_finest_level=_min_finest_level(problem, min_finest_level),
-        max_level=problem.max_level,
-        max_cost=max_cost,
+    estimate = estimate_target(
+        sampler, target="cdf", tol=tol_array, max_level=problem.max_level, thresholds=thresholds, qoi=index,
+        bandwidth=bandwidth, theta=theta, n_initial=n_initial, min_finest_level=min_finest_level, max_cost=max_cost,
         batch_size=batch_size,
     )
     _warn_not_converged(sampler, "distribution")

@@ -65,9 +65,9 @@ from rough_uq.study.records import (
     utc_timestamp,
 )
 from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
-from rough_uq.multilevel.distribution import cdf_level_term, mlmc_cdf, quantiles
-from rough_uq.multilevel.moments import mlmc_variance, variance_level_term
-from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, _default_bandwidth
+from rough_uq.multilevel.distribution import cdf_level_term, quantiles
+from rough_uq.multilevel.moments import variance_level_term
+from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target
 from rough_uq.problem.runs import run_id
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
@@ -1132,8 +1132,6 @@ def _outcome(
 # Targets beyond the mean: variance and distribution function
 # ---------------------------------------------------------------------------
 
-#: Targets of :func:`run_target` (``roughuq mlmc --tol-var`` / ``--tol-cdf``).
-TARGETS = ("variance", "cdf")
 #: Fewest initial samples per level of a target run: the variance of a level's variance term needs four.
 MIN_TARGET_SAMPLES = 4
 
@@ -1308,21 +1306,18 @@ def _follow_target(
 ) -> tuple[Any, list[Diagnostic]]:
     """Run the targets' adaptive driver with progress; its estimate and the diagnostics it raised."""
     config = study.config
-    options = dict(
-        theta=config.estimation.theta, n_initial=config.estimation.initial_samples,
-        min_finest_level=min(2, config.grid.max_level), max_level=config.grid.max_level, max_cost=max_cost,
-        batch_size=config.estimation.batch_size,
+    cdf = {} if target == "variance" else dict(
+        thresholds=request.thresholds, qoi=config.qoi_names.index(request.column)
     )
     planned = _PlannedSampler(sampler, progress)
     progress.start(title)
     try:
         with _collecting_diagnostics() as diagnostics:
-            if target == "variance":
-                result = mlmc_variance(planned, tol=tol, **options)
-            else:
-                s = request.thresholds
-                result = mlmc_cdf(planned, thresholds=s, tol=float(tol[0]), bandwidth=_default_bandwidth(s),
-                                  qoi=config.qoi_names.index(request.column), **options)
+            result = estimate_target(
+                planned, target=target, tol=tol, max_level=config.grid.max_level, theta=config.estimation.theta,
+                n_initial=config.estimation.initial_samples, max_cost=max_cost,
+                batch_size=config.estimation.batch_size, **cdf,
+            )
     except BaseException:
         progress.stop(is_complete=False)
         raise
