@@ -28,7 +28,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -429,72 +429,46 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     console.print(f"study file: {path}")
 
 
+@dataclass(frozen=True)
+class _RunOptions:
+    """The options of ``roughuq mlmc`` / ``mc`` that every run takes: files, budget, executor, output."""
+
+    study_path: str
+    config_path: str | None
+    max_cost: float | None
+    as_json: bool
+    workers: int | None
+    executor: str
+    scheduler: str | None
+    quiet: bool
+
+
 def _estimation_command(method: str) -> Callable[..., Any]:
+    """The ``roughuq mlmc`` / ``roughuq mc`` command (``method``), with its options."""
+
     def command(tol: Sequence[str], study_path: str, config_path: str | None, max_cost: float | None,
                 show_plan: bool, shard_size: int | None, with_resources: bool, as_json: bool, workers: int | None,
                 executor: str, scheduler: str | None, quiet: bool, level: int | None = None,
                 choice: str = "mlmc", tol_var: Sequence[str] = (), tol_cdf: str | None = None,
                 qoi: str | None = None, thresholds: str | None = None, probabilities: str | None = None) -> None:
         target = _target_of(tol, tol_var, tol_cdf, qoi=qoi, thresholds=thresholds, probabilities=probabilities)
+        _refuse_misplaced_options(target, choice, show_plan, shard_size, with_resources)
+        opts = _RunOptions(study_path, config_path, max_cost, as_json, workers, executor, scheduler, quiet)
         if target is not None:
-            mean_only = _mean_only_options(choice, show_plan, shard_size, with_resources)
-            if mean_only:
-                name, value = mean_only[0]
-                option = "--tol-var" if target == "variance" else "--tol-cdf"
-                raise InvalidParameterError(name, value, f"not with {option}: --method, --plan, --shards and "
-                                            "--resources are for runs of the mean (--tol)")
             _run_target(target, tol_var=tol_var, tol_cdf=tol_cdf, qoi=qoi, thresholds=thresholds,
-                        probabilities=probabilities, study_path=study_path, config_path=config_path,
-                        max_cost=max_cost, as_json=as_json, workers=workers, executor=executor, scheduler=scheduler,
-                        quiet=quiet)
-            return
-        from rough_uq.study.config import load_config
-        from rough_uq.study.pipeline import (
-            choose_method,
-            create_study,
-            forecast_run,
-            missing_samples,
-            open_existing_study,
-            parse_tolerances,
-            run_estimation,
-            run_id,
-        )
+                        probabilities=probabilities, opts=opts)
+        else:
+            _run_mean(tol, method=method, choice=choice, level=level, show_plan=show_plan, shard_size=shard_size,
+                      with_resources=with_resources, opts=opts)
 
-        if shard_size is not None and not show_plan:
-            raise InvalidParameterError("--shards", shard_size, "only with --plan (it splits the plan into shards)")
-        if with_resources and (shard_size is None or not show_plan):
-            raise InvalidParameterError("--resources", True, "only with --plan --shards SIZE")
-        config = load_config(config_path) if config_path else None
-        if config is not None and not show_plan and not Path(study_path).exists():
-            create_study(config, study_path).close()  # a new study, e.g. MC on a given --level
-        with open_existing_study(study_path, config=config, writable=not show_plan) as study:
-            tolerances = parse_tolerances(tol, study.config)
-            cap = study.config.estimation.max_cost if max_cost is None else max_cost
-            run_method = _chosen_method(study, choice, method, tolerances, cap, choose_method, quiet or as_json)
-            if show_plan:
-                forecast_run(study, method=run_method, tol=tolerances, max_cost=cap, level=level)
-                work = missing_samples(study, method=run_method, tol=tolerances, max_cost=cap, level=level)
-                resources = None
-                if with_resources:
-                    from rough_uq.study.resources import shard_resources
+    command = _user_errors(command)
+    for option in reversed(_estimation_options(method)):
+        command = option(command)
+    return command
 
-                    resources = shard_resources(study, stage=work.stage, levels=list(work.missing))
-                _print_plan(work, as_json, shard_size, resources)
-                return
-            with _executor(study.config, workers, executor, scheduler) as pool:
-                forecast = forecast_run(study, method=run_method, tol=tolerances, max_cost=cap, level=level,
-                                        n_workers=getattr(pool, "n_workers", 1))
-                if not as_json:
-                    _print_forecast(forecast, run_method)
-                watch = (study.config, pool, executor, "a smaller --level" if level is not None else "a looser --tol")
-                record = run_estimation(study, method=run_method, tol=tolerances, executor=pool,
-                                        progress=_progress(quiet or as_json, watch), max_cost=cap, level=level,
-                                        forecast=forecast)
-            estimation = study.config.estimation
-            key = run_id(run_method, study.config.qoi_names, tolerances, estimation.theta, level,
-                         richardson=estimation.richardson)
-        _show_finished_run(study_path, key, record.outcome, as_json=as_json, option="--tol")
 
+def _estimation_options(method: str) -> list[Callable[[Any], Any]]:
+    """The click options of ``roughuq mlmc`` / ``roughuq mc``, in the order ``--help`` lists them."""
     options = [
         click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS",
                      help="Target RMS error: a number (single QoI) or NAME=EPS per QoI (each QoI once); "
@@ -520,37 +494,37 @@ def _estimation_command(method: str) -> Callable[..., Any]:
         _quiet_option,
     ]
     if method == "mc":
-        options.append(click.option(
+        return options + [click.option(
             "--level", type=click.IntRange(min=0), default=None,
             help="Sample this level (no screening needed; its bias is then not estimated).",
-        ))
-    else:
-        options += [
-            click.option("--tol-var", "tol_var", multiple=True, metavar="EPS|NAME=EPS",
-                         help="Estimate Var(Q) instead of the mean: tolerance on the RMS error of the variance, "
-                              "in the QoI's unit squared (e.g. %^2), a number (single QoI) or NAME=EPS per QoI."),
-            click.option("--tol-cdf", "tol_cdf", default=None, metavar="EPS",
-                         help="Estimate the distribution function F(s) = P(Q <= s) of --qoi on --thresholds, and "
-                              "its quantiles: tolerance on the largest RMS error of F over the thresholds "
-                              "(dimensionless, in (0, 1))."),
-            click.option("--qoi", "qoi", default=None, metavar="NAME",
-                         help="With --tol-cdf: the QoI column (default: the only one)."),
-            click.option("--thresholds", "thresholds", default=None, metavar="START:STOP:COUNT",
-                         help="With --tol-cdf: COUNT equally spaced values s from START to STOP in the QoI's unit "
-                              "(default: the config's estimation.distribution.NAME.thresholds)."),
-            click.option("--probabilities", "probabilities", default=None, metavar="P,P,...",
-                         help="With --tol-cdf: the quantiles reported (default: the config's, else 0.05,0.5,0.95)."),
-        ]
-        options.append(click.option(
+        )]
+    return options + _mlmc_only_options()
+
+
+def _mlmc_only_options() -> list[Callable[[Any], Any]]:
+    """The options ``roughuq mlmc`` has and ``roughuq mc`` has not: the variance and cdf targets, ``--method``."""
+    return [
+        click.option("--tol-var", "tol_var", multiple=True, metavar="EPS|NAME=EPS",
+                     help="Estimate Var(Q) instead of the mean: tolerance on the RMS error of the variance, "
+                          "in the QoI's unit squared (e.g. %^2), a number (single QoI) or NAME=EPS per QoI."),
+        click.option("--tol-cdf", "tol_cdf", default=None, metavar="EPS",
+                     help="Estimate the distribution function F(s) = P(Q <= s) of --qoi on --thresholds, and "
+                          "its quantiles: tolerance on the largest RMS error of F over the thresholds "
+                          "(dimensionless, in (0, 1))."),
+        click.option("--qoi", "qoi", default=None, metavar="NAME",
+                     help="With --tol-cdf: the QoI column (default: the only one)."),
+        click.option("--thresholds", "thresholds", default=None, metavar="START:STOP:COUNT",
+                     help="With --tol-cdf: COUNT equally spaced values s from START to STOP in the QoI's unit "
+                          "(default: the config's estimation.distribution.NAME.thresholds)."),
+        click.option("--probabilities", "probabilities", default=None, metavar="P,P,...",
+                     help="With --tol-cdf: the quantiles reported (default: the config's, else 0.05,0.5,0.95)."),
+        click.option(
             "--method", "choice", type=click.Choice(METHODS), default="mlmc", show_default=True,
             help="mlmc: plain MLMC (Richardson if the config's estimation.richardson says so); richardson: "
                  "Richardson-extrapolated MLMC where the level means allow it; mc: plain MC on the level the "
                  "bias needs; auto: the cheapest of the three as predicted by the screening (says why).",
-        ))
-    command = _user_errors(command)
-    for option in reversed(options):
-        command = option(command)
-    return command
+        ),
+    ]
 
 
 def _target_of(tol: Sequence[str], tol_var: Sequence[str], tol_cdf: str | None, **cdf_options: str | None) -> str | None:
@@ -576,6 +550,23 @@ def _mean_only_options(choice: str, show_plan: bool, shard_size: int | None,
     given = [("--method", choice, choice != "mlmc"), ("--plan", True, show_plan),
              ("--shards", shard_size, shard_size is not None), ("--resources", True, with_resources)]
     return [(name, value) for name, value, is_given in given if is_given]
+
+
+def _refuse_misplaced_options(target: str | None, choice: str, show_plan: bool, shard_size: int | None,
+                              with_resources: bool) -> None:
+    """Refuse options given where they do not apply: mean-only ones with a target, plan ones without ``--plan``."""
+    if target is not None:
+        mean_only = _mean_only_options(choice, show_plan, shard_size, with_resources)
+        if mean_only:
+            name, value = mean_only[0]
+            option = "--tol-var" if target == "variance" else "--tol-cdf"
+            raise InvalidParameterError(name, value, f"not with {option}: --method, --plan, --shards and "
+                                        "--resources are for runs of the mean (--tol)")
+        return
+    if shard_size is not None and not show_plan:
+        raise InvalidParameterError("--shards", shard_size, "only with --plan (it splits the plan into shards)")
+    if with_resources and (shard_size is None or not show_plan):
+        raise InvalidParameterError("--resources", True, "only with --plan --shards SIZE")
 
 
 def _cdf_tolerance(text: str) -> Any:
@@ -621,31 +612,92 @@ def _probabilities(text: str | None) -> tuple[float, ...] | None:
     return values
 
 
-def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi: str | None,
-                thresholds: str | None, probabilities: str | None, study_path: str, config_path: str | None,
-                max_cost: float | None, as_json: bool, workers: int | None, executor: str, scheduler: str | None,
-                quiet: bool) -> None:
-    """``roughuq mlmc --tol-var`` / ``--tol-cdf``: run the target, print it as `roughuq report` does, exit 3 if missed."""
+def _config_creating_study(opts: _RunOptions, *, may_create: bool = True) -> Any:
+    """The ``--config`` (None without one); if ``may_create``, a new study is created from it where none exists.
+
+    Target runs and MC on a given ``--level`` need no screening.
+    """
     from rough_uq.study.config import load_config
-    from rough_uq.study.pipeline import cdf_request, create_study, open_existing_study, parse_tolerances, run_target
+    from rough_uq.study.pipeline import create_study
+
+    config = load_config(opts.config_path) if opts.config_path else None
+    if config is not None and may_create and not Path(opts.study_path).exists():
+        create_study(config, opts.study_path).close()
+    return config
+
+
+def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi: str | None,
+                thresholds: str | None, probabilities: str | None, opts: _RunOptions) -> None:
+    """``roughuq mlmc --tol-var`` / ``--tol-cdf``: run the target, print it as `roughuq report` does, exit 3 if missed."""
+    from rough_uq.study.pipeline import cdf_request, open_existing_study, parse_tolerances, run_target
 
     grid, wanted = _thresholds(thresholds), _probabilities(probabilities)
-    config = load_config(config_path) if config_path else None
-    if config is not None and not Path(study_path).exists():
-        create_study(config, study_path).close()  # target runs need no screening
-    with open_existing_study(study_path, config=config) as study:
+    config = _config_creating_study(opts)
+    with open_existing_study(opts.study_path, config=config) as study:
         request = None
         if target == "variance":
             tolerances = parse_tolerances(tol_var, study.config, option="--tol-var", use_config=False)
         else:
             tolerances = _cdf_tolerance(tol_cdf)
             request = cdf_request(study.config, column=qoi, thresholds=grid, probabilities=wanted)
-        with _executor(study.config, workers, executor, scheduler) as pool:
-            watch = (study.config, pool, executor, "a looser tolerance")
+        with _executor(study.config, opts.workers, opts.executor, opts.scheduler) as pool:
+            watch = (study.config, pool, opts.executor, "a looser tolerance")
             record = run_target(study, target=target, tol=tolerances, executor=pool, request=request,
-                                progress=_progress(quiet or as_json, watch), max_cost=max_cost)
+                                progress=_progress(opts.quiet or opts.as_json, watch), max_cost=opts.max_cost)
     option = "--tol-var" if target == "variance" else "--tol-cdf"
-    _show_finished_run(study_path, record.run_id, record.outcome, as_json=as_json, option=option)
+    _show_finished_run(opts.study_path, record.run_id, record.outcome, as_json=opts.as_json, option=option)
+
+
+def _run_mean(tol: Sequence[str], *, method: str, choice: str, level: int | None, show_plan: bool,
+              shard_size: int | None, with_resources: bool, opts: _RunOptions) -> None:
+    """A run of the mean (``--tol``): print its plan (``--plan``), or run it and show it; exit 3 if missed."""
+    from rough_uq.study.pipeline import choose_method, open_existing_study, parse_tolerances, run_id
+
+    config = _config_creating_study(opts, may_create=not show_plan)
+    with open_existing_study(opts.study_path, config=config, writable=not show_plan) as study:
+        tolerances = parse_tolerances(tol, study.config)
+        cap = study.config.estimation.max_cost if opts.max_cost is None else opts.max_cost
+        run_method = _chosen_method(study, choice, method, tolerances, cap, choose_method, opts.quiet or opts.as_json)
+        if show_plan:
+            _show_missing(study, run_method, tolerances, cap, level, as_json=opts.as_json, shard_size=shard_size,
+                          with_resources=with_resources)
+            return
+        record = _estimate(study, run_method, tolerances, cap, level, opts)
+        estimation = study.config.estimation
+        key = run_id(run_method, study.config.qoi_names, tolerances, estimation.theta, level,
+                     richardson=estimation.richardson)
+    _show_finished_run(opts.study_path, key, record.outcome, as_json=opts.as_json, option="--tol")
+
+
+def _show_missing(study: Any, method: str, tolerances: Any, cap: float | None, level: int | None, *,
+                  as_json: bool, shard_size: int | None, with_resources: bool) -> None:
+    """``--plan``: print the samples the run still misses (a plan its forecast refuses is an error, as for the run)."""
+    from rough_uq.study.pipeline import forecast_run, missing_samples
+
+    forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level)
+    work = missing_samples(study, method=method, tol=tolerances, max_cost=cap, level=level)
+    resources = None
+    if with_resources:
+        from rough_uq.study.resources import shard_resources
+
+        resources = shard_resources(study, stage=work.stage, levels=list(work.missing))
+    _print_plan(work, as_json, shard_size, resources)
+
+
+def _estimate(study: Any, method: str, tolerances: Any, cap: float | None, level: int | None,
+              opts: _RunOptions) -> Any:
+    """Run the estimation into ``study`` (its forecast printed first, except as JSON); the run's record."""
+    from rough_uq.study.pipeline import forecast_run, run_estimation
+
+    with _executor(study.config, opts.workers, opts.executor, opts.scheduler) as pool:
+        forecast = forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level,
+                                n_workers=getattr(pool, "n_workers", 1))
+        if not opts.as_json:
+            _print_forecast(forecast, method)
+        watch = (study.config, pool, opts.executor, "a smaller --level" if level is not None else "a looser --tol")
+        return run_estimation(study, method=method, tol=tolerances, executor=pool,
+                              progress=_progress(opts.quiet or opts.as_json, watch), max_cost=cap, level=level,
+                              forecast=forecast)
 
 
 #: Choices of ``roughuq mlmc --method``.
