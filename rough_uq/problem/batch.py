@@ -82,3 +82,8 @@ class LevelBatch:
     def is_converged(self) -> np.ndarray:
         """Boolean mask, shape (n,): both solves of the sample converged."""
         return np.all(self.converged, axis=1)
+
+    @property
+    def n_not_converged(self) -> int:
+        """Number of samples with a solve (fine or coarse) that did not converge."""
+        return int(np.count_nonzero(~self.is_converged))

@@ -350,7 +350,7 @@ class ContactSampler:
             items = [(self.stage, level, indices[i : i + 1]) for i in range(indices.size)]
             batch = _ordered(list(self.executor.run(self.model, items)), indices)
         self.n_samples += batch.n_samples
-        self.n_not_converged += int(np.count_nonzero(~batch.is_converged))
+        self.n_not_converged += batch.n_not_converged
         self.seconds += float(np.sum(batch.cost))
         return batch
 

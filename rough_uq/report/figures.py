@@ -32,6 +32,7 @@ import numpy as np
 
 from rough_uq.errors import RoughUQError
 from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
+from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
 from rough_uq.report.summary import split_column
 from rough_uq.study.records import RunRecord, ScreeningRecord
@@ -437,6 +438,39 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
 # ---------------------------------------------------------------------------
 
 
+def _map_panel(figure: Any, ax: Any, values: np.ndarray, extent: tuple[float, ...], *, cmap: str, label: str,
+               title: str) -> None:
+    """A map of nodal ``values``, shape (n, n), with its colour bar."""
+    # Node (i, j) sits at (x, y) = (i h, j h): transpose so that i runs along x.
+    image = ax.imshow(values.T, origin="lower", extent=extent, cmap=cmap)
+    figure.colorbar(image, ax=ax, shrink=0.8, label=label)
+    ax.set_title(title)
+
+
+def _cluster_colours(contact: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """RGB image, shape (n, n, 3): white out of contact, each contact cluster one colour of ``tab20``."""
+    import matplotlib
+
+    palette = matplotlib.colormaps["tab20"](np.arange(20))[:, :3]
+    colours = np.ones((*contact.shape, 3))
+    colours[contact] = palette[(labels[contact] - 1) % len(palette)]
+    return colours
+
+
+def _clusters_panel(ax: Any, model: ContactModel, solution: ContactSolution, extent: tuple[float, ...]) -> None:
+    """The contact clusters in colour, titled with the contact area and the cluster count."""
+    contact = solution.contact
+    # "mean" counts both ways; the map shows the 8-connected clusters and the title the mean.
+    labels = label_clusters(contact, connectivity=8 if model.connectivity == "mean" else model.connectivity)
+    n_clusters = cluster_count(contact, model.connectivity)
+    area = 100.0 * contact_area(solution.pressure, estimator=model.area_estimator)
+    colours = _cluster_colours(contact, labels)
+    # Transposed like the maps of _map_panel.
+    ax.imshow(np.transpose(colours, (1, 0, 2)), origin="lower", extent=extent, interpolation="nearest")
+    counted = "mean of 4- and 8-connected" if model.connectivity == "mean" else f"{model.connectivity}-connected"
+    ax.set_title(f"contact {area:.2f} %, {n_clusters:g} clusters ({counted})")
+
+
 def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: int, path: str | Path) -> Path:
     """Draw one sample: its heights, its contact pressure and its contact clusters.
 
@@ -465,36 +499,20 @@ def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: i
         If matplotlib is not installed.
     """
     _matplotlib()
-    import matplotlib
-
     path = Path(path)
     sample = solve_sample(model, stage=stage, level=level, index=index)
     heights, solution = sample.heights, sample.fine
-    contact = solution.contact
-    # "mean" counts both ways; the map shows the 8-connected clusters and the title the mean.
-    labels = label_clusters(contact, connectivity=8 if model.connectivity == "mean" else model.connectivity)
-    n_clusters = cluster_count(contact, model.connectivity)
-    area = 100.0 * contact_area(solution.pressure, estimator=model.area_estimator)
     n = heights.shape[0]
     size = model.spectrum.system_size
-    # Node (i, j) sits at (x, y) = (i h, j h): transpose so that i runs along x.
     extent = (0.0, size, 0.0, size)
-
-    palette = matplotlib.colormaps["tab20"](np.arange(20))[:, :3]
-    colours = np.ones((n, n, 3))
-    colours[contact] = palette[(labels[contact] - 1) % len(palette)]
 
     figure = _new_figure(15.0, 4.8)
     axes = figure.subplots(1, 3)
-    image = axes[0].imshow(heights.T, origin="lower", extent=extent, cmap="viridis")
-    figure.colorbar(image, ax=axes[0], shrink=0.8, label="height (length unit)")
-    axes[0].set_title(f"heights, rms {np.std(heights):.3g}")
-    image = axes[1].imshow(solution.pressure.T, origin="lower", extent=extent, cmap="magma")
-    figure.colorbar(image, ax=axes[1], shrink=0.8, label="pressure (unit of $E^*$)")
-    axes[1].set_title(f"pressure, mean {model.mean_pressure:.3g}" + ("" if solution.converged else " (not converged)"))
-    axes[2].imshow(np.transpose(colours, (1, 0, 2)), origin="lower", extent=extent, interpolation="nearest")
-    counted = "mean of 4- and 8-connected" if model.connectivity == "mean" else f"{model.connectivity}-connected"
-    axes[2].set_title(f"contact {area:.2f} %, {n_clusters:g} clusters ({counted})")
+    _map_panel(figure, axes[0], heights, extent, cmap="viridis", label="height (length unit)",
+               title=f"heights, rms {np.std(heights):.3g}")
+    _map_panel(figure, axes[1], solution.pressure, extent, cmap="magma", label="pressure (unit of $E^*$)",
+               title=f"pressure, mean {model.mean_pressure:.3g}" + ("" if solution.converged else " (not converged)"))
+    _clusters_panel(axes[2], model, solution, extent)
     for ax in axes:
         ax.set_xlabel("x")
         ax.set_ylabel("y")

@@ -32,8 +32,10 @@ what is allowed.
 
 Derived numbers, each defined once here: the complexity exponents of fitted
 rates (:func:`complexity`, SPEC section 5), the count of non-converged samples
-(:func:`count_not_converged`), timestamps (:func:`utc_timestamp`) and a run's
-predicted MC/MLMC work ratio (:attr:`RunOutcome.work_ratio`).
+over batches (:func:`count_not_converged`, the sum of
+:attr:`~rough_uq.problem.batch.LevelBatch.n_not_converged`), timestamps
+(:func:`utc_timestamp`) and a run's predicted MC/MLMC work ratio
+(:attr:`RunOutcome.work_ratio`).
 """
 
 from __future__ import annotations
@@ -95,8 +97,8 @@ def utc_timestamp() -> str:
 
 
 def count_not_converged(batches: Iterable[LevelBatch]) -> int:
-    """Samples with a solve (fine or coarse) that did not converge, over ``batches``."""
-    return int(sum(np.count_nonzero(~batch.is_converged) for batch in batches))
+    """Samples with a solve (fine or coarse) that did not converge, summed over ``batches``."""
+    return sum(batch.n_not_converged for batch in batches)
 
 
 @dataclass(frozen=True)

@@ -1026,6 +1026,71 @@ def _rewrite(path: Path) -> None:
         _replace_atomically(path, write, copy_from=None)
 
 
+def _installed_version() -> str:
+    """The installed roughuq version (imported late: the package imports this module)."""
+    from rough_uq import __version__
+
+    return __version__
+
+
+def _check_before_lock(path: Path, *, create: bool) -> None:
+    """Refuse a missing (``create=False``) or foreign file, or make sure a new one's directory is writable."""
+    if path.exists():
+        _read_header(path)  # refuse foreign files before touching their directory
+    elif not create:
+        raise StudyFileError(f"{path}: no such study file", path)
+    else:
+        _make_directory(path)
+
+
+def _make_directory(path: Path) -> None:
+    """Create the missing parent directories of ``path``; refuse a directory this process cannot write in."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise StudyFileError(f"{path}: cannot create the directory {path.parent} ({exc.strerror})", path) from None
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise StudyFileError(f"{path}: the directory {path.parent} is not writable", path)
+
+
+def _prepare_locked(
+    path: Path, *, config_text: str, config_hash: str, qoi_names: Sequence[str], code_version: str
+) -> dict[str, Any]:
+    """With the lock held: create the file if missing, check it, bring it to version 2; its header."""
+    if not path.exists():
+        _replace_atomically(
+            path,
+            lambda f: _write_header(
+                f,
+                config_text=config_text,
+                config_hash=config_hash,
+                qoi_names=qoi_names,
+                code_version=str(code_version),
+            ),
+            copy_from=None,
+        )
+    header = _read_header(path)
+    _check_header(path, header, config_hash=config_hash)
+    _remove_stale_tmp(path)  # left by a killed writer; we hold the lock, so none is live
+    if header["format_version"] != FORMAT_VERSION or _is_marked_open(path):
+        _rewrite(path)
+        header = _read_header(path)
+    return header
+
+
+def _check_header(path: Path, header: Mapping[str, Any], *, config_hash: str) -> None:
+    """Refuse a file without a samples group or written by another config."""
+    if not header["has_samples"]:
+        raise StudyFileError(f"{path} cannot be read: damaged study file (no samples group)", path)
+    if header["config_hash"] != config_hash:
+        raise StudyFileError(
+            f"{path} was written by another config "
+            f"(hash {header['config_hash'][:12]}… ≠ {config_hash[:12]}…); "
+            "use a new --out/--study file or the original config",
+            path,
+        )
+
+
 def open_study(
     path: str | os.PathLike[str],
     *,
@@ -1071,48 +1136,13 @@ def open_study(
     """
     path = Path(os.fspath(path))
     if code_version is None:
-        from rough_uq import __version__
-
-        code_version = __version__
-    if path.exists() or not create:
-        if not path.exists():
-            raise StudyFileError(f"{path}: no such study file", path)
-        _read_header(path)  # refuse foreign files before touching their directory
-    elif create:
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise StudyFileError(f"{path}: cannot create the directory {path.parent} ({exc.strerror})", path) from None
-        if not os.access(path.parent, os.W_OK | os.X_OK):
-            raise StudyFileError(f"{path}: the directory {path.parent} is not writable", path)
+        code_version = _installed_version()
+    _check_before_lock(path, create=create)
     lock_fd = _acquire_lock(path)
     try:
-        if not path.exists():
-            _replace_atomically(
-                path,
-                lambda f: _write_header(
-                    f,
-                    config_text=config_text,
-                    config_hash=config_hash,
-                    qoi_names=qoi_names,
-                    code_version=str(code_version),
-                ),
-                copy_from=None,
-            )
-        header = _read_header(path)
-        if not header["has_samples"]:
-            raise StudyFileError(f"{path} cannot be read: damaged study file (no samples group)", path)
-        if header["config_hash"] != config_hash:
-            raise StudyFileError(
-                f"{path} was written by another config "
-                f"(hash {header['config_hash'][:12]}… ≠ {config_hash[:12]}…); "
-                "use a new --out/--study file or the original config",
-                path,
-            )
-        _remove_stale_tmp(path)  # left by a killed writer; we hold the lock, so none is live
-        if header["format_version"] != FORMAT_VERSION or _is_marked_open(path):
-            _rewrite(path)
-            header = _read_header(path)
+        header = _prepare_locked(
+            path, config_text=config_text, config_hash=config_hash, qoi_names=qoi_names, code_version=code_version
+        )
     except BaseException:
         _release_lock(path, lock_fd)
         raise
