@@ -50,6 +50,27 @@ def _start(*args: str, cwd: Path) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, env=ENV, preexec_fn=_default_sigint)
 
 
+def _wait_until_running(process: subprocess.Popen, study: Path, timeout: float = 60.0) -> None:
+    """Return once ``process`` holds the lock of ``study`` (its run has begun), or has exited.
+
+    Python's start-up and imports take about 2 s idle and several times that on
+    a loaded machine; a signal before the CLI runs would test Python's default
+    handling, not the store's. Read from ``/proc`` (Linux); elsewhere return at once.
+    """
+    lock = str(study.with_name(study.name + ".lock"))
+    descriptors = Path(f"/proc/{process.pid}/fd")
+    if not descriptors.parent.exists():
+        return
+    deadline = time.monotonic() + timeout
+    while process.poll() is None and time.monotonic() < deadline:
+        try:
+            if any(os.readlink(fd) == lock for fd in descriptors.iterdir()):
+                return
+        except OSError:  # a descriptor closed while listed, or the process exited
+            pass
+        time.sleep(0.05)
+
+
 def _screened(directory: Path) -> Path:
     directory.mkdir()
     result = _roughuq("screen", str(_config(directory)), "-q", "--workers", "1", cwd=directory)
@@ -84,7 +105,8 @@ def test_killed_runs_lose_nothing_and_resume_to_the_same_estimate(tmp_path, refe
     previous = {}
     for attempt, sig in enumerate([signal.SIGINT, signal.SIGKILL, signal.SIGTERM, signal.SIGKILL]):
         process = _start("mlmc", "--tol", TOL, "-q", "--workers", "1", cwd=directory)
-        time.sleep(rng.uniform(2.5, 7.0))
+        _wait_until_running(process, directory / "results.h5")
+        time.sleep(rng.uniform(0.5, 5.0))
         process.send_signal(sig)
         _, stderr = process.communicate(timeout=60)
         if process.returncode == 0:
