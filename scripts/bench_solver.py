@@ -21,14 +21,14 @@ run, so the ratios are meaningful even where the absolute times are not:
   (FFT pair) and (s/solve) / (FFT pair), for the preconditioned solver (the
   default) and for plain Polonsky-Keer (``precondition=False``, up to
   ``--plain-max``) on the same surface. A plain iteration costs one double FFT pair and a single-precision
-  forward transform plus fused passes; a preconditioned one does one and a
-  half single-precision pairs (a single pair takes about half the time of a
-  double pair at 1024^2, three quarters at 256^2 and 512^2, nine tenths at
-  2048^2) and one double pair, and needs about a third of the iterations.
-  ``iter/transf`` divides the time of an iteration by the time of the
-  transforms it must do (1 double and 0.5 single pair for plain
-  Polonsky-Keer, 1 double and 1.5 single pairs preconditioned): what the
-  elementwise passes and the Python loop add;
+  forward transform plus fused passes; a preconditioned one does two and a
+  half single-precision pairs (a single pair takes 0.55-0.7 of the time of a
+  double pair at 1024^2-2048^2), plus a double pair whenever its error has
+  fallen a hundredfold (the exact displacement, :mod:`rough_uq.physics.solver`),
+  and needs about a third of the iterations. ``iter/transf`` divides the time
+  of an iteration by the time of the transforms it must do (1 double and 0.5
+  single pair for plain Polonsky-Keer, 2.5 single pairs preconditioned): what
+  the elementwise passes, the exact displacements and the Python loop add;
 * warm start: the coupled coarse surface (grid ``n/2``, spectral truncation) is
   solved first and its pressure passed as ``initial_pressure`` to the fine
   solve; cold vs warm iterations and time;
@@ -461,7 +461,7 @@ def run_grid(
         fft_pair_seconds=fft_pair,
         iteration_over_fft=per_iteration / fft_pair,
         single_pair_seconds=single_pair,
-        iteration_over_transforms=per_iteration / (1.5 * single_pair + fft_pair),
+        iteration_over_transforms=per_iteration / (2.5 * single_pair),
         solve_over_fft=cold_timing.seconds / fft_pair,
         area_fraction=cold_timing.area_fraction,
         error=cold_timing.error,

@@ -301,8 +301,13 @@ def test_heights_and_load_scaled_together_give_the_scaled_solution(factor):
     scaled = solve_contact(factor * s, system_size=L, mean_pressure=factor * load)
     assert_valid_solution(scaled, factor * s, factor * load)
     np.testing.assert_array_equal(scaled.contact, reference.contact)
-    np.testing.assert_allclose(scaled.pressure / factor, reference.pressure, rtol=1e-10, atol=1e-12 * load)
-    np.testing.assert_allclose(scaled.gap / factor, reference.gap, rtol=0, atol=1e-12)
+    # To about 1e-10 of the largest pressure, not to rounding: the preconditioned iteration's
+    # single-precision displacement increments round differently in the two problems (solver
+    # docstring, "Scaled units"; measured here: at most 1.3e-11 of the largest pressure and 6e-12
+    # RMS heights in the gap).
+    peak = reference.pressure.max()
+    np.testing.assert_allclose(scaled.pressure / factor, reference.pressure, rtol=0, atol=1e-10 * peak)
+    np.testing.assert_allclose(scaled.gap / factor, reference.gap, rtol=0, atol=1e-10)
     assert scaled.approach / factor == pytest.approx(reference.approach, rel=1e-10)
 
 
@@ -317,8 +322,10 @@ def test_scaling_every_length_leaves_the_pressure_unchanged(factor):
     scaled = solve_contact(factor * s, system_size=factor * L, mean_pressure=load)
     assert_valid_solution(scaled, factor * s, load)
     np.testing.assert_array_equal(scaled.contact, reference.contact)
-    np.testing.assert_allclose(scaled.pressure, reference.pressure, rtol=1e-10, atol=1e-12 * load)
-    np.testing.assert_allclose(scaled.displacement / factor, reference.displacement, rtol=0, atol=1e-12)
+    # To about 1e-10 of the largest pressure (see the test above; measured: at most 1.3e-11 of it).
+    peak = reference.pressure.max()
+    np.testing.assert_allclose(scaled.pressure, reference.pressure, rtol=0, atol=1e-10 * peak)
+    np.testing.assert_allclose(scaled.displacement / factor, reference.displacement, rtol=0, atol=1e-10)
 
 
 @pytest.mark.parametrize("rms_height", [1e-9, 1e9])

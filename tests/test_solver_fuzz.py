@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import rough_uq.physics.solver as solver_module
-from rough_uq.physics.elastic import westergaard_kernel
+from rough_uq.physics.elastic import HalfSpace, westergaard_kernel
 from rough_uq.physics.solver import solve_contact
 from rough_uq.physics.surface import SurfaceSpectrum, sample_surface
 
@@ -51,10 +51,19 @@ def random_problem(seed: int, grids=(32, 64, 128, 256)):
     return heights, size, relative_load * spectrum.rms_slope, description
 
 
+def assert_exact_displacement(solution, size, description):
+    """The returned displacement is K p of the returned pressure in double precision (E* = 1)."""
+    exact = HalfSpace(solution.pressure.shape[0], system_size=size).displacement(solution.pressure)
+    scale = max(float(np.max(np.abs(exact))), np.finfo(float).tiny)
+    difference = float(np.max(np.abs(solution.displacement - exact))) / scale
+    assert difference < 1e-12, f"{description}: displacement differs from K p by {difference:.2e} of its maximum"
+
+
 def assert_agrees_with_plain(heights, size, pressure, description, tol=TOL, **options):
     solution = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=tol, **options)
     assert solution.converged, f"{description}: {solution.message}"
     assert solution.path == "preconditioned", f"{description}: {solution.message}"
+    assert_exact_displacement(solution, size, description)
     plain = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=tol, precondition=False, **options)
     assert plain.converged and plain.path == "plain", f"{description}: {plain.message}"
     difference = np.linalg.norm(solution.pressure - plain.pressure) / np.linalg.norm(plain.pressure)
@@ -79,6 +88,37 @@ def test_load_range_spans_a_few_nodes_to_full_contact():
         if heights.shape[0] <= 64:
             fractions.append(solve_contact(heights, system_size=size, mean_pressure=pressure).contact.mean())
     assert min(fractions) < 0.01 and max(fractions) == 1.0
+
+
+@pytest.mark.parametrize("max_iter", [1, 4, 9])
+def test_every_stop_is_decided_on_an_exact_displacement(max_iter):
+    # Between exact displacements the preconditioned iteration adds the single-precision
+    # displacement of the pressure increment; a solve stopped by max_iter must still
+    # return the exact displacement of its pressure, and its error must be that of it.
+    for seed in range(20):
+        heights, size, pressure, description = random_problem(seed)
+        solution = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=1e-14, max_iter=max_iter)
+        assert solution.n_iter <= max_iter, description
+        assert_exact_displacement(solution, size, description)
+
+
+def test_the_exact_displacement_is_refreshed_as_the_error_falls(monkeypatch):
+    # Exact (double-precision) displacements at the start and whenever the error has
+    # fallen a hundredfold (plus the last one), single-precision increments in between.
+    calls = []
+    exact_update = solver_module._State.update_displacement
+
+    def counted(state, ops):
+        calls.append(state.n_iter)
+        exact_update(state, ops)
+
+    monkeypatch.setattr(solver_module._State, "update_displacement", counted)
+    heights, size, pressure, description = random_problem(3, grids=(256,))
+    solution = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=1e-10)
+    assert solution.converged and solution.path == "preconditioned", description
+    assert calls[0] == 0
+    assert 4 <= len(calls) <= 8, f"{description}: exact displacements at iterations {calls} of {solution.n_iter}"
+    assert len(calls) < solution.n_iter / 2
 
 
 def _diagonal_overlap_scale(n: int):

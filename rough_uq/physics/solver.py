@@ -39,7 +39,7 @@ reference surface of the benchmark it took 41 / 60 / 72 iterations at
 curvature ``<t, K t>`` of the step length (by Parseval, from the forward
 transform of ``t``) is computed in single precision too: a relative error of
 1e-7 in the step length is harmless, since the residual is recomputed
-exactly from ``p`` in every iteration. This rounding changed no iteration
+from ``p`` in every iteration (below). This rounding changed no iteration
 count in our benchmark runs, down to ``tol = 1e-12``. Nodes added from the
 overlap get ``p = -tau m g`` with ``m = rho / sum_I g^2`` the Rayleigh
 quotient of ``M`` on the current residual, the preconditioned analogue of
@@ -55,15 +55,26 @@ tried. With the overlap scale above no randomised problem of the test suite
 needs the hand-over; it is there so that a solve never ends in a wrong
 number after ``max_iter`` iterations.
 
-One iteration costs one and a half single-precision FFT pairs (the
-preconditioner and the transform of ``t``) and one double-precision pair: the
-displacement ``u = K p`` of the new pressure is recomputed exactly from ``p``,
-because in almost every iteration some node is clamped or added (a median of
-45 nodes per iteration for plain Polonsky-Keer, 97 preconditioned, on the
-benchmark surface at 512^2), so an update ``u <- u - tau K t`` would
-rarely be exact. Plain Polonsky-Keer (``precondition=False``) costs one double
-pair and the single-precision forward transform of ``t``, which it keeps in
-single precision (the direction needs no more; the iteration counts do not
+One preconditioned iteration costs two and a half single-precision FFT
+pairs: the preconditioner, the transform of ``t``, and the displacement of
+the new pressure. That displacement is recomputed from ``p`` rather than
+updated as ``u <- u - tau K t``, because in almost every iteration some node
+is clamped or added (a median of 45 nodes per iteration for plain
+Polonsky-Keer, 97 preconditioned, on the benchmark surface at 512^2), so the
+update would rarely be exact. It is computed as ``u = u_ref + K (p -
+p_ref)``: ``u_ref = K p_ref`` in double precision for a reference pressure,
+the increment's displacement in single precision (0.55-0.7 of the time of a
+double pair at 1024^2-2048^2). Its rounding, about 1e-7 of the displacement
+of the increment, shrinks with the increment: whenever the error has fallen
+by ``_REFRESH_FACTOR`` (1e-2) since the last exact displacement, the current
+pressure becomes the reference (one double pair), and every stop (converged,
+``max_iter``, stalled) is decided on an exact displacement. On the benchmark
+surface the iteration counts did not change (73 at 1024^2; 90 or 92 at
+2048^2, as the rounding falls) and a solve took 0.81-0.87 of the time of
+exact double-precision displacements. Plain Polonsky-Keer
+(``precondition=False``) costs one double pair (exact displacements) and
+the single-precision forward transform of ``t``, which it keeps in single
+precision (the direction needs no more; the iteration counts do not
 change). The elementwise work is done in a few fused, branch-free passes
 compiled with numba: plain Polonsky-Keer makes three passes over the grid per
 iteration (gap and sums; error and direction; step), the preconditioned
@@ -102,10 +113,14 @@ slopes (full contact sets in at a load of order ``2 pi k_s``). Results are
 scaled back. Iterates therefore neither overflow nor underflow whatever units
 the caller uses (heights of ``1e-300`` or ``1e300``, ``E*`` of ``1e-6`` or
 ``1e9``), and the solution of a scaled problem is the scaled solution, to
-rounding. ``load`` must lie in ``[2.2e-308, 1e100]``: below, it is not a
-normal float; above, the rounding error of ``p = load + O(1)`` exceeds the
-surface itself by some 80 orders of magnitude (no solve can succeed) and
-squares of the residual would overflow.
+rounding with plain Polonsky-Keer and to about 1e-10 of the largest pressure
+preconditioned (the single-precision increments of the displacement round
+differently in the two problems, and the iterates drift apart by that much;
+measured over 40 random problems scaled by 1e-300: at most 4e-11). ``load``
+must lie in ``[2.2e-308, 1e100]``: below, it is not a normal float; above, the
+rounding error of ``p = load + O(1)`` exceeds the surface itself by some 80
+orders of magnitude (no solve can succeed) and squares of the residual would
+overflow.
 
 A solve that reaches ``max_iter`` returns ``converged=False`` with the last
 iterate; no field of a returned solution is ever NaN or infinite.
@@ -192,14 +207,24 @@ class ContactSolution:
 # set I. Real-space arrays are (n, n); spectra are (n, n // 2 + 1).
 
 
+@numba.njit(inline="always")
+def _gap_sums(wij, pij, shift):  # pragma: no cover - compiled
+    # A node's share of the sums of the gap passes: (w, 1, (w - shift)^2) on I,
+    # zeros elsewhere. (Multiplying by the 0/1 indicator of I vectorises
+    # better than selecting.)
+    active = pij > 0.0
+    weight = 1.0 if active else 0.0
+    shifted = weight * (wij - shift)
+    return weight * wij, active, shifted * shifted
+
+
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def _gap_pass(w, s, p, shift):  # pragma: no cover - compiled
     # w <- w - s everywhere, in place (w holds u = K p on entry). Returns sums
     # over I: (sum w, |I|, sum (w - shift)^2). With gbar = mean_I w,
     # sum_I (w - gbar)^2 = sum_I (w - shift)^2 - |I| (gbar - shift)^2; a shift
     # close to gbar (the previous one) keeps the difference free of
-    # cancellation. (Multiplying by the 0/1 indicator of I vectorises better
-    # than selecting.)
+    # cancellation.
     n0, n1 = w.shape
     s_w = 0.0
     s_sq = 0.0
@@ -208,12 +233,31 @@ def _gap_pass(w, s, p, shift):  # pragma: no cover - compiled
         for j in range(n1):
             wij = w[i, j] - s[i, j]
             w[i, j] = wij
-            active = p[i, j] > 0.0
-            weight = 1.0 if active else 0.0
-            shifted = weight * (wij - shift)
-            s_w += weight * wij
-            s_sq += shifted * shifted
-            count += active
+            node_w, node_count, node_sq = _gap_sums(wij, p[i, j], shift)
+            s_w += node_w
+            count += node_count
+            s_sq += node_sq
+    return s_w, count, s_sq
+
+
+@numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
+def _increment_gap_pass(w, u_ref, scale, v, s, p, shift):  # pragma: no cover - compiled
+    # As _gap_pass, with the displacement given as scale * u_ref + v (the
+    # reference displacement in double precision and the single-precision
+    # displacement of the pressure increment since, see _State.update_displacement):
+    # w <- scale u_ref + v - s.
+    n0, n1 = w.shape
+    s_w = 0.0
+    s_sq = 0.0
+    count = 0
+    for i in numba.prange(n0):
+        for j in range(n1):
+            wij = scale * u_ref[i, j] + v[i, j] - s[i, j]
+            w[i, j] = wij
+            node_w, node_count, node_sq = _gap_sums(wij, p[i, j], shift)
+            s_w += node_w
+            count += node_count
+            s_sq += node_sq
     return s_w, count, s_sq
 
 
@@ -320,6 +364,18 @@ def _energy(spectrum, weights):  # pragma: no cover - compiled
     return total
 
 
+@numba.njit(inline="always")
+def _node_step(wij, pij, tij, gbar, scale, tau, tau_overlap):  # pragma: no cover - compiled
+    # One node of the Polonsky-Keer update (see _step): (new p, overlapping, t if still active).
+    q = scale * pij - tau * tij
+    q = q if q > 0.0 else 0.0
+    t_active = tij if q > 0.0 else 0.0
+    g = wij - gbar
+    overlapping = q == 0.0 and g < 0.0
+    q = -tau_overlap * g if overlapping else q
+    return q, overlapping, t_active
+
+
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
 def _step(w, p, t, gbar, scale, tau, tau_overlap):  # pragma: no cover - compiled
     # One Polonsky-Keer update of the pressure scale * p, in place:
@@ -333,15 +389,29 @@ def _step(w, p, t, gbar, scale, tau, tau_overlap):  # pragma: no cover - compile
     n_overlap = 0
     for i in numba.prange(n0):
         for j in range(n1):
-            tij = t[i, j]
-            q = scale * p[i, j] - tau * tij
-            q = q if q > 0.0 else 0.0
-            s_t += tij if q > 0.0 else 0.0
-            g = w[i, j] - gbar
-            overlapping = q == 0.0 and g < 0.0
-            q = -tau_overlap * g if overlapping else q
+            q, overlapping, t_active = _node_step(w[i, j], p[i, j], t[i, j], gbar, scale, tau, tau_overlap)
             p[i, j] = q
             total += q
+            s_t += t_active
+            n_overlap += overlapping
+    return total, n_overlap, s_t
+
+
+@numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
+def _increment_step(w, p, t, gbar, scale, tau, tau_overlap, p_ref, increment):  # pragma: no cover - compiled
+    # _step, also writing the increment (new p) - p_ref in single precision
+    # (the input of the increment's displacement, see _State.update_displacement).
+    n0, n1 = w.shape
+    total = 0.0
+    s_t = 0.0
+    n_overlap = 0
+    for i in numba.prange(n0):
+        for j in range(n1):
+            q, overlapping, t_active = _node_step(w[i, j], p[i, j], t[i, j], gbar, scale, tau, tau_overlap)
+            p[i, j] = q
+            increment[i, j] = q - p_ref[i, j]
+            total += q
+            s_t += t_active
             n_overlap += overlapping
     return total, n_overlap, s_t
 
@@ -627,7 +697,8 @@ class _Operators:
     half_space: HalfSpace
     weights: np.ndarray  # Parseval weights of <K t, t> in the rfft half spectrum
     inverse_kernel: np.ndarray | None  # M = K^-1 in single precision (preconditioned solves)
-    direction_fft: RealFFT  # single precision: the preconditioner and the transform of t
+    increment_kernel: np.ndarray | None  # K in single precision (preconditioned solves, _State.update_displacement)
+    direction_fft: RealFFT  # single precision: the preconditioner, the transform of t, the increments
 
     @classmethod
     def build(cls, s: np.ndarray, load: float, *, threads: int, precondition: bool) -> _Operators:
@@ -640,11 +711,12 @@ class _Operators:
         multiplicity = np.full(kernel.shape, 2.0)
         multiplicity[:, 0] = 1.0
         multiplicity[:, -1] = 1.0
-        inverse_kernel = None
+        inverse_kernel = increment_kernel = None
         if precondition:
             inverse_kernel = np.zeros_like(kernel)
             np.divide(1.0, kernel, out=inverse_kernel, where=kernel > 0)  # zero mode excluded
             inverse_kernel = inverse_kernel.astype(np.float32)
+            increment_kernel = kernel.astype(np.float32)
         return cls(
             heights=s,
             load=load,
@@ -652,6 +724,7 @@ class _Operators:
             half_space=half_space,
             weights=kernel * multiplicity / s.size,
             inverse_kernel=inverse_kernel,
+            increment_kernel=increment_kernel,
             direction_fft=get_fft(n, threads=threads, single=True),
         )
 
@@ -664,6 +737,15 @@ class _Operators:
         """``y = M r`` for the residual ``r`` in :attr:`direction_fft` ``.real``; returns ``y`` (a plan buffer)."""
         self.direction_fft.forward()
         multiply_spectrum(self.direction_fft.spectral, self.inverse_kernel, np.float32(1.0))
+        return self.direction_fft.inverse()
+
+    def increment_displacement(self, scale: float) -> np.ndarray:
+        """``K (scale e)`` in single precision, ``e`` the increment in :attr:`direction_fft` ``.real``.
+
+        Returns the plan buffer that holds the result.
+        """
+        self.direction_fft.forward()
+        multiply_spectrum(self.direction_fft.spectral, self.increment_kernel, np.float32(scale))
         return self.direction_fft.inverse()
 
     def curvature(self) -> float:
@@ -680,6 +762,11 @@ class _State:
     of the ``K`` plan and the mean pressure is imposed in the spectral multiply
     of ``u = K p``, which saves a pass over the grid. ``w`` (the plan's output)
     holds ``u = K p`` at the top of an iteration and ``w = u - s`` after the gap pass.
+
+    Preconditioned solves keep a reference pressure ``p_ref`` and its exact
+    displacement ``u_ref`` (:meth:`update_displacement`); between updates the
+    displacement is ``u_ref`` plus that of the increment ``p - p_ref``, in
+    single precision (``exact`` is False then).
     """
 
     p: np.ndarray
@@ -687,6 +774,10 @@ class _State:
     t: np.ndarray  # the search direction, zero off the active set
     has_guess: bool
     is_plain: bool
+    p_ref: np.ndarray | None = None
+    u_ref: np.ndarray | None = None
+    exact: bool = True  # w holds the double-precision displacement of p (not u_ref + increment)
+    exact_error: float = math.inf  # the error at the last exact evaluation
     p_scale: float = 1.0
     sum_t: float = 0.0  # sum of t over the active set
     gbar: float = 0.0  # mean of w over the active set: minus the approach
@@ -706,13 +797,34 @@ class _State:
         t = np.zeros(ops.heights.shape) if precondition else ops.direction_fft.real
         t.fill(0.0)
         state = cls(p=fft.real, w=fft.output, t=t, has_guess=p0 is not None, is_plain=not precondition)
+        if precondition:
+            state.p_ref = np.empty_like(fft.real)
+            state.u_ref = np.empty_like(fft.output)
         state.update_displacement(ops)
         return state
 
     def update_displacement(self, ops: _Operators) -> None:
-        """``w <- u = K (p_scale p)``, with ``p_scale`` imposing the mean pressure."""
+        """``w <- u = K (p_scale p)`` in double precision, with ``p_scale`` imposing the mean pressure.
+
+        Preconditioned solves also make the current pressure the reference:
+        between two such updates the iteration computes ``u = K p`` as
+        ``u_ref + K (p - p_ref)`` with the second term in single precision (one
+        single-precision FFT pair per iteration instead of a double one). Its
+        rounding, about 1e-7 of the displacement of the increment, shrinks
+        with the increment; an update whenever the error has fallen by
+        :data:`_REFRESH_FACTOR` keeps it far below the error, and every stop is
+        decided on an exact displacement.
+        """
         self.p_scale = ops.total_force / self.p.sum()
-        ops.half_space.apply(self.p_scale)
+        if self.p_ref is None:
+            ops.half_space.apply(self.p_scale)
+            return
+        self.p *= self.p_scale
+        self.p_scale = 1.0
+        ops.half_space.apply(1.0)
+        np.copyto(self.p_ref, self.p)
+        np.copyto(self.u_ref, self.w)
+        self.exact = True
 
     def restart_uniform(self, ops: _Operators) -> None:
         """Back to uniform pressure, with no conjugate memory."""
@@ -723,7 +835,7 @@ class _State:
         self.update_displacement(ops)
 
     def switch_to_plain(self, ops: _Operators) -> None:
-        """Hand the current pressure over to plain Polonsky-Keer (fresh conjugate directions)."""
+        """Hand the current pressure over to plain Polonsky-Keer (fresh conjugate directions, exact displacements)."""
         self.t = ops.direction_fft.real
         self.t.fill(0.0)
         self.sum_t = 0.0
@@ -731,6 +843,12 @@ class _State:
         self.rho_old = 1.0
         self.is_plain = True
         self.update_displacement(ops)
+        self.p_ref = self.u_ref = None
+
+
+#: Between two exact displacements of the preconditioned iteration the error
+#: falls by at most this factor (:meth:`_State.update_displacement`).
+_REFRESH_FACTOR = 1e-2
 
 
 #: A preconditioned solve whose error has not halved in this many iterations
@@ -769,7 +887,13 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
     """
     checkpoint_error, checkpoint_iter = math.inf, st.n_iter
     while True:
-        active_total, n_active, shifted_squares = _gap_pass(st.w, ops.heights, st.p, st.gbar)
+        if st.exact:
+            active_total, n_active, shifted_squares = _gap_pass(st.w, ops.heights, st.p, st.gbar)
+        else:
+            increment = ops.direction_fft.real  # K (p - p_ref), from the last step
+            active_total, n_active, shifted_squares = _increment_gap_pass(
+                st.w, st.u_ref, st.p_scale, increment, ops.heights, st.p, st.gbar
+            )
         previous_gbar, st.gbar = st.gbar, active_total / n_active
         t_mean = st.sum_t / n_active
         g_squares = max(shifted_squares - n_active * (st.gbar - previous_gbar) ** 2, 0.0)  # sum_I g^2
@@ -785,14 +909,18 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
             raise ConvergenceError(
                 f"non-finite convergence measure at iteration {st.n_iter} (inputs were finite; this is a bug)"
             )
-        if st.error < tol:
-            return "converged"
-        if st.n_iter >= max_iter:
-            return "max_iter"
+        stall = precondition and st.n_iter - checkpoint_iter >= _STALL_WINDOW
+        status = _stop(st, tol=tol, max_iter=max_iter, stall=stall, checkpoint_error=checkpoint_error)
+        if not st.exact and (status or st.error < _REFRESH_FACTOR * st.exact_error):
+            # Every stop is decided on an exact displacement (_State.update_displacement).
+            st.update_displacement(ops)
+            continue
+        if st.exact:
+            st.exact_error = st.error
+        if status:
+            return status
         if st.error < 0.5 * checkpoint_error:
             checkpoint_error, checkpoint_iter = st.error, st.n_iter
-        elif precondition and st.n_iter - checkpoint_iter >= _STALL_WINDOW:
-            return "stalled"
 
         if precondition:
             y = ops.precondition()  # M applied to r = g on I, 0 elsewhere
@@ -820,19 +948,60 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
                 st.n_restarts += 1
                 st.restart_uniform(ops)
                 continue
+            if not st.exact:
+                st.update_displacement(ops)
+                continue
             return "no_descent"
         tau = s_gt / curvature
-        total, n_overlap, st.sum_t = _step(st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau * overlap_scale)
+        total, n_overlap = _take_step(ops, st, tau, tau * overlap_scale)
         st.n_iter += 1
         # Nodes added from the overlap restart the conjugate directions.
         st.delta = 0.0 if n_overlap else 1.0
         if total > 0:
-            st.p_scale = ops.total_force / total
-            ops.half_space.apply(st.p_scale)
+            _update_displacement_after_step(ops, st, total)
         else:
             # Every node was clamped and none overlapped (cannot happen for a
             # descent step, but never divide by zero).
             st.restart_uniform(ops)
+
+
+def _stop(st: _State, *, tol: float, max_iter: int, stall: bool, checkpoint_error: float) -> str:
+    """Why :func:`_iterate` stops at the current error, or ``""`` (``stall``: the stall window is over)."""
+    if st.error < tol:
+        return "converged"
+    if st.n_iter >= max_iter:
+        return "max_iter"
+    if stall and not st.error < 0.5 * checkpoint_error:
+        return "stalled"
+    return ""
+
+
+def _take_step(ops: _Operators, st: _State, tau: float, tau_overlap: float) -> tuple[float, int]:
+    """The Polonsky-Keer step of length ``tau`` along ``st.t``; returns (sum of the new p, overlap nodes).
+
+    With a reference pressure (preconditioned) the step also writes the
+    increment ``p - p_ref`` into the single-precision FFT input.
+    """
+    if st.p_ref is None:
+        total, n_overlap, st.sum_t = _step(st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau_overlap)
+    else:
+        total, n_overlap, st.sum_t = _increment_step(
+            st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau_overlap, st.p_ref, ops.direction_fft.real
+        )
+    return total, n_overlap
+
+
+def _update_displacement_after_step(ops: _Operators, st: _State, total: float) -> None:
+    """Impose the mean pressure and compute the displacement of the new pressure (exact or as an increment)."""
+    st.p_scale = ops.total_force / total
+    if st.p_ref is None:
+        ops.half_space.apply(st.p_scale)
+    else:
+        # p_scale * p - p_ref = p_scale (p - p_ref) + (p_scale - 1) p_ref, so
+        # u = p_scale (u_ref + K (p - p_ref)): the increment's displacement is
+        # computed with the factor p_scale, the gap pass scales u_ref.
+        ops.increment_displacement(st.p_scale)
+        st.exact = False
 
 
 def _message(status: str, st: _State, *, tol: float, max_iter: int, n_iter_plain: int, path: str) -> str:
