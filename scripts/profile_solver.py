@@ -40,10 +40,7 @@ import rough_uq.physics.solver as solver  # noqa: E402
 from rough_uq.physics.fft import RealFFT, get_fft, measure_plans  # noqa: E402
 from rough_uq.physics.surface import sample_surface  # noqa: E402
 
-_PASSES = (
-    "_gap_pass", "_increment_gap_pass", "_residual_pass", "_direction_sums", "_direction", "_energy", "_step",
-    "_increment_step", "multiply_spectrum",
-)
+_PASSES = ("_gap_pass", "_residual_pass", "_direction_sums", "_direction", "_energy", "_step", "multiply_spectrum")
 
 
 class _Timers:

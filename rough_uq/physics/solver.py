@@ -207,57 +207,36 @@ class ContactSolution:
 # set I. Real-space arrays are (n, n); spectra are (n, n // 2 + 1).
 
 
-@numba.njit(inline="always")
-def _gap_sums(wij, pij, shift):  # pragma: no cover - compiled
-    # A node's share of the sums of the gap passes: (w, 1, (w - shift)^2) on I,
-    # zeros elsewhere. (Multiplying by the 0/1 indicator of I vectorises
-    # better than selecting.)
-    active = pij > 0.0
-    weight = 1.0 if active else 0.0
-    shifted = weight * (wij - shift)
-    return weight * wij, active, shifted * shifted
-
-
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _gap_pass(w, s, p, shift):  # pragma: no cover - compiled
-    # w <- w - s everywhere, in place (w holds u = K p on entry). Returns sums
-    # over I: (sum w, |I|, sum (w - shift)^2). With gbar = mean_I w,
+def _gap_pass(w, s, p, shift, u_ref=None, scale=1.0, v=None):  # pragma: no cover - compiled
+    # w <- w - s everywhere, in place (w holds u = K p on entry); with a
+    # reference displacement (u_ref, v given) w <- scale u_ref + v - s instead:
+    # the displacement in double precision at the reference pressure and the
+    # single-precision displacement of the pressure increment since (see
+    # _State.update_displacement). Returns sums over I: (sum w, |I|,
+    # sum (w - shift)^2). With gbar = mean_I w,
     # sum_I (w - gbar)^2 = sum_I (w - shift)^2 - |I| (gbar - shift)^2; a shift
     # close to gbar (the previous one) keeps the difference free of
-    # cancellation.
+    # cancellation. (Multiplying by the 0/1 indicator of I vectorises better
+    # than selecting; numba compiles the two cases apart: ``is None`` on a
+    # None argument is decided at compile time.)
     n0, n1 = w.shape
     s_w = 0.0
     s_sq = 0.0
     count = 0
     for i in numba.prange(n0):
         for j in range(n1):
-            wij = w[i, j] - s[i, j]
+            if u_ref is None:
+                wij = w[i, j] - s[i, j]
+            else:
+                wij = scale * u_ref[i, j] + v[i, j] - s[i, j]
             w[i, j] = wij
-            node_w, node_count, node_sq = _gap_sums(wij, p[i, j], shift)
-            s_w += node_w
-            count += node_count
-            s_sq += node_sq
-    return s_w, count, s_sq
-
-
-@numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _increment_gap_pass(w, u_ref, scale, v, s, p, shift):  # pragma: no cover - compiled
-    # As _gap_pass, with the displacement given as scale * u_ref + v (the
-    # reference displacement in double precision and the single-precision
-    # displacement of the pressure increment since, see _State.update_displacement):
-    # w <- scale u_ref + v - s.
-    n0, n1 = w.shape
-    s_w = 0.0
-    s_sq = 0.0
-    count = 0
-    for i in numba.prange(n0):
-        for j in range(n1):
-            wij = scale * u_ref[i, j] + v[i, j] - s[i, j]
-            w[i, j] = wij
-            node_w, node_count, node_sq = _gap_sums(wij, p[i, j], shift)
-            s_w += node_w
-            count += node_count
-            s_sq += node_sq
+            active = p[i, j] > 0.0
+            weight = 1.0 if active else 0.0
+            shifted = weight * (wij - shift)
+            s_w += weight * wij
+            s_sq += shifted * shifted
+            count += active
     return s_w, count, s_sq
 
 
@@ -364,23 +343,14 @@ def _energy(spectrum, weights):  # pragma: no cover - compiled
     return total
 
 
-@numba.njit(inline="always")
-def _node_step(wij, pij, tij, gbar, scale, tau, tau_overlap):  # pragma: no cover - compiled
-    # One node of the Polonsky-Keer update (see _step): (new p, overlapping, t if still active).
-    q = scale * pij - tau * tij
-    q = q if q > 0.0 else 0.0
-    t_active = tij if q > 0.0 else 0.0
-    g = wij - gbar
-    overlapping = q == 0.0 and g < 0.0
-    q = -tau_overlap * g if overlapping else q
-    return q, overlapping, t_active
-
-
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _step(w, p, t, gbar, scale, tau, tau_overlap):  # pragma: no cover - compiled
+def _step(w, p, t, gbar, scale, tau, tau_overlap, p_ref=None, increment=None):  # pragma: no cover - compiled
     # One Polonsky-Keer update of the pressure scale * p, in place:
     #   active nodes: p <- max(scale p - tau t, 0)  (t = 0 off I)
     #   nodes left at zero pressure with g < 0 (overlap): p <- -tau_overlap g
+    # With a reference pressure (p_ref, increment given) it also writes the
+    # increment (new p) - p_ref in single precision (the input of the
+    # increment's displacement, see _State.update_displacement).
     # Returns (sum of new p, number of overlap nodes, sum of t over the new
     # active set, for the next direction; t = 0 on overlap nodes).
     n0, n1 = w.shape
@@ -389,29 +359,17 @@ def _step(w, p, t, gbar, scale, tau, tau_overlap):  # pragma: no cover - compile
     n_overlap = 0
     for i in numba.prange(n0):
         for j in range(n1):
-            q, overlapping, t_active = _node_step(w[i, j], p[i, j], t[i, j], gbar, scale, tau, tau_overlap)
+            tij = t[i, j]
+            q = scale * p[i, j] - tau * tij
+            q = q if q > 0.0 else 0.0
+            s_t += tij if q > 0.0 else 0.0
+            g = w[i, j] - gbar
+            overlapping = q == 0.0 and g < 0.0
+            q = -tau_overlap * g if overlapping else q
             p[i, j] = q
+            if increment is not None:
+                increment[i, j] = q - p_ref[i, j]
             total += q
-            s_t += t_active
-            n_overlap += overlapping
-    return total, n_overlap, s_t
-
-
-@numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _increment_step(w, p, t, gbar, scale, tau, tau_overlap, p_ref, increment):  # pragma: no cover - compiled
-    # _step, also writing the increment (new p) - p_ref in single precision
-    # (the input of the increment's displacement, see _State.update_displacement).
-    n0, n1 = w.shape
-    total = 0.0
-    s_t = 0.0
-    n_overlap = 0
-    for i in numba.prange(n0):
-        for j in range(n1):
-            q, overlapping, t_active = _node_step(w[i, j], p[i, j], t[i, j], gbar, scale, tau, tau_overlap)
-            p[i, j] = q
-            increment[i, j] = q - p_ref[i, j]
-            total += q
-            s_t += t_active
             n_overlap += overlapping
     return total, n_overlap, s_t
 
@@ -891,8 +849,8 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
             active_total, n_active, shifted_squares = _gap_pass(st.w, ops.heights, st.p, st.gbar)
         else:
             increment = ops.direction_fft.real  # K (p - p_ref), from the last step
-            active_total, n_active, shifted_squares = _increment_gap_pass(
-                st.w, st.u_ref, st.p_scale, increment, ops.heights, st.p, st.gbar
+            active_total, n_active, shifted_squares = _gap_pass(
+                st.w, ops.heights, st.p, st.gbar, st.u_ref, st.p_scale, increment
             )
         previous_gbar, st.gbar = st.gbar, active_total / n_active
         t_mean = st.sum_t / n_active
@@ -953,7 +911,11 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
                 continue
             return "no_descent"
         tau = s_gt / curvature
-        total, n_overlap = _take_step(ops, st, tau, tau * overlap_scale)
+        # With a reference pressure the step also writes p - p_ref into the single-precision FFT input.
+        increment = None if st.p_ref is None else ops.direction_fft.real
+        total, n_overlap, st.sum_t = _step(
+            st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau * overlap_scale, st.p_ref, increment
+        )
         st.n_iter += 1
         # Nodes added from the overlap restart the conjugate directions.
         st.delta = 0.0 if n_overlap else 1.0
@@ -974,21 +936,6 @@ def _stop(st: _State, *, tol: float, max_iter: int, stall: bool, checkpoint_erro
     if stall and not st.error < 0.5 * checkpoint_error:
         return "stalled"
     return ""
-
-
-def _take_step(ops: _Operators, st: _State, tau: float, tau_overlap: float) -> tuple[float, int]:
-    """The Polonsky-Keer step of length ``tau`` along ``st.t``; returns (sum of the new p, overlap nodes).
-
-    With a reference pressure (preconditioned) the step also writes the
-    increment ``p - p_ref`` into the single-precision FFT input.
-    """
-    if st.p_ref is None:
-        total, n_overlap, st.sum_t = _step(st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau_overlap)
-    else:
-        total, n_overlap, st.sum_t = _increment_step(
-            st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau_overlap, st.p_ref, ops.direction_fft.real
-        )
-    return total, n_overlap
 
 
 def _update_displacement_after_step(ops: _Operators, st: _State, total: float) -> None:
