@@ -46,6 +46,27 @@ def test_separate_output_keeps_the_input_across_a_round_trip():
     np.testing.assert_allclose(back, x, rtol=0, atol=1e-12 * np.abs(x).max())
 
 
+@pytest.mark.parametrize("single", [False, True])
+def test_in_place_plans_share_one_padded_buffer_and_transform_alike(single):
+    n = 40
+    x = np.random.default_rng(7).standard_normal((n, n))
+    plan = get_fft(n, single=single, in_place=True)
+    assert plan is not get_fft(n, single=single)
+    assert plan.padded.shape == (n, n + 2) and plan.padded.flags.c_contiguous
+    assert np.shares_memory(plan.real, plan.padded) and np.shares_memory(plan.spectral, plan.padded)
+    plan.padded[:, :n] = x
+    assert np.array_equal(plan.real, x.astype(plan.real.dtype))
+    expected = np.fft.rfft2(x)
+    tolerance = 1e-5 if single else 1e-12
+    spectrum = plan.forward().copy()
+    np.testing.assert_allclose(spectrum, expected, rtol=0, atol=tolerance * np.abs(expected).max())
+    back = plan.inverse(spectrum)
+    assert back is plan.real
+    np.testing.assert_allclose(plan.padded[:, :n], x, rtol=0, atol=tolerance * np.abs(x).max())
+    with pytest.raises(ValueError, match="in-place"):
+        fft_module.RealFFT((n, n), in_place=True, separate_output=True)
+
+
 def test_plans_from_shared_wisdom_are_the_measured_ones_and_round_alike(tmp_path):
     # Measured plans travel as wisdom: a fresh process planning from it only
     # (use_wisdom) transforms to the same bits as the measuring process.

@@ -77,7 +77,10 @@ class RealFFT:
     the inverse reads :attr:`spectral` and writes :attr:`output`, which is
     :attr:`real` itself unless ``separate_output``: fill one, call the
     transform, read the other. The buffers belong to the plan: copy results
-    that must outlive the next transform.
+    that must outlive the next transform. :attr:`padded` is a C-contiguous
+    array whose first ``shape[1]`` columns are :attr:`real` (:attr:`real`
+    itself unless ``in_place``), for compiled loops that index ``[i, j]``
+    with ``j < shape[1]``: they vectorise over contiguous rows only.
 
     Parameters
     ----------
@@ -95,6 +98,14 @@ class RealFFT:
         Give the inverse its own output buffer, so that :attr:`real` keeps its
         content across a round trip (the solver stores the pressure there and
         saves a copy per iteration).
+    in_place : bool
+        One buffer for both sides (FFTW's in-place layout): :attr:`padded` has
+        ``shape[1] + 2`` columns, :attr:`real` is its first ``shape[1]``
+        columns and :attr:`spectral` the same memory read as complex numbers,
+        so the forward transform destroys :attr:`real`. Half the memory of
+        separate buffers, and faster where the transforms are limited by
+        memory traffic (the solver's preconditioned iteration,
+        :mod:`rough_uq.physics.solver`). Not with ``separate_output``.
     flags : tuple of str, optional
         FFTW planner flags; by default the process's planning mode (module
         docstring). :attr:`flags` holds the flags the plans were made with.
@@ -107,6 +118,7 @@ class RealFFT:
         threads: int = 1,
         single: bool = False,
         separate_output: bool = False,
+        in_place: bool = False,
         flags: tuple[str, ...] | None = None,
     ) -> None:
         n0, n1 = (int(s) for s in shape)
@@ -114,12 +126,22 @@ class RealFFT:
             raise ValueError(f"FFT grid shape must be at least 2 x 2 with an even last axis, got {shape}")
         if threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
+        if in_place and separate_output:
+            raise ValueError("an in-place plan has no separate output")
         self.shape = (n0, n1)
         self.threads = int(threads)
         self.single = bool(single)
         real_type, complex_type = ("float32", "complex64") if self.single else ("float64", "complex128")
-        self.real = pyfftw.empty_aligned(self.shape, dtype=real_type)
-        self.spectral = pyfftw.empty_aligned((n0, n1 // 2 + 1), dtype=complex_type)
+        self.in_place = bool(in_place)
+        if self.in_place:
+            # Rows of n1 + 2 reals, read as n1 // 2 + 1 complex numbers.
+            self.padded = pyfftw.empty_aligned((n0, n1 + 2), dtype=real_type)
+            self.real = self.padded[:, :n1]
+            self.spectral = self.padded.view(complex_type)
+        else:
+            self.real = pyfftw.empty_aligned(self.shape, dtype=real_type)
+            self.padded = self.real
+            self.spectral = pyfftw.empty_aligned((n0, n1 // 2 + 1), dtype=complex_type)
         self.output = pyfftw.empty_aligned(self.shape, dtype=real_type) if separate_output else self.real
         flags = _PLANNER.flags if flags is None else tuple(flags)
         try:
@@ -175,24 +197,36 @@ class RealFFT:
         return self.output
 
 
-_PLANS: dict[tuple[tuple[int, int], int, bool, bool, int], RealFFT] = {}
+_PLANS: dict[tuple[tuple[int, int], int, bool, bool, bool, int], RealFFT] = {}
 _PLANS_LOCK = threading.Lock()
 
 
 def get_fft(
-    shape: tuple[int, int] | int, *, threads: int = 1, single: bool = False, separate_output: bool = False
+    shape: tuple[int, int] | int,
+    *,
+    threads: int = 1,
+    single: bool = False,
+    separate_output: bool = False,
+    in_place: bool = False,
 ) -> RealFFT:
-    """The cached :class:`RealFFT` for ``shape``, ``threads``, precision and output layout in this process and thread.
+    """The cached :class:`RealFFT` for ``shape``, ``threads``, precision and buffer layout in this process and thread.
 
     Plans own their work buffers, so each Python thread gets its own plans.
     """
     if isinstance(shape, (int, np.integer)):
         shape = (int(shape), int(shape))
-    key = (tuple(int(s) for s in shape), int(threads), bool(single), bool(separate_output), threading.get_ident())
+    key = (
+        tuple(int(s) for s in shape),
+        int(threads),
+        bool(single),
+        bool(separate_output),
+        bool(in_place),
+        threading.get_ident(),
+    )
     with _PLANS_LOCK:
         plan = _PLANS.get(key)
         if plan is None:
-            plan = RealFFT(key[0], threads=threads, single=single, separate_output=separate_output)
+            plan = RealFFT(key[0], threads=threads, single=single, separate_output=separate_output, in_place=in_place)
             _PLANS[key] = plan
     return plan
 
@@ -204,11 +238,17 @@ def clear_plan_cache() -> None:
 
 
 #: The plan variants roughuq uses per grid: the surface synthesis and
-#: projection (double, in place, one thread), the solver's ``K`` (double,
-#: separate output) and its preconditioner (single, in place), both with the
-#: solver's threads. Keys: (threads of the solver or 1, single, separate_output).
-def _variants(threads: int) -> tuple[tuple[int, bool, bool], ...]:
-    return ((1, False, False), (threads, False, True), (threads, True, False))
+#: projection (double, one thread), the solver's ``K`` (double, separate
+#: output), the single-precision transforms of plain Polonsky-Keer and those
+#: of the preconditioned iteration (in-place buffer), all three with the
+#: solver's threads. Keys: (threads, single, separate_output, in_place).
+def _variants(threads: int) -> tuple[tuple[int, bool, bool, bool], ...]:
+    return (
+        (1, False, False, False),
+        (threads, False, True, False),
+        (threads, True, False, False),
+        (threads, True, False, True),
+    )
 
 
 def measure_plans(
@@ -241,8 +281,15 @@ def measure_plans(
     if wisdom is not None:
         pyfftw.import_wisdom(wisdom)
     for n in sorted({int(n) for n in grids}):
-        for plan_threads, single, separate_output in _variants(int(threads)):
-            RealFFT((n, n), threads=plan_threads, single=single, separate_output=separate_output, flags=(effort,))
+        for plan_threads, single, separate_output, in_place in _variants(int(threads)):
+            RealFFT(
+                (n, n),
+                threads=plan_threads,
+                single=single,
+                separate_output=separate_output,
+                in_place=in_place,
+                flags=(effort,),
+            )
     measured = tuple(pyfftw.export_wisdom())
     use_wisdom(measured)
     return measured

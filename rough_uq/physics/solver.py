@@ -71,7 +71,13 @@ pressure becomes the reference (one double pair), and every stop (converged,
 ``max_iter``, stalled) is decided on an exact displacement. On the benchmark
 surface the iteration counts did not change (73 at 1024^2; 90 or 92 at
 2048^2, as the rounding falls) and a solve took 0.81-0.87 of the time of
-exact double-precision displacements. Plain Polonsky-Keer
+exact double-precision displacements. The five single-precision half
+transforms share one in-place buffer (FFTW's padded layout, see
+:class:`~rough_uq.physics.fft.RealFFT`): one buffer instead of separate
+real and spectral ones, less memory traffic, and an iteration took 0.94-0.96 /
+0.83-0.92 of the time at 1024^2 / 2048^2 (three interleaved A/B runs on the
+benchmark surface); its forward transform destroys its input, which the
+iteration never reads again. Plain Polonsky-Keer
 (``precondition=False``) costs one double pair (exact displacements) and
 the single-precision forward transform of ``t``, which it keeps in single
 precision (the direction needs no more; the iteration counts do not
@@ -128,6 +134,7 @@ iterate; no field of a returned solution is ever NaN or infinite.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -602,6 +609,7 @@ def solve_contact(
         status = _iterate(ops, state, precondition=precondition, tol=tol, max_iter=max_iter)
         n_iter_first = state.n_iter
         if status == "stalled":
+            ops = ops.for_plain()
             state.switch_to_plain(ops)
             status = _iterate(ops, state, precondition=False, tol=tol, max_iter=max_iter)
     finally:
@@ -656,7 +664,10 @@ class _Operators:
     weights: np.ndarray  # Parseval weights of <K t, t> in the rfft half spectrum
     inverse_kernel: np.ndarray | None  # M = K^-1 in single precision (preconditioned solves)
     increment_kernel: np.ndarray | None  # K in single precision (preconditioned solves, _State.update_displacement)
-    direction_fft: RealFFT  # single precision: the preconditioner, the transform of t, the increments
+    # Single precision: the preconditioner, the transform of t and the
+    # increments (preconditioned: an in-place plan, whose compiled loops get
+    # its padded buffer); plain: the transform of t, which it keeps in .real.
+    direction_fft: RealFFT
 
     @classmethod
     def build(cls, s: np.ndarray, load: float, *, threads: int, precondition: bool) -> _Operators:
@@ -683,8 +694,17 @@ class _Operators:
             weights=kernel * multiplicity / s.size,
             inverse_kernel=inverse_kernel,
             increment_kernel=increment_kernel,
-            direction_fft=get_fft(n, threads=threads, single=True),
+            direction_fft=get_fft(n, threads=threads, single=True, in_place=precondition),
         )
+
+    def for_plain(self) -> _Operators:
+        """These operators with the single-precision plan of plain Polonsky-Keer (the hand-over).
+
+        The forward transform of an in-place plan destroys its input, and plain
+        Polonsky-Keer keeps its direction in the plan's input across it.
+        """
+        fft = self.direction_fft
+        return dataclasses.replace(self, direction_fft=get_fft(fft.shape, threads=fft.threads, single=True))
 
     @property
     def error_scale(self) -> float:
@@ -692,19 +712,21 @@ class _Operators:
         return self.total_force
 
     def precondition(self) -> np.ndarray:
-        """``y = M r`` for the residual ``r`` in :attr:`direction_fft` ``.real``; returns ``y`` (a plan buffer)."""
+        """``y = M r`` for the residual ``r`` in :attr:`direction_fft` ``.real``; returns ``y`` (``.padded``)."""
         self.direction_fft.forward()
         multiply_spectrum(self.direction_fft.spectral, self.inverse_kernel, np.float32(1.0))
-        return self.direction_fft.inverse()
+        self.direction_fft.inverse()
+        return self.direction_fft.padded
 
     def increment_displacement(self, scale: float) -> np.ndarray:
         """``K (scale e)`` in single precision, ``e`` the increment in :attr:`direction_fft` ``.real``.
 
-        Returns the plan buffer that holds the result.
+        Returns the plan buffer that holds the result (``.padded``).
         """
         self.direction_fft.forward()
         multiply_spectrum(self.direction_fft.spectral, self.increment_kernel, np.float32(scale))
-        return self.direction_fft.inverse()
+        self.direction_fft.inverse()
+        return self.direction_fft.padded
 
     def curvature(self) -> float:
         """``<K t, t>`` for the direction ``t`` in :attr:`direction_fft` ``.real`` (Parseval)."""
@@ -848,7 +870,7 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
         if st.exact:
             active_total, n_active, shifted_squares = _gap_pass(st.w, ops.heights, st.p, st.gbar)
         else:
-            increment = ops.direction_fft.real  # K (p - p_ref), from the last step
+            increment = ops.direction_fft.padded  # K (p - p_ref), from the last step
             active_total, n_active, shifted_squares = _gap_pass(
                 st.w, ops.heights, st.p, st.gbar, st.u_ref, st.p_scale, increment
             )
@@ -856,7 +878,7 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
         t_mean = st.sum_t / n_active
         g_squares = max(shifted_squares - n_active * (st.gbar - previous_gbar) ** 2, 0.0)  # sum_I g^2
         if precondition:
-            residual = ops.direction_fft.real
+            residual = ops.direction_fft.padded
             complementarity, overlap, sum_g = _residual_pass(st.w, st.p, st.gbar, residual)
         else:
             rho = g_squares
@@ -912,7 +934,7 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
             return "no_descent"
         tau = s_gt / curvature
         # With a reference pressure the step also writes p - p_ref into the single-precision FFT input.
-        increment = None if st.p_ref is None else ops.direction_fft.real
+        increment = None if st.p_ref is None else ops.direction_fft.padded
         total, n_overlap, st.sum_t = _step(
             st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau * overlap_scale, st.p_ref, increment
         )
