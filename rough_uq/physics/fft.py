@@ -183,17 +183,23 @@ class RealFFT:
         """Transform :attr:`real` (after copying ``x`` into it, if given) into :attr:`spectral`."""
         if x is not None:
             np.copyto(self.real, x)
-        self._forward()
+        self._forward.execute()
         return self.spectral
 
-    def inverse(self, x_hat: np.ndarray | None = None) -> np.ndarray:
+    def inverse(self, x_hat: np.ndarray | None = None, *, normalise: bool = True) -> np.ndarray:
         """Transform :attr:`spectral` (after copying ``x_hat`` into it) into :attr:`output`.
 
         The input buffer is destroyed (FFTW's c2r transforms overwrite it).
+        ``normalise=False`` leaves out the factor ``1 / n**2`` (the result is
+        ``n**2`` times the inverse), for callers that fold it into a spectral
+        multiply: pyFFTW applies it in a separate pass over the output.
         """
         if x_hat is not None:
             np.copyto(self.spectral, x_hat)
-        self._inverse(normalise_idft=True)
+        if normalise:
+            self._inverse(normalise_idft=True)
+        else:
+            self._inverse.execute()
         return self.output
 
 

@@ -77,7 +77,10 @@ transforms share one in-place buffer (FFTW's padded layout, see
 real and spectral ones, less memory traffic, and an iteration took 0.94-0.96 /
 0.83-0.92 of the time at 1024^2 / 2048^2 (three interleaved A/B runs on the
 benchmark surface); its forward transform destroys its input, which the
-iteration never reads again. Plain Polonsky-Keer
+iteration never reads again. Their inverse transforms are not normalised
+(pyFFTW would scale the output in a pass of its own): the factor ``1 / N`` is
+in the single-precision kernels of ``M`` and ``K``, and an iteration took
+0.93 of the time at 1024^2 and 0.99 at 2048^2 (A/B, twice). Plain Polonsky-Keer
 (``precondition=False``) costs one double pair (exact displacements) and
 the single-precision forward transform of ``t``, which it keeps in single
 precision (the direction needs no more; the iteration counts do not
@@ -662,8 +665,9 @@ class _Operators:
     total_force: float
     half_space: HalfSpace
     weights: np.ndarray  # Parseval weights of <K t, t> in the rfft half spectrum
-    inverse_kernel: np.ndarray | None  # M = K^-1 in single precision (preconditioned solves)
-    increment_kernel: np.ndarray | None  # K in single precision (preconditioned solves, _State.update_displacement)
+    # Preconditioned solves, in single precision and divided by N (for unnormalised inverse transforms):
+    inverse_kernel: np.ndarray | None  # M = K^-1
+    increment_kernel: np.ndarray | None  # K (_State.update_displacement)
     # Single precision: the preconditioner, the transform of t and the
     # increments (preconditioned: an in-place plan, whose compiled loops get
     # its padded buffer); plain: the transform of t, which it keeps in .real.
@@ -682,10 +686,12 @@ class _Operators:
         multiplicity[:, -1] = 1.0
         inverse_kernel = increment_kernel = None
         if precondition:
+            # With the factor 1 / N of the inverse transforms, which are run
+            # unnormalised (RealFFT.inverse): a pass over the grid fewer.
             inverse_kernel = np.zeros_like(kernel)
             np.divide(1.0, kernel, out=inverse_kernel, where=kernel > 0)  # zero mode excluded
-            inverse_kernel = inverse_kernel.astype(np.float32)
-            increment_kernel = kernel.astype(np.float32)
+            inverse_kernel = (inverse_kernel / s.size).astype(np.float32)
+            increment_kernel = (kernel / s.size).astype(np.float32)
         return cls(
             heights=s,
             load=load,
@@ -715,7 +721,7 @@ class _Operators:
         """``y = M r`` for the residual ``r`` in :attr:`direction_fft` ``.real``; returns ``y`` (``.padded``)."""
         self.direction_fft.forward()
         multiply_spectrum(self.direction_fft.spectral, self.inverse_kernel, np.float32(1.0))
-        self.direction_fft.inverse()
+        self.direction_fft.inverse(normalise=False)
         return self.direction_fft.padded
 
     def increment_displacement(self, scale: float) -> np.ndarray:
@@ -725,7 +731,7 @@ class _Operators:
         """
         self.direction_fft.forward()
         multiply_spectrum(self.direction_fft.spectral, self.increment_kernel, np.float32(scale))
-        self.direction_fft.inverse()
+        self.direction_fft.inverse(normalise=False)
         return self.direction_fft.padded
 
     def curvature(self) -> float:
