@@ -63,6 +63,9 @@ def test_in_place_plans_share_one_padded_buffer_and_transform_alike(single):
     back = plan.inverse(spectrum)
     assert back is plan.real
     np.testing.assert_allclose(plan.padded[:, :n], x, rtol=0, atol=tolerance * np.abs(x).max())
+    # Unnormalised: n^2 times the inverse (the caller folds 1 / n^2 into a spectral multiply).
+    scaled = plan.inverse(spectrum, normalise=False)
+    np.testing.assert_allclose(scaled, n * n * x, rtol=0, atol=tolerance * n * n * np.abs(x).max())
     with pytest.raises(ValueError, match="in-place"):
         fft_module.RealFFT((n, n), in_place=True, separate_output=True)
 
