@@ -687,7 +687,7 @@ class _Operators:
         inverse_kernel = increment_kernel = None
         if precondition:
             # With the factor 1 / N of the inverse transforms, which are run
-            # unnormalised (RealFFT.inverse): a pass over the grid fewer.
+            # unnormalised (RealFFT.inverse): a pass over the grid fewer per inverse.
             inverse_kernel = np.zeros_like(kernel)
             np.divide(1.0, kernel, out=inverse_kernel, where=kernel > 0)  # zero mode excluded
             inverse_kernel = (inverse_kernel / s.size).astype(np.float32)
