@@ -719,18 +719,19 @@ class _Operators:
 
     def precondition(self) -> np.ndarray:
         """``y = M r`` for the residual ``r`` in :attr:`direction_fft` ``.real``; returns ``y`` (``.padded``)."""
-        self.direction_fft.forward()
-        multiply_spectrum(self.direction_fft.spectral, self.inverse_kernel, np.float32(1.0))
-        self.direction_fft.inverse(normalise=False)
-        return self.direction_fft.padded
+        return self._convolve_single(self.inverse_kernel, 1.0)
 
     def increment_displacement(self, scale: float) -> np.ndarray:
         """``K (scale e)`` in single precision, ``e`` the increment in :attr:`direction_fft` ``.real``.
 
         Returns the plan buffer that holds the result (``.padded``).
         """
+        return self._convolve_single(self.increment_kernel, scale)
+
+    def _convolve_single(self, kernel: np.ndarray, scale: float) -> np.ndarray:
+        """Convolve :attr:`direction_fft` ``.real`` with ``scale * kernel`` (divided by N), in single precision."""
         self.direction_fft.forward()
-        multiply_spectrum(self.direction_fft.spectral, self.increment_kernel, np.float32(scale))
+        multiply_spectrum(self.direction_fft.spectral, kernel, np.float32(scale))
         self.direction_fft.inverse(normalise=False)
         return self.direction_fft.padded
 
