@@ -27,8 +27,10 @@ run, so the ratios are meaningful even where the absolute times are not:
   fallen a hundredfold (the exact displacement, :mod:`rough_uq.physics.solver`),
   and needs about a third of the iterations. ``iter/transf`` divides the time
   of an iteration by the time of the transforms it must do (1 double and 0.5
-  single pair for plain Polonsky-Keer, 2.5 single pairs preconditioned): what
-  the elementwise passes, the exact displacements and the Python loop add;
+  single pair for plain Polonsky-Keer, 2.5 single pairs preconditioned, each
+  timed with the plan that solver uses: out-of-place, or in place with an
+  unnormalised inverse): what the elementwise passes, the exact displacements
+  and the Python loop add;
 * warm start: the coupled coarse surface (grid ``n/2``, spectral truncation) is
   solved first and its pressure passed as ``initial_pressure`` to the fine
   solve; cold vs warm iterations and time;
@@ -292,16 +294,17 @@ def fft_floor(n: int, threads: int) -> dict[str, float]:
     return times
 
 
-def time_fft_pair(n: int, threads: int, *, single: bool = False) -> float:
-    """Median seconds of one forward + inverse real FFT with the solver's cached plan of that precision.
+def time_fft_pair(n: int, threads: int, *, single: bool = False, in_place: bool = False) -> float:
+    """Median seconds of one forward + inverse real FFT with the solver's cached plan of that kind.
 
-    The double-precision plan is the solver's, with a separate output buffer
-    (within 5% of the in-place plan's time here); the single-precision one is
-    in place.
+    Double precision: the solver's plan of ``K p``, with a separate output
+    buffer. Single precision: plain Polonsky-Keer's plan, or with
+    ``in_place`` that of the preconditioned iteration (one padded buffer,
+    inverse unnormalised, as the solver runs it).
     """
-    plan = get_fft(n, threads=threads, single=single, separate_output=not single)
+    plan = get_fft(n, threads=threads, single=single, separate_output=not single, in_place=in_place)
     plan.real[...] = np.random.default_rng(0).standard_normal((n, n))
-    return time_pair(lambda: (plan.forward(), plan.inverse()))
+    return time_pair(lambda: (plan.forward(), plan.inverse(normalise=not in_place)))
 
 
 def timed_solve(
@@ -438,11 +441,13 @@ def run_grid(
     use_wisdom(None)
     time_fft_pair(n, args.threads)
     time_fft_pair(n, args.threads, single=True)
+    time_fft_pair(n, args.threads, single=True, in_place=True)
     _, estimate_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=1)
     # ... then measured plans, as a study uses them (rough_uq.study.fft_wisdom); planning outside the timings.
     measure_plans([n, n // 2], threads=args.threads)
     fft_pair = time_fft_pair(n, args.threads)
-    single_pair = time_fft_pair(n, args.threads, single=True)
+    single_pair = time_fft_pair(n, args.threads, single=True, in_place=True)
+    plain_single_pair = time_fft_pair(n, args.threads, single=True)
     cold, cold_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats)
     peak_rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     per_iteration = cold_timing.seconds / max(cold_timing.n_iter, 1)
@@ -471,7 +476,7 @@ def run_grid(
         plain_iteration_over_fft=plain_timing.seconds / max(plain_timing.n_iter, 1) / fft_pair,
         plain_iteration_over_transforms=plain_timing.seconds
         / max(plain_timing.n_iter, 1)
-        / (0.5 * single_pair + fft_pair),
+        / (0.5 * plain_single_pair + fft_pair),
         plain_solve_over_fft=plain_timing.seconds / fft_pair,
         plain_converged=plain_timing.converged,
         floor=floor,
