@@ -1043,10 +1043,20 @@ def _solution(
     # E* s_rms cannot overflow when the pressures do not).
     approach = -st.gbar
     mantissa, exponent = _binary_ratio((e_star, s_rms), (system_size,))
+    # In place, one new array per field: the same numbers as
+    # ldexp((p * p_scale) * mantissa, exponent), (w + s) * s_rms, (w + approach) * s_rms.
+    pressure = st.p * st.p_scale if st.p_scale != 1.0 else st.p.copy()
+    pressure *= mantissa
+    if exponent:
+        np.ldexp(pressure, exponent, out=pressure)
+    displacement = np.add(st.w, ops.heights)
+    displacement *= s_rms
+    gap = np.add(st.w, approach)
+    gap *= s_rms
     return ContactSolution(
-        pressure=np.ldexp((st.p * st.p_scale) * mantissa, exponent),
-        displacement=(st.w + ops.heights) * s_rms,
-        gap=(st.w + approach) * s_rms,
+        pressure=pressure,
+        displacement=displacement,
+        gap=gap,
         approach=float(approach * s_rms + offset),
         n_iter=st.n_iter,
         error=float(st.error),
