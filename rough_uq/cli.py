@@ -82,6 +82,23 @@ def _raise_terminated(signum: int, frame: object) -> None:
     raise _stop_exception(signum)
 
 
+def _quiet_unraisable(previous: Callable[[Any], None]) -> Callable[[Any], None]:
+    """``sys.unraisablehook`` that drops the traceback of a recorded stop swallowed by a callback.
+
+    Python would print "Exception ignored in ..." with a traceback for it, as
+    if something had gone wrong; the stop is recorded and raised again at the
+    next batch (:func:`_check_stop`), which reports it. Everything else goes
+    to ``previous``.
+    """
+
+    def hook(unraisable: Any) -> None:
+        if _STOP.signum is not None and isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return
+        previous(unraisable)
+
+    return hook
+
+
 def _check_stop() -> None:
     """Raise the recorded stop request (a Ctrl-C or SIGTERM whose first raise was swallowed)."""
     if _STOP.signum is not None:
@@ -99,6 +116,8 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
         on_main_thread = threading.current_thread() is threading.main_thread()
         _STOP.signum = None
         previous = {}
+        previous_unraisable = sys.unraisablehook
+        sys.unraisablehook = _quiet_unraisable(previous_unraisable)
         if on_main_thread:
             previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, _raise_terminated)
             # Ctrl-C is taken over only where Python's default handler has it (not where it is ignored).
@@ -116,6 +135,7 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
         finally:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
+            sys.unraisablehook = previous_unraisable
 
     return wrapper
 
