@@ -99,3 +99,35 @@ def test_plans_from_shared_wisdom_are_the_measured_ones_and_round_alike(tmp_path
     finally:
         fft_module.use_wisdom(None)
     assert get_fft(48).flags == ("FFTW_ESTIMATE",)
+
+
+def _planned_patiently(n: int, **layout) -> bool:
+    # Whether the process's wisdom holds a plan of at least FFTW_PATIENT rigour
+    # for this layout: otherwise planning from the wisdom only fails and
+    # RealFFT falls back to an estimated plan.
+    flags = ("FFTW_PATIENT", "FFTW_WISDOM_ONLY")
+    return fft_module.RealFFT((n, n), flags=flags, **layout).flags == flags
+
+
+def test_the_solvers_in_place_single_plans_are_patient_up_to_the_documented_grid(monkeypatch):
+    import pyfftw
+
+    try:
+        pyfftw.forget_wisdom()
+        fft_module.measure_plans([16, 24], threads=1)
+        for n in (16, 24):
+            assert _planned_patiently(n, single=True, in_place=True)
+            # The other variants are measured only (the same wisdom, a less rigorous plan).
+            assert not _planned_patiently(n, separate_output=True)
+            assert not _planned_patiently(n, single=True)
+        # Above the limit the in-place plans are measured too.
+        pyfftw.forget_wisdom()
+        monkeypatch.setattr(fft_module, "PATIENT_MAX_GRID", 16)
+        fft_module.measure_plans([16, 24], threads=1)
+        assert _planned_patiently(16, single=True, in_place=True)
+        assert not _planned_patiently(24, single=True, in_place=True)
+        assert fft_module.RealFFT((24, 24), single=True, in_place=True).flags == ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
+        with pytest.raises(ValueError, match="effort"):
+            fft_module.measure_plans([16], effort="FFTW_EXHAUSTIVE")
+    finally:
+        fft_module.use_wisdom(None)

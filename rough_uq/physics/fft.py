@@ -34,6 +34,14 @@ ways are offered:
   samples there, keeps the wisdom on disk (user cache directory) and ships it
   with the contact model to every worker. Measured plans were 1.1-1.5x faster
   than estimated ones here (``scripts/bench_solver.py`` prints both).
+  The in-place single-precision plans of the preconditioned solver (every
+  transform of an iteration but the occasional exact displacement) are planned with
+  ``FFTW_PATIENT`` on grids up to :data:`PATIENT_MAX_GRID`, where it pays:
+  a pair took 0.965 / 0.91 / 0.93 of the time of the ``FFTW_MEASURE`` plan at
+  256^2 / 512^2 / 1024^2 (one core), for 4 / 7 / 16 s of planning, once per
+  machine; at 2048^2 it gained 1-6 % for 54 s, so larger grids are measured.
+  FFTW uses wisdom of a more patient plan for a less patient request, so the
+  processes that plan from the wisdom get the patient plans too.
 """
 
 from __future__ import annotations
@@ -57,6 +65,14 @@ __all__ = [
 
 #: Upper bound on planning time per plan, in seconds (measured planning only).
 _PLANNING_TIMELIMIT = 5.0
+
+#: The same for ``FFTW_PATIENT`` plans: 5 s stops the search at 1024^2 before
+#: it finds the faster plan (it needs about 8 s per plan here).
+_PATIENT_TIMELIMIT = 30.0
+
+#: The largest grid whose in-place single-precision plans (the preconditioned
+#: solver's) :func:`measure_plans` plans with ``FFTW_PATIENT`` (module docstring).
+PATIENT_MAX_GRID = 1024
 
 
 class _Planner:
@@ -160,6 +176,7 @@ class RealFFT:
         self.spectral[...] = 0.0
 
     def _plan(self, flags: tuple[str, ...]) -> None:
+        timelimit = _PATIENT_TIMELIMIT if "FFTW_PATIENT" in flags else _PLANNING_TIMELIMIT
         self._forward = pyfftw.FFTW(
             self.real,
             self.spectral,
@@ -167,7 +184,7 @@ class RealFFT:
             direction="FFTW_FORWARD",
             threads=self.threads,
             flags=flags,
-            planning_timelimit=_PLANNING_TIMELIMIT,
+            planning_timelimit=timelimit,
         )
         self._inverse = pyfftw.FFTW(
             self.spectral,
@@ -176,7 +193,7 @@ class RealFFT:
             direction="FFTW_BACKWARD",
             threads=self.threads,
             flags=flags + ("FFTW_DESTROY_INPUT",),
-            planning_timelimit=_PLANNING_TIMELIMIT,
+            planning_timelimit=timelimit,
         )
 
     def forward(self, x: np.ndarray | None = None) -> np.ndarray:
@@ -258,7 +275,7 @@ def _variants(threads: int) -> tuple[tuple[int, bool, bool, bool], ...]:
 
 
 def measure_plans(
-    grids: Iterable[int], *, threads: int = 1, wisdom: tuple[bytes, ...] | None = None, effort: str = "FFTW_MEASURE"
+    grids: Iterable[int], *, threads: int = 1, wisdom: tuple[bytes, ...] | None = None, effort: str | None = None
 ) -> tuple[bytes, ...]:
     """Measure the plans roughuq needs on ``grids`` and return the accumulated wisdom.
 
@@ -274,27 +291,31 @@ def measure_plans(
         The solver's FFTW threads.
     wisdom : tuple of bytes, optional
         Wisdom to start from (:func:`export_wisdom` of this or another process).
-    effort : {"FFTW_MEASURE", "FFTW_PATIENT"}
-        Planner effort for plans not in the wisdom yet.
+    effort : {"FFTW_MEASURE", "FFTW_PATIENT"}, optional
+        Planner effort for plans not in the wisdom yet. By default
+        ``FFTW_MEASURE``, and ``FFTW_PATIENT`` for the preconditioned solver's
+        in-place single-precision plans on grids up to :data:`PATIENT_MAX_GRID`
+        (module docstring).
 
     Returns
     -------
     tuple of bytes
         The wisdom after planning (:func:`pyfftw.export_wisdom`).
     """
-    if effort not in ("FFTW_MEASURE", "FFTW_PATIENT"):
-        raise ValueError(f"effort must be FFTW_MEASURE or FFTW_PATIENT, got {effort!r}")
+    if effort not in (None, "FFTW_MEASURE", "FFTW_PATIENT"):
+        raise ValueError(f"effort must be FFTW_MEASURE, FFTW_PATIENT or None (the default policy), got {effort!r}")
     if wisdom is not None:
         pyfftw.import_wisdom(wisdom)
     for n in sorted({int(n) for n in grids}):
         for plan_threads, single, separate_output, in_place in _variants(int(threads)):
+            plan_effort = effort or ("FFTW_PATIENT" if in_place and n <= PATIENT_MAX_GRID else "FFTW_MEASURE")
             RealFFT(
                 (n, n),
                 threads=plan_threads,
                 single=single,
                 separate_output=separate_output,
                 in_place=in_place,
-                flags=(effort,),
+                flags=(plan_effort,),
             )
     measured = tuple(pyfftw.export_wisdom())
     use_wisdom(measured)
