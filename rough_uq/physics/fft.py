@@ -47,7 +47,7 @@ ways are offered:
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 import pyfftw
@@ -274,8 +274,32 @@ def _variants(threads: int) -> tuple[tuple[int, bool, bool, bool], ...]:
     )
 
 
+def _plan_variant(n: int, variant: tuple[int, bool, bool, bool], flags: tuple[str, ...]) -> RealFFT:
+    plan_threads, single, separate_output, in_place = variant
+    return RealFFT(
+        (n, n), threads=plan_threads, single=single, separate_output=separate_output, in_place=in_place, flags=flags
+    )
+
+
+def _default_effort(n: int, variant: tuple[int, bool, bool, bool]) -> str:
+    in_place = variant[3]
+    return "FFTW_PATIENT" if in_place and n <= PATIENT_MAX_GRID else "FFTW_MEASURE"
+
+
+def _in_wisdom(n: int, variant: tuple[int, bool, bool, bool], effort: str) -> bool:
+    # Planning from the wisdom only succeeds where it holds a plan of at least
+    # this rigour (RealFFT falls back to an estimated plan otherwise).
+    flags = (effort, "FFTW_WISDOM_ONLY")
+    return _plan_variant(n, variant, flags).flags == flags
+
+
 def measure_plans(
-    grids: Iterable[int], *, threads: int = 1, wisdom: tuple[bytes, ...] | None = None, effort: str | None = None
+    grids: Iterable[int],
+    *,
+    threads: int = 1,
+    wisdom: tuple[bytes, ...] | None = None,
+    effort: str | None = None,
+    before_measuring: Callable[[list[int]], None] | None = None,
 ) -> tuple[bytes, ...]:
     """Measure the plans roughuq needs on ``grids`` and return the accumulated wisdom.
 
@@ -296,6 +320,10 @@ def measure_plans(
         ``FFTW_MEASURE``, and ``FFTW_PATIENT`` for the preconditioned solver's
         in-place single-precision plans on grids up to :data:`PATIENT_MAX_GRID`
         (module docstring).
+    before_measuring : callable, optional
+        Called with the grids whose plans the wisdom lacks, before they are
+        measured (not called when it holds them all): measuring takes seconds
+        per grid, up to about 20 s at 1024^2.
 
     Returns
     -------
@@ -306,17 +334,16 @@ def measure_plans(
         raise ValueError(f"effort must be FFTW_MEASURE, FFTW_PATIENT or None (the default policy), got {effort!r}")
     if wisdom is not None:
         pyfftw.import_wisdom(wisdom)
-    for n in sorted({int(n) for n in grids}):
-        for plan_threads, single, separate_output, in_place in _variants(int(threads)):
-            plan_effort = effort or ("FFTW_PATIENT" if in_place and n <= PATIENT_MAX_GRID else "FFTW_MEASURE")
-            RealFFT(
-                (n, n),
-                threads=plan_threads,
-                single=single,
-                separate_output=separate_output,
-                in_place=in_place,
-                flags=(plan_effort,),
-            )
+    plans = [
+        (n, variant, effort or _default_effort(n, variant))
+        for n in sorted({int(n) for n in grids})
+        for variant in _variants(int(threads))
+    ]
+    missing = [plan for plan in plans if not _in_wisdom(*plan)]
+    if missing and before_measuring is not None:
+        before_measuring(sorted({n for n, _, _ in missing}))
+    for n, variant, plan_effort in missing:
+        _plan_variant(n, variant, (plan_effort,))
     measured = tuple(pyfftw.export_wisdom())
     use_wisdom(measured)
     return measured

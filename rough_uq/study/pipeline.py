@@ -32,7 +32,7 @@ import math
 import os
 import time
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -190,16 +190,17 @@ class Study:
         self.model = build_model(self.config)
         self._planned: set[int] = set()
 
-    def model_for(self, level: int) -> ContactModel:
+    def model_for(self, level: int, *, note: Callable[[str], None] | None = None) -> ContactModel:
         """The model, with FFTW wisdom that covers the grids of ``level`` (and its coarse grid).
 
         Plans are measured once per machine and grid (:mod:`rough_uq.study.fft_wisdom`)
         and travel with the model to every worker, so all use the same plans.
+        ``note`` is told when plans are about to be measured.
         """
         grids = {self.model.grid(level)} | ({self.model.grid(level - 1)} if level > 0 else set())
         if not grids <= self._planned:
             self._planned |= grids
-            wisdom = prepare_wisdom(sorted(self._planned), threads=self.model.threads)
+            wisdom = prepare_wisdom(sorted(self._planned), threads=self.model.threads, note=note)
             self.model = replace(self.model, fft_wisdom=wisdom)
         return self.model
 
@@ -328,7 +329,7 @@ class StudySampler:
         pending: list[LevelBatch] = []
         last_flush = time.monotonic()
         try:
-            for batch in self.executor.run(self.study.model_for(level), items):
+            for batch in self.executor.run(self.study.model_for(level, note=self.progress.note), items):
                 pending.append(batch)
                 self.progress.advance(level, batch.n_samples)
                 if time.monotonic() - last_flush >= FLUSH_SECONDS:

@@ -1,0 +1,70 @@
+"""FFTW wisdom on disk: measured once per machine and grid, and said so when it is measured."""
+
+from __future__ import annotations
+
+import pyfftw
+import pytest
+
+from rough_uq.physics import fft as fft_module
+from rough_uq.study.executors import SerialExecutor
+from rough_uq.study.fft_wisdom import load_wisdom, prepare_wisdom, wisdom_entries
+from rough_uq.study.pipeline import Study, run_screening
+from rough_uq.study.config import config_from_dict
+from rough_uq.study.progress import Progress
+from rough_uq.study.store import MemoryStore
+from tests.study_configs import tiny_config
+
+
+@pytest.fixture
+def fresh_wisdom(tmp_path, monkeypatch):
+    # A machine that has measured nothing yet: no file, nothing in this process.
+    path = tmp_path / "wisdom.pickle"
+    monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", str(path))
+    pyfftw.forget_wisdom()
+    yield path
+    fft_module.use_wisdom(None)
+
+
+def test_plans_are_measured_once_per_grid_and_the_measuring_is_announced(fresh_wisdom):
+    notes: list[str] = []
+    first = prepare_wisdom([16], threads=1, note=notes.append)
+    assert notes == [f"measuring FFT plans for 16x16 (once per machine, kept in {fresh_wisdom})"]
+    assert load_wisdom(fresh_wisdom) == first
+    # Another process of the machine (nothing in memory) finds them on disk: nothing to measure, say or write.
+    pyfftw.forget_wisdom()
+    written = fresh_wisdom.stat().st_ino  # a rewrite replaces the file
+    assert wisdom_entries(prepare_wisdom([16], threads=1, note=notes.append)) == wisdom_entries(first)
+    assert len(notes) == 1
+    assert fresh_wisdom.stat().st_ino == written
+    # Only the grid it lacks is measured and named.
+    pyfftw.forget_wisdom()
+    prepare_wisdom([16, 24], threads=1, note=notes.append)
+    assert notes[1:] == [f"measuring FFT plans for 24x24 (once per machine, kept in {fresh_wisdom})"]
+
+
+def test_measure_plans_names_the_missing_grids_before_measuring(fresh_wisdom):
+    calls: list[list[int]] = []
+    wisdom = fft_module.measure_plans([24, 16], threads=1, before_measuring=calls.append)
+    assert calls == [[16, 24]]
+    fft_module.measure_plans([16, 24], threads=1, wisdom=wisdom, before_measuring=calls.append)
+    assert calls == [[16, 24]]
+
+
+class _Notes(Progress):
+    def __init__(self) -> None:
+        self.notes: list[str] = []
+
+    def note(self, text: str) -> None:
+        self.notes.append(text)
+
+
+def test_a_screening_says_when_it_measures_plans_and_not_when_they_are_known(fresh_wisdom):
+    config = config_from_dict(tiny_config())
+    progress = _Notes()
+    run_screening(Study(config, MemoryStore(qoi_names=config.qoi_names)), executor=SerialExecutor(), progress=progress)
+    measuring = [text for text in progress.notes if text.startswith("measuring FFT plans")]
+    assert measuring and all(str(fresh_wisdom) in text for text in measuring)
+    again = _Notes()
+    pyfftw.forget_wisdom()
+    run_screening(Study(config, MemoryStore(qoi_names=config.qoi_names)), executor=SerialExecutor(), progress=again)
+    assert not [text for text in again.notes if text.startswith("measuring FFT plans")]
