@@ -85,7 +85,7 @@ def test_classic_configs_match_the_reference_setting() -> None:
     clusters = load_config(CONFIGS / "classic-clusters.yaml")
     assert clusters.surface.system_size == 3.0
     assert (clusters.surface.k_l, clusters.surface.k_r, clusters.surface.k_s) == (3.0, 3.0, 192.0)
-    assert (clusters.grid.coarsest, clusters.grid.max_level) == (96, 4)
+    assert (clusters.grid.coarsest, clusters.grid.max_level) == (96, 5)
     settings = clusters.qoi["clusters"]
     assert (settings.unit, settings.connectivity) == ("per_area", "mean")
 

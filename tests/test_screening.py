@@ -7,6 +7,7 @@ errors unless stated otherwise.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import subprocess
 from pathlib import Path
@@ -227,12 +228,40 @@ def test_alpha_is_fitted_on_every_level_without_an_asymptotic_pair():
     assert rates.alpha[0] == pytest.approx(plain_alpha_fit(table)[0], rel=1e-9)
 
 
-def test_estimated_bias_is_the_larger_of_model_and_measured_mean():
+def test_estimated_bias_is_the_largest_of_model_and_measured_means():
     rates = Rates(alpha=[1.0, 2.0], beta=2.0, gamma=1.0, c_alpha=[1.0, 8.0], c_beta=1.0, c_gamma=1.0)
     # Level 3: model 1/8 and 8/64; measured -0.5 (QoI 0, above its model) and 0.01 (QoI 1, below).
     bias = estimated_bias(rates=rates, level=3, mean_diff=np.array([-0.5, 0.01]))
     np.testing.assert_allclose(bias, [0.5 / 1.0, 0.125 / 3.0])
     np.testing.assert_allclose(estimated_bias(rates=rates, level=3), [0.125, 0.125 / 3.0])
+    # Levels 1 and 2 scaled to level 3 (Giles' rule): QoI 0 by 1/4 and 1/2, QoI 1 by 1/16 and 1/4.
+    coarser = np.array([[4.0, 1.0], [0.2, 4.0]])
+    bias = estimated_bias(rates=rates, level=3, mean_diff=np.array([-0.5, 0.01]), coarser=coarser)
+    np.testing.assert_allclose(bias, [max(0.5, 4.0 / 4, 0.2 / 2) / 1.0, max(0.125, 1.0 / 16, 4.0 / 4) / 3.0])
+    # A level not sampled (NaN) adds nothing; a single coarser row is level L - 1.
+    bias = estimated_bias(rates=rates, level=3, coarser=np.array([[np.nan, np.nan], [1.5, 0.0]]))
+    np.testing.assert_allclose(bias, [0.75, 0.125 / 3.0])
+
+
+def test_the_classic_cluster_counts_bias_is_not_underestimated_where_its_differences_change_sign():
+    # The reference hierarchy of the classic cluster study (mean count, docs/classic): level
+    # means 61.2, 13.2, -0.67 on 384^2 ... 1536^2, then -1.26 and -0.46 on 3072^2 and 6144^2.
+    data = json.loads((Path(__file__).resolve().parents[1] / "docs/classic/hierarchy_clusters.json").read_text())
+    levels = [data["levels"][str(level)] for level in range(7)]
+    y = [np.array(row["fine"])[:, 2] - np.array(row["coarse"])[:, 2] for row in levels]
+    table = level_statistics(
+        fine=[np.array(row["fine"])[:, 2] for row in levels[:5]],
+        coarse=[np.array(row["coarse"])[:, 2] for row in levels[:5]],
+        cost=[np.array(row["seconds"]) for row in levels[:5]],
+    )
+    rates = fit_rates(table)
+    # E[Q_1536] - E[Q_6144], measured on finer grids than the fit saw (the bias beyond is larger still).
+    measured = -(y[5].mean() + y[6].mean())
+    error = math.hypot(y[5].std(ddof=1) / math.sqrt(len(y[5])), y[6].std(ddof=1) / math.sqrt(len(y[6])))
+    bias = estimated_bias(rates=rates, level=4, mean_diff=table.mean_diff[4], coarser=table.mean_diff[2:4])[0]
+    assert bias >= measured - 2 * error
+    # The model and the finest mean alone (the earlier rule) fall short by more than the noise.
+    assert estimated_bias(rates=rates, level=4, mean_diff=table.mean_diff[4])[0] < measured - 3 * error
 
 
 def test_plan_on_a_pre_asymptotic_hierarchy_picks_fewer_levels_with_too_much_bias():
@@ -248,9 +277,11 @@ def test_plan_on_a_pre_asymptotic_hierarchy_picks_fewer_levels_with_too_much_bia
         old = plan(tol=eps, rates=old_rates, statistics=table, bias_from="model", max_level=10)
         new = plan(tol=eps, rates=rates, statistics=table, max_level=10)
         assert new.finest_level >= old.finest_level
-        # The default plan's bias on a screened level is the estimated_bias of its screened mean.
-        if new.finest_level <= 4:
-            expected = estimated_bias(rates=rates, level=new.finest_level, mean_diff=table.mean_diff[new.finest_level])
+        # The default plan's bias on a screened level is the estimated_bias of its screened means.
+        finest = new.finest_level
+        if finest <= 4:
+            coarser = table.mean_diff[max(finest - 2, 1) : finest]
+            expected = estimated_bias(rates=rates, level=finest, mean_diff=table.mean_diff[finest], coarser=coarser)
             np.testing.assert_allclose(new.bias, expected)
         old_misses += problem.mean() - problem.mean(old.finest_level) > limit
         new_misses += problem.mean() - problem.mean(new.finest_level) > limit

@@ -72,12 +72,13 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    samples already drawn). For ``l >= 2``, ``V_l`` is floored at
    ``V_{l-1} 2^-beta / 2`` so that a few lucky samples cannot starve a level.
 3. Once every level has (nearly, within 1%) its planned samples, estimate
-   the remaining bias ``max(c_alpha 2^(-alpha L), |E[Y_L]|) / (2^alpha - 1)``
+   the remaining bias ``max(c_alpha 2^(-alpha L), |E[Y_L]|, |E[Y_{L-1}]|
+   2^-alpha, |E[Y_{L-2}]| 2^(-2 alpha)) / (2^alpha - 1)``
    (:func:`~rough_uq.multilevel.statistics.estimated_bias`: the tail sum of
    the ``alpha`` model, whose least-squares line through all levels above the
    base is robust against a finest mean that happens to be near 0, and never
-   below what the finest level measured; the rule :func:`plan` uses too, so
-   a run and the screening's prediction agree). If it exceeds ``sqrt(theta)
+   below what the three finest difference levels predict; the rule
+   :func:`plan` uses too, so a run and the screening's prediction agree). If it exceeds ``sqrt(theta)
    eps`` for some QoI, add level ``L+1`` with ``V_{L+1} = V_L 2^-beta``,
    ``C_{L+1} = C_L 2^gamma`` and go to 2.
 4. Stop when all planned samples are drawn and the bias test passes
@@ -1155,7 +1156,11 @@ class _MlmcRun(_Run):
         means = means[self.hierarchy.base :]  # row 0 is the base level, whose Y is Q
         if self.extrapolation == "active":
             return richardson_bias(means[1:], self.driver.alpha)
-        return estimated_bias(rates=self.driver, level=self.hierarchy.n_levels - 1, mean_diff=means[-1])
+        # The two levels below the finest, as far as they are differences (above the base level).
+        coarser = means[1:-1][-2:]
+        return estimated_bias(
+            rates=self.driver, level=self.hierarchy.n_levels - 1, mean_diff=means[-1], coarser=coarser
+        )
 
     def after_round(self) -> Iterator[Event]:
         """Check the extrapolation, then the bias: stop, or add a level (module docstring, steps 3 and 4)."""
