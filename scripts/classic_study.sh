@@ -5,14 +5,14 @@
 #
 # Contact area (L = 2, grids 256..4096, perimeter-corrected area in percent):
 # screening, then MLMC and plain MC at eps = 1.0, 0.9, ..., 0.2 and 0.1.
-# Cluster density (L = 3, grids 96..1536, mean of the 4- and 8-connected
+# Cluster density (L = 3, grids 96..3072, mean of the 4- and 8-connected
 # counts, per unit area): screening, then MLMC and MC at eps = 40, 30, 20, 15,
 # 10, 8, 6, 4, 3, 2. Each table is timed (wall seconds, including the
 # screening and every command's start-up) and printed by
 # scripts/classic_tables.py against the references of docs/classic/ (computed
 # by scripts/classic_hierarchy.py on grids finer than any level used).
 # Every command resumes where it stopped if the script is interrupted and run
-# again. About 10 minutes on 2 cores (README, "The classic study").
+# again. About 18 minutes on 2 cores (README, "The classic study").
 # The tolerance lists are environment variables (AREA_TOLS, AREA_EXTRA_TOLS,
 # CLUSTER_TOLS; set to an empty string, a table is skipped, e.g. AREA_TOLS=""
 # AREA_EXTRA_TOLS="" for the cluster table alone); WORKERS sets the worker
