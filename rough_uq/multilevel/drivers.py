@@ -78,9 +78,9 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    the ``alpha`` model, whose least-squares line through all levels above the
    base is robust against a finest mean that happens to be near 0, and never
    below what the three finest difference levels predict; the rule
-   :func:`plan` uses too, so a run and the screening's prediction agree). If it exceeds ``sqrt(theta)
-   eps`` for some QoI, add level ``L+1`` with ``V_{L+1} = V_L 2^-beta``,
-   ``C_{L+1} = C_L 2^gamma`` and go to 2.
+   :func:`plan` uses too, so a run and the screening's prediction agree). If
+   it exceeds ``sqrt(theta) eps`` for some QoI, add level ``L+1`` with
+   ``V_{L+1} = V_L 2^-beta``, ``C_{L+1} = C_L 2^gamma`` and go to 2.
 4. Stop when all planned samples are drawn and the bias test passes
    (``stop_reason = "tol_met"``), when the bias test fails on ``max_level``
    (``"max_level"``), or before a batch would exceed ``max_cost``
