@@ -271,13 +271,31 @@ def noisy_run(seed: int):
     return table, run_quietly(mlmc, Synthetic(seed=seed, **STEEP), tol=NOISY_EPS, screening=table, max_level=5)[0]
 
 
+def test_mlmc_bias_test_takes_giles_terms_from_the_two_levels_below_the_finest():
+    # E[Y_l] = 2^-l - 16 4^-l: -3.5, -0.75, -0.125 on levels 1-3, 0 on level 4 (the sign
+    # changes there). The run stops on level 3, where the scaled means of levels 1 and 2
+    # exceed the model and the finest mean (module docstring of
+    # rough_uq.multilevel.statistics, "Remaining bias"), and its test uses them.
+    result, _ = run_quietly(mlmc, Synthetic(seed=0, a=1.0, alpha=1.0, b=-16.0, alpha2=2.0, v1=1e-4), tol=0.1)
+    statistics, finest = result.statistics, result.finest_level
+    means = statistics.mean_diff
+    with_giles = estimated_bias(rates=result.rates, level=finest, mean_diff=means[-1], coarser=means[1:-1][-2:])[0]
+    without = estimated_bias(rates=result.rates, level=finest, mean_diff=means[-1])[0]
+    assert with_giles > 1.05 * without
+    assert result.bias_estimate == pytest.approx(with_giles, rel=1e-12)
+
+
 def test_mlmc_pools_the_screening_means_into_its_bias_estimate():
     table, result = noisy_run(0)
     finest = result.finest_level
     assert finest == 5 and result.n_samples[-1] == 2
-    n, m = result.n_samples[-1], table.n_samples[finest]
-    pooled = (n * result.statistics.mean_diff[-1, 0] + m * table.mean_diff[finest, 0]) / (n + m)
-    expected = estimated_bias(rates=result.rates, level=finest, mean_diff=np.array([pooled]))[0]
+
+    def pooled(level):
+        n, m = result.n_samples[level], table.n_samples[level]
+        return (n * result.statistics.mean_diff[level] + m * table.mean_diff[level]) / (n + m)
+
+    coarser = np.array([pooled(level) for level in (finest - 2, finest - 1)])
+    expected = estimated_bias(rates=result.rates, level=finest, mean_diff=pooled(finest), coarser=coarser)[0]
     assert result.bias_estimate == pytest.approx(expected, rel=1e-12)
     own = estimated_bias(rates=result.rates, level=finest, mean_diff=result.statistics.mean_diff[-1])[0]
     assert result.bias_estimate != pytest.approx(own, rel=1e-3)
