@@ -164,6 +164,7 @@ __all__ = [
     "estimated_bias",
     "fine_cost_share",
     "fit_rates",
+    "giles_prediction",
     "level_statistics",
     "optimal_samples",
     "plan",
@@ -956,13 +957,25 @@ def estimated_bias(
         given, in the QoI's unit.
     """
     expected = rates.bias_model(level)
-    if mean_diff is not None:
-        expected = np.maximum(expected, np.abs(np.asarray(mean_diff, dtype=float)))
-    if coarser is not None:
-        coarser = np.asarray(coarser, dtype=float)
-        for steps, means in enumerate(coarser[::-1][:2], start=1):
-            expected = np.fmax(expected, np.abs(means) * 2.0 ** (-steps * rates.alpha))  # fmax: NaN = unknown
+    if mean_diff is not None or coarser is not None:
+        unknown = np.full(rates.n_qoi, np.nan)
+        finest = unknown if mean_diff is None else np.asarray(mean_diff, dtype=float)
+        below = np.empty((0, rates.n_qoi)) if coarser is None else np.asarray(coarser, dtype=float)[-2:]
+        expected = np.fmax(expected, giles_prediction(np.vstack([below, finest]), rates.alpha))
     return remaining_bias(expected, rates.alpha)
+
+
+def giles_prediction(means: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """``|E[Y_L]|`` as Giles' rule predicts it from the (up to) three finest level means.
+
+    ``means`` has shape (k, n): rows the levels ``L - k + 1 .. L``, each a
+    difference (levels ``>= 1``), NaN where unknown. Returns, shape (n,), the
+    largest of ``|mean(Y_l)| 2^(-(L - l) alpha)`` over the last three rows
+    (NaN only where all of them are unknown).
+    """
+    rows = np.abs(np.asarray(means, dtype=float))[-3:]
+    steps = np.arange(len(rows) - 1, -1, -1)[:, None]
+    return np.fmax.reduce(rows * 2.0 ** (-steps * np.asarray(alpha, dtype=float)), axis=0)
 
 
 @dataclass(frozen=True)

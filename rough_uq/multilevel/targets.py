@@ -95,6 +95,7 @@ from rough_uq.multilevel.statistics import (
     _check_tol,
     _fit_line,
     _readonly,
+    giles_prediction,
     optimal_samples,
     remaining_bias,
 )
@@ -332,12 +333,10 @@ def _tail_bias(magnitudes: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     returns shape (n_groups,), zeros when only level 0 exists.
     """
     finest = len(magnitudes) - 1
-    # Each of the three finest levels predicts |E[T_L]|; the largest prediction is the safe one.
-    levels = range(max(finest - 2, 1), finest + 1)
-    predicted = [magnitudes[level] * 2.0 ** (-(finest - level) * alpha) for level in levels]
-    if not predicted:
+    if finest < 1:
         return np.zeros(magnitudes.shape[1])
-    return remaining_bias(np.max(predicted, axis=0), alpha)
+    # Each of the three finest levels predicts |E[T_L]|; the largest prediction is the safe one.
+    return remaining_bias(giles_prediction(magnitudes[max(finest - 2, 1) :], alpha), alpha)
 
 
 def _remaining_bias(means: np.ndarray, variances: np.ndarray, groups: np.ndarray, alpha: np.ndarray) -> np.ndarray:
