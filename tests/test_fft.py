@@ -101,6 +101,26 @@ def test_plans_from_shared_wisdom_are_the_measured_ones_and_round_alike(tmp_path
     assert get_fft(48).flags == ("FFTW_ESTIMATE",)
 
 
+def test_going_back_to_estimated_plans_forgets_the_measured_wisdom():
+    # FFTW serves FFTW_ESTIMATE requests from wisdom it holds: after
+    # use_wisdom(None) none is left, so the plans are those of a fresh process.
+    import pyfftw
+
+    x = np.random.default_rng(4).standard_normal((64, 64))
+    try:
+        fft_module.use_wisdom(None)
+        estimated = get_fft(64, separate_output=True).forward(x).copy()
+        fft_module.measure_plans([64], threads=1)
+        fft_module.RealFFT((32, 32), flags=("FFTW_MEASURE",))  # planned outside any wisdom mode
+        fft_module.use_wisdom(None)
+        assert all(len(part.splitlines()) == 2 for part in pyfftw.export_wisdom())  # a header and ")"
+        plan = get_fft(64, separate_output=True)
+        assert plan.flags == ("FFTW_ESTIMATE",)
+        assert np.array_equal(plan.forward(x), estimated)
+    finally:
+        fft_module.use_wisdom(None)
+
+
 def _planned_patiently(n: int, **layout) -> bool:
     # Whether the process's wisdom holds a plan of at least FFTW_PATIENT rigour
     # for this layout: otherwise planning from the wisdom only fails and

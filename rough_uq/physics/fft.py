@@ -353,9 +353,14 @@ def use_wisdom(wisdom: tuple[bytes, ...] | None) -> None:
     """Plan from ``wisdom`` only from now on in this process (``None``: back to ``FFTW_ESTIMATE``).
 
     Calling it again with the same wisdom does nothing; a change forgets the
-    cached plans, so that no plan of the old mode is reused.
+    cached plans, so that no plan of the old mode is reused. ``None`` also
+    forgets FFTW's wisdom (measured here or imported before): FFTW serves an
+    ``FFTW_ESTIMATE`` request from any wisdom it holds for the same problem,
+    and the plans would then differ from those of a fresh process.
     """
     wisdom = None if wisdom is None else tuple(bytes(part) for part in wisdom)
+    if wisdom is None:
+        pyfftw.forget_wisdom()
     if wisdom == _PLANNER.wisdom:
         return
     if wisdom is not None:
