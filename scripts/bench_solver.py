@@ -273,6 +273,22 @@ def time_pair(pair) -> float:
     return statistics.median(samples)
 
 
+@contextlib.contextmanager
+def _wisdom_kept():
+    """FFTW's wisdom as it was before the block: plans measured inside leave no trace.
+
+    FFTW serves later requests for the same transform (even ``FFTW_ESTIMATE``
+    ones) from the wisdom of any plan it has made, so the floor's patient
+    plans would otherwise become the solver's and the surfaces' plans.
+    """
+    saved = pyfftw.export_wisdom()
+    try:
+        yield
+    finally:
+        pyfftw.forget_wisdom()
+        pyfftw.import_wisdom(saved)
+
+
 def fft_floor(n: int, threads: int) -> dict[str, float]:
     """Seconds of one double-precision real FFT pair (rfft2 + irfft2) of every implementation at hand.
 
@@ -283,12 +299,13 @@ def fft_floor(n: int, threads: int) -> dict[str, float]:
     """
     x = np.random.default_rng(0).standard_normal((n, n))
     times = {}
-    for effort in ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"):
-        if effort == "FFTW_PATIENT" and n > 2048:
-            continue  # planning alone would take many minutes
-        plan = RealFFT((n, n), threads=threads, flags=(effort,))
-        plan.real[...] = x
-        times[f"pyfftw {effort[5:].lower()}"] = time_pair(lambda plan=plan: (plan.forward(), plan.inverse()))
+    with _wisdom_kept():
+        for effort in ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"):
+            if effort == "FFTW_PATIENT" and n > 2048:
+                continue  # planning alone would take many minutes
+            plan = RealFFT((n, n), threads=threads, flags=(effort,))
+            plan.real[...] = x
+            times[f"pyfftw {effort[5:].lower()}"] = time_pair(lambda plan=plan: (plan.forward(), plan.inverse()))
     times["scipy.fft"] = time_pair(lambda: scipy.fft.irfft2(scipy.fft.rfft2(x, workers=threads), s=(n, n), workers=threads))
     times["numpy.fft"] = time_pair(lambda: np.fft.irfft2(np.fft.rfft2(x), s=(n, n)))
     return times
@@ -436,15 +453,10 @@ def run_grid(
     spectrum = reference_spectrum()
     floor = fft_floor(n, args.threads)
     floor_name = min(floor, key=floor.get)
+    # Measured plans, as a study uses them (rough_uq.study.fft_wisdom); planning outside the timings.
+    # The surfaces are drawn with them too, so that sample_coupled (below) draws the same bits.
+    wisdom = measure_plans([n, n // 2], threads=args.threads)
     heights = sample_surface(spectrum, n, np.random.default_rng(args.seed))
-    # FFTW_ESTIMATE plans first (what a process without wisdom uses) ...
-    use_wisdom(None)
-    time_fft_pair(n, args.threads)
-    time_fft_pair(n, args.threads, single=True)
-    time_fft_pair(n, args.threads, single=True, in_place=True)
-    _, estimate_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=1)
-    # ... then measured plans, as a study uses them (rough_uq.study.fft_wisdom); planning outside the timings.
-    measure_plans([n, n // 2], threads=args.threads)
     fft_pair = time_fft_pair(n, args.threads)
     single_pair = time_fft_pair(n, args.threads, single=True, in_place=True)
     plain_single_pair = time_fft_pair(n, args.threads, single=True)
@@ -458,6 +470,13 @@ def run_grid(
     else:  # plain Polonsky-Keer would take some 1000 iterations here
         plain_timing = SolveTiming(n=n, tol=args.tol, n_iter=0, seconds=math.nan, error=math.nan, converged=False,
                                    area_fraction=math.nan)
+    # FFTW_ESTIMATE plans for comparison: what a process without wisdom uses (use_wisdom(None) forgets it).
+    use_wisdom(None)
+    time_fft_pair(n, args.threads)
+    time_fft_pair(n, args.threads, single=True)
+    time_fft_pair(n, args.threads, single=True, in_place=True)
+    _, estimate_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=1)
+    use_wisdom(wisdom)
     grid_row = GridRow(
         n=n,
         n_iter=cold_timing.n_iter,
