@@ -106,17 +106,23 @@ def test_going_back_to_estimated_plans_forgets_the_measured_wisdom():
     # use_wisdom(None) none is left, so the plans are those of a fresh process.
     import pyfftw
 
+    def holds_no_wisdom() -> bool:
+        return all(len(part.splitlines()) == 2 for part in pyfftw.export_wisdom())  # a header and ")"
+
     x = np.random.default_rng(4).standard_normal((64, 64))
     try:
         fft_module.use_wisdom(None)
         estimated = get_fft(64, separate_output=True).forward(x).copy()
-        fft_module.measure_plans([64], threads=1)
-        fft_module.RealFFT((32, 32), flags=("FFTW_MEASURE",))  # planned outside any wisdom mode
+        fft_module.measure_plans([64], threads=1)  # now planning from its wisdom
         fft_module.use_wisdom(None)
-        assert all(len(part.splitlines()) == 2 for part in pyfftw.export_wisdom())  # a header and ")"
+        assert holds_no_wisdom()
         plan = get_fft(64, separate_output=True)
         assert plan.flags == ("FFTW_ESTIMATE",)
         assert np.array_equal(plan.forward(x), estimated)
+        # A plan measured with explicit flags while estimating leaves wisdom too.
+        fft_module.RealFFT((64, 64), separate_output=True, flags=("FFTW_MEASURE",))
+        fft_module.use_wisdom(None)
+        assert holds_no_wisdom()
     finally:
         fft_module.use_wisdom(None)
 
