@@ -127,6 +127,20 @@ def test_going_back_to_estimated_plans_forgets_the_measured_wisdom():
         fft_module.use_wisdom(None)
 
 
+def test_wisdom_changes_wait_for_planning_in_other_threads():
+    # FFTW's planner is not thread-safe: use_wisdom changes the wisdom under
+    # the lock that get_fft plans under.
+    import threading
+
+    done = threading.Event()
+    worker = threading.Thread(target=lambda: (fft_module.use_wisdom(None), done.set()))
+    with fft_module._PLANS_LOCK:
+        worker.start()
+        assert not done.wait(0.2)
+    worker.join(5.0)
+    assert done.is_set()
+
+
 def _planned_patiently(n: int, **layout) -> bool:
     # Whether the process's wisdom holds a plan of at least FFTW_PATIENT rigour
     # for this layout: otherwise planning from the wisdom only fails and

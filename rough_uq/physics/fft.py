@@ -356,19 +356,22 @@ def use_wisdom(wisdom: tuple[bytes, ...] | None) -> None:
     cached plans, so that no plan of the old mode is reused. ``None`` also
     forgets FFTW's wisdom (measured here or imported before): FFTW serves an
     ``FFTW_ESTIMATE`` request from any wisdom it holds for the same problem,
-    and the plans would then differ from those of a fresh process.
+    and the plans would then differ from those of a fresh process. FFTW's
+    wisdom changes under the lock of :func:`get_fft`, so never while another
+    thread of the process plans there.
     """
     wisdom = None if wisdom is None else tuple(bytes(part) for part in wisdom)
-    if wisdom is None:
-        pyfftw.forget_wisdom()
-    if wisdom == _PLANNER.wisdom:
-        return
-    if wisdom is not None:
-        pyfftw.forget_wisdom()
-        pyfftw.import_wisdom(wisdom)
-    _PLANNER.wisdom = wisdom
-    _PLANNER.flags = ("FFTW_ESTIMATE",) if wisdom is None else ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
-    clear_plan_cache()
+    with _PLANS_LOCK:
+        if wisdom is None:
+            pyfftw.forget_wisdom()
+        if wisdom == _PLANNER.wisdom:
+            return
+        if wisdom is not None:
+            pyfftw.forget_wisdom()
+            pyfftw.import_wisdom(wisdom)
+        _PLANNER.wisdom = wisdom
+        _PLANNER.flags = ("FFTW_ESTIMATE",) if wisdom is None else ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
+        _PLANS.clear()
 
 
 def export_wisdom() -> tuple[bytes, ...]:
