@@ -221,7 +221,7 @@ class RealFFT:
 
 
 _PLANS: dict[tuple[tuple[int, int], int, bool, bool, bool, int], RealFFT] = {}
-_PLANS_LOCK = threading.Lock()
+_PLANS_LOCK = threading.RLock()  # re-entrant: use_wisdom clears the cache while holding it
 
 
 def get_fft(
@@ -371,7 +371,7 @@ def use_wisdom(wisdom: tuple[bytes, ...] | None) -> None:
             pyfftw.import_wisdom(wisdom)
         _PLANNER.wisdom = wisdom
         _PLANNER.flags = ("FFTW_ESTIMATE",) if wisdom is None else ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
-        _PLANS.clear()
+        clear_plan_cache()
 
 
 def export_wisdom() -> tuple[bytes, ...]:
