@@ -201,6 +201,54 @@ def test_solutions_own_their_arrays(precondition):
         np.testing.assert_array_equal(getattr(first, name), value, err_msg=name)
 
 
+@pytest.mark.parametrize("precondition", [True, False])
+def test_the_uniform_start_is_displaced_without_a_transform(monkeypatch, precondition):
+    # A cold start (uniform pressure) has zero displacement, which the solver writes
+    # without a double-precision FFT pair. The pair would return exact zeros too, so
+    # the solutions must be the same bits as with the transform: on estimated and on
+    # measured plans (grids 32-128; 256 is estimated in both), random surfaces, loads, units.
+    from rough_uq.physics import fft
+    from rough_uq.physics import solver as solver_module
+
+    apply = HalfSpace.apply
+    applied = []
+
+    def counted(half_space, scale=1.0):
+        applied.append(scale)
+        return apply(half_space, scale)
+
+    def transformed(state, ops, scale, *, uniform):
+        ops.half_space.apply(scale)
+
+    rng = np.random.default_rng(11)
+    problems = []
+    for n in (32, 64, 128, 256):
+        for _ in range(2):
+            heights = float(10 ** rng.uniform(-3, 3)) * random_surface(n, seed=int(rng.integers(1000)))
+            size = float(10 ** rng.uniform(-1, 1))
+            slope = float(np.std(np.gradient(heights, size / n, axis=0)))
+            problems.append((heights, size, float(10 ** rng.uniform(-2, 0.5)) * slope))
+    try:
+        for wisdom in (None, fft.measure_plans([32, 64, 128])):
+            fft.use_wisdom(wisdom)
+            for heights, size, pressure in problems:
+                options = dict(system_size=size, mean_pressure=pressure, precondition=precondition)
+                applied.clear()
+                with monkeypatch.context() as patch:
+                    patch.setattr(HalfSpace, "apply", counted)
+                    solve_contact(heights, max_iter=1, **options)
+                assert len(applied) == 1, "one exact displacement: the stop's, none at the start"
+                skipped = solve_contact(heights, **options)
+                with monkeypatch.context() as patch:
+                    patch.setattr(solver_module._State, "_displace", transformed)
+                    reference = solve_contact(heights, **options)
+                assert skipped.converged and skipped.n_iter == reference.n_iter
+                for name in ("pressure", "displacement", "gap"):
+                    np.testing.assert_array_equal(getattr(skipped, name), getattr(reference, name), err_msg=name)
+    finally:
+        fft.use_wisdom(None)
+
+
 @pytest.mark.parametrize("kind", ["single_node", "unrelated_surface", "finer_grid"])
 def test_poor_warm_starts_still_converge_to_the_same_solution(kind):
     n = 64

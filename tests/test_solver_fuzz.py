@@ -103,14 +103,15 @@ def test_every_stop_is_decided_on_an_exact_displacement(max_iter):
 
 
 def test_the_exact_displacement_is_refreshed_as_the_error_falls(monkeypatch):
-    # Exact (double-precision) displacements at the start and whenever the error has
-    # fallen a hundredfold (plus the last one), single-precision increments in between.
+    # Exact (double-precision) displacements at the start (zero, without a transform, for
+    # the uniform start) and whenever the error has fallen a hundredfold (plus the last
+    # one), single-precision increments in between.
     calls = []
     exact_update = solver_module._State.update_displacement
 
-    def counted(state, ops):
+    def counted(state, ops, **options):
         calls.append(state.n_iter)
-        exact_update(state, ops)
+        exact_update(state, ops, **options)
 
     monkeypatch.setattr(solver_module._State, "update_displacement", counted)
     heights, size, pressure, description = random_problem(3, grids=(256,))

@@ -820,10 +820,10 @@ class _State:
             state.p_ref = np.empty_like(fft.real)
             state.u_ref = np.empty_like(fft.output)
             state.active = np.empty(fft.real.shape, dtype=np.uint8)
-        state.update_displacement(ops)
+        state.update_displacement(ops, uniform=p0 is None)
         return state
 
-    def update_displacement(self, ops: _Operators) -> None:
+    def update_displacement(self, ops: _Operators, *, uniform: bool = False) -> None:
         """``w <- u = K (p_scale p)`` in double precision, with ``p_scale`` imposing the mean pressure.
 
         Preconditioned solves also make the current pressure the reference:
@@ -834,15 +834,20 @@ class _State:
         with the increment; an update whenever the error has fallen by
         :data:`_REFRESH_FACTOR` keeps it far below the error, and every stop is
         decided on an exact displacement.
+
+        ``uniform`` says that ``p`` is uniform (the cold start): its
+        displacement is zero, since the kernel's zero mode is, and is written
+        without a transform (which returns exact zeros too: the same bits, one
+        double-precision FFT pair less per solve).
         """
         self.p_scale = ops.total_force / self.p.sum()
         if self.p_ref is None:
-            ops.half_space.apply(self.p_scale)
+            self._displace(ops, self.p_scale, uniform=uniform)
             return
         self.p *= self.p_scale
         self.p_scale = 1.0
         np.greater(self.p, 0.0, out=self.active.view(bool))
-        ops.half_space.apply(1.0)
+        self._displace(ops, 1.0, uniform=uniform)
         np.copyto(self.p_ref, self.p)
         np.copyto(self.u_ref, self.w)
         self.exact = True
@@ -853,7 +858,14 @@ class _State:
         self.t.fill(0.0)
         self.sum_t = 0.0
         self.delta = 0.0
-        self.update_displacement(ops)
+        self.update_displacement(ops, uniform=True)
+
+    def _displace(self, ops: _Operators, scale: float, *, uniform: bool) -> None:
+        """``w <- K (scale p)`` in double precision; zero without a transform if ``p`` is ``uniform``."""
+        if uniform:
+            self.w.fill(0.0)
+        else:
+            ops.half_space.apply(scale)
 
     def switch_to_plain(self, ops: _Operators) -> None:
         """Hand the current pressure over to plain Polonsky-Keer (fresh conjugate directions, exact displacements)."""
