@@ -536,29 +536,37 @@ def _scaled_heights(s: np.ndarray) -> tuple[float, float, np.ndarray]:
 
     Computed without squaring the raw heights, whose squares over- or
     underflow for heights beyond about ``1e+-154`` (``np.std`` would return
-    ``inf`` or ``0``). A flat surface gets ``scale = 1``.
+    ``inf`` or ``0``). A flat surface gets ``scale = 1``. The result is built
+    in place in one new array (plus one temporary for the squares): no more
+    grid-sized arrays than that at the grids where memory is tight.
 
     Raises
     ------
     InvalidParameterError
         If the RMS height is not a normal float (subnormal heights).
     """
-    peak = float(np.max(np.abs(s)))
+    peak = _largest_magnitude(s)
     if peak == 0.0:
         return 0.0, 1.0, np.zeros_like(s)
-    unit = s / peak  # in [-1, 1]
-    mean_unit = float(np.mean(unit))
-    deviation = unit - mean_unit  # in [-2, 2]
-    spread = float(np.max(np.abs(deviation)))
+    scaled = s / peak  # in [-1, 1]
+    mean_unit = float(np.mean(scaled))
+    scaled -= mean_unit  # the deviation, in [-2, 2]
+    spread = _largest_magnitude(scaled)
     offset = peak * mean_unit
     if spread == 0.0:
         return offset, 1.0, np.zeros_like(s)
-    deviation /= spread  # largest |value| is 1, so the mean square is >= 1 / N: no underflow
-    rms = float(np.sqrt(np.mean(deviation * deviation)))
+    scaled /= spread  # largest |value| is 1, so the mean square is >= 1 / N: no underflow
+    rms = float(np.sqrt(np.mean(np.square(scaled))))
     scale = peak * (spread * rms)
     if not scale >= np.finfo(np.float64).tiny:
         raise InvalidParameterError("heights", f"RMS height {scale:g}", "an RMS height of at least 2.2e-308")
-    return offset, scale, np.ascontiguousarray(deviation / rms)
+    scaled /= rms
+    return offset, scale, scaled
+
+
+def _largest_magnitude(values: np.ndarray) -> float:
+    """``max |values|`` without an array of the magnitudes."""
+    return max(float(values.max()), -float(values.min()))
 
 
 def solve_contact(
