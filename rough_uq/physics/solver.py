@@ -537,8 +537,8 @@ def _scaled_heights(s: np.ndarray) -> tuple[float, float, np.ndarray]:
     Computed without squaring the raw heights, whose squares over- or
     underflow for heights beyond about ``1e+-154`` (``np.std`` would return
     ``inf`` or ``0``). A flat surface gets ``scale = 1``. The result is built
-    in place in one new array (plus one temporary for the squares): no more
-    grid-sized arrays than that at the grids where memory is tight.
+    in place in one new array, with one temporary on the way (the squares),
+    instead of five grid-sized arrays: less memory at the largest grids.
 
     Raises
     ------
