@@ -111,12 +111,13 @@ CONVENTION_GRID = 128
 
 @dataclass
 class SolveTiming:
-    """One timed roughuq solve (median seconds over the repeats)."""
+    """One timed roughuq solve (median seconds over the repeats, and the first of them)."""
 
     n: int
     tol: float
     n_iter: int
     seconds: float
+    first_seconds: float
     error: float
     converged: bool
     area_fraction: float
@@ -148,6 +149,7 @@ class GridRow:
     floor_name: str
     floor_seconds: float
     iteration_over_floor: float
+    first_iteration_over_floor: float
     estimate_iter: int
     estimate_seconds_per_solve: float
     peak_rss_mib: float
@@ -334,7 +336,7 @@ def timed_solve(
     initial_pressure: np.ndarray | None = None,
     precondition: bool = True,
 ) -> tuple[ContactSolution, SolveTiming]:
-    """Solve ``repeats`` times; the last solution and the median wall time."""
+    """Solve ``repeats`` times; the last solution, the median and the first wall time."""
     seconds = []
     for _ in range(repeats):
         start = time.perf_counter()
@@ -354,6 +356,7 @@ def timed_solve(
         tol=tol,
         n_iter=solution.n_iter,
         seconds=statistics.median(seconds),
+        first_seconds=seconds[0],
         error=solution.error,
         converged=solution.converged,
         area_fraction=float(solution.contact.mean()),
@@ -468,8 +471,8 @@ def run_grid(
             heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats, precondition=False
         )
     else:  # plain Polonsky-Keer would take some 1000 iterations here
-        plain_timing = SolveTiming(n=n, tol=args.tol, n_iter=0, seconds=math.nan, error=math.nan, converged=False,
-                                   area_fraction=math.nan)
+        plain_timing = SolveTiming(n=n, tol=args.tol, n_iter=0, seconds=math.nan, first_seconds=math.nan,
+                                   error=math.nan, converged=False, area_fraction=math.nan)
     # FFTW_ESTIMATE plans for comparison: what a process without wisdom uses (use_wisdom(None) forgets it).
     use_wisdom(None)
     time_fft_pair(n, args.threads)
@@ -502,6 +505,7 @@ def run_grid(
         floor_name=floor_name,
         floor_seconds=floor[floor_name],
         iteration_over_floor=per_iteration / floor[floor_name],
+        first_iteration_over_floor=cold_timing.first_seconds / max(cold_timing.n_iter, 1) / floor[floor_name],
         estimate_iter=estimate_timing.n_iter,
         estimate_seconds_per_solve=estimate_timing.seconds,
         peak_rss_mib=peak_rss_mib,
@@ -635,18 +639,21 @@ def render(grid_rows: list[GridRow], warm_rows: list[WarmRow], peer_rows: list[P
         "",
         "FFT floor: one double-precision real FFT pair (rfft2 + irfft2), seconds, same grid and threads",
         format_table(
-            ["n", *floor_names, "fastest", "solver s/iter", "iter/fastest", "solve est. s", "solve meas. s",
-             "peak RSS MiB"],
+            ["n", *floor_names, "fastest", "solver s/iter", "iter/fastest", "1st solve", "solve est. s",
+             "solve meas. s", "peak RSS MiB"],
             [
                 [str(r.n), *(f"{r.floor[k]:.3e}" if k in r.floor else "-" for k in floor_names), r.floor_name,
                  f"{r.seconds_per_iteration:.3e}", f"{r.iteration_over_floor:.2f}",
+                 f"{r.first_iteration_over_floor:.2f}",
                  f"{r.estimate_seconds_per_solve:.3f} ({r.estimate_iter} it)",
                  f"{r.seconds_per_solve:.3f} ({r.n_iter} it)", f"{r.peak_rss_mib:.0f}"]
                 for r in grid_rows
             ],
         ),
-        "(solve est./meas.: the preconditioned solve with FFTW_ESTIMATE plans and with measured plans, as studies"
-        " use them; peak RSS: the process's peak so far, grids in increasing order)",
+        "(iter/fastest: median over the repeats; 1st solve: the same for the first of them, which also pays a"
+        " process's one-off costs, e.g. the first touch of fresh memory; solve est./meas.: the preconditioned solve"
+        " with FFTW_ESTIMATE plans and with measured plans, as studies use them; peak RSS: the process's peak so"
+        " far, grids in increasing order)",
     ]
     if peer_rows:
         rows = []
@@ -675,7 +682,10 @@ def targets(grid_rows: list[GridRow], peer_rows: list[PeerRow]) -> list[str]:
     for r in grid_rows:
         if r.n in (1024, 2048):
             verdict = "met" if r.iteration_over_floor <= 2.0 else "NOT met"
-            lines.append(f"  s/iteration <= 2.0 fastest FFT pairs at {r.n}^2: {r.iteration_over_floor:.2f} ({verdict})")
+            lines.append(
+                f"  s/iteration <= 2.0 fastest FFT pairs at {r.n}^2: {r.iteration_over_floor:.2f} ({verdict}; "
+                f"the first solve alone {r.first_iteration_over_floor:.2f})"
+            )
     for r in peer_rows:
         if r.n in (1024, 2048):
             verdict = "met" if r.time_ratio >= 20 else "NOT met"
