@@ -1,8 +1,8 @@
 """Where one iteration of the contact solver spends its time.
 
 Solves the benchmark surface of ``scripts/bench_solver.py`` (classic setting,
-SPEC section 6, load 0.1 E* sqrt(m2), tol 1e-8, one thread, measured FFT
-plans) with every FFT call and every fused pass of
+SPEC section 6, load 0.1 E* sqrt(m2), tol 1e-8, one thread unless
+``--threads`` says otherwise, measured FFT plans) with every FFT call and every fused pass of
 :mod:`rough_uq.physics.solver` wrapped in a timer, and prints milliseconds per
 iteration by component, next to a hot-cache double-precision FFT pair of the
 same plan (the unit of the per-iteration target of ``bench_solver.py``).
@@ -15,7 +15,11 @@ has fallen a hundredfold. Timed inside the solve, where the arrays of the
 iteration do not fit in the cache together, the transforms alone cost about
 two hot-cache double pairs at 1024^2 (their floor in the benchmark).
 
-    python scripts/profile_solver.py [--sizes 1024,2048]
+    python scripts/profile_solver.py [--sizes 1024,2048] [--threads 1]
+
+With ``--threads 2`` every component runs on two FFTW and numba threads (the
+hot-cache pair too), which shows where a second thread per solve pays and
+where it costs more than it saves.
 
 Timers add a few microseconds per call; the total is printed beside the
 untimed solve for comparison.
@@ -82,9 +86,9 @@ def _instrumented(timers: _Timers):
             setattr(owner, name, function)
 
 
-def _hot_pair(n: int) -> float:
+def _hot_pair(n: int, threads: int) -> float:
     """Best of 20 forward + inverse pairs of the solver's double-precision plan, data in cache."""
-    plan = get_fft(n, threads=1, separate_output=True)
+    plan = get_fft(n, threads=threads, separate_output=True)
     plan.real[...] = np.random.default_rng(0).standard_normal((n, n))
     best = np.inf
     for _ in range(20):
@@ -95,14 +99,14 @@ def _hot_pair(n: int) -> float:
     return best
 
 
-def profile(n: int) -> str:
+def profile(n: int, threads: int = 1) -> str:
     """The per-iteration table of one grid, as text."""
     spectrum = bench_solver.reference_spectrum()
     pressure = bench_solver.mean_pressure(spectrum)
     heights = sample_surface(spectrum, n, np.random.default_rng(1))
-    measure_plans([n], threads=1)
-    pair = _hot_pair(n)
-    solve = dict(system_size=bench_solver.SYSTEM_SIZE, mean_pressure=pressure, tol=1e-8)
+    measure_plans([n], threads=threads)
+    pair = _hot_pair(n, threads)
+    solve = dict(system_size=bench_solver.SYSTEM_SIZE, mean_pressure=pressure, tol=1e-8, threads=threads)
     start = time.perf_counter()
     untimed = solver.solve_contact(heights, **solve)
     untimed_seconds = time.perf_counter() - start
@@ -113,7 +117,8 @@ def profile(n: int) -> str:
         total = time.perf_counter() - start
     iters = solution.n_iter
     lines = [
-        f"{n}^2: {iters} iterations; untimed solve {1e3 * untimed_seconds / untimed.n_iter:.2f} ms/iteration, "
+        f"{n}^2, {threads} thread(s): {iters} iterations; "
+        f"untimed solve {1e3 * untimed_seconds / untimed.n_iter:.2f} ms/iteration, "
         f"instrumented {1e3 * total / iters:.2f} ms/iteration; hot-cache double FFT pair {1e3 * pair:.2f} ms",
         f"  {'component':<26} {'ms/iter':>8} {'pairs':>6} {'calls':>6}",
     ]
@@ -130,11 +135,14 @@ def profile(n: int) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="1024,2048", help="comma-separated grid sizes")
+    parser.add_argument("--threads", type=int, default=1, help="FFTW and numba threads of every component")
     args = parser.parse_args(argv)
+    if args.threads < 1:
+        parser.error(f"--threads must be >= 1, got {args.threads}")
     # Compile the passes outside the timings.
-    bench_solver.warm_up(1)
+    bench_solver.warm_up(args.threads)
     for n in (int(s) for s in args.sizes.split(",")):
-        print(profile(n), flush=True)
+        print(profile(n, args.threads), flush=True)
 
 
 if __name__ == "__main__":
