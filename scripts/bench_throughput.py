@@ -6,6 +6,11 @@ Computes the same samples (stage 0, the given level) in this process and with
 pools of 1..--max-workers spawned workers, prints samples per second and the
 speed-up over serial, and checks the samples are identical. Pool start-up
 (spawning, imports, JIT loading) is timed separately, not in the throughput.
+The FFT plans are those a study uses for the level (its grid and the coarse
+grid): measured once per machine for the solver threads, from the wisdom
+file in the user cache directory (``rough_uq.study.fft_wisdom``); with
+``ROUGHUQ_FFTW_WISDOM=estimate`` they are ``FFTW_ESTIMATE`` plans, as in a
+study then.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import numpy as np  # noqa: E402
 
 from rough_uq.study.config import load_config  # noqa: E402
 from rough_uq.study.executors import PoolExecutor, SerialExecutor  # noqa: E402
+from rough_uq.study.fft_wisdom import prepare_wisdom  # noqa: E402
 from rough_uq.study.pipeline import build_model  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -48,10 +54,13 @@ def main() -> None:
     model = build_model(load_config(args.config))
     if args.threads is not None:
         model = dataclasses.replace(model, threads=args.threads)
+    grids = sorted({model.grid(args.level), model.grid(max(args.level - 1, 0))})
+    model = dataclasses.replace(model, fft_wisdom=prepare_wisdom(grids, threads=model.threads, note=print))
     indices = np.arange(args.samples)
     n = model.grid(args.level)
+    plans = "FFTW_ESTIMATE" if model.fft_wisdom is None else "measured"
     print(f"roughuq throughput, {date.today()}, {os.cpu_count()} cores, grid {n}x{n} (level {args.level}), "
-          f"{args.samples} samples, solver threads {model.threads}")
+          f"{args.samples} samples, solver threads {model.threads}, {plans} FFT plans")
     serial = SerialExecutor()
     measure(serial, model, args.level, indices[:1])  # JIT and FFT plans, as a pool worker's start-up
     base, reference = measure(serial, model, args.level, indices)
