@@ -249,6 +249,32 @@ def test_the_uniform_start_is_displaced_without_a_transform(monkeypatch, precond
         fft.use_wisdom(None)
 
 
+@pytest.mark.parametrize("n", [64, 256, 512])
+def test_small_grids_run_their_passes_on_one_thread(monkeypatch, n):
+    # Waking a second numba thread costs more than a pass on grids below
+    # PARALLEL_PASS_MIN_NODES: their passes run on one thread whatever `threads`
+    # says; larger grids use the threads asked for (as many as numba has), and
+    # the caller's numba thread count is restored afterwards.
+    import numba
+
+    from rough_uq.physics import solver as solver_module
+
+    seen = []
+    gap_pass = solver_module._gap_pass
+
+    def recorded(*args):
+        seen.append(numba.get_num_threads())
+        return gap_pass(*args)
+
+    monkeypatch.setattr(solver_module, "_gap_pass", recorded)
+    before = numba.get_num_threads()
+    solution = solve_contact(random_surface(n, seed=3), system_size=L, mean_pressure=1.0, threads=2)
+    assert solution.converged
+    expected = 1 if n * n < solver_module.PARALLEL_PASS_MIN_NODES else min(2, numba.config.NUMBA_NUM_THREADS)
+    assert set(seen) == {expected}
+    assert numba.get_num_threads() == before
+
+
 @pytest.mark.parametrize("kind", ["single_node", "unrelated_surface", "finer_grid"])
 def test_poor_warm_starts_still_converge_to_the_same_solution(kind):
     n = 64

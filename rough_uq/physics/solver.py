@@ -161,6 +161,17 @@ __all__ = ["ContactSolution", "solve_contact", "resample_pressure"]
 #: sums vectorise; no assumptions about NaN, infinities or signed zeros.
 _FASTMATH = {"reassoc"}
 
+#: The smallest grid (in nodes) whose fused passes run on ``threads`` numba
+#: threads; smaller grids run them on one. With two threads a parallel pass
+#: cost some 45 us more per call on the development machine (the second
+#: thread sleeps between passes, ``OMP_WAIT_POLICY=PASSIVE``, and waking it
+#: takes that long): at 128^2 and 256^2 a pass took 50-60 us instead of 6-20 us
+#: on one thread, and a quickstart sample at 256^2 twice as long (21-26 against
+#: 45-50 samples/s, ``scripts/bench_throughput.py --threads 2``). At 512^2 it
+#: is even (12.2-13.0 samples/s against 13.2 with one-thread passes); at 1024^2
+#: every pass gains or ties (``scripts/profile_solver.py --threads 2``).
+PARALLEL_PASS_MIN_NODES = 512 * 512
+
 #: Range of the dimensionless load ``mean_pressure * L / (E* * s_rms)`` (module docstring).
 _MIN_LOAD = float(np.finfo(np.float64).tiny)
 _MAX_LOAD = 1e100
@@ -619,7 +630,9 @@ def solve_contact(
         that leaves no descent direction (e.g. all pressure on one node) is
         replaced by uniform pressure (counted in ``n_restarts``).
     threads : int, optional
-        FFTW threads.
+        FFTW threads, and numba threads of the fused passes on grids of at
+        least :data:`PARALLEL_PASS_MIN_NODES` nodes (on smaller grids a pass
+        takes less time than waking a second thread; it runs on one).
     precondition : bool, optional
         Precondition the conjugate gradient with the inverse Westergaard
         operator restricted to the contact set (module docstring). ``False``
@@ -649,7 +662,7 @@ def solve_contact(
     ops = _Operators.build(s, load, threads=threads, precondition=precondition)
     state = _State.start(ops, p0, precondition=precondition)
     previous_threads = numba.get_num_threads()
-    numba.set_num_threads(min(int(threads), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(_pass_threads(threads, s.size))
     try:
         status = _iterate(ops, state, precondition=precondition, tol=tol, max_iter=max_iter)
         n_iter_first = state.n_iter
@@ -674,6 +687,13 @@ def solve_contact(
         path=path,
         n_iter_plain=n_iter_plain,
     )
+
+
+def _pass_threads(threads: int, n_nodes: int) -> int:
+    """numba threads of the fused passes of a solve on ``n_nodes`` nodes (:data:`PARALLEL_PASS_MIN_NODES`)."""
+    if n_nodes < PARALLEL_PASS_MIN_NODES:
+        return 1
+    return min(int(threads), numba.config.NUMBA_NUM_THREADS)
 
 
 def _dimensionless_load(mean_pressure, system_size, e_star, s_rms, *, n_nodes: int) -> float:
