@@ -2,10 +2,10 @@
 
 Solves the benchmark surface of ``scripts/bench_solver.py`` (classic setting,
 SPEC section 6, load 0.1 E* sqrt(m2), tol 1e-8, one thread unless
-``--threads`` says otherwise, measured FFT plans) with every FFT call and every fused pass of
-:mod:`rough_uq.physics.solver` wrapped in a timer, and prints milliseconds per
-iteration by component, next to a hot-cache double-precision FFT pair of the
-same plan (the unit of the per-iteration target of ``bench_solver.py``).
+``--threads`` says otherwise, measured FFT plans) with every FFT call and
+every fused pass of :mod:`rough_uq.physics.solver` wrapped in a timer, and
+prints milliseconds per iteration by component, next to a hot-cache
+double-precision FFT pair of the same plan (the unit of the per-iteration target of ``bench_solver.py``).
 
 The point: the preconditioned iteration needs five half transforms in
 single precision (the preconditioner ``M r``, the transform of the search
