@@ -13,6 +13,7 @@ from rough_uq.physics.reference import (
     westergaard_full_contact_pressure,
     westergaard_pressure,
 )
+from rough_uq.physics import solver as solver_module
 from rough_uq.physics.solver import resample_pressure, solve_contact
 
 L = 1.0
@@ -193,12 +194,35 @@ def test_solutions_own_their_arrays(precondition):
     # The solver iterates in the buffers of cached FFT plans (the pressure in
     # the input, the gap over the displacement): a returned solution must not
     # change when the next solve on the same grid reuses them.
+    # The fields are written into the solve's own work arrays (the reference
+    # pressure and displacement, the scaled heights): they must not share
+    # memory with each other or with the caller's heights, which stay as given.
     n = 32
-    first = solve_contact(random_surface(n, seed=1), system_size=L, mean_pressure=0.5, precondition=precondition)
-    kept = {name: getattr(first, name).copy() for name in ("pressure", "displacement", "gap")}
+    heights = random_surface(n, seed=1)
+    given = heights.copy()
+    first = solve_contact(heights, system_size=L, mean_pressure=0.5, precondition=precondition)
+    names = ("pressure", "displacement", "gap")
+    kept = {name: getattr(first, name).copy() for name in names}
     solve_contact(random_surface(n, seed=2), system_size=L, mean_pressure=2.0, precondition=precondition)
     for name, value in kept.items():
         np.testing.assert_array_equal(getattr(first, name), value, err_msg=name)
+    np.testing.assert_array_equal(heights, given)
+    arrays = [heights] + [getattr(first, name) for name in names]
+    assert not any(np.shares_memory(a, b) for i, a in enumerate(arrays) for b in arrays[i + 1 :])
+
+
+@pytest.mark.parametrize("n", [2, 8, 64, 130])
+def test_single_precision_kernels_round_the_double_ones(n):
+    # The solver's kernels of K and M = K^-1, divided by N and rounded to single
+    # precision in one compiled pass, must be the numpy expressions' numbers, bit for bit.
+    kernel = westergaard_kernel(n, system_size=1.0)
+    single = np.empty(kernel.shape, dtype=np.float32)
+    inverse = np.empty_like(single)
+    solver_module._single_kernels(kernel, float(n * n), single, inverse)
+    expected_inverse = np.divide(1.0, kernel, out=np.zeros_like(kernel), where=kernel > 0)
+    np.testing.assert_array_equal(single, (kernel / (n * n)).astype(np.float32))
+    np.testing.assert_array_equal(inverse, (expected_inverse / (n * n)).astype(np.float32))
+    assert inverse[0, 0] == 0.0 and np.all(inverse.ravel()[1:] > 0)
 
 
 @pytest.mark.parametrize("precondition", [True, False])
@@ -208,7 +232,6 @@ def test_the_uniform_start_is_displaced_without_a_transform(monkeypatch, precond
     # the solutions must be the same bits as with the transform: on estimated and on
     # measured plans (grids 32-128; 256 is estimated in both), random surfaces, loads, units.
     from rough_uq.physics import fft
-    from rough_uq.physics import solver as solver_module
 
     apply = HalfSpace.apply
     applied = []
@@ -257,7 +280,6 @@ def test_small_grids_run_their_passes_on_one_thread(monkeypatch, n):
     # the caller's numba thread count is restored afterwards.
     import numba
 
-    from rough_uq.physics import solver as solver_module
 
     seen = []
     gap_pass = solver_module._gap_pass

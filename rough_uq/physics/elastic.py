@@ -42,9 +42,12 @@ def westergaard_kernel(n: int, *, system_size: float, e_star: float = 1.0) -> np
         ``2 / (E* |q|)`` in the rfft layout, zero at ``q = 0``.
     """
     k0, k1 = rfft_wavenumbers(n)
-    q = (2.0 * np.pi / system_size) * np.sqrt(k0**2 + k1**2)
-    kernel = np.zeros_like(q)
-    np.divide(2.0 / e_star, q, out=kernel, where=q > 0)
+    # Built in place in one array (first use of fresh memory is what costs at large grids):
+    # kernel = (2 / E*) / q with q = (2 pi / L) sqrt(k0^2 + k1^2), and zero where q = 0.
+    kernel = k0**2 + k1**2
+    np.sqrt(kernel, out=kernel)
+    kernel *= 2.0 * np.pi / system_size
+    np.divide(2.0 / e_star, kernel, out=kernel, where=kernel > 0)
     return kernel
 
 
