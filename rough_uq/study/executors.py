@@ -11,7 +11,7 @@ Threads
 -------
 Each solve uses the config's ``solver.threads`` FFTW/numba threads in every
 executor (changing the thread count may change the rounding of FFTs and of
-parallel reductions, so it is fixed per study). The pool defaults to
+parallel reductions: keep it fixed for bit-identical reruns). The pool defaults to
 ``cores // threads`` worker processes, so workers do not oversubscribe the
 cores; workers are told ``OMP_NUM_THREADS`` (and the BLAS equivalents) =
 ``threads`` and ``OMP_WAIT_POLICY=PASSIVE`` (FFTW's threads and numba's
