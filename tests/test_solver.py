@@ -280,7 +280,6 @@ def test_small_grids_run_their_passes_on_one_thread(monkeypatch, n):
     # the caller's numba thread count is restored afterwards.
     import numba
 
-
     seen = []
     gap_pass = solver_module._gap_pass
 

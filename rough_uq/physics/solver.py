@@ -432,9 +432,9 @@ def _step(w, p, t, gbar, scale, tau, tau_overlap, p_ref=None, increment=None, ac
 @numba.njit(cache=True)
 def _single_kernels(kernel, n_nodes, kernel_single, inverse=None):  # pragma: no cover - compiled
     # kernel_single <- kernel / N and (``inverse`` given) inverse <- (1 / kernel) / N, zero at the zero mode
-    # (where kernel is zero), rounded to single precision. The same IEEE operations as the numpy expressions
-    # (kernel / N).astype(float32) and so on, in one pass without grid-sized temporaries: at large grids the
-    # first use of fresh memory costs more than the arithmetic.
+    # (where kernel is zero), rounded to single precision: the same IEEE operations as the numpy expressions
+    # (kernel / N).astype(float32) and ((1 / kernel) / N).astype(float32), in one pass without grid-sized
+    # temporaries (at large grids the first use of fresh memory costs more than the arithmetic).
     n0, n1 = kernel.shape
     for i in range(n0):
         for j in range(n1):
