@@ -9,10 +9,13 @@ run, so the ratios are meaningful even where the absolute times are not:
 * FFT floor: the time of one double-precision real FFT pair (rfft2 + irfft2,
   median over batches) of every implementation at hand on the same grid and
   threads: pyFFTW with estimated, measured and patient plans (patient up to
-  2048^2), ``scipy.fft`` and ``numpy.fft``; the fastest is the floor, and the
-  solver's time per iteration is printed over it (target: at most 2.0 at
-  1024^2 and 2048^2). The solver is timed with measured plans from wisdom, as
-  studies use it (``rough_uq.study.fft_wisdom``), and once with ``FFTW_ESTIMATE``
+  2048^2), ``scipy.fft`` and ``numpy.fft``, each measured twice, before and
+  after the solver's timed solve, and planned afresh each time (a patient
+  plan is only as good as the timings it was chosen by); the fastest of all
+  is the floor, and the solver's time per iteration is printed over it
+  (target: at most 2.0 at 1024^2 and 2048^2). The solver is timed with
+  measured plans from wisdom, as studies use it
+  (``rough_uq.study.fft_wisdom``), and once with ``FFTW_ESTIMATE``
   plans for comparison; the process's peak resident memory is printed after
   each grid;
 * solver: iterations, seconds per solve and per iteration, the time of one real
@@ -145,7 +148,9 @@ class GridRow:
     plain_iteration_over_transforms: float
     plain_solve_over_fft: float
     plain_converged: bool
-    floor: dict[str, float]
+    floor: dict[str, float]  # the faster of the two measurements of each implementation
+    floor_before: dict[str, float]  # measured before the solve
+    floor_after: dict[str, float]  # and after it
     floor_name: str
     floor_seconds: float
     iteration_over_floor: float
@@ -297,11 +302,14 @@ def fft_floor(n: int, threads: int) -> dict[str, float]:
     pyFFTW with a freshly measured plan (FFTW_MEASURE, then FFTW_PATIENT) and an
     estimated one, ``scipy.fft`` (pocketfft, ``workers=threads``) and
     ``numpy.fft`` (one thread); the floor of the per-iteration target is the
-    fastest of them.
+    fastest of them. Every call plans afresh: FFTW's wisdom is forgotten inside
+    (and restored after), so that no earlier plan, the solver's or the floor's
+    own, stands in for an estimated or measured one.
     """
     x = np.random.default_rng(0).standard_normal((n, n))
     times = {}
     with _wisdom_kept():
+        pyfftw.forget_wisdom()
         for effort in ("FFTW_ESTIMATE", "FFTW_MEASURE", "FFTW_PATIENT"):
             if effort == "FFTW_PATIENT" and n > 2048:
                 continue  # planning alone would take many minutes
@@ -454,8 +462,7 @@ def run_grid(
 ) -> tuple[GridRow, WarmRow, PeerRow | None]:
     """All measurements of one grid."""
     spectrum = reference_spectrum()
-    floor = fft_floor(n, args.threads)
-    floor_name = min(floor, key=floor.get)
+    floor_before = fft_floor(n, args.threads)
     # Measured plans, as a study uses them (rough_uq.study.fft_wisdom); planning outside the timings.
     # The surfaces are drawn with them too, so that sample_coupled (below) draws the same bits.
     wisdom = measure_plans([n, n // 2], threads=args.threads)
@@ -466,6 +473,10 @@ def run_grid(
     cold, cold_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats)
     peak_rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     per_iteration = cold_timing.seconds / max(cold_timing.n_iter, 1)
+    # The floor again, on the other side of the solve: the machine's speed drifts within minutes.
+    floor_after = fft_floor(n, args.threads)
+    floor = {name: min(seconds, floor_after[name]) for name, seconds in floor_before.items()}
+    floor_name = min(floor, key=floor.get)
     if n <= args.plain_max:
         _, plain_timing = timed_solve(
             heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats, precondition=False
@@ -502,6 +513,8 @@ def run_grid(
         plain_solve_over_fft=plain_timing.seconds / fft_pair,
         plain_converged=plain_timing.converged,
         floor=floor,
+        floor_before=floor_before,
+        floor_after=floor_after,
         floor_name=floor_name,
         floor_seconds=floor[floor_name],
         iteration_over_floor=per_iteration / floor[floor_name],
@@ -650,10 +663,12 @@ def render(grid_rows: list[GridRow], warm_rows: list[WarmRow], peer_rows: list[P
                 for r in grid_rows
             ],
         ),
-        "(iter/fastest: median over the repeats; 1st solve: the same for the first of them, which also pays a"
+        "(each implementation: the faster of its measurements before and after the timed solve, below;"
+        " iter/fastest: median over the repeats; 1st solve: the same for the first of them, which also pays a"
         " process's one-off costs, e.g. the first touch of fresh memory; solve est./meas.: the preconditioned solve"
         " with FFTW_ESTIMATE plans and with measured plans, as studies use them; peak RSS: the process's peak so"
         " far, grids in increasing order)",
+        *(floor_drift(r) for r in grid_rows),
     ]
     if peer_rows:
         rows = []
@@ -674,6 +689,16 @@ def render(grid_rows: list[GridRow], warm_rows: list[WarmRow], peer_rows: list[P
         ]
     parts += ["", "Targets (issue 14)", *targets(grid_rows, peer_rows)]
     return "\n".join(parts)
+
+
+def floor_drift(row: GridRow) -> str:
+    """The fastest pair of each of the two floor measurements of a grid, as one line."""
+    before = min(row.floor_before, key=row.floor_before.get)
+    after = min(row.floor_after, key=row.floor_after.get)
+    return (
+        f"  {row.n}^2: fastest before the solve {row.floor_before[before]:.3e} s ({before}), "
+        f"after it {row.floor_after[after]:.3e} s ({after})"
+    )
 
 
 def targets(grid_rows: list[GridRow], peer_rows: list[PeerRow]) -> list[str]:
