@@ -326,6 +326,8 @@ def test_resample_pressure_restricts_and_prolongs():
     np.testing.assert_allclose(resample_pressure(constant, 8), 2.0)
     with pytest.raises(InvalidParameterError, match="power of two"):
         resample_pressure(p, 24)
+    with pytest.raises(InvalidParameterError, match="^pressure"):
+        resample_pressure(np.ones(4), 8)
 
 
 @pytest.mark.parametrize(
@@ -342,6 +344,11 @@ def test_resample_pressure_restricts_and_prolongs():
         ({"max_iter": 0}, "max_iter"),
         ({"initial_pressure": -np.ones((8, 8))}, "initial_pressure"),
         ({"initial_pressure": np.zeros((8, 8))}, "initial_pressure"),
+        ({"initial_pressure": np.ones((6, 6))}, "initial_pressure"),
+        ({"initial_pressure": np.ones((8, 4))}, "initial_pressure"),
+        ({"threads": 0}, "threads"),
+        ({"threads": 1.5}, "threads"),
+        ({"threads": True}, "threads"),
     ],
 )
 def test_invalid_input_names_the_parameter(kwargs, name):

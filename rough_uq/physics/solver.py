@@ -472,12 +472,11 @@ def resample_pressure(pressure: np.ndarray, n: int) -> np.ndarray:
         raise InvalidParameterError("n", n, "a positive integer grid size")
     field = np.asarray(pressure, dtype=np.float64)
     if field.ndim != 2 or field.shape[1] != field.shape[0] or field.size == 0:
-        raise InvalidParameterError("initial_pressure", f"array of shape {field.shape}", "a non-empty square 2-D array")
+        raise InvalidParameterError("pressure", f"array of shape {field.shape}", "a non-empty square 2-D array")
     m = field.shape[0]
-    ratio = max(m, n) / min(m, n)
-    if ratio != 2 ** round(math.log2(ratio)) or max(m, n) % min(m, n):
+    if not _differ_by_power_of_two(m, n):
         raise InvalidParameterError(
-            "initial_pressure", f"grid {m} x {m}", f"a grid whose size differs from {n} by a power of two"
+            "pressure", f"grid {m} x {m}", f"a grid whose size differs from {n} by a power of two"
         )
     while field.shape[0] > n:
         for axis in (0, 1):
@@ -493,7 +492,13 @@ def resample_pressure(pressure: np.ndarray, n: int) -> np.ndarray:
     return np.ascontiguousarray(field)
 
 
-def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter) -> np.ndarray:
+def _differ_by_power_of_two(m: int, n: int) -> bool:
+    """Whether grid sizes ``m`` and ``n`` (positive) differ by a factor ``2**k``, ``k >= 0``."""
+    ratio = max(m, n) / min(m, n)
+    return ratio == 2 ** round(math.log2(ratio)) and max(m, n) % min(m, n) == 0
+
+
+def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, threads) -> np.ndarray:
     s = np.asarray(heights)
     if s.ndim != 2 or s.shape[0] != s.shape[1]:
         raise InvalidParameterError("heights", f"array of shape {s.shape}", "a square n x n array")
@@ -512,6 +517,8 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter) ->
         raise InvalidParameterError("tol", tol, "a number in (0, 1)")
     if not (isinstance(max_iter, (int, np.integer)) and max_iter >= 1):
         raise InvalidParameterError("max_iter", max_iter, "an integer >= 1")
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise InvalidParameterError("threads", threads, "an integer >= 1")
     return s
 
 
@@ -534,6 +541,11 @@ def _initial_guess(initial_pressure, n: int) -> np.ndarray | None:
     # guesses near the overflow (1e308) or underflow (1e-320) thresholds.
     p0 = p0 / peak
     if p0.shape != (n, n):
+        if p0.shape[0] != p0.shape[1] or not _differ_by_power_of_two(p0.shape[0], n):
+            raise InvalidParameterError(
+                "initial_pressure", f"grid {p0.shape[0]} x {p0.shape[1]}",
+                f"a square grid whose size is {n} or differs from {n} by a power of two",
+            )
         p0 = resample_pressure(p0, n)
     if not p0.sum() > 0:
         raise InvalidParameterError("initial_pressure", "all zeros", "a field with some positive pressure")
@@ -664,11 +676,11 @@ def solve_contact(
         For non-square, odd-sized or non-finite heights (or subnormal RMS
         height), non-positive ``mean_pressure`` (zero load included, see
         above), ``system_size`` or ``e_star``, a dimensionless load out of
-        range (see ``mean_pressure``), or an invalid ``initial_pressure``
-        (negative, all zero, not square, or from a grid whose size does not
-        differ from ``n`` by a power of two).
+        range (see ``mean_pressure``), ``threads`` not an integer >= 1, or
+        an invalid ``initial_pressure`` (negative, all zero, not square, or
+        from a grid whose size does not differ from ``n`` by a power of two).
     """
-    s = _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter)
+    s = _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, threads)
     p0 = _initial_guess(initial_pressure, s.shape[0])
     # Scaled units (module docstring): heights with zero mean and unit RMS, E* = 1, L = 1.
     # From here on heights, pressures, gaps and the load are in these units.
