@@ -202,7 +202,8 @@ def area_above(pressure: np.ndarray, critical_pressure: float) -> float:
     pressure : array_like, shape (n0, n1)
         Contact pressure (unit of ``E*``), finite.
     critical_pressure : float
-        Threshold (unit of ``E*``), finite and ``>= 0``; 0 gives :func:`contact_area`.
+        Threshold (unit of ``E*``), finite and ``>= 0``; 0 gives the node count
+        fraction, :func:`contact_area` with ``estimator="nodes"``.
 
     Returns
     -------
@@ -292,7 +293,7 @@ def label_clusters(contact: np.ndarray, *, connectivity: int = 4) -> np.ndarray:
         has one label.
     """
     contact = _contact_map("contact", contact)
-    labels, component, n_components = _periodic_components(contact, connectivity)
+    labels, component, _ = _periodic_components(contact, connectivity)
     lookup = np.zeros(component.size + 1, dtype=np.int64)
     lookup[1:] = component + 1
     return lookup[labels]
