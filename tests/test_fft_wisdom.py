@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
+
 import pyfftw
 import pytest
 
 from rough_uq.physics import fft as fft_module
 from rough_uq.study.executors import SerialExecutor
-from rough_uq.study.fft_wisdom import load_wisdom, prepare_wisdom, wisdom_entries
+from rough_uq.study.fft_wisdom import _save, load_wisdom, prepare_wisdom, wisdom_entries
 from rough_uq.study.pipeline import Study, run_screening
 from rough_uq.study.config import config_from_dict
 from rough_uq.study.progress import Progress
@@ -18,7 +20,7 @@ from tests.study_configs import tiny_config
 @pytest.fixture
 def fresh_wisdom(tmp_path, monkeypatch):
     # A machine that has measured nothing yet: no file, nothing in this process.
-    path = tmp_path / "wisdom.pickle"
+    path = tmp_path / "wisdom.json"
     monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", str(path))
     pyfftw.forget_wisdom()
     yield path
@@ -68,3 +70,35 @@ def test_a_screening_says_when_it_measures_plans_and_not_when_they_are_known(fre
     pyfftw.forget_wisdom()
     run_screening(Study(config, MemoryStore(qoi_names=config.qoi_names)), executor=SerialExecutor(), progress=again)
     assert not [text for text in again.notes if text.startswith("measuring FFT plans")]
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        b"\x80\x04\x95 not json",  # e.g. the pickle of earlier versions
+        b"{\"format\": \"roughuq-fftw-wisdom\", \"version\": 2, \"wisdom\": []}",
+        b"{\"format\": \"roughuq-fftw-wisdom\", \"version\": 1, \"wisdom\": [1, 2]}",
+        b"[]",
+        b"\xff\xfe",
+    ],
+)
+def test_a_file_that_is_not_wisdom_of_this_version_is_ignored_and_replaced(fresh_wisdom, content):
+    fresh_wisdom.write_bytes(content)
+    assert load_wisdom(fresh_wisdom) is None
+    notes: list[str] = []
+    wisdom = prepare_wisdom([16], threads=1, note=notes.append)
+    assert len(notes) == 1 and load_wisdom(fresh_wisdom) == wisdom
+
+
+def test_the_wisdom_file_is_json_and_round_trips_every_byte(fresh_wisdom):
+    wisdom = (b"(fftw-3.3.10 fftw_wisdom)\n", bytes(range(256)), b"")
+    _save(fresh_wisdom, wisdom)
+    assert json.loads(fresh_wisdom.read_text())["format"] == "roughuq-fftw-wisdom"
+    assert load_wisdom(fresh_wisdom) == wisdom
+
+
+def test_a_failed_write_leaves_no_temporary_file(tmp_path):
+    target = tmp_path / "wisdom.json"
+    target.mkdir()  # os.replace cannot put a file there
+    _save(target, (b"(fftw-3.3.10 fftw_wisdom)\n",))
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["wisdom.json"]

@@ -7,9 +7,11 @@ there and hands the returned bytes to every worker with the contact model, so
 that all processes of a study use the same plans (bit-identical samples).
 
 Where the file lives: ``$ROUGHUQ_FFTW_WISDOM`` if set, else
-``$XDG_CACHE_HOME/roughuq/fftw-wisdom-<host>.pickle`` (``~/.cache`` when
+``$XDG_CACHE_HOME/roughuq/fftw-wisdom-<host>.json`` (``~/.cache`` when
 ``XDG_CACHE_HOME`` is unset); one file per host name, since wisdom describes one
-machine. ``ROUGHUQ_FFTW_WISDOM=estimate`` turns measured planning off
+machine. The file is JSON (``format``, ``version`` and FFTW's own text export
+of the double, single and long-double wisdom): reading it runs no code, unlike
+a pickle a stranger could have put in the cache directory. ``ROUGHUQ_FFTW_WISDOM=estimate`` turns measured planning off
 (``FFTW_ESTIMATE`` plans, nothing measured or written). An unreadable or
 corrupt file is ignored and replaced. The file is written only when it
 gains plans, and the study's progress says when plans are being measured
@@ -18,8 +20,8 @@ gains plans, and the study's progress says when plans are being measured
 
 from __future__ import annotations
 
+import json
 import os
-import pickle
 import platform
 import tempfile
 from collections.abc import Callable, Iterable
@@ -42,32 +44,45 @@ def wisdom_path() -> Path | None:
         return Path(setting)
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     host = "".join(c if c.isalnum() or c in "-_." else "_" for c in platform.node()) or "host"
-    return cache / "roughuq" / f"fftw-wisdom-{host}.pickle"
+    return cache / "roughuq" / f"fftw-wisdom-{host}.json"
+
+
+#: ``format`` and ``version`` of the wisdom file; a file with others is ignored (and replaced).
+_FORMAT, _VERSION = "roughuq-fftw-wisdom", 1
 
 
 def load_wisdom(path: Path) -> tuple[bytes, ...] | None:
-    """The wisdom stored at ``path``; ``None`` if missing or unreadable."""
+    """The wisdom stored at ``path``; ``None`` if missing, unreadable or not a wisdom file of this version."""
     try:
-        with open(path, "rb") as handle:
-            wisdom = pickle.load(handle)
-    except (OSError, pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError):
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):  # JSON and Unicode errors are ValueErrors
         return None
-    if not (isinstance(wisdom, tuple) and all(isinstance(part, bytes) for part in wisdom)):
+    if not (isinstance(data, dict) and data.get("format") == _FORMAT and data.get("version") == _VERSION):
         return None
-    return wisdom
+    parts = data.get("wisdom")
+    if not (isinstance(parts, list) and all(isinstance(part, str) for part in parts)):
+        return None
+    try:
+        # FFTW exports wisdom as text; latin-1 maps every byte to one character and back.
+        return tuple(part.encode("latin-1") for part in parts)
+    except UnicodeEncodeError:
+        return None
 
 
 def _save(path: Path, wisdom: tuple[bytes, ...]) -> None:
     # Atomic replacement: concurrent studies on one machine never read half a file.
+    text = json.dumps({"format": _FORMAT, "version": _VERSION, "wisdom": [part.decode("latin-1") for part in wisdom]})
+    temporary = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        with os.fdopen(handle, "wb") as out:
-            pickle.dump(wisdom, out)
+        with os.fdopen(handle, "w", encoding="utf-8") as out:
+            out.write(text)
         os.replace(temporary, path)
     except OSError:
         # A read-only cache costs only the measuring time of the next run.
-        return
+        if temporary is not None:
+            Path(temporary).unlink(missing_ok=True)
 
 
 def prepare_wisdom(
