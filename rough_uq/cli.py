@@ -547,7 +547,9 @@ def _mlmc_only_options() -> list[Callable[[Any], Any]]:
     ]
 
 
-def _target_of(tol: Sequence[str], tol_var: Sequence[str], tol_cdf: str | None, **cdf_options: str | None) -> str | None:
+def _target_of(
+    tol: Sequence[str], tol_var: Sequence[str], tol_cdf: str | None, **cdf_options: str | None
+) -> str | None:
     """``variance``, ``cdf`` or None (the mean) from the tolerance options; at most one kind may be given."""
     options = (("--tol", tol), ("--tol-var", tol_var), ("--tol-cdf", tol_cdf))
     given = [(name, value) for name, value in options if value]
@@ -648,7 +650,10 @@ def _config_creating_study(opts: _RunOptions, *, may_create: bool = True) -> Any
 
 def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi: str | None,
                 thresholds: str | None, probabilities: str | None, opts: _RunOptions) -> None:
-    """``roughuq mlmc --tol-var`` / ``--tol-cdf``: run the target, print it as `roughuq report` does, exit 3 if missed."""
+    """``roughuq mlmc --tol-var`` / ``--tol-cdf``: run the target, print it as `roughuq report` does.
+
+    Exits with status 3 if the tolerance was missed.
+    """
     from rough_uq.study.pipeline import cdf_request, open_existing_study, parse_tolerances, run_target
 
     grid, wanted = _thresholds(thresholds), _probabilities(probabilities)
@@ -891,7 +896,8 @@ def _parse_indices(text: str) -> Any:
             first = int(start)
             last = int(stop) if sep else first + 1
         except ValueError:
-            raise InvalidParameterError("--indices", text, "ranges A:B (half-open) or indices, comma-separated") from None
+            allowed = "ranges A:B (half-open) or indices, comma-separated"
+            raise InvalidParameterError("--indices", text, allowed) from None
         if first < 0 or last <= first:
             raise InvalidParameterError("--indices", text, "ranges A:B with 0 <= A < B")
         parts.append(np.arange(first, last))

@@ -235,7 +235,10 @@ def environment(argv: list[str]) -> dict[str, object]:
         "command": shlex.join([os.path.basename(sys.executable)] + argv),
     }
     tamaas = import_tamaas()
-    info["tamaas"] = "not installed" if tamaas is None else f"{tamaas.__version__} (backend {tamaas.TamaasInfo.backend})"
+    if tamaas is None:
+        info["tamaas"] = "not installed"
+    else:
+        info["tamaas"] = f"{tamaas.__version__} (backend {tamaas.TamaasInfo.backend})"
     return info
 
 
@@ -316,7 +319,9 @@ def fft_floor(n: int, threads: int) -> dict[str, float]:
             plan = RealFFT((n, n), threads=threads, flags=(effort,))
             plan.real[...] = x
             times[f"pyfftw {effort[5:].lower()}"] = time_pair(lambda plan=plan: (plan.forward(), plan.inverse()))
-    times["scipy.fft"] = time_pair(lambda: scipy.fft.irfft2(scipy.fft.rfft2(x, workers=threads), s=(n, n), workers=threads))
+    times["scipy.fft"] = time_pair(
+        lambda: scipy.fft.irfft2(scipy.fft.rfft2(x, workers=threads), s=(n, n), workers=threads)
+    )
     times["numpy.fft"] = time_pair(lambda: np.fft.irfft2(np.fft.rfft2(x), s=(n, n)))
     return times
 
@@ -470,7 +475,9 @@ def run_grid(
     fft_pair = time_fft_pair(n, args.threads)
     single_pair = time_fft_pair(n, args.threads, single=True, in_place=True)
     plain_single_pair = time_fft_pair(n, args.threads, single=True)
-    cold, cold_timing = timed_solve(heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats)
+    cold, cold_timing = timed_solve(
+        heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats
+    )
     peak_rss_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     per_iteration = cold_timing.seconds / max(cold_timing.n_iter, 1)
     # The floor again, on the other side of the solve: the machine's speed drifts within minutes.

@@ -19,7 +19,8 @@ as coarsest, and the coarsest useful level chosen from the data. Levels
 beyond ``--fit-levels`` check the limit at a resolution finer than any level
 the plan uses.
 
-    python scripts/classic_hierarchy.py --setting clusters --coarsest 96 --samples 40,40,40,30,12,4 --fit-levels 5 --tol 2
+    python scripts/classic_hierarchy.py --setting clusters --coarsest 96 \
+        --samples 40,40,40,30,12,4 --fit-levels 5 --tol 2
 
 Samples use their own stage of the study seed (``STAGE``), so they are
 independent of any study's screening and runs.
@@ -80,7 +81,9 @@ def compute(setting: str, model, samples: list[int], workers: int, known: dict |
         level = int(level)
         if level < len(samples):
             n = min(samples[level], len(rows["seconds"]))
-            results[level] = [(i, np.array(rows["fine"][i]), np.array(rows["coarse"][i]), rows["seconds"][i]) for i in range(n)]
+            results[level] = [
+                (i, np.array(rows["fine"][i]), np.array(rows["coarse"][i]), rows["seconds"][i]) for i in range(n)
+            ]
     tasks = [
         (setting, model, level, index)
         for level, n in enumerate(samples)
@@ -144,7 +147,10 @@ def analyse(data: dict, variants: tuple[str, ...], *, coarsest: int | None, tol:
 
 
 def reference(data: dict, variants: tuple[str, ...]) -> dict:
-    """Per variant, the telescoping estimate ``sum_l mean(Y_l)`` of ``E[Q]`` on the finest grid and its standard error."""
+    """Per variant, the telescoping estimate of ``E[Q]`` on the finest grid and its standard error.
+
+    The estimate is ``sum_l mean(Y_l)``.
+    """
     out = {}
     for v, name in enumerate(variants):
         means, variances = [], []
@@ -160,8 +166,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--setting", choices=sorted(SETTINGS), required=True)
     parser.add_argument("--samples", required=True, help="coupled samples per level, comma separated")
-    parser.add_argument("--fit-levels", type=int, default=None, help="levels used for the fits and plans (default: all)")
-    parser.add_argument("--tol", type=float, required=True, help="tolerance of the predicted MLMC plans (unit of the QoI)")
+    parser.add_argument(
+        "--fit-levels", type=int, default=None, help="levels used for the fits and plans (default: all)"
+    )
+    parser.add_argument(
+        "--tol", type=float, required=True, help="tolerance of the predicted MLMC plans (unit of the QoI)"
+    )
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--coarsest", type=int, default=None, help="grid of level 0 (default: the shipped config's)")
     parser.add_argument("--json", type=Path, default=None)
@@ -208,7 +218,8 @@ def _print(summary: dict) -> None:
         y = fine - np.array(summary["levels"][level]["coarse"])
         se = y.std(axis=0, ddof=1) / np.sqrt(len(y)) if len(y) > 1 else np.full(len(variants), np.nan)
         cells = "  ".join(
-            f"{name}: Q {fine[:, v].mean():7.2f}  Y {y[:, v].mean():+7.3f} ± {se[v]:.3f}" for v, name in enumerate(variants)
+            f"{name}: Q {fine[:, v].mean():7.2f}  Y {y[:, v].mean():+7.3f} ± {se[v]:.3f}"
+            for v, name in enumerate(variants)
         )
         print(f"  {grid:5d}^2 (N={len(fine):3d})  {cells}")
     print(f"\ntelescoping estimate on {summary['grids'][-1]}^2:")

@@ -36,7 +36,8 @@ while [ $# -gt 0 ]; do
         *) positional+=("$1"); shift ;;
     esac
 done
-[ ${#positional[@]} -ge 2 ] && [ ${#positional[@]} -le 4 ] || die "usage: loop_study.sh [OPTIONS] CONFIG TOL [STUDY] [CHUNK]"
+[ ${#positional[@]} -ge 2 ] && [ ${#positional[@]} -le 4 ] \
+    || die "usage: loop_study.sh [OPTIONS] CONFIG TOL [STUDY] [CHUNK]"
 config="${positional[0]}"; tol="${positional[1]}"; study="${positional[2]:-results.h5}"; chunk="${positional[3]:-20}"
 shards="${study%.h5}.shards"
 mkdir -p "$shards"
@@ -82,7 +83,8 @@ while true; do
     files=("$shards"/shard-*.h5)
     if [ ${#files[@]} -lt "$n" ]; then
         failed=$((failed + 1))
-        [ "$failed" -lt "$retries" ] || die "$retries rounds in a row had failed shards; fix and run the same command again"
+        [ "$failed" -lt "$retries" ] \
+            || die "$retries rounds in a row had failed shards; fix and run the same command again"
     else
         failed=0
     fi

@@ -45,7 +45,8 @@ from rough_uq.physics.fft import RealFFT, get_fft, measure_plans  # noqa: E402
 from rough_uq.physics.surface import sample_surface  # noqa: E402
 
 _PASSES = (
-    "_gap_pass", "_residual_pass", "_active_sum", "_direction", "_energy", "_multiply_energy", "_step", "multiply_spectrum"
+    "_gap_pass", "_residual_pass", "_active_sum", "_direction",
+    "_energy", "_multiply_energy", "_step", "multiply_spectrum",
 )
 
 

@@ -80,7 +80,8 @@ while [ $# -gt 0 ]; do
         *) positional+=("$1"); shift ;;
     esac
 done
-[ ${#positional[@]} -ge 2 ] && [ ${#positional[@]} -le 4 ] || die "usage: slurm_study.sh [OPTIONS] CONFIG TOL [STUDY] [CHUNK]"
+[ ${#positional[@]} -ge 2 ] && [ ${#positional[@]} -le 4 ] \
+    || die "usage: slurm_study.sh [OPTIONS] CONFIG TOL [STUDY] [CHUNK]"
 absolute() { case "$1" in /*) echo "$1" ;; *) echo "$PWD/$1" ;; esac; }
 config="$(absolute "${positional[0]}")"; tol="${positional[1]}"
 study="$(absolute "${positional[2]:-results.h5}")"; chunk="${positional[3]:-20}"
@@ -196,7 +197,8 @@ if ! plan="$("${ruq[@]}" mlmc --study "$study" --tol "$tol" --plan --shards "$ch
     exit 0
 fi
 if [ -z "$plan" ]; then
-    "${ruq[@]}" mlmc --study "$study" --tol "$tol" --quiet || [ $? -eq 3 ]  # everything is stored: the estimate (3: tolerance not met, result stored)
+    # Everything is stored, the estimate too (status 3: tolerance not met, result stored).
+    "${ruq[@]}" mlmc --study "$study" --tol "$tol" --quiet || [ $? -eq 3 ]
     exit 0
 fi
 

@@ -268,7 +268,11 @@ def _garbage(path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("damage", "message"),
-    [(_truncate, "truncated or damaged"), (_other_version, f"format version {FORMAT_VERSION + 1}"), (_garbage, "not an HDF5 file")],
+    [
+        (_truncate, "truncated or damaged"),
+        (_other_version, f"format version {FORMAT_VERSION + 1}"),
+        (_garbage, "not an HDF5 file"),
+    ],
     ids=["truncated", "other-version", "not-hdf5"],
 )
 def test_bad_study_files_get_one_line_and_stay_unchanged(screened, damage, message):

@@ -24,9 +24,9 @@ ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.e
 
 
 def _config(directory: Path) -> Path:
-    # Grids 16..64: an MLMC run to TOL takes about 20 s here (idle), long enough to interrupt after 3 s. The mean gap, not
-    # the contact area: its bias is small enough that grid.max_level reaches TOL (the CLI refuses an
-    # unreachable tolerance before the first sample).
+    # Grids 16..64: an MLMC run to TOL takes about 20 s here (idle), long enough to interrupt after 3 s.
+    # The mean gap, not the contact area: its bias is small enough that grid.max_level reaches TOL (the
+    # CLI refuses an unreachable tolerance before the first sample).
     config = tiny_config(
         surface={"system_size": 1.0, "wavenumbers": {"k_l": 1, "k_r": 2, "k_s": 16}, "hurst": 0.8, "rms_height": 1.0},
         grid={"coarsest": 16, "max_level": 2},

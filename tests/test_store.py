@@ -695,7 +695,8 @@ def test_stale_temporary_file_is_removed(tmp_path: Path) -> None:
 
 def test_store_and_report_do_not_import_the_solver() -> None:
     heavy = ("numba", "pyfftw", "rough_uq.physics.solver", "rough_uq.problem.sampler", "rough_uq.physics.fft")
-    code = f"import sys, rough_uq.study.store, rough_uq.report.summary; print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    imports = "import sys, rough_uq.study.store, rough_uq.report.summary"
+    code = f"{imports}; print(sorted(m for m in {heavy!r} if m in sys.modules))"
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
     assert out.stdout.strip() == "[]"

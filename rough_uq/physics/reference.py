@@ -99,7 +99,8 @@ def westergaard_pressure(
     inside = sin2_a - np.sin(phase) ** 2
     # cos(phase) changes sign between neighbouring patches; its absolute value
     # makes every patch (centred on x = j lambda) positive.
-    return np.where(inside > 0, 2 * mean_pressure / sin2_a * np.abs(np.cos(phase)) * np.sqrt(np.clip(inside, 0, None)), 0.0)
+    pressure = 2 * mean_pressure / sin2_a * np.abs(np.cos(phase)) * np.sqrt(np.clip(inside, 0, None))
+    return np.where(inside > 0, pressure, 0.0)
 
 
 def full_contact_pressure(

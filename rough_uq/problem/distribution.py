@@ -92,7 +92,8 @@ def estimate_target(
         raise InvalidParameterError("target", target, f"one of {', '.join(TARGETS)}")
     s = np.asarray(thresholds, dtype=float)
     width = _default_bandwidth(s) if bandwidth is None else bandwidth
-    return mlmc_cdf(sampler, thresholds=s, tol=float(np.asarray(tol).reshape(-1)[0]), bandwidth=width, qoi=qoi, **options)
+    tol_value = float(np.asarray(tol).reshape(-1)[0])
+    return mlmc_cdf(sampler, thresholds=s, tol=tol_value, bandwidth=width, qoi=qoi, **options)
 
 
 def variance(

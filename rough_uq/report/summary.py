@@ -146,7 +146,10 @@ def _not_converged(store: StudyStore) -> int:
 
 
 def is_locked_by_running_process(path: str | Path) -> bool:
-    """Whether a live process holds the study's lock (``<file>.lock`` names its pid, see :mod:`rough_uq.study.store`)."""
+    """Whether a live process holds the study's lock.
+
+    ``<file>.lock`` names its pid, see :mod:`rough_uq.study.store`.
+    """
     lock = Path(str(path) + ".lock")
     try:
         pid = int(lock.read_text().split()[0])

@@ -1388,7 +1388,10 @@ def _bound(value: float) -> float | None:
 
 
 def _distribution_record(cdf: Any, request: CdfRequest, diagnostics: list[Diagnostic]) -> DistributionRecord:
-    """Thresholds, monotone CDF with its band and the quantiles; a quantile the grid does not bracket is a diagnostic."""
+    """Thresholds, monotone CDF with its band and the quantiles.
+
+    A quantile the grid of thresholds does not bracket is a diagnostic.
+    """
     rows = []
     for p in request.probabilities:
         try:
@@ -1436,7 +1439,8 @@ def compute_shard(
     if out.exists():
         raise StudyFileError(f"shard {str(out)!r} already exists; merge or remove it first", out)
     if not 0 <= level <= study.config.grid.max_level:
-        raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level} (grid.max_level)")
+        allowed = f"an integer in 0..{study.config.grid.max_level} (grid.max_level)"
+        raise InvalidParameterError("--level", level, allowed)
     partial = out.with_name(f"{out.name}.partial-{os.getpid()}")
     indices = np.unique(np.asarray(indices, dtype=np.int64))
     shard_store = open_study(

@@ -29,7 +29,6 @@ samples, of the coarse one. Measured peak RSS of ``roughuq sample --workers
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
