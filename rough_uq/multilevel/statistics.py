@@ -921,9 +921,9 @@ def remaining_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     # rounds to 0 (alpha < 1.6e-16) and the division would be 0/0 or x/0.
     denominator = np.expm1(alpha * math.log(2.0))
     if np.any(~(denominator > 0)):
+        rates_text = ", ".join(f"{value:.3g}" for value in alpha.ravel())
         raise EstimationError(
-            f"the bias does not decay with the level (alpha = {alpha.tolist()}); no finest level can "
-            "meet a bias tolerance"
+            f"the bias does not decay with the level (alpha = {rates_text}); no finest level can meet a bias tolerance"
         )
     # A rate so small that the tail sum exceeds the float range is an infinite bias.
     with np.errstate(over="ignore"):
@@ -1573,7 +1573,7 @@ def _level_inputs(
     for level in range(finest_level + 1):
         row = _screened_row(statistics, level)
         if level < base:
-            pass
+            pass  # below the base level: no samples, V_l stays 0 (the cost is still filled in)
         elif level == base and base > 0:
             level_variances[level] = statistics.var_fine[row]
         elif variances is not None and level < len(variances):
