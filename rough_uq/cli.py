@@ -279,7 +279,9 @@ def validate(config_paths: Sequence[str]) -> None:
         except RoughUQError as exc:
             if len(config_paths) == 1:
                 raise
-            click.echo(f"error: {exc}", err=True)
+            # Several files: say which one (messages about the file itself name it already).
+            where = "" if str(config_path) in str(exc) else f"{config_path}: "
+            click.echo(f"error: {where}{exc}", err=True)
             n_bad += 1
             continue
         grids = [config.grid.n_at(level) for level in range(config.grid.max_level + 1)]

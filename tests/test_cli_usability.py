@@ -287,7 +287,12 @@ def test_validate_accepts_several_files_and_fails_if_any_is_bad(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("schema_version: 1\nseed: -1\n")
     result = run("validate", shipped[0], str(bad), expect=2)
-    assert ": valid" in result.stdout and result.stderr.startswith("error: ")
+    assert ": valid" in result.stdout and result.stderr.startswith(f"error: {bad}: ")
+    missing = tmp_path / "missing.yaml"
+    result = run("validate", str(bad), str(missing), expect=2)
+    errors = result.stderr.splitlines()
+    assert errors[0].startswith(f"error: {bad}: ") and errors[-1].startswith(f"error: {missing}: ")
+    assert f"{missing}: {missing}" not in result.stderr  # a file's own errors name it once
 
 
 def test_usage_and_help_say_what_the_commands_take():
