@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import yaml
 from rough_uq.study import config as config_module
 from rough_uq.study.config import (
     SOLVER_ARRAYS_PER_NODE,
+    SolverConfig,
     config_from_dict,
     config_from_stored_text,
     config_from_yaml_text,
@@ -417,3 +419,16 @@ def test_richardson_is_an_opt_in_estimation_setting() -> None:
     assert config_hash(extrapolated) == config_hash(config)
     data["estimation"] = {"richardson": "sometimes"}
     assert "estimation.richardson: " in _message(data)
+
+
+def test_solver_defaults_agree_in_the_config_the_public_problem_and_the_model():
+    # One default per setting, whichever door a study comes in by.
+    from rough_uq.problem.contact import ContactProblem
+    from rough_uq.problem.sampler import ContactModel
+
+    model = {item.name: item.default for item in dataclasses.fields(ContactModel)}
+    problem = {item.name: item.default for item in dataclasses.fields(ContactProblem)}
+    solver = SolverConfig()
+    assert model["tol"] == problem["solver_tol"] == solver.tol
+    for name in ("max_iter", "warm_start", "threads"):
+        assert model[name] == problem[name] == getattr(solver, name), name

@@ -152,7 +152,7 @@ class ContactModel:
     qoi_names: tuple[str, ...]
     qoi_scales: tuple[float, ...]
     seed: int
-    tol: float = 1e-8
+    tol: float = 1e-7  # these defaults are the config's (tests/test_config.py checks)
     max_iter: int = 10_000
     warm_start: bool = True
     threads: int = 1
