@@ -302,14 +302,15 @@ def validate(config_paths: Sequence[str]) -> None:
 def _warm_kernels(model: Any, *, quiet: bool = False) -> None:
     """Compile (or load from numba's disk cache) the solver and QoI kernels before anything is timed.
 
-    One coupled sample on a tiny copy of the model's grids runs every kernel
-    a sample uses. Loading cached kernels takes a fraction of a second; if it
-    takes longer (a fresh install compiles them), say so while it happens.
+    :func:`~rough_uq.problem.sampler.warm_up` runs every kernel a sample uses.
+    Loading cached kernels takes a fraction of a second; if it takes longer (a
+    fresh install compiles them), say so while it happens. Then the objects
+    made so far are frozen for the garbage collector (:func:`freeze_garbage`).
     """
-    import dataclasses
     import threading
 
-    from rough_uq.problem.sampler import compute_batch
+    from rough_uq.problem.sampler import warm_up
+    from rough_uq.study.executors import freeze_garbage
 
     start = time.perf_counter()
     notice = threading.Timer(
@@ -318,9 +319,10 @@ def _warm_kernels(model: Any, *, quiet: bool = False) -> None:
     if not quiet:
         notice.start()
     try:
-        compute_batch(dataclasses.replace(model, coarsest=8), stage=1, level=1, indices=[0])
+        warm_up(model)
     finally:
         notice.cancel()
+    freeze_garbage()
     seconds = time.perf_counter() - start
     if not quiet and seconds > COMPILE_NOTICE_SECONDS:
         click.echo(f"kernels compiled in {seconds:.1f} s (cached for the next runs)", err=True)
