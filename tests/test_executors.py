@@ -10,6 +10,7 @@ from click.testing import CliRunner
 
 from rough_uq.cli import main
 from rough_uq.study.config import config_from_dict
+from rough_uq.study import executors
 from rough_uq.study.executors import SerialExecutor, default_workers, make_executor, PoolExecutor
 from rough_uq.errors import InvalidParameterError
 from rough_uq.study.pipeline import Study, run_estimation, run_screening
@@ -80,3 +81,18 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path, monkeypatch):
     result = CliRunner().invoke(main, ["screen", str(config), "--executor", "dask", "--scheduler",
                                        "tcp://127.0.0.1:1", "-q"])
     assert result.exit_code == 2 and "dask scheduler" in result.stderr
+
+
+@pytest.mark.parametrize("is_pool_worker", [True, False])
+def test_a_worker_warms_the_kernels_once_before_its_first_sample(monkeypatch, is_pool_worker):
+    calls: list[str] = []
+    monkeypatch.setattr(executors, "_is_warm", False)
+    monkeypatch.setattr(executors, "_is_pool_worker", is_pool_worker)
+    monkeypatch.setattr(executors, "warm_up", lambda model: calls.append(f"warm {model}"))
+    monkeypatch.setattr(executors, "freeze_garbage", lambda: calls.append("freeze"))
+    monkeypatch.setattr(executors, "compute_batch", lambda model, **item: calls.append(f"sample {item['level']}"))
+    for level in (0, 1):
+        executors._compute("model", 5, level, np.arange(2))
+    # The garbage collector is tuned only in the pool's own processes (a dask worker may be the user's).
+    expected = ["warm model", "freeze", "sample 0", "sample 1"]
+    assert calls == (expected if is_pool_worker else [call for call in expected if call != "freeze"])
