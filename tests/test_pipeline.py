@@ -4,22 +4,29 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from rough_uq.study.config import config_from_dict
+from rough_uq.study.config import config_from_dict, load_config
 from rough_uq.errors import InvalidParameterError, StudyFileError
 from rough_uq.study.executors import Executor, PoolExecutor, SerialExecutor
+from rough_uq.multilevel.drivers import PlanUpdated
 from rough_uq.study.pipeline import (
     Study,
+    StudySampler,
+    _events,
     build_model,
     create_study,
+    forecast_run,
     missing_samples,
     open_existing_study,
     parse_tolerances,
     run_estimation,
+    run_id,
     run_screening,
+    run_target,
 )
 from rough_uq.study.progress import Progress
 from rough_uq.study.records import read_run_records, read_screening_record
@@ -306,3 +313,26 @@ def test_screening_without_decaying_bias_keeps_its_table_and_says_why(monkeypatc
     assert outcome.record.predictions == ()
     (why,) = [d for d in outcome.record.diagnostics if d.kind == "prediction"]
     assert "no cost prediction" in why.message and "screening.levels" in why.message
+
+
+def test_the_forecast_plans_the_samples_the_run_starts_with():
+    # The quickstart's screening drops level 0 at these tolerances (its 32^2 samples cost more than they
+    # save): the forecast printed before the run must plan what the run then plans, level 0 dropped too.
+    config = load_config(Path(__file__).parents[1] / "rough_uq" / "study" / "configs" / "quickstart.yaml")
+    study = Study(config, MemoryStore(qoi_names=config.qoi_names))
+    run_screening(study, executor=SerialExecutor(), progress=Progress())
+    dropped = 0
+    for eps in (0.1, 0.3, 0.5):
+        tol = np.array([eps])
+        forecast = forecast_run(study, method="mlmc", tol=tol)
+        key = run_id("mlmc", config.qoi_names, tol, config.estimation.theta, None,
+                     richardson=config.estimation.richardson)
+        sampler = StudySampler(study, stage=run_stage("mlmc", key), executor=SerialExecutor(), progress=Progress())
+        events, _ = _events(study, method="mlmc", tol=tol, sampler=sampler, max_cost=None)
+        initial = next(iter(events))  # the run's plan before its first sample
+        assert isinstance(initial, PlanUpdated) and initial.reason == "initial"
+        planned = [int(n) for n in initial.n_planned]
+        assert planned[: len(forecast.n_samples)] == list(forecast.n_samples), eps
+        assert not any(planned[len(forecast.n_samples):])
+        dropped += forecast.n_samples[0] == 0
+    assert dropped  # the case this test is about occurred

@@ -186,6 +186,8 @@ __all__ = [
     "mc",
     "mlmc",
     "plan",
+    "starting_plan",
+    "starting_samples",
 ]
 
 Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
@@ -194,6 +196,9 @@ Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
 RATE_FLOOR = 0.5
 
 _MAX_COUNT = 2.0**52
+#: Plans with more samples than this are beyond any budget: the Python runs
+#: (:mod:`rough_uq.problem.runs`) and ``roughuq`` forecasts refuse them.
+MAX_PLANNED_SAMPLES = 10**7
 MIN_LEVEL_SAMPLES = 2
 """Fewest samples on a level of an MLMC run started from a screening (one variance needs two)."""
 
@@ -1071,12 +1076,12 @@ def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
             extrapolation="pending" if richardson else "off",
         )
     screening_rates = rates if rates is not None else _lenient_rates(screening, None)
-    initial = _screening_plan(options, screening_rates, options.coarsest_level)
-    if options.coarsest_level is None and initial.coarsest_level + 2 > options.max_level:
-        # The rates need two levels above the base; max_level leaves no room for them.
-        initial = _screening_plan(options, screening_rates, 0)
+    initial = starting_plan(
+        tol=options.tol, rates=screening_rates, statistics=screening, theta=options.theta,
+        max_level=options.max_level, richardson=options.richardson, coarsest_level=options.coarsest_level,
+    )
     base = initial.coarsest_level
-    targets = tuple(max(int(n), MIN_LEVEL_SAMPLES) if level >= base else 0 for level, n in enumerate(initial.n_samples))
+    targets = starting_samples(initial, min_finest_level=options.min_finest_level)
     extrapolation, refusal = "off", ""
     if richardson:
         refusal = _screening_instability(screening, base)
@@ -1087,12 +1092,36 @@ def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
     )
 
 
-def _screening_plan(options: _MlmcOptions, rates: Rates, coarsest_level: int | None) -> Plan:
-    """:func:`~rough_uq.multilevel.statistics.plan` on the screening, with the run's options."""
-    return plan(
-        tol=options.tol, rates=rates, statistics=options.screening, theta=options.theta,
-        max_level=options.max_level, richardson=options.richardson, coarsest_level=coarsest_level,
-    )
+def starting_samples(initial: Plan, *, min_finest_level: int = 2) -> tuple[int, ...]:
+    """Samples per level that an MLMC run started from the screening plan ``initial`` asks for first.
+
+    The plan's ``N_l`` (at least :data:`MIN_LEVEL_SAMPLES`) from its coarsest
+    level on, none below it, and :data:`MIN_LEVEL_SAMPLES` on the levels the
+    run adds: it spans at least levels ``0..min_finest_level`` and two levels
+    above its coarsest one, from which it fits the rates.
+    """
+    base = initial.coarsest_level
+    targets = [max(int(n), MIN_LEVEL_SAMPLES) if level >= base else 0 for level, n in enumerate(initial.n_samples)]
+    n_levels = max(min_finest_level + 1, base + 3, len(targets))
+    return tuple(targets + [MIN_LEVEL_SAMPLES] * (n_levels - len(targets)))
+
+
+def starting_plan(
+    *, tol: np.ndarray, rates: Rates, statistics: LevelStatistics, theta: float, max_level: int,
+    richardson: bool = False, coarsest_level: int | None = None,
+) -> Plan:
+    """The plan an MLMC run started from a screening begins with (:func:`iter_mlmc`).
+
+    :func:`~rough_uq.multilevel.statistics.plan` with the run's options; the
+    coarsest level is chosen from the screening unless given, and is level 0
+    when ``max_level`` leaves no two levels above the chosen one (the rates
+    need them). Forecasts use it to predict what the run will plan.
+    """
+    options = dict(tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=max_level, richardson=richardson)
+    initial = plan(**options, coarsest_level=coarsest_level)
+    if coarsest_level is None and initial.coarsest_level + 2 > max_level:
+        initial = plan(**options, coarsest_level=0)
+    return initial
 
 
 class _MlmcRun(_Run):

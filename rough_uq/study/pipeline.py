@@ -43,7 +43,17 @@ import numpy as np
 from rough_uq import __version__
 from rough_uq.study.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
 from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
-from rough_uq.multilevel.drivers import BatchDone, Finished, PlanUpdated, RichardsonRefused, iter_mc, iter_mlmc
+from rough_uq.multilevel.drivers import (
+    MAX_PLANNED_SAMPLES,
+    BatchDone,
+    Finished,
+    PlanUpdated,
+    RichardsonRefused,
+    iter_mc,
+    iter_mlmc,
+    starting_plan,
+    starting_samples,
+)
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.fft_wisdom import prepare_wisdom
 from rough_uq.study.progress import Progress
@@ -626,24 +636,28 @@ def parse_tolerances(
     return np.array(tol, dtype=float)
 
 
-def _estimation_plan(study: Study, tol: np.ndarray) -> tuple[LevelStatistics, Rates, Plan]:
+def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[LevelStatistics, Rates, Plan]:
+    """The screening's statistics and rates, and the plan the run of ``method`` starts from."""
     statistics, _ = screening_statistics(study)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)
         rates = fit_rates(statistics)
-    prediction = plan(
-        tol=tol,
-        rates=rates,
-        statistics=statistics,
-        theta=study.config.estimation.theta,
-        max_level=study.config.grid.max_level,
-        coarsest_level=None,
-    )
-    return statistics, rates, prediction
+    return statistics, rates, _run_plan(study.config, tol, rates, statistics, method=method)
 
 
-#: Plans with more samples than this are refused whatever the budget (the index arrays alone would not fit).
-MAX_PLANNED_SAMPLES = 10**7
+def _run_plan(
+    config: StudyConfig, tol: np.ndarray, rates: Rates, statistics: LevelStatistics, *, method: str,
+    richardson: bool | None = None,
+) -> Plan:
+    """The screening plan of a run: MLMC's starting plan (its coarsest level included), MC's finest level."""
+    options = dict(tol=tol, rates=rates, statistics=statistics, theta=config.estimation.theta,
+                   max_level=config.grid.max_level)
+    if method != "mlmc":
+        return plan(**options, coarsest_level=None)
+    richardson = bool(config.estimation.richardson) if richardson is None else richardson
+    return starting_plan(**options, richardson=richardson)
+
+
 #: Without ``--max-cost``, plans predicted to take longer than this (CPU-seconds of samples) are refused.
 DEFAULT_COST_CEILING = 7 * 24 * 3600.0
 
@@ -688,12 +702,7 @@ def forecast_run(
                 "so no finest grid can be chosen for a tolerance: screen finer grids (a new study with a larger "
                 "grid.coarsest or more screening.levels), or use `roughuq mc --level L` (bias not estimated)"
             )
-        if richardson is None:
-            richardson = bool(config.estimation.richardson)
-        prediction = plan(
-            tol=tol, rates=rates, statistics=statistics, theta=config.estimation.theta,
-            max_level=config.grid.max_level, richardson=richardson and method == "mlmc",
-        )
+        prediction = _run_plan(config, tol, rates, statistics, method=method, richardson=richardson)
         if not prediction.is_bias_met and not is_given_level:
             raise _unreachable(config, tol, prediction)
         finest, counts, modelled = _planned_samples(method, level, prediction, rates)
@@ -734,8 +743,11 @@ def _planned_samples(
         if level is not None:
             fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
         return finest, counts, counts[0] * float(fine_cost)
-    counts = tuple(max(int(n), 2) for n in prediction.n_samples)
-    return prediction.finest_level, counts, float(np.sum(np.array(counts) * prediction.costs))
+    # What the run asks for first: nothing below the plan's coarsest level, two levels above it at least.
+    counts = starting_samples(prediction)
+    costs = [prediction.costs[level] if level < len(prediction.costs) else rates.cost_model(level)
+             for level in range(len(counts))]
+    return len(counts) - 1, counts, float(np.dot(counts, costs))
 
 
 def _forecast(
@@ -940,7 +952,7 @@ def _events(
     if method == "mc" and level is not None:
         # An explicit level needs no screening; the bias of that level is then unknown.
         return iter_mc(sampler, level=level, **options), {"level": level}
-    statistics, rates, prediction = _estimation_plan(study, tol)
+    statistics, rates, prediction = _estimation_plan(study, tol, method=method)
     context: dict[str, Any] = {
         "screening_rates": RatesRecord.from_rates(rates), "predicted": PlanRecord.from_plan(prediction, 1.0)
     }

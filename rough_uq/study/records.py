@@ -494,11 +494,14 @@ class Forecast:
     Attributes
     ----------
     finest_level : int
-        Finest level the bias needs (MC: the level it samples).
+        Finest level the run samples from the start: MLMC the finest level
+        its bias needs, or the level it adds to fit the rates (two above its
+        coarsest); MC the level it samples.
     grid : int
         Nodes per side of that level.
     n_samples : tuple of int
-        Samples per level ``0..finest_level`` (MC: one entry, the finest level).
+        Samples per level ``0..finest_level``, 0 below the coarsest level
+        the run uses (MC: one entry, the finest level).
     modelled_cost : float
         Predicted modelled cost (reference seconds).
     cpu_seconds : float
