@@ -123,6 +123,17 @@ def test_mlmc_same_config_same_numbers_and_seed_matters():
     assert a.stat_error[0] > 0 and a.cost > 0 and a.seconds > 0
 
 
+def test_a_rerun_that_computes_nothing_keeps_the_elapsed_time_of_the_run():
+    study = _screened()
+    for run in (
+        lambda: run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET),
+        lambda: run_target(study, target="variance", tol=np.array([4.0]), executor=SerialExecutor(), progress=QUIET),
+    ):
+        first, again = run().outcome, run().outcome
+        assert first.n_computed > 0 and again.n_computed == 0
+        assert again.elapsed == first.elapsed and again.estimate == first.estimate
+
+
 def test_pool_and_serial_store_identical_samples():
     serial = _screened()
     pooled = _study()

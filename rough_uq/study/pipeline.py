@@ -969,13 +969,27 @@ def _events(
     return events, context
 
 
-def _elapsed(study: Study, key: str, sampler: StudySampler, seconds: float) -> float:
-    """Wall seconds of the run: this command's, or the first finish's when this rerun computed nothing."""
-    if sampler.n_computed == 0:
+@dataclass(frozen=True)
+class _RunClock:
+    """When this command started a run, and the wall seconds of the run's earlier finish, if any."""
+
+    started: float
+    earlier_elapsed: float | None
+
+    @classmethod
+    def start(cls, study: Study, key: str) -> _RunClock:
+        # Read before the run's record is rewritten as running (which drops its outcome).
+        earlier = None
         for run in read_run_records(study.store):
             if run.run_id == key and run.outcome is not None and run.outcome.elapsed is not None:
-                return float(run.outcome.elapsed)
-    return seconds
+                earlier = float(run.outcome.elapsed)
+        return cls(started=time.monotonic(), earlier_elapsed=earlier)
+
+    def elapsed(self, sampler: StudySampler) -> float:
+        """Wall seconds of the run: this command's, or the earlier finish's when this rerun computed nothing."""
+        if sampler.n_computed == 0 and self.earlier_elapsed is not None:
+            return self.earlier_elapsed
+        return time.monotonic() - self.started
 
 
 def _pooled_mc_cost(study: Study, sampler: StudySampler, result: Any) -> float:
@@ -1046,7 +1060,7 @@ def run_estimation(
     max_cost = study.config.estimation.max_cost if max_cost is None else max_cost
     estimation = study.config.estimation
     key = run_id(method, study.config.qoi_names, tol, estimation.theta, level, richardson=estimation.richardson)
-    started = time.monotonic()
+    clock = _RunClock.start(study, key)
     sampler = StudySampler(study, stage=run_stage(method, key), executor=executor, progress=progress)
     events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost, level=level)
     record = _started_record(study, key=key, method=method, tol=tol, stage=sampler.stage, max_cost=max_cost,
@@ -1054,8 +1068,7 @@ def run_estimation(
     study.store.write_run(key, record.to_json())
     title = f"{method} " + ", ".join(f"{n}={t:g}" for n, t in zip(study.config.qoi_names, tol))
     result, diagnostics = _follow(events, progress, title)
-    outcome = _outcome(study, method=method, key=key, sampler=sampler, result=result, diagnostics=diagnostics,
-                       started=started)
+    outcome = _outcome(study, method=method, sampler=sampler, result=result, diagnostics=diagnostics, clock=clock)
     record = replace(record, status="finished", outcome=outcome)
     study.store.write_run(key, record.to_json())
     return record
@@ -1115,8 +1128,8 @@ def _follow(events: Iterator[object], progress: Progress, title: str) -> tuple[A
 
 
 def _outcome(
-    study: Study, *, method: str, key: str, sampler: StudySampler, result: Any, diagnostics: Sequence[Diagnostic],
-    started: float,
+    study: Study, *, method: str, sampler: StudySampler, result: Any, diagnostics: Sequence[Diagnostic],
+    clock: _RunClock,
 ) -> RunOutcome:
     """What the finished run found, with the seconds and non-converged solves of the samples it used."""
     used = [sampler.samples(int(l), np.arange(int(n))) for l, n in zip(result.levels, result.n_samples)]
@@ -1132,7 +1145,7 @@ def _outcome(
         result,
         mean_seconds=[float(np.mean(batch.cost)) for batch in used],
         seconds=seconds,
-        elapsed=_elapsed(study, key, sampler, time.monotonic() - started),
+        elapsed=clock.elapsed(sampler),
         mc_cost=mc_cost,
         seconds_per_cost=seconds_per_cost,
         n_computed=sampler.n_computed,
@@ -1295,7 +1308,7 @@ def run_target(
         )
     max_cost = estimation.max_cost if max_cost is None else max_cost
     key = target_run_id(study, target=target, tol=tol, request=request)
-    started = time.monotonic()
+    clock = _RunClock.start(study, key)
     sampler = StudySampler(study, stage=run_stage("mlmc", key), executor=executor, progress=progress)
     names = study.config.qoi_names if target == "variance" else (request.column,)
     record = RunRecord(
@@ -1306,8 +1319,8 @@ def run_target(
     study.store.write_run(key, record.to_json())
     title = f"{target} " + ", ".join(f"{n}={t:g}" for n, t in zip(names, tol))
     result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
-    outcome = _target_outcome(study, key=key, target=target, sampler=sampler, result=result, request=request,
-                              diagnostics=diagnostics, started=started)
+    outcome = _target_outcome(study, target=target, sampler=sampler, result=result, request=request,
+                              diagnostics=diagnostics, clock=clock)
     record = replace(record, status="finished", outcome=outcome)
     study.store.write_run(key, record.to_json())
     return record
@@ -1339,8 +1352,8 @@ def _follow_target(
 
 
 def _target_outcome(
-    study: Study, *, key: str, target: str, sampler: StudySampler, result: Any, request: CdfRequest | None,
-    diagnostics: Sequence[Diagnostic], started: float,
+    study: Study, *, target: str, sampler: StudySampler, result: Any, request: CdfRequest | None,
+    diagnostics: Sequence[Diagnostic], clock: _RunClock,
 ) -> RunOutcome:
     """The outcome of a variance run (a :class:`TargetEstimate`) or a cdf run (a :class:`CdfEstimate`)."""
     estimate = result if target == "variance" else result.target
@@ -1361,7 +1374,7 @@ def _target_outcome(
         n_samples=tuple(int(n) for n in estimate.n_samples), cost=float(estimate.cost), seconds=seconds,
         mc_cost=mc_cost, mc_seconds_predicted=mc_cost * seconds_per_cost, n_computed=sampler.n_computed,
         n_not_converged=count_not_converged(used), tol_met=bool(estimate.tol_met), stop_reason=estimate.stop_reason,
-        elapsed=_elapsed(study, key, sampler, time.monotonic() - started),
+        elapsed=clock.elapsed(sampler),
         diagnostics=_unique([*diagnostics, *extra]), distribution=distribution,
     )
 
