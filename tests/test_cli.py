@@ -237,6 +237,13 @@ def test_mc_on_a_given_level_needs_no_screening(tmp_path, monkeypatch):
     assert "--level" in result.stderr
 
 
+def test_mc_refuses_a_level_beyond_the_grids_before_forecasting_or_planning(screened):
+    for extra in ([], ["--plan"]):
+        result = run("mc", "--tol", "5", "--level", "99", *extra, expect=2)
+        assert result.stderr.startswith("error: --level: got 99; allowed: an integer in 0..")
+        assert "forecast" not in result.stderr
+
+
 def test_report_plots_and_show_write_figures(screened):
     pytest.importorskip("matplotlib")
     run("mlmc", "--tol", "5", "--workers", "1", "--quiet")

@@ -682,6 +682,7 @@ def forecast_run(
     ``richardson`` (default: the config's ``estimation.richardson``) plans
     the Richardson-extrapolated MLMC estimate where the screening allows it.
     """
+    _check_run_arguments(study, method, level)
     config = study.config
     tol = np.asarray(tol, dtype=float)
     screening = read_screening_record(study.store)
@@ -903,6 +904,7 @@ def missing_samples(
     plan more samples once these are stored: ask again after merging them.
     Nothing is computed or written.
     """
+    _check_run_arguments(study, method, level)
     estimation = study.config.estimation
     key = run_id(method, study.config.qoi_names, tol, estimation.theta, level, richardson=estimation.richardson)
     stage = run_stage(method, key)
@@ -1078,8 +1080,10 @@ def _check_run_arguments(study: Study, method: str, level: int | None) -> None:
     if method not in ("mlmc", "mc"):
         raise ValueError(f"method must be 'mlmc' or 'mc', got {method!r}")
     max_level = study.config.grid.max_level
-    if level is not None and (method != "mc" or not 0 <= level <= max_level):
-        raise InvalidParameterError("--level", level, f"with mc only, an integer in 0..{max_level}")
+    if level is not None and method != "mc":
+        raise InvalidParameterError("--level", level, "nothing: a level is given to mc only")
+    if level is not None and not 0 <= level <= max_level:
+        raise InvalidParameterError("--level", level, f"an integer in 0..{max_level} (grid.max_level)")
 
 
 def _started_record(
