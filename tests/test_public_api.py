@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import functools
 import re
 import subprocess
 import sys
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 
 import rough_uq
+from rough_uq.multilevel.statistics import level_statistics
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.runs import run_id
 from rough_uq.problem.sampler import run_stage
@@ -233,6 +235,7 @@ def test_invalid_loads_and_arguments_name_the_field():
         (lambda: rough_uq.mc(problem, tol=1.0), "level"),
         (lambda: rough_uq.mc(problem, tol=1.0, level=3), "level"),
         (lambda: rough_uq.screen(problem, levels=2), "levels"),
+        (lambda: rough_uq.screen(problem, levels=problem.max_level + 2), "levels"),
         (lambda: rough_uq.mlmc(problem, tol=1.0, screening="table"), "screening"),
     ):
         with pytest.raises(rough_uq.InvalidParameterError) as caught:
@@ -380,3 +383,32 @@ def test_readme_from_python_example_runs(capsys):
     assert isinstance(result, rough_uq.EstimationResult)
     assert result.tol_met and result.rmse[0] <= 0.5
     assert str(result.stop_reason) in capsys.readouterr().out
+
+
+def test_mc_from_a_screening_whose_bias_grows_says_to_pass_a_level():
+    # |E[Y_l]| grows with l (alpha < 0): no level meets a bias tolerance, so MC cannot choose one.
+    rng = np.random.default_rng(3)
+    fine, coarse = [], []
+    for level, shift in enumerate((0.0, 0.1, 0.4)):
+        q = 20 + rng.normal(size=20)
+        fine.append(q)
+        coarse.append(q - shift + 0.01 * rng.normal(size=20) if level else np.zeros(20))
+    statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0**level) for level in range(3)])
+    with pytest.raises(rough_uq.EstimationError, match=r"alpha = -[0-9.]+\); .*pass level="):
+        rough_uq.mc(_problem(), tol=0.5, screening=statistics)
+
+
+def test_a_tolerance_out_of_reach_is_refused_before_its_samples_are_drawn():
+    # 1e-6 percentage points of contact area need some 1e11 samples: the first plan says so, and the run stops
+    # there instead of computing for days (roughuq refuses such a forecast too).
+    problem = _problem()
+    mlmc_run = functools.partial(rough_uq.mlmc, problem, tol=1e-6)
+    mc_run = functools.partial(rough_uq.mc, problem, tol=1e-6, level=0)
+    for run in (mlmc_run, mc_run):
+        with pytest.raises(rough_uq.EstimationError, match=r"needs about [0-9.e+]+ samples .*max_samples = 10000000"):
+            run()
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            run(max_samples=0)
+        assert caught.value.name == "max_samples"
+    result = rough_uq.mlmc(problem, tol=1e-6, max_samples=None, max_cost=0.5)  # a budget instead
+    assert result.stop_reason == "max_cost"

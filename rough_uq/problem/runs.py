@@ -27,9 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError
+from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.multilevel import drivers
-from rough_uq.multilevel.drivers import EstimationResult
+from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
@@ -125,8 +125,8 @@ def screen(
     ----------
     problem : ContactProblem
     levels : int
-        Number of levels screened, >= 3 (default 3, as the config's): the
-        rates are fitted on levels >= 1.
+        Number of levels screened, >= 3 (default 3, as the config's) and at
+        most ``problem.max_level + 1``: the rates are fitted on levels >= 1.
     samples : int
         Samples per level, >= 2 (default 20).
     executor : BatchExecutor, optional
@@ -138,11 +138,17 @@ def screen(
 
     Raises
     ------
+    InvalidParameterError
+        ``levels`` or ``samples`` out of range.
     EstimationError
         The rates cannot be fitted (e.g. every ``E[Y_l]`` is 0).
     """
     problem = _problem(problem)
     levels = integer("levels", levels, 3)
+    if levels > problem.max_level + 1:
+        raise InvalidParameterError(
+            "levels", levels, f"at most max_level + 1 = {problem.max_level + 1} (levels 0..{problem.max_level} exist)"
+        )
     samples = integer("samples", samples, 2)
     sampler = problem.sampler(STAGE_SCREENING, executor=executor)
     indices = np.arange(samples, dtype=np.int64)
@@ -201,6 +207,7 @@ def mlmc(
     n_initial: int = 10,
     min_finest_level: int = 2,
     max_cost: float | None = None,
+    max_samples: int | None = MAX_PLANNED_SAMPLES,
     batch_size: int | None = 10,
     rates: Rates | None = None,
     kurtosis_limit: float = KURTOSIS_LIMIT,
@@ -233,6 +240,11 @@ def mlmc(
     n_initial, min_finest_level, max_cost, batch_size, rates, kurtosis_limit
         As in :func:`rough_uq.multilevel.drivers.iter_mlmc`; ``max_cost`` and
         costs are modelled reference seconds. Defaults are the config's.
+    max_samples : int or None
+        A plan with more samples in all (default
+        :data:`~rough_uq.multilevel.drivers.MAX_PLANNED_SAMPLES`, as ``roughuq``
+        refuses) raises :class:`~rough_uq.errors.EstimationError` before its
+        samples are drawn: the tolerance is out of reach. None: no limit.
     executor : BatchExecutor, optional
         Where samples are computed; default in this process.
 
@@ -243,6 +255,11 @@ def mlmc(
         ``(n_qoi,)`` in the QoIs' units; ``levels`` and ``n_samples`` of shape
         ``(n_levels,)``; ``cost`` in reference seconds.
 
+    Raises
+    ------
+    EstimationError
+        A plan of more than ``max_samples`` samples (see above).
+
     Warns
     -----
     EstimationWarning
@@ -250,10 +267,11 @@ def mlmc(
     """
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi)
+    max_samples = _max_samples(max_samples)
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor)
     statistics = _screening_statistics(screening)
-    result = drivers.mlmc(
+    events = drivers.iter_mlmc(
         sampler,
         tol=tol,
         theta=theta,
@@ -268,6 +286,7 @@ def mlmc(
         richardson=richardson,
         coarsest_level=None if statistics is not None else 0,
     )
+    result = _run_to_end(events, max_samples=max_samples, tol=tol)
     _warn_not_converged(sampler, "mlmc")
     return result
 
@@ -285,9 +304,12 @@ def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, scr
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
         rates = screening.rates if isinstance(screening, ScreeningResult) else fit_rates(statistics)
-    prediction = plan(
-        tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=problem.max_level, coarsest_level=None
-    )
+    try:
+        prediction = plan(
+            tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=problem.max_level, coarsest_level=None
+        )
+    except EstimationError as error:
+        raise EstimationError(f"{error}; pass level= to sample a level of your choice") from error
     return prediction.finest_level, prediction.bias if bias is None else bias
 
 
@@ -301,6 +323,7 @@ def mc(
     bias: float | Sequence[float] | np.ndarray | None = None,
     n_initial: int = 10,
     max_cost: float | None = None,
+    max_samples: int | None = MAX_PLANNED_SAMPLES,
     batch_size: int | None = 10,
     kurtosis_limit: float = KURTOSIS_LIMIT,
     executor: BatchExecutor | None = None,
@@ -329,6 +352,8 @@ def mc(
         Known bias of ``level`` (overrides the plan's).
     n_initial, max_cost, batch_size, kurtosis_limit
         As in :func:`rough_uq.multilevel.drivers.iter_mc`. Defaults are the config's.
+    max_samples : int or None
+        As in :func:`mlmc`.
     executor : BatchExecutor, optional
         Where samples are computed; default in this process.
 
@@ -339,10 +364,11 @@ def mc(
     """
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi)
+    max_samples = _max_samples(max_samples)
     mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
     stage = run_stage("mc", run_id("mc", problem.columns, tol, theta, level))
     sampler = problem.sampler(stage, executor=executor)
-    result = drivers.mc(
+    events = drivers.iter_mc(
         sampler,
         tol=tol,
         level=mc_level,
@@ -354,5 +380,28 @@ def mc(
         screening=_screening_statistics(screening),
         kurtosis_limit=kurtosis_limit,
     )
+    result = _run_to_end(events, max_samples=max_samples, tol=tol)
     _warn_not_converged(sampler, "mc")
     return result
+
+
+def _max_samples(max_samples: object) -> int | None:
+    return None if max_samples is None else integer("max_samples", max_samples, 1)
+
+
+def _run_to_end(events, *, max_samples: int | None, tol: np.ndarray) -> EstimationResult:
+    """The result of a run's events; refuses a plan of more than ``max_samples`` samples before drawing them."""
+    for event in events:
+        if isinstance(event, drivers.PlanUpdated) and max_samples is not None:
+            total = float(np.sum(event.n_planned))
+            if total > max_samples:
+                events.close()
+                plan_text = " ".join(f"{int(n)}" for n in event.n_planned)
+                raise EstimationError(
+                    f"tol {', '.join(f'{eps:g}' for eps in tol)} needs about {total:.3g} samples (N_l {plan_text}), "
+                    f"more than max_samples = {max_samples}: loosen tol, or pass max_cost (a budget) with "
+                    "max_samples=None"
+                )
+        if isinstance(event, drivers.Finished):
+            return event.result
+    raise EstimationError("the estimator stopped without a result")  # pragma: no cover - generator bug
