@@ -439,9 +439,9 @@ def test_projections_reject_odd_and_non_square_inputs_naming_them():
         (lambda: project_surface(np.zeros((7, 7)), 7), "fine.shape[0]"),
         (lambda: project_surface(np.zeros((8, 8)), 3), "n_coarse"),
         (lambda: project_surface(np.zeros((6, 6)), 4), "n_coarse"),
-        (lambda: resample_pressure(np.ones((8, 6)), 8), "initial_pressure"),
-        (lambda: resample_pressure(np.ones((0, 0)), 8), "initial_pressure"),
-        (lambda: resample_pressure(np.ones((8, 8)), 6), "initial_pressure"),
+        (lambda: resample_pressure(np.ones((8, 6)), 8), "pressure"),
+        (lambda: resample_pressure(np.ones((0, 0)), 8), "pressure"),
+        (lambda: resample_pressure(np.ones((8, 8)), 6), "pressure"),
         (lambda: resample_pressure(np.ones((8, 8)), 0), "n"),  # used to raise ZeroDivisionError
         (lambda: resample_pressure(np.ones((8, 8)), 4.0), "n"),
     ]
