@@ -347,3 +347,13 @@ def test_the_forecast_plans_the_samples_the_run_starts_with():
         assert not any(planned[len(forecast.n_samples):])
         dropped += forecast.n_samples[0] == 0
     assert dropped  # the case this test is about occurred
+
+
+def test_the_run_record_predicts_seconds_from_the_screening_time_per_modelled_cost():
+    study = _screened()
+    record = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
+    per_cost = read_screening_record(study.store).seconds_per_cost
+    assert per_cost > 0 and per_cost != 1.0
+    predicted = record.predicted
+    assert predicted.mlmc_seconds == pytest.approx(predicted.mlmc_cost * per_cost)
+    assert predicted.mc_seconds == pytest.approx(predicted.mc_cost * per_cost)

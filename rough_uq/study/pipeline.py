@@ -645,6 +645,12 @@ def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[Lev
     return statistics, rates, _run_plan(study.config, tol, rates, statistics, method=method)
 
 
+def _screening_seconds_per_cost(study: Study) -> float:
+    """CPU-seconds per reference second of modelled cost measured by the screening (1 without one)."""
+    screening = read_screening_record(study.store)
+    return float((screening.seconds_per_cost if screening is not None else None) or 1.0)
+
+
 def _run_plan(
     config: StudyConfig, tol: np.ndarray, rates: Rates, statistics: LevelStatistics, *, method: str,
     richardson: bool | None = None,
@@ -707,7 +713,7 @@ def forecast_run(
         if not prediction.is_bias_met and not is_given_level:
             raise _unreachable(config, tol, prediction)
         finest, counts, modelled = _planned_samples(method, level, prediction, rates)
-    seconds_per_cost = float((screening.seconds_per_cost if screening is not None else None) or 1.0)
+    seconds_per_cost = _screening_seconds_per_cost(study)
     forecast = _forecast(config, finest=finest, counts=counts, modelled=modelled, seconds_per_cost=seconds_per_cost,
                          n_workers=n_workers, is_richardson=bool(prediction.is_richardson))
     _check_budget(config.qoi_names, tol, forecast, max_cost)
@@ -955,9 +961,8 @@ def _events(
         # An explicit level needs no screening; the bias of that level is then unknown.
         return iter_mc(sampler, level=level, **options), {"level": level}
     statistics, rates, prediction = _estimation_plan(study, tol, method=method)
-    context: dict[str, Any] = {
-        "screening_rates": RatesRecord.from_rates(rates), "predicted": PlanRecord.from_plan(prediction, 1.0)
-    }
+    predicted = PlanRecord.from_plan(prediction, _screening_seconds_per_cost(study))
+    context: dict[str, Any] = {"screening_rates": RatesRecord.from_rates(rates), "predicted": predicted}
     if method == "mlmc":
         events = iter_mlmc(
             sampler, max_level=config.grid.max_level, screening=statistics, richardson=estimation.richardson,
