@@ -773,7 +773,10 @@ class EstimationConfig(_Section):
     )
     max_cost: Float | None = _field(
         None,
-        description="Budget of solver time per run (seconds); null = no budget",
+        description=(
+            "Budget of modelled cost per run (reference seconds, about CPU-seconds on the calibration machine); "
+            "null = no budget"
+        ),
         allowed="number > 0 or null",
         gt=0,
     )
