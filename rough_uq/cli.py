@@ -947,7 +947,8 @@ def merge(shards: Sequence[str], study_path: str) -> None:
 
     with open_existing_study(study_path) as study:
         counts = merge_shards(study, shards)
-    click.echo(f"{study_path}: added {counts['added']} samples from {len(shards)} shards")
+    shards_text = f"{len(shards)} shard" + ("" if len(shards) == 1 else "s")
+    click.echo(f"{study_path}: added {counts['added']} samples from {shards_text}")
     if counts["duplicates"]:
         click.echo(f"warning: skipped {counts['duplicates']} samples already in the study", err=True)
 

@@ -184,7 +184,7 @@ def test_shards_in_any_order_merge_to_the_serial_result(screened, tmp_path):
         assert n_rounds < 10
     # Merging a shard twice never double-counts.
     result = run("merge", shards[0], "--into", str(copy))
-    assert "skipped" in result.stderr and "added 0 samples" in result.output
+    assert "skipped" in result.stderr and "added 0 samples from 1 shard\n" in result.output
     final = json.loads(run("mlmc", "--tol", "5", "--study", str(copy), "--workers", "1", "--json").output)
     assert final["n_computed"] == 0
     for key in ("estimate", "stat_error", "bias_estimate", "n_samples", "cost"):
