@@ -412,3 +412,10 @@ def test_a_tolerance_out_of_reach_is_refused_before_its_samples_are_drawn():
         assert caught.value.name == "max_samples"
     result = rough_uq.mlmc(problem, tol=1e-6, max_samples=None, max_cost=0.5)  # a budget instead
     assert result.stop_reason == "max_cost"
+
+
+def test_a_printed_result_shows_the_estimate_not_the_statistics_arrays():
+    result = rough_uq.mlmc(_problem(), tol=2.0)
+    text = repr(result)
+    assert "estimate=array(" in text and "stop_reason=" in text
+    assert "statistics=" not in text and "rates=" not in text and len(text) < 1000

@@ -130,7 +130,7 @@ import functools
 import math
 import warnings
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -345,8 +345,8 @@ class EstimationResult:
     levels: np.ndarray
     cost: float
     mc_cost: float
-    statistics: LevelStatistics
-    rates: Rates | None
+    statistics: LevelStatistics = field(repr=False)  # long arrays: printing a result shows the estimate
+    rates: Rates | None = field(repr=False)
     tol: np.ndarray
     theta: float
     tol_met: bool
