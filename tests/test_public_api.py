@@ -419,3 +419,16 @@ def test_a_printed_result_shows_the_estimate_not_the_statistics_arrays():
     text = repr(result)
     assert "estimate=array(" in text and "stop_reason=" in text
     assert "statistics=" not in text and "rates=" not in text and len(text) < 1000
+
+
+def test_variance_and_distribution_refuse_a_tolerance_out_of_reach_before_drawing_its_samples():
+    problem = _problem()
+    thresholds = np.linspace(20, 60, 41)
+    for run in (
+        functools.partial(rough_uq.variance, problem, tol=1e-4),
+        functools.partial(rough_uq.distribution, problem, tol=1e-5, thresholds=thresholds),
+    ):
+        with pytest.raises(rough_uq.EstimationError, match=r"needs about [0-9.e+]+ samples .*max_samples = 10000000"):
+            run()
+        with pytest.raises(rough_uq.InvalidParameterError, match="max_samples"):
+            run(max_samples=0)

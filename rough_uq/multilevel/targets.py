@@ -555,6 +555,7 @@ def adaptive_mlmc(
     max_level: int = 16,
     max_cost: float | None = None,
     batch_size: int | None = 10000,
+    max_samples: int | None = None,
 ) -> TargetEstimate:
     """Adaptive MLMC estimate of a target to an RMS tolerance per group (module docstring).
 
@@ -580,6 +581,9 @@ def adaptive_mlmc(
         Stop before a batch would make the total cost exceed it.
     batch_size : int, optional
         Largest number of samples per sampler call.
+    max_samples : int, optional
+        A plan of more samples in all raises :class:`~rough_uq.errors.EstimationError`
+        before they are drawn (the tolerance is out of reach).
 
     Returns
     -------
@@ -591,6 +595,7 @@ def adaptive_mlmc(
     max_level = _check_int("max_level", max_level, min_finest_level)
     batch_cap = math.inf if batch_size is None else _check_int("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
+    max_samples = None if max_samples is None else _check_int("max_samples", max_samples, 1)
     _check_tol(tol, None)  # fails early; the number of groups is known after the first batch
     levels = [_Level(level) for level in range(min_finest_level + 1)]
     planned = [n_initial] * len(levels)
@@ -609,6 +614,7 @@ def adaptive_mlmc(
         alpha, beta = _term_rates(means, variances, n_samples, sampled[0].groups)
         gamma = _cost_rate(np.array([s.mean_cost for s in levels if s.n]))
         planned = _targets(levels, terms, n_initial, tol_groups, theta, beta, gamma)
+        _check_planned(planned, max_samples, tol_groups)
         if any(planned[s.level] - s.n > 0.01 * s.n for s in levels):
             continue
         bias = _remaining_bias(means, variances, sampled[0].groups, alpha)
@@ -619,6 +625,7 @@ def adaptive_mlmc(
         else:
             levels.append(_Level(len(levels)))
             planned = _targets(levels, terms + [None], n_initial, tol_groups, theta, beta, gamma)
+            _check_planned(planned, max_samples, tol_groups)
     sampled_levels = [s for s in levels if s.n]
     if not sampled_levels or sampled_levels[0].level != 0:
         raise EstimationError("max_cost is too small for the initial samples of level 0")
@@ -634,6 +641,17 @@ def adaptive_mlmc(
         means, variances, n_samples, groups, alpha, beta, gamma,
         cost=sum(s.spent for s in levels), tol=tol_groups, theta=theta, stop_reason=stop_reason,
     )
+
+
+def _check_planned(planned: Sequence[float], max_samples: int | None, tol: np.ndarray) -> None:
+    """Refuse a plan of more than ``max_samples`` samples in all (none: no limit)."""
+    total = float(np.sum(planned))
+    if max_samples is not None and total > max_samples:
+        plan_text = " ".join(f"{int(n)}" for n in planned)
+        raise EstimationError(
+            f"tol {', '.join(f'{eps:g}' for eps in tol)} needs about {total:.3g} samples (N_l {plan_text}), "
+            f"more than max_samples = {max_samples}: loosen the tolerance"
+        )
 
 
 def _stack(terms: Sequence[LevelTerm]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

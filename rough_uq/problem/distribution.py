@@ -26,7 +26,7 @@ import numpy as np
 from rough_uq.errors import InvalidParameterError
 from rough_uq.multilevel.distribution import CdfEstimate, Quantiles, mlmc_cdf, quantiles
 from rough_uq.multilevel.moments import mlmc_variance
-from rough_uq.multilevel.drivers import Sampler
+from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
 from rough_uq.multilevel.targets import TargetEstimate
 from rough_uq.problem.contact import BatchExecutor, ContactProblem
 from rough_uq.problem.runs import _problem, _tolerances, _warn_not_converged, run_id
@@ -55,6 +55,7 @@ def estimate_target(
     min_finest_level: int | None = None,
     max_cost: float | None = None,
     batch_size: int | None = 10,
+    max_samples: int | None = MAX_PLANNED_SAMPLES,
 ) -> TargetEstimate | CdfEstimate:
     """The adaptive driver of ``target`` on a level sampler, with the defaults of this module.
 
@@ -75,7 +76,7 @@ def estimate_target(
     thresholds, qoi, bandwidth
         For ``"cdf"``: as in :func:`distribution` (``bandwidth`` default twice
         the mean threshold spacing).
-    theta, n_initial, min_finest_level, max_cost, batch_size
+    theta, n_initial, min_finest_level, max_cost, batch_size, max_samples
         As for :func:`variance` (``min_finest_level`` default ``min(2, max_level)``).
     """
     options = dict(
@@ -85,6 +86,7 @@ def estimate_target(
         max_level=max_level,
         max_cost=max_cost,
         batch_size=batch_size,
+        max_samples=max_samples,
     )
     if target == "variance":
         return mlmc_variance(sampler, tol=tol, **options)
@@ -105,6 +107,7 @@ def variance(
     min_finest_level: int | None = None,
     max_cost: float | None = None,
     batch_size: int | None = 10,
+    max_samples: int | None = MAX_PLANNED_SAMPLES,
     executor: BatchExecutor | None = None,
 ) -> TargetEstimate:
     """Adaptive MLMC estimate of ``Var(Q)`` of every column of a contact problem to RMS tolerance ``tol``.
@@ -122,6 +125,11 @@ def variance(
         As in :func:`rough_uq.multilevel.targets.adaptive_mlmc`; costs are
         modelled reference seconds. ``n_initial`` is at least 4;
         ``min_finest_level`` defaults to 2, or ``problem.max_level`` if smaller.
+    max_samples : int or None
+        A plan of more samples in all (default 10^7, as for
+        :func:`~rough_uq.problem.runs.mlmc`) raises
+        :class:`~rough_uq.errors.EstimationError` before its samples are
+        drawn: the tolerance is out of reach. None: no limit.
     executor : BatchExecutor, optional
         Where samples are computed; default in this process.
 
@@ -138,7 +146,7 @@ def variance(
     sampler = problem.sampler(stage, executor=executor)
     result = estimate_target(
         sampler, target="variance", tol=tol, max_level=problem.max_level, theta=theta, n_initial=n_initial,
-        min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size,
+        min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
     )
     _warn_not_converged(sampler, "variance")
     return result
@@ -199,6 +207,7 @@ def distribution(
     min_finest_level: int | None = None,
     max_cost: float | None = None,
     batch_size: int | None = 10,
+    max_samples: int | None = MAX_PLANNED_SAMPLES,
     executor: BatchExecutor | None = None,
 ) -> DistributionResult:
     """Adaptive MLMC estimate of the distribution function ``F(s) = P(Q <= s)`` and quantiles of one column.
@@ -217,7 +226,7 @@ def distribution(
     bandwidth : float, optional
         Smoothing width on level 0, halved per level (the column's unit);
         default twice the mean threshold spacing.
-    theta, n_initial, min_finest_level, max_cost, batch_size, executor
+    theta, n_initial, min_finest_level, max_cost, batch_size, max_samples, executor
         As for :func:`variance`.
 
     Returns
@@ -234,7 +243,7 @@ def distribution(
     estimate = estimate_target(
         sampler, target="cdf", tol=tol_array, max_level=problem.max_level, thresholds=thresholds, qoi=index,
         bandwidth=bandwidth, theta=theta, n_initial=n_initial, min_finest_level=min_finest_level, max_cost=max_cost,
-        batch_size=batch_size,
+        batch_size=batch_size, max_samples=max_samples,
     )
     _warn_not_converged(sampler, "distribution")
     return DistributionResult(column=name, cdf=estimate)
