@@ -1,8 +1,10 @@
-"""The exceptions roughuq raises for conditions a user can act on.
+"""The exceptions and warnings roughuq raises for conditions a user can act on.
 
 Every user-facing failure derives from :class:`RoughUQError`; the CLI prints
 its message on one line and exits with status 2. Anything else is a bug and
-keeps its traceback.
+keeps its traceback. The warnings (:class:`EstimationWarning`,
+:class:`DuplicateSampleWarning`) say that a result stands on weak ground or
+that input was skipped; the run goes on.
 """
 
 from __future__ import annotations
@@ -58,3 +60,20 @@ class StudyFileError(RoughUQError):
 
 class EstimationError(RoughUQError):
     """The estimators cannot proceed (e.g. too few levels to fit rates)."""
+
+
+class ExecutorError(RoughUQError):
+    """A worker process or the cluster failed; samples already stored are kept."""
+
+
+class EstimationWarning(UserWarning):
+    """Emitted when an MLMC diagnostic fails or an estimate rests on weak data.
+
+    Examples: an inconsistent level (telescoping sum broken), a coupling that
+    does not reduce the variance, a large kurtosis of ``Y_l``, a level with a
+    single sample, a sampler that reports zero cost.
+    """
+
+
+class DuplicateSampleWarning(UserWarning):
+    """Samples already stored (same stage, level and index) were skipped."""

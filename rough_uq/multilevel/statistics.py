@@ -145,7 +145,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.errors import EstimationError, EstimationWarning, InvalidParameterError
 
 __all__ = [
     "CONSISTENCY_CHECK_SAMPLES",
@@ -205,15 +205,6 @@ RICHARDSON_MIN_LEVELS = 3
 
 #: Largest ``|log2 r_l - log2 r_{l-1}|`` of successive mean ratios, beyond two standard errors, still "stable".
 RATIO_LOG2_TOLERANCE = 0.5
-
-
-class EstimationWarning(UserWarning):
-    """Emitted when an MLMC diagnostic fails or an estimate rests on weak data.
-
-    Examples: an inconsistent level (telescoping sum broken), a coupling that
-    does not reduce the variance, a large kurtosis of ``Y_l``, a level with a
-    single sample, a sampler that reports zero cost.
-    """
 
 
 def _readonly(array: np.ndarray) -> np.ndarray:

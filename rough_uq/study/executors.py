@@ -37,7 +37,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, RoughUQError
+from rough_uq.errors import ExecutorError, InvalidParameterError, RoughUQError
 from rough_uq.problem.sampler import ContactModel, LevelBatch, compute_batch, warm_up
 
 __all__ = [
@@ -54,10 +54,6 @@ __all__ = [
 
 WorkItem = tuple[int, int, np.ndarray]
 """``(stage, level, indices)``."""
-
-
-class ExecutorError(RoughUQError):
-    """A worker process or the cluster failed; samples already stored are kept."""
 
 
 def default_workers(threads: int = 1) -> int:

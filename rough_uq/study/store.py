@@ -127,7 +127,7 @@ import h5py
 import numpy as np
 
 from rough_uq.problem.batch import LevelBatch
-from rough_uq.errors import StudyFileError
+from rough_uq.errors import DuplicateSampleWarning, StudyFileError
 from rough_uq.study.records import utc_timestamp
 
 __all__ = [
@@ -166,10 +166,6 @@ _LIBVER = ("v110", "v110")
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
 _T = TypeVar("_T")
-
-
-class DuplicateSampleWarning(UserWarning):
-    """Samples already stored (same stage, level and index) were skipped."""
 
 
 # ---------------------------------------------------------------------------
