@@ -186,6 +186,7 @@ __all__ = [
     "mc",
     "mlmc",
     "plan",
+    "refuse_large_plan",
     "starting_plan",
     "starting_samples",
 ]
@@ -1333,6 +1334,21 @@ def mlmc(sampler: Sampler, *, tol: float | np.ndarray, **options: object) -> Est
     EstimationResult
     """
     return _final(iter_mlmc(sampler, tol=tol, **options))
+
+
+def refuse_large_plan(n_planned, *, max_samples: int | None, tol: np.ndarray, advice: str) -> None:
+    """Raise :class:`~rough_uq.errors.EstimationError` for a plan of more than ``max_samples`` samples in all.
+
+    ``n_planned`` are the samples per level; ``advice`` ends the message (what
+    to change). ``max_samples`` None: no limit.
+    """
+    total = float(np.sum(n_planned))
+    if max_samples is not None and total > max_samples:
+        plan_text = " ".join(f"{int(n)}" for n in n_planned)
+        raise EstimationError(
+            f"tol {', '.join(f'{eps:g}' for eps in np.ravel(tol))} needs about {total:.3g} samples "
+            f"(N_l {plan_text}), more than max_samples = {max_samples}: {advice}"
+        )
 
 
 def _final(events: Iterator[Event]) -> EstimationResult:

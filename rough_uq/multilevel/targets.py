@@ -89,6 +89,7 @@ from rough_uq.multilevel.drivers import (
     _check_optional_positive,
     _fill_costs,
     _planning_variances,
+    refuse_large_plan,
 )
 from rough_uq.multilevel.statistics import (
     _check_fraction,
@@ -614,7 +615,7 @@ def adaptive_mlmc(
         alpha, beta = _term_rates(means, variances, n_samples, sampled[0].groups)
         gamma = _cost_rate(np.array([s.mean_cost for s in levels if s.n]))
         planned = _targets(levels, terms, n_initial, tol_groups, theta, beta, gamma)
-        _check_planned(planned, max_samples, tol_groups)
+        refuse_large_plan(planned, max_samples=max_samples, tol=tol_groups, advice="loosen the tolerance")
         if any(planned[s.level] - s.n > 0.01 * s.n for s in levels):
             continue
         bias = _remaining_bias(means, variances, sampled[0].groups, alpha)
@@ -625,7 +626,7 @@ def adaptive_mlmc(
         else:
             levels.append(_Level(len(levels)))
             planned = _targets(levels, terms + [None], n_initial, tol_groups, theta, beta, gamma)
-            _check_planned(planned, max_samples, tol_groups)
+            refuse_large_plan(planned, max_samples=max_samples, tol=tol_groups, advice="loosen the tolerance")
     sampled_levels = [s for s in levels if s.n]
     if not sampled_levels or sampled_levels[0].level != 0:
         raise EstimationError("max_cost is too small for the initial samples of level 0")
@@ -641,17 +642,6 @@ def adaptive_mlmc(
         means, variances, n_samples, groups, alpha, beta, gamma,
         cost=sum(s.spent for s in levels), tol=tol_groups, theta=theta, stop_reason=stop_reason,
     )
-
-
-def _check_planned(planned: Sequence[float], max_samples: int | None, tol: np.ndarray) -> None:
-    """Refuse a plan of more than ``max_samples`` samples in all (none: no limit)."""
-    total = float(np.sum(planned))
-    if max_samples is not None and total > max_samples:
-        plan_text = " ".join(f"{int(n)}" for n in planned)
-        raise EstimationError(
-            f"tol {', '.join(f'{eps:g}' for eps in tol)} needs about {total:.3g} samples (N_l {plan_text}), "
-            f"more than max_samples = {max_samples}: loosen the tolerance"
-        )
 
 
 def _stack(terms: Sequence[LevelTerm]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -392,16 +392,11 @@ def _max_samples(max_samples: object) -> int | None:
 def _run_to_end(events, *, max_samples: int | None, tol: np.ndarray) -> EstimationResult:
     """The result of a run's events; refuses a plan of more than ``max_samples`` samples before drawing them."""
     for event in events:
-        if isinstance(event, drivers.PlanUpdated) and max_samples is not None:
-            total = float(np.sum(event.n_planned))
-            if total > max_samples:
-                events.close()
-                plan_text = " ".join(f"{int(n)}" for n in event.n_planned)
-                raise EstimationError(
-                    f"tol {', '.join(f'{eps:g}' for eps in tol)} needs about {total:.3g} samples (N_l {plan_text}), "
-                    f"more than max_samples = {max_samples}: loosen tol, or pass max_cost (a budget) with "
-                    "max_samples=None"
-                )
+        if isinstance(event, drivers.PlanUpdated):
+            drivers.refuse_large_plan(
+                event.n_planned, max_samples=max_samples, tol=tol,
+                advice="loosen tol, or pass max_cost (a budget) with max_samples=None",
+            )
         if isinstance(event, drivers.Finished):
             return event.result
     raise EstimationError("the estimator stopped without a result")  # pragma: no cover - generator bug
