@@ -11,7 +11,8 @@ Where the file lives: ``$ROUGHUQ_FFTW_WISDOM`` if set, else
 ``XDG_CACHE_HOME`` is unset); one file per host name, since wisdom describes one
 machine. The file is JSON (``format``, ``version`` and FFTW's own text export
 of the double, single and long-double wisdom): reading it runs no code, unlike
-a pickle a stranger could have put in the cache directory. ``ROUGHUQ_FFTW_WISDOM=estimate`` turns measured planning off
+a pickle a stranger could have put in the cache directory.
+``ROUGHUQ_FFTW_WISDOM=estimate`` turns measured planning off
 (``FFTW_ESTIMATE`` plans, nothing measured or written). An unreadable or
 corrupt file is ignored and replaced. The file is written only when it
 gains plans, and the study's progress says when plans are being measured
