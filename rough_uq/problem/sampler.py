@@ -340,7 +340,7 @@ def warm_up(model: ContactModel) -> None:
     One coupled sample on a tiny copy of the model's grids (coarsest 8, level
     1): numba compiles its kernels, or loads them from its disk cache, which
     would otherwise fall into the measured cost of the first sample of a
-    process (0.3-0.5 s in the quickstart's pool workers, against 1.5 ms for
+    process (about 0.3 s in the quickstart's pool workers, against 1.5 ms for
     its 32^2 samples). Its result is discarded; it changes no other sample.
     """
     compute_batch(replace(model, coarsest=8), stage=1, level=1, indices=np.zeros(1, dtype=np.int64))
