@@ -645,9 +645,8 @@ def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[Lev
     return statistics, rates, _run_plan(study.config, tol, rates, statistics, method=method)
 
 
-def _screening_seconds_per_cost(study: Study) -> float:
+def _screened_seconds_per_cost(screening: ScreeningRecord | None) -> float:
     """CPU-seconds per reference second of modelled cost measured by the screening (1 without one)."""
-    screening = read_screening_record(study.store)
     return float((screening.seconds_per_cost if screening is not None else None) or 1.0)
 
 
@@ -713,7 +712,7 @@ def forecast_run(
         if not prediction.is_bias_met and not is_given_level:
             raise _unreachable(config, tol, prediction)
         finest, counts, modelled = _planned_samples(method, level, prediction, rates)
-    seconds_per_cost = _screening_seconds_per_cost(study)
+    seconds_per_cost = _screened_seconds_per_cost(screening)
     forecast = _forecast(config, finest=finest, counts=counts, modelled=modelled, seconds_per_cost=seconds_per_cost,
                          n_workers=n_workers, is_richardson=bool(prediction.is_richardson))
     _check_budget(config.qoi_names, tol, forecast, max_cost)
@@ -961,7 +960,7 @@ def _events(
         # An explicit level needs no screening; the bias of that level is then unknown.
         return iter_mc(sampler, level=level, **options), {"level": level}
     statistics, rates, prediction = _estimation_plan(study, tol, method=method)
-    predicted = PlanRecord.from_plan(prediction, _screening_seconds_per_cost(study))
+    predicted = PlanRecord.from_plan(prediction, _screened_seconds_per_cost(read_screening_record(study.store)))
     context: dict[str, Any] = {"screening_rates": RatesRecord.from_rates(rates), "predicted": predicted}
     if method == "mlmc":
         events = iter_mlmc(
