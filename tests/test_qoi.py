@@ -95,6 +95,26 @@ def test_non_finite_fields_are_refused() -> None:
         assert info.value.name == "critical_pressure"
 
 
+@pytest.mark.parametrize(
+    "measure",
+    [
+        contact_area,
+        lambda p: contact_area(p, estimator="nodes"),
+        lambda p: area_above(p, 0.5),
+        max_pressure,
+        lambda p: evaluate_qoi(("clusters",), pressure=p),
+    ],
+)
+def test_negative_pressures_are_refused(measure) -> None:
+    # A field of the opposite sign would read as no contact at all (area 0), not as an error.
+    pressure = -np.abs(np.random.default_rng(3).normal(size=(8, 8)))
+    pressure[0, 0] = 0.0
+    with pytest.raises(InvalidParameterError, match="negative entries") as info:
+        measure(pressure)
+    assert info.value.name == "pressure"
+    measure(np.abs(pressure))  # the same field with the sign of a pressure is accepted
+
+
 # -- clusters on the periodic grid ------------------------------------------------
 
 

@@ -101,6 +101,22 @@ def _field(name: str, values: object) -> np.ndarray:
     return array
 
 
+def _pressure(values: object) -> np.ndarray:
+    """:func:`_field` of a contact pressure, which must also be non-negative.
+
+    Contact is ``pressure > 0``: a field of the opposite sign (tension
+    positive, or a load given with the wrong sign) would silently read as no
+    contact at all, so it is refused here.
+    """
+    array = _field("pressure", values)
+    lowest = float(array.min())
+    if lowest < 0.0:
+        raise InvalidParameterError(
+            "pressure", f"an array with negative entries (the lowest is {lowest:.3g})", "non-negative values"
+        )
+    return array
+
+
 def _contact_map(name: str, contact: object) -> np.ndarray:
     array = np.asarray(contact)
     if array.dtype != np.bool_:
@@ -171,7 +187,7 @@ def contact_area(pressure: np.ndarray, *, estimator: str = "corrected") -> float
     Parameters
     ----------
     pressure : array_like, shape (n0, n1)
-        Contact pressure (unit of ``E*``), finite; contact is ``pressure > 0``.
+        Contact pressure (unit of ``E*``), finite and non-negative; contact is ``pressure > 0``.
     estimator : {"corrected", "nodes"}
         ``"corrected"`` (default): ``(N_c - c P) / N`` with the perimeter ``P``
         of :func:`contact_perimeter` and ``c`` = :data:`PERIMETER_COEFFICIENT`
@@ -184,7 +200,7 @@ def contact_area(pressure: np.ndarray, *, estimator: str = "corrected") -> float
         Area fraction in ``[0, 1]`` (dimensionless).
     """
     estimator = _check_estimator(estimator)
-    contact = _field("pressure", pressure) > 0.0
+    contact = _pressure(pressure) > 0.0
     n_contact = np.count_nonzero(contact)
     if estimator == "nodes" or n_contact == 0 or n_contact == contact.size:
         return float(n_contact / contact.size)
@@ -200,7 +216,7 @@ def area_above(pressure: np.ndarray, critical_pressure: float) -> float:
     Parameters
     ----------
     pressure : array_like, shape (n0, n1)
-        Contact pressure (unit of ``E*``), finite.
+        Contact pressure (unit of ``E*``), finite and non-negative.
     critical_pressure : float
         Threshold (unit of ``E*``), finite and ``>= 0``; 0 gives the node count
         fraction, :func:`contact_area` with ``estimator="nodes"``.
@@ -216,7 +232,7 @@ def area_above(pressure: np.ndarray, critical_pressure: float) -> float:
         raise InvalidParameterError("critical_pressure", critical_pressure, "a finite number >= 0") from None
     if not (np.isfinite(threshold) and threshold >= 0.0):
         raise InvalidParameterError("critical_pressure", critical_pressure, "a finite number >= 0")
-    array = _field("pressure", pressure)
+    array = _pressure(pressure)
     return float(np.count_nonzero(array > threshold) / array.size)
 
 
@@ -227,7 +243,7 @@ def mean_gap(gap: np.ndarray) -> float:
 
 def max_pressure(pressure: np.ndarray) -> float:
     """Largest nodal pressure (unit of ``E*``)."""
-    return float(np.max(_field("pressure", pressure)))
+    return float(np.max(_pressure(pressure)))
 
 
 def _periodic_components(contact: np.ndarray, connectivity: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -343,7 +359,7 @@ def evaluate_qoi(
         ``"max_pressure"`` (unit of ``E*``), ``"area_above"`` (fraction above
         ``critical_pressure``). A single string is one name.
     pressure : array_like, shape (n0, n1)
-        Contact pressure (unit of ``E*``).
+        Contact pressure (unit of ``E*``), finite and non-negative.
     gap : array_like, shape (n0, n1), optional
         Gap (unit of ``L``); required for ``"mean_gap"``.
     connectivity : {4, 8, "mean"}
@@ -364,7 +380,7 @@ def evaluate_qoi(
     InvalidParameterError
         An unknown name (``name="names"``, listing the allowed ones), a missing
         ``gap`` / ``critical_pressure``, a bad ``connectivity`` or
-        ``area_estimator`` (``name="estimator"``), or a non-finite field.
+        ``area_estimator`` (``name="estimator"``), a non-finite field, or a negative pressure.
     """
     names = (names,) if isinstance(names, str) else tuple(names)
     for name in names:
@@ -372,7 +388,7 @@ def evaluate_qoi(
             raise InvalidParameterError("names", name, "one of " + ", ".join(QOI_NAMES))
     _check_cluster_count(connectivity)  # a bad setting is an error even when clusters are not asked for
     _check_estimator(area_estimator)
-    pressure = _field("pressure", pressure)
+    pressure = _pressure(pressure)
     values: dict[str, float] = {}
     for name in names:
         if name in values:
