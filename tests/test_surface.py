@@ -140,6 +140,11 @@ BASE = dict(system_size=1.0, k_l=2.0, k_r=4.0, k_s=10.0, hurst=0.7, rms_height=0
         ("k_l", dict(k_l=-1.0)),
         ("k_l, k_s", dict(k_l=0.0, k_r=0.5, k_s=0.9)),
         ("k_l, k_s", dict(k_l=1.1, k_r=1.2, k_s=1.3)),
+        # Not numbers: refused, not converted (the config refuses them too).
+        ("system_size", dict(system_size="2")),
+        ("hurst", dict(hurst="0.8")),
+        ("k_s", dict(k_s=True)),
+        ("rms_height", dict(rms_height=None)),
     ],
 )
 def test_invalid_spectrum_names_the_parameter(name: str, changes: dict) -> None:
@@ -155,6 +160,7 @@ def test_invalid_spectrum_names_the_parameter(name: str, changes: dict) -> None:
         ("lambda_r", dict(lambda_r=math.inf)),
         ("lambda_l", dict(lambda_l=0.1)),  # k_l = 10 > k_r
         ("system_size", dict(system_size=-2.0)),
+        ("lambda_s", dict(lambda_s="0.1")),
     ],
 )
 def test_invalid_wavelengths_name_the_wavelength(name: str, changes: dict) -> None:

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 import sys
 from dataclasses import dataclass, field
 from typing import Literal
@@ -76,14 +77,14 @@ PROJECTIONS = ("truncation", "injection")
 
 
 def _check_real(name: str, value: object, *, allowed: str) -> float:
-    """``value`` as a finite float, or :class:`InvalidParameterError` naming ``name``."""
-    try:
-        number = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise InvalidParameterError(name, value, allowed) from None
-    if isinstance(value, bool) or not math.isfinite(number):
+    """``value`` as a finite float, or :class:`InvalidParameterError` naming ``name``.
+
+    Only real numbers are accepted: a string such as ``"2"`` (or a boolean) is
+    refused rather than converted, as the config refuses it.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         raise InvalidParameterError(name, value, allowed)
-    return number
+    return float(value)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -219,11 +220,9 @@ class SurfaceSpectrum:
             raise InvalidParameterError("system_size", system_size, "a finite number > 0")
         wave_numbers = {}
         for name, wavelength in (("lambda_l", lambda_l), ("lambda_r", lambda_r), ("lambda_s", lambda_s)):
-            try:
-                value = float(wavelength)
-            except (TypeError, ValueError):
-                raise InvalidParameterError(name, wavelength, "a wavelength > 0") from None
             allow_inf = name == "lambda_l"
+            is_real = isinstance(wavelength, numbers.Real) and not isinstance(wavelength, bool)
+            value = float(wavelength) if is_real else math.nan
             if not (value > 0 and (math.isfinite(value) or (allow_inf and value == math.inf))):
                 raise InvalidParameterError(
                     name, wavelength, "a wavelength > 0" + (" (inf for k_l = 0)" if allow_inf else "")
