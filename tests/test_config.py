@@ -22,6 +22,7 @@ from rough_uq.study.config import (
     memory_warning,
     resolved_yaml,
     solver_memory_bytes,
+    sweep_configs,
 )
 from rough_uq.errors import ConfigError
 
@@ -222,6 +223,9 @@ def test_one_line_per_problem() -> None:
         (lambda d: d["grid"].update(coarsest=255), "grid.coarsest: must be even (got 255"),
         (lambda d: d["grid"].update(projection="injection"), "grid.projection: injection needs"),
         (lambda d: d.update(seed=True), "seed: must be a number, not a boolean (got True"),
+        # lax pydantic would read a quoted number as the number
+        (lambda d: d["surface"].update(hurst="0.8"), "surface.hurst: must be a number, not a string (remove the quotes)"),
+        (lambda d: d["grid"].update(coarsest="64"), "grid.coarsest: must be a number, not a string"),
         (lambda d: d["surface"].update(rms_height=float("nan")), "surface.rms_height: must be a finite number"),
         (lambda d: d.update(qoi={}), "qoi: at least one quantity of interest"),
         (lambda d: d.update(qoi={"area_above": {}}), "qoi.area_above.critical_pressure: required field is missing"),
@@ -432,3 +436,12 @@ def test_solver_defaults_agree_in_the_config_the_public_problem_and_the_model():
     assert model["tol"] == problem["solver_tol"] == solver.tol
     for name in ("max_iter", "warm_start", "threads"):
         assert model[name] == problem[name] == getattr(solver, name), name
+
+
+def test_sweep_values_are_read_as_the_config_file_reads_them() -> None:
+    # 1e-8 is a number in a config file (not a string, as plain YAML 1.1 has it); a sweep reads it alike.
+    config = config_from_dict(_base())
+    configs = sweep_configs(config, key="solver.tol", values=["1e-8", "2.5e-9"])
+    assert [c.solver.tol for _, c in configs] == [1e-8, 2.5e-9]
+    with pytest.raises(ConfigError, match="solver.tol: must be a number, not a string"):
+        sweep_configs(config, key="solver.tol", values=["tight"])

@@ -138,16 +138,19 @@ _ERROR_TYPE = "roughuq_config"
 # ---------------------------------------------------------------------------
 
 
-def _reject_bool(value: object) -> object:
-    # pydantic's lax mode would turn `true` into 1; a boolean where a number
-    # belongs is a typo, not a value.
+def _reject_non_number(value: object) -> object:
+    # pydantic's lax mode would turn `true` into 1 and the string '0.8' into
+    # 0.8; a boolean or a quoted number where a number belongs is a typo (or a
+    # value meant for another field), not a value.
     if isinstance(value, bool):
         raise PydanticCustomError("bool_not_number", "must be a number, not a boolean")
+    if isinstance(value, str):
+        raise PydanticCustomError("str_not_number", "must be a number, not a string (remove the quotes)")
     return value
 
 
-Int = Annotated[int, BeforeValidator(_reject_bool)]
-Float = Annotated[float, BeforeValidator(_reject_bool)]
+Int = Annotated[int, BeforeValidator(_reject_non_number)]
+Float = Annotated[float, BeforeValidator(_reject_non_number)]
 
 
 def _field(default: Any = ..., *, description: str, allowed: str, **constraints: Any) -> Any:
@@ -1305,7 +1308,8 @@ def config_hash(config: StudyConfig) -> str:
 
 
 def _parse_scalar(text: str) -> object:
-    value = yaml.safe_load(text)
+    # The config file's reading of a value, so that 1e-8 is a number here too.
+    value = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
     return value if isinstance(value, (int, float, str, bool)) else text
 
 
@@ -1322,7 +1326,8 @@ def sweep_configs(
         Dotted path of a field of the resolved config (``load.relative``,
         ``surface.hurst``, ``surface.system_size``, ...).
     values : sequence of str
-        The values, as written on the command line (parsed as YAML scalars).
+        The values, as written on the command line (parsed as the config file
+        parses a value, so ``1e-8`` is a number).
     fixed_spacing : bool
         Only with ``key = surface.system_size``: scale ``grid.coarsest`` with
         the box so that the grid spacing ``L / n_0`` stays that of the base
