@@ -89,7 +89,7 @@ def test_non_finite_fields_are_refused() -> None:
     with pytest.raises(InvalidParameterError) as info:
         mean_gap(np.full((2, 2), np.inf))
     assert info.value.name == "gap"
-    for bad in (-0.1, np.nan, "high"):
+    for bad in (-0.1, np.nan, "high", "0.1", True):
         with pytest.raises(InvalidParameterError) as info:
             area_above(np.zeros((2, 2)), bad)
         assert info.value.name == "critical_pressure"

@@ -349,6 +349,11 @@ def test_resample_pressure_restricts_and_prolongs():
         ({"threads": 0}, "threads"),
         ({"threads": 1.5}, "threads"),
         ({"threads": True}, "threads"),
+        # Booleans and strings are not numbers (True would pass for 1).
+        ({"system_size": True}, "system_size"),
+        ({"mean_pressure": "0.1"}, "mean_pressure"),
+        ({"max_iter": True}, "max_iter"),
+        ({"tol": "1e-7"}, "tol"),
     ],
 )
 def test_invalid_input_names_the_parameter(kwargs, name):

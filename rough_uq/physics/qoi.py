@@ -46,6 +46,7 @@ full contact and ``0`` for none. ``"nodes"`` keeps the plain count.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Iterable
 
 import numpy as np
@@ -226,10 +227,8 @@ def area_above(pressure: np.ndarray, critical_pressure: float) -> float:
     float
         ``mean(pressure > critical_pressure)``, in ``[0, 1]`` (dimensionless).
     """
-    try:
-        threshold = float(critical_pressure)
-    except (TypeError, ValueError):
-        raise InvalidParameterError("critical_pressure", critical_pressure, "a finite number >= 0") from None
+    is_real = isinstance(critical_pressure, numbers.Real) and not isinstance(critical_pressure, bool)
+    threshold = float(critical_pressure) if is_real else math.nan
     if not (np.isfinite(threshold) and threshold >= 0.0):
         raise InvalidParameterError("critical_pressure", critical_pressure, "a finite number >= 0")
     array = _pressure(pressure)
