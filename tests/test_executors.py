@@ -96,3 +96,15 @@ def test_a_worker_warms_the_kernels_once_before_its_first_sample(monkeypatch, is
     # The garbage collector is tuned only in the pool's own processes (a dask worker may be the user's).
     expected = ["warm model", "freeze", "sample 0", "sample 1"]
     assert calls == (expected if is_pool_worker else [call for call in expected if call != "freeze"])
+
+
+def test_the_serial_executor_warms_the_kernels_once_per_process_without_freezing(monkeypatch):
+    calls: list[str] = []
+    monkeypatch.setattr(executors, "_is_warm", False)
+    monkeypatch.setattr(executors, "warm_up", lambda model: calls.append(f"warm {model}"))
+    monkeypatch.setattr(executors, "freeze_garbage", lambda: calls.append("freeze"))
+    monkeypatch.setattr(executors, "compute_batch", lambda model, **item: calls.append(f"sample {item['level']}"))
+    items = [(5, 0, np.arange(2)), (5, 1, np.arange(2))]
+    list(SerialExecutor().run("model", items))
+    list(SerialExecutor().run("model", items[:1]))
+    assert calls == ["warm model", "sample 0", "sample 1", "sample 0"]

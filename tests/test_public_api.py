@@ -307,6 +307,23 @@ def test_an_executor_computes_the_same_samples():
     assert rough_uq.mc(problem, tol=2.0, level=0, executor=_Reversed()).estimate == mc.estimate
 
 
+def test_a_sampler_warms_the_kernels_before_its_first_sample_in_this_process(monkeypatch):
+    # Loading numba's kernels (about 0.3 s in a fresh process) must not be timed as a sample.
+    import rough_uq.problem.contact as contact_module
+
+    calls = []
+    monkeypatch.setattr(contact_module, "warm_up", lambda model: calls.append(model))
+    problem = _problem()
+    sampler = problem.sampler(STAGE_SCREENING)
+    sampler(1, np.arange(2))
+    assert calls == [problem.model]
+    sampler(0, np.arange(3))
+    assert len(calls) == 1  # once per sampler
+    on_executor = problem.sampler(STAGE_SCREENING, executor=_Reversed())
+    on_executor(1, np.arange(3))  # the executor's workers warm up themselves
+    assert len(calls) == 1
+
+
 @pytest.mark.slow
 def test_a_process_pool_computes_the_same_estimate():
     from rough_uq.study.executors import PoolExecutor

@@ -101,14 +101,15 @@ class Executor(ABC):
 
 
 class SerialExecutor(Executor):
-    """Computes every item in this process, in order."""
+    """Computes every item in this process, in order (after a warm-up of the kernels, once per process)."""
 
     def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
         for stage, level, indices in items:
-            yield compute_batch(model, stage=stage, level=level, indices=indices)
+            yield _compute(model, stage, level, indices)
 
 
-#: Whether this (worker) process has run :func:`~rough_uq.problem.sampler.warm_up`.
+#: Whether this process (a worker, or the one a SerialExecutor computes in) has run
+#: :func:`~rough_uq.problem.sampler.warm_up`.
 _is_warm = False
 #: Whether this process is a worker of a :class:`PoolExecutor` (ours to tune: :func:`freeze_garbage`).
 _is_pool_worker = False
