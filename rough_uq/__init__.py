@@ -58,7 +58,7 @@ _EXPORTS = {
     "CdfEstimate": "rough_uq.multilevel.distribution",
     "Quantiles": "rough_uq.multilevel.distribution",
     "LevelStatistics": "rough_uq.multilevel.statistics",
-    "Rates": "rough_uq.multilevel.statistics",
+    "Rates": "rough_uq.multilevel.rates",
     # the physics
     "SurfaceSpectrum": "rough_uq.physics.surface",
     "sample_surface": "rough_uq.physics.surface",
@@ -128,7 +128,8 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time names load on first
     from rough_uq.multilevel.distribution import CdfEstimate, Quantiles
     from rough_uq.multilevel.drivers import EstimationResult
     from rough_uq.multilevel.targets import TargetEstimate
-    from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, Rates
+    from rough_uq.multilevel.rates import Rates
+    from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics
     from rough_uq.physics.qoi import (
         QOI_NAMES,
         area_above,

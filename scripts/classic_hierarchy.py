@@ -14,7 +14,7 @@ Per variant it prints the level means ``Q_l`` and ``Y_l = Q_l - Q_{l-1}``, the
 telescoping (MLMC) estimate of ``E[Q]`` on the finest grid with its standard
 error (the reference: every level has its own independent samples), the rates
 fitted on the first ``--fit-levels`` levels and the MLMC plan for ``--tol``
-(``rough_uq.multilevel.statistics.plan``) with level 0 as coarsest, level 1
+(``rough_uq.multilevel.allocation.plan``) with level 0 as coarsest, level 1
 as coarsest, and the coarsest useful level chosen from the data. Levels
 beyond ``--fit-levels`` check the limit at a resolution finer than any level
 the plan uses.
@@ -38,7 +38,9 @@ from pathlib import Path
 import numpy as np
 
 from rough_uq.errors import EstimationError
-from rough_uq.multilevel.statistics import fit_rates, level_statistics, plan
+from rough_uq.multilevel.allocation import plan
+from rough_uq.multilevel.rates import fit_rates
+from rough_uq.multilevel.statistics import level_statistics
 from rough_uq.physics.qoi import contact_area, count_clusters
 from rough_uq.problem.sampler import solve_sample
 from rough_uq.study.config import load_config
@@ -108,7 +110,7 @@ def compute(setting: str, model, samples: list[int], workers: int, known: dict |
 def analyse(data: dict, variants: tuple[str, ...], *, coarsest: int | None, tol: float, n_fit: int) -> dict:
     """Statistics of levels ``0..n_fit-1``, rates and the MLMC plan at ``tol`` starting on level ``coarsest``.
 
-    ``coarsest=None`` lets :func:`~rough_uq.multilevel.statistics.choose_coarsest_level` decide.
+    ``coarsest=None`` lets :func:`~rough_uq.multilevel.rates.choose_coarsest_level` decide.
     The plan may extrapolate beyond ``n_fit - 1`` with the fitted rates.
     """
     report = {}

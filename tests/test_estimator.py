@@ -29,7 +29,8 @@ from rough_uq.multilevel.drivers import (
     mlmc,
     plan,
 )
-from rough_uq.multilevel.statistics import estimated_bias, ratio_instability, richardson_bias, richardson_weight
+from rough_uq.multilevel.rates import estimated_bias
+from rough_uq.multilevel.richardson import ratio_instability, richardson_bias, richardson_weight
 
 N_REPEATS = 200
 EPS = 0.05
@@ -275,7 +276,7 @@ def test_mlmc_bias_test_takes_giles_terms_from_the_two_levels_below_the_finest()
     # E[Y_l] = 2^-l - 16 4^-l: -3.5, -0.75, -0.125 on levels 1-3, 0 on level 4 (the sign
     # changes there). The run stops on level 3, where the scaled means of levels 1 and 2
     # exceed the model and the finest mean (module docstring of
-    # rough_uq.multilevel.statistics, "Remaining bias"), and its test uses them.
+    # rough_uq.multilevel.rates, "Remaining bias"), and its test uses them.
     result, _ = run_quietly(mlmc, Synthetic(seed=0, a=1.0, alpha=1.0, b=-16.0, alpha2=2.0, v1=1e-4), tol=0.1)
     statistics, finest = result.statistics, result.finest_level
     means = statistics.mean_diff

@@ -21,15 +21,9 @@ from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.multilevel.drivers import EstimationWarning, mc, mlmc
 from rough_uq.physics.qoi import contact_area, count_clusters, evaluate_qoi, label_clusters
 from rough_uq.physics.reference import full_contact_pressure, westergaard_full_contact_pressure
-from rough_uq.multilevel.statistics import (
-    Rates,
-    diagnose,
-    fit_rates,
-    level_statistics,
-    optimal_samples,
-    plan,
-    remaining_bias,
-)
+from rough_uq.multilevel.allocation import optimal_samples, plan
+from rough_uq.multilevel.rates import Rates, fit_rates, remaining_bias
+from rough_uq.multilevel.statistics import diagnose, level_statistics
 from rough_uq.physics.solver import resample_pressure, solve_contact
 from rough_uq.physics.surface import SurfaceSpectrum, project_surface, sample_coupled, sample_surface
 

@@ -15,6 +15,7 @@ import pytest
 from moment_problems import PerturbedLimit
 
 from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.multilevel.allocation import optimal_samples
 from rough_uq.multilevel.moments import (
     central_moment_level_term,
     h2,
@@ -26,7 +27,6 @@ from rough_uq.multilevel.moments import (
     variance_from_samples,
     variance_level_term,
 )
-from rough_uq.multilevel.statistics import optimal_samples
 from rough_uq.multilevel.targets import LevelTerm, adaptive_mlmc, sample_plan, telescope
 
 THETA = 0.5

@@ -17,19 +17,16 @@ from mlmc_problems import GbmEuler, Synthetic, sample_levels
 from scipy import stats as scipy_stats
 
 from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.multilevel.statistics import (
-    CONSISTENCY_CHECK_SAMPLES,
+from rough_uq.multilevel.allocation import plan
+from rough_uq.multilevel.rates import (
     DROP_MARGIN,
-    EstimationWarning,
     Rates,
     choose_coarsest_level,
-    diagnose,
     estimated_bias,
     fit_rates,
-    level_statistics,
-    plan,
     remaining_bias,
 )
+from rough_uq.multilevel.statistics import CONSISTENCY_CHECK_SAMPLES, EstimationWarning, diagnose, level_statistics
 
 
 @pytest.fixture(scope="module")

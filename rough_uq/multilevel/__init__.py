@@ -2,8 +2,10 @@
 
 Pure numpy/scipy; no I/O, never imports :mod:`rough_uq.physics`.
 
-* :mod:`~rough_uq.multilevel.statistics`: level statistics, rate fits, the coarsest useful level,
-  sample allocation (plans) and diagnostics.
+* :mod:`~rough_uq.multilevel.statistics`: level statistics and diagnostics.
+* :mod:`~rough_uq.multilevel.rates`: rate fits, the remaining bias and the coarsest useful level.
+* :mod:`~rough_uq.multilevel.richardson`: Richardson extrapolation (weight, remaining bias, stability).
+* :mod:`~rough_uq.multilevel.allocation`: sample allocation (plans).
 * :mod:`~rough_uq.multilevel.drivers`: the adaptive MC and MLMC drivers (with Richardson
   extrapolation) as generators of events over a level sampler.
 """

@@ -1,6 +1,7 @@
 """Monte Carlo and adaptive Multilevel Monte Carlo drivers (SPEC section 5).
 
-Symbols follow SPEC section 5 and :mod:`rough_uq.multilevel.statistics`: ``Q_l`` the
+Symbols follow SPEC section 5 and :mod:`rough_uq.multilevel.statistics`,
+:mod:`~rough_uq.multilevel.rates` and :mod:`~rough_uq.multilevel.allocation`: ``Q_l`` the
 quantity of interest on level ``l`` (mesh ``h_l = h_0 2^-l``),
 ``Y_l = Q_l - Q_{l-1}`` (``Y_0 = Q_0``), ``V_l = Var(Y_l)``, ``C_l`` the mean
 cost of a level-``l`` sample, ``|E[Y_l]| ~ 2^(-alpha l)``,
@@ -56,7 +57,7 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
 1. Start on levels ``0..min_finest_level`` with ``n_initial`` samples each
    (Giles' ``N0``: nothing is known about the levels yet), or from a
    screening table: the finest level and ``N_l`` of
-   :func:`~rough_uq.multilevel.statistics.plan`, at least 2 per level (so that every level
+   :func:`~rough_uq.multilevel.allocation.plan`, at least 2 per level (so that every level
    has a sample variance). With a screening, the screening's and the run's
    ``Y_l`` of a level both sampled are independent samples of the same
    level: ``V_l`` is their pooled variance, for the allocation and for the
@@ -74,7 +75,7 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
 3. Once every level has (nearly, within 1%) its planned samples, estimate
    the remaining bias ``max(c_alpha 2^(-alpha L), |E[Y_L]|, |E[Y_{L-1}]|
    2^-alpha, |E[Y_{L-2}]| 2^(-2 alpha)) / (2^alpha - 1)``
-   (:func:`~rough_uq.multilevel.statistics.estimated_bias`: the tail sum of
+   (:func:`~rough_uq.multilevel.rates.estimated_bias`: the tail sum of
    the ``alpha`` model, whose least-squares line through all levels above the
    base is robust against a finest mean that happens to be near 0, and never
    below what the three finest difference levels predict; the rule
@@ -91,16 +92,16 @@ Richardson extrapolation (``richardson=True``)
 -----------------------------------------------
 The estimate becomes ``sum_{l<L} mean(Y_l) + w mean(Y_L)``,
 ``w = 2^alpha / (2^alpha - 1)`` with the driver's ``alpha`` (see
-:mod:`rough_uq.multilevel.statistics` for the formulas and the remaining-bias estimate).
+:mod:`rough_uq.multilevel.richardson` for the formulas and the remaining-bias estimate).
 While it is *active*, the allocation gives the finest level the variance
 ``w^2 V_L`` and step 3 tests the extrapolated estimate's remaining bias
-(:func:`~rough_uq.multilevel.statistics.richardson_bias`) instead of the plain one. It is
+(:func:`~rough_uq.multilevel.richardson.richardson_bias`) instead of the plain one. It is
 active from the start if the screening's plan is extrapolated
-(:func:`~rough_uq.multilevel.statistics.plan` with ``richardson``), else *pending* (plain
+(:func:`~rough_uq.multilevel.allocation.plan` with ``richardson``), else *pending* (plain
 MLMC) until the run has ``RICHARDSON_MIN_LEVELS`` levels above its base
 level. Each time the samples
 are complete the run's own level means (standard errors from the pooled
-``V_l``) are checked with :func:`~rough_uq.multilevel.statistics.ratio_instability`; a
+``V_l``) are checked with :func:`~rough_uq.multilevel.richardson.ratio_instability`; a
 failed check *refuses* the extrapolation for the rest of the run (a
 :class:`RichardsonRefused` event, ``EstimationResult.richardson =
 "refused"`` with the reason, an :class:`EstimationWarning`) and the run goes
@@ -135,35 +136,29 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.multilevel.statistics import (
-    KURTOSIS_LIMIT,
-    RICHARDSON_MIN_LEVELS,
+from rough_uq.multilevel.allocation import Plan, _check_fraction, _check_tol, fine_cost_share, optimal_samples, plan
+from rough_uq.multilevel.rates import (
     DroppedLevel,
-    EstimationWarning,
-    LevelStatistics,
-    Plan,
     Rates,
-    _assemble,
-    _check_fraction,
     _fit_alpha,
     _fit_beta,
     _fit_gamma,
-    _level_moments,
     _Line,
+    estimated_bias,
+    fit_rates,
+    remaining_bias,
+)
+from rough_uq.multilevel.richardson import RICHARDSON_MIN_LEVELS, ratio_instability, richardson_bias, richardson_weight
+from rough_uq.multilevel.statistics import (
+    KURTOSIS_LIMIT,
+    EstimationWarning,
+    LevelStatistics,
+    _assemble,
+    _level_moments,
     _Moments,
     _readonly,
-    _check_tol,
     diagnose,
-    estimated_bias,
-    fine_cost_share,
-    fit_rates,
     level_statistics,
-    optimal_samples,
-    plan,
-    ratio_instability,
-    remaining_bias,
-    richardson_bias,
-    richardson_weight,
 )
 
 __all__ = [
@@ -239,7 +234,7 @@ class RichardsonRefused:
     levels : ndarray of int, shape (n_levels,)
         Levels of the hierarchy when it was refused.
     reason : str
-        Which check failed (:func:`~rough_uq.multilevel.statistics.ratio_instability`).
+        Which check failed (:func:`~rough_uq.multilevel.richardson.ratio_instability`).
     """
 
     levels: np.ndarray
@@ -979,7 +974,7 @@ def iter_mlmc(
         more frequent events and store writes.
     screening : LevelStatistics, optional
         Screening table (from independent samples); sets the initial finest
-        level and ``N_l`` via :func:`~rough_uq.multilevel.statistics.plan`, and its ``V_l``
+        level and ``N_l`` via :func:`~rough_uq.multilevel.allocation.plan`, and its ``V_l``
         are pooled with the run's (module docstring). Its samples are not part
         of the estimate.
     rates : Rates, optional
@@ -995,7 +990,7 @@ def iter_mlmc(
         Level ``b`` the hierarchy starts on (default 0): its samples give
         ``Q_b`` alone (the sampler's coarse values are ignored) and the levels
         below are never sampled. None lets the screening's plan choose it
-        (:func:`~rough_uq.multilevel.statistics.choose_coarsest_level`; 0 without a
+        (:func:`~rough_uq.multilevel.rates.choose_coarsest_level`; 0 without a
         screening; 0 if ``max_level`` leaves fewer than two levels above the
         chosen one); ``EstimationResult.dropped_levels`` says why.
 
@@ -1113,7 +1108,7 @@ def starting_plan(
 ) -> Plan:
     """The plan an MLMC run started from a screening begins with (:func:`iter_mlmc`).
 
-    :func:`~rough_uq.multilevel.statistics.plan` with the run's options; the
+    :func:`~rough_uq.multilevel.allocation.plan` with the run's options; the
     coarsest level is chosen from the screening unless given, and is level 0
     when ``max_level`` leaves no two levels above the chosen one (the rates
     need them). Forecasts use it to predict what the run will plan.
@@ -1399,7 +1394,7 @@ def iter_mc(
         The level (grid) to sample.
     theta : float
         Bias share of ``eps^2``; the statistical target is ``(1-theta) eps^2``,
-        as in :func:`~rough_uq.multilevel.statistics.plan`'s MC prediction.
+        as in :func:`~rough_uq.multilevel.allocation.plan`'s MC prediction.
     bias : float or ndarray, optional
         Estimated bias of level ``level`` (e.g. ``Plan.bias`` from the
         screening). MC cannot estimate it from one level; without it the

@@ -52,7 +52,7 @@ model from the three finest levels, ``max_i b_{L-i} 2^(-i alpha) / (2^alpha
 max_c |T_c|`` up to the finest detected level ``k`` and, above it, the
 smaller of that and the model ``b_k 2^(-alpha (l - k))``: where the terms
 are noise, the data bound the bias only loosely, and the model extrapolated
-from measured terms is the better estimate (as :func:`~rough_uq.multilevel.statistics.plan`
+from measured terms is the better estimate (as :func:`~rough_uq.multilevel.allocation.plan`
 uses the model by default). A group meets its
 tolerance ``eps`` when ``max_c Var_c + bias^2 <= eps^2``, the maximum over
 its components: for a distribution function that is the supremum over the
@@ -81,6 +81,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import EstimationError
+from rough_uq.multilevel.allocation import _check_fraction, _check_tol, optimal_samples
 from rough_uq.multilevel.drivers import (
     RATE_FLOOR,
     Sampler,
@@ -91,15 +92,8 @@ from rough_uq.multilevel.drivers import (
     _planning_variances,
     refuse_large_plan,
 )
-from rough_uq.multilevel.statistics import (
-    _check_fraction,
-    _check_tol,
-    _fit_line,
-    _readonly,
-    giles_prediction,
-    optimal_samples,
-    remaining_bias,
-)
+from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias
+from rough_uq.multilevel.statistics import _readonly
 
 __all__ = [
     "LevelTerm",

@@ -29,16 +29,15 @@ import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.multilevel import drivers
+from rough_uq.multilevel.allocation import plan
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
+from rough_uq.multilevel.rates import Rates, fit_rates
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
     LevelStatistics,
-    Rates,
     diagnose,
-    fit_rates,
     level_statistics,
-    plan,
 )
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, integer
@@ -220,7 +219,7 @@ def mlmc(
     ``0..min_finest_level`` with ``n_initial`` samples each; with one (what
     ``roughuq mlmc`` does) it starts from the screening's plan, pools its
     variances and drops coarse levels that do not pay
-    (:func:`~rough_uq.multilevel.statistics.choose_coarsest_level`). The random
+    (:func:`~rough_uq.multilevel.rates.choose_coarsest_level`). The random
     stage is that of ``roughuq mlmc`` with the same QoIs, ``tol``, ``theta``
     and ``richardson`` (module docstring).
 

@@ -9,10 +9,10 @@ pyplot, no global state, no display needed.
 
 Conventions
 -----------
-* Rates are drawn the way :mod:`rough_uq.multilevel.statistics` fits them: ``log2`` of the
+* Rates are drawn the way :mod:`rough_uq.multilevel.rates` fits them: ``log2`` of the
   per-level statistic against the level ``l``, with the fitted models
   ``|E[Y_l]| = c_alpha 2^(-alpha l)``, ``V_l = c_beta 2^(-beta l)`` and
-  ``C_l = c_gamma 2^(gamma l)`` (:class:`~rough_uq.multilevel.statistics.Rates`) as
+  ``C_l = c_gamma 2^(gamma l)`` (:class:`~rough_uq.multilevel.rates.Rates`) as
   straight lines. The top axis names the grid ``n_l`` of each level.
 * Several QoIs share one tolerance axis: cost against tolerance and the
   choice of the loosest / tightest run use the first QoI's tolerance.

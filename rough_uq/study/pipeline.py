@@ -87,17 +87,9 @@ from rough_uq.problem.sampler import (
     modelled_cost,
     run_stage,
 )
-from rough_uq.multilevel.statistics import (
-    EstimationWarning,
-    LevelStatistics,
-    Plan,
-    Rates,
-    choose_coarsest_level,
-    diagnose,
-    fit_rates,
-    level_statistics,
-    plan,
-)
+from rough_uq.multilevel.allocation import Plan, plan
+from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates
+from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
 from rough_uq.study.store import StudyStore, open_study, open_study_readonly
 from rough_uq.physics.surface import SurfaceSpectrum
 

@@ -402,7 +402,7 @@ class RatesRecord:
 
     @classmethod
     def from_rates(cls, rates: Any) -> RatesRecord:
-        """The record of a :class:`~rough_uq.multilevel.statistics.Rates` (per-QoI values as tuples)."""
+        """The record of a :class:`~rough_uq.multilevel.rates.Rates` (per-QoI values as tuples)."""
         return cls(**{key: _tuples(getattr(rates, key)) for key in _RATES_KEYS})
 
     @property
@@ -460,7 +460,7 @@ class PlanRecord:
 
     @classmethod
     def from_plan(cls, plan: Any, seconds_per_cost: float) -> PlanRecord:
-        """The record of a :class:`~rough_uq.multilevel.statistics.Plan`; seconds are ``cost * seconds_per_cost``."""
+        """The record of a :class:`~rough_uq.multilevel.allocation.Plan`; seconds are ``cost * seconds_per_cost``."""
         return cls(
             tol=_tuples(plan.tol), finest_level=int(plan.finest_level), n_samples=_tuples(plan.n_samples),
             mlmc_cost=float(plan.cost), mc_cost=float(plan.mc_cost),

@@ -1,0 +1,526 @@
+"""MLMC rates: the rate models of a level hierarchy, the remaining bias and the coarsest useful level.
+
+This module fits the rate models of SPEC section 5 to a screening table
+(:class:`~rough_uq.multilevel.statistics.LevelStatistics`), turns them into
+the bias an estimator leaves (:func:`remaining_bias`, :func:`estimated_bias`)
+and picks the level a hierarchy should start on (:func:`choose_coarsest_level`).
+It needs only numpy and the standard library and has no state.
+
+Conventions
+-----------
+Levels ``l = 0, 1, 2, ...`` (mesh size ``h_l = h_0 2^-l``), the quantity of
+interest ``Q_l``, the level difference ``Y_l = Q_l - Q_{l-1}`` (``Y_0 =
+Q_0``), ``V_l = Var(Y_l)`` and the cost ``C_l`` are those of
+:mod:`~rough_uq.multilevel.statistics`.
+All rate models are written against the *relative* mesh size
+``h_l / h_0 = 2^-l``, i.e. they are fitted by least squares on ``log2`` values
+against the level index ``l`` (``log2(h_l/h_0) = -l``); the constants are the
+model values at ``l = 0``. With ``n_qoi`` quantities of interest, every QoI
+has its own ``alpha`` and ``beta``; the cost is shared (``gamma``).
+
+Symbols (SPEC section 5):
+
+``alpha``
+    Bias rate: ``|E[Y_l]| ~ C_alpha 2^(-alpha l)``.
+``beta``
+    Variance rate: ``V_l ~ C_beta 2^(-beta l)``.
+``gamma``
+    Cost rate: ``C_l ~ C_gamma 2^(gamma l)``, ``C_l`` the mean cost of one
+    level-``l`` sample (both solves on ``l >= 1``).
+
+Fitting alpha
+-------------
+The bias rate matters beyond the data (the tail sum below), so it is fitted
+on the levels whose means look asymptotic: the window starts with the two
+finest usable levels, provided their means have one sign and decay, and
+extends to coarser levels while the next pair has the same sign, decays, and
+its local rate ``log2 |E[Y_l-1] / E[Y_l]|`` agrees with the window's fitted
+rate within ``RATIO_LOG2_TOLERANCE`` plus two standard errors. The levels
+before the window are pre-asymptotic: their different early decay would pull
+the rate away from the asymptotic one (a faster one makes the predicted bias
+of the finest levels too optimistic).
+When the two finest means change sign or do not decay, no window can be
+anchored and every usable level is fitted, as a plain least-squares line
+(``Rates.levels_alpha`` says which levels were used).
+
+Remaining bias
+--------------
+The bias of an estimator whose finest level is ``L`` is
+``E[Q] - E[Q_L] = sum_{l > L} E[Y_l]``. Under the ``alpha`` model this is the
+geometric tail ``|E[Y_L]| / (2^alpha - 1)`` (Giles 2015, section 3.1); this
+module calls that the *remaining bias* (:func:`remaining_bias`).
+
+Which ``|E[Y_L]|`` goes into it (:func:`estimated_bias`, used by
+:func:`~rough_uq.multilevel.allocation.plan` and by the MLMC driver alike):
+the largest of the fitted model ``c_alpha 2^(-alpha L)``, the measured
+``|mean(Y_L)|`` where level ``L`` was sampled, and the measured means of the
+two levels below it scaled to level ``L``, ``|mean(Y_{L-1})| 2^-alpha`` and
+``|mean(Y_{L-2})| 2^(-2 alpha)`` (levels ``>= 1`` only; Giles' rule). The model, a least-squares line through the
+means of all fitted levels, is not fooled by a finest mean that happens to
+lie near 0; the measured means catch a model that falls short of the finest
+levels. The coarser means matter where the differences change sign: there the
+finest mean is small because the hierarchy is pre-asymptotic, not because the
+bias is. The classic cluster count (mean of the 4- and 8-connected counts) has
+level means 61.2, 13.2, -0.67, -1.26, -0.46 on 384^2 ... 6144^2: on 1536^2 its
+bias is about 1.7-2.0 per unit area (the 6144^2 level of the reference
+hierarchy), the model and the finest mean gave 0.65, Giles' term from 768^2
+2.0 (README, "The classic study"). An earlier version left Giles' terms out
+because they looked driven by the top of the rise; the finer level showed
+they were right.
+
+Coarsest useful level
+---------------------
+The telescoping sum may start on any level ``b``: ``E[Q_L] = E[Q_b] + sum_{b<l<=L}
+E[Y_l]``, the base level sampled as ``Q_b`` alone. A level ``l`` with
+``Var(Y_l) >= Var(Q_l)`` makes everything below it useless: sampling ``Q_l``
+directly is cheaper than sampling ``Y_l`` plus the coarser levels. In
+general the MLMC cost is proportional to ``S(b)^2``,
+``S(b) = sqrt(Var(Q_b) C_b) + sum_{l>b} sqrt(V_l C_l)`` (SPEC section 5 with
+the base level's variance ``Var(Q_b)``); :func:`choose_coarsest_level` picks
+the screened ``b`` that minimises it (worst QoI, relative to ``b = 0``) and
+drops the levels below ``b`` when the predicted saving is at least
+``DROP_MARGIN`` (10 %: the screening's variances carry sampling noise of that
+order). ``C_b`` is the cost of a screened (coupled) level-``b`` sample, since
+the estimators draw the base level's samples from the same coupled sampler
+and ignore the coarse value, so the prediction is what a run pays.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.multilevel.statistics import LevelStatistics, _readonly
+
+__all__ = [
+    "DROP_MARGIN",
+    "RATIO_LOG2_TOLERANCE",
+    "CoarsestLevel",
+    "DroppedLevel",
+    "Rates",
+    "choose_coarsest_level",
+    "estimated_bias",
+    "fit_rates",
+    "giles_prediction",
+    "remaining_bias",
+]
+
+#: Smallest predicted saving (fraction of the MLMC cost) for which coarse levels are dropped.
+DROP_MARGIN = 0.1
+
+#: Largest ``|log2 r_l - log2 r_{l-1}|`` of successive mean ratios, beyond two standard errors, still "stable".
+RATIO_LOG2_TOLERANCE = 0.5
+
+
+def _as_qoi_array(value: object) -> np.ndarray:
+    return _readonly(np.atleast_1d(np.asarray(value, dtype=float)))
+
+
+@dataclass(frozen=True, eq=False)
+class Rates:
+    """Fitted (or prescribed) rate models of a level hierarchy.
+
+    ``|E[Y_l]| = c_alpha 2^(-alpha l)``, ``V_l = c_beta 2^(-beta l)``,
+    ``C_l = c_gamma 2^(gamma l)`` (module docstring). Scalars given for the
+    per-QoI fields are stored as arrays of shape (1,).
+
+    Attributes
+    ----------
+    alpha, beta : ndarray, shape (n_qoi,)
+        Bias and variance rates.
+    gamma : float
+        Cost rate.
+    c_alpha, c_beta : ndarray, shape (n_qoi,)
+        Constants of the bias and variance models (model values at ``l = 0``).
+    c_gamma : float
+        Constant of the cost model.
+    alpha_se, beta_se : ndarray, shape (n_qoi,)
+        Standard errors of the rates (0 if prescribed).
+    gamma_se : float
+        Standard error of ``gamma``.
+    levels_alpha, levels_beta : tuple of tuple of int
+        Per QoI, the levels the fit used (empty if prescribed).
+    levels_gamma : tuple of int
+        Levels the cost fit used.
+    """
+
+    alpha: np.ndarray
+    beta: np.ndarray
+    gamma: float
+    c_alpha: np.ndarray
+    c_beta: np.ndarray
+    c_gamma: float
+    alpha_se: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    beta_se: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    gamma_se: float = 0.0
+    levels_alpha: tuple[tuple[int, ...], ...] = ()
+    levels_beta: tuple[tuple[int, ...], ...] = ()
+    levels_gamma: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        n_qoi = max(np.size(self.alpha), np.size(self.beta), np.size(self.c_alpha), np.size(self.c_beta))
+        for name in ("alpha", "beta", "c_alpha", "c_beta", "alpha_se", "beta_se"):
+            value = _as_qoi_array(getattr(self, name))
+            if value.shape == (1,) and n_qoi > 1:
+                value = _readonly(np.repeat(value, n_qoi))
+            if value.shape != (n_qoi,):
+                raise InvalidParameterError(f"Rates.{name}", getattr(self, name), f"a scalar or {n_qoi} values")
+            object.__setattr__(self, name, value)
+        for name in ("gamma", "c_gamma", "gamma_se"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+
+    @property
+    def n_qoi(self) -> int:
+        """Number of quantities of interest."""
+        return len(self.alpha)
+
+    def bias_model(self, level: int) -> np.ndarray:
+        """Model ``|E[Y_l]|``, shape (n_qoi,)."""
+        return self.c_alpha * 2.0 ** (-self.alpha * level)
+
+    def variance_model(self, level: int) -> np.ndarray:
+        """Model ``V_l``, shape (n_qoi,)."""
+        return self.c_beta * 2.0 ** (-self.beta * level)
+
+    def cost_model(self, level: int) -> float:
+        """Model cost ``C_l`` of one level-``level`` sample."""
+        return self.c_gamma * 2.0 ** (self.gamma * level)
+
+
+@dataclass(frozen=True, eq=False)
+class _Line:
+    rate: float
+    constant: float
+    se: float
+    levels: tuple[int, ...]
+
+
+def _fit_line(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: float) -> _Line | None:
+    """Least-squares fit ``log2 value = log2 constant + sign * rate * level``.
+
+    ``rel_se`` is the standard error of each value relative to the value; it
+    is propagated through the fit so that a two-point fit still gets an error.
+    Returns None with fewer than two points.
+    """
+    if len(levels) < 2:
+        return None
+    x = levels.astype(float)
+    y = np.log2(values)
+    x_mean = x.mean()
+    sxx = float(np.sum((x - x_mean) ** 2))
+    slope = float(np.sum((x - x_mean) * (y - y.mean())) / sxx)
+    intercept = float(y.mean() - slope * x_mean)
+    # Propagated sampling error: var(log2 v) ~ (se(v)/v)^2 / ln(2)^2.
+    weights = (x - x_mean) / sxx
+    se_sampling = math.sqrt(float(np.sum(weights**2 * (rel_se / math.log(2.0)) ** 2)))
+    se = se_sampling
+    if len(levels) > 2:
+        residual = y - (intercept + slope * x)
+        se_residual = math.sqrt(float(np.sum(residual**2)) / (len(levels) - 2) / sxx)
+        # The residual error also sees model misfit (pre-asymptotic levels); keep the larger.
+        se = max(se_sampling, se_residual)
+    return _Line(rate=sign * slope, constant=2.0**intercept, se=se, levels=tuple(int(level) for level in levels))
+
+
+def _asymptotic_window(levels: np.ndarray, means: np.ndarray, rel_se: np.ndarray) -> np.ndarray:
+    """Indices of the levels the bias rate is fitted on (module docstring, "Fitting alpha").
+
+    ``levels`` increasing, ``means`` the signed ``mean(Y_l)`` (nonzero),
+    ``rel_se`` their standard errors relative to ``|mean|``.
+    """
+    rows = np.arange(len(levels))
+
+    def is_decaying_pair(coarse: int, fine: int) -> bool:
+        return (
+            levels[fine] - levels[coarse] == 1
+            and np.sign(means[fine]) == np.sign(means[coarse])
+            and abs(means[fine]) < abs(means[coarse])
+        )
+
+    if len(rows) < 3 or not is_decaying_pair(len(rows) - 2, len(rows) - 1):
+        return rows  # nothing to leave out, or no asymptotic pair to anchor a window on
+    finest = len(rows) - 1
+    start = finest - 1
+    while start > 0 and is_decaying_pair(start - 1, start):
+        window = slice(start, finest + 1)
+        rate = -np.polyfit(levels[window], np.log2(np.abs(means[window])), 1)[0]
+        local = math.log2(abs(means[start - 1]) / abs(means[start]))
+        noise = math.hypot(rel_se[start - 1], rel_se[start]) / math.log(2.0)
+        if abs(local - rate) > RATIO_LOG2_TOLERANCE + 2.0 * noise:
+            break
+        start -= 1
+    return rows[start:]
+
+
+def _fit_alpha(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Line | None, str]:
+    use = (statistics.levels >= min_level) & (statistics.n_samples >= 2)
+    mean = np.abs(statistics.mean_diff[:, q])
+    usable = use & (mean > 0)
+    rel_se = np.sqrt(statistics.var_diff[usable, q] / statistics.n_samples[usable]) / mean[usable]
+    window = _asymptotic_window(statistics.levels[usable], statistics.mean_diff[usable, q], rel_se)
+    line = _fit_line(statistics.levels[usable][window], mean[usable][window], rel_se[window], -1.0)
+    zero = statistics.levels[use & (mean == 0)].tolist()
+    return line, f"levels with E[Q_l - Q_l-1] = 0 (unusable): {zero}" if zero else ""
+
+
+def _fit_beta(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Line | None, str]:
+    use = (statistics.levels >= min_level) & (statistics.n_samples >= 2)
+    var = statistics.var_diff[:, q]
+    usable = use & (var > 0)
+    n = statistics.n_samples[usable]
+    # Var(s^2)/sigma^4 = (kurtosis - (n-3)/(n-1))/n; the kurtosis is >= 1, the bracket > 0.
+    rel_var = np.maximum(statistics.kurtosis[usable, q] - (n - 3) / (n - 1), 0.0) / n
+    line = _fit_line(statistics.levels[usable], var[usable], np.sqrt(rel_var), -1.0)
+    zero = statistics.levels[use & (var == 0)].tolist()
+    return line, f"levels with Var(Q_l - Q_l-1) = 0 (unusable): {zero}" if zero else ""
+
+
+def _fit_gamma(statistics: LevelStatistics, min_level: int) -> tuple[_Line | None, str]:
+    use = statistics.levels >= min_level
+    cost = statistics.mean_cost
+    usable = use & (cost > 0)
+    rel_se = np.sqrt(statistics.var_cost[usable] / statistics.n_samples[usable]) / cost[usable]
+    line = _fit_line(statistics.levels[usable], cost[usable], rel_se, 1.0)
+    zero = statistics.levels[use & (cost <= 0)].tolist()
+    return line, f"levels with zero cost (unusable): {zero}" if zero else ""
+
+
+def fit_rates(statistics: LevelStatistics, *, min_level: int = 1) -> Rates:
+    """Fit ``alpha``, ``beta``, ``gamma`` and their constants by least squares.
+
+    Ordinary least squares of ``log2 |E[Y_l]|``, ``log2 V_l`` and
+    ``log2 C_l`` against the level index ``l`` (equivalently against
+    ``log2(h_l/h_0) = -l``), over the levels ``l >= min_level``; for
+    ``alpha``, over those of them whose means look asymptotic (module
+    docstring, "Fitting alpha").
+
+    Parameters
+    ----------
+    statistics : LevelStatistics
+        Screening table (:func:`~rough_uq.multilevel.statistics.level_statistics`).
+    min_level : int
+        Coarsest level used (default 1). Level 0 is excluded by default
+        because ``Y_0 = Q_0`` follows none of the models, and because a
+        level-0 sample has no coarse solve, so its cost is off the ``gamma``
+        model too.
+
+    Returns
+    -------
+    Rates
+        Rates, constants, standard errors and the levels used.
+
+    Raises
+    ------
+    EstimationError
+        If any rate has fewer than two usable levels. A level is unusable
+        for ``alpha`` if ``E[Y_l] = 0``, for ``beta`` if ``V_l = 0``, for
+        both if it has fewer than two samples, and for ``gamma`` if its mean
+        cost is 0 (a logarithm of 0 is never taken).
+
+    Notes
+    -----
+    The standard error of each rate is the larger of the residual-based OLS
+    error (needs three or more levels) and the sampling error of the
+    ``log2`` values propagated through the fit: ``se(E[Y_l]) = sqrt(V_l /
+    N_l)``, ``Var(s^2)/sigma^4 = (kurtosis - (N-3)/(N-1))/N`` for ``V_l``
+    and ``se(C_l) = sd(cost)/sqrt(N_l)``.
+    """
+    alpha, beta = [], []
+    for q in range(statistics.n_qoi):
+        for name, fit, out in (("alpha", _fit_alpha, alpha), ("beta", _fit_beta, beta)):
+            line, note = fit(statistics, q, min_level)
+            if line is None:
+                raise EstimationError(
+                    f"cannot fit {name} for QoI {q}: needs at least two usable levels >= {min_level} "
+                    f"with two or more samples each; screened levels {statistics.levels.tolist()}"
+                    + (f"; {note}" if note else "")
+                )
+            out.append(line)
+    gamma, note = _fit_gamma(statistics, min_level)
+    if gamma is None:
+        raise EstimationError(
+            f"cannot fit gamma: needs at least two levels >= {min_level} with positive cost; "
+            f"screened levels {statistics.levels.tolist()}" + (f"; {note}" if note else "")
+        )
+    return Rates(
+        alpha=np.array([line.rate for line in alpha]),
+        beta=np.array([line.rate for line in beta]),
+        gamma=gamma.rate,
+        c_alpha=np.array([line.constant for line in alpha]),
+        c_beta=np.array([line.constant for line in beta]),
+        c_gamma=gamma.constant,
+        alpha_se=np.array([line.se for line in alpha]),
+        beta_se=np.array([line.se for line in beta]),
+        gamma_se=gamma.se,
+        levels_alpha=tuple(line.levels for line in alpha),
+        levels_beta=tuple(line.levels for line in beta),
+        levels_gamma=gamma.levels,
+    )
+
+
+
+def remaining_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Remaining bias ``|E[Y_L]| / (2^alpha - 1)`` of an estimator with finest level ``L``.
+
+    Parameters
+    ----------
+    mean_diff : ndarray, shape (n_qoi,)
+        ``E[Y_L]`` (measured or modelled).
+    alpha : ndarray, shape (n_qoi,)
+        Bias rate; must be positive.
+
+    Returns
+    -------
+    ndarray, shape (n_qoi,)
+        ``inf`` where the tail sum exceeds the float range (``alpha`` near 0).
+
+    Raises
+    ------
+    EstimationError
+        If some ``alpha <= 0`` (or NaN): the bias does not decay.
+    """
+    alpha = np.asarray(alpha, dtype=float)
+    # expm1 keeps 2^alpha - 1 = alpha ln 2 exact for small alpha, where 2.0**alpha - 1
+    # rounds to 0 (alpha < 1.6e-16) and the division would be 0/0 or x/0.
+    denominator = np.expm1(alpha * math.log(2.0))
+    if np.any(~(denominator > 0)):
+        rates_text = ", ".join(f"{value:.3g}" for value in alpha.ravel())
+        raise EstimationError(
+            f"the bias does not decay with the level (alpha = {rates_text}); no finest level can meet a bias tolerance"
+        )
+    # A rate so small that the tail sum exceeds the float range is an infinite bias.
+    with np.errstate(over="ignore"):
+        return np.abs(mean_diff) / denominator
+
+
+def estimated_bias(
+    *, rates: Rates, level: int, mean_diff: np.ndarray | None = None, coarser: np.ndarray | None = None
+) -> np.ndarray:
+    """Remaining bias of an estimator whose finest level is ``level`` (module docstring).
+
+    Parameters
+    ----------
+    rates : Rates
+        Bias model ``c_alpha 2^(-alpha l)`` and rate ``alpha`` (positive).
+    level : int
+        Finest level ``L``.
+    mean_diff : ndarray, shape (n_qoi,), optional
+        Measured ``mean(Y_L)`` (pooled over every sample of level ``L``);
+        None where the level was not sampled.
+    coarser : ndarray, shape (k, n_qoi), optional
+        Measured ``mean(Y_l)`` of the ``k <= 2`` levels just below ``L``
+        (``L - k .. L - 1``, in that order; levels ``l >= 1`` only, whose
+        ``Y_l`` is a difference); NaN where a level was not sampled.
+
+    Returns
+    -------
+    ndarray, shape (n_qoi,)
+        ``max(c_alpha 2^(-alpha L), |mean(Y_L)|, |mean(Y_{L-1})| 2^-alpha,
+        |mean(Y_{L-2})| 2^(-2 alpha)) / (2^alpha - 1)`` over the terms
+        given, in the QoI's unit.
+    """
+    expected = rates.bias_model(level)
+    if mean_diff is not None or coarser is not None:
+        unknown = np.full(rates.n_qoi, np.nan)
+        finest = unknown if mean_diff is None else np.asarray(mean_diff, dtype=float)
+        below = np.empty((0, rates.n_qoi)) if coarser is None else np.asarray(coarser, dtype=float)[-2:]
+        expected = np.fmax(expected, giles_prediction(np.vstack([below, finest]), rates.alpha))
+    return remaining_bias(expected, rates.alpha)
+
+
+def giles_prediction(means: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """``|E[Y_L]|`` as Giles' rule predicts it from the (up to) three finest level means.
+
+    ``means`` has shape (k, n): rows the levels ``L - k + 1 .. L``, each a
+    difference (levels ``>= 1``), NaN where unknown. Returns, shape (n,), the
+    largest of ``|mean(Y_l)| 2^(-(L - l) alpha)`` over the last three rows
+    (NaN only where all of them are unknown).
+    """
+    rows = np.abs(np.asarray(means, dtype=float))[-3:]
+    steps = np.arange(len(rows) - 1, -1, -1)[:, None]
+    return np.fmax.reduce(rows * 2.0 ** (-steps * np.asarray(alpha, dtype=float)), axis=0)
+
+
+@dataclass(frozen=True)
+class DroppedLevel:
+    """A coarse level left out of the hierarchy, and why."""
+
+    level: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class CoarsestLevel:
+    """The coarsest useful level (:func:`choose_coarsest_level`).
+
+    Attributes
+    ----------
+    level : int
+        ``b``: the hierarchy starts here (0 when nothing is dropped).
+    dropped : tuple of DroppedLevel
+        The levels ``0..b-1``, each with its reason.
+    cost_factor : float
+        Predicted MLMC cost starting at ``b`` relative to starting at 0 (worst QoI).
+    """
+
+    level: int
+    dropped: tuple[DroppedLevel, ...]
+    cost_factor: float
+
+
+def choose_coarsest_level(statistics: LevelStatistics, *, margin: float = DROP_MARGIN) -> CoarsestLevel:
+    """The screened level the hierarchy should start on (module docstring, "Coarsest useful level").
+
+    Parameters
+    ----------
+    statistics : LevelStatistics
+        Screening table; only the levels ``0, 1, 2, ...`` screened with two
+        or more samples and a positive cost are candidates.
+    margin : float
+        Drop levels only if that saves at least this fraction of the cost.
+
+    Returns
+    -------
+    CoarsestLevel
+    """
+    rows: list[int] = []
+    for row in range(statistics.n_levels):
+        if statistics.levels[row] != len(rows) or statistics.n_samples[row] < 2 or statistics.mean_cost[row] <= 0:
+            break
+        rows.append(row)
+    if len(rows) < 2:
+        return CoarsestLevel(level=0, dropped=(), cost_factor=1.0)
+    cost = statistics.mean_cost[rows]
+    var_q = statistics.var_fine[rows]
+    corrections = np.sqrt(statistics.var_diff[rows] * cost[:, None])
+    # S(b) per QoI: base term plus the corrections above b (over the screened levels).
+    totals = np.array([np.sqrt(var_q[b] * cost[b]) + np.sum(corrections[b + 1 :], axis=0) for b in range(len(rows))])
+    reference = totals[0]
+    relative = np.divide(totals, reference, out=np.ones_like(totals), where=reference > 0) ** 2
+    worst = np.max(relative, axis=1)
+    best = int(np.argmin(worst))
+    if best == 0 or worst[best] > 1.0 - margin:
+        return CoarsestLevel(level=0, dropped=(), cost_factor=1.0)
+    dropped = []
+    for level in range(best):
+        above = level + 1
+        loose = np.flatnonzero(statistics.var_diff[rows[above]] >= var_q[above])
+        if loose.size:
+            q = int(loose[0])
+            reason = (
+                f"Var(Y_{above}) = {statistics.var_diff[rows[above], q]:.3g} is not below "
+                f"Var(Q_{above}) = {var_q[above, q]:.3g}: level {level} does not reduce the variance of "
+                f"level {above}, it only adds cost"
+            )
+        else:
+            factor = float(np.max(relative[best] / np.where(relative[level] > 0, relative[level], 1.0)))
+            reason = (
+                f"a hierarchy starting at level {best} is predicted to cost {factor:.2f} x one starting at "
+                f"level {level} (sqrt(Var(Q_b) C_b) + sum_l>b sqrt(V_l C_l), screened levels)"
+            )
+        dropped.append(DroppedLevel(level=level, reason=reason))
+    return CoarsestLevel(level=best, dropped=tuple(dropped), cost_factor=float(worst[best]))
+

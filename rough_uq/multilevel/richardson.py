@@ -1,0 +1,220 @@
+"""Richardson extrapolation of the MLMC estimate: the finest level's weight, the bias left, when it is sound.
+
+This module gives the weight of the finest level in the extrapolated estimate
+(:func:`richardson_weight`), the bias the extrapolation leaves
+(:func:`richardson_bias`) and the check whether the level means allow it
+(:func:`ratio_instability`). It needs only numpy and the standard library and
+has no state.
+
+Conventions
+-----------
+Levels ``l``, ``Y_l = Q_l - Q_{l-1}`` and ``V_l = Var(Y_l)`` are those of
+:mod:`~rough_uq.multilevel.statistics`; ``alpha`` is the bias rate of
+:mod:`~rough_uq.multilevel.rates` (``|E[Y_l]| ~ c 2^(-alpha l)``, SPEC
+section 5), ``L`` the finest level of an estimator and ``N_l`` its number of
+level-``l`` samples. ``RATIO_LOG2_TOLERANCE`` is the constant of
+:mod:`~rough_uq.multilevel.rates`, where the fit of ``alpha`` uses it too.
+
+Richardson extrapolation
+------------------------
+Where ``E[Y_l] = c 2^(-alpha l)`` holds, ``E[Q] - E[Q_L]`` is the geometric
+tail ``E[Y_L] / (2^alpha - 1)``, so
+
+    R_L = sum_{l<L} mean(Y_l) + w mean(Y_L),    w = 2^alpha / (2^alpha - 1),
+
+removes the leading bias term (Giles 2015, section 3.1; Lemaire & Pages,
+multilevel Richardson-Romberg). Its variance is ``sum_{l<L} V_l / N_l + w^2
+V_L / N_L``, so the allocation treats the finest level as having variance
+``w^2 V_L`` (:func:`~rough_uq.multilevel.allocation.optimal_samples` with
+scaled ``V_L``). What remains is the next term of the expansion; this module
+estimates it from the change of the extrapolated value between successive
+finest levels,
+
+    D_L = R_L - R_{L-1} = w E[Y_L] - E[Y_{L-1}] / (2^alpha - 1),
+
+and, if the next term decays like ``2^(-alpha2 l)``, the remaining bias is
+``|D_L| / (2^alpha2 - 1)`` (:func:`richardson_bias`; as for the plain bias the
+maximum with the same tail taken from ``D_{L-1}`` guards against a ``D_L``
+that happens to be near 0). ``alpha`` itself is fitted, and on
+pre-asymptotic levels it differs from the local rate of the two finest
+levels; the extrapolation then leaves part of the leading term, about
+``|w - w_L| |E[Y_L]|`` with ``w_L`` the weight of the local ratio, and the
+reported remaining bias is the larger of the two. ``alpha2`` is not fitted
+(it would need four or more levels with small noise): it is taken as
+``min(2 alpha, alpha + 1)``, the next order of an expansion in powers of
+``h^alpha`` or in integer powers of ``h``, whichever decays more slowly (the
+conservative choice).
+
+Extrapolation is only sound where the ratios ``E[Y_l] / E[Y_{l-1}]`` are
+stable; :func:`ratio_instability` says why they are not (too few levels, a
+mean indistinguishable from zero, a change of sign, no decay, or successive
+ratios differing by more than a factor ``2^RATIO_LOG2_TOLERANCE`` beyond
+their noise), and callers fall back to plain MLMC.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from rough_uq.errors import EstimationError
+from rough_uq.multilevel.rates import RATIO_LOG2_TOLERANCE, remaining_bias
+
+__all__ = [
+    "RICHARDSON_MIN_LEVELS",
+    "ratio_instability",
+    "richardson_bias",
+    "richardson_weight",
+    "second_order_rate",
+]
+
+
+def richardson_weight(alpha: np.ndarray) -> np.ndarray:
+    """Weight ``w = 2^alpha / (2^alpha - 1)`` of the finest level in the extrapolated estimate.
+
+    Parameters
+    ----------
+    alpha : ndarray, shape (n_qoi,)
+        Bias rate, positive.
+
+    Returns
+    -------
+    ndarray, shape (n_qoi,)
+    """
+    alpha = np.asarray(alpha, dtype=float)
+    remaining_bias(np.zeros_like(alpha), alpha)  # alpha <= 0: raises the explanatory error
+    return -1.0 / np.expm1(-alpha * math.log(2.0))
+
+
+def second_order_rate(alpha: np.ndarray) -> np.ndarray:
+    """Assumed rate ``alpha2 = min(2 alpha, alpha + 1)`` of the bias left by extrapolation (module docstring)."""
+    alpha = np.asarray(alpha, dtype=float)
+    return np.minimum(2.0 * alpha, alpha + 1.0)
+
+
+def richardson_bias(mean_diff: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Remaining bias of the extrapolated estimate from the change ``D_L`` of the extrapolated values.
+
+    Parameters
+    ----------
+    mean_diff : ndarray, shape (n, n_qoi)
+        ``E[Y_l]`` of consecutive levels ``l >= 1`` (not the base level, whose
+        ``Y = Q``), the finest last; ``n >= 2``.
+    alpha : ndarray, shape (n_qoi,)
+        Bias rate of the extrapolation.
+
+    Returns
+    -------
+    ndarray, shape (n_qoi,)
+        The larger of the next-order tail ``max(|D_L|, |D_{L-1}| 2^-alpha2) /
+        (2^alpha2 - 1)`` (``alpha2`` from :func:`second_order_rate`; the
+        ``D_{L-1}`` term only with ``n >= 3``) and the sensitivity to the rate,
+        ``|w - w_L| |E[Y_L]|`` with ``w_L = 1 / (1 - r_L)`` the weight of the
+        local ratio ``r_L = E[Y_L] / E[Y_{L-1}]`` (where ``0 < r_L < 1``).
+
+    Raises
+    ------
+    EstimationError
+        With fewer than two levels (no ``D_L``) or a non-positive ``alpha``.
+    """
+    mean_diff = np.asarray(mean_diff, dtype=float)
+    if mean_diff.ndim != 2 or mean_diff.shape[0] < 2:
+        raise EstimationError("Richardson's remaining bias needs the means of two levels >= 1")
+    weight = richardson_weight(alpha)
+    alpha2 = second_order_rate(alpha)
+    changes = weight * mean_diff[1:] - (weight - 1.0) * mean_diff[:-1]  # D_l; w - 1 = 1 / (2^alpha - 1)
+    terms = [np.abs(changes[-1])]
+    if len(changes) >= 2:
+        terms.append(np.abs(changes[-2]) * 2.0 ** (-alpha2))
+    next_order = remaining_bias(np.max(terms, axis=0), alpha2)
+    # A fitted alpha off the local rate of the two finest levels leaves part of the leading
+    # term; the difference of the two extrapolations measures it.
+    finest, below = mean_diff[-1], mean_diff[-2]
+    ratio = np.divide(finest, below, out=np.zeros_like(finest), where=below != 0)
+    has_local = (ratio > 0) & (ratio < 1)
+    local_weight = np.divide(1.0, 1.0 - ratio, out=np.ones_like(ratio), where=has_local)
+    rate_error = np.where(has_local, np.abs(local_weight - weight) * np.abs(finest), 0.0)
+    return np.maximum(next_order, rate_error)
+
+
+#: Levels ``>= 1`` (two ratios of successive means) needed before Richardson extrapolation is trusted.
+RICHARDSON_MIN_LEVELS = 3
+
+
+def ratio_instability(
+    mean_diff: np.ndarray,
+    mean_se: np.ndarray,
+    levels: Sequence[int],
+    *,
+    min_levels: int = RICHARDSON_MIN_LEVELS,
+    window: int = 3,
+) -> str:
+    """Why the ratios of successive level means are not stable enough to extrapolate ("" if they are).
+
+    Parameters
+    ----------
+    mean_diff, mean_se : ndarray, shape (n, n_qoi)
+        ``E[Y_l]`` and its standard error ``sqrt(V_l / N_l)`` of consecutive
+        levels ``l >= 1``, the finest last.
+    levels : sequence of int, length n
+        The level indices (for the message).
+    min_levels : int
+        Fewest levels needed (two ratios by default).
+    window : int
+        Number of finest ratios checked.
+
+    Returns
+    -------
+    str
+        The first failed check for some QoI, or "" when, on the ``window``
+        finest levels, every mean is at least two standard errors from 0, all
+        have the same sign, every ratio ``r_l = E[Y_l] / E[Y_{l-1}]`` is below
+        1, and successive ratios agree: ``|log2 r_l - log2 r_{l-1}| <=
+        RATIO_LOG2_TOLERANCE`` plus two standard errors of that difference.
+    """
+    mean_diff = np.asarray(mean_diff, dtype=float)
+    mean_se = np.asarray(mean_se, dtype=float)
+    levels = [int(level) for level in levels]
+    if len(levels) < min_levels:
+        return (
+            f"needs the means of {min_levels} levels >= 1 to check the ratios of successive means, "
+            f"has {len(levels)} ({levels})"
+        )
+    rows = slice(max(0, len(levels) - window - 1), len(levels))
+    means, errors, names = mean_diff[rows], mean_se[rows], levels[rows]
+    for q in range(means.shape[1]):
+        m, se = means[:, q], errors[:, q]
+        tag = f" (QoI {q})" if means.shape[1] > 1 else ""
+        weak = np.flatnonzero(np.abs(m) < 2.0 * se)
+        if weak.size:
+            row = int(weak[0])
+            return (
+                f"the mean of Y_{names[row]} = {m[row]:.3g} is within two standard errors ({se[row]:.2g}) of 0"
+                f"{tag}: its ratio to the next level is noise"
+            )
+        ratios = m[1:] / m[:-1]
+        for k, ratio in enumerate(ratios):
+            if ratio <= 0:
+                return (
+                    f"the level means change sign between levels {names[k]} and {names[k + 1]} "
+                    f"({m[k]:.3g}, {m[k + 1]:.3g}){tag}: the bias is not in its asymptotic regime"
+                )
+            if ratio >= 1:
+                return (
+                    f"the level means do not decay between levels {names[k]} and {names[k + 1]} "
+                    f"({m[k]:.3g}, {m[k + 1]:.3g}){tag}"
+                )
+        rel = se / np.abs(m)
+        log_ratios = np.log2(ratios)
+        for k in range(1, len(ratios)):
+            spread = abs(log_ratios[k] - log_ratios[k - 1])
+            noise = math.sqrt(rel[k + 1] ** 2 + 4.0 * rel[k] ** 2 + rel[k - 1] ** 2) / math.log(2.0)
+            if spread > RATIO_LOG2_TOLERANCE + 2.0 * noise:
+                return (
+                    f"the ratios of successive level means are not stable: E[Y_l] / E[Y_l-1] = "
+                    f"{ratios[k - 1]:.3g} at level {names[k]} and {ratios[k]:.3g} at level {names[k + 1]}{tag}"
+                )
+    return ""
+
