@@ -25,15 +25,16 @@ Symbols (SPEC section 5):
 
 The plan
 --------
-:func:`plan` goes in steps, one function each: the finest level is the first
-whose remaining bias (``_BiasModel``, as ``bias_from`` says) is within
-``sqrt(theta) eps`` (``_finest_level``); with ``richardson`` the extrapolated
-estimate may need fewer levels (``_richardson_level``); the base level is
-given or chosen (``_plan_base``,
-:func:`~rough_uq.multilevel.rates.choose_coarsest_level`); ``V_l`` and
-``C_l`` come from the explicit arguments, the screening or the rate models
-(``_level_inputs``); then the allocation (``_allocate``,
-:func:`optimal_samples`) and the prediction for plain MC (``_mc_samples``).
+:func:`plan` checks its arguments and goes in steps, one function each: the
+finest level (``_plan_finest``) is the first whose remaining bias
+(``_BiasModel``, as ``bias_from`` says) is within ``sqrt(theta) eps``
+(``_finest_level``); with ``richardson`` the extrapolated estimate may need
+fewer levels (``_richardson_level``); the base level is given or chosen
+(``_plan_base``, :func:`~rough_uq.multilevel.rates.choose_coarsest_level`);
+``V_l`` and ``C_l`` come from the explicit arguments, the screening or the
+rate models (``_level_inputs``); then the allocation (``_allocate``,
+:func:`optimal_samples`) and the prediction for plain MC (``_mc_samples``)
+make the :class:`Plan` (``_allocated_plan``).
 """
 
 from __future__ import annotations
@@ -278,58 +279,21 @@ def plan(
     theta = _check_fraction("theta", theta)
     if bias_from not in ("both", "model", "data"):
         raise InvalidParameterError("bias_from", bias_from, '"both", "model" or "data"')
-    n_qoi = rates.n_qoi
-    if statistics is not None and statistics.n_qoi != n_qoi:
-        raise EstimationError(f"rates have {n_qoi} QoIs, the statistics {statistics.n_qoi}")
-    tol = _check_tol(tol, n_qoi)
-    variances = _explicit_variances(variances, n_qoi)
+    if statistics is not None and statistics.n_qoi != rates.n_qoi:
+        raise EstimationError(f"rates have {rates.n_qoi} QoIs, the statistics {statistics.n_qoi}")
+    tol = _check_tol(tol, rates.n_qoi)
+    variances = _explicit_variances(variances, rates.n_qoi)
     costs = _explicit_costs(costs)
     bias_model = _BiasModel(rates=rates, statistics=statistics, bias_from=bias_from)
-    bias_limit = math.sqrt(theta) * tol
-    if finest_level is None:
-        finest_level = _finest_level(bias_model, bias_limit, max_level)
-    finest_level = int(finest_level)
-    if finest_level < 0:
-        raise InvalidParameterError("finest_level", finest_level, "a non-negative integer")
-    bias = bias_model.at(finest_level)
-    is_richardson, richardson_note = False, ""
-    if richardson:
-        is_plain_met = bool(np.all(bias <= bias_limit))
-        extrapolated = _richardson_level(statistics, rates, bias_limit, finest_level, is_plain_met)
-        if isinstance(extrapolated, str):
-            richardson_note = extrapolated
-        else:
-            finest_level, bias = extrapolated
-            is_richardson = True
-    base, dropped = _plan_base(statistics, coarsest_level, finest_level)
-    inputs = _level_inputs(
-        statistics=statistics, rates=rates, variances=variances, costs=costs, finest_level=finest_level, base=base
+    finest = _plan_finest(
+        bias_model, math.sqrt(theta) * tol, finest_level=finest_level, max_level=max_level, richardson=richardson
     )
-    budget = (1.0 - theta) * tol**2
-    weighted = np.array(inputs.variances)
-    if is_richardson:
-        weighted[-1] *= richardson_weight(rates.alpha) ** 2
-    n_samples, stat_variance = _allocate(weighted, inputs.costs, budget, base)
-    mc_n = _mc_samples(statistics, inputs.variances, finest_level, budget)
-    mc_cost = mc_n * inputs.costs[finest_level] * fine_cost_share(rates.gamma, finest_level)
-    return Plan(
-        tol=_readonly(tol),
-        theta=theta,
-        finest_level=finest_level,
-        n_samples=_readonly(n_samples),
-        variances=_readonly(inputs.variances),
-        costs=_readonly(inputs.costs),
-        is_extrapolated=_readonly(inputs.is_extrapolated),
-        bias=_readonly(bias),
-        is_bias_met=bool(np.all(bias <= bias_limit)),
-        stat_variance=_readonly(stat_variance),
-        cost=float(np.sum(n_samples * inputs.costs)),
-        mc_n_samples=mc_n,
-        mc_cost=float(mc_cost),
-        is_richardson=is_richardson,
-        richardson_note=richardson_note,
-        coarsest_level=base,
-        dropped_levels=dropped,
+    base, dropped = _plan_base(statistics, coarsest_level, finest.level)
+    inputs = _level_inputs(
+        statistics=statistics, rates=rates, variances=variances, costs=costs, finest_level=finest.level, base=base
+    )
+    return _allocated_plan(
+        finest, inputs, base=base, dropped=dropped, tol=tol, theta=theta, rates=rates, statistics=statistics
     )
 
 
@@ -405,6 +369,42 @@ def _finest_level(bias_model: _BiasModel, bias_limit: np.ndarray, max_level: int
     return cap
 
 
+@dataclass(frozen=True, eq=False)
+class _FinestLevel:
+    """The finest level :func:`plan` chose, its remaining bias (shape (n_qoi,)) and how it was chosen."""
+
+    level: int
+    bias: np.ndarray
+    is_bias_met: bool
+    is_richardson: bool = False
+    richardson_note: str = ""
+
+
+def _plan_finest(
+    bias_model: _BiasModel,
+    bias_limit: np.ndarray,
+    *,
+    finest_level: int | None,
+    max_level: int | None,
+    richardson: bool,
+) -> _FinestLevel:
+    """The finest level of :func:`plan`: given or the first to meet the bias, fewer if the extrapolation allows."""
+    if finest_level is None:
+        finest_level = _finest_level(bias_model, bias_limit, max_level)
+    finest_level = int(finest_level)
+    if finest_level < 0:
+        raise InvalidParameterError("finest_level", finest_level, "a non-negative integer")
+    bias = bias_model.at(finest_level)
+    is_plain_met = bool(np.all(bias <= bias_limit))
+    if not richardson:
+        return _FinestLevel(level=finest_level, bias=bias, is_bias_met=is_plain_met)
+    extrapolated = _richardson_level(bias_model.statistics, bias_model.rates, bias_limit, finest_level, is_plain_met)
+    if isinstance(extrapolated, str):
+        return _FinestLevel(level=finest_level, bias=bias, is_bias_met=is_plain_met, richardson_note=extrapolated)
+    level, bias = extrapolated
+    return _FinestLevel(level=level, bias=bias, is_bias_met=bool(np.all(bias <= bias_limit)), is_richardson=True)
+
+
 def _plan_base(
     statistics: LevelStatistics | None, coarsest_level: int | None, finest_level: int
 ) -> tuple[int, tuple[DroppedLevel, ...]]:
@@ -466,6 +466,47 @@ def _level_inputs(
             f"plan needs positive costs; got C_l = {level_costs.tolist()} (check the rates' c_gamma)"
         )
     return _LevelInputs(variances=level_variances, costs=level_costs, is_extrapolated=is_extrapolated)
+
+
+def _allocated_plan(
+    finest: _FinestLevel,
+    inputs: _LevelInputs,
+    *,
+    base: int,
+    dropped: tuple[DroppedLevel, ...],
+    tol: np.ndarray,
+    theta: float,
+    rates: Rates,
+    statistics: LevelStatistics | None,
+) -> Plan:
+    """The :class:`Plan` on levels ``0..finest.level``: ``N_l`` from ``base`` on and the prediction for plain MC."""
+    level = finest.level
+    budget = (1.0 - theta) * tol**2
+    weighted = np.array(inputs.variances)
+    if finest.is_richardson:
+        weighted[-1] *= richardson_weight(rates.alpha) ** 2
+    n_samples, stat_variance = _allocate(weighted, inputs.costs, budget, base)
+    mc_n = _mc_samples(statistics, inputs.variances, level, budget)
+    mc_cost = mc_n * inputs.costs[level] * fine_cost_share(rates.gamma, level)
+    return Plan(
+        tol=_readonly(tol),
+        theta=theta,
+        finest_level=level,
+        n_samples=_readonly(n_samples),
+        variances=_readonly(inputs.variances),
+        costs=_readonly(inputs.costs),
+        is_extrapolated=_readonly(inputs.is_extrapolated),
+        bias=_readonly(finest.bias),
+        is_bias_met=finest.is_bias_met,
+        stat_variance=_readonly(stat_variance),
+        cost=float(np.sum(n_samples * inputs.costs)),
+        mc_n_samples=mc_n,
+        mc_cost=float(mc_cost),
+        is_richardson=finest.is_richardson,
+        richardson_note=finest.richardson_note,
+        coarsest_level=base,
+        dropped_levels=dropped,
+    )
 
 
 def _allocate(
