@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import functools
+import math
 import re
 import subprocess
 import sys
@@ -241,6 +242,44 @@ def test_invalid_loads_and_arguments_name_the_field():
         with pytest.raises(rough_uq.InvalidParameterError) as caught:
             call()
         assert caught.value.name == field
+
+
+@pytest.mark.parametrize("run", ["mlmc", "mc", "variance", "distribution"])
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("theta", "0.5"),
+        ("theta", None),
+        ("theta", [0.5]),
+        ("theta", 1.0),
+        ("max_cost", "10"),
+        ("max_cost", True),
+        ("max_cost", [1.0]),
+        ("max_cost", 0.0),
+        ("max_cost", float("nan")),
+    ],
+)
+def test_settings_that_are_not_numbers_are_refused_by_name(run, field, value):
+    # Strings and booleans are not converted; a list or None is an error naming the field, not a TypeError.
+    arguments = {"tol": 50.0, "level": 0} if run == "mc" else {"tol": 50.0 if run != "distribution" else 0.5}
+    if run == "distribution":
+        arguments["thresholds"] = [10.0, 20.0]
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        getattr(rough_uq, run)(_problem(), **arguments, **{field: value})
+    assert caught.value.name == field
+
+
+def test_mlmc_options_are_checked_and_an_infinite_budget_is_no_budget():
+    problem = _problem()
+    for field, value in (("kurtosis_limit", -1.0), ("kurtosis_limit", "5"), ("kurtosis_limit", float("nan")),
+                         ("richardson", "yes"), ("richardson", 1)):
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            rough_uq.mlmc(problem, tol=5.0, **{field: value})
+        assert caught.value.name == field
+    unlimited = rough_uq.variance(problem, tol=50.0, max_cost=None)
+    infinite = rough_uq.variance(problem, tol=50.0, max_cost=math.inf)  # was an OverflowError
+    np.testing.assert_array_equal(infinite.estimate, unlimited.estimate)
+    assert rough_uq.mlmc(problem, tol=5.0, max_cost=math.inf).estimate == rough_uq.mlmc(problem, tol=5.0).estimate
 
 
 def test_problem_is_frozen_and_hashable():

@@ -40,6 +40,7 @@ make the :class:`Plan` (``_allocated_plan``).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -176,11 +177,15 @@ class Plan:
         return self.mc_cost / self.cost if self.cost > 0 else math.inf
 
 
-def _check_fraction(name: str, value: float) -> float:
-    value = float(value)
-    if not 0.0 < value < 1.0:
+def _is_real(value: object) -> bool:
+    """A real number, not a boolean (``True`` would pass for 1) nor a string (``"0.5"``)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _check_fraction(name: str, value: object) -> float:
+    if not (_is_real(value) and 0.0 < value < 1.0):
         raise InvalidParameterError(name, value, "a number strictly between 0 and 1")
-    return value
+    return float(value)
 
 
 def _check_tol(tol: object, n_qoi: int | None) -> np.ndarray:

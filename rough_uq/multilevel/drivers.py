@@ -136,7 +136,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.multilevel.allocation import Plan, _check_fraction, _check_tol, fine_cost_share, optimal_samples, plan
+from rough_uq.multilevel.allocation import (
+    Plan,
+    _check_fraction,
+    _check_tol,
+    _is_real,
+    fine_cost_share,
+    optimal_samples,
+    plan,
+)
 from rough_uq.multilevel.rates import (
     DroppedLevel,
     Rates,
@@ -461,12 +469,24 @@ def _check_int(name: str, value: object, minimum: int) -> int:
 
 
 def _check_optional_positive(name: str, value: object) -> float | None:
+    """A limit: a number > 0, or None for none (``math.inf`` means none too)."""
     if value is None:
         return None
-    value_f = float(value)
-    if not value_f > 0:
-        raise InvalidParameterError(name, value, "a positive number or None")
-    return value_f
+    if not (_is_real(value) and value > 0):
+        raise InvalidParameterError(name, value, "a number > 0, or None for no limit")
+    return None if value == math.inf else float(value)
+
+
+def _check_positive(name: str, value: object) -> float:
+    if not (_is_real(value) and value > 0):
+        raise InvalidParameterError(name, value, "a number > 0")
+    return float(value)
+
+
+def _check_bool(name: str, value: object) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise InvalidParameterError(name, value, "True or False")
+    return bool(value)
 
 
 def _shape_out(values: np.ndarray, is_scalar: bool) -> float | np.ndarray:
@@ -968,7 +988,7 @@ def iter_mlmc(
         level's mean cost so far, or the nearest sampled level's scaled by
         ``2^gamma`` per level; the first batch of level 0 is always drawn. The
         total can exceed ``max_cost`` only by a misprediction of a level's
-        first batch.
+        first batch. None (or ``math.inf``): no budget.
     batch_size : int or None
         Largest batch per sampler call (None: no cap). Smaller batches give
         more frequent events and store writes.
@@ -982,7 +1002,7 @@ def iter_mlmc(
         the run's samples after every round (falling back to the screening
         rates, then to 0.5).
     kurtosis_limit : float
-        Kurtosis of ``Y_l`` above which a warning is issued.
+        Kurtosis of ``Y_l`` above which a warning is issued (> 0; ``math.inf``: never).
     richardson : bool
         Richardson-extrapolate the finest level where the ratios of successive
         level means are stable, else fall back to plain MLMC (module docstring).
@@ -1026,8 +1046,8 @@ def iter_mlmc(
         max_level=max_level,
         screening=screening,
         rates=rates,
-        kurtosis_limit=float(kurtosis_limit),
-        richardson=bool(richardson),
+        kurtosis_limit=_check_positive("kurtosis_limit", kurtosis_limit),
+        richardson=_check_bool("richardson", richardson),
         coarsest_level=None if coarsest_level is None else _check_int("coarsest_level", coarsest_level, 0),
     )
     batch_cap = batch_size if batch_size is not None else math.inf
@@ -1431,7 +1451,7 @@ def iter_mc(
         bias=bias,
         n_initial=n_initial,
         screening=screening,
-        kurtosis_limit=float(kurtosis_limit),
+        kurtosis_limit=_check_positive("kurtosis_limit", kurtosis_limit),
     )
     batch_cap = batch_size if batch_size is not None else math.inf
     return _drive(functools.partial(_McRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)

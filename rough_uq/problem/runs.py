@@ -29,7 +29,7 @@ import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.multilevel import drivers
-from rough_uq.multilevel.allocation import plan
+from rough_uq.multilevel.allocation import _check_fraction, plan
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
 from rough_uq.multilevel.rates import Rates, fit_rates
 from rough_uq.multilevel.statistics import (
@@ -62,6 +62,7 @@ def run_id(
     rerunning its command, and :func:`mlmc` / :func:`mc` draw the samples the
     CLI draws. A Richardson-extrapolated MLMC run ends in ``_richardson``.
     """
+    theta = _check_fraction("theta", theta)  # the first use of a caller's theta: refuse a bad one by name
     # A load-curve column "contact_area@0.05" appears as "contact_area-at-0.05": run names are file-safe.
     names = [name.replace("@", "-at-") for name in names]
     parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
