@@ -249,7 +249,10 @@ _executor_option = click.option(
 _scheduler_option = click.option(
     "--scheduler", default=None, metavar="ADDRESS", help="dask scheduler address (with --executor dask)."
 )
-_quiet_option = click.option("--quiet", "-q", is_flag=True, help="No progress output.")
+_quiet_option = click.option(
+    "--quiet", "-q", is_flag=True,
+    help="Print only the result, warnings and errors: no progress, no forecast, no notices.",
+)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]}, epilog=_EXIT_CODES)
@@ -715,13 +718,13 @@ def _show_missing(study: Any, method: str, tolerances: Any, cap: float | None, l
 
 def _estimate(study: Any, method: str, tolerances: Any, cap: float | None, level: int | None,
               opts: _RunOptions) -> Any:
-    """Run the estimation into ``study`` (its forecast printed first, except as JSON); the run's record."""
+    """Run the estimation into ``study`` (its forecast printed first, except as JSON or quiet); the run's record."""
     from rough_uq.study.pipeline import forecast_run, run_estimation
 
     with _executor(study.config, opts.workers, opts.executor, opts.scheduler) as pool:
         forecast = forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level,
                                 n_workers=getattr(pool, "n_workers", 1))
-        if not opts.as_json:
+        if not (opts.as_json or opts.quiet):
             _print_forecast(forecast, method)
         watch = (study.config, pool, opts.executor, "a smaller --level" if level is not None else "a looser --tol")
         return run_estimation(study, method=method, tol=tolerances, executor=pool,

@@ -124,6 +124,14 @@ def test_forecast_is_printed_before_the_first_sample_and_stored(screened):
     assert record["forecast"]["finest_level"] == 2 and len(record["forecast"]["n_samples"]) == 3
 
 
+@pytest.mark.parametrize("command", ["mlmc", "mc"])
+def test_quiet_prints_only_the_result_and_warnings(screened, command):
+    result = run(command, "--tol", "5", "--workers", "1", "--quiet")
+    assert result.stdout.startswith(f"{command} contact_area=5: ")
+    assert all(line.startswith("warning: ") for line in result.stderr.splitlines()), result.stderr
+    assert "--quiet" in run(command, "--help").stdout and "forecast" in run(command, "--help").stdout
+
+
 @pytest.mark.parametrize("command", ["report", "show"])
 def test_unwritable_outputs_are_one_error_line(screened, command):
     if command == "report":
