@@ -35,7 +35,7 @@ from typing import Any
 import click
 
 from rough_uq import __version__
-from rough_uq.errors import InvalidParameterError, RoughUQError
+from rough_uq.errors import InvalidParameterError, MisplacedOptionError, RoughUQError
 
 DEFAULT_STUDY = "results.h5"
 #: Exit status of a run that ended without meeting its tolerance (its result is stored).
@@ -567,7 +567,8 @@ def _target_of(
                                     "--tol-var (variance) or --tol-cdf (distribution function)")
     extra = [f"--{name}" for name, value in cdf_options.items() if value is not None]
     if extra and tol_cdf is None:
-        raise InvalidParameterError(extra[0], cdf_options[extra[0][2:]], "only with --tol-cdf")
+        raise MisplacedOptionError(extra[0], cdf_options[extra[0][2:]], context="without --tol-cdf",
+                                   allowed="it applies only with --tol-cdf (the distribution function)")
     if tol_var:
         return "variance"
     return "cdf" if tol_cdf is not None else None
@@ -575,9 +576,9 @@ def _target_of(
 
 def _mean_only_options(choice: str, show_plan: bool, shard_size: int | None,
                        with_resources: bool) -> list[tuple[str, Any]]:
-    """The options given that only runs of the mean take, as ``(name, value)``."""
-    given = [("--method", choice, choice != "mlmc"), ("--plan", True, show_plan),
-             ("--shards", shard_size, shard_size is not None), ("--resources", True, with_resources)]
+    """The options given that only runs of the mean take, as ``(name, value)`` (value None for a flag)."""
+    given = [("--method", choice, choice != "mlmc"), ("--plan", None, show_plan),
+             ("--shards", shard_size, shard_size is not None), ("--resources", None, with_resources)]
     return [(name, value) for name, value, is_given in given if is_given]
 
 
@@ -589,13 +590,17 @@ def _refuse_misplaced_options(target: str | None, choice: str, show_plan: bool, 
         if mean_only:
             name, value = mean_only[0]
             option = "--tol-var" if target == "variance" else "--tol-cdf"
-            raise InvalidParameterError(name, value, f"not with {option}: --method, --plan, --shards and "
-                                        "--resources are for runs of the mean (--tol)")
+            raise MisplacedOptionError(name, value, context=f"with {option}", allowed="--method, --plan, --shards "
+                                       "and --resources apply only to runs of the mean (--tol)")
         return
     if shard_size is not None and not show_plan:
-        raise InvalidParameterError("--shards", shard_size, "only with --plan (it splits the plan into shards)")
+        raise MisplacedOptionError("--shards", shard_size, context="without --plan",
+                                   allowed="it applies only with --plan (it splits the plan into shards)")
     if with_resources and (shard_size is None or not show_plan):
-        raise InvalidParameterError("--resources", True, "only with --plan --shards SIZE")
+        missing = " ".join(name for name, is_given in (("--plan", show_plan), ("--shards SIZE", shard_size is not None))
+                           if not is_given)
+        raise MisplacedOptionError("--resources", None, context=f"without {missing}", allowed="it applies only "
+                                   "with --plan --shards SIZE (it adds each shard's time and memory)")
 
 
 def _cdf_tolerance(text: str) -> Any:

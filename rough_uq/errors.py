@@ -34,6 +34,33 @@ class InvalidParameterError(RoughUQError, ValueError):
         super().__init__(f"{name}: got {value!r}; allowed: {allowed}")
 
 
+class MisplacedOptionError(InvalidParameterError):
+    """A command-line option was given where it does not apply (e.g. ``--resources`` without ``--plan``).
+
+    The message says what was given, where, and where the option applies:
+    ``--shards 3 was given without --plan; it applies only with --plan``.
+
+    Parameters
+    ----------
+    name : str
+        The option, e.g. ``"--shards"``.
+    value : object or None
+        Its value; None for a flag (an option that takes none).
+    context : str
+        Where it was given, e.g. ``"without --plan"``.
+    allowed : str
+        Where it applies, e.g. ``"it applies only with --plan"``.
+    """
+
+    def __init__(self, name: str, value: object | None, *, context: str, allowed: str) -> None:
+        self.name = name
+        self.value = value
+        self.allowed = allowed
+        self.context = context
+        given = name if value is None else f"{name} {value}"
+        RoughUQError.__init__(self, f"{given} was given {context}; {allowed}")
+
+
 class ConvergenceError(RoughUQError):
     """A contact solve did not converge and the caller asked for a hard failure.
 

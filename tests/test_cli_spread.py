@@ -279,9 +279,9 @@ BAD_OPTIONS = [
     (("--tol", "5", "--thresholds", TINY_THRESHOLDS), "only with --tol-cdf"),
     (("--tol-var", "-1"), "positive"),
     (("--tol-var", "area=1"), "a QoI of this study"),
-    (("--tol-var", "1", "--plan"), "--plan: got True; allowed: not with --tol-var"),
+    (("--tol-var", "1", "--plan"), "--plan was given with --tol-var; --method, --plan"),
     (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--method", "auto"),
-     "--method: got 'auto'; allowed: not with --tol-cdf"),
+     "--method auto was given with --tol-cdf; --method, --plan"),
 ]
 
 

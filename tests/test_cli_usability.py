@@ -159,6 +159,19 @@ def test_repeated_tolerance_and_shards_without_plan_are_refused(screened):
     assert "--shards" in line and "--plan" in line
 
 
+@pytest.mark.parametrize("options, text", [
+    (("--tol", "5", "--resources"), "error: --resources was given without --plan --shards SIZE; it applies only"),
+    (("--tol", "5", "--plan", "--resources"), "error: --resources was given without --shards SIZE; it applies only"),
+    (("--tol", "5", "--shards", "3"), "error: --shards 3 was given without --plan; it applies only with --plan"),
+    (("--tol-var", "5", "--plan"), "error: --plan was given with --tol-var; --method, --plan, --shards and"),
+    (("--tol-var", "5", "--method", "auto"), "error: --method auto was given with --tol-var;"),
+    (("--tol", "5", "--qoi", "contact_area"), "error: --qoi contact_area was given without --tol-cdf; it applies"),
+])
+def test_a_misplaced_option_says_what_was_given_and_where_it_applies(screened, options, text):
+    line = one_error_line(run("mlmc", *options, expect=2))
+    assert line.startswith(text) and "True" not in line and "got" not in line
+
+
 def test_interrupted_run_does_not_say_done(screened, monkeypatch):
     """Ctrl-C during a run: status 130, 'stopped after', never 'done' just before 'interrupted'."""
     import rough_uq.cli as cli
