@@ -238,7 +238,11 @@ def test_report_shows_variance_and_distribution_tables_json_and_the_cdf_figure(t
     runs = stored_runs(tiny.parent / "results.h5")
     cdf = next(r for r in runs.values() if r.method == "cdf")
     text = run("report", "results.h5").output
-    assert "Variance" in text and "Distribution" in text and "%^2" in text
+    assert "Variance" in text and "Distribution" in text
+    # One convention for the unit of a table row (report.summary's docstring): `name [unit]`.
+    variance_rows = text.split("Variance")[1].split("Distribution")[0]
+    distribution_rows = text.split("Distribution")[1]
+    assert " contact_area [%^2] " in variance_rows and " contact_area [%] " in distribution_rows
     q05 = cdf.outcome.distribution.quantiles[0]
     assert f"q(0.05) = {q05.value:.4g}" in text
     report = json.loads(run("report", "results.h5", "--json").stdout)

@@ -17,6 +17,16 @@ Three kinds of time, each with one name and unit everywhere:
   plan with (JSON keys with ``cost``: ``cost``, ``mean_cost``, ``mc_cost``,
   ``mlmc_cost``), independent of the machine's load.
 
+Units. A line of text puts the unit after the value, ``20.15 ± 0.30 %``,
+``Var(contact_area) = 1.10 ± 0.28 %^2``. A table names each QoI with the
+unit of its row's estimate in brackets, the one convention of every table:
+``contact_area [%]`` (screening, distribution quantiles, load curves),
+``contact_area [%^2]`` (the variance table, whose ``Var(Q)``, ``RMSE``,
+``tol`` and ``bias`` are in the QoI's unit squared; ``sd(Q)`` is in its
+unit), ``clusters [(clusters per unit area)^2]``. A dimensionless fraction
+has no unit, in lines and tables alike; the report's ``QoIs:`` line names
+every QoI's unit, ``fraction`` included.
+
 Complexity (SPEC section 5): plain MC to RMS error ``eps`` costs
 ``eps^-(2 + gamma/alpha)``; MLMC costs ``eps^-2`` if ``beta > gamma``,
 ``eps^-2 log(eps)^2`` if ``beta == gamma`` and ``eps^-(2 + (gamma - beta)/alpha)``
@@ -322,8 +332,25 @@ def _seconds(value: float | None, unit: str = "s") -> str:
     return f"{value / 3600:.3g} h{suffix}"
 
 
-def _unit(label: str) -> str:
-    return "" if label in ("fraction", "") else f" {label}"
+def _power(label: str, power: int = 1) -> str:
+    """``label`` to ``power``: ``%``, ``%^2``, ``(clusters per unit area)^2``; empty for a dimensionless fraction."""
+    if label in ("fraction", ""):
+        return ""
+    if power == 1:
+        return label
+    return f"{label}^{power}" if " " not in label else f"({label})^{power}"
+
+
+def _unit(label: str, power: int = 1) -> str:
+    """The unit after a value in a line of text: `` %``, `` %^2``; empty for a dimensionless fraction."""
+    text = _power(label, power)
+    return f" {text}" if text else ""
+
+
+def _labelled(name: str, label: str, power: int = 1) -> str:
+    """A QoI as a table names it, with the unit of the row's estimate: ``contact_area [%^2]`` (module docstring)."""
+    text = _power(label, power)
+    return f"{name} [{text}]" if text else name
 
 
 def _column_unit(units: dict[str, str], column: str) -> str:
@@ -392,16 +419,9 @@ def _qoi_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]
     return _estimate_line(outcome, q, name, _unit(_column_unit(units, name)), tol)
 
 
-def _squared(unit: str) -> str:
-    """The unit of a variance: ``%^2``, ``(per unit area)^2``; empty for a dimensionless QoI."""
-    if unit in ("", "fraction"):
-        return ""
-    return f" {unit}^2" if " " not in unit else f" ({unit})^2"
-
-
 def _variance_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]) -> str:
     """``  Var(name) = value ± error unit^2 (RMSE r <= tol t, bias b)`` for column ``q`` of a variance run."""
-    return _estimate_line(outcome, q, f"Var({name})", _squared(_column_unit(units, name)), tol)
+    return _estimate_line(outcome, q, f"Var({name})", _unit(_column_unit(units, name), 2), tol)
 
 
 def _quantile_text(quantile: Any, unit: str) -> str:
@@ -462,7 +482,7 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
 
 
 def _screening_table(stats: Any, q: int, name: str, unit: str | None) -> Any:
-    table = _table(escape(f"Screening of {name}" + (f" [{unit}]" if unit else "") + " per level"))
+    table = _table(escape(f"Screening of {_labelled(name, unit or '')} per level"))
     for column in ("level", "N", "mean Q", "var Q", "mean Y", "var Y", "kurt", "check"):
         table.add_column(column, justify="right")
     for i, level in enumerate(stats.levels):
@@ -525,7 +545,7 @@ def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
         for q, name in enumerate(run.qoi_names or ()):
             variance = outcome.estimate[q]
             table.add_row(
-                escape(name + _squared(_column_unit(units, name))),
+                escape(_labelled(name, _column_unit(units, name), 2)),
                 _value_error(variance, outcome.stat_error[q]),
                 _g(math.sqrt(variance), 4) if variance >= 0 else "-",
                 _g(outcome.rmse[q], 2), _g(run.tol[q]), _g(outcome.bias_estimate[q], 2),
@@ -551,7 +571,7 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
                 upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
                 bar = f"[{lower}, {upper}]"
             table.add_row(
-                escape(distribution.column + (f" [{unit}]" if _unit(unit) else "")),
+                escape(_labelled(distribution.column, unit)),
                 "-" if quantile is None else _g(quantile.probability), value, bar,
                 _g(outcome.rmse[0], 2), _g(run.tol[0]), f"0..{outcome.levels[-1]}",
                 " ".join(str(n) for n in outcome.n_samples), "yes" if outcome.tol_met else "no",
@@ -755,8 +775,7 @@ def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: di
         table.add_column("p/(E* sqrt(m2))", justify="right")
         names = list(entry["curves"])
         for name in names:
-            unit = units.get(name, "")
-            table.add_column(escape(name + (f" [{unit}]" if unit else "")), justify="right")
+            table.add_column(escape(_labelled(name, units.get(name, ""))), justify="right")
         for j, load in enumerate(entry["loads"]):
             cells = [_value_error(entry["curves"][n]["estimate"][j], entry["curves"][n]["rmse"][j]) for n in names]
             table.add_row(_g(load, 4), _g(entry["relative_loads"][j], 4), *cells)
