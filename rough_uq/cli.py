@@ -44,11 +44,12 @@ EXIT_TOL_NOT_MET = 3
 COMPILE_NOTICE_SECONDS = 2.0
 
 _EXIT_CODES = """\b
-Exit status: 0 done (mlmc/mc: tolerance met); 2 nothing computed: an error
-in what was typed (config, options, files, a tolerance refused before
-starting), one line 'error: ...'; 3 mlmc/mc finished without meeting the
-tolerance (result stored; the message says what to change); 130 Ctrl-C,
-143 SIGTERM (completed samples saved); 1 a bug (traceback)."""
+Exit status: 0 done (mlmc/mc: tolerance met); 2 an error in what was typed
+(config, options, files, a tolerance refused before starting: nothing
+computed; or refused on the way, e.g. a plan over 10^7 samples: the run is
+recorded as refused), one line 'error: ...'; 3 mlmc/mc finished without
+meeting the tolerance (result stored; the message says what to change);
+130 Ctrl-C, 143 SIGTERM (completed samples saved); 1 a bug (traceback)."""
 
 
 class _Terminated(KeyboardInterrupt):

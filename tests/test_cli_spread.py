@@ -298,6 +298,19 @@ def test_bad_options_are_one_line_status_2_and_compute_nothing(tiny, options, te
         assert stored_runs(tiny.parent / "results.h5") == {}
 
 
+def test_a_run_refused_on_the_way_is_recorded_as_refused_with_the_reason(tiny):
+    result = run("mlmc", "--config", str(tiny), "--tol-var", "1e-6", "--workers", "1", "-q", expect=2)
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith("error: ") and "max_samples" in line
+    (record,) = stored_runs(tiny.parent / "results.h5").values()
+    assert record.status == "refused" and record.reason == line.removeprefix("error: ") and record.outcome is None
+    text = run("report", "results.h5").output
+    assert "variance contact_area=1e-06: refused" in text and "max_samples" in text
+    assert "interrupted" not in text and "running" not in text
+    (shown,) = json.loads(run("report", "results.h5", "--json").stdout)["runs"]
+    assert shown["status"] == "refused" and "max_samples" in shown["reason"]
+
+
 def test_too_few_initial_samples_for_a_target_run_name_the_config_field(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config(estimation={"initial_samples": 3}))

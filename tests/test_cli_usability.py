@@ -322,7 +322,8 @@ def test_usage_and_help_say_what_the_commands_take():
     assert "--level" not in mlmc_help and "--max-cost" in mlmc_help
     assert "--level" in run("mc", "--help").output
     top = run("--help").output
-    for code in ("0 done", "2 nothing computed", "3 mlmc/mc finished without", "130", "143"):
+    for code in ("0 done", "2 an error in what was typed", "recorded as refused", "3 mlmc/mc finished without", "130",
+                 "143"):
         assert code in " ".join(top.split()), code
 
 

@@ -188,6 +188,22 @@ def test_interrupted_mlmc_resumes_to_the_uninterrupted_result(n_items):
     assert run["status"] == "finished"
 
 
+def test_a_mean_run_the_estimator_refuses_is_recorded_as_refused(monkeypatch):
+    import rough_uq.study.pipeline as pipeline
+    from rough_uq.errors import EstimationError
+
+    def refusing(*args, **kwargs):
+        raise EstimationError("a plan of 2e+11 samples, more than max_samples = 10000000: loosen the tolerance")
+        yield
+
+    study = _screened()
+    monkeypatch.setattr(pipeline, "iter_mlmc", refusing)
+    with pytest.raises(EstimationError, match="max_samples"):
+        run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
+    (run,) = read_run_records(study.store)
+    assert run.status == "refused" and run.reason.startswith("a plan of 2e+11 samples") and run.outcome is None
+
+
 def test_every_run_has_its_own_random_stage():
     study = _screened()
     loose = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)

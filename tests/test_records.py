@@ -245,7 +245,7 @@ def test_a_malformed_screening_is_refused_naming_the_field(path, value, field):
 
 
 RUN_DEFECTS = [
-    (("status",), "paused", "status", "running, finished, dropped, interrupted"),
+    (("status",), "paused", "status", "running, finished, refused, dropped, interrupted"),
     (("method",), "qmc", "method", "mlmc, mc, variance, cdf"),
     (("tol",), KeyError, "tol", "missing"),
     (("estimate", 1), None, "estimate[1]", "a number"),

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import math
 import os
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -183,7 +184,7 @@ class ReportedRun:
     Attributes
     ----------
     record : RunRecord
-        Its status is as seen now (``running`` / ``interrupted`` for an unfinished run).
+        Its status is as seen now (a ``running`` record is ``running`` or ``interrupted``).
     mc_seconds_measured : float or None
         CPU-seconds of a finished MC run at the same tolerances (MLMC runs only).
     """
@@ -234,8 +235,8 @@ def derive_runs(runs: Sequence[RunRecord]) -> list[ReportedRun]:
 
 
 def _seen_status(run: ReportedRun, is_running: bool) -> ReportedRun:
-    """An unfinished run is ``running`` while a live process holds the study, else ``interrupted``."""
-    if run.record.status == "finished":
+    """A ``running`` record is a run a live process holds the study for, else an ``interrupted`` one."""
+    if run.record.status != "running":
         return run
     return replace(run, record=replace(run.record, status="running" if is_running else "interrupted"))
 
@@ -375,6 +376,9 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     if run.status != "finished" or outcome is None:
         if run.status == "running":
             return [f"{head}: running (another process is computing it)"]
+        if run.status == "refused":
+            return [f"{head}: refused", *textwrap.wrap(run.reason or "", 78, initial_indent="  ",
+                                                       subsequent_indent="  ")]
         return [f"{head}: interrupted; rerun the same command to resume"]
     levels = outcome.levels
     if run.method == "mc":

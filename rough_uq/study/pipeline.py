@@ -1044,8 +1044,10 @@ def run_estimation(
 
     ``max_cost`` (reference seconds of modelled cost; default the config's
     ``estimation.max_cost``) bounds the run. The record is written when the
-    run starts (``status = "running"``) and when it ends (``"finished"``);
-    an interrupted run keeps its samples and its ``running`` record, and the
+    run starts (``status = "running"``) and when it ends (``"finished"``, or
+    ``"refused"`` with the reason when the estimator raises
+    :class:`~rough_uq.errors.EstimationError`, which is raised on); an
+    interrupted run keeps its samples and its ``running`` record, and the
     same command resumes it.
 
     Returns
@@ -1065,11 +1067,28 @@ def run_estimation(
                              context=context, forecast=forecast)
     study.store.write_run(key, record.to_json())
     title = f"{method} " + ", ".join(f"{n}={t:g}" for n, t in zip(study.config.qoi_names, tol))
-    result, diagnostics = _follow(events, progress, title)
+    with _refusal_recorded(study, record):
+        result, diagnostics = _follow(events, progress, title)
     outcome = _outcome(study, method=method, sampler=sampler, result=result, diagnostics=diagnostics, clock=clock)
     record = replace(record, status="finished", outcome=outcome)
     study.store.write_run(key, record.to_json())
     return record
+
+
+@contextmanager
+def _refusal_recorded(study: Study, record: RunRecord) -> Iterator[None]:
+    """Store ``record`` as ``refused``, with the message as its reason, if the estimator raises EstimationError.
+
+    A refused run is not an interrupted one: rerunning it as it is would be
+    refused again, so its record must not stay ``running`` (which the report
+    shows as "interrupted; rerun the same command to resume"). The error is
+    raised on.
+    """
+    try:
+        yield
+    except EstimationError as exc:
+        study.store.write_run(record.run_id, replace(record, status="refused", reason=str(exc)).to_json())
+        raise
 
 
 def _check_run_arguments(study: Study, method: str, level: int | None) -> None:
@@ -1294,7 +1313,9 @@ def run_target(
     -------
     RunRecord
         Method ``target``; stored as ``running`` when it starts and
-        ``finished`` when it ends.
+        ``finished`` when it ends (``refused`` with the reason where the
+        driver raises :class:`~rough_uq.errors.EstimationError`, e.g. for a
+        plan of more than ``MAX_PLANNED_SAMPLES`` samples).
     """
     tol = np.asarray(tol, dtype=float)
     if target == "cdf" and (request is None or tol.shape != (1,)):
@@ -1318,7 +1339,8 @@ def run_target(
     )
     study.store.write_run(key, record.to_json())
     title = f"{target} " + ", ".join(f"{n}={t:g}" for n, t in zip(names, tol))
-    result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
+    with _refusal_recorded(study, record):
+        result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
     outcome = _target_outcome(study, target=target, sampler=sampler, result=result, request=request,
                               diagnostics=diagnostics, clock=clock)
     record = replace(record, status="finished", outcome=outcome)

@@ -79,8 +79,9 @@ __all__ = [
 RATE_TIE = 0.1
 #: Fitted bias rates at or below this are "not fitted": the bias does not decay (measurably).
 MIN_ALPHA = 0.05
-#: Status of a run: stored ones, and ``interrupted`` (a ``running`` record without a live writer, as reported).
-RUN_STATUSES = ("running", "finished", "dropped", "interrupted")
+#: Status of a run: stored ones (``refused``: the estimator stopped it with an error, its ``reason``), and
+#: ``interrupted`` (a ``running`` record without a live writer, as reported).
+RUN_STATUSES = ("running", "finished", "refused", "dropped", "interrupted")
 
 _T = TypeVar("_T")
 Number = int | float
@@ -882,8 +883,9 @@ class RunRecord:
     """An estimation run (MLMC, MC, or an MLMC variance or CDF run): its settings, and its outcome once finished.
 
     The record is stored when the run starts (``status = "running"``, no
-    outcome) and again when it ends (``"finished"``); ``roughuq drop`` marks
-    it ``"dropped"``.
+    outcome) and again when it ends (``"finished"``, or ``"refused"`` with
+    the ``reason`` when the estimator refused to go on, e.g. a plan beyond
+    ``max_samples``); ``roughuq drop`` marks it ``"dropped"``.
 
     Attributes
     ----------
@@ -892,7 +894,7 @@ class RunRecord:
     method : {"mlmc", "mc", "variance", "cdf"}
         ``variance`` and ``cdf`` are the MLMC targets beyond the mean
         (:class:`RunOutcome` says what their outcome holds).
-    status : {"running", "finished", "dropped", "interrupted"}
+    status : {"running", "finished", "refused", "dropped", "interrupted"}
     tol : tuple of float, shape (n_qoi,)
     started, code_version : str or None
         When it started (:func:`utc_timestamp`) and by which roughuq (the
@@ -914,6 +916,8 @@ class RunRecord:
     forecast : Forecast or None
     outcome : RunOutcome or None
         None until the run finished.
+    reason : str or None
+        Why the run was refused (the error's message; status ``refused`` only).
     """
 
     run_id: str
@@ -932,6 +936,7 @@ class RunRecord:
     predicted: PlanRecord | None = None
     forecast: Forecast | None = None
     outcome: RunOutcome | None = field(default=None)
+    reason: str | None = None
 
     @property
     def is_finished(self) -> bool:
@@ -940,9 +945,10 @@ class RunRecord:
     def to_json(self) -> dict[str, Any]:
         """The stored mapping (without ``run_id``, which names the record in the store)."""
         head = [
-            ("method", self.method), ("stage", self.stage), ("status", self.status), ("started", self.started),
-            ("code_version", self.code_version), ("qoi_names", self.qoi_names), ("tol", self.tol),
-            ("theta", self.theta), ("initial_samples", self.initial_samples), ("max_cost", self.max_cost),
+            ("method", self.method), ("stage", self.stage), ("status", self.status), ("reason", self.reason),
+            ("started", self.started), ("code_version", self.code_version), ("qoi_names", self.qoi_names),
+            ("tol", self.tol), ("theta", self.theta), ("initial_samples", self.initial_samples),
+            ("max_cost", self.max_cost),
         ]
         context = [
             ("screening_rates", None if self.screening_rates is None else self.screening_rates.to_json()),
@@ -978,6 +984,7 @@ class RunRecord:
             predicted=fields.optional("predicted", PlanRecord.from_json),
             forecast=fields.optional("forecast", Forecast.from_json),
             outcome=RunOutcome.from_json(fields.data, where) if has_outcome else None,
+            reason=fields.optional("reason", _text),
         )
 
 
