@@ -791,7 +791,9 @@ def _what_to_change(reason: str, option: str = "--tol") -> str:
 
 
 def _print_forecast(forecast: Any, method: str) -> None:
-    """The prediction of a run, before its first sample (stderr: it is not the result)."""
+    """The prediction of a run, before its first sample (stderr: it is not the result; times to 2 digits)."""
+    from rough_uq.study.progress import format_duration
+
     if forecast is None:
         click.echo("forecast: none (no usable screening to predict from)", err=True)
         return
@@ -801,8 +803,8 @@ def _print_forecast(forecast: Any, method: str) -> None:
         samples = (f"levels 0..{forecast.finest_level} (finest {forecast.grid}^2), "
                    f"N_l {' '.join(str(n) for n in forecast.n_samples)}")
     click.echo(f"forecast: {samples}", err=True)
-    click.echo(f"forecast: about {_duration(forecast.wall_seconds)} elapsed "
-               f"({_duration(forecast.cpu_seconds)} CPU, modelled cost {forecast.modelled_cost:.3g} ref-s), "
+    elapsed, cpu = (format_duration(seconds, digits=2) for seconds in (forecast.wall_seconds, forecast.cpu_seconds))
+    click.echo(f"forecast: about {elapsed} elapsed ({cpu} CPU, modelled cost {forecast.modelled_cost:.3g} ref-s), "
                f"memory about {_mib(forecast.memory_bytes)} MiB", err=True)
 
 
@@ -813,14 +815,6 @@ def _memory(n_bytes: float) -> str:
 def _mib(n_bytes: float) -> str:
     mib = n_bytes / 2**20
     return f"{mib:.2g}" if mib < 10 else f"{mib:.0f}"
-
-
-def _duration(seconds: float) -> str:
-    if seconds < 120:
-        return f"{seconds:.2g} s"
-    if seconds < 7200:
-        return f"{seconds / 60:.2g} min"
-    return f"{seconds / 3600:.3g} h"
 
 
 def _print_plan(work: Any, as_json: bool, shard_size: int | None = None, resources: Any = None) -> None:
@@ -1002,6 +996,8 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
         return
     from rich.table import Table
 
+    from rough_uq.study.progress import format_duration
+
     table = Table(title=f"Sweep of {key} (plain MC on level {level})")
     for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "CPU"):
         table.add_column(column, justify="right")
@@ -1010,7 +1006,7 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
         for q, name in enumerate(row.run.qoi_names):
             table.add_row(row.value, str(row.grid), name,
                           f"{outcome.estimate[q]:.5g} ± {outcome.stat_error[q]:.2g}", str(outcome.n_samples[0]),
-                          f"{outcome.seconds:.3g} s CPU")
+                          f"{format_duration(outcome.seconds)} CPU")
     _console().print(table)
 
 

@@ -124,6 +124,17 @@ def test_forecast_is_printed_before_the_first_sample_and_stored(screened):
     assert record["forecast"]["finest_level"] == 2 and len(record["forecast"]["n_samples"]) == 3
 
 
+def test_the_forecast_prints_durations_without_exponents(capsys):
+    from types import SimpleNamespace
+
+    from rough_uq.cli import _print_forecast
+
+    forecast = SimpleNamespace(finest_level=1, grid=16, n_samples=[40, 2], wall_seconds=100.0, cpu_seconds=6600.0,
+                               modelled_cost=50.0, memory_bytes=2**20)
+    _print_forecast(forecast, "mlmc")
+    assert "forecast: about 100 s elapsed (110 min CPU, " in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("command", ["mlmc", "mc"])
 def test_quiet_prints_only_the_result_and_warnings(screened, command):
     result = run(command, "--tol", "5", "--workers", "1", "--quiet")

@@ -3,9 +3,19 @@
 from __future__ import annotations
 
 import io
+import math
+
+import pytest
 
 import rough_uq.study.progress as progress_module
-from rough_uq.study.progress import ETA_MIN_SAMPLES, ETA_MIN_SECONDS, PlainProgress, Progress, make_progress
+from rough_uq.study.progress import (
+    ETA_MIN_SAMPLES,
+    ETA_MIN_SECONDS,
+    PlainProgress,
+    Progress,
+    format_duration,
+    make_progress,
+)
 
 
 def test_plain_progress_lines_are_throttled_and_complete():
@@ -59,7 +69,7 @@ def test_no_eta_until_the_rate_means_something(monkeypatch):
     done = int(last.split("level 0: ")[1].split("/")[0])
     assert "eta" in last
     eta = last.rsplit("eta ", 1)[1]
-    assert eta == progress_module._duration((100 - done) * 0.1)  # from the steady rate, not the start-up
+    assert eta == format_duration((100 - done) * 0.1, clock=True)  # from the steady rate, not the start-up
 
 
 def test_interrupted_task_does_not_say_done():
@@ -91,4 +101,23 @@ def test_rich_eta_column_waits_for_a_steady_rate(monkeypatch):
         clock[0] += 0.1
         bars.update(task_id, completed=task.completed + 1)
     text = str(column.render(task))
-    assert text == "eta " + progress_module._duration((100 - task.completed) * 0.1)
+    assert text == "eta " + format_duration((100 - task.completed) * 0.1, clock=True)
+
+
+@pytest.mark.parametrize("seconds, options, text", [
+    (0.0966, {}, "0.0966 s"),
+    (0.0966, {"digits": 2}, "0.097 s"),
+    (100.4, {"digits": 2}, "100 s"),  # not 1e+02 s
+    (119.6, {"digits": 2}, "120 s"),
+    (150.0, {}, "2.5 min"),
+    (6600.0, {"digits": 2}, "110 min"),
+    (7 * 24 * 3600.0, {}, "168 h"),
+    (math.inf, {}, "forever"),
+    (None, {}, "-"),
+    (math.nan, {}, "-"),
+    (12.4, {"clock": True}, "12s"),
+    (65.0, {"clock": True}, "1m05s"),
+    (3725.0, {"clock": True}, "1h02m"),
+])
+def test_one_duration_format_for_every_printed_time(seconds, options, text):
+    assert format_duration(seconds, **options) == text

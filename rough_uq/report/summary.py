@@ -67,6 +67,7 @@ from rich.markup import escape
 
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.study.config import LOAD_SEPARATOR
+from rough_uq.study.progress import format_duration
 from rough_uq.study.records import (
     MIN_ALPHA,
     RATE_TIE,
@@ -321,18 +322,6 @@ def _value_error(value: float, error: float) -> str:
     return f"{value:.{decimals}f} ± {error:.{decimals}f}"
 
 
-def _seconds(value: float | None, unit: str = "s") -> str:
-    """A duration with its unit: ``12.3 s``, ``4.5 min CPU``, ..."""
-    if value is None:
-        return "-"
-    suffix = "" if unit == "s" else f" {unit}"
-    if value < 120:
-        return f"{value:.3g} s{suffix}"
-    if value < 7200:
-        return f"{value / 60:.3g} min{suffix}"
-    return f"{value / 3600:.3g} h{suffix}"
-
-
 def _power(label: str, power: int = 1) -> str:
     """``label`` to ``power``: ``%``, ``%^2``, ``(clusters per unit area)^2``; empty for a dimensionless fraction."""
     if label in ("fraction", ""):
@@ -397,11 +386,11 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     else:
         lines += [_qoi_line(outcome, q, name, run.tol[q], units) for q, name in enumerate(qoi_names)]
     lines.append(
-        f"  time: elapsed {_seconds(outcome.elapsed)}; samples {_seconds(outcome.seconds, 'CPU')}; "
+        f"  time: elapsed {format_duration(outcome.elapsed)}; samples {format_duration(outcome.seconds)} CPU; "
         f"modelled cost {_g(outcome.cost)} ref-s"
     )
     if run.method != "mc":
-        text = (f"  plain MC: {_seconds(outcome.mc_seconds_predicted, 'CPU')} predicted; "
+        text = (f"  plain MC: {format_duration(outcome.mc_seconds_predicted)} CPU predicted; "
                 f"MC/MLMC {_g(outcome.work_ratio, 2)} predicted")
         if measured_ratio is not None:
             text += f", {_g(measured_ratio, 2)} measured"
@@ -478,7 +467,8 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
         table.add_column(column, justify="right")
     for i, level in enumerate(stats.levels):
         grid = str(grids[level]) if level < len(grids) else "-"
-        table.add_row(str(level), grid, f"{_g(stats.mean_cost[i])} ref-s", _seconds(stats.mean_seconds[i], "CPU"))
+        measured = f"{format_duration(stats.mean_seconds[i])} CPU"
+        table.add_row(str(level), grid, f"{_g(stats.mean_cost[i])} ref-s", measured)
     console.print(table)
     _print_rates(console, screening, qoi_names)
     if screening.predictions:
@@ -523,8 +513,8 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
             ", ".join(_g(t) for t in p.tol),
             f"0..{p.finest_level}",
             " ".join(str(n) for n in p.n_samples),
-            _seconds(p.mlmc_seconds),
-            _seconds(p.mc_seconds),
+            format_duration(p.mlmc_seconds),
+            format_duration(p.mc_seconds),
             _g(p.work_ratio),
         )
     return table

@@ -56,7 +56,7 @@ from rough_uq.multilevel.drivers import (
 )
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.fft_wisdom import prepare_wisdom
-from rough_uq.study.progress import Progress
+from rough_uq.study.progress import Progress, format_duration
 from rough_uq.study.records import (
     Diagnostic,
     DistributionRecord,
@@ -773,8 +773,8 @@ def _check_budget(names: Sequence[str], tol: np.ndarray, forecast: Forecast, max
     total, modelled, cpu_seconds = sum(forecast.n_samples), forecast.modelled_cost, forecast.cpu_seconds
     if total > MAX_PLANNED_SAMPLES or not math.isfinite(modelled):
         raise EstimationError(
-            f"--tol {_tol_text(names, tol)} needs about {total:.3g} samples ({_hours(cpu_seconds)} CPU); "
-            f"that is beyond any budget: loosen --tol"
+            f"--tol {_tol_text(names, tol)} needs about {total:.3g} samples ({format_duration(cpu_seconds)} "
+            "CPU); that is beyond any budget: loosen --tol"
         )
     if max_cost is not None and modelled > max_cost:
         raise EstimationError(
@@ -783,9 +783,9 @@ def _check_budget(names: Sequence[str], tol: np.ndarray, forecast: Forecast, max
         )
     if max_cost is None and cpu_seconds > DEFAULT_COST_CEILING:
         raise EstimationError(
-            f"--tol {_tol_text(names, tol)} is predicted to take {_hours(cpu_seconds)} of CPU time "
-            f"({total} samples), more than the default ceiling of {_hours(DEFAULT_COST_CEILING)}: loosen --tol, "
-            "or allow it with --max-cost SECONDS"
+            f"--tol {_tol_text(names, tol)} is predicted to take {format_duration(cpu_seconds)} of CPU time "
+            f"({total} samples), more than the default ceiling of {format_duration(DEFAULT_COST_CEILING)}: "
+            "loosen --tol, or allow it with --max-cost SECONDS"
         )
 
 
@@ -849,16 +849,6 @@ def _round_up(value: float) -> float:
         return value
     scale = 10.0 ** (math.floor(math.log10(value)) - 1)
     return math.ceil(value / scale * (1 - 1e-12)) * scale
-
-
-def _hours(seconds: float) -> str:
-    if not math.isfinite(seconds):
-        return "forever"
-    if seconds < 120:
-        return f"{seconds:.3g} s"
-    if seconds < 7200:
-        return f"{seconds / 60:.3g} min"
-    return f"{seconds / 3600:.3g} h"
 
 
 class _SamplesMissing(Exception):

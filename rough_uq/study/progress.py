@@ -10,6 +10,10 @@ ETA: none until it means something. The first sample of a level carries the
 start-up (worker processes, loading compiled kernels), so the rate is
 measured from the first completion on, and an ETA is shown only once
 :data:`ETA_MIN_SAMPLES` more samples and :data:`ETA_MIN_SECONDS` have passed.
+
+Durations: :func:`format_duration` is the one formatter of every duration
+roughuq prints (progress lines, forecasts, refusals, the report), so a time
+reads the same everywhere.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ import time
 from collections.abc import Sequence
 from typing import IO
 
-__all__ = ["ETA_MIN_SAMPLES", "ETA_MIN_SECONDS", "PlainProgress", "RichProgress", "make_progress"]
+__all__ = ["ETA_MIN_SAMPLES", "ETA_MIN_SECONDS", "PlainProgress", "RichProgress", "format_duration", "make_progress"]
 
 #: Samples completed after a level's first one before its ETA is shown.
 ETA_MIN_SAMPLES = 3
@@ -47,8 +51,41 @@ class Progress:
         """The task ended (``is_complete=False``: it was interrupted or failed)."""
 
 
-def _duration(seconds: float) -> str:
-    seconds = int(round(seconds))
+#: ``(below, seconds per unit, unit)``: the unit of :func:`format_duration` by the duration's size.
+_DURATION_UNITS = ((120.0, 1.0, "s"), (7200.0, 60.0, "min"), (math.inf, 3600.0, "h"))
+
+
+def format_duration(seconds: float | None, *, digits: int = 3, clock: bool = False) -> str:
+    """A duration as every roughuq text prints it, in the unit that suits its size.
+
+    Parameters
+    ----------
+    seconds : float or None
+        The duration (s); None or NaN is unknown.
+    digits : int
+        Significant digits (2 for the forecasts, which are approximate).
+    clock : bool
+        Whole seconds in the compact form of progress lines, which tick
+        (``12s``, ``1m05s``, ``2h01m``), instead of ``12.3 s``, ``4.5 min``,
+        ``2.1 h`` (seconds below 120 s, minutes below 2 h, else hours).
+
+    Returns
+    -------
+    str
+        The text; ``"-"`` for an unknown duration, ``"forever"`` for an infinite one.
+    """
+    if seconds is None or math.isnan(seconds):
+        return "-"
+    if math.isinf(seconds):
+        return "forever"
+    if clock:
+        return _clock(int(round(seconds)))
+    value, unit = next((seconds / size, unit) for limit, size, unit in _DURATION_UNITS if seconds < limit)
+    text = f"{value:.{digits}g}"
+    return f"{float(text):.0f} {unit}" if "e+" in text else f"{text} {unit}"  # 1e+02 s reads as 100 s
+
+
+def _clock(seconds: int) -> str:
     if seconds < 60:
         return f"{seconds}s"
     if seconds < 3600:
@@ -116,7 +153,7 @@ class PlainProgress(Progress):
         if is_level_done or now - self._last_line.get(level, -1e9) >= self._interval:
             self._last_line[level] = now
             self._print(f"[{self._title}] level {level}: {done}/{planned} samples, "
-                        f"elapsed {_duration(now - self._t0)}{self._eta(level, now)}")
+                        f"elapsed {format_duration(now - self._t0, clock=True)}{self._eta(level, now)}")
 
     def _eta(self, level: int, now: float) -> str:
         t_first, done_at_first = self._first.get(level, (now, self._done[level]))
@@ -124,14 +161,14 @@ class PlainProgress(Progress):
         remaining = self._planned.get(level, 0) - self._done[level]
         if computed < ETA_MIN_SAMPLES or now - t_first < ETA_MIN_SECONDS or remaining <= 0:
             return ""
-        return f", eta {_duration(remaining * (now - t_first) / computed)}"
+        return f", eta {format_duration(remaining * (now - t_first) / computed, clock=True)}"
 
     def note(self, text: str) -> None:
         self._print(f"[{self._title}] {text}")
 
     def stop(self, *, is_complete: bool = True) -> None:
         what = "done in" if is_complete else "stopped after"
-        self._print(f"[{self._title}] {what} {_duration(time.monotonic() - self._t0)}")
+        self._print(f"[{self._title}] {what} {format_duration(time.monotonic() - self._t0, clock=True)}")
 
 
 def _eta_column_class() -> type:
@@ -154,7 +191,8 @@ def _eta_column_class() -> type:
             remaining = (task.total or 0) - task.completed
             if computed < ETA_MIN_SAMPLES or elapsed < ETA_MIN_SECONDS or remaining <= 0:
                 return Text("")
-            return Text(f"eta {_duration(remaining * elapsed / computed)}", style="progress.remaining")
+            eta = format_duration(remaining * elapsed / computed, clock=True)
+            return Text(f"eta {eta}", style="progress.remaining")
 
     return EtaColumn
 
