@@ -280,6 +280,10 @@ def test_mlmc_options_are_checked_and_an_infinite_budget_is_no_budget():
     infinite = rough_uq.variance(problem, tol=50.0, max_cost=math.inf)  # was an OverflowError
     np.testing.assert_array_equal(infinite.estimate, unlimited.estimate)
     assert rough_uq.mlmc(problem, tol=5.0, max_cost=math.inf).estimate == rough_uq.mlmc(problem, tol=5.0).estimate
+    # A finite budget too large to count samples in (1e308 / a cost of 1e-3 is inf) was an OverflowError.
+    assert rough_uq.mlmc(problem, tol=5.0, max_cost=1e308).estimate == rough_uq.mlmc(problem, tol=5.0).estimate
+    huge = rough_uq.variance(problem, tol=50.0, max_cost=1e308)
+    np.testing.assert_array_equal(huge.estimate, unlimited.estimate)
 
 
 def test_problem_is_frozen_and_hashable():

@@ -181,6 +181,7 @@ __all__ = [
     "Rates",
     "RichardsonRefused",
     "Sampler",
+    "affordable_count",
     "diagnose",
     "fit_rates",
     "iter_mc",
@@ -779,6 +780,17 @@ def _per_sample_cost(hierarchy: _Hierarchy, level: int, gamma: float) -> float:
     return nearest.moments().mean_cost * 2.0 ** (gamma * (level - nearest.level))
 
 
+def affordable_count(budget_left: float, unit: float, wanted: int) -> int:
+    """``min(wanted, floor(budget_left / unit))``, at least 0, for any finite budget.
+
+    A budget as large as ``1e308`` over a small ``unit`` is an infinite
+    count in floating point, which ``math.floor`` cannot make an integer;
+    such a budget affords ``wanted``.
+    """
+    count = budget_left / unit
+    return wanted if count >= wanted else max(math.floor(count), 0)
+
+
 def _batch_size(hierarchy: _Hierarchy, level: int, wanted: int, max_cost: float | None, gamma: float) -> int:
     """Samples to draw now on ``level``: ``wanted`` unless ``max_cost`` forbids (then maybe 0)."""
     if max_cost is None:
@@ -786,8 +798,7 @@ def _batch_size(hierarchy: _Hierarchy, level: int, wanted: int, max_cost: float 
     unit = _per_sample_cost(hierarchy, level, gamma)
     if unit <= 0:
         return wanted
-    affordable = math.floor((max_cost - hierarchy.spent) / unit)
-    n = min(wanted, max(affordable, 0))
+    n = affordable_count(max_cost - hierarchy.spent, unit, wanted)
     # A level with a single sample has no variance; do not start one that cannot get two.
     return n if hierarchy.samples[level].n + n >= 2 else 0
 

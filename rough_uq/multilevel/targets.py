@@ -90,6 +90,7 @@ from rough_uq.multilevel.drivers import (
     _check_optional_positive,
     _fill_costs,
     _planning_variances,
+    affordable_count,
     refuse_large_plan,
 )
 from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias
@@ -448,7 +449,7 @@ def _affordable(levels: list[_Level], level: int, wanted: int, max_cost: float |
     nearest = min(known, key=lambda s: abs(s.level - level))
     unit = nearest.mean_cost * 2.0 ** (gamma * (level - nearest.level))
     spent = sum(s.spent for s in levels)
-    return int(min(wanted, max(math.floor((max_cost - spent) / unit), 0)))
+    return affordable_count(max_cost - spent, unit, wanted)
 
 
 def _draw(
