@@ -226,6 +226,9 @@ def test_one_line_per_problem() -> None:
         # lax pydantic would read a quoted number as the number
         (lambda d: d["surface"].update(hurst="0.8"), "surface.hurst: must be a number, not a string (remove the quotes)"),
         (lambda d: d["grid"].update(coarsest="64"), "grid.coarsest: must be a number, not a string"),
+        # grids beyond 65536 were "valid", then overflowed in the memory estimate (max_level 1000)
+        (lambda d: d["grid"].update(max_level=1000), "grid.max_level: makes the finest grid 256 * 2**1000 larger"),
+        (lambda d: d["grid"].update(coarsest=256, max_level=9), "integer with coarsest * 2**max_level <= 65536"),
         (lambda d: d["surface"].update(rms_height=float("nan")), "surface.rms_height: must be a finite number"),
         (lambda d: d.update(qoi={}), "qoi: at least one quantity of interest"),
         (lambda d: d.update(qoi={"area_above": {}}), "qoi.area_above.critical_pressure: required field is missing"),
@@ -445,3 +448,12 @@ def test_sweep_values_are_read_as_the_config_file_reads_them() -> None:
     assert [c.solver.tol for _, c in configs] == [1e-8, 2.5e-9]
     with pytest.raises(ConfigError, match="solver.tol: must be a number, not a string"):
         sweep_configs(config, key="solver.tol", values=["tight"])
+
+
+def test_the_largest_grid_is_the_problem_layers():
+    from rough_uq.problem.contact import MAX_GRID
+
+    assert config_module.MAX_GRID == MAX_GRID
+    data = _base()
+    data["grid"] = {"coarsest": 256, "max_level": 8}  # 65536, the largest
+    assert config_from_dict(data).grid.finest == MAX_GRID

@@ -201,6 +201,7 @@ def test_units_scale_the_quantities():
         ({"units": {"clusters": "absolute"}}, "units"),
         ({"e_star": 0}, "e_star"),
         ({"max_level": -1}, "max_level"),
+        ({"max_level": 13}, "max_level"),  # 16 * 2**13 = 131072 > MAX_GRID; 2**1000 overflowed later
         ({"projection": "injection"}, "projection"),  # k_s = 8 is not below 16 / 2
         ({"connectivity": 6}, "connectivity"),
         ({"area_estimator": "perimeter"}, "area_estimator"),

@@ -37,7 +37,7 @@ from rough_uq.problem.sampler import ContactModel, compute_batch, is_coupled_sta
 if TYPE_CHECKING:
     from collections.abc import Iterable
 
-__all__ = ["ContactProblem", "ContactSampler", "BatchExecutor"]
+__all__ = ["ContactProblem", "ContactSampler", "BatchExecutor", "MAX_GRID"]
 
 
 class BatchExecutor(Protocol):
@@ -48,6 +48,13 @@ class BatchExecutor(Protocol):
     """
 
     def run(self, model: ContactModel, items: Sequence[tuple[int, int, np.ndarray]]) -> Iterable[LevelBatch]: ...
+
+
+#: The largest grid (nodes per side) of a hierarchy. One solve at 65536^2 needs
+#: some 640 GiB (20 grid-sized arrays of 8 bytes) and far more time than a study
+#: has; a larger ``max_level`` is a typo, and it would overflow the arithmetic of
+#: grid sizes (2**1000) before any memory check could say so.
+MAX_GRID = 65536
 
 
 def integer(name: str, value: object, minimum: int) -> int:
@@ -118,7 +125,8 @@ class ContactProblem:
     e_star : float
         Effective modulus ``E*`` (defines the pressure unit), > 0. Default 1.
     max_level : int
-        Finest level MLMC may add, >= 0. Default 4.
+        Finest level MLMC may add, >= 0, with ``coarsest * 2**max_level <=``
+        :data:`MAX_GRID`. Default 4.
     projection : {"truncation", "injection"}
         How the coarse surface of a coupled sample is obtained
         (:func:`~rough_uq.physics.surface.sample_coupled`); injection needs
@@ -198,7 +206,12 @@ class ContactProblem:
                 "coarsest", self.coarsest, f"an even integer >= 4 and > 2 k_r = {2 * k_r:g} (Nyquist)"
             )
         set_(self, "coarsest", n_0)
-        set_(self, "max_level", integer("max_level", self.max_level, 0))
+        max_level = integer("max_level", self.max_level, 0)
+        if n_0 * 2**max_level > MAX_GRID:
+            raise InvalidParameterError(
+                "max_level", self.max_level, f"a finest grid coarsest * 2**max_level <= {MAX_GRID} (MAX_GRID)"
+            )
+        set_(self, "max_level", max_level)
         _choice("projection", self.projection, PROJECTIONS)
         if self.projection == "injection" and not k_s < n_0 / 2:
             raise InvalidParameterError(

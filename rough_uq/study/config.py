@@ -666,6 +666,11 @@ QOI_NAMES: tuple[str, ...] = tuple(_QOI_MODELS)
 # ---------------------------------------------------------------------------
 
 
+#: The largest grid (nodes per side) of a study: ``rough_uq.problem.contact.MAX_GRID``, which
+#: says why (this module imports nothing of the core; tests/test_config.py checks they agree).
+MAX_GRID = 65536
+
+
 class GridConfig(_Section):
     """The grid hierarchy ``n_l = coarsest * 2**l``, ``l = 0..max_level``."""
 
@@ -676,8 +681,8 @@ class GridConfig(_Section):
     )
     max_level: Int = _field(
         4,
-        description="Finest level allowed; finest grid n_0 * 2**max_level (count)",
-        allowed="integer >= 0",
+        description="Finest level allowed; finest grid n_0 * 2**max_level, at most 65536 (count)",
+        allowed="integer >= 0 with coarsest * 2**max_level <= 65536",
         ge=0,
     )
     projection: Literal["truncation", "injection"] = _field(
@@ -693,6 +698,13 @@ class GridConfig(_Section):
         if value % 2:
             raise PydanticCustomError("not_even", "must be even")
         return value
+
+    @model_validator(mode="after")
+    def _finest_at_most_max_grid(self) -> GridConfig:
+        if self.finest > MAX_GRID:
+            _fail([_problem("max_level", f"makes the finest grid {self.coarsest} * 2**{self.max_level} larger than "
+                            f"{MAX_GRID}", self.max_level, f"integer with coarsest * 2**max_level <= {MAX_GRID}")])
+        return self
 
     def n_at(self, level: int) -> int:
         """Nodes per side of the grid of ``level``."""
