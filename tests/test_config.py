@@ -240,6 +240,9 @@ def test_one_line_per_problem() -> None:
             "qoi.contact_area.estimator: must be 'corrected' or 'nodes' (got 'exact'",
         ),
         (lambda d: d.update(solver={"warm_start": "maybe"}), "solver.warm_start: "),
+        # lax pydantic would read these as booleans
+        (lambda d: d.update(solver={"warm_start": "yes"}), "solver.warm_start: must be true or false (got 'yes'"),
+        (lambda d: d.update(estimation={"richardson": 1}), "estimation.richardson: must be true or false (got 1"),
         (
             lambda d: d["surface"].update(wavelengths={"lambda_l": 1 / 1.2, "lambda_r": 1 / 1.25, "lambda_s": 1 / 1.3}),
             "no non-zero integer wave vector",

@@ -149,8 +149,17 @@ def _reject_non_number(value: object) -> object:
     return value
 
 
+def _reject_non_bool(value: object) -> object:
+    # lax pydantic reads 'yes', 'off', 1 or 0 as booleans; YAML's own true/false
+    # (and yes/no unquoted) are already booleans when they get here.
+    if not isinstance(value, bool):
+        raise PydanticCustomError("not_bool", "must be true or false")
+    return value
+
+
 Int = Annotated[int, BeforeValidator(_reject_non_number)]
 Float = Annotated[float, BeforeValidator(_reject_non_number)]
+Bool = Annotated[bool, BeforeValidator(_reject_non_bool)]
 
 
 def _field(default: Any = ..., *, description: str, allowed: str, **constraints: Any) -> Any:
@@ -497,7 +506,7 @@ class SolverConfig(_Section):
         allowed="integer >= 1",
         ge=1,
     )
-    warm_start: bool = _field(
+    warm_start: Bool = _field(
         True,
         description="Start the fine solve from the coarse solution of the same sample",
         allowed="true or false",
@@ -810,7 +819,7 @@ class EstimationConfig(_Section):
         allowed="integer >= 1",
         ge=1,
     )
-    richardson: bool = _field(
+    richardson: Bool = _field(
         False,
         description="MLMC: Richardson-extrapolate the finest level, w = 2^alpha / (2^alpha - 1), where the "
         "level means decay with stable ratios; refused with a message (plain MLMC) where they do not",
