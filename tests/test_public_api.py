@@ -287,6 +287,19 @@ def test_mlmc_options_are_checked_and_an_infinite_budget_is_no_budget():
     np.testing.assert_array_equal(huge.estimate, unlimited.estimate)
 
 
+def test_wrong_kinds_of_argument_are_refused_by_name_not_by_a_type_error():
+    problem = _problem()
+    for call, field in (
+        (lambda: rough_uq.mlmc(problem, tol=2.0, executor="pool"), "executor"),  # was an AttributeError
+        (lambda: rough_uq.distribution(problem, tol=0.3, thresholds="abc"), "thresholds"),  # a ValueError
+        (lambda: rough_uq.distribution(problem, tol=2.0, thresholds=[10.0, 20.0]), "tol"),  # F is a probability
+        (lambda: rough_uq.sample_surface(problem.spectrum, 16, None), "rng"),  # a TypeError
+    ):
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            call()
+        assert caught.value.name == field
+
+
 def test_problem_is_frozen_and_hashable():
     problem = _problem()
     with pytest.raises(dataclasses.FrozenInstanceError):

@@ -89,6 +89,10 @@ def test_non_finite_fields_are_refused() -> None:
     with pytest.raises(InvalidParameterError) as info:
         mean_gap(np.full((2, 2), np.inf))
     assert info.value.name == "gap"
+    for field in (None, "abc", [[1.0], [1.0, 2.0]]):  # None read as "non-finite entries"; a ragged list
+        with pytest.raises(InvalidParameterError, match="an array of finite numbers") as info:
+            contact_area(field)
+        assert info.value.name == "pressure"
     for bad in (-0.1, np.nan, "high", "0.1", True):
         with pytest.raises(InvalidParameterError) as info:
             area_above(np.zeros((2, 2)), bad)

@@ -235,8 +235,13 @@ def test_invalid_sampling_arguments() -> None:
     with pytest.raises(InvalidParameterError) as info:
         sample_coupled(SPECTRUM, 16, rng, projection="average")
     assert info.value.name == "projection"
-    with pytest.raises(TypeError):
-        sample_surface(SPECTRUM, 16, np.random.RandomState(0))  # type: ignore[arg-type]
+    for rng_like in (np.random.RandomState(0), None, 0):  # the legacy generator, or none, or a seed
+        with pytest.raises(InvalidParameterError) as info:
+            sample_surface(SPECTRUM, 16, rng_like)  # type: ignore[arg-type]
+        assert info.value.name == "rng"
+    with pytest.raises(InvalidParameterError) as info:
+        sample_coupled(None, 16, rng)  # type: ignore[arg-type]
+    assert info.value.name == "spectrum"
 
 
 def test_pointwise_variance_on_a_resolving_grid() -> None:

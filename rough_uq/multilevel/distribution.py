@@ -73,6 +73,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.multilevel.allocation import _is_real
 from rough_uq.multilevel.drivers import Sampler
 from rough_uq.multilevel.statistics import _readonly
 from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc, telescope
@@ -107,7 +108,10 @@ def level_bandwidth(level: int, *, bandwidth: float, bandwidth_rate: float = 1.0
 
 
 def _check_thresholds(thresholds: object) -> np.ndarray:
-    array = np.asarray(thresholds, dtype=float)
+    try:
+        array = np.asarray(thresholds, dtype=float)
+    except (TypeError, ValueError):  # e.g. "abc", or a ragged list
+        array = np.full(1, np.nan)
     if array.ndim != 1 or array.size < 2 or not np.all(np.isfinite(array)) or np.any(np.diff(array) <= 0):
         raise InvalidParameterError(
             "thresholds", thresholds, "a 1-d array of at least two finite, strictly increasing values"
@@ -360,7 +364,7 @@ def mlmc_cdf(
         Strictly increasing ``s_j`` (the unit of ``Q``); cover the quantiles
         of interest with a spacing well below their error bars.
     tol : float
-        Tolerance on ``max_j`` RMS error of ``F(s_j)`` (dimensionless).
+        Tolerance on ``max_j`` RMS error of ``F(s_j)`` (dimensionless, in (0, 1)).
     bandwidth, bandwidth_rate, qoi
         As in :func:`cdf_level_term`.
     **options
@@ -372,8 +376,9 @@ def mlmc_cdf(
     """
     s = _check_thresholds(thresholds)
     _check_bandwidth(bandwidth, bandwidth_rate)
-    if np.ndim(tol) != 0:
-        raise InvalidParameterError("tol", tol, "one positive number (the tolerance on the sup norm)")
+    if np.ndim(tol) != 0 or not (_is_real(tol) and 0 < tol < 1):
+        # F is a probability: an RMS error of 1 or more is met by any estimate.
+        raise InvalidParameterError("tol", tol, "one number in (0, 1) (the RMS error of F on the sup norm)")
 
     def term(fine: np.ndarray, coarse: np.ndarray | None, level: int) -> LevelTerm:
         return cdf_level_term(

@@ -94,7 +94,12 @@ def _field(name: str, values: object) -> np.ndarray:
 
     A NaN would silently compare as "not in contact", so it is refused here.
     """
-    array = np.asarray(values, dtype=np.float64)
+    if values is None:  # asarray(None, float) is a NaN, which would read as "non-finite entries"
+        raise InvalidParameterError(name, None, "an array of finite numbers")
+    try:
+        array = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):  # text, a ragged list
+        raise InvalidParameterError(name, type(values).__name__, "an array of finite numbers") from None
     if array.size == 0:
         raise InvalidParameterError(name, f"array of shape {array.shape}", "a non-empty array")
     if not np.all(np.isfinite(array)):

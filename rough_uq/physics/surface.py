@@ -367,10 +367,13 @@ def _check_grid_size(name: str, n: object, *, multiple: int = 2) -> int:
 
 
 def _check_inputs(spectrum: object, rng: object) -> None:
+    # InvalidParameterError, as for every other argument (a RoughUQError, so the CLI and callers catch one kind).
     if not isinstance(spectrum, SurfaceSpectrum):
-        raise TypeError(f"spectrum must be a SurfaceSpectrum, got {type(spectrum).__name__}")
+        raise InvalidParameterError("spectrum", type(spectrum).__name__, "a SurfaceSpectrum")
     if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+        raise InvalidParameterError(
+            "rng", type(rng).__name__, "a numpy.random.Generator (e.g. numpy.random.default_rng(seed))"
+        )
 
 
 @dataclass(frozen=True)

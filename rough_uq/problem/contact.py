@@ -313,6 +313,11 @@ class ContactProblem:
             Where samples are computed (e.g. :mod:`rough_uq.study.executors`);
             default: in this process.
         """
+        if executor is not None and not callable(getattr(executor, "run", None)):
+            raise InvalidParameterError(
+                "executor", executor, "None (this process) or an executor with run(model, items), e.g. "
+                "rough_uq.study.executors.PoolExecutor"
+            )
         return ContactSampler(self.model, stage=integer("stage", stage, 0), executor=executor)
 
 

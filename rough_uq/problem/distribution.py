@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError
-from rough_uq.multilevel.distribution import CdfEstimate, Quantiles, mlmc_cdf, quantiles
+from rough_uq.multilevel.distribution import CdfEstimate, Quantiles, _check_thresholds, mlmc_cdf, quantiles
 from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
 from rough_uq.multilevel.targets import TargetEstimate
@@ -92,7 +92,7 @@ def estimate_target(
         return mlmc_variance(sampler, tol=tol, **options)
     if target != "cdf":
         raise InvalidParameterError("target", target, f"one of {', '.join(TARGETS)}")
-    s = np.asarray(thresholds, dtype=float)
+    s = _check_thresholds(thresholds)
     width = _default_bandwidth(s) if bandwidth is None else bandwidth
     tol_value = float(np.asarray(tol).reshape(-1)[0])
     return mlmc_cdf(sampler, thresholds=s, tol=tol_value, bandwidth=width, qoi=qoi, **options)
@@ -216,7 +216,7 @@ def distribution(
     ----------
     problem : ContactProblem
     tol : float
-        Tolerance on the largest RMS error of ``F`` over the thresholds (dimensionless).
+        Tolerance on the largest RMS error of ``F`` over the thresholds (dimensionless, in (0, 1)).
     thresholds : sequence of float
         Strictly increasing values ``s_j`` in the column's unit; they must
         bracket the quantiles asked for, with a spacing well below the
