@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rough_uq.study.config import config_from_dict, load_config
-from rough_uq.errors import InvalidParameterError, StudyFileError
+from rough_uq.errors import EstimationError, InvalidParameterError, StudyFileError
 from rough_uq.study.executors import Executor, PoolExecutor, SerialExecutor
 from rough_uq.multilevel.drivers import PlanUpdated
 from rough_uq.study.pipeline import (
@@ -50,6 +50,14 @@ def _screened(**overrides: object) -> Study:
     run_screening(study, executor=SerialExecutor(), progress=QUIET)
     return study
 
+
+
+def test_a_qoi_that_never_changes_says_so_instead_of_asking_for_more_samples():
+    # Far past full contact the area is 100 % in every sample: more levels or samples would not help.
+    study = _study(load={"relative": 1.0e6})
+    with pytest.raises(EstimationError, match="contact_area took one value in every sample of every level") as info:
+        run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    assert "screen more levels" not in str(info.value)
 
 def test_model_units_and_load():
     config = config_from_dict(

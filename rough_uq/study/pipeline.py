@@ -512,7 +512,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
         progress.plan(levels, [n] * len(levels), [n - sampler.missing(l, np.arange(n)).size for l in levels])
         with _collecting_diagnostics() as caught:
             statistics, batches = screening_statistics(study, sampler)
-            rates = _screening_rates(statistics)
+            rates = _screening_rates(statistics, config.qoi_names)
     except BaseException:
         progress.stop(is_complete=False)
         raise
@@ -539,14 +539,23 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
     return ScreeningOutcome(statistics, rates, record)
 
 
-def _screening_rates(statistics: LevelStatistics) -> Rates:
+def _screening_rates(statistics: LevelStatistics, qoi_names: Sequence[str]) -> Rates:
     try:
         return fit_rates(statistics)
     except EstimationError as exc:
-        raise EstimationError(
-            f"screening cannot fit the rates: {exc}; screen more levels (screening.levels) or "
-            f"more samples (screening.samples)"
-        ) from None
+        constant = [name for q, name in enumerate(qoi_names) if _is_constant(statistics, q)]
+        advice = (
+            f"{', '.join(constant)} took one value in every sample of every level (at this load, e.g. "
+            "full contact or none): there is nothing to estimate; change the load or the QoIs"
+            if constant else "screen more levels (screening.levels) or more samples (screening.samples)"
+        )
+        raise EstimationError(f"screening cannot fit the rates: {exc}; {advice}") from None
+
+
+def _is_constant(statistics: LevelStatistics, q: int) -> bool:
+    """Whether QoI ``q`` had the same value in every screening sample (no variance, no level differences)."""
+    values = np.concatenate([statistics.mean_fine[:, q], statistics.mean_coarse[statistics.levels > 0, q]])
+    return bool(np.all(statistics.var_fine[:, q] == 0) and np.all(values == values[0]))
 
 
 def _predictions(
