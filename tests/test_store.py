@@ -425,6 +425,37 @@ def test_bad_files_are_refused_and_unchanged(tmp_path: Path, make, message: str,
     assert sorted(os.listdir(tmp_path)) == ["study.h5"]
 
 
+def _replace_record(path: Path, name: str, value: object) -> None:
+    with h5py.File(path, "r+") as f:
+        del f[name]
+        f[name] = value
+
+
+DAMAGED_RECORDS = [
+    ("screening/record", np.frombuffer(b'{"a": "\xcc\xcc"}', dtype=np.uint8), "not UTF-8 text"),
+    ("screening/record", np.frombuffer(b"{not json", dtype=np.uint8), "not JSON text"),
+    ("screening/record", np.array(b'{"a": 1}', dtype=h5py.string_dtype()), "a string dataset"),
+    ("runs/r1/record", np.frombuffer(b"[1, 2]", dtype=np.uint8), "JSON list, not an object"),
+]
+
+
+@pytest.mark.parametrize(("name", "value", "message"), DAMAGED_RECORDS, ids=["utf8", "json", "string", "list"])
+@pytest.mark.parametrize("opener", ["readonly", "writable"])
+def test_a_damaged_record_is_a_study_file_error_naming_file_and_record(
+    tmp_path: Path, name: str, value: object, message: str, opener: str
+) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.write_screening({"alpha": 1.0})
+        study.write_run("r1", {"tol": 1.0})
+    _replace_record(path, name, value)
+    with open_study_readonly(path) if opener == "readonly" else new_study(path) as study:
+        with pytest.raises(StudyFileError, match=message) as info:
+            study.read_screening() if name.startswith("screening") else study.read_runs()
+    assert str(path) in str(info.value) and name in str(info.value) and "damaged" in str(info.value)
+    assert info.value.path == path
+
+
 def test_missing_file_is_refused_when_not_creating(tmp_path: Path) -> None:
     with pytest.raises(StudyFileError, match="no such study file"):
         new_study(tmp_path / "missing.h5", create=False)

@@ -97,7 +97,10 @@ Choices where the specification is silent
   not interpret them: the pipeline writes the ``to_json`` of the typed
   records of :mod:`rough_uq.study.records` and reads them back with
   :func:`~rough_uq.study.records.read_screening_record` and
-  :func:`~rough_uq.study.records.read_run_records`.
+  :func:`~rough_uq.study.records.read_run_records`. A stored record that
+  is not a byte array of UTF-8 JSON text of an object (a damaged or
+  hand-edited file) raises :class:`~rough_uq.errors.StudyFileError` naming
+  the file and the record (``runs/<run_id>/record``).
 * Opening for writing with ``create=True`` creates missing parent
   directories.
 * HDF5's own file locking is switched off (``locking=False``): the sidecar
@@ -282,6 +285,11 @@ def _encode_record(record: Mapping[str, Any], what: str) -> str:
         raise TypeError(f"{what} is not JSON-able: {exc}") from None
 
 
+def _record_name(key: tuple[str, ...]) -> str:
+    """HDF5 path of the record dataset under ``key`` (``screening/record``, ``runs/<run_id>/record``)."""
+    return "/".join((*key, "record"))
+
+
 def _check_run_id(run_id: str) -> None:
     if not isinstance(run_id, str) or not _RUN_ID.match(run_id) or run_id in (".", ".."):
         raise ValueError(f"run_id must be a non-empty name of letters, digits, '_', '-', '.', got {run_id!r}")
@@ -440,8 +448,7 @@ class StudyStore(ABC):
 
     def read_screening(self) -> dict[str, Any] | None:
         """The screening results, or None if none were written."""
-        text = self._read_record(("screening",))
-        return None if text is None else json.loads(text)
+        return self._record(("screening",))
 
     def write_run(self, run_id: str, record: Mapping[str, Any]) -> None:
         """Store (create or replace) the record of an estimation run, a JSON-able mapping.
@@ -459,10 +466,29 @@ class StudyStore(ABC):
         """All run records in creation order, each with its ``run_id``."""
         runs = []
         for run_id in self._run_ids():
-            text = self._read_record(("runs", run_id))
-            if text is not None:
-                runs.append({"run_id": run_id, **json.loads(text)})
+            data = self._record(("runs", run_id))
+            if data is not None:
+                runs.append({"run_id": run_id, **data})
         return runs
+
+    def _record(self, key: tuple[str, ...]) -> dict[str, Any] | None:
+        """The JSON object stored under ``key``, or None; anything else is a damaged file."""
+        text = self._read_record(key)
+        if text is None:
+            return None
+        try:
+            data = json.loads(text)
+        except ValueError as exc:  # json.JSONDecodeError
+            raise self._damaged(_record_name(key), f"not JSON text ({exc})") from None
+        if not isinstance(data, dict):
+            raise self._damaged(_record_name(key), f"JSON {type(data).__name__}, not an object")
+        return data
+
+    def _damaged(self, where: str, reason: str) -> StudyFileError:
+        """The error for damaged content at ``where`` (an HDF5 path in the file): names the file and the place."""
+        path = getattr(self, "path", None)
+        place = "the study" if path is None else str(path)
+        return StudyFileError(f"{place} cannot be read: damaged study file ({where}: {reason})", path)
 
     # -- life cycle ----------------------------------------------------------
 
@@ -947,14 +973,35 @@ class StudyFile(StudyStore):
         self._transaction(write)
 
     def _read_record(self, key: tuple[str, ...]) -> str | None:
+        name = _record_name(key)
         with self._reading() as f:
-            record = f.get("/".join(key) + "/record")
-            return None if record is None else record[()].tobytes().decode("utf-8")
+            record = f.get(name)
+            if record is None:
+                return None
+            if not (isinstance(record, h5py.Dataset) and record.dtype == np.uint8 and record.ndim == 1):
+                raise self._damaged(name, f"{_describe(record)}, not a byte array (uint8)")
+            data = record[()]
+        try:
+            return data.tobytes().decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise self._damaged(name, f"not UTF-8 text (byte {exc.start}: {exc.reason})") from None
 
     def _run_ids(self) -> list[str]:
         with self._reading() as f:
-            runs = f["runs"]
-            return sorted(runs, key=lambda run_id: int(runs[run_id].attrs["order"]))
+            try:
+                runs = f["runs"]
+                return sorted(runs, key=lambda run_id: int(runs[run_id].attrs["order"]))
+            except (KeyError, TypeError, ValueError) as exc:
+                raise self._damaged("runs", f"no readable creation order ({exc})") from None
+
+
+def _describe(item: h5py.Group | h5py.Dataset) -> str:
+    """What an HDF5 object is, in words (``a string dataset``, ``a float64 dataset of shape (3,)``, ``a group``)."""
+    if not isinstance(item, h5py.Dataset):
+        return "a group"
+    if h5py.check_string_dtype(item.dtype) is not None:
+        return "a string dataset"
+    return f"a {item.dtype} dataset of shape {item.shape}"
 
 
 def _open_for_writing(path: Path) -> h5py.File:
