@@ -318,6 +318,25 @@ def test_study_file_roundtrip_and_mismatch(tmp_path):
         open_existing_study(tmp_path / "missing.h5")
 
 
+def test_a_study_whose_qoi_names_are_not_its_configs_columns_is_refused_as_damaged(tmp_path):
+    import h5py
+
+    config = config_from_dict(tiny_config())
+    path = tmp_path / "study.h5"
+    create_study(config, path).close()
+    with h5py.File(path, "r+") as f:
+        del f["qoi_names"]
+        f.create_dataset("qoi_names", data=["foo", "bar"], dtype=h5py.string_dtype())
+    before = path.read_bytes()
+    openers = [lambda: open_existing_study(path, writable=False), lambda: open_existing_study(path),
+               lambda: open_existing_study(path, config=config), lambda: create_study(config, path)]
+    for opener in openers:
+        with pytest.raises(StudyFileError, match=r"damaged study file \(qoi_names \['foo', 'bar'\]") as info:
+            opener()
+        assert str(path) in str(info.value) and "contact_area" in str(info.value)
+    assert path.read_bytes() == before
+
+
 def test_screening_again_with_more_levels_extends_the_study(tmp_path):
     path = tmp_path / "study.h5"
     grid = {"coarsest": 8, "max_level": 3}

@@ -244,7 +244,9 @@ def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, 
 
     The study's config is the one stored in the file unless ``config`` is
     given; a given config must hash like the stored one (it may differ in
-    estimation settings and QoI tolerances, which do not change samples).
+    estimation settings and QoI tolerances, which do not change samples). A
+    file whose stored ``qoi_names`` are not the result columns of its stored
+    config is refused as damaged (:class:`StudyFileError`).
     """
     path = Path(path)
     if not path.exists():
@@ -255,6 +257,7 @@ def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, 
     with open_study_readonly(path) as header:
         config_text, stored_hash, qoi_names = header.config_text, header.config_hash, header.qoi_names
         stored = _stored_config(header)
+    _check_columns(path, qoi_names, stored.qoi_names)
     if config is not None and config_hash(config) != stored_hash:
         raise StudyFileError(
             f"study file {str(path)!r} was created with another config (hash {stored_hash[:12]}, "
@@ -272,6 +275,20 @@ def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, 
         code_version=__version__,
     )
     return Study(config or stored, store)
+
+
+def _check_columns(path: Path, stored_names: Sequence[str], config_names: Sequence[str]) -> None:
+    """Refuse a study whose stored ``qoi_names`` are not the result columns of its stored config.
+
+    The columns follow from the config, so a difference means a damaged or
+    altered file; reading on would label (or index) the columns wrongly.
+    """
+    if tuple(stored_names) != tuple(config_names):
+        raise StudyFileError(
+            f"{path} cannot be read: damaged study file (qoi_names {list(stored_names)} are not the result "
+            f"columns of its stored config, {list(config_names)})",
+            path,
+        )
 
 
 # ---------------------------------------------------------------------------

@@ -1113,7 +1113,7 @@ def _prepare_locked(
             copy_from=None,
         )
     header = _read_header(path)
-    _check_header(path, header, config_hash=config_hash)
+    _check_header(path, header, config_hash=config_hash, qoi_names=qoi_names)
     _remove_stale_tmp(path)  # left by a killed writer; we hold the lock, so none is live
     if header["format_version"] != FORMAT_VERSION or _is_marked_open(path):
         _rewrite(path)
@@ -1121,8 +1121,8 @@ def _prepare_locked(
     return header
 
 
-def _check_header(path: Path, header: Mapping[str, Any], *, config_hash: str) -> None:
-    """Refuse a file without a samples group or written by another config."""
+def _check_header(path: Path, header: Mapping[str, Any], *, config_hash: str, qoi_names: Sequence[str]) -> None:
+    """Refuse a file without a samples group, written by another config, or whose QoI columns are not the config's."""
     if not header["has_samples"]:
         raise StudyFileError(f"{path} cannot be read: damaged study file (no samples group)", path)
     if header["config_hash"] != config_hash:
@@ -1130,6 +1130,13 @@ def _check_header(path: Path, header: Mapping[str, Any], *, config_hash: str) ->
             f"{path} was written by another config "
             f"(hash {header['config_hash'][:12]}… ≠ {config_hash[:12]}…); "
             "use a new --out/--study file or the original config",
+            path,
+        )
+    if tuple(header["qoi_names"]) != tuple(qoi_names):
+        # The hash covers the QoI columns: equal hashes with other names mean the stored names were altered.
+        raise StudyFileError(
+            f"{path} cannot be read: damaged study file (qoi_names {list(header['qoi_names'])} are not the "
+            f"result columns of its config, {list(qoi_names)})",
             path,
         )
 
@@ -1174,8 +1181,8 @@ def open_study(
     StudyFileError
         Missing file (``create=False``), unwritable directory, file locked by
         another process, not HDF5, truncated or damaged, another format or
-        format version, or written by another config. A refused file is not
-        modified.
+        format version, written by another config, or (same config) storing
+        other ``qoi_names`` than given. A refused file is not modified.
     """
     path = Path(os.fspath(path))
     if code_version is None:
