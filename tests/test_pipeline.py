@@ -20,6 +20,7 @@ from rough_uq.study.pipeline import (
     build_model,
     create_study,
     forecast_run,
+    merge_shards,
     missing_samples,
     open_existing_study,
     parse_tolerances,
@@ -318,15 +319,19 @@ def test_study_file_roundtrip_and_mismatch(tmp_path):
         open_existing_study(tmp_path / "missing.h5")
 
 
-def test_a_study_whose_qoi_names_are_not_its_configs_columns_is_refused_as_damaged(tmp_path):
+def _tamper_qoi_names(path: Path, names: list[str]) -> None:
     import h5py
 
+    with h5py.File(path, "r+") as f:
+        del f["qoi_names"]
+        f.create_dataset("qoi_names", data=names, dtype=h5py.string_dtype())
+
+
+def test_a_study_whose_qoi_names_are_not_its_configs_columns_is_refused_as_damaged(tmp_path):
     config = config_from_dict(tiny_config())
     path = tmp_path / "study.h5"
     create_study(config, path).close()
-    with h5py.File(path, "r+") as f:
-        del f["qoi_names"]
-        f.create_dataset("qoi_names", data=["foo", "bar"], dtype=h5py.string_dtype())
+    _tamper_qoi_names(path, ["foo", "bar"])
     before = path.read_bytes()
     openers = [lambda: open_existing_study(path, writable=False), lambda: open_existing_study(path),
                lambda: open_existing_study(path, config=config), lambda: create_study(config, path)]
@@ -335,6 +340,17 @@ def test_a_study_whose_qoi_names_are_not_its_configs_columns_is_refused_as_damag
             opener()
         assert str(path) in str(info.value) and "contact_area" in str(info.value)
     assert path.read_bytes() == before
+
+
+def test_merging_a_shard_with_other_qoi_names_says_what_differs(tmp_path):
+    config = config_from_dict(tiny_config())
+    path, shard = tmp_path / "study.h5", tmp_path / "shard.h5"
+    create_study(config, shard).close()
+    _tamper_qoi_names(shard, ["foo", "bar"])
+    with create_study(config, path) as study:
+        with pytest.raises(StudyFileError, match=r"other QoI columns \(foo, bar; this study: contact_area\)") as info:
+            merge_shards(study, [shard])
+    assert "another study" not in str(info.value) and "nothing was merged" in str(info.value)
 
 
 def test_screening_again_with_more_levels_extends_the_study(tmp_path):

@@ -1533,8 +1533,8 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
     """Add the samples of shard files to the study.
 
     Every shard is checked first: a shard of another config (hash) or with
-    other QoI columns is refused before anything is written. Samples already
-    in the study are skipped, never counted twice.
+    other QoI columns is refused before anything is written, saying which
+    differs. Samples already in the study are skipped, never counted twice.
 
     Returns
     -------
@@ -1546,12 +1546,7 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
     batches: list[LevelBatch] = []
     for path in shards:
         with open_study_readonly(path) as shard:
-            if shard.config_hash != study.store.config_hash or shard.qoi_names != study.store.qoi_names:
-                raise StudyFileError(
-                    f"shard {str(path)!r} belongs to another study (config hash {shard.config_hash[:12]}, "
-                    f"this study {study.store.config_hash[:12]}); nothing was merged",
-                    path,
-                )
+            _check_shard(study, path, shard)
             for level in shard.levels():
                 for stage in shard.stages(level=level):
                     batches.append(shard.read_samples(level=level, stage=stage))
@@ -1563,6 +1558,23 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
         added += n
         duplicates += batch.n_samples - n
     return {"added": added, "duplicates": duplicates}
+
+
+def _check_shard(study: Study, path: str | Path, shard: StudyStore) -> None:
+    """Refuse a shard of another config, or with other QoI columns than the study's (one of them is damaged)."""
+    here = study.store
+    if shard.config_hash != here.config_hash:
+        raise StudyFileError(
+            f"shard {str(path)!r} belongs to another study (config hash {shard.config_hash[:12]}, "
+            f"this study {here.config_hash[:12]}); nothing was merged",
+            path,
+        )
+    if tuple(shard.qoi_names) != tuple(here.qoi_names):
+        raise StudyFileError(
+            f"shard {str(path)!r} has the study's config hash but other QoI columns ({', '.join(shard.qoi_names)}; "
+            f"this study: {', '.join(here.qoi_names)}), so it is damaged; nothing was merged",
+            path,
+        )
 
 
 # ---------------------------------------------------------------------------
