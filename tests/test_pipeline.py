@@ -353,6 +353,20 @@ def test_merging_a_shard_with_other_qoi_names_says_what_differs(tmp_path):
     assert "another study" not in str(info.value) and "nothing was merged" in str(info.value)
 
 
+def test_merging_the_study_into_itself_is_refused_by_any_path(tmp_path, monkeypatch):
+    config = config_from_dict(tiny_config())
+    path = tmp_path / "study.h5"
+    (tmp_path / "link.h5").symlink_to(path)
+    monkeypatch.chdir(tmp_path)
+    with create_study(config, path) as study:
+        study.store.append_samples(compute_batch(study.model, stage=STAGE_SCREENING, level=0, indices=np.arange(2)))
+        before = path.read_bytes()
+        for same in (path, "study.h5", "./study.h5", tmp_path / "link.h5"):
+            with pytest.raises(StudyFileError, match="is the study file .* itself; .*nothing was merged"):
+                merge_shards(study, [same])
+    assert path.read_bytes() == before
+
+
 def test_screening_again_with_more_levels_extends_the_study(tmp_path):
     path = tmp_path / "study.h5"
     grid = {"coarsest": 8, "max_level": 3}

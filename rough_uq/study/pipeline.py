@@ -1532,9 +1532,10 @@ def compute_shard(
 def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
     """Add the samples of shard files to the study.
 
-    Every shard is checked first: a shard of another config (hash) or with
-    other QoI columns is refused before anything is written, saying which
-    differs. Samples already in the study are skipped, never counted twice.
+    Every shard is checked first: the study file itself (also through
+    another path or a link), a shard of another config (hash) or with other
+    QoI columns is refused before anything is written. Samples already in
+    the study are skipped, never counted twice.
 
     Returns
     -------
@@ -1545,6 +1546,7 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
 
     batches: list[LevelBatch] = []
     for path in shards:
+        _refuse_the_study_itself(study, path)
         with open_study_readonly(path) as shard:
             _check_shard(study, path, shard)
             for level in shard.levels():
@@ -1558,6 +1560,21 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
         added += n
         duplicates += batch.n_samples - n
     return {"added": added, "duplicates": duplicates}
+
+
+def _refuse_the_study_itself(study: Study, path: str | Path) -> None:
+    """Refuse a shard that is the study file (same file by device and inode: another path or a link too)."""
+    target = getattr(study.store, "path", None)
+    try:
+        is_same = target is not None and os.path.samefile(path, target)
+    except OSError:  # a missing shard: open_study_readonly says so
+        is_same = False
+    if is_same:
+        raise StudyFileError(
+            f"shard {str(path)!r} is the study file {str(target)!r} itself; a file cannot be merged into "
+            "itself; nothing was merged",
+            path,
+        )
 
 
 def _check_shard(study: Study, path: str | Path, shard: StudyStore) -> None:
