@@ -184,6 +184,23 @@ def test_cdf_run_stores_cdf_band_and_quantiles_of_its_own_samples(tiny):
         assert q.lower == (lower if np.isfinite(lower) else None) and q.upper == (upper if np.isfinite(upper) else None)
 
 
+def test_cdf_runs_with_other_thresholds_or_probabilities_keep_their_own_records(tiny):
+    args = ("mlmc", "--config", str(tiny), "--tol-cdf", "0.3", "--workers", "1", "--json", "-q")
+    first = json.loads(run(*args, "--thresholds", TINY_THRESHOLDS, expect=(0, 3)).stdout)
+    other = json.loads(run(*args, "--thresholds", "30:50:21", expect=(0, 3)).stdout)
+    quantiles = json.loads(run(*args, "--thresholds", TINY_THRESHOLDS, "--probabilities", "0.5", expect=(0, 3)).stdout)
+    again = json.loads(run(*args, "--thresholds", TINY_THRESHOLDS, expect=(0, 3)).stdout)
+    ids = [record["run_id"] for record in (first, other, quantiles)]
+    assert len(set(ids)) == 3 and all(key.startswith("cdf_contact_area-0.3_theta-0.5_request-") for key in ids)
+    assert again["run_id"] == first["run_id"] and again["n_computed"] == 0  # the same command resumes its run
+    assert first["stage"] == other["stage"] == quantiles["stage"]  # one stage: the samples are shared
+    runs = stored_runs(tiny.parent / "results.h5")
+    assert sorted(runs) == sorted(ids) and all(run.status == "finished" for run in runs.values())
+    np.testing.assert_allclose(runs[ids[0]].outcome.distribution.thresholds, np.linspace(25, 60, 36))
+    np.testing.assert_allclose(runs[ids[1]].outcome.distribution.thresholds, np.linspace(30, 50, 21))
+    assert [q.probability for q in runs[ids[2]].outcome.distribution.quantiles] == [0.5]
+
+
 def _interrupt_after(monkeypatch, n_batches: int) -> None:
     """Make the study sampler raise KeyboardInterrupt (as Ctrl-C would) after ``n_batches`` computed batches."""
     from rough_uq.study import pipeline

@@ -28,6 +28,8 @@ records carry both it and the measured wall time.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import os
 import time
@@ -1258,17 +1260,40 @@ def _qoi_of(config: StudyConfig, column: str) -> str:
 
 
 def target_run_id(study: Study, *, target: str, tol: np.ndarray, request: CdfRequest | None = None) -> str:
-    """Name of a variance or cdf run; the same as :func:`rough_uq.variance` / :func:`rough_uq.distribution`
-    give it, so the CLI and the Python API draw the same samples.
+    """Name of a variance or cdf run (its record in the study).
 
-    A ``cdf`` run is named by its column, ``tol`` and ``theta``, not by its
-    thresholds: a rerun with other thresholds reuses the samples and replaces
-    the record.
+    A variance run is named by its columns, ``tol`` and ``theta``
+    (:func:`~rough_uq.problem.runs.run_id`). A ``cdf`` run's name adds
+    ``_request-<8 hex digits>``, a hash of its thresholds and probabilities
+    (:func:`_request_digest`): the same command gives the same name and
+    resumes its run, while a run of the same column and tolerance with other
+    thresholds or quantiles gets a record of its own instead of replacing the
+    first one. Either way the run draws the samples of the name without that
+    suffix (:func:`_target_stage`), the stage :func:`rough_uq.variance` /
+    :func:`rough_uq.distribution` use: the CLI and the Python API draw the
+    same samples, and cdf runs that differ only in thresholds share them.
     """
+    base = _target_base_id(study, target=target, tol=tol, request=request)
+    return base if target == "variance" else f"{base}_request-{_request_digest(request)}"
+
+
+def _target_base_id(study: Study, *, target: str, tol: np.ndarray, request: CdfRequest | None) -> str:
+    """The run id of a target without the cdf request's suffix: the name its random stage derives from."""
     if target not in TARGETS:
         raise ValueError(f"target must be one of {TARGETS}, got {target!r}")
     columns = study.config.qoi_names if target == "variance" else [request.column]
     return run_id(target, columns, np.asarray(tol, dtype=float), study.config.estimation.theta)
+
+
+def _target_stage(study: Study, *, target: str, tol: np.ndarray, request: CdfRequest | None) -> int:
+    """Random stage of a variance or cdf run (the same for every thresholds and probabilities of a cdf run)."""
+    return run_stage("mlmc", _target_base_id(study, target=target, tol=tol, request=request))
+
+
+def _request_digest(request: CdfRequest) -> str:
+    """8 hex digits of SHA-256 of the thresholds and probabilities (12 significant digits: stable to rounding)."""
+    values = [[f"{float(s):.12g}" for s in request.thresholds], [f"{float(p):.12g}" for p in request.probabilities]]
+    return hashlib.sha256(json.dumps(values, separators=(",", ":")).encode("ascii")).hexdigest()[:8]
 
 
 class _PlannedSampler:
@@ -1328,8 +1353,9 @@ def run_target(
     Returns
     -------
     RunRecord
-        Method ``target``; stored as ``running`` when it starts and
-        ``finished`` when it ends (``refused`` with the reason where the
+        Named by :func:`target_run_id` (a cdf run by its thresholds and
+        probabilities too), method ``target``; stored as ``running`` when it
+        starts and ``finished`` when it ends (``refused`` with the reason where the
         driver raises :class:`~rough_uq.errors.EstimationError`, e.g. for a
         plan of more than ``MAX_PLANNED_SAMPLES`` samples).
     """
@@ -1346,7 +1372,8 @@ def run_target(
     max_cost = estimation.max_cost if max_cost is None else max_cost
     key = target_run_id(study, target=target, tol=tol, request=request)
     clock = _RunClock.start(study, key)
-    sampler = StudySampler(study, stage=run_stage("mlmc", key), executor=executor, progress=progress)
+    stage = _target_stage(study, target=target, tol=tol, request=request)
+    sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
     names = study.config.qoi_names if target == "variance" else (request.column,)
     record = RunRecord(
         run_id=key, method=target, status="running", tol=tuple(tol.tolist()), started=utc_timestamp(),
