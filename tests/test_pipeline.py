@@ -27,6 +27,7 @@ from rough_uq.study.pipeline import (
     run_estimation,
     run_id,
     run_screening,
+    run_sweep,
     run_target,
 )
 from rough_uq.study.progress import Progress
@@ -365,6 +366,36 @@ def test_merging_the_study_into_itself_is_refused_by_any_path(tmp_path, monkeypa
             with pytest.raises(StudyFileError, match="is the study file .* itself; .*nothing was merged"):
                 merge_shards(study, [same])
     assert path.read_bytes() == before
+
+
+def test_another_configs_study_is_refused_naming_the_options_of_the_command(tmp_path):
+    config, other = config_from_dict(tiny_config()), config_from_dict(tiny_config(seed=1))
+    path = tmp_path / "study.h5"
+    create_study(config, path).close()
+    with pytest.raises(StudyFileError, match="another config") as screen:
+        create_study(other, path)
+    with pytest.raises(StudyFileError, match="another config") as mlmc:
+        open_existing_study(path, config=other)
+    assert "another --out file" in str(screen.value)  # roughuq screen CONFIG --out
+    assert "--config" in str(mlmc.value) and "another --study file" in str(mlmc.value)
+    assert "--out" not in str(mlmc.value)
+
+
+def test_a_sweep_refuses_another_configs_study_before_writing_any_config(tmp_path):
+    from rough_uq.study.config import sweep_configs
+
+    base = config_from_dict(tiny_config())
+    configs = sweep_configs(base, key="surface.system_size", values=["1", "2"])
+    directory = tmp_path / "sweep"
+    first = directory / Path(configs[0][1].output.path).name
+    second = directory / Path(configs[1][1].output.path).name
+    create_study(config_from_dict(tiny_config(seed=1)), second).close()  # value 2: a study of another seed
+    second.with_suffix(".yaml").write_text("the config of that study\n")
+    with pytest.raises(StudyFileError, match="another config") as info:
+        run_sweep(configs, directory=directory, tol=["5"], level=0, executor=SerialExecutor(), progress=QUIET)
+    assert "--dir" in str(info.value) and "--out" not in str(info.value) and "--study" not in str(info.value)
+    assert second.with_suffix(".yaml").read_text() == "the config of that study\n"
+    assert not first.exists() and not first.with_suffix(".yaml").exists()
 
 
 def test_screening_again_with_more_levels_extends_the_study(tmp_path):

@@ -218,13 +218,18 @@ class Study:
         self.close()
 
 
-def create_study(config: StudyConfig, path: str | Path | None = None) -> Study:
+def create_study(
+    config: StudyConfig, path: str | Path | None = None, *, remedy: str = "use another --out file or the config it was written with"
+) -> Study:
     """Open the study file of ``config`` for writing, creating it if missing.
 
     An existing file must have been created with the same config (hash of
-    everything that changes numbers); otherwise :class:`StudyFileError`.
+    everything that changes numbers); otherwise :class:`StudyFileError`, whose
+    message ends in ``remedy`` (what the command at hand lets the user do;
+    the default names ``roughuq screen``'s ``--out``).
     """
     path = Path(path if path is not None else config.output.path)
+    _refuse_other_config(path, config, remedy)
     store = open_study(
         path,
         config_text=resolved_yaml(config),
@@ -234,6 +239,19 @@ def create_study(config: StudyConfig, path: str | Path | None = None) -> Study:
         code_version=__version__,
     )
     return Study(config, store)
+
+
+def _refuse_other_config(path: Path, config: StudyConfig, remedy: str) -> None:
+    """Refuse an existing study file written by another config, before anything is written; ``remedy`` ends it."""
+    if not path.is_file():
+        return  # missing: created; anything else: open_study says what is wrong
+    with open_study_readonly(path) as store:
+        stored = store.config_hash
+    wanted = config_hash(config)
+    if stored != wanted:
+        raise StudyFileError(
+            f"{path} was written by another config (hash {stored[:12]}… ≠ {wanted[:12]}…); {remedy}", path
+        )
 
 
 def _stored_config(store: StudyStore) -> StudyConfig:
@@ -263,7 +281,8 @@ def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, 
     if config is not None and config_hash(config) != stored_hash:
         raise StudyFileError(
             f"study file {str(path)!r} was created with another config (hash {stored_hash[:12]}, "
-            f"this config {config_hash(config)[:12]}): use the config it was made with or a new --out file",
+            f"this config {config_hash(config)[:12]}): use the config it was made with (or leave out --config: "
+            "the stored one is used) or another --study file",
             path,
         )
     if not writable:
@@ -1666,16 +1685,22 @@ def run_sweep(
 
     Each value gets its config (``<output stem>.yaml``) and its study file in
     ``directory``; a rerun resumes every study. ``tol`` are ``--tol`` strings
-    (:func:`parse_tolerances`, per config).
+    (:func:`parse_tolerances`, per config). If a study file in ``directory``
+    was written by another config, the sweep is refused
+    (:class:`StudyFileError`) before any file is written, so a config file
+    never disagrees with its study.
     """
     directory = Path(directory)
+    remedy = f"use another --dir than {str(directory)!r}, or the config and --set of that sweep"
+    paths = [directory / Path(config.output.path).name for _, config in configs]
+    for study_path, (_, config) in zip(paths, configs):
+        _refuse_other_config(study_path, config, remedy)
     directory.mkdir(parents=True, exist_ok=True)
     rows = []
-    for value, config in configs:
-        study_path = directory / Path(config.output.path).name
+    for study_path, (value, config) in zip(paths, configs):
         config_path = study_path.with_suffix(".yaml")
-        config_path.write_text(resolved_yaml(config))
-        with create_study(config, study_path) as study:
+        with create_study(config, study_path, remedy=remedy) as study:
+            config_path.write_text(resolved_yaml(config))
             record = run_estimation(
                 study,
                 method="mc",

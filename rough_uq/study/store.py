@@ -1129,7 +1129,7 @@ def _check_header(path: Path, header: Mapping[str, Any], *, config_hash: str, qo
         raise StudyFileError(
             f"{path} was written by another config "
             f"(hash {header['config_hash'][:12]}… ≠ {config_hash[:12]}…); "
-            "use a new --out/--study file or the original config",
+            "use another study file or the config it was written with",
             path,
         )
     if tuple(header["qoi_names"]) != tuple(qoi_names):
