@@ -144,6 +144,34 @@ def test_a_rerun_that_computes_nothing_keeps_the_elapsed_time_of_the_run():
         assert again.elapsed == first.elapsed and again.estimate == first.estimate
 
 
+def _raising(failure: BaseException):
+    def driver(*args: object, **kwargs: object) -> None:
+        raise failure
+
+    return driver
+
+
+def test_a_rerun_that_fails_leaves_the_finished_record_as_it_was(monkeypatch):
+    from rough_uq.study import pipeline
+
+    study = _screened()
+    runs = {
+        "_follow": lambda: run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(),
+                                          progress=QUIET),
+        "_follow_target": lambda: run_target(study, target="variance", tol=np.array([4.0]),
+                                             executor=SerialExecutor(), progress=QUIET),
+    }
+    for driver, run in runs.items():
+        finished = run()
+        for failure in (RuntimeError("a crash"), KeyboardInterrupt(), EstimationError("refused")):
+            with monkeypatch.context() as patch:
+                patch.setattr(pipeline, driver, _raising(failure))
+                with pytest.raises(type(failure)):
+                    run()
+            (stored,) = [record for record in read_run_records(study.store) if record.run_id == finished.run_id]
+            assert stored == finished, (driver, failure)
+
+
 def test_pool_and_serial_store_identical_samples():
     serial = _screened()
     pooled = _study()

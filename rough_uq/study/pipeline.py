@@ -1004,6 +1004,11 @@ def _events(
     return events, context
 
 
+def _earlier_run(study: Study, key: str) -> RunRecord | None:
+    """The stored record of run ``key`` (read before this command rewrites it), or None."""
+    return next((run for run in read_run_records(study.store) if run.run_id == key), None)
+
+
 @dataclass(frozen=True)
 class _RunClock:
     """When this command started a run, and the wall seconds of the run's earlier finish, if any."""
@@ -1012,13 +1017,11 @@ class _RunClock:
     earlier_elapsed: float | None
 
     @classmethod
-    def start(cls, study: Study, key: str) -> _RunClock:
-        # Read before the run's record is rewritten as running (which drops its outcome).
-        earlier = None
-        for run in read_run_records(study.store):
-            if run.run_id == key and run.outcome is not None and run.outcome.elapsed is not None:
-                earlier = float(run.outcome.elapsed)
-        return cls(started=time.monotonic(), earlier_elapsed=earlier)
+    def start(cls, earlier: RunRecord | None) -> _RunClock:
+        """Start now; ``earlier`` is the run's stored record (:func:`_earlier_run`), if any."""
+        outcome = None if earlier is None else earlier.outcome
+        elapsed = None if outcome is None or outcome.elapsed is None else float(outcome.elapsed)
+        return cls(started=time.monotonic(), earlier_elapsed=elapsed)
 
     def elapsed(self, sampler: StudySampler) -> float:
         """Wall seconds of the run: this command's, or the earlier finish's when this rerun computed nothing."""
@@ -1085,7 +1088,9 @@ def run_estimation(
     ``"refused"`` with the reason when the estimator raises
     :class:`~rough_uq.errors.EstimationError`, which is raised on); an
     interrupted run keeps its samples and its ``running`` record, and the
-    same command resumes it.
+    same command resumes it. A rerun of a finished run leaves the finished
+    record in place until it finishes itself, so a rerun that is refused,
+    interrupted or fails keeps the earlier result.
 
     Returns
     -------
@@ -1097,14 +1102,14 @@ def run_estimation(
     max_cost = study.config.estimation.max_cost if max_cost is None else max_cost
     estimation = study.config.estimation
     key = run_id(method, study.config.qoi_names, tol, estimation.theta, level, richardson=estimation.richardson)
-    clock = _RunClock.start(study, key)
+    earlier = _earlier_run(study, key)
+    clock = _RunClock.start(earlier)
     sampler = StudySampler(study, stage=run_stage(method, key), executor=executor, progress=progress)
     events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost, level=level)
     record = _started_record(study, key=key, method=method, tol=tol, stage=sampler.stage, max_cost=max_cost,
                              context=context, forecast=forecast)
-    study.store.write_run(key, record.to_json())
     title = f"{method} " + ", ".join(f"{n}={t:g}" for n, t in zip(study.config.qoi_names, tol))
-    with _refusal_recorded(study, record):
+    with _run_recorded(study, record, earlier):
         result, diagnostics = _follow(events, progress, title)
     outcome = _outcome(study, method=method, sampler=sampler, result=result, diagnostics=diagnostics, clock=clock)
     record = replace(record, status="finished", outcome=outcome)
@@ -1113,18 +1118,24 @@ def run_estimation(
 
 
 @contextmanager
-def _refusal_recorded(study: Study, record: RunRecord) -> Iterator[None]:
-    """Store ``record`` as ``refused``, with the message as its reason, if the estimator raises EstimationError.
+def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None) -> Iterator[None]:
+    """Store ``record`` (``running``) for the block; as ``refused``, with the message, if it raises EstimationError.
 
     A refused run is not an interrupted one: rerunning it as it is would be
     refused again, so its record must not stay ``running`` (which the report
     shows as "interrupted; rerun the same command to resume"). The error is
-    raised on.
+    raised on. A rerun of a finished run (``earlier``) leaves its record
+    as it is until the caller stores the new outcome: a rerun that is
+    refused, interrupted or fails never downgrades a finished result.
     """
+    is_kept = earlier is not None and earlier.is_finished
+    if not is_kept:
+        study.store.write_run(record.run_id, record.to_json())
     try:
         yield
     except EstimationError as exc:
-        study.store.write_run(record.run_id, replace(record, status="refused", reason=str(exc)).to_json())
+        if not is_kept:
+            study.store.write_run(record.run_id, replace(record, status="refused", reason=str(exc)).to_json())
         raise
 
 
@@ -1376,7 +1387,8 @@ def run_target(
         probabilities too), method ``target``; stored as ``running`` when it
         starts and ``finished`` when it ends (``refused`` with the reason where the
         driver raises :class:`~rough_uq.errors.EstimationError`, e.g. for a
-        plan of more than ``MAX_PLANNED_SAMPLES`` samples).
+        plan of more than ``MAX_PLANNED_SAMPLES`` samples). A rerun of a
+        finished run keeps the finished record until it finishes itself.
     """
     tol = np.asarray(tol, dtype=float)
     if target == "cdf" and (request is None or tol.shape != (1,)):
@@ -1390,7 +1402,8 @@ def run_target(
         )
     max_cost = estimation.max_cost if max_cost is None else max_cost
     key = target_run_id(study, target=target, tol=tol, request=request)
-    clock = _RunClock.start(study, key)
+    earlier = _earlier_run(study, key)
+    clock = _RunClock.start(earlier)
     stage = _target_stage(study, target=target, tol=tol, request=request)
     sampler = StudySampler(study, stage=stage, executor=executor, progress=progress)
     names = study.config.qoi_names if target == "variance" else (request.column,)
@@ -1399,9 +1412,8 @@ def run_target(
         code_version=__version__, qoi_names=tuple(names), theta=estimation.theta, max_cost=max_cost,
         stage=sampler.stage, initial_samples=estimation.initial_samples,
     )
-    study.store.write_run(key, record.to_json())
     title = f"{target} " + ", ".join(f"{n}={t:g}" for n, t in zip(names, tol))
-    with _refusal_recorded(study, record):
+    with _run_recorded(study, record, earlier):
         result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
     outcome = _target_outcome(study, target=target, sampler=sampler, result=result, request=request,
                               diagnostics=diagnostics, clock=clock)
