@@ -218,9 +218,11 @@ class Study:
         self.close()
 
 
-def create_study(
-    config: StudyConfig, path: str | Path | None = None, *, remedy: str = "use another --out file or the config it was written with"
-) -> Study:
+#: What to do about a study file of another config, in ``roughuq screen``'s terms (:func:`create_study`).
+_SCREEN_REMEDY = "use another --out file or the config it was written with"
+
+
+def create_study(config: StudyConfig, path: str | Path | None = None, *, remedy: str = _SCREEN_REMEDY) -> Study:
     """Open the study file of ``config`` for writing, creating it if missing.
 
     An existing file must have been created with the same config (hash of
@@ -1629,8 +1631,8 @@ def _refuse_the_study_itself(study: Study, path: str | Path) -> None:
         is_same = False
     if is_same:
         raise StudyFileError(
-            f"shard {str(path)!r} is the study file {str(target)!r} itself; a file cannot be merged into "
-            "itself; nothing was merged",
+            f"shard {str(path)!r} is the study file {str(target)!r} itself (a file cannot be merged into "
+            "itself); nothing was merged",
             path,
         )
 
