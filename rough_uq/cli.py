@@ -42,6 +42,8 @@ DEFAULT_STUDY = "results.h5"
 EXIT_TOL_NOT_MET = 3
 #: A kernel warm-up slower than this (seconds) is announced as compilation.
 COMPILE_NOTICE_SECONDS = 2.0
+#: Most thresholds ``--thresholds START:STOP:COUNT`` takes (COUNT); finer grids say nothing more.
+MAX_THRESHOLDS = 10_000
 
 _EXIT_CODES = """\b
 Exit status: 0 done (mlmc/mc: tolerance met); 2 an error in what was typed
@@ -542,8 +544,8 @@ def _mlmc_only_options() -> list[Callable[[Any], Any]]:
         click.option("--qoi", "qoi", default=None, metavar="NAME",
                      help="With --tol-cdf: the QoI column (default: the only one)."),
         click.option("--thresholds", "thresholds", default=None, metavar="START:STOP:COUNT",
-                     help="With --tol-cdf: COUNT equally spaced values s from START to STOP in the QoI's unit "
-                          "(default: the config's estimation.distribution.NAME.thresholds)."),
+                     help=f"With --tol-cdf: COUNT (2 to {MAX_THRESHOLDS}) equally spaced values s from START to "
+                          "STOP in the QoI's unit (default: the config's estimation.distribution.NAME.thresholds)."),
         click.option("--probabilities", "probabilities", default=None, metavar="P,P,...",
                      help="With --tol-cdf: the quantiles reported (default: the config's, else 0.05,0.5,0.95)."),
         click.option(
@@ -623,13 +625,15 @@ def _thresholds(text: str | None) -> Any:
 
     if text is None:
         return None
-    allowed = "START:STOP:COUNT with START < STOP and an integer COUNT >= 2, in the QoI's unit (e.g. 15:25:41)"
+    allowed = (f"START:STOP:COUNT with START < STOP and an integer COUNT in 2..{MAX_THRESHOLDS}, in the QoI's "
+               "unit (e.g. 15:25:41)")
     parts = text.split(":")
     try:
         start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
     except (ValueError, IndexError):
         raise InvalidParameterError("--thresholds", text, allowed) from None
-    if len(parts) != 3 or not (math.isfinite(start) and math.isfinite(stop) and start < stop and count >= 2):
+    is_grid = math.isfinite(start) and math.isfinite(stop) and start < stop and 2 <= count <= MAX_THRESHOLDS
+    if len(parts) != 3 or not is_grid:
         raise InvalidParameterError("--thresholds", text, allowed)
     return np.linspace(start, stop, count)
 

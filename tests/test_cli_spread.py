@@ -290,7 +290,9 @@ BAD_OPTIONS = [
     (("--tol-var", "1", "--tol-cdf", "0.1", "--thresholds", "1:2:3"), "exactly one of --tol"),
     (("--tol-cdf", "0.1"), "--thresholds START:STOP:COUNT"),
     (("--tol-cdf", "0.1", "--thresholds", "60:25:36"), "START < STOP"),
-    (("--tol-cdf", "0.1", "--thresholds", "25:60:1"), "COUNT >= 2"),
+    (("--tol-cdf", "0.1", "--thresholds", "25:60:1"), "COUNT in 2..10000"),
+    (("--tol-cdf", "0.1", "--thresholds", "25:60:10001"), "COUNT in 2..10000"),
+    (("--tol-cdf", "0.1", "--thresholds", "10:30:99999999999"), "COUNT in 2..10000"),  # not a MemoryError
     (("--tol-cdf", "0.1", "--thresholds", "25:60"), "START:STOP:COUNT"),
     (("--tol-cdf", "0.1", "--thresholds", "a:b:c"), "START:STOP:COUNT"),
     (("--tol-cdf", "0.1", "--thresholds", "25:60:2.5"), "START:STOP:COUNT"),
