@@ -44,6 +44,8 @@ EXIT_TOL_NOT_MET = 3
 COMPILE_NOTICE_SECONDS = 2.0
 #: Most thresholds ``--thresholds START:STOP:COUNT`` takes (COUNT); finer grids say nothing more.
 MAX_THRESHOLDS = 10_000
+#: Largest stage number and sample index: the study file stores both as int64.
+MAX_INT64 = 2**63 - 1
 
 _EXIT_CODES = """\b
 Exit status: 0 done (mlmc/mc: tolerance met); 2 an error in what was typed
@@ -337,7 +339,8 @@ def _warm_kernels(model: Any, *, quiet: bool = False) -> None:
 @main.command()
 @click.argument("config_path", metavar="[CONFIG]", type=click.Path(dir_okay=False), required=False)
 @click.option("--level", type=click.IntRange(min=0), default=0, show_default=True, help="Grid level.")
-@click.option("--index", type=click.IntRange(min=0), default=0, show_default=True, help="Sample index.")
+@click.option("--index", type=click.IntRange(min=0, max=MAX_INT64), default=0, show_default=True,
+              help="Sample index.")
 @_user_errors
 def solve(config_path: str | None, level: int, index: int) -> None:
     """Solve one sample and print its QoIs, iterations and time (a demo).
@@ -884,35 +887,50 @@ main.command(name="mc", help="Plain Monte Carlo on the finest level the toleranc
 
 
 def _stage_number(text: str) -> int:
-    """``--stage``: 'screening' (0) or a non-negative integer."""
+    """``--stage``: 'screening' (0) or an integer in 0..MAX_INT64."""
     if text == "screening":
         return 0
+    allowed = f"'screening' or an integer in 0..{MAX_INT64} (the stage `--plan` prints)"
     try:
         stage = int(text)
     except ValueError:
-        raise InvalidParameterError("--stage", text, "'screening' or a non-negative integer") from None
-    if stage < 0:
-        raise InvalidParameterError("--stage", text, "'screening' or a non-negative integer")
+        raise InvalidParameterError("--stage", text, allowed) from None
+    if not 0 <= stage <= MAX_INT64:
+        raise InvalidParameterError("--stage", text, allowed)
     return stage
 
 
 def _parse_indices(text: str) -> Any:
-    """``A:B`` (half-open), ``I``, or a comma-separated list of those, as a sorted index array."""
+    """``A:B`` (half-open), ``I``, or a comma-separated list of those, as a sorted index array.
+
+    At most :data:`~rough_uq.multilevel.drivers.MAX_PLANNED_SAMPLES` samples (counted
+    before overlaps are merged), each index at most :data:`MAX_INT64`.
+    """
     import numpy as np
 
-    parts = []
-    for part in text.split(","):
-        start, sep, stop = part.strip().partition(":")
-        try:
-            first = int(start)
-            last = int(stop) if sep else first + 1
-        except ValueError:
-            allowed = "ranges A:B (half-open) or indices, comma-separated"
-            raise InvalidParameterError("--indices", text, allowed) from None
-        if first < 0 or last <= first:
-            raise InvalidParameterError("--indices", text, "ranges A:B with 0 <= A < B")
-        parts.append(np.arange(first, last))
-    return np.unique(np.concatenate(parts))
+    from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES
+
+    ranges = [_index_range(text, part) for part in text.split(",")]
+    if sum(last - first for first, last in ranges) > MAX_PLANNED_SAMPLES:
+        raise InvalidParameterError("--indices", text, f"at most {MAX_PLANNED_SAMPLES} samples in one shard "
+                                    "(split them over several shards)")
+    # first + arange(n), not arange(first, last): a stop of 2^63 is beyond int64 and would make floats.
+    return np.unique(np.concatenate([first + np.arange(last - first, dtype=np.int64) for first, last in ranges]))
+
+
+def _index_range(text: str, part: str) -> tuple[int, int]:
+    """One part ``A:B`` or ``I`` of ``--indices`` ``text`` as the half-open range ``(first, last)``."""
+    start, sep, stop = part.strip().partition(":")
+    try:
+        first = int(start)
+        last = int(stop) if sep else first + 1
+    except ValueError:
+        raise InvalidParameterError("--indices", text, "ranges A:B (half-open) or indices, comma-separated") from None
+    if first < 0 or last <= first:
+        raise InvalidParameterError("--indices", text, "ranges A:B with 0 <= A < B")
+    if last > MAX_INT64 + 1:
+        raise InvalidParameterError("--indices", text, f"indices in 0..{MAX_INT64} (stored as int64)")
+    return first, last
 
 
 @main.command()
@@ -920,7 +938,8 @@ def _parse_indices(text: str) -> Any:
               help="Study file (only read).")
 @click.option("--stage", required=True, help="Stage of the samples: 'screening' or the number `--plan` prints.")
 @click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the samples.")
-@click.option("--indices", required=True, metavar="A:B[,C:D]", help="Sample indices, half-open ranges.")
+@click.option("--indices", required=True, metavar="A:B[,C:D]",
+              help="Sample indices, half-open ranges (at most 10^7 samples per shard).")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="Shard file to write.")
 @_workers_option
 @_quiet_option
@@ -1066,8 +1085,8 @@ def _stage_of(study: Any, text: str) -> int:
         known = ", ".join(run.run_id for run in runs) or "none"
         raise InvalidParameterError("--stage", text, f"'screening', a run id of this study ({known}) "
                                     "or a stage number") from None
-    if stage < 0:
-        raise InvalidParameterError("--stage", text, "'screening', a run id or a non-negative stage number")
+    if not 0 <= stage <= MAX_INT64:
+        raise InvalidParameterError("--stage", text, f"'screening', a run id or a stage number in 0..{MAX_INT64}")
     return stage
 
 
@@ -1077,7 +1096,8 @@ def _stage_of(study: Any, text: str) -> int:
 @click.option("--stage", default="screening", show_default=True,
               help="'screening' or a run id as `roughuq report` prints it (e.g. mlmc_contact_area-0.5_theta-0.5).")
 @click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the sample.")
-@click.option("--index", type=click.IntRange(min=0), required=True, help="Index of a stored sample.")
+@click.option("--index", type=click.IntRange(min=0, max=MAX_INT64), required=True,
+              help="Index of a stored sample.")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="PNG file to write.")
 @_user_errors
 def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:

@@ -356,6 +356,51 @@ def test_show_takes_a_run_id_and_refuses_samples_not_stored(screened):
     assert not (screened / "x.png").exists()
 
 
+INT64_MAX = 2**63 - 1
+
+
+@pytest.mark.parametrize("options, text", [
+    (("--indices", "0:100000000000"), "at most 10000000 samples in one shard"),  # was a MemoryError
+    (("--indices", "0:5000000,5000000:10000001"), "at most 10000000 samples in one shard"),
+    (("--indices", "0:99999999999999999999"), f"indices in 0..{INT64_MAX}"),  # was 'Maximum allowed size exceeded'
+    (("--indices", str(INT64_MAX + 1)), f"indices in 0..{INT64_MAX}"),
+    (("--stage", "99999999999999999999999"), f"an integer in 0..{INT64_MAX}"),  # was an OverflowError after the work
+    (("--stage", str(INT64_MAX + 1)), f"an integer in 0..{INT64_MAX}"),
+    (("--stage", "-1"), f"an integer in 0..{INT64_MAX}"),
+], ids=["1e11 samples", "1e7 + 1 samples", "stop 1e20", "index 2^63", "stage 1e23", "stage 2^63", "stage -1"])
+def test_sample_refuses_stages_and_indices_int64_cannot_hold_before_any_work(screened, options, text):
+    given = {"--stage": "screening", "--indices": "0:2", **dict(zip(options[::2], options[1::2]))}
+    args = [arg for pair in given.items() for arg in pair]
+    line = one_error_line(run("sample", "--level", "0", *args, "--out", "x.h5", "--workers", "1", expect=2))
+    assert line.startswith(f"error: {options[0]}: got") and text in line
+    assert not list(screened.glob("x.h5*"))
+
+
+def test_sample_takes_the_largest_stage_and_index(screened):
+    indices = f"{INT64_MAX - 1}:{INT64_MAX + 1}"
+    result = run("sample", "--stage", str(INT64_MAX), "--level", "0", "--indices", indices, "--out", "x.h5",
+                 "--workers", "1", "--quiet")
+    assert f"2 samples of stage {INT64_MAX}, level 0" in result.stdout
+    with open_study_readonly(screened / "x.h5") as store:
+        assert store.sample_indices(level=0, stage=INT64_MAX).tolist() == [INT64_MAX - 1, INT64_MAX]
+
+
+@pytest.mark.parametrize("args", [
+    ("solve", "tiny.yaml", "--index", str(INT64_MAX + 1)),  # was an OverflowError after the kernels' warm-up
+    ("show", "--level", "0", "--index", "99999999999999999999", "--out", "x.png"),
+], ids=["solve", "show"])
+def test_an_index_beyond_int64_is_refused_by_the_option(screened, args):
+    result = run(*args, expect=2)
+    assert "Invalid value for '--index'" in result.stderr and f"0<=x<={INT64_MAX}" in result.stderr
+    assert "Traceback" not in result.output
+
+
+def test_show_refuses_a_stage_beyond_int64(screened):
+    line = one_error_line(run("show", "--stage", str(INT64_MAX + 1), "--level", "0", "--index", "0", "--out",
+                              "x.png", expect=2))
+    assert line.startswith("error: --stage: got") and f"a stage number in 0..{INT64_MAX}" in line
+
+
 def test_report_says_running_while_another_process_holds_the_study(screened):
     from rough_uq.study.config import config_hash, load_config, resolved_yaml
 
