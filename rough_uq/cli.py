@@ -517,7 +517,8 @@ def _estimation_options(method: str) -> list[Callable[[Any], Any]]:
                           "CPU time are refused)."),
         click.option("--plan", "show_plan", is_flag=True, help="Print the samples still missing; compute nothing."),
         click.option("--shards", "shard_size", type=click.IntRange(min=1), default=None, metavar="SIZE",
-                     help="With --plan: print one line 'STAGE LEVEL A:B' per shard of at most SIZE samples."),
+                     help="With --plan: print one line 'STAGE LEVEL A:B' per shard of at most SIZE samples "
+                          "(with --json: a list 'shards' of {stage, level, indices, n_samples})."),
         click.option("--resources", "with_resources", is_flag=True,
                      help="With --shards: add each shard's estimated wall seconds and peak MiB for one process."),
         click.option("--json", "as_json", is_flag=True, help="Print the result (or the plan) as JSON."),
@@ -826,17 +827,15 @@ def _mib(n_bytes: float) -> str:
 
 def _print_plan(work: Any, as_json: bool, shard_size: int | None = None, resources: Any = None) -> None:
     if shard_size is not None:
+        shards = _shards(work, shard_size, resources)
+        if as_json:
+            _dump({"run_id": work.run_id, "stage": work.stage, "n_missing": work.n_missing, "shard_size": shard_size,
+                   "shards": shards})
+            return
         # For shell loops: `while read stage level indices; do roughuq sample ...; done`.
-        for level, indices in work.missing.items():
-            for part in _ranges(indices):
-                start, stop = (int(x) for x in part.split(":"))
-                for first in range(start, stop, shard_size):
-                    last = min(first + shard_size, stop)
-                    extra = ""
-                    if resources is not None:  # for batch systems' --time and --mem
-                        seconds = resources.seconds(level, last - first)
-                        extra = f" {math.ceil(seconds)} {math.ceil(resources.memory_bytes[level] / 2**20)}"
-                    click.echo(f"{work.stage} {level} {first}:{last}{extra}")
+        for shard in shards:
+            extra = "" if resources is None else f" {shard['seconds']} {shard['memory_mib']}"
+            click.echo(f"{shard['stage']} {shard['level']} {shard['indices']}{extra}")
         return
     rows = [{"level": level, "n_missing": int(indices.size), "indices": _ranges(indices)}
             for level, indices in work.missing.items()]
@@ -846,6 +845,27 @@ def _print_plan(work: Any, as_json: bool, shard_size: int | None = None, resourc
     click.echo(f"run {work.run_id} (stage {work.stage}): {work.n_missing} samples missing")
     for row in rows:
         click.echo(f"  level {row['level']}: {row['n_missing']} missing, indices {' '.join(row['indices'])}")
+
+
+def _shards(work: Any, shard_size: int, resources: Any) -> list[dict[str, Any]]:
+    """The missing samples of ``work`` in shards of at most ``shard_size``: stage, level, indices ``A:B``, count.
+
+    With ``resources``, also each shard's estimated wall seconds and peak MiB (rounded up), for batch
+    systems' --time and --mem.
+    """
+    shards = []
+    for level, indices in work.missing.items():
+        for part in _ranges(indices):
+            start, stop = (int(x) for x in part.split(":"))
+            for first in range(start, stop, shard_size):
+                last = min(first + shard_size, stop)
+                shard = {"stage": int(work.stage), "level": int(level), "indices": f"{first}:{last}",
+                         "n_samples": last - first}
+                if resources is not None:
+                    shard["seconds"] = math.ceil(resources.seconds(level, last - first))
+                    shard["memory_mib"] = math.ceil(resources.memory_bytes[level] / 2**20)
+                shards.append(shard)
+    return shards
 
 
 def _ranges(indices: Any) -> list[str]:

@@ -183,6 +183,22 @@ def test_a_misplaced_option_says_what_was_given_and_where_it_applies(screened, o
     assert line.startswith(text) and "True" not in line and "got" not in line
 
 
+@pytest.mark.parametrize("command", ["mlmc", "mc"])
+def test_plan_in_shards_as_json_lists_the_shards_the_text_prints(screened, command):
+    plan = json.loads(run(command, "--tol", "5", "--plan", "--json").stdout)
+    result = run(command, "--tol", "5", "--plan", "--shards", "3", "--resources", "--json")
+    data = json.loads(result.stdout)  # was the text lines, --json ignored
+    assert {key: data[key] for key in ("run_id", "stage", "n_missing")} == \
+        {key: plan[key] for key in ("run_id", "stage", "n_missing")}
+    assert data["shard_size"] == 3 and sum(shard["n_samples"] for shard in data["shards"]) == plan["n_missing"]
+    lines = run(command, "--tol", "5", "--plan", "--shards", "3", "--resources").stdout.splitlines()
+    assert lines == [f"{s['stage']} {s['level']} {s['indices']} {s['seconds']} {s['memory_mib']}"
+                     for s in data["shards"]]
+    for shard in data["shards"]:
+        first, last = map(int, shard["indices"].split(":"))
+        assert 0 < last - first == shard["n_samples"] <= 3
+
+
 def test_interrupted_run_does_not_say_done(screened, monkeypatch):
     """Ctrl-C during a run: status 130, 'stopped after', never 'done' just before 'interrupted'."""
     import rough_uq.cli as cli
