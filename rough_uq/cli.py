@@ -1001,19 +1001,20 @@ def merge(shards: Sequence[str], study_path: str) -> None:
 
 @main.command()
 @click.argument("config_path", metavar="CONFIG", type=click.Path(dir_okay=False))
-@click.option("--set", "assignment", required=True, metavar="KEY=V1,V2,...",
-              help="Dotted config field and its values, e.g. surface.system_size=1,2,3,4.")
+@click.option("--set", "assignments", required=True, multiple=True, metavar="KEY=V1,V2,...",
+              help="Dotted config field and its distinct values, e.g. surface.system_size=1,2,3,4 (once; not "
+                   "output.* or screening.*, which a sweep does not use).")
 @click.option("--fixed-spacing", is_flag=True,
               help="With surface.system_size: scale grid.coarsest with the box (same grid spacing).")
 @click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS", help="MC tolerance (as for `roughuq mc`).")
 @click.option("--level", type=click.IntRange(min=0), default=0, show_default=True, help="Level sampled by MC.")
 @click.option("--dir", "directory", type=click.Path(file_okay=False), default=None,
-              help="Where the configs and study files go (default: sweep-<field>).")
+              help="Where the configs and study files go (default: sweep-KEY, e.g. sweep-surface.system_size).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 @_workers_option
 @_quiet_option
 @_user_errors
-def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[str], level: int,
+def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol: Sequence[str], level: int,
           directory: str | None, as_json: bool, workers: int | None, quiet: bool) -> None:
     """Plain MC estimates for several values of one config field, one study per value.
 
@@ -1023,17 +1024,16 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
     from rough_uq.study.config import load_config, sweep_configs
     from rough_uq.study.pipeline import run_sweep
 
-    key, sep, values = assignment.partition("=")
-    if not sep or not key or not values:
-        raise InvalidParameterError("--set", assignment, "KEY=V1,V2,... e.g. surface.system_size=1,2,3,4")
+    key, values = _sweep_assignment(assignments)
     config = load_config(config_path)
-    configs = sweep_configs(config, key=key, values=values.split(","), fixed_spacing=fixed_spacing)
+    configs = sweep_configs(config, key=key, values=values, fixed_spacing=fixed_spacing)
+    _refuse_repeated_studies(assignments[0], configs)
     with _executor(config, workers, "local", None) as pool:
         largest = max(configs, key=lambda c: c[1].grid.n_at(level) if level <= c[1].grid.max_level else 0)
         if level <= largest[1].grid.max_level:
             _warn_memory(largest[1], level, pool, lower_with="a smaller --level")
-        rows = run_sweep(configs, directory=directory or f"sweep-{key.rsplit('.', 1)[-1]}", tol=tol, level=level,
-                         executor=pool, progress=_progress(quiet or as_json))
+        rows = run_sweep(configs, directory=directory or f"sweep-{key}", tol=tol, level=level, executor=pool,
+                         progress=_progress(quiet or as_json))
     if as_json:
         _dump([row.to_json() for row in rows])
         return
@@ -1051,6 +1051,39 @@ def sweep(config_path: str, assignment: str, fixed_spacing: bool, tol: Sequence[
                           f"{outcome.estimate[q]:.5g} ± {outcome.stat_error[q]:.2g}", str(outcome.n_samples[0]),
                           f"{format_duration(outcome.seconds)} CPU")
     _console().print(table)
+
+
+#: Config sections a sweep does not use, and why sweeping them means nothing.
+UNSWEPT_SECTIONS = {
+    "output": "the sweep names each value's study file itself",
+    "screening": "a sweep runs plain MC on --level, without a screening",
+}
+
+
+def _sweep_assignment(assignments: Sequence[str]) -> tuple[str, list[str]]:
+    """``--set KEY=V1,V2,...`` (given once) as the dotted key and its values as written."""
+    if len(assignments) > 1:
+        raise InvalidParameterError("--set", " ".join(assignments), "one --set KEY=V1,V2,... (a sweep varies one "
+                                    "field; sweep the others in a second sweep)")
+    key, sep, values = assignments[0].partition("=")
+    if not sep or not key or not values:
+        raise InvalidParameterError("--set", assignments[0], "KEY=V1,V2,... e.g. surface.system_size=1,2,3,4")
+    section = key.split(".")[0]
+    if section in UNSWEPT_SECTIONS:
+        raise InvalidParameterError("--set", assignments[0], f"a field outside {section}.*: "
+                                    f"{UNSWEPT_SECTIONS[section]}")
+    return key, values.split(",")
+
+
+def _refuse_repeated_studies(assignment: str, configs: Sequence[tuple[str, Any]]) -> None:
+    """Refuse two values of a sweep that make the same study (e.g. 0.1,0.1 or 0.1,1e-1): it would run twice."""
+    seen: list[tuple[str, Any]] = []
+    for value, config in configs:
+        study = config.model_copy(update={"output": configs[0][1].output})  # the file name is the value's
+        twin = next((earlier for earlier, other in seen if other == study), None)
+        if twin is not None:
+            raise InvalidParameterError("--set", assignment, f"distinct values: {value} is the same as {twin}")
+        seen.append((value, study))
 
 
 @main.command()

@@ -226,6 +226,34 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
     assert "not a field" in result.stderr
 
 
+def test_sweeps_of_two_fields_with_the_same_last_name_go_to_two_folders(tmp_path, monkeypatch):
+    """solver.tol and qoi.contact_area.tol both went to sweep-tol/, the second refused as another study's file."""
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    folders = []
+    for key in ("solver.tol", "qoi.contact_area.tol"):
+        rows = json.loads(run("sweep", str(config), "--set", f"{key}=0.001", "--tol", "5", "--workers", "1",
+                              "--json").output)
+        folders.append(Path(rows[0]["study"]).parent)
+    assert folders == [Path("sweep-solver.tol"), Path("sweep-qoi.contact_area.tol")]
+
+
+@pytest.mark.parametrize("options, text", [
+    (("--set", "load.relative=0.1", "--set", "surface.hurst=0.7"), "one --set KEY=V1,V2,..."),
+    (("--set", "load.relative=0.1,0.2,0.1"), "distinct values: 0.1 is the same as 0.1"),
+    (("--set", "load.relative=0.1,1e-1"), "distinct values: 1e-1 is the same as 0.1"),
+    (("--set", "output.path=a.h5,b.h5"), "a field outside output.*: the sweep names"),
+    (("--set", "screening.samples=4,5"), "a field outside screening.*: a sweep runs plain MC"),
+], ids=["two --set", "a value twice", "one value written twice", "output", "screening"])
+def test_sweep_refuses_what_would_run_a_study_twice_or_sweep_nothing(tmp_path, monkeypatch, options, text):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    result = run("sweep", str(config), *options, "--tol", "5", "--workers", "1", expect=2)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: --set: got") and text in lines[0], result.stderr
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]  # nothing computed, no folder
+
+
 def test_mc_on_a_given_level_needs_no_screening(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config())
