@@ -243,6 +243,21 @@ def _dump(data: Any) -> None:
     click.echo(json.dumps(data, indent=2, default=str))
 
 
+class _PositiveFinite(click.ParamType):
+    """A finite number > 0 (click's FloatRange lets nan and inf through)."""
+
+    name = "float"
+
+    def convert(self, value: Any, param: Any, ctx: Any) -> float:
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number.", param, ctx)
+        if not (math.isfinite(number) and number > 0):
+            self.fail(f"{value!r} is not a finite number > 0.", param, ctx)
+        return number
+
+
 _workers_option = click.option(
     "--workers", type=click.IntRange(min=1), default=None,
     help="Worker processes (default: cores // solver.threads; 1 = in this process).",
@@ -510,9 +525,9 @@ def _estimation_options(method: str) -> list[Callable[[Any], Any]]:
                      show_default=True, help="Study file."),
         click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
                      help="Config to take estimation settings and tolerances from (must match the study's)."),
-        click.option("--max-cost", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
-                     help="Budget in modelled cost (reference seconds, about CPU-seconds on the calibration "
-                          "machine): a plan predicted above it is refused, a run reaching it stops "
+        click.option("--max-cost", type=_PositiveFinite(), default=None, metavar="SECONDS",
+                     help="Budget in modelled cost, a finite number > 0 (reference seconds, about CPU-seconds on the "
+                          "calibration machine): a plan predicted above it is refused, a run reaching it stops "
                           "(default: the config's estimation.max_cost; without any, plans over a week of "
                           "CPU time are refused)."),
         click.option("--plan", "show_plan", is_flag=True, help="Print the samples still missing; compute nothing."),

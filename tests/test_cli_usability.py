@@ -103,6 +103,16 @@ def test_max_cost_refuses_a_plan_beyond_it_and_stops_a_run_at_it(screened):
     assert forecast and float(forecast.group(1)) > 0
 
 
+@pytest.mark.parametrize("max_cost", ["nan", "inf", "0", "-1", "1e400"])
+@pytest.mark.parametrize("command", ["mlmc", "mc"])
+def test_a_max_cost_that_is_no_budget_is_refused_before_anything_is_printed(screened, command, max_cost):
+    before = (screened / "results.h5").read_bytes()
+    result = run(command, "--tol", "5", "--workers", "1", "--max-cost", max_cost, expect=2)
+    assert "Invalid value for '--max-cost'" in result.stderr and "is not a finite number > 0" in result.stderr
+    assert "forecast" not in result.stderr and result.stdout == ""  # nan printed the forecast, then refused
+    assert (screened / "results.h5").read_bytes() == before
+
+
 def test_a_plan_beyond_any_budget_is_refused(screened, monkeypatch):
     import rough_uq.study.pipeline as pipeline
 
