@@ -224,6 +224,19 @@ def _executor(config: Any, workers: int | None, executor: str, scheduler: str | 
     return make_executor(executor, workers=workers, threads=config.solver.threads, scheduler=scheduler)
 
 
+def _check_executor_options(executor: str, scheduler: str | None, workers: int | None) -> None:
+    """Refuse ``--scheduler`` without ``--executor dask``, ``--workers`` with it, and dask without a scheduler."""
+    if executor != "dask" and scheduler is not None:
+        raise MisplacedOptionError("--scheduler", scheduler, context="without --executor dask",
+                                   allowed="it applies only with --executor dask (the dask scheduler's address)")
+    if executor == "dask" and workers is not None:
+        raise MisplacedOptionError("--workers", workers, context="with --executor dask", allowed="it applies only "
+                                   "to local processes; a dask cluster has the workers started for it")
+    if executor == "dask" and not scheduler:
+        raise MisplacedOptionError("--executor", executor, context="without --scheduler ADDRESS", allowed="it "
+                                   "needs the address of a running dask scheduler, e.g. --scheduler tcp://host:8786")
+
+
 def _warn_memory(config: Any, level: int, pool: Any, executor: str = "local", *,
                  lower_with: str = "a smaller grid.max_level") -> None:
     """Warn (one line on stderr) if ``level``'s solves, one per local worker, exceed this machine's memory.
@@ -260,14 +273,15 @@ class _PositiveFinite(click.ParamType):
 
 _workers_option = click.option(
     "--workers", type=click.IntRange(min=1), default=None,
-    help="Worker processes (default: cores // solver.threads; 1 = in this process).",
+    help="Local worker processes (default: cores // solver.threads; 1 = in this process; not with --executor dask).",
 )
 _executor_option = click.option(
     "--executor", type=click.Choice(["local", "dask"]), default="local", show_default=True,
     help="Where samples are computed: local processes or a dask.distributed cluster.",
 )
 _scheduler_option = click.option(
-    "--scheduler", default=None, metavar="ADDRESS", help="dask scheduler address (with --executor dask)."
+    "--scheduler", default=None, metavar="ADDRESS",
+    help="dask scheduler address (needed by --executor dask, refused without it)."
 )
 _quiet_option = click.option(
     "--quiet", "-q", is_flag=True,
@@ -453,6 +467,7 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     from rough_uq.study.pipeline import create_study, run_screening
     from rough_uq.report.summary import render_screening, screening_json
 
+    _check_executor_options(executor, scheduler, workers)
     config = load_config(config_path)
     with create_study(config, out) as study:
         _warm_kernels(study.model, quiet=quiet or as_json)
@@ -501,6 +516,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                 qoi: str | None = None, thresholds: str | None = None, probabilities: str | None = None) -> None:
         target = _target_of(tol, tol_var, tol_cdf, qoi=qoi, thresholds=thresholds, probabilities=probabilities)
         _refuse_misplaced_options(target, choice, show_plan, shard_size, with_resources)
+        _check_executor_options(executor, scheduler, workers)
         opts = _RunOptions(study_path, config_path, max_cost, as_json, workers, executor, scheduler, quiet)
         if target is not None:
             _run_target(target, tol_var=tol_var, tol_cdf=tol_cdf, qoi=qoi, thresholds=thresholds,

@@ -180,6 +180,17 @@ def test_repeated_tolerance_and_shards_without_plan_are_refused(screened):
     assert "--shards" in line and "--plan" in line
 
 
+#: --scheduler without dask was ignored, --workers with dask too; dask without --scheduler was 'scheduler: got None'.
+EXECUTOR_MISMATCHES = [
+    (("--tol", "5", "--scheduler", "tcp://host:8786"),
+     "error: --scheduler tcp://host:8786 was given without --executor dask; it applies only with --executor dask"),
+    (("--tol", "5", "--executor", "dask", "--scheduler", "tcp://host:8786", "--workers", "2"),
+     "error: --workers 2 was given with --executor dask; it applies only to local processes"),
+    (("--tol", "5", "--executor", "dask"),
+     "error: --executor dask was given without --scheduler ADDRESS; it needs the address of a running dask scheduler"),
+]
+
+
 @pytest.mark.parametrize("options, text", [
     (("--tol", "5", "--resources"), "error: --resources was given without --plan --shards SIZE; it applies only"),
     (("--tol", "5", "--plan", "--resources"), "error: --resources was given without --shards SIZE; it applies only"),
@@ -187,10 +198,20 @@ def test_repeated_tolerance_and_shards_without_plan_are_refused(screened):
     (("--tol-var", "5", "--plan"), "error: --plan was given with --tol-var; --method, --plan, --shards and"),
     (("--tol-var", "5", "--method", "auto"), "error: --method auto was given with --tol-var;"),
     (("--tol", "5", "--qoi", "contact_area"), "error: --qoi contact_area was given without --tol-cdf; it applies"),
-])
+] + EXECUTOR_MISMATCHES)
 def test_a_misplaced_option_says_what_was_given_and_where_it_applies(screened, options, text):
     line = one_error_line(run("mlmc", *options, expect=2))
     assert line.startswith(text) and "True" not in line and "got" not in line
+
+
+@pytest.mark.parametrize("options, text", EXECUTOR_MISMATCHES)
+def test_screen_refuses_executor_options_that_do_not_go_together_before_creating_the_study(
+        tmp_path, monkeypatch, options, text):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    line = one_error_line(run("screen", str(config), *options[2:], expect=2))
+    assert line.startswith(text)
+    assert not (tmp_path / "results.h5").exists()  # dask without a scheduler created it, then refused
 
 
 @pytest.mark.parametrize("command", ["mlmc", "mc"])
