@@ -514,6 +514,8 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                 executor: str, scheduler: str | None, quiet: bool, level: int | None = None,
                 choice: str = "mlmc", tol_var: Sequence[str] = (), tol_cdf: str | None = None,
                 qoi: str | None = None, thresholds: str | None = None, probabilities: str | None = None) -> None:
+        _check_tolerance_texts("--tol", tol)
+        _check_tolerance_texts("--tol-var", tol_var)
         target = _target_of(tol, tol_var, tol_cdf, qoi=qoi, thresholds=thresholds, probabilities=probabilities)
         _refuse_misplaced_options(target, choice, show_plan, shard_size, with_resources)
         _check_executor_options(executor, scheduler, workers)
@@ -590,6 +592,20 @@ def _mlmc_only_options() -> list[Callable[[Any], Any]]:
                  "bias needs; auto: the cheapest of the three as predicted by the screening (says why).",
         ),
     ]
+
+
+def _check_tolerance_texts(option: str, values: Sequence[str]) -> None:
+    """Refuse an empty ``--tol`` / ``--tol-var`` value or list item, and ``=EPS`` without a name.
+
+    :func:`~rough_uq.study.pipeline.parse_tolerances` skips empty items (so ``--tol ""`` fell back to the
+    config's tolerance) and reads ``=2`` as a bare 2.
+    """
+    for text in values:
+        for part in text.split(","):
+            name, sep, _ = part.strip().rpartition("=")
+            if not part.strip() or (sep and not name):
+                raise InvalidParameterError(option, text, "EPS or NAME=EPS, comma-separated, e.g. 0.2 or "
+                                            "contact_area=0.2 (no empty item, no '=' without a name)")
 
 
 def _target_of(
@@ -1055,6 +1071,7 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     from rough_uq.study.config import load_config, sweep_configs
     from rough_uq.study.pipeline import run_sweep
 
+    _check_tolerance_texts("--tol", tol)
     key, values = _sweep_assignment(assignments)
     config = load_config(config_path)
     configs = sweep_configs(config, key=key, values=values, fixed_spacing=fixed_spacing)

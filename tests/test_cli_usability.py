@@ -173,6 +173,23 @@ def test_unwritable_outputs_are_one_error_line(screened, command):
         assert "cannot write" in one_error_line(run(*args, expect=2))
 
 
+@pytest.mark.parametrize("args", [
+    ("mlmc", "--tol", ""),  # was the config's tolerance
+    ("mlmc", "--tol", "=2"),  # was contact_area=2
+    ("mlmc", "--tol", " =2"),
+    ("mc", "--tol", "5,"),
+    ("mlmc", "--tol", "contact_area=5,,"),
+    ("mlmc", "--tol-var", ""),
+    ("mlmc", "--tol-var", "=60"),
+    ("sweep", "tiny.yaml", "--set", "load.relative=0.1", "--tol", "=5"),
+])
+def test_an_empty_tolerance_or_one_without_a_name_is_refused(screened, args):
+    option = args[-2]
+    line = one_error_line(run(*args, "--workers", "1", expect=2))
+    assert line.startswith(f"error: {option}: got {args[-1]!r}; allowed: EPS or NAME=EPS") and "no empty item" in line
+    assert not (screened / "sweep-load.relative").exists()
+
+
 def test_repeated_tolerance_and_shards_without_plan_are_refused(screened):
     line = one_error_line(run("mlmc", "--tol", "contact_area=5", "--tol", "contact_area=4", expect=2))
     assert "already given" in line
