@@ -252,6 +252,21 @@ def _warn_memory(config: Any, level: int, pool: Any, executor: str = "local", *,
         click.echo(f"warning: {text}", err=True)
 
 
+def _check_not_empty(option: str, text: str | None) -> None:
+    """Refuse an empty path (it would silently mean the working directory or the default)."""
+    if text is not None and not text.strip():
+        raise InvalidParameterError(option, text, "a non-empty path")
+
+
+def _check_output_file(option: str, text: str) -> None:
+    """Refuse an empty output file path, or one in a directory that does not exist (none is created)."""
+    _check_not_empty(option, text)
+    parent = Path(text).parent
+    if not parent.exists():
+        raise InvalidParameterError(option, text, f"a file in an existing directory ({parent} does not exist; "
+                                    "create it first)")
+
+
 def _dump(data: Any) -> None:
     click.echo(json.dumps(data, indent=2, default=str))
 
@@ -436,6 +451,8 @@ def init(name: str | None, out: str | None, force: bool, show_list: bool) -> Non
         return
     if name is None:
         raise InvalidParameterError("NAME", "(none)", "one of " + ", ".join(SHIPPED_CONFIGS) + " (or --list)")
+    if out is not None:
+        _check_output_file("--out", out)
     text = _shipped_config_text(name)
     target = Path(out or f"{name}.yaml")
     if target.exists() and not force:
@@ -516,6 +533,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
                 qoi: str | None = None, thresholds: str | None = None, probabilities: str | None = None) -> None:
         _check_tolerance_texts("--tol", tol)
         _check_tolerance_texts("--tol-var", tol_var)
+        _check_not_empty("--config", config_path)
         target = _target_of(tol, tol_var, tol_cdf, qoi=qoi, thresholds=thresholds, probabilities=probabilities)
         _refuse_misplaced_options(target, choice, show_plan, shard_size, with_resources)
         _check_executor_options(executor, scheduler, workers)
@@ -1019,6 +1037,7 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
     """
     from rough_uq.study.pipeline import compute_shard, open_existing_study
 
+    _check_output_file("--out", out)
     stage_id = _stage_number(stage)
     wanted = _parse_indices(indices)
     with open_existing_study(study_path, writable=False) as study:
@@ -1072,6 +1091,7 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     from rough_uq.study.pipeline import run_sweep
 
     _check_tolerance_texts("--tol", tol)
+    _check_not_empty("--dir", directory)
     key, values = _sweep_assignment(assignments)
     config = load_config(config_path)
     configs = sweep_configs(config, key=key, values=values, fixed_spacing=fixed_spacing)
@@ -1145,6 +1165,7 @@ def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     from rough_uq.study.pipeline import open_existing_study
     from rough_uq.report.summary import render_report, study_report
 
+    _check_not_empty("--plots", plots_dir)
     with open_existing_study(study_path, writable=False) as study:
         data = study_report(study.store, study.config)
     written = []
@@ -1206,6 +1227,7 @@ def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
     from rough_uq.study.pipeline import open_existing_study
     from rough_uq.report.figures import write_sample_figure
 
+    _check_output_file("--out", out)
     with open_existing_study(study_path, writable=False) as study:
         if level > study.config.grid.max_level:
             raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")
@@ -1217,7 +1239,6 @@ def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
         raise InvalidParameterError("--index", index, f"a sample of stage {stage} on level {level} ({have})")
 
     def write() -> Any:
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
         return write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out)
 
     click.echo(f"wrote {_writing(out, write)}")

@@ -281,6 +281,7 @@ def test_report_plots_and_show_write_figures(screened):
         path = screened / "figures" / name
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 1000
         assert name in result.output
+    (screened / "sample").mkdir()  # show does not create missing directories (as init and sample)
     result = run("show", "--level", "2", "--index", "3", "--out", "sample/fig.png")
     assert (screened / "sample" / "fig.png").stat().st_size > 1000
     result = run("show", "--level", "9", "--index", "0", "--out", "x.png", expect=2)

@@ -168,7 +168,7 @@ def test_unwritable_outputs_are_one_error_line(screened, command):
     if os.geteuid() != 0:  # root ignores permissions
         locked = screened / "locked"
         locked.mkdir(mode=0o500)
-        args = (args[:-1] + (str(locked / "sub" / "fig.png"),)) if command == "show" else \
+        args = (args[:-1] + (str(locked / "fig.png"),)) if command == "show" else \
             ("report", "results.h5", "--plots", str(locked / "figures"))
         assert "cannot write" in one_error_line(run(*args, expect=2))
 
@@ -188,6 +188,31 @@ def test_an_empty_tolerance_or_one_without_a_name_is_refused(screened, args):
     line = one_error_line(run(*args, "--workers", "1", expect=2))
     assert line.startswith(f"error: {option}: got {args[-1]!r}; allowed: EPS or NAME=EPS") and "no empty item" in line
     assert not (screened / "sweep-load.relative").exists()
+
+
+SAMPLE = ("sample", "--stage", "screening", "--level", "0", "--indices", "0:2", "--workers", "1")
+SHOW = ("show", "--level", "0", "--index", "0")
+
+
+@pytest.mark.parametrize("args", [
+    ("init", "quickstart", "--out", ""),  # was quickstart.yaml, as without --out
+    ("init", "quickstart", "--out", "missing/q.yaml"),
+    SAMPLE + ("--out", ""),
+    SAMPLE + ("--out", "missing/x.h5"),  # was created
+    SHOW + ("--out", ""),
+    SHOW + ("--out", "missing/x.png"),  # was created
+    ("report", "results.h5", "--plots", ""),  # wrote the figures into the working directory
+    ("sweep", "tiny.yaml", "--set", "seed=1", "--tol", "5", "--dir", ""),  # was sweep-seed
+    ("mlmc", "--tol", "5", "--config", ""),  # was as without --config
+], ids=["init", "init missing", "sample", "sample missing", "show", "show missing", "report --plots", "sweep --dir",
+        "mlmc --config"])
+def test_an_empty_path_or_a_missing_directory_is_refused_and_nothing_written(screened, args):
+    before = sorted(path.name for path in screened.iterdir())
+    line = one_error_line(run(*args, expect=2))
+    option, value = args[-2:]
+    assert line.startswith(f"error: {option}: got {value!r}; allowed: ")
+    assert ("a non-empty path" if not value else "a file in an existing directory (missing does not exist") in line
+    assert sorted(path.name for path in screened.iterdir()) == before
 
 
 def test_repeated_tolerance_and_shards_without_plan_are_refused(screened):
