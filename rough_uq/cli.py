@@ -602,7 +602,8 @@ def _mlmc_only_options() -> list[Callable[[Any], Any]]:
                      help=f"With --tol-cdf: COUNT (2 to {MAX_THRESHOLDS}) equally spaced values s from START to "
                           "STOP in the QoI's unit (default: the config's estimation.distribution.NAME.thresholds)."),
         click.option("--probabilities", "probabilities", default=None, metavar="P,P,...",
-                     help="With --tol-cdf: the quantiles reported (default: the config's, else 0.05,0.5,0.95)."),
+                     help="With --tol-cdf: the quantiles reported, distinct numbers in (0, 1) (default: the "
+                          "config's, else 0.05,0.5,0.95)."),
         click.option(
             "--method", "choice", type=click.Choice(METHODS), default="mlmc", show_default=True,
             help="mlmc: plain MLMC (Richardson if the config's estimation.richardson says so); richardson: "
@@ -715,8 +716,9 @@ def _probabilities(text: str | None) -> tuple[float, ...] | None:
         values = tuple(float(part) for part in text.split(","))
     except ValueError:
         values = ()
-    if not values or not all(0 < p < 1 for p in values):
-        raise InvalidParameterError("--probabilities", text, "comma-separated numbers in (0, 1), e.g. 0.05,0.95")
+    if not values or not all(0 < p < 1 for p in values) or len(set(values)) != len(values):
+        raise InvalidParameterError("--probabilities", text, "comma-separated distinct numbers in (0, 1), "
+                                    "e.g. 0.05,0.95")
     return values
 
 

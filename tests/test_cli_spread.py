@@ -299,6 +299,8 @@ BAD_OPTIONS = [
     (("--tol-cdf", "1.5", "--thresholds", TINY_THRESHOLDS), "a number in (0, 1)"),
     (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--qoi", "clusters"), "one result column"),
     (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--probabilities", "0.5,1"), "in (0, 1)"),
+    (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--probabilities", "0.5,0.5"), "distinct numbers"),
+    (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--probabilities", "0.5,5e-1"), "distinct numbers"),
     (("--tol", "5", "--thresholds", TINY_THRESHOLDS), "only with --tol-cdf"),
     (("--tol-var", "-1"), "positive"),
     (("--tol-var", "area=1"), "a QoI of this study"),
