@@ -1098,10 +1098,12 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     config = load_config(config_path)
     configs = sweep_configs(config, key=key, values=values, fixed_spacing=fixed_spacing)
     _refuse_repeated_studies(assignments[0], configs)
+    max_level = min(swept.grid.max_level for _, swept in configs)
+    if level > max_level:  # before any study of the sweep is created
+        raise InvalidParameterError("--level", level, f"an integer in 0..{max_level} (grid.max_level)")
     with _executor(config, workers, "local", None) as pool:
-        largest = max(configs, key=lambda c: c[1].grid.n_at(level) if level <= c[1].grid.max_level else 0)
-        if level <= largest[1].grid.max_level:
-            _warn_memory(largest[1], level, pool, lower_with="a smaller --level")
+        largest = max((swept for _, swept in configs), key=lambda swept: swept.grid.n_at(level))
+        _warn_memory(largest, level, pool, lower_with="a smaller --level")
         rows = run_sweep(configs, directory=directory or f"sweep-{key}", tol=tol, level=level, executor=pool,
                          progress=_progress(quiet or as_json))
     if as_json:

@@ -254,6 +254,18 @@ def test_sweep_refuses_what_would_run_a_study_twice_or_sweep_nothing(tmp_path, m
     assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]  # nothing computed, no folder
 
 
+@pytest.mark.parametrize("options", [("--set", "seed=1,2", "--level", "3"),
+                                     ("--set", "grid.max_level=2,3", "--level", "3"),
+                                     ("--set", "seed=1", "--level", "99999999999999999999")])
+def test_sweep_refuses_a_level_beyond_grid_max_level_before_creating_any_study(tmp_path, monkeypatch, options):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    result = run("sweep", str(config), *options, "--tol", "5", "--workers", "1", expect=2)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: --level: got") and "grid.max_level" in lines[0]
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]  # was a folder with a study
+
+
 def test_mc_on_a_given_level_needs_no_screening(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config())
