@@ -368,9 +368,11 @@ def test_a_cdf_record_round_trips_and_a_malformed_quantile_is_refused_by_its_pat
      "estimation.distribution.contact_area.thresholds.stop"),
     ({"contact_area": {"thresholds": {"start": 25, "stop": 60, "count": 1}}},
      "estimation.distribution.contact_area.thresholds.count"),
+    ({"contact_area": {"thresholds": {"start": 25, "stop": 60, "count": 10**8}}},  # as --thresholds: 10 000 at most
+     "estimation.distribution.contact_area.thresholds.count"),
     ({"contact_area": {"probabilities": [0.5, 1.0]}}, "estimation.distribution.contact_area.probabilities"),
     ({"clusters": {}}, "estimation.distribution.clusters"),
-], ids=["decreasing", "one threshold", "probability 1", "not a QoI"])
+], ids=["decreasing", "one threshold", "too many thresholds", "probability 1", "not a QoI"])
 def test_bad_distribution_settings_in_the_config_name_the_field(tmp_path, distribution, field):
     config = write_config(tmp_path / "bad.yaml", tiny_config(estimation={"distribution": distribution}))
     result = run("validate", str(config), expect=2)

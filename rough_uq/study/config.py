@@ -747,7 +747,12 @@ class ThresholdGrid(_Section):
 
     start: Float = _field(description="First threshold (the QoI's unit)", allowed="a number < stop")
     stop: Float = _field(description="Last threshold (the QoI's unit)", allowed="a number > start")
-    count: Int = _field(description="Number of thresholds, ends included (count)", allowed="integer >= 2", ge=2)
+    count: Int = _field(
+        description="Number of thresholds, ends included, at most 10000 as for --thresholds (count)",
+        allowed="integer in 2..10000",
+        ge=2,
+        le=10_000,
+    )
 
     @model_validator(mode="after")
     def _increasing(self) -> ThresholdGrid:
