@@ -360,3 +360,24 @@ def test_diagnostic_kinds():
     }
     assert {message: Diagnostic(message).kind for message in kinds} == kinds
     assert Diagnostic.from_json("x").to_json() == "x"
+
+
+def test_the_prediction_table_marks_tolerances_whose_bias_the_finest_grid_cannot_reach():
+    # The screening planned tol 1 on the finest allowed grid although its bias stays above sqrt(theta) tol there,
+    # and `mlmc --tol 1` then refused it: the table must say so, not list it like a reachable one.
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    from rough_uq.report.summary import _predictions_table
+
+    def row(tol: float, is_bias_met: bool) -> PlanRecord:
+        return PlanRecord(tol=(tol,), finest_level=2, n_samples=(0, 4, 1), mlmc_cost=1.0, mc_cost=1.0,
+                          mlmc_seconds=1.0, mc_seconds=1.0, work_ratio=1.0, is_bias_met=is_bias_met)
+
+    console = Console(width=120, record=True)
+    console.print(_predictions_table(SimpleNamespace(predictions=(row(2.0, True), row(1.0, False)))))
+    text = console.export_text()
+    assert " 1 *" in text and " 2 *" not in text and "mlmc refuses it" in text
+    console.print(_predictions_table(SimpleNamespace(predictions=(row(2.0, True),))))
+    assert console.export_text().count("mlmc refuses") == 0

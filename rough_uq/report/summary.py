@@ -505,12 +505,17 @@ def _print_rates(console: Any, screening: ScreeningRecord, qoi_names: Sequence[s
 
 
 def _predictions_table(screening: ScreeningRecord) -> Any:
+    # A tolerance whose bias the finest allowed grid cannot reach is planned on that grid all the same
+    # (the rows stay comparable); the mark says that `mlmc` refuses it.
+    unreachable = any(not p.is_bias_met for p in screening.predictions)
+    caption = "* bias above sqrt(theta) tol on the finest allowed grid: mlmc refuses it" if unreachable else None
     table = _table("Predicted from the screening (CPU time of the samples)")
+    table.caption, table.caption_justify = caption, "left"
     for column in ("tol", "levels", "N_l", "MLMC", "MC", "MC/MLMC"):
         table.add_column(column, justify="right")
     for p in screening.predictions:
         table.add_row(
-            ", ".join(_g(t) for t in p.tol),
+            ", ".join(_g(t) for t in p.tol) + ("" if p.is_bias_met else " *"),
             f"0..{p.finest_level}",
             " ".join(str(n) for n in p.n_samples),
             format_duration(p.mlmc_seconds),
