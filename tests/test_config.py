@@ -224,7 +224,7 @@ def test_one_line_per_problem() -> None:
         (lambda d: d["grid"].update(projection="injection"), "grid.projection: injection needs"),
         (lambda d: d.update(seed=True), "seed: must be a number, not a boolean (got True"),
         # lax pydantic would read a quoted number as the number
-        (lambda d: d["surface"].update(hurst="0.8"), "surface.hurst: must be a number, not a string (remove the quotes)"),
+        (lambda d: d["surface"].update(hurst="0.8"), "surface.hurst: must be a number, not a string (remove"),
         (lambda d: d["grid"].update(coarsest="64"), "grid.coarsest: must be a number, not a string"),
         # grids beyond 65536 were "valid", then overflowed in the memory estimate (max_level 1000)
         (lambda d: d["grid"].update(max_level=1000), "grid.max_level: makes the finest grid 256 * 2**1000 larger"),
