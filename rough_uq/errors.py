@@ -9,9 +9,20 @@ that input was skipped; the run goes on.
 
 from __future__ import annotations
 
+import numbers
+
 
 class RoughUQError(Exception):
     """Base class of all errors a user can act on."""
+
+
+def is_real_number(value: object) -> bool:
+    """A real number (numpy's too), not a boolean (``True`` would pass for 1) nor a string (``"0.5"``).
+
+    The one test of "is this a number" behind the :class:`InvalidParameterError`
+    checks of every layer: strings and booleans are refused, never converted.
+    """
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 class InvalidParameterError(RoughUQError, ValueError):

@@ -40,12 +40,11 @@ make the :class:`Plan` (``_allocated_plan``).
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
 from rough_uq.multilevel.rates import (
     CoarsestLevel,
     DroppedLevel,
@@ -177,13 +176,8 @@ class Plan:
         return self.mc_cost / self.cost if self.cost > 0 else math.inf
 
 
-def _is_real(value: object) -> bool:
-    """A real number, not a boolean (``True`` would pass for 1) nor a string (``"0.5"``)."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
 def _check_fraction(name: str, value: object) -> float:
-    if not (_is_real(value) and 0.0 < value < 1.0):
+    if not (is_real_number(value) and 0.0 < value < 1.0):
         raise InvalidParameterError(name, value, "a number strictly between 0 and 1")
     return float(value)
 

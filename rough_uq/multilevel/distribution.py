@@ -72,8 +72,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError
-from rough_uq.multilevel.allocation import _is_real
+from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
 from rough_uq.multilevel.drivers import Sampler
 from rough_uq.multilevel.statistics import _readonly
 from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc, telescope
@@ -376,7 +375,7 @@ def mlmc_cdf(
     """
     s = _check_thresholds(thresholds)
     _check_bandwidth(bandwidth, bandwidth_rate)
-    if np.ndim(tol) != 0 or not (_is_real(tol) and 0 < tol < 1):
+    if np.ndim(tol) != 0 or not (is_real_number(tol) and 0 < tol < 1):
         # F is a probability: an RMS error of 1 or more is met by any estimate.
         raise InvalidParameterError("tol", tol, "one number in (0, 1) (the RMS error of F on the sup norm)")
 

@@ -135,12 +135,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
 from rough_uq.multilevel.allocation import (
     Plan,
     _check_fraction,
     _check_tol,
-    _is_real,
     fine_cost_share,
     optimal_samples,
     plan,
@@ -473,13 +472,13 @@ def _check_optional_positive(name: str, value: object) -> float | None:
     """A limit: a number > 0, or None for none (``math.inf`` means none too)."""
     if value is None:
         return None
-    if not (_is_real(value) and value > 0):
+    if not (is_real_number(value) and value > 0):
         raise InvalidParameterError(name, value, "a number > 0, or None for no limit")
     return None if value == math.inf else float(value)
 
 
 def _check_positive(name: str, value: object) -> float:
-    if not (_is_real(value) and value > 0):
+    if not (is_real_number(value) and value > 0):
         raise InvalidParameterError(name, value, "a number > 0")
     return float(value)
 

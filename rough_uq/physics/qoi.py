@@ -46,7 +46,6 @@ full contact and ``0`` for none. ``"nodes"`` keeps the plain count.
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Iterable
 
 import numpy as np
@@ -54,7 +53,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from rough_uq.errors import InvalidParameterError
+from rough_uq.errors import InvalidParameterError, is_real_number
 
 __all__ = [
     "QOI_NAMES",
@@ -232,8 +231,7 @@ def area_above(pressure: np.ndarray, critical_pressure: float) -> float:
     float
         ``mean(pressure > critical_pressure)``, in ``[0, 1]`` (dimensionless).
     """
-    is_real = isinstance(critical_pressure, numbers.Real) and not isinstance(critical_pressure, bool)
-    threshold = float(critical_pressure) if is_real else math.nan
+    threshold = float(critical_pressure) if is_real_number(critical_pressure) else math.nan
     if not (np.isfinite(threshold) and threshold >= 0.0):
         raise InvalidParameterError("critical_pressure", critical_pressure, "a finite number >= 0")
     array = _pressure(pressure)

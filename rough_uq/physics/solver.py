@@ -146,14 +146,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
 from rough_uq.physics.elastic import HalfSpace, multiply_spectrum
-from rough_uq.errors import ConvergenceError, InvalidParameterError
+from rough_uq.errors import ConvergenceError, InvalidParameterError, is_real_number
 from rough_uq.physics.fft import RealFFT, get_fft
 
 __all__ = ["ContactSolution", "solve_contact", "resample_pressure"]
@@ -499,11 +498,6 @@ def _differ_by_power_of_two(m: int, n: int) -> bool:
     return ratio == 2 ** round(math.log2(ratio)) and max(m, n) % min(m, n) == 0
 
 
-def _is_real(value: object) -> bool:
-    """A real number, not a boolean (``True`` would pass for 1) nor a string."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
 def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, threads) -> np.ndarray:
     s = np.asarray(heights)
     if s.ndim != 2 or s.shape[0] != s.shape[1]:
@@ -517,9 +511,9 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, th
     if not np.all(np.isfinite(s)):
         raise InvalidParameterError("heights", "non-finite values", "finite numbers")
     for name, value in (("system_size", system_size), ("mean_pressure", mean_pressure), ("e_star", e_star)):
-        if not (_is_real(value) and math.isfinite(value) and value > 0):
+        if not (is_real_number(value) and math.isfinite(value) and value > 0):
             raise InvalidParameterError(name, value, "a finite number > 0")
-    if not (_is_real(tol) and 0 < tol < 1):
+    if not (is_real_number(tol) and 0 < tol < 1):
         raise InvalidParameterError("tol", tol, "a number in (0, 1)")
     if isinstance(max_iter, bool) or not (isinstance(max_iter, (int, np.integer)) and max_iter >= 1):
         raise InvalidParameterError("max_iter", max_iter, "an integer >= 1")

@@ -51,14 +51,13 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
 import sys
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError
+from rough_uq.errors import InvalidParameterError, is_real_number
 from rough_uq.physics.fft import get_fft
 
 __all__ = [
@@ -82,7 +81,7 @@ def _check_real(name: str, value: object, *, allowed: str) -> float:
     Only real numbers are accepted: a string such as ``"2"`` (or a boolean) is
     refused rather than converted, as the config refuses it.
     """
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+    if not (is_real_number(value) and math.isfinite(value)):
         raise InvalidParameterError(name, value, allowed)
     return float(value)
 
@@ -221,8 +220,7 @@ class SurfaceSpectrum:
         wave_numbers = {}
         for name, wavelength in (("lambda_l", lambda_l), ("lambda_r", lambda_r), ("lambda_s", lambda_s)):
             allow_inf = name == "lambda_l"
-            is_real = isinstance(wavelength, numbers.Real) and not isinstance(wavelength, bool)
-            value = float(wavelength) if is_real else math.nan
+            value = float(wavelength) if is_real_number(wavelength) else math.nan
             if not (value > 0 and (math.isfinite(value) or (allow_inf and value == math.inf))):
                 raise InvalidParameterError(
                     name, wavelength, "a wavelength > 0" + (" (inf for k_l = 0)" if allow_inf else "")
