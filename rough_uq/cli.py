@@ -225,7 +225,10 @@ def _executor(config: Any, workers: int | None, executor: str, scheduler: str | 
 
 
 def _check_executor_options(executor: str, scheduler: str | None, workers: int | None) -> None:
-    """Refuse ``--scheduler`` without ``--executor dask``, ``--workers`` with it, and dask without a scheduler."""
+    """Refuse ``--scheduler`` without ``--executor dask``, ``--workers`` with it, dask without a scheduler,
+    and more ``--workers`` than :func:`~rough_uq.study.executors.max_workers` (before anything is created)."""
+    from rough_uq.study.executors import check_workers
+
     if executor != "dask" and scheduler is not None:
         raise MisplacedOptionError("--scheduler", scheduler, context="without --executor dask",
                                    allowed="it applies only with --executor dask (the dask scheduler's address)")
@@ -235,6 +238,8 @@ def _check_executor_options(executor: str, scheduler: str | None, workers: int |
     if executor == "dask" and not scheduler:
         raise MisplacedOptionError("--executor", executor, context="without --scheduler ADDRESS", allowed="it "
                                    "needs the address of a running dask scheduler, e.g. --scheduler tcp://host:8786")
+    if workers is not None:
+        check_workers(workers, name="--workers")
 
 
 def _warn_memory(config: Any, level: int, pool: Any, executor: str = "local", *,
@@ -288,7 +293,8 @@ class _PositiveFinite(click.ParamType):
 
 _workers_option = click.option(
     "--workers", type=click.IntRange(min=1), default=None,
-    help="Local worker processes (default: cores // solver.threads; 1 = in this process; not with --executor dask).",
+    help="Local worker processes (default: cores // solver.threads; 1 = in this process; at most 4 per core: "
+         "more only share the cores; not with --executor dask).",
 )
 _executor_option = click.option(
     "--executor", type=click.Choice(["local", "dask"]), default="local", show_default=True,
@@ -1039,6 +1045,7 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
     """
     from rough_uq.study.pipeline import compute_shard, open_existing_study
 
+    _check_executor_options("local", None, workers)
     _check_output_file("--out", out)
     stage_id = _stage_number(stage)
     wanted = _parse_indices(indices)
@@ -1092,6 +1099,7 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     from rough_uq.study.config import load_config, sweep_configs
     from rough_uq.study.pipeline import run_sweep
 
+    _check_executor_options("local", None, workers)
     _check_tolerance_texts("--tol", tol)
     _check_not_empty("--dir", directory)
     key, values = _sweep_assignment(assignments)

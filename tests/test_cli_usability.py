@@ -256,6 +256,39 @@ def test_screen_refuses_executor_options_that_do_not_go_together_before_creating
     assert not (tmp_path / "results.h5").exists()  # dask without a scheduler created it, then refused
 
 
+#: Every command with --workers; the count is refused before a study, shard or sweep directory exists.
+WORKER_COMMANDS = {
+    "screen": ("screen", "tiny.yaml"),
+    "mlmc": ("mlmc", "--tol", "5"),
+    "mc": ("mc", "--tol", "5"),
+    "mlmc --tol-var": ("mlmc", "--tol-var", "5", "--config", "tiny.yaml"),
+    "sample": ("sample", "--stage", "screening", "--level", "0", "--indices", "0:2", "--out", "x.h5"),
+    "sweep": ("sweep", "tiny.yaml", "--set", "seed=1,2", "--tol", "5"),
+}
+
+
+@pytest.mark.parametrize("args", WORKER_COMMANDS.values(), ids=WORKER_COMMANDS.keys())
+def test_a_worker_count_beyond_four_per_core_is_refused_before_anything_is_made(tmp_path, monkeypatch, args):
+    """--workers 100000 tried to start 100000 processes."""
+    from rough_uq.study import executors
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(executors, "available_cores", lambda: 2)
+    write_config(tmp_path / "tiny.yaml", tiny_config())
+    for workers in ("100000", "9"):
+        line = one_error_line(run(*args, "--workers", workers, expect=2))
+        assert line == (f"error: --workers: got {workers}; allowed: an integer in 1..8 (at most 4 per core; "
+                        "this process may use 2 cores)")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]
+
+
+def test_the_workers_help_states_the_limit_make_executor_applies():
+    from rough_uq.study.executors import MAX_WORKERS_PER_CORE
+
+    for command in ("screen", "mlmc", "mc", "sample", "sweep"):
+        assert f"at most {MAX_WORKERS_PER_CORE} per core" in " ".join(run(command, "--help").output.split())
+
+
 @pytest.mark.parametrize("command", ["mlmc", "mc"])
 def test_plan_in_shards_as_json_lists_the_shards_the_text_prints(screened, command):
     plan = json.loads(run(command, "--tol", "5", "--plan", "--json").stdout)

@@ -52,6 +52,25 @@ def test_make_executor_choices():
         make_executor("mpi")
 
 
+def test_a_local_pool_has_at_most_four_workers_per_core(monkeypatch):
+    monkeypatch.setattr(executors, "available_cores", lambda: 3)
+    assert executors.max_workers() == 3 * executors.MAX_WORKERS_PER_CORE == 12
+    pool = make_executor("local", workers=12)  # modest oversubscription is allowed (no process is started yet)
+    assert isinstance(pool, PoolExecutor) and pool.n_workers == 12
+    pool.close()
+    for workers in (13, 100_000, 0, 2.5, True):
+        with pytest.raises(InvalidParameterError) as info:
+            make_executor("local", workers=workers)
+        assert info.value.name == "workers" and info.value.value == workers
+        assert str(info.value).endswith("allowed: an integer in 1..12 (at most 4 per core; this process may use "
+                                        "3 cores)")
+    with pytest.raises(InvalidParameterError, match="workers: got 13;"):
+        PoolExecutor(13)
+    pool = make_executor("local", workers=np.int64(3))
+    assert pool.n_workers == 3
+    pool.close()
+
+
 def test_dask_cluster_matches_serial(tmp_path, monkeypatch):
     distributed = pytest.importorskip("distributed")
     serial = _run(SerialExecutor())

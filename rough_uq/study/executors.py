@@ -17,6 +17,12 @@ cores; workers are told ``OMP_NUM_THREADS`` (and the BLAS equivalents) =
 ``threads`` and ``OMP_WAIT_POLICY=PASSIVE`` (FFTW's threads and numba's
 OpenMP threads otherwise spin against each other).
 
+A pool has at most :data:`MAX_WORKERS_PER_CORE` workers per available core
+(:func:`max_workers`): the solves are CPU-bound, so workers beyond the cores
+only share them (a modest surplus is allowed, e.g. to keep cores busy while
+some workers write or wait), while a mistyped ``--workers 100000`` would try
+to start that many interpreters and exhaust memory and the process table.
+
 Workers are started with ``spawn``: forking a process that has already run
 OpenMP threads is unsafe, and a forked child would inherit the study file's
 lock. Each worker builds its FFT plans once and reuses them for all its
@@ -27,6 +33,7 @@ from __future__ import annotations
 
 import gc
 import multiprocessing
+import numbers
 import os
 import signal
 import sys
@@ -46,7 +53,11 @@ __all__ = [
     "SerialExecutor",
     "PoolExecutor",
     "DaskExecutor",
+    "MAX_WORKERS_PER_CORE",
+    "available_cores",
     "default_workers",
+    "max_workers",
+    "check_workers",
     "make_executor",
     "thread_environment",
     "freeze_garbage",
@@ -56,13 +67,43 @@ WorkItem = tuple[int, int, np.ndarray]
 """``(stage, level, indices)``."""
 
 
+#: Most local worker processes per available core (:func:`max_workers`, module docstring).
+MAX_WORKERS_PER_CORE = 4
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity on Linux, else ``os.cpu_count()``), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
 def default_workers(threads: int = 1) -> int:
     """Worker processes that fill the cores available to this process without oversubscription."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cores = os.cpu_count() or 1
-    return max(1, cores // max(1, threads))
+    return max(1, available_cores() // max(1, threads))
+
+
+def max_workers() -> int:
+    """Most worker processes a local pool may have: :data:`MAX_WORKERS_PER_CORE` per available core."""
+    return MAX_WORKERS_PER_CORE * available_cores()
+
+
+def _workers_allowed() -> str:
+    """What a worker count may be, in the words of an :class:`InvalidParameterError`."""
+    cores = available_cores()
+    return (f"an integer in 1..{max_workers()} (at most {MAX_WORKERS_PER_CORE} per core; "
+            f"this process may use {cores} core{'s' if cores != 1 else ''})")
+
+
+def check_workers(workers: object, name: str = "workers") -> int:
+    """``workers`` as an int, or :class:`InvalidParameterError` naming ``name`` unless in ``1..max_workers()``.
+
+    Booleans and non-integral numbers are refused, never rounded.
+    """
+    if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or not 1 <= workers <= max_workers():
+        raise InvalidParameterError(name, workers, _workers_allowed())
+    return int(workers)
 
 
 def thread_environment(threads: int) -> dict[str, str]:
@@ -190,15 +231,13 @@ class PoolExecutor(Executor):
     Parameters
     ----------
     n_workers : int
-        Number of worker processes (>= 1).
+        Number of worker processes, 1 to :func:`max_workers` (:data:`MAX_WORKERS_PER_CORE` per core).
     threads : int
         Native threads per worker (the study's ``solver.threads``).
     """
 
     def __init__(self, n_workers: int, *, threads: int = 1) -> None:
-        if int(n_workers) < 1:
-            raise InvalidParameterError("workers", n_workers, "an integer >= 1")
-        self.n_workers = int(n_workers)
+        self.n_workers = check_workers(n_workers)
         self.threads = int(threads)
         self._pool: ProcessPoolExecutor | None = None
 
@@ -339,6 +378,11 @@ def make_executor(kind: str, *, workers: int | None = None, threads: int = 1, sc
 
     ``kind`` is ``"local"`` (serial when ``workers == 1``, else a pool of
     ``workers``, default :func:`default_workers`) or ``"dask"`` (needs ``scheduler``).
+    ``workers`` may be at most :func:`max_workers`, i.e. :data:`MAX_WORKERS_PER_CORE`
+    (4) per core available to this process: the solves are CPU-bound, so more
+    processes than cores only share them; a few per core are allowed, a number
+    that would exhaust memory or the process table is refused
+    (:class:`InvalidParameterError` naming ``workers``).
     """
     if kind == "dask":
         if not scheduler:
@@ -346,7 +390,5 @@ def make_executor(kind: str, *, workers: int | None = None, threads: int = 1, sc
         return DaskExecutor(scheduler)
     if kind != "local":
         raise InvalidParameterError("executor", kind, "'local' or 'dask'")
-    n_workers = default_workers(threads) if workers is None else int(workers)
-    if n_workers < 1:
-        raise InvalidParameterError("workers", workers, "an integer >= 1")
+    n_workers = default_workers(threads) if workers is None else check_workers(workers)
     return SerialExecutor() if n_workers == 1 else PoolExecutor(n_workers, threads=threads)
