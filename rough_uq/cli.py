@@ -327,13 +327,21 @@ def main() -> None:
 @click.argument("config_paths", metavar="CONFIG...", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @_user_errors
 def validate(config_paths: Sequence[str]) -> None:
-    """Check study configs and summarise each (status 2 if any is invalid)."""
+    """Check study configs and summarise each (status 2 if any is invalid).
+
+    A config is valid if `roughuq screen` would accept it up to its first
+    solve: the file and its fields, then the surface spectrum, loads and
+    quantities of interest built from them. Nothing is solved, so a load
+    outside the solver's range (a dimensionless load outside [2.2e-308,
+    1e100]) is refused only by the first solve.
+    """
     from rough_uq.study.config import _physical_memory_bytes, load_config, solver_memory_bytes
 
     n_bad = 0
     for config_path in config_paths:
         try:
             config = load_config(config_path)
+            _check_problem(config)
         except RoughUQError as exc:
             if len(config_paths) == 1:
                 raise
@@ -355,6 +363,21 @@ def validate(config_paths: Sequence[str]) -> None:
         click.echo(f"  study file: {config.output.path}")
     if n_bad:
         sys.exit(2)
+
+
+def _check_problem(config: Any) -> None:
+    """Build the contact problem of ``config`` as every command does before its first sample; solve nothing.
+
+    The model of :func:`~rough_uq.study.pipeline.build_model` (spectrum, loads,
+    QoI units: e.g. a slope variance ``m2`` outside the float range is refused
+    here), then the check each solve starts with on the mean pressures it is
+    given (:func:`~rough_uq.physics.load_curve.check_mean_pressures`: a relative
+    load so large that the pressure overflows). Errors are those the commands give.
+    """
+    from rough_uq.physics.load_curve import check_mean_pressures
+    from rough_uq.study.pipeline import build_model
+
+    check_mean_pressures(build_model(config).loads)
 
 
 def _warm_kernels(model: Any, *, quiet: bool = False) -> None:

@@ -449,6 +449,29 @@ def test_validate_accepts_several_files_and_fails_if_any_is_bad(tmp_path):
     assert f"{missing}: {missing}" not in result.stderr  # a file's own errors name it once
 
 
+TINY_SURFACE = tiny_config()["surface"]
+#: Configs whose fields are each valid but whose contact problem cannot be built: validate said "valid".
+UNBUILDABLE = {
+    "m2 underflows": {"surface": {**TINY_SURFACE, "system_size": 1e300}},
+    "m2 overflows": {"surface": {**TINY_SURFACE, "system_size": 1e-300}},
+    "C underflows": {"surface": {**TINY_SURFACE, "rms_height": 1e-300}},
+    "pressure overflows": {"load": {"relative": 1e308}},
+    "a load of the curve overflows": {"load": {"relative": [0.2, 1e308]}},
+}
+
+
+@pytest.mark.parametrize("overrides", UNBUILDABLE.values(), ids=UNBUILDABLE.keys())
+def test_validate_refuses_what_screen_refuses_before_solving_with_the_same_line(tmp_path, monkeypatch, overrides):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "bad.yaml", tiny_config(**overrides))
+    line = one_error_line(run("validate", str(config), expect=2))
+    assert line == one_error_line(run("screen", str(config), "--workers", "1", "-q", expect=2))
+    good = write_config(tmp_path / "good.yaml", tiny_config())
+    result = run("validate", str(good), str(config), expect=2)  # several files: each bad one is named
+    assert result.stdout.startswith(f"{good}: valid") and f"{config}: valid" not in result.stdout
+    assert result.stderr.strip() == line.replace("error: ", f"error: {config}: ", 1)
+
+
 def test_usage_and_help_say_what_the_commands_take():
     assert "[CONFIG]" in run("solve", "--help").output
     mlmc_help = run("mlmc", "--help").output
