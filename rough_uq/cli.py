@@ -373,6 +373,8 @@ def _check_problem(config: Any) -> None:
     here), then the check each solve starts with on the mean pressures it is
     given (:func:`~rough_uq.physics.load_curve.check_mean_pressures`: a relative
     load so large that the pressure overflows). Errors are those the commands give.
+    Commands that create study files call it first, so that a refused config
+    leaves no study file behind.
     """
     from rough_uq.physics.load_curve import check_mean_pressures
     from rough_uq.study.pipeline import build_model
@@ -515,6 +517,7 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
 
     _check_executor_options(executor, scheduler, workers)
     config = load_config(config_path)
+    _check_problem(config)  # before the study file exists: a file left behind would refuse the corrected config
     with create_study(config, out) as study:
         _warm_kernels(study.model, quiet=quiet or as_json)
         with _executor(config, workers, executor, scheduler) as pool:
@@ -761,6 +764,7 @@ def _config_creating_study(opts: _RunOptions, *, may_create: bool = True) -> Any
 
     config = load_config(opts.config_path) if opts.config_path else None
     if config is not None and may_create and not Path(opts.study_path).exists():
+        _check_problem(config)  # a study file left behind would refuse the corrected config
         create_study(config, opts.study_path).close()
     return config
 
@@ -1129,6 +1133,8 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     config = load_config(config_path)
     configs = sweep_configs(config, key=key, values=values, fixed_spacing=fixed_spacing)
     _refuse_repeated_studies(assignments[0], configs)
+    for _, swept in configs:  # every value, before the first one's study is made and run
+        _check_problem(swept)
     max_level = min(swept.grid.max_level for _, swept in configs)
     if level > max_level:  # before any study of the sweep is created
         raise InvalidParameterError("--level", level, f"an integer in 0..{max_level} (grid.max_level)")

@@ -472,6 +472,22 @@ def test_validate_refuses_what_screen_refuses_before_solving_with_the_same_line(
     assert result.stderr.strip() == line.replace("error: ", f"error: {config}: ", 1)
 
 
+@pytest.mark.parametrize("args", [
+    ("screen", "bad.yaml"),
+    ("mlmc", "--config", "bad.yaml", "--tol-var", "5"),
+    ("mc", "--config", "bad.yaml", "--level", "0", "--tol", "5"),
+    ("sweep", "good.yaml", "--set", "surface.system_size=1,1e-300", "--tol", "5"),
+], ids=["screen", "mlmc --tol-var", "mc --level", "sweep"])
+def test_a_config_whose_problem_cannot_be_built_leaves_no_study_file(tmp_path, monkeypatch, args):
+    """A study file was created, then the model refused: the corrected config then met 'written by another config'."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "bad.yaml", tiny_config(surface={**TINY_SURFACE, "system_size": 1e-300}))
+    write_config(tmp_path / "good.yaml", tiny_config())
+    line = one_error_line(run(*args, "--workers", "1", "-q", expect=2))
+    assert line.startswith("error: rms_height, system_size: got (1.0, 1e-300);")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml", "good.yaml"]
+
+
 def test_usage_and_help_say_what_the_commands_take():
     assert "[CONFIG]" in run("solve", "--help").output
     mlmc_help = run("mlmc", "--help").output
