@@ -291,6 +291,12 @@ class _PositiveFinite(click.ParamType):
         return number
 
 
+#: ``--workers`` of the commands that compute only locally (``sample``, ``sweep``: no ``--executor``).
+_local_workers_option = click.option(
+    "--workers", type=click.IntRange(min=1), default=None,
+    help="Local worker processes (default: cores // solver.threads; 1 = in this process; at most 4 per core: "
+         "more only share the cores).",
+)
 _workers_option = click.option(
     "--workers", type=click.IntRange(min=1), default=None,
     help="Local worker processes (default: cores // solver.threads; 1 = in this process; at most 4 per core: "
@@ -1061,7 +1067,7 @@ def _index_range(text: str, part: str) -> tuple[int, int]:
 @click.option("--indices", required=True, metavar="A:B[,C:D]",
               help="Sample indices, half-open ranges (at most 10^7 samples per shard).")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="Shard file to write.")
-@_workers_option
+@_local_workers_option
 @_quiet_option
 @_user_errors
 def sample(study_path: str, stage: str, level: int, indices: str, out: str, workers: int | None,
@@ -1113,7 +1119,7 @@ def merge(shards: Sequence[str], study_path: str) -> None:
 @click.option("--dir", "directory", type=click.Path(file_okay=False), default=None,
               help="Where the configs and study files go (default: sweep-KEY, e.g. sweep-surface.system_size).")
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
-@_workers_option
+@_local_workers_option
 @_quiet_option
 @_user_errors
 def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol: Sequence[str], level: int,

@@ -286,7 +286,10 @@ def test_the_workers_help_states_the_limit_make_executor_applies():
     from rough_uq.study.executors import MAX_WORKERS_PER_CORE
 
     for command in ("screen", "mlmc", "mc", "sample", "sweep"):
-        assert f"at most {MAX_WORKERS_PER_CORE} per core" in " ".join(run(command, "--help").output.split())
+        text = " ".join(run(command, "--help").output.split())
+        assert f"at most {MAX_WORKERS_PER_CORE} per core" in text
+        # sample and sweep have no --executor; their --workers help said "not with --executor dask".
+        assert ("--executor" in text) == (command in ("screen", "mlmc", "mc")), command
 
 
 @pytest.mark.parametrize("command", ["mlmc", "mc"])
