@@ -589,6 +589,10 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     return command
 
 
+#: The runs of ``roughuq mlmc`` / ``mc`` that create a missing study file from ``--config`` (:func:`_run_mean`).
+_CREATING_RUNS = {"mlmc": "runs with --tol-var or --tol-cdf", "mc": "runs with --level"}
+
+
 def _estimation_options(method: str) -> list[Callable[[Any], Any]]:
     """The click options of ``roughuq mlmc`` / ``roughuq mc``, in the order ``--help`` lists them."""
     options = [
@@ -598,7 +602,8 @@ def _estimation_options(method: str) -> list[Callable[[Any], Any]]:
         click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY,
                      show_default=True, help="Study file."),
         click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
-                     help="Config to take estimation settings and tolerances from (must match the study's)."),
+                     help="Config to take estimation settings and tolerances from (must match the study's); "
+                          f"{_CREATING_RUNS[method]}, which need no screening, create a missing --study from it."),
         click.option("--max-cost", type=_PositiveFinite(), default=None, metavar="SECONDS",
                      help="Budget in modelled cost, a finite number > 0 (reference seconds, about CPU-seconds on the "
                           "calibration machine): a plan predicted above it is refused, a run reaching it stops "
@@ -805,7 +810,8 @@ def _run_mean(tol: Sequence[str], *, method: str, choice: str, level: int | None
     """A run of the mean (``--tol``): print its plan (``--plan``), or run it and show it; exit 3 if missed."""
     from rough_uq.study.pipeline import choose_method, open_existing_study, parse_tolerances, run_id
 
-    config = _config_creating_study(opts, may_create=not show_plan)
+    # Only MC on a given --level needs no screening: any other run would find the new study empty and refuse.
+    config = _config_creating_study(opts, may_create=level is not None and not show_plan)
     with open_existing_study(opts.study_path, config=config, writable=not show_plan) as study:
         tolerances = parse_tolerances(tol, study.config)
         cap = study.config.estimation.max_cost if opts.max_cost is None else opts.max_cost

@@ -491,6 +491,20 @@ def test_a_config_whose_problem_cannot_be_built_leaves_no_study_file(tmp_path, m
     assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml", "good.yaml"]
 
 
+@pytest.mark.parametrize("args", [("mlmc", "--tol", "5"), ("mc", "--tol", "5"), ("mlmc", "--method", "auto")],
+                         ids=["mlmc", "mc", "mlmc --method auto"])
+def test_a_run_that_needs_a_screening_does_not_create_an_empty_study_from_its_config(tmp_path, monkeypatch, args):
+    """It created new.h5, then refused for want of a screening; the file stayed."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "good.yaml", tiny_config())
+    line = one_error_line(run(*args, "--config", "good.yaml", "--study", "new.h5", "--workers", "1", expect=2))
+    assert line == "error: study file 'new.h5' does not exist; create it with `roughuq screen CONFIG --out new.h5`"
+    assert not (tmp_path / "new.h5").exists()
+    creating = {"mlmc": "runs with --tol-var or --tol-cdf, which need no screening, create a missing --study",
+                "mc": "runs with --level, which need no screening, create a missing --study"}
+    assert creating[args[0]] in " ".join(run(args[0], "--help").output.split())
+
+
 def test_usage_and_help_say_what_the_commands_take():
     assert "[CONFIG]" in run("solve", "--help").output
     mlmc_help = run("mlmc", "--help").output
