@@ -1013,7 +1013,8 @@ def _print_run(run: Any, report: dict[str, Any]) -> None:
 main.command(name="mlmc", help="Multilevel Monte Carlo to a tolerance; samples and result go to the study file.")(
     _estimation_command("mlmc")
 )
-main.command(name="mc", help="Plain Monte Carlo on the finest level the tolerance needs (the baseline).")(
+main.command(name="mc", help="Plain Monte Carlo on the finest level the tolerance needs, or on --level (the "
+                              "baseline).")(
     _estimation_command("mc")
 )
 
@@ -1071,7 +1072,8 @@ def _index_range(text: str, part: str) -> tuple[int, int]:
 @click.option("--stage", required=True, help="Stage of the samples: 'screening' or the number `--plan` prints.")
 @click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the samples.")
 @click.option("--indices", required=True, metavar="A:B[,C:D]",
-              help="Sample indices, half-open ranges (at most 10^7 samples per shard).")
+              help="Sample indices, comma-separated half-open ranges A:B or single indices (at most 10^7 "
+                   "samples per shard).")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="Shard file to write.")
 @_local_workers_option
 @_quiet_option
@@ -1269,7 +1271,8 @@ def _stage_of(study: Any, text: str) -> int:
 @click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
               help="Study file (only read).")
 @click.option("--stage", default="screening", show_default=True,
-              help="'screening' or a run id as `roughuq report` prints it (e.g. mlmc_contact_area-0.5_theta-0.5).")
+              help="'screening', a run id as `roughuq report` prints it (e.g. mlmc_contact_area-0.5_theta-0.5), "
+                   "or a stage number.")
 @click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the sample.")
 @click.option("--index", type=click.IntRange(min=0, max=MAX_INT64), required=True,
               help="Index of a stored sample.")

@@ -510,6 +510,9 @@ def test_usage_and_help_say_what_the_commands_take():
     mlmc_help = run("mlmc", "--help").output
     assert "--level" not in mlmc_help and "--max-cost" in mlmc_help
     assert "--level" in run("mc", "--help").output
+    # What the options take, as their parsers do (_stage_of, _index_range): a stage number, a single index.
+    assert "or a stage number" in " ".join(run("show", "--help").output.split())
+    assert "A:B or single indices" in " ".join(run("sample", "--help").output.split())
     top = run("--help").output
     for code in ("0 done", "2 an error in what was typed", "recorded as refused", "3 mlmc/mc finished without", "130",
                  "143"):
