@@ -323,6 +323,27 @@ def test_parse_tolerances():
             parse_tolerances([bad], single)
 
 
+@pytest.mark.parametrize("values", [[""], ["0.2,"], [" , "], ["contact_area=0.2,,"], ["=0.2"], [" =0.2"]])
+@pytest.mark.parametrize("option", ["--tol", "--tol-var"])
+def test_an_empty_tolerance_item_or_one_without_a_name_is_refused_naming_option_and_value(values, option):
+    # Empty items were skipped: [""] fell back to the config's tolerance, "=0.2" was read as a bare 0.2.
+    config = config_from_dict(tiny_config())
+    with pytest.raises(InvalidParameterError) as info:
+        parse_tolerances(values, config, option=option, use_config=option == "--tol")
+    assert info.value.name == option and info.value.value == values[0]
+    assert "no empty item" in str(info.value)
+
+
+def test_a_sweep_refuses_an_empty_tolerance_item_before_writing_anything(tmp_path):
+    from rough_uq.study.config import sweep_configs
+
+    configs = sweep_configs(config_from_dict(tiny_config()), key="seed", values=["1", "2"])
+    with pytest.raises(InvalidParameterError, match="no empty item"):
+        run_sweep(configs, directory=tmp_path / "sweep", tol=["5,"], level=0, executor=SerialExecutor(),
+                  progress=QUIET)
+    assert not (tmp_path / "sweep").exists()
+
+
 def test_study_file_roundtrip_and_mismatch(tmp_path):
     config = config_from_dict(tiny_config())
     path = tmp_path / "study.h5"

@@ -627,6 +627,11 @@ def _predictions(
 # ---------------------------------------------------------------------------
 
 
+#: What a ``--tol`` / ``--tol-var`` value may be (the CLI's pre-check says the same).
+_TOLERANCE_FORM = ("EPS or NAME=EPS, comma-separated, e.g. 0.2 or contact_area=0.2 (no empty item, no '=' without "
+                   "a name)")
+
+
 def parse_tolerances(
     values: Sequence[str] | None, config: StudyConfig, *, option: str = "--tol", use_config: bool = True
 ) -> np.ndarray:
@@ -636,8 +641,11 @@ def parse_tolerances(
     each of its load columns). With a load curve, ``NAME`` may be a QoI (its
     tolerance for every load) or one column ``QOI@LOAD``, which takes
     precedence. Raises :class:`~rough_uq.errors.InvalidParameterError` naming
-    ``option`` and what is wrong. ``use_config=False`` (``--tol-var``, whose
-    unit is the QoI's squared) ignores the config's ``qoi.<name>.tol``.
+    ``option`` and what is wrong, also for an empty value or list item (``""``,
+    ``"0.2,"``, ``" , "``: never read as "not given") and for ``=EPS`` without
+    a name. ``use_config=False`` (``--tol-var``, whose unit is the QoI's
+    squared) ignores the config's ``qoi.<name>.tol``. ``values`` None or
+    empty: no tolerance given, every one from the config.
     """
     columns = config.qoi_columns
     names = tuple(config.qoi) + tuple(column for column, _, _ in columns if column not in config.qoi)
@@ -645,9 +653,9 @@ def parse_tolerances(
     for text in values or ():
         for part in str(text).split(","):
             part = part.strip()
-            if not part:
-                continue
-            name, _, number = part.rpartition("=")
+            name, sep, number = part.rpartition("=")
+            if not part or (sep and not name):
+                raise InvalidParameterError(option, text, _TOLERANCE_FORM)
             if not name:
                 if len(config.qoi) != 1:
                     raise InvalidParameterError(
@@ -1699,26 +1707,27 @@ def run_sweep(
 
     Each value gets its config (``<output stem>.yaml``) and its study file in
     ``directory``; a rerun resumes every study. ``tol`` are ``--tol`` strings
-    (:func:`parse_tolerances`, per config). If a study file in ``directory``
-    was written by another config, the sweep is refused
-    (:class:`StudyFileError`) before any file is written, so a config file
-    never disagrees with its study.
+    (:func:`parse_tolerances`, per config). Tolerances it refuses, and a
+    study file in ``directory`` written by another config
+    (:class:`StudyFileError`), refuse the sweep before any file is written,
+    so a config file never disagrees with its study.
     """
     directory = Path(directory)
     remedy = f"use another --dir than {str(directory)!r}, or the config and --set of that sweep"
     paths = [directory / Path(config.output.path).name for _, config in configs]
+    tolerances = [parse_tolerances(tol, config) for _, config in configs]
     for study_path, (_, config) in zip(paths, configs):
         _refuse_other_config(study_path, config, remedy)
     directory.mkdir(parents=True, exist_ok=True)
     rows = []
-    for study_path, (value, config) in zip(paths, configs):
+    for study_path, tolerance, (value, config) in zip(paths, tolerances, configs):
         config_path = study_path.with_suffix(".yaml")
         with create_study(config, study_path, remedy=remedy) as study:
             config_path.write_text(resolved_yaml(config))
             record = run_estimation(
                 study,
                 method="mc",
-                tol=parse_tolerances(tol, config),
+                tol=tolerance,
                 executor=executor,
                 progress=progress,
                 level=level,
