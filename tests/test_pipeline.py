@@ -22,6 +22,7 @@ from rough_uq.study.pipeline import (
     forecast_run,
     merge_shards,
     missing_samples,
+    cdf_request,
     open_existing_study,
     parse_tolerances,
     run_estimation,
@@ -302,6 +303,30 @@ def test_non_converged_solves_are_retried_flagged_and_reported():
     assert np.all(batch.n_iter[:, 0] == 1 + 10)  # max_iter, then the retry with 10 x max_iter
     assert outcome.record.n_not_converged == 3 * 8
     assert np.all(np.isfinite(batch.fine))
+
+
+@pytest.mark.parametrize("probabilities", [(0.5, 0.5), (0.05, 0.5, 5e-1), [0.9, 0.1, 0.9]])
+def test_a_cdf_request_refuses_a_probability_given_twice(probabilities):
+    # The CLI refused --probabilities 0.5,0.5; a Python caller got two rows of one quantile.
+    config = config_from_dict(tiny_config())
+    with pytest.raises(InvalidParameterError, match="given twice") as info:
+        cdf_request(config, column="contact_area", thresholds=[10.0, 20.0, 30.0], probabilities=probabilities)
+    assert info.value.name == "--probabilities" and "distinct" in str(info.value)
+
+
+@pytest.mark.parametrize("probabilities", [(), (0.0, 0.5), (0.5, 1.0), (float("nan"),), ("0.5",), "0.5", (True,), 0.5])
+def test_a_cdf_request_refuses_what_is_not_probabilities_naming_the_option(probabilities):
+    config = config_from_dict(tiny_config())
+    with pytest.raises(InvalidParameterError) as info:
+        cdf_request(config, column="contact_area", thresholds=[10.0, 20.0, 30.0], probabilities=probabilities)
+    assert info.value.name == "--probabilities"
+
+
+def test_a_cdf_request_keeps_the_probabilities_in_the_order_given():
+    config = config_from_dict(tiny_config())
+    request = cdf_request(config, column="contact_area", thresholds=[10.0, 20.0], probabilities=(0.5, 0.05, 0.95))
+    assert request.probabilities == (0.5, 0.05, 0.95)
+    assert cdf_request(config, column=None, thresholds=[10.0, 20.0]).probabilities == (0.05, 0.5, 0.95)
 
 
 def test_parse_tolerances():

@@ -44,7 +44,7 @@ import numpy as np
 
 from rough_uq import __version__
 from rough_uq.study.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
-from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
+from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError, is_real_number
 from rough_uq.multilevel.drivers import (
     MAX_PLANNED_SAMPLES,
     BatchDone,
@@ -1250,7 +1250,8 @@ class CdfRequest:
     thresholds : ndarray, shape (m,)
         Strictly increasing ``s_j``, the column's unit.
     probabilities : tuple of float
-        ``p`` of the quantiles reported, in (0, 1).
+        ``p`` of the quantiles reported: distinct, in (0, 1), in the order
+        given (:func:`cdf_request`).
     """
 
     column: str
@@ -1269,7 +1270,15 @@ def cdf_request(
 
     Raises :class:`~rough_uq.errors.InvalidParameterError` naming ``--qoi`` or
     ``--thresholds`` when the column is unknown or no thresholds are given
-    (saying how to give them).
+    (saying how to give them), and ``--probabilities`` unless they are
+    distinct real numbers in (0, 1) (``0.5`` and ``5e-1`` are the same).
+
+    Probabilities are kept in the order given, not sorted, as the CLI and the
+    config keep them: each quantile is computed on its own, the record and
+    the report list them in the user's order, and the run's name hashes them
+    in that order (:func:`target_run_id`), so sorting would rename runs
+    stored before. Two orders of the same probabilities are therefore two
+    records of one run's samples (same stage), not one.
     """
     names = config.qoi_names
     if column is None and len(names) == 1:
@@ -1288,10 +1297,24 @@ def cdf_request(
         raise InvalidParameterError("--thresholds", thresholds, "at least two finite, strictly increasing values")
     if probabilities is None:
         probabilities = DEFAULT_PROBABILITIES if settings is None else settings.probabilities
-    p = tuple(float(x) for x in probabilities)
-    if not p or not all(0 < x < 1 for x in p):
-        raise InvalidParameterError("--probabilities", probabilities, "numbers strictly between 0 and 1")
-    return CdfRequest(column=column, thresholds=values, probabilities=p)
+    return CdfRequest(column=column, thresholds=values, probabilities=_probabilities(probabilities))
+
+
+def _probabilities(probabilities: object) -> tuple[float, ...]:
+    """``probabilities`` as a tuple of floats, or InvalidParameterError naming ``--probabilities``."""
+    allowed = "distinct numbers strictly between 0 and 1, at least one"
+    items = (probabilities,) if isinstance(probabilities, (str, bytes)) else probabilities
+    try:
+        items = tuple(items)
+    except TypeError:
+        raise InvalidParameterError("--probabilities", probabilities, allowed) from None
+    if not items or not all(is_real_number(x) and 0 < x < 1 for x in items):
+        raise InvalidParameterError("--probabilities", probabilities, allowed)
+    p = tuple(float(x) for x in items)
+    if len(set(p)) != len(p):
+        repeated = next(x for x in p if p.count(x) > 1)
+        raise InvalidParameterError("--probabilities", probabilities, f"{allowed} ({repeated:g} is given twice)")
+    return p
 
 
 def _qoi_of(config: StudyConfig, column: str) -> str:
