@@ -453,6 +453,32 @@ def test_sweep_values_are_read_as_the_config_file_reads_them() -> None:
         sweep_configs(config, key="solver.tol", values=["tight"])
 
 
+def test_a_swept_value_is_named_in_its_file_by_the_full_key_and_the_value_text():
+    # The folder of a sweep is sweep-<full key>; the file names carry the full key too.
+    config = config_from_dict({**_base(), "output": {"path": "runs.v2/results"}})
+    names = [c.output.path for _, c in sweep_configs(config, key="solver.tol", values=["1e-8", " 2.5e-9 "])]
+    assert names == ["runs.v2/results-solver.tol-1e-8.h5", "runs.v2/results-solver.tol-2.5e-9.h5"]
+    (_, swept), = sweep_configs(config_from_dict(_base()), key="qoi.contact_area.tol", values=["0.25"])
+    assert swept.output.path == "results-qoi.contact_area.tol-0.25.h5"
+
+
+@pytest.mark.parametrize("value", ["0.1/2", "../0.1", "0.1\\x", "a\x00", "0.1 0.2", "'0.1'", "", "  "])
+def test_a_swept_value_that_is_no_safe_file_name_part_is_refused_naming_set(value):
+    # "0.1/2" became the path results-hurst-0.1/2.h5, a space an awkward name, NUL a YAML traceback.
+    with pytest.raises(ConfigError) as info:
+        sweep_configs(config_from_dict(_base()), key="surface.hurst", values=["0.7", value])
+    line = str(info.value)
+    assert line.startswith("--set surface.hurst=") and f"got {value!r}" in line and "file name" in line
+
+
+@pytest.mark.parametrize("values", [["0.1", "0.1"], ["0.1", " 0.1"], ["true", "True"], ["1e-3", "1E-3"]])
+def test_two_swept_values_that_would_share_a_file_name_are_refused(values):
+    with pytest.raises(ConfigError, match=r"^--set: got .*; allowed: distinct values: .* is the same as") as info:
+        sweep_configs(config_from_dict(_base()), key="solver.warm_start" if values[0] == "true" else "solver.tol",
+                      values=values)
+    assert "both would be the study file" in str(info.value)
+
+
 def test_the_largest_grid_is_the_problem_layers():
     from rough_uq.problem.contact import MAX_GRID
 

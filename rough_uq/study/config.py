@@ -1339,6 +1339,26 @@ def _parse_scalar(text: str) -> object:
     return value if isinstance(value, (int, float, str, bool)) else text
 
 
+#: What the text of a swept value may be: it becomes part of a file name, so no separator, space or quote.
+_FILE_NAME_PART = re.compile(r"[A-Za-z0-9._+-]+")
+
+
+def _swept_file_name(path: str, key: str, text: str) -> str:
+    """The study file name of value ``text`` of ``key``: the name in ``path`` with ``-<key>-<text>`` before its suffix.
+
+    Raises :class:`ConfigError` for a value whose text (without surrounding
+    spaces) is no safe part of a file name.
+    """
+    part = text.strip()
+    if not _FILE_NAME_PART.fullmatch(part):
+        raise ConfigError(f"--set {key}={text}: the value's text becomes part of the study's file name (got "
+                          f"{text!r}; allowed: letters, digits and . _ + - only, e.g. 0.25, 1e-8 or true)")
+    stem, dot, suffix = os.path.basename(path).rpartition(".")
+    if not dot:
+        stem, suffix = os.path.basename(path), "h5"
+    return f"{stem}-{key}-{part}.{suffix}"
+
+
 def sweep_configs(
     config: StudyConfig, *, key: str, values: Sequence[str], fixed_spacing: bool = False
 ) -> list[tuple[str, StudyConfig]]:
@@ -1362,14 +1382,21 @@ def sweep_configs(
     Returns
     -------
     list of (str, StudyConfig)
-        The value as given and the validated config; each config's
-        ``output.path`` gets ``-<key>-<value>`` before its suffix.
+        The value as given and the validated config; the file name of each
+        config's ``output.path`` gets ``-<key>-<value>`` before its suffix
+        (``results.h5`` -> ``results-surface.system_size-2.h5``): the full
+        dotted key, as in the sweep's folder ``sweep-<key>``, so sweeps of
+        ``solver.tol`` and ``qoi.contact_area.tol`` never share a file name;
+        the value's text without surrounding spaces.
 
     Raises
     ------
     ConfigError
-        Unknown key, or a value that makes the config invalid (the message
-        names the value).
+        Unknown key, a value that makes the config invalid (the message
+        names the value), a value whose text is no safe part of a file name
+        (only letters, digits and ``. _ + -``: a ``/`` would make it a path),
+        and two values that would name the same file (``0.1`` twice, or
+        texts that differ only in case: one file on macOS and Windows).
     """
     base = _resolved_dict(config)
     parts = key.split(".")
@@ -1385,10 +1412,13 @@ def sweep_configs(
     if fixed_spacing and key != "surface.system_size":
         raise ConfigError(f"--fixed-spacing: only for surface.system_size (got {key!r}; allowed: surface.system_size)")
     out = []
-    stem, dot, suffix = config.output.path.rpartition(".")
-    if not dot:
-        stem, suffix = config.output.path, "h5"
+    names: dict[str, str] = {}
     for text in values:
+        name = _swept_file_name(config.output.path, key, str(text))
+        if name.casefold() in names:
+            raise ConfigError(f"--set: got {key + '=' + ','.join(map(str, values))!r}; allowed: distinct values: "
+                              f"{text} is the same as {names[name.casefold()]} (both would be the study file {name})")
+        names[name.casefold()] = str(text)
         data = copy.deepcopy(base)
         target = data
         for part in parts[:-1]:
@@ -1404,7 +1434,7 @@ def sweep_configs(
                     f"giving an even integer n_0)"
                 )
             data["grid"]["coarsest"] = int(round(n_0))
-        data["output"]["path"] = f"{stem}-{parts[-1]}-{text}.{suffix}"
+        data["output"]["path"] = os.path.join(os.path.dirname(config.output.path), name)
         try:
             out.append((str(text), config_from_dict(data)))
         except ConfigError as exc:
