@@ -486,3 +486,46 @@ def test_the_largest_grid_is_the_problem_layers():
     data = _base()
     data["grid"] = {"coarsest": 256, "max_level": 8}  # 65536, the largest
     assert config_from_dict(data).grid.finest == MAX_GRID
+
+
+def test_screening_levels_below_three_are_refused_saying_why(tmp_path, monkeypatch) -> None:
+    # screening.levels: 2 was accepted, and `roughuq screen` computed levels 0 and 1 only to fail fitting the rates.
+    from tests.study_configs import tiny_config, write_config
+
+    data = _base()
+    data["screening"] = {"levels": 2}
+    line = _message(data)
+    assert line.startswith("screening.levels: ") and "got 2" in line and "integer >= 3" in line
+    assert "fitted on levels 1..levels-1, two at least" in line
+    monkeypatch.chdir(tmp_path)
+    path = write_config(tmp_path / "tiny.yaml", tiny_config(screening={"levels": 2, "samples": 4}))
+    result = _cli("screen", str(path), "--workers", "1", "--quiet", expect=(2,))
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith("error: ") and "screening.levels" in line and "integer >= 3" in line
+    assert not (tmp_path / "results.h5").exists()  # refused before any sample
+
+
+@pytest.mark.parametrize("max_level", [0, 1])
+def test_a_study_too_shallow_to_screen_is_a_valid_config_for_runs_without_a_screening(max_level) -> None:
+    # With grid.max_level 1 the default screening.levels 3 made the config invalid; 0 had no valid config at all.
+    data = _base()
+    data["grid"] = {"coarsest": 256, "max_level": max_level}
+    assert config_from_dict(data).screening.levels == 3
+    data["grid"] = {"coarsest": 256, "max_level": 2}
+    data["screening"] = {"levels": 4}
+    assert "screening.levels: cannot screen more levels than exist (levels 0..2)" in _message(data)
+
+
+def test_a_stored_config_of_two_screening_levels_is_read_as_three() -> None:
+    # Written before 3 levels were required; such a screening never finished, and screening is not hashed.
+    config = config_from_dict(_base())
+    stored = resolved_yaml(config).replace("levels: 3", "levels: 2")
+    assert "levels: 2" in stored
+    read = config_from_stored_text(stored)
+    assert read.screening.levels == 3 and config_hash(read) == config_hash(config)
+
+
+def test_the_fewest_screened_levels_are_the_problem_layers() -> None:
+    from rough_uq.problem.runs import MIN_SCREENED_LEVELS
+
+    assert config_module.MIN_SCREENED_LEVELS == MIN_SCREENED_LEVELS == 3

@@ -490,6 +490,20 @@ def test_screening_again_with_more_levels_extends_the_study(tmp_path):
     assert record.screening_rates.levels_gamma == (1, 2, 3)  # the rates come from the four screened levels
 
 
+def test_a_study_too_shallow_to_screen_is_refused_before_any_sample_naming_grid_max_level():
+    # grid.max_level 1 (valid for runs without a screening): levels 0..1 were computed, then the rates failed.
+    study = _study(grid={"coarsest": 8, "max_level": 1})
+    with pytest.raises(InvalidParameterError) as info:
+        run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    assert info.value.name == "grid.max_level" and info.value.value == 1
+    assert "a screening needs levels 0..2" in str(info.value) and "mlmc --tol-var" in str(info.value)
+    assert study.store.levels() == []
+    shallow = _study(grid={"coarsest": 8, "max_level": 0})
+    with pytest.raises(InvalidParameterError) as info:  # was min_finest_level, a name of the core
+        run_target(shallow, target="variance", tol=np.array([60.0]), executor=SerialExecutor(), progress=QUIET)
+    assert info.value.name == "grid.max_level" and "variance and cdf runs" in str(info.value)
+
+
 def test_screening_without_decaying_bias_keeps_its_table_and_says_why(monkeypatch):
     import rough_uq.study.pipeline as pipeline
     from rough_uq.errors import InvalidParameterError as Invalid

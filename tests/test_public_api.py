@@ -245,6 +245,16 @@ def test_invalid_loads_and_arguments_name_the_field():
         assert caught.value.name == field
 
 
+def test_screening_needs_three_levels_and_says_why_as_the_config_does():
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.screen(_problem(), levels=2)
+    assert caught.value.name == "levels" and "fitted on levels >= 1, two of them at least" in str(caught.value)
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:  # said "at most max_level + 1 = 2", then ">= 3"
+        rough_uq.screen(_problem(max_level=1), levels=2)
+    assert caught.value.name == "levels" and "none for a problem with max_level = 1" in str(caught.value)
+    assert "variance or distribution, which need no screening" in str(caught.value)
+
+
 @pytest.mark.parametrize("run", ["mlmc", "mc", "variance", "distribution"])
 @pytest.mark.parametrize(
     ("field", "value"),

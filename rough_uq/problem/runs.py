@@ -21,6 +21,7 @@ the numbers agree to rounding, not bit for bit.)
 
 from __future__ import annotations
 
+import numbers
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -43,7 +44,11 @@ from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, integer
 from rough_uq.problem.sampler import modelled_cost, run_stage
 
-__all__ = ["ScreeningResult", "mc", "mlmc", "run_id", "screen"]
+__all__ = ["MIN_SCREENED_LEVELS", "ScreeningResult", "mc", "mlmc", "run_id", "screen"]
+
+#: Fewest levels a screening covers, ``0..2``: the rates are fitted on levels >= 1 (level 0's ``Y_0 = Q_0``
+#: follows none of their models) and a line needs two of them. The config's ``screening.levels`` says the same.
+MIN_SCREENED_LEVELS = 3
 
 
 def run_id(
@@ -125,8 +130,12 @@ def screen(
     ----------
     problem : ContactProblem
     levels : int
-        Number of levels screened, >= 3 (default 3, as the config's) and at
-        most ``problem.max_level + 1``: the rates are fitted on levels >= 1.
+        Number of levels screened, >= :data:`MIN_SCREENED_LEVELS` = 3
+        (default 3, as the config's) and at most ``problem.max_level + 1``:
+        the rates are fitted on levels >= 1, two of them at least. A problem
+        with ``max_level < 2`` cannot be screened (:func:`mc` on a given
+        ``level``, :func:`~rough_uq.variance` and :func:`~rough_uq.distribution`
+        need no screening).
     samples : int
         Samples per level, >= 2 (default 20).
     executor : BatchExecutor, optional
@@ -144,7 +153,16 @@ def screen(
         The rates cannot be fitted (e.g. every ``E[Y_l]`` is 0).
     """
     problem = _problem(problem)
-    levels = integer("levels", levels, 3)
+    why = "the rates are fitted on levels >= 1, two of them at least"
+    if problem.max_level + 1 < MIN_SCREENED_LEVELS:
+        raise InvalidParameterError(
+            "levels", levels, f"none for a problem with max_level = {problem.max_level}: a screening needs levels "
+            f"0..{MIN_SCREENED_LEVELS - 1} ({why}); use max_level >= {MIN_SCREENED_LEVELS - 1}, or mc(level=...), "
+            "variance or distribution, which need no screening",
+        )
+    if isinstance(levels, bool) or not isinstance(levels, numbers.Integral) or levels < MIN_SCREENED_LEVELS:
+        raise InvalidParameterError("levels", levels, f"an integer >= {MIN_SCREENED_LEVELS} ({why})")
+    levels = int(levels)
     if levels > problem.max_level + 1:
         raise InvalidParameterError(
             "levels", levels, f"at most max_level + 1 = {problem.max_level + 1} (levels 0..{problem.max_level} exist)"

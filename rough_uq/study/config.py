@@ -725,14 +725,20 @@ class GridConfig(_Section):
         return self.n_at(self.max_level)
 
 
+#: Fewest levels a screening covers: ``rough_uq.problem.runs.MIN_SCREENED_LEVELS``, which says why (this module
+#: imports nothing of the core; tests/test_config.py checks they agree).
+MIN_SCREENED_LEVELS = 3
+
+
 class ScreeningConfig(_Section):
     """The screening phase that fits the rates alpha, beta, gamma."""
 
     levels: Int = _field(
         3,
-        description="Number of levels screened, 0..levels-1 (count)",
-        allowed="integer >= 2 and <= grid.max_level + 1",
-        ge=2,
+        description="Number of levels screened, 0..levels-1, at least 3: the rates are fitted on levels >= 1, two "
+        "of them at least; a study with grid.max_level < 2 cannot be screened (count)",
+        allowed="integer >= 3 (the rates are fitted on levels 1..levels-1, two at least) and <= grid.max_level + 1",
+        ge=MIN_SCREENED_LEVELS,
     )
     samples: Int = _field(
         20,
@@ -983,13 +989,16 @@ class StudyConfig(_Section):
                     f"'truncation', or injection with k_s < {n_0 // 2}",
                 )
             )
-        if self.screening.levels > self.grid.max_level + 1:
+        # A study too shallow to be screened at all stays valid for the runs that need no screening
+        # (mlmc --tol-var / --tol-cdf, mc --level); `roughuq screen` refuses it, naming grid.max_level.
+        is_screenable = self.grid.max_level + 1 >= MIN_SCREENED_LEVELS
+        if is_screenable and self.screening.levels > self.grid.max_level + 1:
             problems.append(
                 _problem(
                     "screening.levels",
                     f"cannot screen more levels than exist (levels 0..{self.grid.max_level})",
                     self.screening.levels,
-                    f"integer >= 2 and <= grid.max_level + 1 = {self.grid.max_level + 1}",
+                    f"integer >= {MIN_SCREENED_LEVELS} and <= grid.max_level + 1 = {self.grid.max_level + 1}",
                 )
             )
         for name in self.estimation.distribution:
@@ -1223,7 +1232,10 @@ def config_from_stored_text(text: str, *, source: str = "config") -> StudyConfig
     Like :func:`config_from_yaml_text`, except that a ``qoi.contact_area``
     without ``estimator`` gets ``nodes``: a resolved config lists every field,
     so a stored one without the key was written before the corrected estimator
-    existed, and its samples are node counts.
+    existed, and its samples are node counts. A ``screening.levels`` below
+    :data:`MIN_SCREENED_LEVELS` (2 was allowed before) is read as 3: such a
+    screening never finished (the rates cannot be fitted on one level >= 1),
+    and the screening section is not in the config hash.
     """
     try:
         data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
@@ -1233,6 +1245,9 @@ def config_from_stored_text(text: str, *, source: str = "config") -> StudyConfig
         area = data["qoi"].get("contact_area")
         if isinstance(area, dict) and "estimator" not in area:
             data["qoi"]["contact_area"] = {**area, "estimator": "nodes"}
+    screening = data.get("screening") if isinstance(data, dict) else None
+    if isinstance(screening, dict) and screening.get("levels") == MIN_SCREENED_LEVELS - 1:
+        data["screening"] = {**screening, "levels": MIN_SCREENED_LEVELS}
     if data is None:
         raise _config_error([f"{source}: the file is empty (got no content; allowed: a YAML mapping of sections)"])
     return config_from_dict(data, source=source)

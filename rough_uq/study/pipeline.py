@@ -80,7 +80,7 @@ from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_sc
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
 from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target
-from rough_uq.problem.runs import run_id
+from rough_uq.problem.runs import MIN_SCREENED_LEVELS, run_id
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
     ContactModel,
@@ -542,8 +542,21 @@ def _no_prediction(names: Sequence[str], rates: Rates, exc: Exception) -> str:
 
 
 def run_screening(study: Study, *, executor: Executor, progress: Progress) -> ScreeningOutcome:
-    """Compute (or complete) the screening samples, fit the rates, predict costs, store the record."""
+    """Compute (or complete) the screening samples, fit the rates, predict costs, store the record.
+
+    A study with ``grid.max_level < 2`` (a valid config for the runs that
+    need no screening) is refused before any sample is computed
+    (:class:`~rough_uq.errors.InvalidParameterError` naming ``grid.max_level``):
+    a screening needs levels ``0..2`` (:data:`~rough_uq.problem.runs.MIN_SCREENED_LEVELS`).
+    """
     config = study.config
+    if config.grid.max_level + 1 < MIN_SCREENED_LEVELS:
+        raise InvalidParameterError(
+            "grid.max_level", config.grid.max_level,
+            f"an integer >= {MIN_SCREENED_LEVELS - 1} to screen: a screening needs levels 0..{MIN_SCREENED_LEVELS - 1} "
+            "(the rates are fitted on levels >= 1, two of them at least); runs without a screening need none "
+            "(mlmc --tol-var / --tol-cdf, mc --level)",
+        )
     levels = list(range(config.screening.levels))
     n = config.screening.samples
     sampler = StudySampler(study, stage=STAGE_SCREENING, executor=executor, progress=progress)
@@ -1426,6 +1439,9 @@ def run_target(
     tol = np.asarray(tol, dtype=float)
     if target == "cdf" and (request is None or tol.shape != (1,)):
         raise InvalidParameterError("--tol-cdf", tol.tolist(), "one number, with the column and thresholds")
+    if study.config.grid.max_level < 1:
+        raise InvalidParameterError("grid.max_level", study.config.grid.max_level,
+                                    "an integer >= 1 for variance and cdf runs (they estimate level differences)")
     estimation = study.config.estimation
     if estimation.initial_samples < MIN_TARGET_SAMPLES:
         raise InvalidParameterError(
