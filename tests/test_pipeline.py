@@ -243,6 +243,54 @@ def test_a_mean_run_the_estimator_refuses_is_recorded_as_refused(monkeypatch):
     assert run.status == "refused" and run.reason.startswith("a plan of 2e+11 samples") and run.outcome is None
 
 
+def test_a_target_run_refused_on_the_way_names_the_option_the_user_gave():
+    # The driver says "tol 1e-06 needs about ...: loosen the tolerance"; the user typed --tol-var or --tol-cdf.
+    study = _study(qoi={"contact_area": {"unit": "percent"}, "mean_gap": {}})
+    with pytest.raises(EstimationError) as info:
+        run_target(study, target="variance", tol=np.array([1e-6, 1e-3]), executor=SerialExecutor(), progress=QUIET)
+    text = str(info.value)
+    assert text.startswith("--tol-var contact_area=1e-06, mean_gap=0.001 needs about ") and "max_samples" in text
+    assert text.endswith(": loosen --tol-var") and "tol 1e-06" not in text
+    request = cdf_request(study.config, column="contact_area", thresholds=np.linspace(10.0, 40.0, 31))
+    with pytest.raises(EstimationError) as info:
+        run_target(study, target="cdf", tol=np.array([1e-5]), request=request, executor=SerialExecutor(),
+                   progress=QUIET)
+    assert str(info.value).startswith("--tol-cdf 1e-05 needs about ") and str(info.value).endswith("loosen --tol-cdf")
+    runs = read_run_records(study.store)
+    assert sorted(run.reason.split(" needs")[0] for run in runs) == ["--tol-cdf 1e-05",
+                                                                      "--tol-var contact_area=1e-06, mean_gap=0.001"]
+    assert all(run.status == "refused" for run in runs)
+
+
+@pytest.mark.parametrize(("max_cost", "named"), [(None, "estimation.max_cost 0.001"), (0.002, "--max-cost 0.002")])
+def test_a_target_run_refused_for_its_budget_names_the_budget_the_user_gave(monkeypatch, max_cost, named):
+    import rough_uq.study.pipeline as pipeline
+
+    def refusing(*args, **kwargs):
+        raise EstimationError("max_cost is too small for the initial samples of level 0")
+
+    study = _study(estimation={"initial_samples": 4, "batch_size": 4, "max_cost": 0.001})
+    monkeypatch.setattr(pipeline, "estimate_target", refusing)
+    with pytest.raises(EstimationError) as info:
+        run_target(study, target="variance", tol=np.array([60.0]), executor=SerialExecutor(), progress=QUIET,
+                   max_cost=max_cost)
+    assert str(info.value) == f"{named} is too small for the initial samples of level 0"
+    (run,) = read_run_records(study.store)
+    assert run.status == "refused" and run.reason == str(info.value)
+
+
+def test_a_target_run_passes_other_refusals_on_as_they_are(monkeypatch):
+    import rough_uq.study.pipeline as pipeline
+
+    def refusing(*args, **kwargs):
+        raise EstimationError("sampler returned a negative or non-finite cost on level 1")
+
+    study = _study()
+    monkeypatch.setattr(pipeline, "estimate_target", refusing)
+    with pytest.raises(EstimationError, match="^sampler returned a negative or non-finite cost on level 1$"):
+        run_target(study, target="variance", tol=np.array([60.0]), executor=SerialExecutor(), progress=QUIET)
+
+
 def test_every_run_has_its_own_random_stage():
     study = _screened()
     loose = run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)

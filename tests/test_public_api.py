@@ -505,6 +505,10 @@ def test_a_printed_result_shows_the_estimate_not_the_statistics_arrays():
     assert "statistics=" not in text and "rates=" not in text and len(text) < 1000
 
 
+#: The refusal of a plan beyond the sample limit.
+TOO_MANY_SAMPLES = r"needs about [0-9.e+]+ samples .*max_samples = 10000000"
+
+
 def test_variance_and_distribution_refuse_a_tolerance_out_of_reach_before_drawing_its_samples():
     problem = _problem()
     thresholds = np.linspace(20, 60, 41)
@@ -512,7 +516,8 @@ def test_variance_and_distribution_refuse_a_tolerance_out_of_reach_before_drawin
         functools.partial(rough_uq.variance, problem, tol=1e-4),
         functools.partial(rough_uq.distribution, problem, tol=1e-5, thresholds=thresholds),
     ):
-        with pytest.raises(rough_uq.EstimationError, match=r"needs about [0-9.e+]+ samples .*max_samples = 10000000"):
+        with pytest.raises(rough_uq.EstimationError, match=TOO_MANY_SAMPLES) as caught:
             run()
+        assert str(caught.value).startswith("tol ") and "--tol" not in str(caught.value)  # the argument's name
         with pytest.raises(rough_uq.InvalidParameterError, match="max_samples"):
             run(max_samples=0)

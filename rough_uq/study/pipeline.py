@@ -32,6 +32,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -1433,8 +1434,11 @@ def run_target(
         probabilities too), method ``target``; stored as ``running`` when it
         starts and ``finished`` when it ends (``refused`` with the reason where the
         driver raises :class:`~rough_uq.errors.EstimationError`, e.g. for a
-        plan of more than ``MAX_PLANNED_SAMPLES`` samples). A rerun of a
-        finished run keeps the finished record until it finishes itself.
+        plan of more than ``MAX_PLANNED_SAMPLES`` samples; the reason, raised
+        on, names the options of ``roughuq mlmc``, ``--tol-var NAME=EPS`` or
+        ``--tol-cdf EPS`` and ``--max-cost``, where the driver says ``tol`` and
+        ``max_cost``). A rerun of a finished run keeps the finished record
+        until it finishes itself.
     """
     tol = np.asarray(tol, dtype=float)
     if target == "cdf" and (request is None or tol.shape != (1,)):
@@ -1449,6 +1453,7 @@ def run_target(
             f"an integer >= {MIN_TARGET_SAMPLES} for variance and cdf runs (the variance of a level's "
             "variance term needs four samples)",
         )
+    budget_option = "estimation.max_cost" if max_cost is None else "--max-cost"
     max_cost = estimation.max_cost if max_cost is None else max_cost
     key = target_run_id(study, target=target, tol=tol, request=request)
     earlier = _earlier_run(study, key)
@@ -1462,13 +1467,50 @@ def run_target(
         stage=sampler.stage, initial_samples=estimation.initial_samples,
     )
     title = f"{target} " + ", ".join(f"{n}={t:g}" for n, t in zip(names, tol))
-    with _run_recorded(study, record, earlier):
+    option = _TARGET_OPTIONS[target]
+    given = ", ".join(f"{n}={t:g}" for n, t in zip(names, tol)) if target == "variance" else f"{tol[0]:g}"
+    budget = budget_option if max_cost is None else f"{budget_option} {max_cost:g}"
+    with _run_recorded(study, record, earlier), _naming_options(f"{option} {given}", option, budget):
         result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
     outcome = _target_outcome(study, target=target, sampler=sampler, result=result, request=request,
                               diagnostics=diagnostics, clock=clock)
     record = replace(record, status="finished", outcome=outcome)
     study.store.write_run(key, record.to_json())
     return record
+
+
+#: The option of ``roughuq mlmc`` that asks for a target run, and gives its tolerance.
+_TARGET_OPTIONS = {"variance": "--tol-var", "cdf": "--tol-cdf"}
+
+#: The refusals of the targets' driver that name its arguments: a plan of too many samples, a budget too small.
+_CORE_TOL_REFUSAL = re.compile(r"tol (?:\S+, )*\S+ (?=needs about )")
+_CORE_BUDGET_REFUSAL = re.compile(r"max_cost (?=is too small )")
+
+
+@contextmanager
+def _naming_options(tolerance: str, option: str, budget: str) -> Iterator[None]:
+    """Re-raise the driver's refusals naming what the user gave instead of the driver's arguments.
+
+    The multilevel core (and the Python API, :func:`rough_uq.variance` and
+    :func:`rough_uq.distribution`, which keep its words) says ``tol 1e-06
+    needs about ... : loosen the tolerance`` and ``max_cost is too small
+    ...``; a run of ``roughuq mlmc`` says ``--tol-var contact_area=1e-06
+    needs about ...: loosen --tol-var`` (``tolerance`` is the option with
+    its value, ``option`` the bare option) and names ``budget``
+    (``--max-cost X`` or ``estimation.max_cost X``). Other errors pass as
+    they are.
+    """
+    try:
+        yield
+    except EstimationError as exc:
+        text = str(exc)
+        tol_words, budget_words = _CORE_TOL_REFUSAL.match(text), _CORE_BUDGET_REFUSAL.match(text)
+        if tol_words:
+            rest = text[tol_words.end():].replace("loosen the tolerance", f"loosen {option}")
+            raise EstimationError(f"{tolerance} {rest}") from None
+        if budget_words:
+            raise EstimationError(f"{budget} {text[budget_words.end():]}") from None
+        raise
 
 
 def _follow_target(
