@@ -190,6 +190,10 @@ def test_pool_workers_do_not_outlive_their_run(tmp_path, sig):
     assert not alive, f"workers {alive} outlived their run"
 
 
+# Slow: test_cluster_scripts.test_loop_study_survives_a_killed_shard_and_matches_serial runs the same script
+# to the serial result with a shard killed on the way (the default suite's loop-script test); this one adds
+# only the default worker pool, whose samples equal the serial ones (test_pipeline, test_cli_spread).
+@pytest.mark.slow
 def test_bash_loop_script_completes_a_study_like_an_uninterrupted_run(tmp_path):
     """scripts/loop_study.sh (plan, shards, merge, repeat) ends with the estimate of a plain `roughuq mlmc`."""
     bin_dir = tmp_path / "bin"
