@@ -12,7 +12,9 @@ Exit status (also in ``roughuq --help`` and the README):
   value, missing / mismatched / locked study file, unwritable output, or a
   tolerance refused before the first sample (unreachable with
   ``grid.max_level``, or predicted beyond ``--max-cost``); one line
-  ``error: ...``, no traceback (click's own usage errors also exit 2);
+  ``error: ...``, no traceback; click's own usage errors too (an unknown
+  option or command, a missing argument, a value its type refuses: the line
+  names the command and its ``--help``; :class:`_OneLineUsage`);
 * 3: an ``mlmc`` / ``mc`` run finished without meeting its tolerance (bias
   beyond ``grid.max_level``, ``--max-cost`` reached, MC bias too large); its
   result is stored and printed, with what to change;
@@ -316,7 +318,68 @@ _quiet_option = click.option(
 )
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]}, epilog=_EXIT_CODES)
+class _UsageLine(click.ClickException):
+    """A click usage error told as every other user error: one ``error: ...`` line, exit status 2."""
+
+    exit_code = 2
+
+    def __init__(self, exc: click.UsageError, fallback: click.Context | None) -> None:
+        ctx = exc.ctx or fallback
+        message = " ".join(exc.format_message().split()).removesuffix(".")
+        path = ctx.command_path if ctx is not None else "roughuq"
+        where = f"{ctx.info_name}: " if ctx is not None and ctx.parent is not None else ""
+        super().__init__(f"{where}{message}; see `{path} --help`")
+
+    def show(self, file: Any = None) -> None:
+        click.echo(f"error: {self.format_message()}", file=file, err=file is None)
+
+
+class _OneLineUsage:
+    """Mixin of the ``roughuq`` group and its commands: a usage error in their arguments as one line.
+
+    Unknown options, missing arguments and values a parameter type refuses
+    (``click.Choice``, ``click.IntRange``, ...) come out as
+    ``error: mlmc: No such option '--tool' ...; see `roughuq mlmc --help```
+    with exit status 2, like a :class:`RoughUQError` (:func:`_user_errors`),
+    instead of click's usage block. Parsing is where the command's context is
+    at hand (click leaves it out of some errors, e.g. an option without its value).
+    """
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        try:
+            return super().parse_args(ctx, args)  # type: ignore[misc]
+        except click.UsageError as exc:
+            raise _one_line(exc, ctx) from None
+
+
+class _Command(_OneLineUsage, click.Command):
+    """A ``roughuq`` command (:class:`_OneLineUsage`)."""
+
+
+class _Group(_OneLineUsage, click.Group):
+    """The ``roughuq`` group (:class:`_OneLineUsage`); also an unknown command as one line.
+
+    Help stays as it is: ``--help`` and a bare ``roughuq`` (whose help click
+    8.2+ raises as a usage error) print it.
+    """
+
+    command_class = _Command
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except click.UsageError as exc:
+            raise _one_line(exc, ctx) from None
+
+
+def _one_line(exc: click.UsageError, ctx: click.Context | None) -> click.ClickException:
+    """``exc`` as a :class:`_UsageLine`; click's help shown for no arguments is left to click."""
+    is_help = isinstance(exc, getattr(click.exceptions, "NoArgsIsHelpError", ()))
+    return exc if is_help else _UsageLine(exc, ctx)
+
+
+@click.group(cls=_Group, name="roughuq", context_settings={"help_option_names": ["-h", "--help"]},
+             epilog=_EXIT_CODES)
 @click.version_option(__version__, prog_name="roughuq")
 def main() -> None:
     """roughuq: statistics of rough-surface contact with Multilevel Monte Carlo.

@@ -108,7 +108,8 @@ def test_max_cost_refuses_a_plan_beyond_it_and_stops_a_run_at_it(screened):
 def test_a_max_cost_that_is_no_budget_is_refused_before_anything_is_printed(screened, command, max_cost):
     before = (screened / "results.h5").read_bytes()
     result = run(command, "--tol", "5", "--workers", "1", "--max-cost", max_cost, expect=2)
-    assert "Invalid value for '--max-cost'" in result.stderr and "is not a finite number > 0" in result.stderr
+    line = one_error_line(result)
+    assert f"{command}: Invalid value for '--max-cost'" in line and "is not a finite number > 0" in line
     assert "forecast" not in result.stderr and result.stdout == ""  # nan printed the forecast, then refused
     assert (screened / "results.h5").read_bytes() == before
 
@@ -505,6 +506,41 @@ def test_a_run_that_needs_a_screening_does_not_create_an_empty_study_from_its_co
     assert creating[args[0]] in " ".join(run(args[0], "--help").output.split())
 
 
+@pytest.mark.parametrize("args, text", [
+    (("mlmc", "--tool", "3"), "mlmc: No such option '--tool'"),
+    (("mlmc", "--tol"), "mlmc: Option '--tol' requires an argument"),
+    (("mlmc", "--executor", "foo"), "mlmc: Invalid value for '--executor': 'foo' is not one of 'local', 'dask'"),
+    (("sample", "--workers", "0"), "sample: Invalid value for '--workers': 0 is not in the range x>=1"),
+    (("sample", "--level", "0", "--indices", "0:2", "--out", "x.h5"), "sample: Missing option '--stage'"),
+    (("validate",), "validate: Missing argument 'CONFIG...'"),
+    (("report", "a.h5", "b.h5"), "report: Got unexpected extra argument (b.h5)"),
+    (("frob",), "No such command 'frob'"),
+    (("--frob",), "No such option '--frob'"),
+], ids=["unknown option", "option without value", "choice", "int range", "required option", "missing argument",
+        "extra argument", "unknown command", "unknown group option"])
+def test_click_usage_errors_are_one_line_naming_the_command_help(tmp_path, monkeypatch, args, text):
+    monkeypatch.chdir(tmp_path)
+    line = one_error_line(run(*args, expect=2))
+    command = "roughuq" if args[0] in ("frob", "--frob") else f"roughuq {args[0]}"
+    assert line.startswith(f"error: {text}") and line.endswith(f"; see `{command} --help`"), line
+    assert "Usage:" not in line and not list(tmp_path.iterdir())
+
+
+def test_help_and_a_bare_roughuq_still_print_the_help():
+    assert run("--help").output.startswith("Usage: roughuq [OPTIONS] COMMAND")
+    assert run("mlmc", "--help").output.startswith("Usage: roughuq mlmc [OPTIONS]")
+    bare = run(expect=2)  # click (8.2+) shows the help for no arguments with status 2
+    assert bare.output.startswith("Usage: roughuq [OPTIONS] COMMAND") and "Commands:" in bare.output
+
+
+def test_the_program_itself_prints_a_usage_error_as_one_line(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "rough_uq.cli", "screen", "--wokers", "1"], capture_output=True,
+                            text=True, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.startswith("error: screen: No such option '--wokers'") and result.stderr.count("\n") == 1
+    assert "screen --help`" in result.stderr
+
+
 def test_usage_and_help_say_what_the_commands_take():
     assert "[CONFIG]" in run("solve", "--help").output
     mlmc_help = run("mlmc", "--help").output
@@ -572,7 +608,8 @@ def test_sample_takes_the_largest_stage_and_index(screened):
 ], ids=["solve", "show"])
 def test_an_index_beyond_int64_is_refused_by_the_option(screened, args):
     result = run(*args, expect=2)
-    assert "Invalid value for '--index'" in result.stderr and f"0<=x<={INT64_MAX}" in result.stderr
+    line = one_error_line(result)
+    assert f"{args[0]}: Invalid value for '--index'" in line and f"0<=x<={INT64_MAX}" in line
     assert "Traceback" not in result.output
 
 
