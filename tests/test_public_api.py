@@ -255,6 +255,22 @@ def test_screening_needs_three_levels_and_says_why_as_the_config_does():
     assert "variance or distribution, which need no screening" in str(caught.value)
 
 
+@pytest.mark.parametrize("n", [16, 256])
+def test_a_solve_takes_every_load_of_its_range_and_refuses_the_rest_by_name(n):
+    """Loads from about 1e52 on 16^2 nodes (1e44 on 1024^2) to the old ceiling 1e100 ended in a ConvergenceError."""
+    from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD
+
+    heights = rough_uq.sample_surface(_problem().spectrum, n, np.random.default_rng(3))
+    rms = float(np.std(heights))
+    for load in (MIN_DIMENSIONLESS_LOAD * 1.01, MAX_DIMENSIONLESS_LOAD / 1.01):
+        solution = rough_uq.solve_contact(heights, mean_pressure=load * rms, system_size=1.0, max_iter=5)
+        assert np.all(np.isfinite(solution.pressure)) and math.isfinite(solution.error)
+    for load in (1e46, 1e60, 1e99):
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            rough_uq.solve_contact(heights, mean_pressure=load * rms, system_size=1.0, max_iter=5)
+        assert caught.value.name == "mean_pressure" and "1e+25]" in caught.value.allowed
+
+
 @pytest.mark.parametrize("run", ["mlmc", "mc", "variance", "distribution"])
 @pytest.mark.parametrize(
     ("field", "value"),

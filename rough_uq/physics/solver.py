@@ -133,10 +133,15 @@ rounding with plain Polonsky-Keer and to about 1e-10 of the largest pressure
 preconditioned (the single-precision increments of the displacement round
 differently in the two problems, and the iterates drift apart by that much;
 measured over 40 random problems scaled by 1e-300: at most 4e-11). ``load``
-must lie in ``[2.2e-308, 1e100]``: below, it is not a normal float; above, the
-rounding error of ``p = load + O(1)`` exceeds the surface itself by some 80
-orders of magnitude (no solve can succeed) and squares of the residual would
-overflow.
+must lie in ``[2.2e-308, 1e25]`` (:data:`MIN_DIMENSIONLESS_LOAD`,
+:data:`MAX_DIMENSIONLESS_LOAD`): below, it is not a normal float; above, the
+rounding error of ``p = load + O(1)`` exceeds the surface itself by some 9
+orders of magnitude (no solve can succeed: full contact sets in below
+``2 pi k_s <= 2e5``, and from some 1e7 to 1e8 times that load on no solve
+converges), and the preconditioned iteration breaks down further up: its
+convergence measure turned non-finite (a ``ConvergenceError``) from a load of
+about 1e52 on 16^2 nodes, 1e44 on 1024^2 and 1e43 on 2048^2 (alike for four
+spectra; some 1.3 decades less per doubling of ``n``: about 1e36 at 65536^2).
 
 A solve that reaches ``max_iter`` returns ``converged=False`` with the last
 iterate; no field of a returned solution is ever NaN or infinite.
@@ -172,9 +177,10 @@ _FASTMATH = {"reassoc"}
 #: every pass gains or ties (``scripts/profile_solver.py --threads 2``).
 PARALLEL_PASS_MIN_NODES = 512 * 512
 
-#: Range of the dimensionless load ``mean_pressure * L / (E* * s_rms)`` (module docstring).
-_MIN_LOAD = float(np.finfo(np.float64).tiny)
-_MAX_LOAD = 1e100
+#: Range of the dimensionless load ``mean_pressure * L / (E* * s_rms)`` a solve takes (module docstring,
+#: "Scaled units"); ``s_rms`` is the RMS of the heights it is given.
+MIN_DIMENSIONLESS_LOAD = float(np.finfo(np.float64).tiny)
+MAX_DIMENSIONLESS_LOAD = 1e25
 
 
 @dataclass(frozen=True)
@@ -639,7 +645,7 @@ def solve_contact(
         determined), so a defined answer would be an arbitrary convention.
         Loads are also rejected when the dimensionless load
         ``mean_pressure * system_size / (e_star * RMS height)`` lies outside
-        ``[2.2e-308, 1e100]`` (module docstring) or ``n^2 mean_pressure``
+        ``[2.2e-308, 1e25]`` (module docstring) or ``n^2 mean_pressure``
         overflows. Far beyond full contact (at the default ``tol``, from
         some ``1e7`` to ``1e8`` times the full-contact load on) rounding of
         ``p = mean_pressure + (variation)`` limits the attainable error; the
@@ -734,13 +740,13 @@ def _dimensionless_load(mean_pressure, system_size, e_star, s_rms, *, n_nodes: i
         load = math.ldexp(*_binary_ratio((mean_pressure, system_size), (e_star, s_rms)))
     except OverflowError:
         load = math.inf
-    if not _MIN_LOAD <= load <= _MAX_LOAD:
+    if not MIN_DIMENSIONLESS_LOAD <= load <= MAX_DIMENSIONLESS_LOAD:
         raise InvalidParameterError(
             "mean_pressure",
             mean_pressure,
             f"a dimensionless load mean_pressure * system_size / (e_star * RMS height) in "
-            f"[{_MIN_LOAD:.2g}, {_MAX_LOAD:.0e}]; here it is {load:.3g} (system_size = {system_size:g}, "
-            f"e_star = {e_star:g}, RMS height = {s_rms:.3g})",
+            f"[{MIN_DIMENSIONLESS_LOAD:.2g}, {MAX_DIMENSIONLESS_LOAD:.0e}]; here it is {load:.3g} "
+            f"(system_size = {system_size:g}, e_star = {e_star:g}, RMS height = {s_rms:.3g})",
         )
     return load
 
