@@ -400,9 +400,9 @@ def validate(config_paths: Sequence[str]) -> None:
 
     A config is valid if `roughuq screen` would accept it up to its first
     solve: the file and its fields, then the surface spectrum, loads and
-    quantities of interest built from them. Nothing is solved, so a load
-    outside the solver's range (a dimensionless load outside [2.2e-308,
-    1e100]) is refused only by the first solve.
+    quantities of interest built from them, and every load against the
+    solver's range (a dimensionless load p_mean L / (E* rms_height) in about
+    [2e-298, 1e15]). Nothing is solved.
     """
     from rough_uq.study.config import _physical_memory_bytes, load_config, solver_memory_bytes
 
@@ -434,21 +434,29 @@ def validate(config_paths: Sequence[str]) -> None:
         sys.exit(2)
 
 
-def _check_problem(config: Any) -> None:
-    """Build the contact problem of ``config`` as every command does before its first sample; solve nothing.
+def _check_problem(config: Any) -> Any:
+    """The contact model of ``config``, built and checked as every command needs it before its first sample.
 
     The model of :func:`~rough_uq.study.pipeline.build_model` (spectrum, loads,
     QoI units: e.g. a slope variance ``m2`` outside the float range is refused
-    here), then the check each solve starts with on the mean pressures it is
-    given (:func:`~rough_uq.physics.load_curve.check_mean_pressures`: a relative
-    load so large that the pressure overflows). Errors are those the commands give.
-    Commands that create study files call it first, so that a refused config
-    leaves no study file behind.
+    here), then every load against what a solve on the finest grid takes, as
+    a :class:`~rough_uq.problem.contact.ContactProblem` checks it
+    (:func:`~rough_uq.problem.contact.checked_mean_pressures`: a mean pressure
+    that overflows, a dimensionless load outside the solver's range), named as
+    the config field (``load.relative``). Nothing is solved. Commands that
+    create study files call it first, so that a refused config leaves no
+    study file behind.
     """
-    from rough_uq.physics.load_curve import check_mean_pressures
+    from rough_uq.problem.contact import checked_mean_pressures
+    from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
     from rough_uq.study.pipeline import build_model
 
-    check_mean_pressures(build_model(config).loads)
+    model = build_model(config)
+    kind = RelativeLoad if config.load.kind == "relative" else AbsoluteLoad
+    loads = tuple(kind(value) for value in config.load.values)
+    finest = config.grid.n_at(config.grid.max_level)
+    checked_mean_pressures(loads, spectrum=model.spectrum, e_star=model.e_star, finest=finest)
+    return model
 
 
 def _warm_kernels(model: Any, *, quiet: bool = False) -> None:
@@ -494,7 +502,6 @@ def solve(config_path: str | None, level: int, index: int) -> None:
     The time excludes compiling the kernels (first run only, announced).
     """
     from rough_uq.study.config import config_from_yaml_text, load_config
-    from rough_uq.study.pipeline import build_model
     from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch
 
     if config_path is None:
@@ -503,7 +510,7 @@ def solve(config_path: str | None, level: int, index: int) -> None:
         config = load_config(config_path)
     if level > config.grid.max_level:
         raise InvalidParameterError("--level", level, f"an integer in 0..{config.grid.max_level} (grid.max_level)")
-    model = build_model(config)
+    model = _check_problem(config)
     _warm_kernels(model)
     start = time.perf_counter()
     batch = compute_batch(model, stage=STAGE_SCREENING, level=level, indices=[index])

@@ -461,6 +461,12 @@ UNBUILDABLE = {
     "C underflows": {"surface": {**TINY_SURFACE, "rms_height": 1e-300}},
     "pressure overflows": {"load": {"relative": 1e308}},
     "a load of the curve overflows": {"load": {"relative": [0.2, 1e308]}},
+    # Loads every solve refused, after validate had said "valid" and screen had created the study file:
+    "dimensionless load 1.8e201": {"load": {"relative": 1e200}},
+    "dimensionless load 1e300": {"load": {"absolute": 1e300}},
+    "dimensionless load 1e60": {"load": {"absolute": 1e60}},  # the first solve: a ConvergenceError ('a bug')
+    "subnormal dimensionless load": {"load": {"relative": 1e-310}},
+    "a load of the curve out of range": {"load": {"relative": [0.1, 1e200]}},
 }
 
 
@@ -474,6 +480,22 @@ def test_validate_refuses_what_screen_refuses_before_solving_with_the_same_line(
     result = run("validate", str(good), str(config), expect=2)  # several files: each bad one is named
     assert result.stdout.startswith(f"{good}: valid") and f"{config}: valid" not in result.stdout
     assert result.stderr.strip() == line.replace("error: ", f"error: {config}: ", 1)
+
+
+@pytest.mark.parametrize("load, field", [
+    ({"relative": 1e200}, "load.relative"), ({"absolute": 1e-320}, "load.absolute"),
+    ({"relative": [0.1, 1e200]}, "load.relative.1"), ({"relative": 1e308}, "load.relative"),
+], ids=["relative 1e200", "absolute 1e-320", "curve", "pressure overflows"])
+def test_a_load_no_solve_takes_is_refused_by_name_before_a_study_file_exists(tmp_path, monkeypatch, load, field):
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "bad.yaml", tiny_config(load=load))
+    line = one_error_line(run("screen", str(config), "--workers", "1", "-q", expect=2))
+    value = load["relative" if "relative" in load else "absolute"]
+    value = value[-1] if isinstance(value, list) else value
+    assert line.startswith(f"error: {field}: got {value!r}; allowed: a ")
+    assert "2.2e-298, 1e+15]" in line or "total over the finest grid's 32^2 nodes is finite" in line
+    assert [path.name for path in tmp_path.iterdir()] == ["bad.yaml"]
+    assert line == one_error_line(run("solve", str(config), expect=2))  # the check before its solve
 
 
 @pytest.mark.parametrize("args", [

@@ -25,7 +25,7 @@ from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.pipeline import Study, build_model, run_estimation, run_screening
 from rough_uq.study.progress import Progress
 from rough_uq.study.store import MemoryStore
-from tests.study_configs import tiny_config
+from tests.study_configs import tiny_config, write_config
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -255,6 +255,43 @@ def test_screening_needs_three_levels_and_says_why_as_the_config_does():
     assert "variance or distribution, which need no screening" in str(caught.value)
 
 
+#: Loads whose problem was built although every solve of it refuses the load (L = E* = rms_height = 1 in
+#: _problem, so an absolute load is the dimensionless load; a relative one times sqrt(m2) = 18).
+LOADS_NO_SOLVE_TAKES = {
+    "dimensionless load 1.8e201": (rough_uq.RelativeLoad(1e200), "load.relative", "a dimensionless load"),
+    "dimensionless load 1e300": (rough_uq.AbsoluteLoad(1e300), "load.absolute", "a dimensionless load"),
+    "dimensionless load 1e60": (rough_uq.AbsoluteLoad(1e60), "load.absolute", "a dimensionless load"),  # a 'bug'
+    "subnormal dimensionless load": (rough_uq.RelativeLoad(1e-310), "load.relative", "a dimensionless load"),
+    "second load of a curve": (
+        [rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(1e200)], "load.relative.1", "a dimensionless load"
+    ),
+    "infinite pressure": (rough_uq.RelativeLoad(1e308), "load.relative", "here inf"),  # was accepted as inf
+    "total force overflows on 64^2 nodes": (rough_uq.AbsoluteLoad(1e305), "load.absolute", "64^2 nodes"),
+}
+
+
+@pytest.mark.parametrize("load, field, text", LOADS_NO_SOLVE_TAKES.values(), ids=LOADS_NO_SOLVE_TAKES.keys())
+def test_a_load_no_solve_takes_is_refused_when_the_problem_is_built(load, field, text):
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        _problem(load=load)
+    assert caught.value.name == field and text in caught.value.allowed
+
+
+def test_the_load_range_is_the_solvers_less_the_margin_and_a_load_at_its_ends_is_solved():
+    from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD
+    from rough_uq.problem.contact import LOAD_MARGIN
+
+    lowest, highest = MIN_DIMENSIONLESS_LOAD * LOAD_MARGIN, MAX_DIMENSIONLESS_LOAD / LOAD_MARGIN
+    for outside in (lowest / 1.001, highest * 1.001):
+        with pytest.raises(rough_uq.InvalidParameterError, match=r"in \[2.2e-298, 1e\+15\]"):
+            _problem(load=rough_uq.AbsoluteLoad(outside))
+    for end in (lowest, highest):  # a sample's own RMS height leaves them inside the solver's range
+        problem = _problem(load=rough_uq.AbsoluteLoad(end), max_iter=2)
+        for level in range(problem.max_level + 1):
+            fine, coarse, _ = problem.sampler(STAGE_SCREENING)(level, np.arange(2))
+            assert np.all(np.isfinite(fine)) and np.all(np.isfinite(coarse))
+
+
 @pytest.mark.parametrize("n", [16, 256])
 def test_a_solve_takes_every_load_of_its_range_and_refuses_the_rest_by_name(n):
     """Loads from about 1e52 on 16^2 nodes (1e44 on 1024^2) to the old ceiling 1e100 ended in a ConvergenceError."""
@@ -269,6 +306,21 @@ def test_a_solve_takes_every_load_of_its_range_and_refuses_the_rest_by_name(n):
         with pytest.raises(rough_uq.InvalidParameterError) as caught:
             rough_uq.solve_contact(heights, mean_pressure=load * rms, system_size=1.0, max_iter=5)
         assert caught.value.name == "mean_pressure" and "1e+25]" in caught.value.allowed
+
+
+def test_validate_refuses_the_loads_the_problem_refuses_with_the_same_message(tmp_path):
+    from click.testing import CliRunner
+
+    from rough_uq.cli import main
+
+    problem = _tiny_problem(tiny_config())
+    for value in (1e200, 1e-310, 1e308, [0.2, 1e200]):
+        loads = [rough_uq.RelativeLoad(v) for v in value] if isinstance(value, list) else rough_uq.RelativeLoad(value)
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            dataclasses.replace(problem, load=loads)
+        config = write_config(tmp_path / "load.yaml", tiny_config(load={"relative": value}))
+        result = CliRunner().invoke(main, ["validate", str(config)])
+        assert result.exit_code == 2 and result.stderr == f"error: {caught.value}\n"
 
 
 @pytest.mark.parametrize("run", ["mlmc", "mc", "variance", "distribution"])

@@ -178,7 +178,8 @@ _FASTMATH = {"reassoc"}
 PARALLEL_PASS_MIN_NODES = 512 * 512
 
 #: Range of the dimensionless load ``mean_pressure * L / (E* * s_rms)`` a solve takes (module docstring,
-#: "Scaled units"); ``s_rms`` is the RMS of the heights it is given.
+#: "Scaled units"); ``s_rms`` is the RMS of the heights it is given. A contact problem checks its loads
+#: against it when it is built (:func:`rough_uq.problem.contact.checked_mean_pressures`).
 MIN_DIMENSIONLESS_LOAD = float(np.finfo(np.float64).tiny)
 MAX_DIMENSIONLESS_LOAD = 1e25
 

@@ -12,6 +12,7 @@ a study config. :class:`ContactSampler` serves its samples to the drivers of
 
 from __future__ import annotations
 
+import math
 import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import KW_ONLY, dataclass, field
@@ -21,6 +22,7 @@ import numpy as np
 
 from rough_uq.errors import InvalidParameterError
 from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES
+from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
 from rough_uq.problem.batch import LevelBatch
 from rough_uq.problem.loads import (
@@ -37,7 +39,7 @@ from rough_uq.problem.sampler import ContactModel, compute_batch, is_coupled_sta
 if TYPE_CHECKING:
     from collections.abc import Iterable
 
-__all__ = ["ContactProblem", "ContactSampler", "BatchExecutor", "MAX_GRID"]
+__all__ = ["ContactProblem", "ContactSampler", "BatchExecutor", "MAX_GRID", "LOAD_MARGIN", "checked_mean_pressures"]
 
 
 class BatchExecutor(Protocol):
@@ -55,6 +57,85 @@ class BatchExecutor(Protocol):
 #: has; a larger ``max_level`` is a typo, and it would overflow the arithmetic of
 #: grid sizes (2**1000) before any memory check could say so.
 MAX_GRID = 65536
+
+
+#: Factor kept from each end of the solver's range of the dimensionless load
+#: (:data:`~rough_uq.physics.solver.MIN_DIMENSIONLESS_LOAD`, ``MAX_DIMENSIONLESS_LOAD``)
+#: when a problem's loads are checked with the spectrum's nominal RMS height.
+#: A solve divides by the RMS height of its own sample instead: a coarse grid
+#: misses the band above its Nyquist wave number, and a draw dominated by a
+#: few long-wavelength modes may be much rougher or smoother than the mean.
+#: No finite margin bounds that for every draw, but 1e10 is beyond any draw
+#: one will meet (even a surface of one random mode, whose variance is
+#: exponentially distributed, has a variance below 1e-20 of its mean with a
+#: probability of 1e-20), and it costs nothing: the range left, about
+#: [2e-298, 1e15], still takes every load a solve can converge at (full
+#: contact sets in below 2 pi k_s <= 2e5, and from some 1e8 times that load
+#: on no solve converges).
+LOAD_MARGIN = 1e10
+
+
+def checked_mean_pressures(
+    loads: Sequence[RelativeLoad | AbsoluteLoad], *, spectrum: SurfaceSpectrum, e_star: float, finest: int
+) -> tuple[float, ...]:
+    """The mean pressure of every load (unit of ``E*``), refused before any solve where a solve would refuse it.
+
+    A solve takes a mean pressure whose total over its nodes is a finite
+    float, and a dimensionless load ``mean_pressure * system_size / (e_star *
+    RMS height)`` in the range of :mod:`rough_uq.physics.solver`. Checked here
+    with the spectrum's nominal ``rms_height``, within :data:`LOAD_MARGIN` of
+    both ends, and on the ``finest`` grid (the most nodes).
+
+    Parameters
+    ----------
+    loads : sequence of RelativeLoad or AbsoluteLoad
+        One load, or the loads of a load curve in their order.
+    spectrum : SurfaceSpectrum
+    e_star : float
+        Effective modulus (finite, > 0).
+    finest : int
+        Nodes per side of the finest grid the problem may solve on.
+
+    Raises
+    ------
+    InvalidParameterError
+        Naming the load as a config does: ``load.relative`` or
+        ``load.absolute``, with the position in a load curve
+        (``load.relative.1``), the value, the allowed range and the
+        dimensionless load it gives.
+    """
+    lowest, highest = MIN_DIMENSIONLESS_LOAD * LOAD_MARGIN, MAX_DIMENSIONLESS_LOAD / LOAD_MARGIN
+    size, height = spectrum.system_size, spectrum.rms_height
+    pressures = []
+    for position, load in enumerate(loads):
+        name = "load." + ("relative" if isinstance(load, RelativeLoad) else "absolute")
+        name += f".{position}" if len(loads) > 1 else ""
+        pressure = load.mean_pressure(spectrum=spectrum, e_star=e_star)
+        if not (pressure > 0 and math.isfinite(pressure * float(finest) ** 2)):
+            raise InvalidParameterError(
+                name, load.value, f"a load whose mean pressure (here {pressure:.3g}, unit of E*) is a float > 0 and "
+                f"whose total over the finest grid's {finest}^2 nodes is finite"
+            )
+        # In logarithms: the dimensionless load itself may be beyond the float range.
+        exponent = math.log10(pressure) + math.log10(size) - math.log10(e_star) - math.log10(height)
+        if not math.log10(lowest) <= exponent <= math.log10(highest):
+            raise InvalidParameterError(
+                name, load.value, f"a dimensionless load mean_pressure * system_size / (e_star * rms_height) in "
+                f"[{lowest:.2g}, {highest:.2g}] (the solver's range within a margin of {LOAD_MARGIN:.0e} for a "
+                f"sample's RMS height); here it is {_power_of_ten(exponent)} (mean_pressure = "
+                f"{pressure:.3g}, system_size = {size:g}, e_star = {e_star:g}, rms_height = {height:g})"
+            )
+        pressures.append(pressure)
+    return tuple(pressures)
+
+
+def _power_of_ten(exponent: float) -> str:
+    """``10**exponent`` written with two significant digits, also beyond the float range (``3.2e+400``)."""
+    whole = math.floor(exponent)
+    mantissa = round(10 ** (exponent - whole), 1)
+    if mantissa >= 10:
+        mantissa, whole = mantissa / 10, whole + 1
+    return f"{mantissa:g}e{whole:+d}"
 
 
 def integer(name: str, value: object, minimum: int) -> int:
@@ -112,7 +193,10 @@ class ContactProblem:
         ``[RelativeLoad(0.01), RelativeLoad(0.05), RelativeLoad(0.1)]``
         (stored as a tuple). Each surface is then solved along the increasing
         loads with warm starts, and every QoI becomes one result column per
-        load, named ``<qoi>@<load>`` (:attr:`columns`).
+        load, named ``<qoi>@<load>`` (:attr:`columns`). Every load must give
+        a mean pressure that a solve on the finest grid takes
+        (:func:`checked_mean_pressures`: a dimensionless load
+        ``p_mean L / (E* rms_height)`` in about ``[2e-298, 1e15]``).
     qoi : str or sequence of str
         Quantities of interest, in column order of every result (names of
         :data:`~rough_uq.physics.qoi.QOI_NAMES`). Stored as a tuple.
@@ -154,7 +238,8 @@ class ContactProblem:
     Raises
     ------
     InvalidParameterError
-        Naming the field that is out of range.
+        Naming the field that is out of range (a load as ``load.relative`` or
+        ``load.absolute``, with its position in a load curve).
     """
 
     spectrum: SurfaceSpectrum
@@ -188,6 +273,7 @@ class ContactProblem:
         set_(self, "units", _units(self.units, names))
         set_(self, "e_star", positive("e_star", self.e_star))
         self._check_grids()
+        checked_mean_pressures(loads, spectrum=self.spectrum, e_star=self.e_star, finest=self.grid(self.max_level))
         _choice("connectivity", self.connectivity, CLUSTER_COUNTS)
         _choice("area_estimator", self.area_estimator, AREA_ESTIMATORS)
         if self.critical_pressure is not None:
