@@ -25,6 +25,11 @@ def is_real_number(value: object) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
+def is_integer(value: object) -> bool:
+    """An integer (numpy's too), not a boolean, a string nor a float with an integral value (``2.0``)."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
 class InvalidParameterError(RoughUQError, ValueError):
     """A physical or numerical parameter is outside its allowed range.
 
@@ -43,6 +48,17 @@ class InvalidParameterError(RoughUQError, ValueError):
         self.value = value
         self.allowed = allowed
         super().__init__(f"{name}: got {value!r}; allowed: {allowed}")
+
+
+def checked_integer(name: str, value: object, minimum: int) -> int:
+    """``value`` as an int, or :class:`InvalidParameterError` naming ``name`` unless an integer ``>= minimum``.
+
+    The integer check of every layer (:func:`is_integer`: booleans, strings and
+    floats are refused, never converted).
+    """
+    if not (is_integer(value) and value >= minimum):
+        raise InvalidParameterError(name, value, f"an integer >= {minimum}")
+    return int(value)
 
 
 class MisplacedOptionError(InvalidParameterError):

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError
+from rough_uq.errors import InvalidParameterError, checked_integer
 from rough_uq.physics.solver import ContactSolution, solve_contact
 
 __all__ = ["LoadCurveSolution", "solve_load_curve", "check_mean_pressures"]
@@ -185,8 +185,7 @@ def solve_load_curve(
         refuses.
     """
     pressures = check_mean_pressures(mean_pressures)
-    if isinstance(retry_iter, bool) or not isinstance(retry_iter, numbers.Integral) or retry_iter < 0:
-        raise InvalidParameterError("retry_iter", retry_iter, "an integer >= 0")
+    checked_integer("retry_iter", retry_iter, 0)
     given = _given_guesses(pressures, initial_pressure, initial_pressures)
     options = dict(system_size=system_size, e_star=e_star, tol=tol, threads=threads)
     distinct = np.unique(pressures)  # sorted increasingly

@@ -157,7 +157,7 @@ import numba
 import numpy as np
 
 from rough_uq.physics.elastic import HalfSpace, multiply_spectrum
-from rough_uq.errors import ConvergenceError, InvalidParameterError, is_real_number
+from rough_uq.errors import ConvergenceError, InvalidParameterError, checked_integer, is_integer, is_real_number
 from rough_uq.physics.fft import RealFFT, get_fft
 
 __all__ = ["ContactSolution", "solve_contact", "resample_pressure"]
@@ -474,7 +474,7 @@ def resample_pressure(pressure: np.ndarray, n: int) -> np.ndarray:
     -------
     ndarray, shape (n, n)
     """
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+    if not (is_integer(n) and n >= 1):
         # Checked first: n = 0 would divide by zero in the ratio below.
         raise InvalidParameterError("n", n, "a positive integer grid size")
     field = np.asarray(pressure, dtype=np.float64)
@@ -522,10 +522,8 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, th
             raise InvalidParameterError(name, value, "a finite number > 0")
     if not (is_real_number(tol) and 0 < tol < 1):
         raise InvalidParameterError("tol", tol, "a number in (0, 1)")
-    if isinstance(max_iter, bool) or not (isinstance(max_iter, (int, np.integer)) and max_iter >= 1):
-        raise InvalidParameterError("max_iter", max_iter, "an integer >= 1")
-    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
-        raise InvalidParameterError("threads", threads, "an integer >= 1")
+    checked_integer("max_iter", max_iter, 1)
+    checked_integer("threads", threads, 1)
     return s
 
 

@@ -57,7 +57,7 @@ from typing import Literal
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, is_real_number
+from rough_uq.errors import InvalidParameterError, is_integer, is_real_number
 from rough_uq.physics.fft import get_fft
 
 __all__ = [
@@ -356,7 +356,7 @@ class SurfaceSpectrum:
 def _check_grid_size(name: str, n: object, *, multiple: int = 2) -> int:
     """``n`` as an int, or :class:`InvalidParameterError` unless it is a positive multiple of ``multiple``."""
     allowed = f"an integer multiple of {multiple}, >= {multiple}"
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
+    if not is_integer(n):
         raise InvalidParameterError(name, n, allowed)
     n = int(n)
     if n < multiple or n % multiple:

@@ -13,14 +13,13 @@ a study config. :class:`ContactSampler` serves its samples to the drivers of
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import KW_ONLY, dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError
+from rough_uq.errors import InvalidParameterError, checked_integer, is_real_number
 from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES
 from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
@@ -136,13 +135,6 @@ def _power_of_ten(exponent: float) -> str:
     if mantissa >= 10:
         mantissa, whole = mantissa / 10, whole + 1
     return f"{mantissa:g}e{whole:+d}"
-
-
-def integer(name: str, value: object, minimum: int) -> int:
-    """``value`` as an int, or :class:`InvalidParameterError` naming ``name`` unless an integer ``>= minimum``."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
-        raise InvalidParameterError(name, value, f"an integer >= {minimum}")
-    return int(value)
 
 
 def _qoi_names(qoi: object) -> tuple[str, ...]:
@@ -286,13 +278,13 @@ class ContactProblem:
     def _check_grids(self) -> None:
         set_ = object.__setattr__
         k_r, k_s = self.spectrum.k_r, self.spectrum.k_s
-        n_0 = integer("coarsest", self.coarsest, 4)
+        n_0 = checked_integer("coarsest", self.coarsest, 4)
         if n_0 % 2 or not k_r < n_0 / 2:
             raise InvalidParameterError(
                 "coarsest", self.coarsest, f"an even integer >= 4 and > 2 k_r = {2 * k_r:g} (Nyquist)"
             )
         set_(self, "coarsest", n_0)
-        max_level = integer("max_level", self.max_level, 0)
+        max_level = checked_integer("max_level", self.max_level, 0)
         if n_0 * 2**max_level > MAX_GRID:
             raise InvalidParameterError(
                 "max_level", self.max_level, f"a finest grid coarsest * 2**max_level <= {MAX_GRID} (MAX_GRID)"
@@ -306,16 +298,16 @@ class ContactProblem:
 
     def _check_solver(self) -> None:
         set_ = object.__setattr__
-        set_(self, "seed", integer("seed", self.seed, 0))
+        set_(self, "seed", checked_integer("seed", self.seed, 0))
         tol = self.solver_tol
-        if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not 0 < tol < 1:
+        if not (is_real_number(tol) and 0 < tol < 1):
             raise InvalidParameterError("solver_tol", tol, "a number in (0, 1)")
         set_(self, "solver_tol", float(tol))
-        set_(self, "max_iter", integer("max_iter", self.max_iter, 1))
+        set_(self, "max_iter", checked_integer("max_iter", self.max_iter, 1))
         if not isinstance(self.warm_start, (bool, np.bool_)):
             raise InvalidParameterError("warm_start", self.warm_start, "True or False")
         set_(self, "warm_start", bool(self.warm_start))
-        set_(self, "threads", integer("threads", self.threads, 1))
+        set_(self, "threads", checked_integer("threads", self.threads, 1))
 
     def _build_model(self) -> ContactModel:
         scales = tuple(
@@ -383,7 +375,7 @@ class ContactProblem:
 
     def grid(self, level: int) -> int:
         """Nodes per side of ``level``, ``coarsest * 2**level``."""
-        return self.coarsest * 2 ** integer("level", level, 0)
+        return self.coarsest * 2 ** checked_integer("level", level, 0)
 
     def sampler(self, stage: int, *, executor: BatchExecutor | None = None) -> ContactSampler:
         """The level sampler (:mod:`rough_uq.multilevel.drivers` contract) of random stage ``stage``.
@@ -404,7 +396,7 @@ class ContactProblem:
                 "executor", executor, "None (this process) or an executor with run(model, items), e.g. "
                 "rough_uq.study.executors.PoolExecutor"
             )
-        return ContactSampler(self.model, stage=integer("stage", stage, 0), executor=executor)
+        return ContactSampler(self.model, stage=checked_integer("stage", stage, 0), executor=executor)
 
 
 def _ordered(batches: Sequence[LevelBatch], indices: np.ndarray) -> LevelBatch:

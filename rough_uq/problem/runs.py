@@ -21,14 +21,13 @@ the numbers agree to rounding, not bit for bit.)
 
 from __future__ import annotations
 
-import numbers
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer, is_integer
 from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import _check_fraction, plan
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
@@ -41,7 +40,7 @@ from rough_uq.multilevel.statistics import (
     level_statistics,
 )
 from rough_uq.problem.batch import STAGE_SCREENING
-from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, integer
+from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler
 from rough_uq.problem.sampler import modelled_cost, run_stage
 
 __all__ = ["MIN_SCREENED_LEVELS", "ScreeningResult", "mc", "mlmc", "run_id", "screen"]
@@ -160,14 +159,14 @@ def screen(
             f"0..{MIN_SCREENED_LEVELS - 1} ({why}); use max_level >= {MIN_SCREENED_LEVELS - 1}, or mc(level=...), "
             "variance or distribution, which need no screening",
         )
-    if isinstance(levels, bool) or not isinstance(levels, numbers.Integral) or levels < MIN_SCREENED_LEVELS:
+    if not (is_integer(levels) and levels >= MIN_SCREENED_LEVELS):
         raise InvalidParameterError("levels", levels, f"an integer >= {MIN_SCREENED_LEVELS} ({why})")
     levels = int(levels)
     if levels > problem.max_level + 1:
         raise InvalidParameterError(
             "levels", levels, f"at most max_level + 1 = {problem.max_level + 1} (levels 0..{problem.max_level} exist)"
         )
-    samples = integer("samples", samples, 2)
+    samples = checked_integer("samples", samples, 2)
     sampler = problem.sampler(STAGE_SCREENING, executor=executor)
     indices = np.arange(samples, dtype=np.int64)
     batches = [sampler.batch(level, indices) for level in range(levels)]
@@ -313,7 +312,7 @@ def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, scr
     """The level plain MC samples and its bias: ``level`` if given, else the finest level of the screening's plan."""
     statistics = _screening_statistics(screening)
     if level is not None:
-        level = integer("level", level, 0)
+        level = checked_integer("level", level, 0)
         if level > problem.max_level:
             raise InvalidParameterError("level", level, f"an integer in 0..max_level = {problem.max_level}")
         return level, bias
@@ -404,7 +403,7 @@ def mc(
 
 
 def _max_samples(max_samples: object) -> int | None:
-    return None if max_samples is None else integer("max_samples", max_samples, 1)
+    return None if max_samples is None else checked_integer("max_samples", max_samples, 1)
 
 
 def _run_to_end(events, *, max_samples: int | None, tol: np.ndarray) -> EstimationResult:

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import gc
 import multiprocessing
-import numbers
 import os
 import signal
 import sys
@@ -44,7 +43,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-from rough_uq.errors import ExecutorError, InvalidParameterError, RoughUQError
+from rough_uq.errors import ExecutorError, InvalidParameterError, RoughUQError, is_integer
 from rough_uq.problem.sampler import ContactModel, LevelBatch, compute_batch, warm_up
 
 __all__ = [
@@ -101,7 +100,7 @@ def check_workers(workers: object, name: str = "workers") -> int:
 
     Booleans and non-integral numbers are refused, never rounded.
     """
-    if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or not 1 <= workers <= max_workers():
+    if not (is_integer(workers) and 1 <= workers <= max_workers()):
         raise InvalidParameterError(name, workers, _workers_allowed())
     return int(workers)
 
