@@ -479,6 +479,21 @@ def test_two_swept_values_that_would_share_a_file_name_are_refused(values):
     assert "both would be the study file" in str(info.value)
 
 
+@pytest.mark.parametrize(("key", "values", "twin"), [
+    ("load.relative", ["0.1", "1e-1"], "1e-1 is the same as 0.1"),
+    ("load.relative", ["0.2", "0.10", "0.1"], "0.1 is the same as 0.10"),
+    ("surface.system_size", ["1", "2", "2.0"], "2.0 is the same as 2"),
+])
+def test_two_swept_values_that_make_one_study_are_refused(key, values, twin):
+    # Only the CLI refused them: a Python caller of sweep_configs / run_sweep computed the same study twice.
+    with pytest.raises(ConfigError, match=r"^--set: got .*; allowed: distinct values: ") as info:
+        sweep_configs(config_from_dict(_base()), key=key, values=values)
+    line = str(info.value)
+    assert f"got {key + '=' + ','.join(values)!r}" in line
+    assert line.endswith(f"distinct values: {twin} (one study, which would be computed twice)")
+    assert len(sweep_configs(config_from_dict(_base()), key=key, values=values[:-1])) == len(values) - 1
+
+
 def test_the_largest_grid_is_the_problem_layers():
     from rough_uq.problem.contact import MAX_GRID
 

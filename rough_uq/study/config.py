@@ -1410,8 +1410,10 @@ def sweep_configs(
         Unknown key, a value that makes the config invalid (the message
         names the value), a value whose text is no safe part of a file name
         (only letters, digits and ``. _ + -``: a ``/`` would make it a path),
-        and two values that would name the same file (``0.1`` twice, or
-        texts that differ only in case: one file on macOS and Windows).
+        two values that would name the same file (``0.1`` twice, or texts
+        that differ only in case: one file on macOS and Windows), and two
+        values that make the same study under two file names (``0.1`` and
+        ``1e-1``: it would be computed twice).
     """
     base = _resolved_dict(config)
     parts = key.split(".")
@@ -1428,11 +1430,13 @@ def sweep_configs(
         raise ConfigError(f"--fixed-spacing: only for surface.system_size (got {key!r}; allowed: surface.system_size)")
     out = []
     names: dict[str, str] = {}
+    studies: list[tuple[str, dict[str, Any]]] = []
+    given = f"--set: got {key + '=' + ','.join(map(str, values))!r}; allowed: distinct values"
     for text in values:
         name = _swept_file_name(config.output.path, key, str(text))
         if name.casefold() in names:
-            raise ConfigError(f"--set: got {key + '=' + ','.join(map(str, values))!r}; allowed: distinct values: "
-                              f"{text} is the same as {names[name.casefold()]} (both would be the study file {name})")
+            raise ConfigError(f"{given}: {text} is the same as {names[name.casefold()]} (both would be the study "
+                              f"file {name})")
         names[name.casefold()] = str(text)
         data = copy.deepcopy(base)
         target = data
@@ -1451,7 +1455,14 @@ def sweep_configs(
             data["grid"]["coarsest"] = int(round(n_0))
         data["output"]["path"] = os.path.join(os.path.dirname(config.output.path), name)
         try:
-            out.append((str(text), config_from_dict(data)))
+            swept = config_from_dict(data)
         except ConfigError as exc:
             raise ConfigError(f"--set {key}={text}: {exc}") from None
+        study = _resolved_dict(swept)
+        del study["output"]  # the one field every value changes: its file name
+        twin = next((earlier for earlier, other in studies if other == study), None)
+        if twin is not None:
+            raise ConfigError(f"{given}: {text} is the same as {twin} (one study, which would be computed twice)")
+        studies.append((str(text), study))
+        out.append((str(text), swept))
     return out
