@@ -205,6 +205,15 @@ def test_bad_options_are_refused(options, field):
         mlmc_cdf(PerturbedLimit(), **arguments)
 
 
+def test_a_budget_stop_on_level_0_does_not_claim_the_tolerance():
+    # The 32 initial samples of level 0 are drawn before any cost is known; their sup-norm error is below 0.3,
+    # and with "bias 0" the run claimed the tolerance met.
+    problem = PerturbedLimit()
+    result = mlmc_cdf(problem, thresholds=grid(problem, 9), tol=0.3, bandwidth=BANDWIDTH, max_cost=1e-9)
+    assert result.stop_reason == "max_cost" and result.levels.tolist() == [0] and result.rmse < 0.3
+    assert not result.is_bias_estimated and result.bias == 0.0 and not result.tol_met
+
+
 def test_too_few_samples_and_unbracketed_quantiles_are_refused():
     with pytest.raises(InvalidParameterError, match="at least 2 samples"):
         cdf_level_term(np.zeros(1), None, 0, thresholds=[0.0, 1.0], bandwidth=0.5)

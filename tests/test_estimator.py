@@ -380,6 +380,27 @@ def test_max_cost_stops_honestly():
     assert mc_result.stop_reason == "max_cost" and not mc_result.tol_met and mc_result.cost <= 500.0
 
 
+@pytest.mark.parametrize(("tol", "max_cost", "levels"), [(10.0, 1e-9, [0]), (10.0, 30.0, [0, 1])])
+def test_a_budget_stop_before_the_bias_is_estimated_does_not_claim_the_tolerance(tol, max_cost, levels):
+    # Levels 0 and 1 cost 10 and 20: the run stops below min_finest_level = 2, before its first bias test.
+    # Its statistical error (about 0.4) is far below tol; it reported "bias 0, estimated" (level 0 alone,
+    # or the bias of the unsampled level 2) and claimed the tolerance met.
+    result = mlmc(Synthetic(seed=2), tol=tol, max_cost=max_cost)
+    assert result.stop_reason == "max_cost" and result.levels.tolist() == levels and result.stat_error < tol
+    assert not result.is_bias_estimated and result.bias_estimate == 0.0 and not result.tol_met
+
+
+def test_a_budget_stop_estimates_the_bias_of_the_finest_sampled_level():
+    # Levels 0..2 take 166 + 2 * 46 + 4 * 21 = 342; the bias test adds level 3, whose 10 samples (80) do not fit.
+    # The bias was that of level 3, estimated with E[Y_3] = 0 for the level that has no sample.
+    result = mlmc(Synthetic(seed=2), tol=0.2, max_cost=350.0)
+    assert result.stop_reason == "max_cost" and result.levels.tolist() == [0, 1, 2] and result.is_bias_estimated
+    means = result.statistics.mean_diff
+    expected = estimated_bias(rates=result.rates, level=2, mean_diff=means[2], coarser=means[1:2])
+    assert result.bias_estimate == pytest.approx(expected[0], rel=1e-12)
+    assert result.tol_met == bool(result.rmse <= 0.2)
+
+
 def test_mc_without_bias_reports_it_unknown_and_a_large_bias_fails():
     result = mc(Synthetic(seed=4), tol=EPS, level=2)
     assert not result.is_bias_estimated and result.bias_estimate == 0.0 and result.tol_met

@@ -259,6 +259,49 @@ def test_max_level_and_max_cost_stop_honestly():
     assert capped.stop_reason == "max_cost" and capped.cost <= 20_000.0 and not capped.tol_met
 
 
+@pytest.mark.parametrize(("tol", "max_cost", "levels"), [(60.0, 1e-9, [0]), (0.5, 40.0, [0]), (3.0, 100.0, [0, 1])])
+def test_a_budget_stop_before_the_bias_is_estimated_does_not_claim_the_tolerance(tol, max_cost, levels):
+    # Level 0 costs 32 and level 1 64: the budget stops the run below min_finest_level = 2, before its first
+    # bias test. The run claimed the tolerance met: on level 0 with "bias 0" and a statistical error of 0.42,
+    # on levels 0..1 with an RMS error of 2.2 from a bias that level 1 alone can only guess.
+    result = mlmc_variance(PerturbedLimit(), tol=tol, max_cost=max_cost)
+    assert result.stop_reason == "max_cost" and result.levels.tolist() == levels
+    assert result.stat_error[0] < tol
+    assert not result.is_bias_estimated and result.bias[0] == 0.0 and not result.tol_met
+
+
+def test_a_budget_stop_after_the_first_bias_test_is_met_only_by_its_rms_error():
+    # Levels 0..2 cost 32 * (1 + 2 + 4) = 224; level 3 (32 * 8) does not fit into 300.
+    result = mlmc_variance(PerturbedLimit(), tol=2.0, max_cost=300.0)
+    assert result.stop_reason == "max_cost" and result.levels.tolist() == [0, 1, 2]
+    assert result.is_bias_estimated and result.bias[0] > 0
+    assert result.tol_met == bool(result.rmse[0] <= 2.0)
+    # One level short of the minimum: not estimated, whatever the error.
+    assert not mlmc_variance(PerturbedLimit(), tol=2.0, max_cost=300.0, min_finest_level=3).is_bias_estimated
+
+
+@pytest.mark.parametrize("max_cost", [1e-9, 32.0])
+def test_a_batch_cap_below_n_initial_only_splits_the_initial_samples_within_a_budget(max_cost):
+    # A level is started only if the budget pays for its n_initial samples, and then gets all of them:
+    # the variance of an h2 term needs four. Capped at 2 per batch, the budget stopped level 0 (first
+    # batch always drawn) or level 2 after 2 samples, and the term of that level refused them.
+    problem = PerturbedLimit(seed=3)
+    capped = mlmc_variance(problem, tol=0.01, n_initial=8, batch_size=2, max_cost=max_cost)
+    uncapped = mlmc_variance(problem, tol=0.01, n_initial=8, batch_size=None, max_cost=max_cost)
+    assert capped.stop_reason == uncapped.stop_reason == "max_cost"
+    assert capped.n_samples.tolist() == uncapped.n_samples.tolist() == [8] * len(capped.levels)
+    np.testing.assert_array_equal(capped.estimate, uncapped.estimate)
+    assert not capped.tol_met and not capped.is_bias_estimated
+
+
+def test_given_samples_of_level_0_alone_estimate_no_bias():
+    fine, _, _ = PerturbedLimit(seed=5)(0, np.arange(1000))
+    result = variance_from_samples(fine=[fine], coarse=[fine], tol=10.0)
+    assert result.stat_error[0] < 10.0 and not result.is_bias_estimated and not result.tol_met
+    two = [PerturbedLimit(seed=5)(level, np.arange(1000)) for level in range(2)]
+    assert variance_from_samples(fine=[d[0] for d in two], coarse=[d[1] for d in two], tol=10.0).tol_met
+
+
 def test_several_qois_get_one_tolerance_each():
     def two(level, indices):
         fine, coarse, cost = PerturbedLimit(seed=2)(level, indices)

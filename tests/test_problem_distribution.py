@@ -83,3 +83,17 @@ def test_bad_column_and_unbracketed_quantiles_say_what_is_wrong():
     assert np.all(result.cdf.cdf == 0)
     with pytest.raises(rough_uq.EstimationError, match="bracket"):
         result.quantiles()
+
+
+def test_a_budget_that_stops_on_level_0_leaves_the_tolerance_not_met():
+    # The 8 initial samples of level 0 are drawn before any cost is known; the budget ends the run there,
+    # where no bias can be estimated. Their statistical error (about 2 %^2, the CDF's about 0.1) was below
+    # tol, and the runs reported the tolerance met.
+    problem = _problem()
+    spread = rough_uq.variance(problem, tol=20.0, max_cost=1e-9, n_initial=8)
+    assert spread.stop_reason == "max_cost" and spread.levels.tolist() == [0] and spread.n_samples.tolist() == [8]
+    assert spread.stat_error[0] < 20.0 and not spread.is_bias_estimated and not spread.tol_met
+    law = rough_uq.distribution(problem, tol=0.3, thresholds=np.linspace(0, 60, 13), max_cost=1e-9, n_initial=8)
+    assert law.cdf.stop_reason == "max_cost" and law.cdf.levels.tolist() == [0] and law.cdf.rmse < 0.3
+    assert not law.cdf.is_bias_estimated and not law.cdf.tol_met
+

@@ -250,7 +250,8 @@ class CdfEstimate:
     stat_error : ndarray, shape (m,)
         Statistical error of ``cdf_raw`` per threshold.
     bias : float
-        Remaining bias (maximum over the thresholds) from the decay of the level terms.
+        Remaining bias (maximum over the thresholds) from the decay of the level terms; 0 where it is not
+        estimated (``is_bias_estimated``).
     rmse : float
         ``sqrt(max_j stat_error_j^2 + bias^2)``, the sup-norm RMS error estimate.
     bandwidths : ndarray, shape (n_levels,)
@@ -285,8 +286,13 @@ class CdfEstimate:
         return self.target.stop_reason
 
     @property
+    def is_bias_estimated(self) -> bool:
+        """Whether ``bias`` is an estimate (:class:`~rough_uq.multilevel.targets.TargetEstimate`)."""
+        return self.target.is_bias_estimated
+
+    @property
     def tol_met(self) -> bool:
-        """``rmse <= tol`` (False without a tolerance)."""
+        """``rmse <= tol`` with an estimated bias (False without a tolerance or that estimate)."""
         return self.target.tol_met
 
 

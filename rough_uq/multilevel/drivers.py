@@ -86,7 +86,15 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    (``stop_reason = "tol_met"``), when the bias test fails on ``max_level``
    (``"max_level"``), or before a batch would exceed ``max_cost``
    (``"max_cost"``). ``tol_met`` is then ``sum_l V_l/N_l + bias^2 <= eps^2``
-   for every QoI, with the sample variances and the remaining bias.
+   for every QoI, with the sample variances and the remaining bias of the
+   estimate, whose finest level is the finest one sampled (``max_cost`` may
+   stop a run before it samples a level it added). The bias is estimated
+   only once the run has sampled its levels ``base..max(min_finest_level,
+   base + 2)``, the fewest its bias test ever uses (``is_bias_estimated``);
+   a run that ``max_cost`` stops earlier reports the bias as 0, not
+   estimated, and does not meet its tolerance, however small its
+   statistical error (it plainly telescopes its sampled levels, without
+   Richardson extrapolation).
 
 Richardson extrapolation (``richardson=True``)
 -----------------------------------------------
@@ -321,14 +329,18 @@ class EstimationResult:
     theta : float
         Bias share of ``eps^2``.
     tol_met : bool
-        ``stat_error^2 + bias_estimate^2 <= tol^2`` for every QoI.
+        ``stat_error^2 + bias_estimate^2 <= tol^2`` for every QoI, with an
+        estimated bias (MC without a ``bias``: the statistical error alone).
     stop_reason : str
         ``"tol_met"``, ``"max_cost"``, ``"max_level"`` (MLMC: the bias needs a
         level beyond ``max_level``) or ``"bias"`` (MC: the statistical target is
         met but the given bias is too large).
     is_bias_estimated : bool
         False for MC without a ``bias`` (``bias_estimate`` is then 0 and
-        ``tol_met`` concerns the statistical error only).
+        ``tol_met`` concerns the statistical error only), and for MLMC
+        stopped by ``max_cost`` before the levels its bias test needs were
+        sampled (module docstring, step 4: ``bias_estimate`` 0, ``tol_met``
+        False).
     richardson : str
         ``"off"`` (not asked for), ``"applied"`` (``estimate``, ``stat_error``
         and ``bias_estimate`` are those of the extrapolated estimate) or
@@ -997,8 +1009,10 @@ def iter_mlmc(
         the run stops with ``stop_reason = "max_cost"``. The prediction is the
         level's mean cost so far, or the nearest sampled level's scaled by
         ``2^gamma`` per level; the first batch of level 0 is always drawn. The
-        total can exceed ``max_cost`` only by a misprediction of a level's
-        first batch. None (or ``math.inf``): no budget.
+        total can exceed ``max_cost`` only by that batch or a misprediction of
+        a level's first batch. A run stopped before its bias is estimated
+        does not meet ``tol`` (module docstring, step 4). None (or
+        ``math.inf``): no budget.
     batch_size : int or None
         Largest batch per sampler call (None: no cap). Smaller batches give
         more frequent events and store writes.
@@ -1171,6 +1185,8 @@ class _MlmcRun(_Run):
         self.fallback, self.dropped = start.fallback, start.dropped
         self.driver = start.fallback if start.fallback is not None else _floor_rates(options.tol.size)
         self.extrapolation, self.refusal = start.extrapolation, start.refusal
+        # The fewest levels the bias test uses: min_finest_level, and two levels above the base for the rates.
+        self.bias_levels = max(options.min_finest_level, start.base + 2)
 
     @property
     def cost_rate(self) -> float:
@@ -1205,17 +1221,30 @@ class _MlmcRun(_Run):
             max(s.n, int(n), hierarchy.floor) if s.level >= base else 0 for s, n in zip(hierarchy.samples, wanted)
         ]
 
+    def finest_sampled(self) -> int:
+        """The finest level with samples, where the estimate ends (levels are sampled in order)."""
+        return self.hierarchy.sampled()[-1].level
+
+    def is_bias_estimated(self) -> bool:
+        """Levels ``base..bias_levels`` have samples (module docstring, step 4)."""
+        return self.finest_sampled() >= self.bias_levels
+
     def bias(self) -> np.ndarray:
-        """Remaining bias of the run's estimate (plain or extrapolated) from the pooled level means."""
+        """Remaining bias of the run's estimate (plain or extrapolated) from the pooled level means; 0 unestimated.
+
+        The estimate ends on the finest sampled level: a level the run added
+        but ``max_cost`` left unsampled is not part of it.
+        """
+        if not self.is_bias_estimated():
+            return np.zeros(self.n_qoi)
+        finest = self.finest_sampled()
         means, _ = self.hierarchy.bias_means(self.n_qoi)
-        means = means[self.hierarchy.base :]  # row 0 is the base level, whose Y is Q
+        means = means[self.hierarchy.base : finest + 1]  # row 0 is the base level, whose Y is Q
         if self.extrapolation == "active":
             return richardson_bias(means[1:], self.driver.alpha)
         # The two levels below the finest, as far as they are differences (above the base level).
         coarser = means[1:-1][-2:]
-        return estimated_bias(
-            rates=self.driver, level=self.hierarchy.n_levels - 1, mean_diff=means[-1], coarser=coarser
-        )
+        return estimated_bias(rates=self.driver, level=finest, mean_diff=means[-1], coarser=coarser)
 
     def after_round(self) -> Iterator[Event]:
         """Check the extrapolation, then the bias: stop, or add a level (module docstring, steps 3 and 4)."""
@@ -1262,6 +1291,10 @@ class _MlmcRun(_Run):
         hierarchy = self.hierarchy
         if self.extrapolation == "pending":
             self.refusal = _run_instability(hierarchy) or "the ratios were never checked"
+        elif self.extrapolation == "active" and not self.is_bias_estimated():
+            self.refusal = (f"max_cost stopped the run before levels {hierarchy.base}..{self.bias_levels} had "
+                            "samples")
+        if self.refusal and self.extrapolation != "refused":
             self.extrapolation = "refused"
             yield RichardsonRefused(levels=hierarchy.levels(), reason=self.refusal)
         statistics = hierarchy.statistics()
@@ -1307,9 +1340,9 @@ def _mlmc_result(run: _MlmcRun, statistics: LevelStatistics) -> EstimationResult
         rates=driver,
         tol=_readonly(tol),
         theta=run.options.theta,
-        tol_met=bool(np.all(stat_variance + bias**2 <= tol**2 * (1 + 1e-12))),
+        tol_met=run.is_bias_estimated() and bool(np.all(stat_variance + bias**2 <= tol**2 * (1 + 1e-12))),
         stop_reason=run.stop_reason,
-        is_bias_estimated=True,
+        is_bias_estimated=run.is_bias_estimated(),
         richardson={"active": "applied", "refused": "refused"}.get(run.extrapolation, "off"),
         richardson_reason=run.refusal,
         dropped_levels=run.dropped,

@@ -70,6 +70,22 @@ batches of at most ``batch_size``) the terms are recomputed, the rates refitted 
 once every level has (within 1 %) its samples, the bias test adds level
 ``L+1`` or stops (``"tol_met"``, ``"max_level"``); ``"max_cost"`` stops
 before a batch would exceed ``max_cost``.
+
+The ``n_initial`` samples of a level are one unit, which a batch cap only
+splits: a level is started only if ``max_cost`` pays for all of them (level
+0 always: no cost is known before its first sample) and then gets all of
+them, so a level's term never rests on fewer. The total can therefore exceed
+``max_cost`` by the initial samples of level 0 and by a misprediction of a
+level's cost (extrapolated from the nearest sampled level with ``gamma``).
+
+The bias is *estimated* only once levels ``0..min_finest_level`` have their
+samples (``TargetEstimate.is_bias_estimated``): the driver never tests the
+bias with fewer levels, and level 0 alone has no difference to measure it
+from. A run that ``max_cost`` stops earlier reports the bias as 0, not
+estimated, and does not meet its tolerance, however small its statistical
+error: its RMS error is unknown. A run stopped later meets it when its
+statistical error and estimated bias do (``sum Var + bias^2 <= eps^2``), as
+one that stops with ``"tol_met"`` does.
 """
 
 from __future__ import annotations
@@ -160,7 +176,7 @@ class TargetEstimate:
     stat_error : ndarray, shape (n_components,)
         ``sqrt(sum_l Var(T_l))``.
     bias : ndarray, shape (n_groups,)
-        Remaining bias per group (module docstring); 0 with a single level.
+        Remaining bias per group (module docstring); 0 where it is not estimated.
     levels : ndarray of int, shape (n_levels,)
         Levels ``0..L``.
     n_samples : ndarray of int, shape (n_levels,)
@@ -182,6 +198,10 @@ class TargetEstimate:
     stop_reason : str
         ``"tol_met"``, ``"max_level"``, ``"max_cost"`` or ``"given"`` (from
         given samples, :func:`telescope`).
+    is_bias_estimated : bool
+        Whether ``bias`` is an estimate: the adaptive driver sampled levels
+        ``0..min_finest_level`` (module docstring, "Adaptive driver"); given
+        terms reach level 1 at least. Without it ``tol_met`` is False.
     """
 
     estimate: np.ndarray
@@ -199,16 +219,20 @@ class TargetEstimate:
     tol: np.ndarray
     theta: float
     stop_reason: str
+    is_bias_estimated: bool
 
     @property
     def rmse(self) -> np.ndarray:
-        """Estimated RMS error per group, ``sqrt(max_c stat_error_c^2 + bias^2)``, shape (n_groups,)."""
+        """Estimated RMS error per group, ``sqrt(max_c stat_error_c^2 + bias^2)``, shape (n_groups,).
+
+        Without an estimated bias (``is_bias_estimated`` False) the statistical error alone.
+        """
         return np.sqrt(_group_max(self.stat_error**2, self.groups) + self.bias**2)
 
     @property
     def tol_met(self) -> bool:
-        """``rmse <= tol`` in every group (False without a tolerance)."""
-        return bool(np.all(self.rmse**2 <= self.tol**2 * (1 + 1e-12)))
+        """``rmse <= tol`` in every group, with an estimated bias (False without a tolerance or that estimate)."""
+        return self.is_bias_estimated and bool(np.all(self.rmse**2 <= self.tol**2 * (1 + 1e-12)))
 
     @property
     def finest_level(self) -> int:
@@ -365,7 +389,8 @@ def telescope(
     Returns
     -------
     TargetEstimate
-        With ``stop_reason = "given"``.
+        With ``stop_reason = "given"``; the bias is estimated from two
+        levels on (level 0 alone has no difference to measure it from).
     """
     if len(terms) == 0:
         raise EstimationError("telescope needs the term of at least one level")
@@ -380,15 +405,19 @@ def telescope(
     return _estimate(
         means, variances, n_samples, groups, alpha, beta, 0.0,
         cost=0.0 if costs is None else float(np.sum(costs)), tol=tol_array, theta=_check_fraction("theta", theta),
-        stop_reason="given",
+        stop_reason="given", is_bias_estimated=len(terms) > 1,
     )
 
 
-def _estimate(means, variances, n_samples, groups, alpha, beta, gamma, *, cost, tol, theta, stop_reason):
+def _estimate(
+    means, variances, n_samples, groups, alpha, beta, gamma, *, cost, tol, theta, stop_reason, is_bias_estimated
+):
+    n_groups = int(np.max(groups)) + 1
+    bias = _remaining_bias(means, variances, groups, alpha) if is_bias_estimated else np.zeros(n_groups)
     return TargetEstimate(
         estimate=_readonly(np.sum(means, axis=0)),
         stat_error=_readonly(np.sqrt(np.sum(np.maximum(variances, 0.0), axis=0))),
-        bias=_readonly(_remaining_bias(means, variances, groups, alpha)),
+        bias=_readonly(bias),
         levels=_readonly(np.arange(len(means))),
         n_samples=_readonly(n_samples),
         term_means=_readonly(means),
@@ -401,6 +430,7 @@ def _estimate(means, variances, n_samples, groups, alpha, beta, gamma, *, cost, 
         tol=_readonly(tol),
         theta=theta,
         stop_reason=stop_reason,
+        is_bias_estimated=bool(is_bias_estimated),
     )
 
 
@@ -452,6 +482,19 @@ def _affordable(levels: list[_Level], level: int, wanted: int, max_cost: float |
     return affordable_count(max_cost - spent, unit, wanted)
 
 
+def _batch_count(levels: list[_Level], s: _Level, wanted: int, max_cost: float | None, gamma: float,
+                 n_initial: int) -> int:
+    """Samples to draw now on level ``s``, at most ``wanted``; 0 where ``max_cost`` ends the run.
+
+    The ``n_initial`` samples of a level are one unit (module docstring):
+    the level is started only if the budget pays for all of them, and once
+    started it gets them all, whatever a batch cap splits them into.
+    """
+    if s.n == 0 and _affordable(levels, s.level, n_initial, max_cost, gamma) < n_initial:
+        return 0
+    return max(_affordable(levels, s.level, wanted, max_cost, gamma), min(wanted, n_initial - s.n))
+
+
 def _draw(
     sampler: Sampler,
     levels: list[_Level],
@@ -464,11 +507,8 @@ def _draw(
     """Draw the missing samples level by level; False if ``max_cost`` stopped it (module docstring)."""
     for s in levels:
         while s.n < planned[s.level]:
-            wanted = int(min(planned[s.level] - s.n, batch_cap))
-            n = _affordable(levels, s.level, wanted, max_cost, gamma)
-            # A level is not started unless the budget allows the samples its term variance needs
-            # (a batch cap below n_initial only splits them into several batches).
-            if n == 0 or (n < wanted and s.n + n < n_initial):
+            n = _batch_count(levels, s, int(min(planned[s.level] - s.n, batch_cap)), max_cost, gamma, n_initial)
+            if n == 0:
                 return False
             batch = _call_sampler(sampler, s.level, s.n, n)
             s.add(batch.fine, batch.coarse, batch.cost)
@@ -574,7 +614,10 @@ def adaptive_mlmc(
     max_level : int
         Finest level allowed.
     max_cost : float, optional
-        Stop before a batch would make the total cost exceed it.
+        Stop before a batch would make the total cost exceed it; the
+        initial samples of level 0 are always drawn (module docstring). A
+        run stopped before levels ``0..min_finest_level`` have their samples
+        estimates no bias and does not meet ``tol``.
     batch_size : int, optional
         Largest number of samples per sampler call.
     max_samples : int, optional
@@ -622,9 +665,8 @@ def adaptive_mlmc(
             levels.append(_Level(len(levels)))
             planned = _targets(levels, terms + [None], n_initial, tol_groups, theta, beta, gamma)
             refuse_large_plan(planned, max_samples=max_samples, tol=tol_groups, advice="loosen the tolerance")
+    # Level 0 always has its samples, and levels are sampled in order (module docstring).
     sampled_levels = [s for s in levels if s.n]
-    if not sampled_levels or sampled_levels[0].level != 0:
-        raise EstimationError("max_cost is too small for the initial samples of level 0")
     terms = [s.term(term) for s in sampled_levels]
     groups = terms[0].groups
     if tol_groups is None:
@@ -636,6 +678,7 @@ def adaptive_mlmc(
     return _estimate(
         means, variances, n_samples, groups, alpha, beta, gamma,
         cost=sum(s.spent for s in levels), tol=tol_groups, theta=theta, stop_reason=stop_reason,
+        is_bias_estimated=len(sampled_levels) > min_finest_level,
     )
 
 
