@@ -18,6 +18,7 @@ from rough_uq.study.pipeline import (
     StudySampler,
     _events,
     build_model,
+    check_target_budget,
     create_study,
     forecast_run,
     merge_shards,
@@ -33,7 +34,7 @@ from rough_uq.study.pipeline import (
 )
 from rough_uq.study.progress import Progress
 from rough_uq.study.records import read_run_records, read_screening_record
-from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage
+from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, modelled_cost, run_stage
 
 MLMC_STAGE = run_stage("mlmc", "test")
 MC_STAGE = run_stage("mc", "test")
@@ -262,21 +263,47 @@ def test_a_target_run_refused_on_the_way_names_the_option_the_user_gave():
     assert all(run.status == "refused" for run in runs)
 
 
-@pytest.mark.parametrize(("max_cost", "named"), [(None, "estimation.max_cost 0.001"), (0.002, "--max-cost 0.002")])
-def test_a_target_run_refused_for_its_budget_names_the_budget_the_user_gave(monkeypatch, max_cost, named):
-    import rough_uq.study.pipeline as pipeline
+def _initial_cost_floor(study: Study) -> float:
+    """Modelled cost of a target run's initial samples (4 on each of levels 0..2) if no solve iterated."""
+    return 4 * sum(float(modelled_cost(study.model, level, np.zeros((1, 2)))[0]) for level in range(3))
 
-    def refusing(*args, **kwargs):
-        raise EstimationError("max_cost is too small for the initial samples of level 0")
 
-    study = _study(estimation={"initial_samples": 4, "batch_size": 4, "max_cost": 0.001})
-    monkeypatch.setattr(pipeline, "estimate_target", refusing)
+@pytest.mark.parametrize(("max_cost", "named"), [(None, "estimation.max_cost 1e-09"), (2e-9, "--max-cost 2e-09")])
+@pytest.mark.parametrize("target", ["variance", "cdf"])
+def test_a_target_budget_below_its_initial_samples_is_refused_before_any_sample(max_cost, named, target):
+    # The first batch of level 0 was drawn whatever the budget, and the run, stopped there, claimed --tol-var 60 met.
+    study = _study(estimation={"initial_samples": 4, "batch_size": 4, "max_cost": 1e-9})
+    request = cdf_request(study.config, column="contact_area", thresholds=np.linspace(0.0, 60.0, 13))
     with pytest.raises(EstimationError) as info:
-        run_target(study, target="variance", tol=np.array([60.0]), executor=SerialExecutor(), progress=QUIET,
+        run_target(study, target=target, tol=np.array([60.0 if target == "variance" else 0.3]),
+                   request=None if target == "variance" else request, executor=SerialExecutor(), progress=QUIET,
                    max_cost=max_cost)
-    assert str(info.value) == f"{named} is too small for the initial samples of level 0"
-    (run,) = read_run_records(study.store)
-    assert run.status == "refused" and run.reason == str(info.value)
+    text, option = str(info.value), named.split()[0]
+    assert text.startswith(f"{named} is too small for the initial samples of levels 0..2 (4 each), which cost at "
+                           f"least {_initial_cost_floor(study):.3g} reference seconds")
+    assert text.endswith(f"raise {option} (or lower estimation.initial_samples)")
+    assert study.store.read_runs() == [] and study.store.levels() == []  # nothing computed, nothing recorded
+    with pytest.raises(EstimationError, match=f"^{named} is too small "):
+        check_target_budget(study.config, max_cost=max_cost)  # the check alone, e.g. before a study file exists
+    check_target_budget(study.config, max_cost=1.01 * _initial_cost_floor(study))
+
+
+def test_a_target_run_that_its_budget_stops_before_the_bias_is_estimated_does_not_meet_its_tolerance():
+    # Just above the least cost of the initial samples: level 0 (drawn first, whatever it costs) takes
+    # the budget. Its statistical error is far below --tol-var 60, and the run claimed the tolerance met.
+    study = _study()
+    record = run_target(study, target="variance", tol=np.array([60.0]), executor=SerialExecutor(), progress=QUIET,
+                        max_cost=1.01 * _initial_cost_floor(study))
+    outcome = record.outcome
+    assert record.status == "finished" and outcome.stop_reason == "max_cost" and outcome.levels == (0,)
+    assert outcome.stat_error[0] < 60.0 and outcome.bias_estimate == (0.0,)
+    assert not outcome.is_bias_estimated and not outcome.tol_met
+    from rough_uq.report.summary import format_run
+
+    lines = format_run(record, study.config.qoi_names, {"contact_area": "%"})
+    assert lines[0] == "variance contact_area=60: NOT MET (max_cost)"
+    assert lines[1].startswith("  stopped at --max-cost before the levels its bias estimate needs were sampled;")
+    assert lines[2].endswith(f"(stat. error {outcome.stat_error[0]:.2g} <= tol 60, bias not estimated)")
 
 
 def test_a_target_run_passes_other_refusals_on_as_they_are(monkeypatch):

@@ -32,13 +32,25 @@ from rough_uq.problem.contact import BatchExecutor, ContactProblem
 from rough_uq.problem.runs import _problem, _tolerances, _warn_not_converged, run_id
 from rough_uq.problem.sampler import run_stage
 
-__all__ = ["DistributionResult", "distribution", "estimate_target", "variance"]
+__all__ = ["DistributionResult", "distribution", "estimate_target", "initial_finest_level", "variance"]
 
 #: Quantiles reported by default: the 5 %, 50 % and 95 % points.
 DEFAULT_PROBABILITIES = (0.05, 0.5, 0.95)
 
 #: The targets :func:`estimate_target` runs.
 TARGETS = ("variance", "cdf")
+
+#: The finest level a run starts on by default (two levels >= 1 to fit the rates from), if the problem has it.
+MIN_FINEST_LEVEL = 2
+
+
+def initial_finest_level(max_level: int, min_finest_level: int | None = None) -> int:
+    """The finest level a target run starts on: ``min_finest_level``, by default ``min(MIN_FINEST_LEVEL, max_level)``.
+
+    The run samples levels ``0..`` this one first, ``n_initial`` samples
+    each; its bias is estimated once they are drawn.
+    """
+    return min(MIN_FINEST_LEVEL, max_level) if min_finest_level is None else min_finest_level
 
 
 def estimate_target(
@@ -82,7 +94,7 @@ def estimate_target(
     options = dict(
         theta=theta,
         n_initial=n_initial,
-        min_finest_level=min(2, max_level) if min_finest_level is None else min_finest_level,
+        min_finest_level=initial_finest_level(max_level, min_finest_level),
         max_level=max_level,
         max_cost=max_cost,
         batch_size=batch_size,

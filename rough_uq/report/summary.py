@@ -378,7 +378,7 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     if outcome.tol_met:
         lines = [f"{head}: tolerance met", f"  {where}"]
     else:
-        lines = [f"{head}: NOT MET ({reason})", f"  {_STOP_REASONS.get(reason, reason)}; {where}"]
+        lines = [f"{head}: NOT MET ({reason})", f"  {_stop_text(outcome)}; {where}"]
     if run.method == "variance":
         lines += [_variance_line(outcome, q, name, run.tol[q], units) for q, name in enumerate(qoi_names)]
     elif run.method == "cdf":
@@ -398,13 +398,29 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     return lines
 
 
-def _estimate_line(outcome: Any, q: int, label: str, unit: str, tol: float) -> str:
-    """``  label = value ± error unit (RMSE r <= tol t, bias b)`` for column ``q`` of a finished run."""
-    rmse = outcome.rmse[q]
+def _stop_text(outcome: Any) -> str:
+    """Why a run that missed its tolerance stopped, in words."""
+    reason = outcome.stop_reason
+    if reason == "max_cost" and not outcome.is_bias_estimated:
+        return "stopped at --max-cost before the levels its bias estimate needs were sampled"
+    return _STOP_REASONS.get(reason, reason)
+
+
+def _error_text(outcome: Any, rmse: float, tol: float, what: str = "") -> str:
+    """``RMSE r <= tol t``, or ``stat. error e <= tol t`` where the bias is not estimated (the RMSE is unknown)."""
     relation = "<=" if rmse <= tol * (1 + 1e-12) else ">"
+    label = f"{what}RMSE" if outcome.is_bias_estimated else f"{what}stat. error"
+    return f"{label} {_g(rmse, 2)} {relation} tol {_g(tol)}"
+
+
+def _estimate_line(outcome: Any, q: int, label: str, unit: str, tol: float) -> str:
+    """``  label = value ± error unit (RMSE r <= tol t, bias b)`` for column ``q`` of a finished run.
+
+    Without a bias estimate: ``(stat. error e <= tol t, bias not estimated)``.
+    """
     bias = f"bias {_g(outcome.bias_estimate[q], 2)}" if outcome.is_bias_estimated else "bias not estimated"
     return (f"  {label} = {_value_error(outcome.estimate[q], outcome.stat_error[q])}{unit} "
-            f"(RMSE {_g(rmse, 2)} {relation} tol {_g(tol)}, {bias})")
+            f"({_error_text(outcome, outcome.rmse[q], tol)}, {bias})")
 
 
 def _qoi_line(outcome: Any, q: int, name: str, tol: float, units: dict[str, str]) -> str:
@@ -433,12 +449,14 @@ def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
         return []
     unit = _column_unit(units, distribution.column)
     s = distribution.thresholds
-    rmse = outcome.rmse[0]
-    relation = "<=" if rmse <= tol * (1 + 1e-12) else ">"
+    error = _error_text(outcome, outcome.rmse[0], tol, "sup-norm ")
+    if outcome.is_bias_estimated:
+        error += f" (stat. {_g(max(outcome.stat_error), 2)}, bias {_g(outcome.bias_estimate[0], 2)})"
+    else:
+        error += " (bias not estimated)"
     lines = [
         f"  F(s) = P({distribution.column} <= s) at {len(s)} thresholds {_g(s[0], 4)} .. {_g(s[-1], 4)}{_unit(unit)}",
-        f"  sup-norm RMSE {_g(rmse, 2)} {relation} tol {_g(tol)} (stat. {_g(max(outcome.stat_error), 2)}, "
-        f"bias {_g(outcome.bias_estimate[0], 2)})",
+        f"  {error}",
     ]
     return lines + [f"  {_quantile_text(q, unit)}" for q in distribution.quantiles]
 

@@ -80,7 +80,7 @@ from rough_uq.study.records import (
 from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
-from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target
+from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target, initial_finest_level
 from rough_uq.problem.runs import MIN_SCREENED_LEVELS, run_id
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
@@ -108,6 +108,7 @@ __all__ = [
     "run_screening",
     "run_estimation",
     "run_target",
+    "check_target_budget",
     "target_run_id",
     "cdf_request",
     "CdfRequest",
@@ -1436,9 +1437,17 @@ def run_target(
         driver raises :class:`~rough_uq.errors.EstimationError`, e.g. for a
         plan of more than ``MAX_PLANNED_SAMPLES`` samples; the reason, raised
         on, names the options of ``roughuq mlmc``, ``--tol-var NAME=EPS`` or
-        ``--tol-cdf EPS`` and ``--max-cost``, where the driver says ``tol`` and
-        ``max_cost``). A rerun of a finished run keeps the finished record
-        until it finishes itself.
+        ``--tol-cdf EPS``, where the driver says ``tol``). A rerun of a
+        finished run keeps the finished record until it finishes itself. A
+        run that ``max_cost`` stops before its bias is estimated does not
+        meet its tolerance (:mod:`rough_uq.multilevel.targets`).
+
+    Raises
+    ------
+    EstimationError
+        Before any sample and any record, for a ``max_cost`` below the least
+        cost of the run's initial samples (:func:`check_target_budget`),
+        naming ``--max-cost X`` or ``estimation.max_cost X``.
     """
     tol = np.asarray(tol, dtype=float)
     if target == "cdf" and (request is None or tol.shape != (1,)):
@@ -1453,7 +1462,7 @@ def run_target(
             f"an integer >= {MIN_TARGET_SAMPLES} for variance and cdf runs (the variance of a level's "
             "variance term needs four samples)",
         )
-    budget_option = "estimation.max_cost" if max_cost is None else "--max-cost"
+    check_target_budget(study.config, max_cost=max_cost)
     max_cost = estimation.max_cost if max_cost is None else max_cost
     key = target_run_id(study, target=target, tol=tol, request=request)
     earlier = _earlier_run(study, key)
@@ -1469,8 +1478,7 @@ def run_target(
     title = f"{target} " + ", ".join(f"{n}={t:g}" for n, t in zip(names, tol))
     option = _TARGET_OPTIONS[target]
     given = ", ".join(f"{n}={t:g}" for n, t in zip(names, tol)) if target == "variance" else f"{tol[0]:g}"
-    budget = budget_option if max_cost is None else f"{budget_option} {max_cost:g}"
-    with _run_recorded(study, record, earlier), _naming_options(f"{option} {given}", option, budget):
+    with _run_recorded(study, record, earlier), _naming_options(f"{option} {given}", option):
         result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
     outcome = _target_outcome(study, target=target, sampler=sampler, result=result, request=request,
                               diagnostics=diagnostics, clock=clock)
@@ -1482,34 +1490,67 @@ def run_target(
 #: The option of ``roughuq mlmc`` that asks for a target run, and gives its tolerance.
 _TARGET_OPTIONS = {"variance": "--tol-var", "cdf": "--tol-cdf"}
 
-#: The refusals of the targets' driver that name its arguments: a plan of too many samples, a budget too small.
+#: The refusal of the targets' driver that names its argument: a plan of too many samples.
 _CORE_TOL_REFUSAL = re.compile(r"tol (?:\S+, )*\S+ (?=needs about )")
-_CORE_BUDGET_REFUSAL = re.compile(r"max_cost (?=is too small )")
+
+
+def check_target_budget(config: StudyConfig, *, max_cost: float | None = None) -> None:
+    """Refuse, before any sample, a variance or cdf run whose budget cannot pay for its initial samples.
+
+    The run estimates its bias only once it has ``estimation.initial_samples``
+    samples on each of levels ``0..min(2, grid.max_level)``
+    (:mod:`rough_uq.multilevel.targets`); their modelled cost is at least that
+    of solves that need no iteration at all. A budget below that bound could
+    only stop the run before its bias is estimated, a result that cannot meet
+    its tolerance (the mean's forecast refuses a predicted overrun alike,
+    :func:`forecast_run`). ``max_cost`` is ``--max-cost`` (reference seconds);
+    None takes ``estimation.max_cost``, named so in the message; no budget at
+    all passes.
+
+    Raises
+    ------
+    EstimationError
+        ``--max-cost X is too small for the initial samples of levels 0..2
+        (N each), which cost at least ...: raise --max-cost (or lower
+        estimation.initial_samples)`` (``estimation.max_cost X`` where that is
+        the budget).
+    """
+    option = "estimation.max_cost" if max_cost is None else "--max-cost"
+    max_cost = config.estimation.max_cost if max_cost is None else max_cost
+    if max_cost is None:
+        return
+    model = build_model(config)
+    finest = initial_finest_level(config.grid.max_level)
+    n_initial = config.estimation.initial_samples
+    no_iterations = np.zeros((1, 2))
+    least = n_initial * sum(float(modelled_cost(model, level, no_iterations)[0]) for level in range(finest + 1))
+    if max_cost < least:
+        raise EstimationError(
+            f"{option} {max_cost:g} is too small for the initial samples of levels 0..{finest} ({n_initial} each), "
+            f"which cost at least {least:.3g} reference seconds of modelled cost (even if every solve converged at "
+            f"once); without them no bias is estimated: raise {option} (or lower estimation.initial_samples)"
+        )
 
 
 @contextmanager
-def _naming_options(tolerance: str, option: str, budget: str) -> Iterator[None]:
-    """Re-raise the driver's refusals naming what the user gave instead of the driver's arguments.
+def _naming_options(tolerance: str, option: str) -> Iterator[None]:
+    """Re-raise the driver's refusal of a tolerance naming what the user gave instead of the driver's ``tol``.
 
     The multilevel core (and the Python API, :func:`rough_uq.variance` and
     :func:`rough_uq.distribution`, which keep its words) says ``tol 1e-06
-    needs about ... : loosen the tolerance`` and ``max_cost is too small
-    ...``; a run of ``roughuq mlmc`` says ``--tol-var contact_area=1e-06
-    needs about ...: loosen --tol-var`` (``tolerance`` is the option with
-    its value, ``option`` the bare option) and names ``budget``
-    (``--max-cost X`` or ``estimation.max_cost X``). Other errors pass as
-    they are.
+    needs about ... : loosen the tolerance``; a run of ``roughuq mlmc`` says
+    ``--tol-var contact_area=1e-06 needs about ...: loosen --tol-var``
+    (``tolerance`` is the option with its value, ``option`` the bare option).
+    Other errors pass as they are.
     """
     try:
         yield
     except EstimationError as exc:
         text = str(exc)
-        tol_words, budget_words = _CORE_TOL_REFUSAL.match(text), _CORE_BUDGET_REFUSAL.match(text)
+        tol_words = _CORE_TOL_REFUSAL.match(text)
         if tol_words:
             rest = text[tol_words.end():].replace("loosen the tolerance", f"loosen {option}")
             raise EstimationError(f"{tolerance} {rest}") from None
-        if budget_words:
-            raise EstimationError(f"{budget} {text[budget_words.end():]}") from None
         raise
 
 
@@ -1556,7 +1597,7 @@ def _target_outcome(
     return RunOutcome(
         finished=utc_timestamp(),
         estimate=_floats(estimate.estimate), stat_error=_floats(estimate.stat_error),
-        bias_estimate=_floats(estimate.bias), is_bias_estimated=len(estimate.levels) > 1,
+        bias_estimate=_floats(estimate.bias), is_bias_estimated=estimate.is_bias_estimated,
         rmse=_floats(estimate.rmse), levels=tuple(int(l) for l in estimate.levels),
         n_samples=tuple(int(n) for n in estimate.n_samples), cost=float(estimate.cost), seconds=seconds,
         mc_cost=mc_cost, mc_seconds_predicted=mc_cost * seconds_per_cost, n_computed=sampler.n_computed,
