@@ -97,3 +97,11 @@ def test_a_budget_that_stops_on_level_0_leaves_the_tolerance_not_met():
     assert law.cdf.stop_reason == "max_cost" and law.cdf.levels.tolist() == [0] and law.cdf.rmse < 0.3
     assert not law.cdf.is_bias_estimated and not law.cdf.tol_met
 
+
+def test_a_problem_of_one_level_is_refused_naming_max_level():
+    # The driver said "min_finest_level: got 0", an argument the caller never gave.
+    problem = _problem(max_level=0)
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^max_level: got 0; allowed: an integer >= 1"):
+        rough_uq.variance(problem, tol=1.0)
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^max_level: got 0; allowed: an integer >= 1"):
+        rough_uq.distribution(problem, tol=0.1, thresholds=[0.0, 1.0])

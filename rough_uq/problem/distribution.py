@@ -84,13 +84,17 @@ def estimate_target(
     tol : ndarray
         Tolerances: one per column (variance) or one (cdf, dimensionless).
     max_level : int
-        Finest level allowed.
+        Finest level allowed, >= 1 (the targets telescope level differences).
     thresholds, qoi, bandwidth
         For ``"cdf"``: as in :func:`distribution` (``bandwidth`` default twice
         the mean threshold spacing).
     theta, n_initial, min_finest_level, max_cost, batch_size, max_samples
         As for :func:`variance` (``min_finest_level`` default ``min(2, max_level)``).
     """
+    if max_level < 1:
+        # The driver would name its min_finest_level (min(2, 0) = 0), which the caller never gave.
+        raise InvalidParameterError("max_level", max_level, "an integer >= 1: variance and distribution runs "
+                                    "estimate level differences")
     options = dict(
         theta=theta,
         n_initial=n_initial,
