@@ -80,6 +80,7 @@ _EXPORTS = {
     "InvalidParameterError": "rough_uq.errors",
     "ConvergenceError": "rough_uq.errors",
     "EstimationError": "rough_uq.errors",
+    "PlanTooLargeError": "rough_uq.errors",
     "EstimationWarning": "rough_uq.multilevel.statistics",
 }
 
@@ -120,11 +121,18 @@ __all__ = [
     "InvalidParameterError",
     "ConvergenceError",
     "EstimationError",
+    "PlanTooLargeError",
     "EstimationWarning",
 ]
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time names load on first use
-    from rough_uq.errors import ConvergenceError, EstimationError, InvalidParameterError, RoughUQError
+    from rough_uq.errors import (
+        ConvergenceError,
+        EstimationError,
+        InvalidParameterError,
+        PlanTooLargeError,
+        RoughUQError,
+    )
     from rough_uq.multilevel.distribution import CdfEstimate, Quantiles
     from rough_uq.multilevel.drivers import EstimationResult
     from rough_uq.multilevel.targets import TargetEstimate

@@ -10,6 +10,7 @@ that input was skipped; the run goes on.
 from __future__ import annotations
 
 import numbers
+from collections.abc import Sequence
 
 
 class RoughUQError(Exception):
@@ -114,6 +115,56 @@ class StudyFileError(RoughUQError):
 
 class EstimationError(RoughUQError):
     """The estimators cannot proceed (e.g. too few levels to fit rates)."""
+
+
+class PlanTooLargeError(EstimationError):
+    """A driver's plan asks for more than ``max_samples`` samples in all: the tolerance is out of reach.
+
+    Raised before the planned samples are drawn. The message names the
+    argument as the drivers know it, ``tol 1e-06 needs about 2e+11 samples
+    (N_l ...), more than max_samples = 10000000: loosen the tolerance``; a
+    caller that took the tolerance under another name (a command-line option)
+    re-raises the refusal in its words with :meth:`named`.
+
+    Parameters
+    ----------
+    n_planned : sequence of int
+        Samples planned per level, coarsest first.
+    total : float
+        Samples planned in all.
+    max_samples : int
+        The limit the plan exceeds.
+    tol : sequence of float
+        The tolerances the plan is for (one per QoI, or per group of QoIs).
+    advice : str
+        What to change, ending the message.
+    tolerance : str, optional
+        How the message names the tolerance; default ``tol`` and the values
+        of ``tol`` (``"tol 1e-06, 0.001"``).
+    """
+
+    def __init__(
+        self, *, n_planned: Sequence[int], total: float, max_samples: int, tol: Sequence[float], advice: str,
+        tolerance: str | None = None,
+    ) -> None:
+        self.n_planned = tuple(int(n) for n in n_planned)
+        self.total = float(total)
+        self.max_samples = int(max_samples)
+        self.tol = tuple(float(eps) for eps in tol)
+        self.advice = advice
+        self.tolerance = "tol " + ", ".join(f"{eps:g}" for eps in self.tol) if tolerance is None else tolerance
+        plan_text = " ".join(str(n) for n in self.n_planned)
+        super().__init__(
+            f"{self.tolerance} needs about {self.total:.3g} samples (N_l {plan_text}), "
+            f"more than max_samples = {self.max_samples}: {advice}"
+        )
+
+    def named(self, *, tolerance: str, advice: str) -> PlanTooLargeError:
+        """The same refusal naming the tolerance ``tolerance`` (e.g. ``"--tol-cdf 1e-05"``), ending in ``advice``."""
+        return PlanTooLargeError(
+            n_planned=self.n_planned, total=self.total, max_samples=self.max_samples, tol=self.tol, advice=advice,
+            tolerance=tolerance,
+        )
 
 
 class ExecutorError(RoughUQError):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from mlmc_problems import GbmEuler, Synthetic, indexed_normals, sample_levels
 
-from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError
 from rough_uq.multilevel.drivers import (
     BatchDone,
     EstimationResult,
@@ -28,6 +28,7 @@ from rough_uq.multilevel.drivers import (
     mc,
     mlmc,
     plan,
+    refuse_large_plan,
 )
 from rough_uq.multilevel.rates import estimated_bias
 from rough_uq.multilevel.richardson import ratio_instability, richardson_bias, richardson_weight
@@ -662,3 +663,20 @@ def test_a_screening_with_unstable_ratios_refuses_richardson_at_the_start():
     assert events[1].reason.startswith("screening: the level means change sign between levels 1 and 2")
     assert sum(isinstance(e, RichardsonRefused) for e in events) == 1
     assert events[-1].result.richardson == "refused"
+
+
+def test_a_plan_beyond_max_samples_is_refused_with_its_numbers():
+    # The refusal carries the plan, so that a caller can word it in its own names without parsing the message.
+    refuse_large_plan(np.array([60, 40]), max_samples=100, tol=np.array([0.5]), advice="loosen the tolerance")
+    refuse_large_plan(np.array([10**9]), max_samples=None, tol=np.array([0.5]), advice="loosen the tolerance")
+    with pytest.raises(PlanTooLargeError) as caught:
+        refuse_large_plan(np.array([90.0, 11.0]), max_samples=100, tol=np.array([1e-6, 1e-3]), advice="do less")
+    refusal = caught.value
+    assert isinstance(refusal, EstimationError)
+    assert str(refusal) == "tol 1e-06, 0.001 needs about 101 samples (N_l 90 11), more than max_samples = 100: do less"
+    assert (refusal.n_planned, refusal.total, refusal.max_samples) == ((90, 11), 101.0, 100)
+    assert refusal.tol == (1e-6, 1e-3) and refusal.advice == "do less"
+    named = refusal.named(tolerance="--tol-var a=1e-06, b=0.001", advice="loosen --tol-var")
+    assert isinstance(named, PlanTooLargeError) and (named.n_planned, named.tol) == (refusal.n_planned, refusal.tol)
+    assert str(named) == ("--tol-var a=1e-06, b=0.001 needs about 101 samples (N_l 90 11), "
+                          "more than max_samples = 100: loosen --tol-var")

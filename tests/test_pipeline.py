@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rough_uq.study.config import config_from_dict, load_config
-from rough_uq.errors import EstimationError, InvalidParameterError, StudyFileError
+from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError, StudyFileError
 from rough_uq.study.executors import Executor, PoolExecutor, SerialExecutor
 from rough_uq.multilevel.drivers import PlanUpdated
 from rough_uq.study.pipeline import (
@@ -252,6 +252,9 @@ def test_a_target_run_refused_on_the_way_names_the_option_the_user_gave():
     text = str(info.value)
     assert text.startswith("--tol-var contact_area=1e-06, mean_gap=0.001 needs about ") and "max_samples" in text
     assert text.endswith(": loosen --tol-var") and "tol 1e-06" not in text
+    # Still the driver's refusal, with its numbers: worded from them, not from the driver's message.
+    assert isinstance(info.value, PlanTooLargeError) and info.value.tol == (1e-6, 1e-3)
+    assert f"about {info.value.total:.3g} samples (N_l {' '.join(map(str, info.value.n_planned))})" in text
     request = cdf_request(study.config, column="contact_area", thresholds=np.linspace(10.0, 40.0, 31))
     with pytest.raises(EstimationError) as info:
         run_target(study, target="cdf", tol=np.array([1e-5]), request=request, executor=SerialExecutor(),
@@ -261,6 +264,23 @@ def test_a_target_run_refused_on_the_way_names_the_option_the_user_gave():
     assert sorted(run.reason.split(" needs")[0] for run in runs) == ["--tol-cdf 1e-05",
                                                                       "--tol-var contact_area=1e-06, mean_gap=0.001"]
     assert all(run.status == "refused" for run in runs)
+
+
+def test_a_target_run_passes_on_other_refusals_of_the_driver_as_they_are(monkeypatch):
+    # Only the driver's PlanTooLargeError is reworded; a message that merely reads like one is not parsed.
+    import rough_uq.study.pipeline as pipeline
+
+    def refusing(*args, **kwargs):
+        raise EstimationError("tol 1e-06 needs about 3 samples: loosen the tolerance")
+
+    study = _study()
+    monkeypatch.setattr(pipeline, "estimate_target", refusing)
+    with pytest.raises(EstimationError) as info:
+        run_target(study, target="variance", tol=np.array([1e-6]), executor=SerialExecutor(), progress=QUIET)
+    assert str(info.value) == "tol 1e-06 needs about 3 samples: loosen the tolerance"
+    assert not isinstance(info.value, PlanTooLargeError)
+    (run,) = read_run_records(study.store)
+    assert run.status == "refused" and run.reason == str(info.value)
 
 
 def _initial_cost_floor(study: Study) -> float:

@@ -66,6 +66,7 @@ PUBLIC = [
     "InvalidParameterError",
     "ConvergenceError",
     "EstimationError",
+    "PlanTooLargeError",
     "EstimationWarning",
 ]
 
@@ -557,7 +558,7 @@ def test_a_tolerance_out_of_reach_is_refused_before_its_samples_are_drawn():
     mlmc_run = functools.partial(rough_uq.mlmc, problem, tol=1e-6)
     mc_run = functools.partial(rough_uq.mc, problem, tol=1e-6, level=0)
     for run in (mlmc_run, mc_run):
-        with pytest.raises(rough_uq.EstimationError, match=r"needs about [0-9.e+]+ samples .*max_samples = 10000000"):
+        with pytest.raises(rough_uq.PlanTooLargeError, match=r"needs about [0-9.e+]+ samples .*max_samples = 10000000"):
             run()
         with pytest.raises(rough_uq.InvalidParameterError) as caught:
             run(max_samples=0)
@@ -584,8 +585,10 @@ def test_variance_and_distribution_refuse_a_tolerance_out_of_reach_before_drawin
         functools.partial(rough_uq.variance, problem, tol=1e-4),
         functools.partial(rough_uq.distribution, problem, tol=1e-5, thresholds=thresholds),
     ):
-        with pytest.raises(rough_uq.EstimationError, match=TOO_MANY_SAMPLES) as caught:
+        with pytest.raises(rough_uq.PlanTooLargeError, match=TOO_MANY_SAMPLES) as caught:
             run()
         assert str(caught.value).startswith("tol ") and "--tol" not in str(caught.value)  # the argument's name
+        assert caught.value.total > caught.value.max_samples == 10_000_000
+        assert caught.value.total == sum(caught.value.n_planned) and caught.value.tol[0] == run.keywords["tol"]
         with pytest.raises(rough_uq.InvalidParameterError, match="max_samples"):
             run(max_samples=0)

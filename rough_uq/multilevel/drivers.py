@@ -143,7 +143,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
+from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError, is_real_number
 from rough_uq.multilevel.allocation import (
     Plan,
     _check_fraction,
@@ -1395,17 +1395,15 @@ def mlmc(sampler: Sampler, *, tol: float | np.ndarray, **options: object) -> Est
 
 
 def refuse_large_plan(n_planned, *, max_samples: int | None, tol: np.ndarray, advice: str) -> None:
-    """Raise :class:`~rough_uq.errors.EstimationError` for a plan of more than ``max_samples`` samples in all.
+    """Raise :class:`~rough_uq.errors.PlanTooLargeError` for a plan of more than ``max_samples`` samples in all.
 
     ``n_planned`` are the samples per level; ``advice`` ends the message (what
     to change). ``max_samples`` None: no limit.
     """
     total = float(np.sum(n_planned))
     if max_samples is not None and total > max_samples:
-        plan_text = " ".join(f"{int(n)}" for n in n_planned)
-        raise EstimationError(
-            f"tol {', '.join(f'{eps:g}' for eps in np.ravel(tol))} needs about {total:.3g} samples "
-            f"(N_l {plan_text}), more than max_samples = {max_samples}: {advice}"
+        raise PlanTooLargeError(
+            n_planned=n_planned, total=total, max_samples=max_samples, tol=np.ravel(tol), advice=advice
         )
 
 

@@ -32,7 +32,6 @@ import hashlib
 import json
 import math
 import os
-import re
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -45,7 +44,14 @@ import numpy as np
 
 from rough_uq import __version__
 from rough_uq.study.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
-from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError, is_real_number
+from rough_uq.errors import (
+    EstimationError,
+    InvalidParameterError,
+    PlanTooLargeError,
+    RoughUQError,
+    StudyFileError,
+    is_real_number,
+)
 from rough_uq.multilevel.drivers import (
     MAX_PLANNED_SAMPLES,
     BatchDone,
@@ -1490,9 +1496,6 @@ def run_target(
 #: The option of ``roughuq mlmc`` that asks for a target run, and gives its tolerance.
 _TARGET_OPTIONS = {"variance": "--tol-var", "cdf": "--tol-cdf"}
 
-#: The refusal of the targets' driver that names its argument: a plan of too many samples.
-_CORE_TOL_REFUSAL = re.compile(r"tol (?:\S+, )*\S+ (?=needs about )")
-
 
 def check_target_budget(config: StudyConfig, *, max_cost: float | None = None) -> None:
     """Refuse, before any sample, a variance or cdf run whose budget cannot pay for its initial samples.
@@ -1538,20 +1541,16 @@ def _naming_options(tolerance: str, option: str) -> Iterator[None]:
 
     The multilevel core (and the Python API, :func:`rough_uq.variance` and
     :func:`rough_uq.distribution`, which keep its words) says ``tol 1e-06
-    needs about ... : loosen the tolerance``; a run of ``roughuq mlmc`` says
+    needs about ...: loosen the tolerance``; a run of ``roughuq mlmc`` says
     ``--tol-var contact_area=1e-06 needs about ...: loosen --tol-var``
-    (``tolerance`` is the option with its value, ``option`` the bare option).
+    (``tolerance`` is the option with its value, ``option`` the bare option),
+    the same :class:`~rough_uq.errors.PlanTooLargeError` with the same numbers.
     Other errors pass as they are.
     """
     try:
         yield
-    except EstimationError as exc:
-        text = str(exc)
-        tol_words = _CORE_TOL_REFUSAL.match(text)
-        if tol_words:
-            rest = text[tol_words.end():].replace("loosen the tolerance", f"loosen {option}")
-            raise EstimationError(f"{tolerance} {rest}") from None
-        raise
+    except PlanTooLargeError as exc:
+        raise exc.named(tolerance=tolerance, advice=f"loosen {option}") from None
 
 
 def _follow_target(
