@@ -680,3 +680,16 @@ def test_a_plan_beyond_max_samples_is_refused_with_its_numbers():
     assert isinstance(named, PlanTooLargeError) and (named.n_planned, named.tol) == (refusal.n_planned, refusal.tol)
     assert str(named) == ("--tol-var a=1e-06, b=0.001 needs about 101 samples (N_l 90 11), "
                           "more than max_samples = 100: loosen --tol-var")
+
+
+@pytest.mark.parametrize("value", [True, 2.0, "3", np.float64(3.0)])
+@pytest.mark.parametrize(("driver", "name"), [
+    (lambda **kw: mlmc(Synthetic(), tol=0.1, **kw), "n_initial"),
+    (lambda **kw: mlmc(Synthetic(), tol=0.1, **kw), "max_level"),
+    (lambda **kw: mc(Synthetic(), tol=0.1, level=0, **kw), "batch_size"),
+    (lambda **kw: mc(Synthetic(), tol=0.1, **kw), "level"),
+])
+def test_the_drivers_integers_refuse_booleans_floats_and_strings(driver, name, value):
+    # errors.checked_integer, the one integer check of every layer: nothing is converted.
+    with pytest.raises(InvalidParameterError, match=rf"^{name}: got .*; allowed: an integer >= \d+$"):
+        driver(**{name: value})

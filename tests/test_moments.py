@@ -354,6 +354,14 @@ def test_telescope_refuses_mismatched_terms():
         telescope([a], tol=[0.1, 0.1, 0.1])
     with pytest.raises(InvalidParameterError, match="batch_size"):
         adaptive_mlmc(PerturbedLimit(), term=variance_level_term, tol=0.1, batch_size=0)
+    for name in ("n_initial", "min_finest_level", "max_level", "batch_size", "max_samples"):
+        for value in (True, 8.0, "8"):  # errors.checked_integer: nothing is converted
+            with pytest.raises(InvalidParameterError, match=rf"^{name}: got .*; allowed: an integer >= \d+$"):
+                adaptive_mlmc(PerturbedLimit(), term=variance_level_term, tol=0.1, **{name: value})
+    result = adaptive_mlmc(
+        PerturbedLimit(), term=variance_level_term, tol=1.0, n_initial=np.int64(8), max_level=np.int32(4)
+    )
+    assert result.n_samples[0] >= 8  # numpy integers are integers
 
 
 def test_a_batch_cap_below_n_initial_only_splits_the_initial_samples():

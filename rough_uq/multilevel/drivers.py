@@ -143,7 +143,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError, is_real_number
+from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError, checked_integer, is_real_number
 from rough_uq.multilevel.allocation import (
     Plan,
     _check_fraction,
@@ -472,12 +472,6 @@ def _call_sampler(sampler: Sampler, level: int, start: int, n: int) -> _Batch:
     if not np.all(np.isfinite(cost)) or np.any(cost < 0):
         raise EstimationError(f"sampler returned a negative or non-finite cost on level {level}")
     return _Batch(indices=indices, fine=fine, coarse=coarse, cost=cost, is_scalar=is_scalar)
-
-
-def _check_int(name: str, value: object, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise InvalidParameterError(name, value, f"an integer >= {minimum}")
-    return int(value)
 
 
 def _check_optional_positive(name: str, value: object) -> float | None:
@@ -1051,10 +1045,10 @@ def iter_mlmc(
         refused Richardson extrapolation.
     """
     theta = _check_fraction("theta", theta)
-    n_initial = _check_int("n_initial", n_initial, 2)
-    min_finest_level = _check_int("min_finest_level", min_finest_level, 1)
-    max_level = _check_int("max_level", max_level, min_finest_level)
-    batch_size = None if batch_size is None else _check_int("batch_size", batch_size, 1)
+    n_initial = checked_integer("n_initial", n_initial, 2)
+    min_finest_level = checked_integer("min_finest_level", min_finest_level, 1)
+    max_level = checked_integer("max_level", max_level, min_finest_level)
+    batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
     n_qoi = screening.n_qoi if screening is not None else (rates.n_qoi if rates is not None else None)
     tol = _check_tol(tol, n_qoi)
@@ -1072,7 +1066,7 @@ def iter_mlmc(
         rates=rates,
         kurtosis_limit=_check_positive("kurtosis_limit", kurtosis_limit),
         richardson=_check_bool("richardson", richardson),
-        coarsest_level=None if coarsest_level is None else _check_int("coarsest_level", coarsest_level, 0),
+        coarsest_level=None if coarsest_level is None else checked_integer("coarsest_level", coarsest_level, 0),
     )
     batch_cap = batch_size if batch_size is not None else math.inf
     return _drive(functools.partial(_MlmcRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
@@ -1476,9 +1470,9 @@ def iter_mc(
     PlanUpdated, BatchDone, Finished
     """
     theta = _check_fraction("theta", theta)
-    level = _check_int("level", level, 0)
-    n_initial = _check_int("n_initial", n_initial, 2)
-    batch_size = None if batch_size is None else _check_int("batch_size", batch_size, 1)
+    level = checked_integer("level", level, 0)
+    n_initial = checked_integer("n_initial", n_initial, 2)
+    batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
     tol = _check_tol(tol, screening.n_qoi if screening is not None else None)
     if bias is not None:

@@ -96,13 +96,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError
+from rough_uq.errors import EstimationError, checked_integer
 from rough_uq.multilevel.allocation import _check_fraction, _check_tol, optimal_samples
 from rough_uq.multilevel.drivers import (
     RATE_FLOOR,
     Sampler,
     _call_sampler,
-    _check_int,
     _check_optional_positive,
     _fill_costs,
     _planning_variances,
@@ -629,12 +628,12 @@ def adaptive_mlmc(
     TargetEstimate
     """
     theta = _check_fraction("theta", theta)
-    n_initial = _check_int("n_initial", n_initial, 4)
-    min_finest_level = _check_int("min_finest_level", min_finest_level, 1)
-    max_level = _check_int("max_level", max_level, min_finest_level)
-    batch_cap = math.inf if batch_size is None else _check_int("batch_size", batch_size, 1)
+    n_initial = checked_integer("n_initial", n_initial, 4)
+    min_finest_level = checked_integer("min_finest_level", min_finest_level, 1)
+    max_level = checked_integer("max_level", max_level, min_finest_level)
+    batch_cap = math.inf if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
-    max_samples = None if max_samples is None else _check_int("max_samples", max_samples, 1)
+    max_samples = None if max_samples is None else checked_integer("max_samples", max_samples, 1)
     _check_tol(tol, None)  # fails early; the number of groups is known after the first batch
     levels = [_Level(level) for level in range(min_finest_level + 1)]
     planned = [n_initial] * len(levels)
