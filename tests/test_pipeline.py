@@ -38,6 +38,7 @@ from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_
 
 MLMC_STAGE = run_stage("mlmc", "test")
 MC_STAGE = run_stage("mc", "test")
+from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
 from rough_uq.study.store import MemoryStore
 from tests.study_configs import tiny_config
 
@@ -79,6 +80,51 @@ def test_model_units_and_load():
     assert model.mean_pressure == pytest.approx(0.2 * 3.0 * model.spectrum.rms_slope, rel=1e-14)
     absolute = build_model(config_from_dict(tiny_config(load={"absolute": 0.05})))
     assert absolute.mean_pressure == 0.05
+
+
+#: Loads no solve takes, the config field that names them, and the line of the check they fail.
+REFUSED_LOADS = {
+    "relative 1e200": ({"relative": 1e200}, "load.relative", "2.2e-298, 1e+15]"),
+    "absolute 1e-320": ({"absolute": 1e-320}, "load.absolute", "2.2e-298, 1e+15]"),
+    "curve": ({"relative": [0.1, 1e200]}, "load.relative.1", "2.2e-298, 1e+15]"),
+    "pressure overflows": ({"relative": 1e308}, "load.relative", "the finest grid's 32^2 nodes is finite"),
+}
+
+
+@pytest.mark.parametrize(("load", "field", "text"), REFUSED_LOADS.values(), ids=REFUSED_LOADS.keys())
+def test_the_model_of_a_config_refuses_a_load_no_solve_takes(load, field, text):
+    # build_model took them, and only the CLI checked them: a Python caller of create_study started a study of them.
+    from rough_uq.problem.contact import checked_mean_pressures
+
+    config = config_from_dict(tiny_config(load=load))
+    with pytest.raises(InvalidParameterError) as caught:
+        build_model(config)
+    assert caught.value.name == field and text in caught.value.allowed
+    model = build_model(config_from_dict(tiny_config()))
+    kind = RelativeLoad if config.load.kind == "relative" else AbsoluteLoad
+    loads = tuple(kind(value) for value in config.load.values)
+    with pytest.raises(InvalidParameterError) as same:  # ContactProblem's check, word for word
+        checked_mean_pressures(loads, spectrum=model.spectrum, e_star=model.e_star, finest=config.grid.finest)
+    assert str(caught.value) == str(same.value)
+
+
+def test_a_refused_config_creates_no_study_file_and_leaves_none_open(tmp_path):
+    from rough_uq.study.config import config_hash, resolved_yaml
+    from rough_uq.study.store import open_study
+
+    bad = config_from_dict(tiny_config(load={"relative": 1e200}))
+    path = tmp_path / "study.h5"
+    with pytest.raises(InvalidParameterError, match="^load.relative: got 1e[+]200; allowed: a dimensionless load"):
+        create_study(bad, path)
+    assert list(tmp_path.iterdir()) == []
+    # A file written before loads were checked: opening it refuses the load, and lets go of the file.
+    header = dict(config_text=resolved_yaml(bad), config_hash=config_hash(bad), qoi_names=bad.qoi_names,
+                  code_version="0")
+    open_study(path, create=True, **header).close()
+    for writable in (True, False):
+        with pytest.raises(InvalidParameterError, match="^load.relative: got 1e[+]200"):
+            open_existing_study(path, writable=writable)
+    open_study(path, create=False, **header).close()  # not locked by the refused open
 
 
 def test_sample_does_not_depend_on_its_batch():

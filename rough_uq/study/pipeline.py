@@ -83,6 +83,7 @@ from rough_uq.study.records import (
     read_screening_record,
     utc_timestamp,
 )
+from rough_uq.problem.contact import checked_mean_pressures
 from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
@@ -146,7 +147,22 @@ PREDICTION_FACTORS = (2.0, 1.0, 0.5, 0.25, 0.125)
 
 
 def build_model(config: StudyConfig) -> ContactModel:
-    """The contact model (surface, load, solver, QoIs) of a study config."""
+    """The contact model (surface, load, solver, QoIs) of a study config, checked before any solve.
+
+    Every load is checked as a :class:`~rough_uq.problem.contact.ContactProblem`
+    checks it (:func:`~rough_uq.problem.contact.checked_mean_pressures` on the
+    finest grid, ``grid.max_level``): a mean pressure that overflows, or a
+    dimensionless load outside the solver's range within a margin, is refused
+    naming the config field (``load.relative``, ``load.absolute``, or
+    ``load.relative.1`` in a load curve). Every path that opens a study builds
+    its model here, so none of them can start a study no solve would take.
+
+    Raises
+    ------
+    InvalidParameterError
+        A load no solve takes, or a spectrum that cannot be built (e.g. a
+        slope variance ``m2`` outside the float range).
+    """
     surface = config.surface
     spectrum = SurfaceSpectrum(
         system_size=surface.system_size,
@@ -158,7 +174,9 @@ def build_model(config: StudyConfig) -> ContactModel:
     )
     e_star = config.material.e_star
     kind = RelativeLoad if config.load.kind == "relative" else AbsoluteLoad
-    pressures = tuple(kind(value).mean_pressure(spectrum=spectrum, e_star=e_star) for value in config.load.values)
+    loads = tuple(kind(value) for value in config.load.values)
+    finest = config.grid.n_at(config.grid.max_level)
+    pressures = checked_mean_pressures(loads, spectrum=spectrum, e_star=e_star, finest=finest)
     scales = []
     connectivity, critical_pressure, area_estimator = 4, None, "corrected"
     for name, settings in config.qoi.items():
@@ -199,7 +217,11 @@ class Study:
     model: ContactModel = field(init=False)
 
     def __post_init__(self) -> None:
-        self.model = build_model(self.config)
+        try:
+            self.model = build_model(self.config)
+        except BaseException:
+            self.store.close()  # a refused config leaves no open file behind
+            raise
         self._planned: set[int] = set()
 
     def model_for(self, level: int, *, note: Callable[[str], None] | None = None) -> ContactModel:
@@ -236,9 +258,12 @@ def create_study(config: StudyConfig, path: str | Path | None = None, *, remedy:
     An existing file must have been created with the same config (hash of
     everything that changes numbers); otherwise :class:`StudyFileError`, whose
     message ends in ``remedy`` (what the command at hand lets the user do;
-    the default names ``roughuq screen``'s ``--out``).
+    the default names ``roughuq screen``'s ``--out``). A config whose model
+    :func:`build_model` refuses is refused before the file is created: a file
+    left behind would refuse the corrected config as another one.
     """
     path = Path(path if path is not None else config.output.path)
+    build_model(config)
     _refuse_other_config(path, config, remedy)
     store = open_study(
         path,
