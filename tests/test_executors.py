@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import threading
 
 import numpy as np
 import pytest
@@ -127,3 +130,46 @@ def test_the_serial_executor_warms_the_kernels_once_per_process_without_freezing
     list(SerialExecutor().run("model", items))
     list(SerialExecutor().run("model", items[:1]))
     assert calls == ["warm model", "sample 0", "sample 1", "sample 0"]
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="needs POSIX signal masks")
+def test_a_ctrl_c_while_workers_are_spawned_comes_after_the_spawning_once():
+    # Spawned workers inherit the blocked mask (tests/test_faults.py runs the real thing). Here: the Ctrl-C of
+    # the spawning's few milliseconds reaches the handler once the spawning is over, never during it, whether
+    # this thread holds it back or another thread takes it; afterwards, handler and mask are as before.
+    calls: list[str] = []
+
+    def handler(signum: int, frame: object) -> None:
+        calls.append("handler")
+
+    def taken_by_another_thread() -> None:
+        thread = threading.Thread(target=os.kill, args=(os.getpid(), signal.SIGINT))
+        thread.start()
+        thread.join()
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        for ctrl_c in (lambda: os.kill(os.getpid(), signal.SIGINT), taken_by_another_thread):
+            calls.clear()
+            with executors._sigint_held_back():
+                ctrl_c()
+                sum(range(100_000))  # room for Python to run signal handlers
+                calls.append("spawned")
+            assert calls == ["spawned", "handler"]
+            assert signal.getsignal(signal.SIGINT) is handler
+            assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+        # Off the main thread only the mask changes (signal.signal would raise there).
+        seen: list[object] = []
+
+        def spawn_off_the_main_thread() -> None:
+            with executors._sigint_held_back():
+                seen.append(signal.getsignal(signal.SIGINT))
+                seen.append(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []))
+            seen.append(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []))
+
+        thread = threading.Thread(target=spawn_off_the_main_thread)
+        thread.start()
+        thread.join()
+        assert seen == [handler, True, False]
+    finally:
+        signal.signal(signal.SIGINT, previous)

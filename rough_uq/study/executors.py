@@ -26,7 +26,11 @@ to start that many interpreters and exhaust memory and the process table.
 Workers are started with ``spawn``: forking a process that has already run
 OpenMP threads is unsafe, and a forked child would inherit the study file's
 lock. Each worker builds its FFT plans once and reuses them for all its
-samples. Workers ignore Ctrl-C; the parent stops them.
+samples. Workers ignore Ctrl-C; the parent stops them. A worker imports numpy,
+numba and roughuq for seconds before it can say so, and Ctrl-C reaches the
+whole process group: workers are therefore started with SIGINT blocked
+(:func:`_sigint_held_back`), and one that arrives while they import waits
+until they ignore it, instead of ending the import with a traceback.
 """
 
 from __future__ import annotations
@@ -36,10 +40,12 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -158,8 +164,12 @@ _is_pool_worker = False
 def _init_worker(parent: int) -> None:
     global _is_pool_worker
     _is_pool_worker = True
-    # Ctrl-C goes to the whole process group; the parent decides what stops.
+    # Ctrl-C goes to the whole process group; the parent decides what stops. The
+    # parent started this worker with SIGINT blocked (_sigint_held_back): ignoring it
+    # discards a Ctrl-C held back during the imports; the mask is then the usual one.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     # Die with the parent (Linux), even when it is killed without cleaning up
     # (SIGTERM, SIGKILL); otherwise idle workers would linger forever.
     try:
@@ -224,6 +234,50 @@ def _start_quiet_resource_tracker() -> None:
         os.close(devnull)
 
 
+@contextmanager
+def _sigint_held_back() -> Iterator[None]:
+    """Block SIGINT in this thread while it starts worker processes; a Ctrl-C meanwhile comes after.
+
+    A spawned child inherits the signal mask across fork and exec
+    (multiprocessing starts its resource tracker so, for the same reason): a
+    worker keeps a Ctrl-C pending from its first instruction, through its
+    imports, until :func:`_init_worker` ignores SIGINT, which discards it.
+    Python installs its KeyboardInterrupt handler in the worker, but it never runs.
+
+    This process does not ignore SIGINT meanwhile (a Ctrl-C of that moment
+    would be lost): this thread only defers it until the mask is restored.
+    Another thread of the process may take the signal, and Python would then
+    raise KeyboardInterrupt in the main thread at once, possibly between a
+    worker's start and its registration in the pool (which would neither stop
+    nor join a worker it does not know). On the main thread, Python's
+    handler is therefore replaced, for the milliseconds of the spawning, by
+    one that records the signal, and a recorded Ctrl-C is raised again once
+    the handler is back. Handlers can be changed only on the main thread
+    (:func:`signal.signal`); elsewhere only the mask is.
+    """
+    if not hasattr(signal, "pthread_sigmask"):  # Windows: children inherit no signal state
+        yield
+        return
+    received: list[int] = []
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.getsignal(signal.SIGINT)  # None: installed outside Python, left alone
+        if previous is not None:
+            signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        # The mask first: pthread_sigmask runs the pending Python handlers before it
+        # returns, so a held-back Ctrl-C reaches the recorder, and no KeyboardInterrupt
+        # leaves the mask or the handler half restored.
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+            if received:
+                signal.raise_signal(signal.SIGINT)
+
+
 class PoolExecutor(Executor):
     """A local pool of ``n_workers`` spawned processes (module docstring).
 
@@ -243,22 +297,27 @@ class PoolExecutor(Executor):
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:
             _start_quiet_resource_tracker()
-            # Spawned children copy os.environ when they start; set it for them
+            self._pool = ProcessPoolExecutor(
+                max_workers=self.n_workers,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(os.getpid(),),
+            )
+            # Start every worker now, in this thread: with the spawn context, submit()
+            # starts a process whenever no worker is idle (Python 3.11:
+            # _adjust_process_count), and none is idle before its start-up (seconds) is
+            # over. Spawned children copy os.environ when they start; set it for them
             # and restore ours right after.
             saved = dict(os.environ)
             os.environ.update(thread_environment(self.threads))
             try:
-                self._pool = ProcessPoolExecutor(
-                    max_workers=self.n_workers,
-                    mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_init_worker,
-                    initargs=(os.getpid(),),
-                )
-                # Start every worker now, while the environment is set.
-                list(self._pool.map(int, range(self.n_workers)))
+                with _sigint_held_back():
+                    started = [self._pool.submit(int, index) for index in range(self.n_workers)]
             finally:
                 os.environ.clear()
                 os.environ.update(saved)
+            for future in started:
+                future.result()
         return self._pool
 
     def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
