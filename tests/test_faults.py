@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 import weakref
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -46,9 +47,9 @@ def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def _start(*args: str, cwd: Path) -> subprocess.Popen:
+def _start(*args: str, cwd: Path, **popen: object) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "rough_uq.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=ENV, preexec_fn=_default_sigint)
+                            stderr=subprocess.PIPE, text=True, env=ENV, preexec_fn=_default_sigint, **popen)
 
 
 def _wait_until_running(process: subprocess.Popen, study: Path, timeout: float = 60.0) -> None:
@@ -130,15 +131,22 @@ def test_killed_runs_lose_nothing_and_resume_to_the_same_estimate(tmp_path, refe
 
 
 def _pool_workers(pid: int) -> list[int]:
-    """Pids of the spawned pool workers of process ``pid`` (not the resource tracker)."""
-    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    """Pids of the spawned pool workers of process ``pid`` (not the resource tracker).
+
+    Recognised by their command line, which a child has only once it has run
+    the interpreter: a child between fork and exec still shows its parent's.
+    """
+    try:
+        children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except FileNotFoundError:  # exited
+        return []
     workers = []
     for child in children:
         try:
-            command = Path(f"/proc/{child}/cmdline").read_bytes().replace(b"\0", b" ")
+            command = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
         except FileNotFoundError:
             continue
-        if b"resource_tracker" not in command:
+        if b"--multiprocessing-fork" in command:
             workers.append(int(child))
     return workers
 
@@ -187,6 +195,67 @@ def test_pool_workers_do_not_outlive_their_run(tmp_path, sig):
         time.sleep(0.1)
     alive = [pid for pid in workers if Path(f"/proc/{pid}/status").exists()
              and "zombie" not in Path(f"/proc/{pid}/status").read_text()]
+    assert not alive, f"workers {alive} outlived their run"
+
+
+def _sigint_masks(pid: int) -> set[str] | None:
+    """Which signal masks of process ``pid`` hold SIGINT (blocked, ignored, caught); None once it has exited."""
+    try:
+        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except FileNotFoundError:
+        return None
+    status = {key: value.strip() for key, _, value in (line.partition(":") for line in lines)}
+    if status["State"].startswith(("Z", "X")):
+        return None
+    return {key for key in ("SigBlk", "SigIgn", "SigCgt") if int(status[key], 16) >> (signal.SIGINT - 1) & 1}
+
+
+def _poll(condition: Callable[[], object], timeout: float) -> object:
+    """The first true value of ``condition()``, polled every 10 ms, or its last value after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not (value := condition()) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return value
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs Linux /proc")
+@pytest.mark.parametrize("is_command_held", [True, False], ids=["command-held", "at-once"])
+def test_ctrl_c_while_pool_workers_import_prints_no_worker_traceback(tmp_path, is_command_held):
+    # Ctrl-C reaches the whole foreground process group: the command and the workers it has just spawned, which
+    # import numpy, numba and roughuq for seconds before they can ignore it. It is sent once Python runs in both
+    # workers (SIGINT caught or ignored: a signal before that kills a process without a word). Held: sent at once,
+    # with the command stopped from just before the Ctrl-C until each worker has ignored it or died of it;
+    # otherwise, in most runs, the command kills a worker that did not ignore it before its traceback is out. At
+    # once: sent 0.3 s later, amid the imports, and the command stops workers still importing.
+    config = write_config(tmp_path / "study.yaml", tiny_config())
+    process = _start("screen", str(config), "-q", "--workers", "2", cwd=tmp_path, start_new_session=True)
+    try:
+        def started() -> list[int]:
+            workers = _pool_workers(process.pid)
+            is_running = len(workers) == 2 and all((_sigint_masks(pid) or set()) & {"SigIgn", "SigCgt"}
+                                                   for pid in workers)
+            return workers if is_running or process.poll() is not None else []
+
+        workers = _poll(started, timeout=60)
+        assert len(workers) == 2, "the pool did not start"
+        if is_command_held:
+            os.kill(process.pid, signal.SIGSTOP)
+        else:
+            time.sleep(0.3)
+        os.killpg(process.pid, signal.SIGINT)
+        if is_command_held:
+            _poll(lambda: all(_sigint_masks(pid) in (None, {"SigIgn"}) for pid in workers), timeout=20)
+            os.kill(process.pid, signal.SIGCONT)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            os.kill(process.pid, signal.SIGCONT)
+            process.communicate()
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
+    assert process.returncode == 130 and "interrupted" in stderr, stderr
+    _poll(lambda: all(_sigint_masks(pid) is None for pid in workers), timeout=10)
+    alive = [pid for pid in workers if _sigint_masks(pid) is not None]
     assert not alive, f"workers {alive} outlived their run"
 
 
