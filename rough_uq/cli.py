@@ -405,12 +405,13 @@ def validate(config_paths: Sequence[str]) -> None:
     [2e-298, 1e15]). Nothing is solved.
     """
     from rough_uq.study.config import _physical_memory_bytes, load_config, solver_memory_bytes
+    from rough_uq.study.pipeline import build_model
 
     n_bad = 0
     for config_path in config_paths:
         try:
             config = load_config(config_path)
-            _check_problem(config)
+            build_model(config)
         except RoughUQError as exc:
             if len(config_paths) == 1:
                 raise
@@ -432,31 +433,6 @@ def validate(config_paths: Sequence[str]) -> None:
         click.echo(f"  study file: {config.output.path}")
     if n_bad:
         sys.exit(2)
-
-
-def _check_problem(config: Any) -> Any:
-    """The contact model of ``config``, built and checked as every command needs it before its first sample.
-
-    The model of :func:`~rough_uq.study.pipeline.build_model` (spectrum, loads,
-    QoI units: e.g. a slope variance ``m2`` outside the float range is refused
-    here), then every load against what a solve on the finest grid takes, as
-    a :class:`~rough_uq.problem.contact.ContactProblem` checks it
-    (:func:`~rough_uq.problem.contact.checked_mean_pressures`: a mean pressure
-    that overflows, a dimensionless load outside the solver's range), named as
-    the config field (``load.relative``). Nothing is solved. Commands that
-    create study files call it first, so that a refused config leaves no
-    study file behind.
-    """
-    from rough_uq.problem.contact import checked_mean_pressures
-    from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
-    from rough_uq.study.pipeline import build_model
-
-    model = build_model(config)
-    kind = RelativeLoad if config.load.kind == "relative" else AbsoluteLoad
-    loads = tuple(kind(value) for value in config.load.values)
-    finest = config.grid.n_at(config.grid.max_level)
-    checked_mean_pressures(loads, spectrum=model.spectrum, e_star=model.e_star, finest=finest)
-    return model
 
 
 def _warm_kernels(model: Any, *, quiet: bool = False) -> None:
@@ -503,6 +479,7 @@ def solve(config_path: str | None, level: int, index: int) -> None:
     """
     from rough_uq.study.config import config_from_yaml_text, load_config
     from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch
+    from rough_uq.study.pipeline import build_model
 
     if config_path is None:
         config = config_from_yaml_text(_shipped_config_text("quickstart"), source="quickstart")
@@ -510,7 +487,7 @@ def solve(config_path: str | None, level: int, index: int) -> None:
         config = load_config(config_path)
     if level > config.grid.max_level:
         raise InvalidParameterError("--level", level, f"an integer in 0..{config.grid.max_level} (grid.max_level)")
-    model = _check_problem(config)
+    model = build_model(config)
     _warm_kernels(model)
     start = time.perf_counter()
     batch = compute_batch(model, stage=STAGE_SCREENING, level=level, indices=[index])
@@ -593,8 +570,7 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
 
     _check_executor_options(executor, scheduler, workers)
     config = load_config(config_path)
-    _check_problem(config)  # before the study file exists: a file left behind would refuse the corrected config
-    with create_study(config, out) as study:
+    with create_study(config, out) as study:  # which builds the model before it creates the file
         _warm_kernels(study.model, quiet=quiet or as_json)
         with _executor(config, workers, executor, scheduler) as pool:
             watch = (study.config, pool, executor, "a smaller screening.levels")
@@ -845,8 +821,7 @@ def _config_creating_study(opts: _RunOptions, *, may_create: bool = True) -> Any
 
     config = load_config(opts.config_path) if opts.config_path else None
     if config is not None and may_create and not Path(opts.study_path).exists():
-        _check_problem(config)  # a study file left behind would refuse the corrected config
-        create_study(config, opts.study_path).close()
+        create_study(config, opts.study_path).close()  # refuses a config whose model build_model refuses first
     return config
 
 
@@ -1208,7 +1183,7 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     surface.system_size=1,2,3,4 --fixed-spacing --tol 0.5`. Rerunning resumes.
     """
     from rough_uq.study.config import load_config, sweep_configs
-    from rough_uq.study.pipeline import run_sweep
+    from rough_uq.study.pipeline import build_model, run_sweep
 
     _check_executor_options("local", None, workers)
     _check_tolerance_texts("--tol", tol)
@@ -1218,7 +1193,7 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     configs = sweep_configs(config, key=key, values=values, fixed_spacing=fixed_spacing)
     _refuse_repeated_studies(assignments[0], configs)
     for _, swept in configs:  # every value, before the first one's study is made and run
-        _check_problem(swept)
+        build_model(swept)
     max_level = min(swept.grid.max_level for _, swept in configs)
     if level > max_level:  # before any study of the sweep is created
         raise InvalidParameterError("--level", level, f"an integer in 0..{max_level} (grid.max_level)")
