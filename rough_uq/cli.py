@@ -1191,7 +1191,6 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     key, values = _sweep_assignment(assignments)
     config = load_config(config_path)
     configs = sweep_configs(config, key=key, values=values, fixed_spacing=fixed_spacing)
-    _refuse_repeated_studies(assignments[0], configs)
     for _, swept in configs:  # every value, before the first one's study is made and run
         build_model(swept)
     max_level = min(swept.grid.max_level for _, swept in configs)
@@ -1241,17 +1240,6 @@ def _sweep_assignment(assignments: Sequence[str]) -> tuple[str, list[str]]:
         raise InvalidParameterError("--set", assignments[0], f"a field outside {section}.*: "
                                     f"{UNSWEPT_SECTIONS[section]}")
     return key, values.split(",")
-
-
-def _refuse_repeated_studies(assignment: str, configs: Sequence[tuple[str, Any]]) -> None:
-    """Refuse two values of a sweep that make the same study (e.g. 0.1,0.1 or 0.1,1e-1): it would run twice."""
-    seen: list[tuple[str, Any]] = []
-    for value, config in configs:
-        study = config.model_copy(update={"output": configs[0][1].output})  # the file name is the value's
-        twin = next((earlier for earlier, other in seen if other == study), None)
-        if twin is not None:
-            raise InvalidParameterError("--set", assignment, f"distinct values: {value} is the same as {twin}")
-        seen.append((value, study))
 
 
 @main.command()
