@@ -811,16 +811,21 @@ def _probabilities(text: str | None) -> tuple[float, ...] | None:
     return values
 
 
-def _config_creating_study(opts: _RunOptions, *, may_create: bool = True) -> Any:
+def _config_creating_study(opts: _RunOptions, *, may_create: bool = True,
+                           check: Callable[[Any], None] | None = None) -> Any:
     """The ``--config`` (None without one); if ``may_create``, a new study is created from it where none exists.
 
-    Target runs and MC on a given ``--level`` need no screening.
+    Target runs and MC on a given ``--level`` need no screening. ``check(config)``
+    runs before the file is created: what the run refuses before its first
+    sample would otherwise leave an empty study file behind.
     """
     from rough_uq.study.config import load_config
     from rough_uq.study.pipeline import create_study
 
     config = load_config(opts.config_path) if opts.config_path else None
     if config is not None and may_create and not Path(opts.study_path).exists():
+        if check is not None:
+            check(config)
         create_study(config, opts.study_path).close()  # refuses a config whose model build_model refuses first
     return config
 
@@ -831,10 +836,16 @@ def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi
 
     Exits with status 3 if the tolerance was missed.
     """
-    from rough_uq.study.pipeline import cdf_request, open_existing_study, parse_tolerances, run_target
+    from rough_uq.study.pipeline import (
+        cdf_request,
+        check_target_budget,
+        open_existing_study,
+        parse_tolerances,
+        run_target,
+    )
 
     grid, wanted = _thresholds(thresholds), _probabilities(probabilities)
-    config = _config_creating_study(opts)
+    config = _config_creating_study(opts, check=lambda config: check_target_budget(config, max_cost=opts.max_cost))
     with open_existing_study(opts.study_path, config=config) as study:
         request = None
         if target == "variance":

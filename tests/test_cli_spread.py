@@ -339,6 +339,21 @@ def test_too_few_initial_samples_for_a_target_run_name_the_config_field(tmp_path
     assert "estimation.initial_samples" in result.stderr and ">= 4" in result.stderr
 
 
+@pytest.mark.parametrize("budget, option", [({}, "--max-cost"), ({"max_cost": 1e-9}, "estimation.max_cost")])
+def test_a_budget_below_the_initial_samples_is_refused_before_the_study_file_is_created(tmp_path, monkeypatch,
+                                                                                        budget, option):
+    """The file was created from --config, then run_target refused the budget: an empty study stayed behind."""
+    monkeypatch.chdir(tmp_path)
+    estimation = {"initial_samples": 4, "batch_size": 4, **budget}
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(estimation=estimation))
+    given = () if budget else ("--max-cost", "1e-9")
+    result = run("mlmc", "--config", str(config), "--study", "new.h5", "--tol-var", "contact_area=60", *given,
+                 "--workers", "1", expect=2)
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith(f"error: {option} 1e-09 is too small for the initial samples"), line
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]
+
+
 def test_a_cdf_record_round_trips_and_a_malformed_quantile_is_refused_by_its_path():
     from rough_uq.errors import InvalidParameterError
 
