@@ -949,12 +949,18 @@ def _show_finished_run(study_path: str, run_id: str, outcome: Any, *, as_json: b
     else:
         _print_run(ReportedRun.from_json(shown), report)
     if not outcome.tol_met:
-        click.echo(f"tolerance not met ({outcome.stop_reason}): {_what_to_change(outcome.stop_reason, option)}",
-                   err=True)
+        click.echo(f"tolerance not met ({outcome.stop_reason}): {_what_to_change(outcome, option)}", err=True)
         sys.exit(EXIT_TOL_NOT_MET)
 
 
-def _what_to_change(reason: str, option: str = "--tol") -> str:
+def _what_to_change(outcome: Any, option: str = "--tol") -> str:
+    """What to change so that a run whose ``outcome`` missed its tolerance meets it (``option`` is its tolerance's)."""
+    reason = outcome.stop_reason
+    if reason == "max_cost" and not outcome.is_bias_estimated and option != "--tol":
+        # A variance or cdf run estimates its bias once its first levels have their initial samples, whatever
+        # the tolerance (rough_uq.multilevel.targets); the samples of a mean run follow --tol.
+        return ("the run reached --max-cost before its bias was estimated; raise --max-cost (or estimation.max_cost) "
+                f"or lower estimation.initial_samples (a looser {option} needs the same initial samples)")
     if reason == "max_cost":
         return f"the run reached --max-cost; raise --max-cost (or estimation.max_cost) or loosen {option}"
     if reason == "bias":

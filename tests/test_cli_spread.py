@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -352,6 +353,22 @@ def test_a_budget_below_the_initial_samples_is_refused_before_the_study_file_is_
     (line,) = result.stderr.strip().splitlines()
     assert line.startswith(f"error: {option} 1e-09 is too small for the initial samples"), line
     assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]
+
+
+@pytest.mark.parametrize("target", [("--tol-var", "contact_area=60"), ("--tol-cdf", "0.3", "--thresholds",
+                                                                      TINY_THRESHOLDS)], ids=["variance", "cdf"])
+def test_a_run_its_budget_stops_before_its_bias_is_estimated_is_told_to_raise_the_budget_not_loosen(tiny, target):
+    """Its last line said 'raise --max-cost ... or loosen --tol-var', but a looser tolerance needs the same samples."""
+    refused = run("mlmc", "--config", str(tiny), *target, "--max-cost", "1e-9", "--workers", "1", expect=2).stderr
+    least = float(re.search(r"which cost at least ([0-9.e+-]+) reference seconds", refused).group(1))
+    # Just above the least cost of the initial samples: level 0 (drawn first, whatever it costs) takes the budget.
+    result = run("mlmc", "--config", str(tiny), *target, "--max-cost", f"{1.01 * least:.6g}", "--workers", "1",
+                 expect=3)
+    assert "bias not estimated" in result.stdout
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("tolerance not met (max_cost): the run reached --max-cost before its bias was estimated; "
+                           "raise --max-cost (or estimation.max_cost) or lower estimation.initial_samples"), last
+    assert "loosen" not in last
 
 
 def test_a_cdf_record_round_trips_and_a_malformed_quantile_is_refused_by_its_path():
