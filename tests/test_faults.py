@@ -20,8 +20,17 @@ from tests.study_configs import tiny_config, write_config
 
 TOL = "0.001"  # mean gap (length unit); reachable on these grids, about 20 s of MLMC on an idle 2-core machine
 ROOT = Path(__file__).resolve().parent.parent
-# The subprocesses run this checkout's roughuq, whatever is installed.
-ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+
+
+def _env() -> dict[str, str]:
+    """The subprocesses' environment: this checkout's roughuq, whatever is installed, and the session's settings.
+
+    Built when a subprocess starts, not at import: the session fixture of
+    conftest.py sets ``ROUGHUQ_FFTW_WISDOM`` after this module is collected, and
+    an environment copied before would send the subprocesses' FFTW wisdom to the
+    user's cache.
+    """
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
 
 
 def _config(directory: Path) -> Path:
@@ -38,7 +47,7 @@ def _config(directory: Path) -> Path:
 
 def _roughuq(*args: str, cwd: Path, **kwargs: object) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "rough_uq.cli", *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=300, env=ENV, **kwargs)
+                          timeout=300, env=_env(), **kwargs)
 
 
 def _default_sigint() -> None:
@@ -49,7 +58,7 @@ def _default_sigint() -> None:
 
 def _start(*args: str, cwd: Path, **popen: object) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "rough_uq.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=ENV, preexec_fn=_default_sigint, **popen)
+                            stderr=subprocess.PIPE, text=True, env=_env(), preexec_fn=_default_sigint, **popen)
 
 
 def _wait_until_running(process: subprocess.Popen, study: Path, timeout: float = 60.0) -> None:
@@ -94,6 +103,16 @@ def _stored(directory: Path) -> dict[int, np.ndarray]:
                                    for stage in store.stages(level=level) if stage != 0] or [np.zeros(0, int)])
             for level in store.levels()
         }
+
+
+def test_the_subprocesses_keep_their_fftw_wisdom_where_the_test_session_says(tmp_path, monkeypatch):
+    """Their environment was copied at import, before conftest set ROUGHUQ_FFTW_WISDOM: the user's cache got it."""
+    wisdom = tmp_path / "wisdom.json"
+    monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", str(wisdom))
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    result = _roughuq("screen", str(config), "-q", "--workers", "1", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(wisdom.read_text())["format"] == "roughuq-fftw-wisdom"
 
 
 @pytest.fixture(scope="module")
@@ -270,7 +289,7 @@ def test_bash_loop_script_completes_a_study_like_an_uninterrupted_run(tmp_path):
     shim = bin_dir / "roughuq"
     shim.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m rough_uq.cli "$@"\n')
     shim.chmod(0o755)
-    env = {**ENV, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
+    env = {**_env(), "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}"}
     directory = tmp_path / "loop"
     directory.mkdir()
     config = _config(directory)
