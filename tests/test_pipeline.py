@@ -372,6 +372,20 @@ def test_a_target_run_that_its_budget_stops_before_the_bias_is_estimated_does_no
     assert lines[2].endswith(f"(stat. error {outcome.stat_error[0]:.2g} <= tol 60, bias not estimated)")
 
 
+def test_a_plain_mc_run_stopped_by_its_budget_is_not_said_to_miss_bias_levels():
+    # Plain MC never estimates a bias: its budget stop is just that (the report blamed the bias levels).
+    from rough_uq.report.summary import format_run
+
+    study = _study()
+    record = run_estimation(study, method="mc", tol=np.array([0.01]), executor=SerialExecutor(), progress=QUIET,
+                            level=1, max_cost=1e-6)
+    outcome = record.outcome
+    assert outcome.stop_reason == "max_cost" and not outcome.is_bias_estimated and not outcome.tol_met
+    lines = format_run(record, study.config.qoi_names, {"contact_area": "%"})
+    assert lines[0].endswith(": NOT MET (max_cost)")
+    assert lines[1].startswith("  stopped at --max-cost; level 1, N "), lines[1]
+
+
 def test_a_target_run_passes_other_refusals_on_as_they_are(monkeypatch):
     import rough_uq.study.pipeline as pipeline
 

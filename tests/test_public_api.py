@@ -252,8 +252,11 @@ def test_screening_needs_three_levels_and_says_why_as_the_config_does():
     assert caught.value.name == "levels" and "fitted on levels >= 1, two of them at least" in str(caught.value)
     with pytest.raises(rough_uq.InvalidParameterError) as caught:  # said "at most max_level + 1 = 2", then ">= 3"
         rough_uq.screen(_problem(max_level=1), levels=2)
-    assert caught.value.name == "levels" and "none for a problem with max_level = 1" in str(caught.value)
-    assert "variance or distribution, which need no screening" in str(caught.value)
+    # Named by the problem's max_level, not by a levels argument the caller may not have given.
+    assert caught.value.name == "max_level" and caught.value.value == 1
+    assert "a screening needs levels 0..2" in str(caught.value) and "mc(level=...), variance" in str(caught.value)
+    with pytest.raises(rough_uq.InvalidParameterError, match="^max_level: got 1;"):
+        rough_uq.screen(_problem(max_level=1))
 
 
 #: Loads whose problem was built although every solve of it refuses the load (L = E* = rms_height = 1 in

@@ -155,9 +155,9 @@ def screen(
     why = "the rates are fitted on levels >= 1, two of them at least"
     if problem.max_level + 1 < MIN_SCREENED_LEVELS:
         raise InvalidParameterError(
-            "levels", levels, f"none for a problem with max_level = {problem.max_level}: a screening needs levels "
-            f"0..{MIN_SCREENED_LEVELS - 1} ({why}); use max_level >= {MIN_SCREENED_LEVELS - 1}, or mc(level=...), "
-            "variance or distribution, which need no screening",
+            "max_level", problem.max_level, f"an integer >= {MIN_SCREENED_LEVELS - 1} to screen: a screening needs "
+            f"levels 0..{MIN_SCREENED_LEVELS - 1} ({why}); without a screening use mc(level=...), variance or "
+            "distribution",
         )
     if not (is_integer(levels) and levels >= MIN_SCREENED_LEVELS):
         raise InvalidParameterError("levels", levels, f"an integer >= {MIN_SCREENED_LEVELS} ({why})")

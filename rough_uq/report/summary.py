@@ -378,7 +378,7 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     if outcome.tol_met:
         lines = [f"{head}: tolerance met", f"  {where}"]
     else:
-        lines = [f"{head}: NOT MET ({reason})", f"  {_stop_text(outcome)}; {where}"]
+        lines = [f"{head}: NOT MET ({reason})", f"  {_stop_text(outcome, run.method)}; {where}"]
     if run.method == "variance":
         lines += [_variance_line(outcome, q, name, run.tol[q], units) for q, name in enumerate(qoi_names)]
     elif run.method == "cdf":
@@ -398,10 +398,10 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     return lines
 
 
-def _stop_text(outcome: Any) -> str:
-    """Why a run that missed its tolerance stopped, in words."""
+def _stop_text(outcome: Any, method: str) -> str:
+    """Why a run of ``method`` that missed its tolerance stopped, in words (plain MC never estimates a bias)."""
     reason = outcome.stop_reason
-    if reason == "max_cost" and not outcome.is_bias_estimated:
+    if reason == "max_cost" and not outcome.is_bias_estimated and method != "mc":
         return "stopped at --max-cost before the levels its bias estimate needs were sampled"
     return _STOP_REASONS.get(reason, reason)
 
