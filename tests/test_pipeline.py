@@ -372,6 +372,21 @@ def test_a_target_run_that_its_budget_stops_before_the_bias_is_estimated_does_no
     assert lines[2].endswith(f"(stat. error {outcome.stat_error[0]:.2g} <= tol 60, bias not estimated)")
 
 
+def test_a_study_builds_its_model_once(tmp_path, monkeypatch):
+    # The spectrum's set-up grows like k_s^2 (seconds at k_s in the thousands); create_study built the model
+    # twice and a target run's budget check a third time.
+    import rough_uq.study.pipeline as pipeline
+
+    calls = []
+    real = pipeline.build_model
+    monkeypatch.setattr(pipeline, "build_model", lambda config: calls.append(1) or real(config))
+    config = config_from_dict(tiny_config())
+    with pipeline.create_study(config, tmp_path / "s.h5") as study:
+        assert len(calls) == 1
+        pipeline.check_target_budget(study.config, max_cost=1e6, model=study.model)
+        assert len(calls) == 1
+
+
 def test_a_plain_mc_run_stopped_by_its_budget_is_not_said_to_miss_bias_levels():
     # Plain MC never estimates a bias: its budget stop is just that (the report blamed the bias levels).
     from rough_uq.report.summary import format_run

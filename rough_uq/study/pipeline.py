@@ -36,7 +36,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -210,18 +210,23 @@ def build_model(config: StudyConfig) -> ContactModel:
 
 @dataclass
 class Study:
-    """An open study: its config, its store and the model of its samples."""
+    """An open study: its config, its store and the model of its samples (built from the config unless given).
+
+    Building the model draws on the spectrum, whose set-up grows like ``k_s^2``
+    (seconds at ``k_s`` in the thousands): a caller that has built it passes it.
+    """
 
     config: StudyConfig
     store: StudyStore
-    model: ContactModel = field(init=False)
+    model: ContactModel | None = None
 
     def __post_init__(self) -> None:
-        try:
-            self.model = build_model(self.config)
-        except BaseException:
-            self.store.close()  # a refused config leaves no open file behind
-            raise
+        if self.model is None:
+            try:
+                self.model = build_model(self.config)
+            except BaseException:
+                self.store.close()  # a refused config leaves no open file behind
+                raise
         self._planned: set[int] = set()
 
     def model_for(self, level: int, *, note: Callable[[str], None] | None = None) -> ContactModel:
@@ -263,7 +268,7 @@ def create_study(config: StudyConfig, path: str | Path | None = None, *, remedy:
     left behind would refuse the corrected config as another one.
     """
     path = Path(path if path is not None else config.output.path)
-    build_model(config)
+    model = build_model(config)
     _refuse_other_config(path, config, remedy)
     store = open_study(
         path,
@@ -273,7 +278,7 @@ def create_study(config: StudyConfig, path: str | Path | None = None, *, remedy:
         create=True,
         code_version=__version__,
     )
-    return Study(config, store)
+    return Study(config, store, model)
 
 
 def _refuse_other_config(path: Path, config: StudyConfig, remedy: str) -> None:
@@ -1493,7 +1498,7 @@ def run_target(
             f"an integer >= {MIN_TARGET_SAMPLES} for variance and cdf runs (the variance of a level's "
             "variance term needs four samples)",
         )
-    check_target_budget(study.config, max_cost=max_cost)
+    check_target_budget(study.config, max_cost=max_cost, model=study.model)
     max_cost = estimation.max_cost if max_cost is None else max_cost
     key = target_run_id(study, target=target, tol=tol, request=request)
     earlier = _earlier_run(study, key)
@@ -1522,7 +1527,9 @@ def run_target(
 _TARGET_OPTIONS = {"variance": "--tol-var", "cdf": "--tol-cdf"}
 
 
-def check_target_budget(config: StudyConfig, *, max_cost: float | None = None) -> None:
+def check_target_budget(
+    config: StudyConfig, *, max_cost: float | None = None, model: ContactModel | None = None
+) -> None:
     """Refuse, before any sample, a variance or cdf run whose budget cannot pay for its initial samples.
 
     The run estimates its bias only once it has ``estimation.initial_samples``
@@ -1533,7 +1540,8 @@ def check_target_budget(config: StudyConfig, *, max_cost: float | None = None) -
     its tolerance (the mean's forecast refuses a predicted overrun alike,
     :func:`forecast_run`). ``max_cost`` is ``--max-cost`` (reference seconds);
     None takes ``estimation.max_cost``, named so in the message; no budget at
-    all passes.
+    all passes. ``model`` is the config's (:func:`build_model`), built here if
+    not given.
 
     Raises
     ------
@@ -1547,7 +1555,7 @@ def check_target_budget(config: StudyConfig, *, max_cost: float | None = None) -
     max_cost = config.estimation.max_cost if max_cost is None else max_cost
     if max_cost is None:
         return
-    model = build_model(config)
+    model = build_model(config) if model is None else model
     finest = initial_finest_level(config.grid.max_level)
     n_initial = config.estimation.initial_samples
     no_iterations = np.zeros((1, 2))
