@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pickle
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -171,3 +173,22 @@ def test_the_solvers_in_place_single_plans_are_patient_up_to_the_documented_grid
             fft_module.measure_plans([16], effort="FFTW_EXHAUSTIVE")
     finally:
         fft_module.use_wisdom(None)
+
+
+def test_pyfftw_is_imported_without_dask_and_scipy_fftpack_which_import_later_as_usual():
+    code = (
+        "import sys, rough_uq.physics.fft as f\n"
+        "print(sorted(m for m in ('dask', 'dask.array', 'scipy.fftpack') if m in sys.modules))\n"
+        "import dask.array, scipy.fftpack, numpy as np\n"
+        "x = np.arange(16.0)\n"
+        "print(np.allclose(scipy.fftpack.fft(x), np.fft.fft(x)), hasattr(dask.array, 'fft'))\n"
+        "print(np.allclose(f.get_fft(8).forward(np.ones((8, 8)))[0, 0], 64))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split("\n")[:3] == ["[]", "True True", "True"]
+
+
+def test_pyfftw_imported_after_dask_keeps_its_full_interfaces():
+    code = "import dask.array, rough_uq.physics.fft as f; import pyfftw.interfaces.dask_fft; print('ok')"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "ok"

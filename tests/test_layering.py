@@ -27,8 +27,9 @@ ALLOWED = {
     "report": {"physics", "multilevel", "problem", "study"},
 }
 EDGE_LIBRARIES = {"h5py", "click", "rich", "yaml", "pydantic", "matplotlib", "distributed", "dask"}
-#: Imported by numba (PyYAML) and pyFFTW (dask) themselves where installed: checked in the source only.
-IMPORTED_BY_DEPENDENCIES = {"yaml", "dask"}
+#: Imported by numba (PyYAML) itself where installed: checked in the source only. (pyFFTW's own import of
+#: dask is skipped, :func:`rough_uq.physics.fft._import_pyfftw`.)
+IMPORTED_BY_DEPENDENCIES = {"yaml"}
 
 
 def _imports(path: Path) -> set[str]:

@@ -46,11 +46,39 @@ ways are offered:
 
 from __future__ import annotations
 
+import sys
 import threading
 from collections.abc import Callable, Iterable
 
 import numpy as np
-import pyfftw
+
+
+def _import_pyfftw():
+    """``import pyfftw`` without the optional imports of its ``interfaces`` subpackage.
+
+    ``pyfftw/__init__.py`` imports ``pyfftw.interfaces``, which imports
+    ``scipy.fftpack`` and ``dask.array`` (if installed) to offer drop-in
+    replacements for them. roughuq uses neither replacement, and the two
+    imports took 0.4-0.8 s of the 3-4 s that every ``roughuq`` command spends
+    starting (most of its time in shell loops over shards). Modules not yet
+    imported are marked absent while pyFFTW imports (its ``interfaces`` then
+    skip them, as when they are not installed) and unmarked at once, so that
+    the caller can import them later as usual. A process that imported them
+    before gets pyFFTW's full interfaces.
+    """
+    hidden = [name for name in ("dask", "scipy.fftpack") if name not in sys.modules]
+    for name in hidden:
+        sys.modules[name] = None  # ``import name`` raises ImportError
+    try:
+        import pyfftw
+    finally:
+        for name in hidden:
+            if sys.modules.get(name, False) is None:
+                del sys.modules[name]
+    return pyfftw
+
+
+pyfftw = _import_pyfftw()
 
 __all__ = [
     "RealFFT",
