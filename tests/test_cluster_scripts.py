@@ -28,7 +28,7 @@ from tests.study_configs import tiny_config, write_config
 
 ROOT = Path(__file__).resolve().parent.parent
 FAKE_SLURM = ROOT / "tests" / "fake_slurm"
-TOL = "2.0"
+TOL = "2.5"   # two rounds of three shards without faults (2.0 needs five rounds, each a few processes more)
 CHUNK = "50"   # one shard per level in the first round: few processes, the test stays short
 #: Run-record fields that are wall-clock times or dates (everything else must match bit for bit).
 TIMING = {"started", "finished", "seconds", "elapsed", "forecast", "mc_seconds_predicted", "n_computed"}
