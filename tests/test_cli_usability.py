@@ -482,6 +482,16 @@ def test_validate_refuses_what_screen_refuses_before_solving_with_the_same_line(
     assert result.stderr.strip() == line.replace("error: ", f"error: {config}: ", 1)
 
 
+@pytest.mark.parametrize("surface, fields", [
+    ({"system_size": 1e300}, "surface.rms_height, surface.system_size"),
+    ({"rms_height": 1e-300}, "surface.rms_height"),
+], ids=["m2", "C"])
+def test_a_spectrum_that_cannot_be_built_is_refused_naming_the_config_fields(tmp_path, surface, fields):
+    """The spectrum's own parameter names (``rms_height``) were printed, not the config's fields."""
+    config = write_config(tmp_path / "bad.yaml", tiny_config(surface={**TINY_SURFACE, **surface}))
+    assert one_error_line(run("validate", str(config), expect=2)).startswith(f"error: {fields}: got ")
+
+
 @pytest.mark.parametrize("load, field", [
     ({"relative": 1e200}, "load.relative"), ({"absolute": 1e-320}, "load.absolute"),
     ({"relative": [0.1, 1e200]}, "load.relative.1"), ({"relative": 1e308}, "load.relative"),
@@ -510,7 +520,7 @@ def test_a_config_whose_problem_cannot_be_built_leaves_no_study_file(tmp_path, m
     write_config(tmp_path / "bad.yaml", tiny_config(surface={**TINY_SURFACE, "system_size": 1e-300}))
     write_config(tmp_path / "good.yaml", tiny_config())
     line = one_error_line(run(*args, "--workers", "1", "-q", expect=2))
-    assert line.startswith("error: rms_height, system_size: got (1.0, 1e-300);")
+    assert line.startswith("error: surface.rms_height, surface.system_size: got (1.0, 1e-300);")
     assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml", "good.yaml"]
 
 

@@ -146,6 +146,20 @@ PREDICTION_FACTORS = (2.0, 1.0, 0.5, 0.25, 0.125)
 # ---------------------------------------------------------------------------
 
 
+#: The config field of each parameter of :class:`~rough_uq.physics.surface.SurfaceSpectrum`.
+_SURFACE_FIELDS = {
+    "system_size": "surface.system_size",
+    "rms_height": "surface.rms_height",
+    "hurst": "surface.hurst",
+    **{k: f"surface.wavenumbers.{k}" for k in ("k_l", "k_r", "k_s")},
+}
+
+
+def _surface_fields(names: str) -> str:
+    """The spectrum's parameter names of an error (``"rms_height, system_size"``) as config fields."""
+    return ", ".join(_SURFACE_FIELDS.get(name, name) for name in names.split(", "))
+
+
 def build_model(config: StudyConfig) -> ContactModel:
     """The contact model (surface, load, solver, QoIs) of a study config, checked before any solve.
 
@@ -164,14 +178,17 @@ def build_model(config: StudyConfig) -> ContactModel:
         slope variance ``m2`` outside the float range).
     """
     surface = config.surface
-    spectrum = SurfaceSpectrum(
-        system_size=surface.system_size,
-        k_l=surface.k_l,
-        k_r=surface.k_r,
-        k_s=surface.k_s,
-        hurst=surface.hurst,
-        rms_height=surface.rms_height,
-    )
+    try:
+        spectrum = SurfaceSpectrum(
+            system_size=surface.system_size,
+            k_l=surface.k_l,
+            k_r=surface.k_r,
+            k_s=surface.k_s,
+            hurst=surface.hurst,
+            rms_height=surface.rms_height,
+        )
+    except InvalidParameterError as error:
+        raise InvalidParameterError(_surface_fields(error.name), error.value, error.allowed) from None
     e_star = config.material.e_star
     kind = RelativeLoad if config.load.kind == "relative" else AbsoluteLoad
     loads = tuple(kind(value) for value in config.load.values)
