@@ -538,6 +538,15 @@ def test_a_run_that_needs_a_screening_does_not_create_an_empty_study_from_its_co
     assert creating[args[0]] in " ".join(run(args[0], "--help").output.split())
 
 
+def test_a_study_without_screening_is_told_the_screen_command_for_its_own_file(tmp_path, monkeypatch):
+    """The advice was `roughuq screen CONFIG`, which screens results.h5, not the study the run was given."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "good.yaml", tiny_config())
+    run("mc", "--config", "good.yaml", "--study", "other.h5", "--level", "0", "--tol", "5", "--workers", "1", "-q")
+    line = one_error_line(run("mlmc", "--study", "other.h5", "--tol", "5", "--workers", "1", expect=2))
+    assert line == "error: the study has no complete screening yet: run `roughuq screen CONFIG --out other.h5` first"
+
+
 @pytest.mark.parametrize("args, text", [
     (("mlmc", "--tool", "3"), "mlmc: No such option '--tool'"),
     (("mlmc", "--tol"), "mlmc: Option '--tol' requires an argument"),

@@ -557,10 +557,10 @@ def screening_statistics(study: Study, sampler: StudySampler | None = None) -> t
         sampler = StudySampler(study, stage=STAGE_SCREENING, executor=SerialExecutor(), progress=Progress())
         for level in levels:
             if sampler.missing(level, indices).size:
-                raise StudyFileError(
-                    "the study has no complete screening yet: run `roughuq screen CONFIG` first",
-                    getattr(study.store, "path", None),
-                )
+                path = getattr(study.store, "path", None)
+                out = "" if path is None else f" --out {path}"
+                raise StudyFileError(f"the study has no complete screening yet: run `roughuq screen CONFIG{out}` first",
+                                     path)
     batches = [sampler.samples(level, indices) for level in levels]
     statistics = level_statistics(
         fine=[b.fine for b in batches],
