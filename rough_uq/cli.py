@@ -838,21 +838,27 @@ def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi
     """
     from rough_uq.study.pipeline import (
         cdf_request,
-        check_target_budget,
+        check_target_run,
         open_existing_study,
         parse_tolerances,
         run_target,
     )
 
     grid, wanted = _thresholds(thresholds), _probabilities(probabilities)
-    config = _config_creating_study(opts, check=lambda config: check_target_budget(config, max_cost=opts.max_cost))
-    with open_existing_study(opts.study_path, config=config) as study:
-        request = None
+
+    def requested(config: Any) -> tuple[Any, Any]:
+        """The run's tolerances and (cdf) request of ``config``: refuses an unknown QoI, a bad value."""
         if target == "variance":
-            tolerances = parse_tolerances(tol_var, study.config, option="--tol-var", use_config=False)
-        else:
-            tolerances = _cdf_tolerance(tol_cdf)
-            request = cdf_request(study.config, column=qoi, thresholds=grid, probabilities=wanted)
+            return parse_tolerances(tol_var, config, option="--tol-var", use_config=False), None
+        return _cdf_tolerance(tol_cdf), cdf_request(config, column=qoi, thresholds=grid, probabilities=wanted)
+
+    def check(config: Any) -> None:
+        requested(config)
+        check_target_run(config, max_cost=opts.max_cost)
+
+    config = _config_creating_study(opts, check=check)
+    with open_existing_study(opts.study_path, config=config) as study:
+        tolerances, request = requested(study.config)
         with _executor(study.config, opts.workers, opts.executor, opts.scheduler) as pool:
             watch = (study.config, pool, opts.executor, "a looser tolerance")
             record = run_target(study, target=target, tol=tolerances, executor=pool, request=request,

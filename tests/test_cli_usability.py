@@ -538,6 +538,21 @@ def test_a_run_that_needs_a_screening_does_not_create_an_empty_study_from_its_co
     assert creating[args[0]] in " ".join(run(args[0], "--help").output.split())
 
 
+@pytest.mark.parametrize("config, args, field", [
+    ({}, ("--tol-var", "nosuch=5"), "--tol-var"),
+    ({"grid": {"coarsest": 8, "max_level": 0}}, ("--tol-var", "5"), "grid.max_level"),
+    ({"estimation": {"initial_samples": 3, "batch_size": 4}}, ("--tol-var", "5"), "estimation.initial_samples"),
+    ({}, ("--tol-cdf", "0.1", "--qoi", "nosuch"), "--qoi"),
+], ids=["unknown QoI", "one level", "three initial samples", "unknown column"])
+def test_a_target_run_refused_before_its_first_sample_leaves_no_study_file(tmp_path, monkeypatch, config, args, field):
+    """`mlmc --config` created the study, then run_target refused: an empty study file stayed behind."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "bad.yaml", tiny_config(**config))
+    line = one_error_line(run("mlmc", "--config", "bad.yaml", "--study", "new.h5", *args, "--workers", "1", expect=2))
+    assert line.startswith(f"error: {field}: got ")
+    assert [path.name for path in tmp_path.iterdir()] == ["bad.yaml"]
+
+
 def test_a_study_without_screening_is_told_the_screen_command_for_its_own_file(tmp_path, monkeypatch):
     """The advice was `roughuq screen CONFIG`, which screens results.h5, not the study the run was given."""
     monkeypatch.chdir(tmp_path)

@@ -116,6 +116,7 @@ __all__ = [
     "run_estimation",
     "run_target",
     "check_target_budget",
+    "check_target_run",
     "target_run_id",
     "cdf_request",
     "CdfRequest",
@@ -1497,25 +1498,17 @@ def run_target(
 
     Raises
     ------
-    EstimationError
-        Before any sample and any record, for a ``max_cost`` below the least
-        cost of the run's initial samples (:func:`check_target_budget`),
+    InvalidParameterError, EstimationError
+        Before any sample and any record, what :func:`check_target_run`
+        refuses: a config without the levels or samples such a run needs, or
+        a ``max_cost`` below the least cost of the run's initial samples,
         naming ``--max-cost X`` or ``estimation.max_cost X``.
     """
     tol = np.asarray(tol, dtype=float)
     if target == "cdf" and (request is None or tol.shape != (1,)):
         raise InvalidParameterError("--tol-cdf", tol.tolist(), "one number, with the column and thresholds")
-    if study.config.grid.max_level < 1:
-        raise InvalidParameterError("grid.max_level", study.config.grid.max_level,
-                                    "an integer >= 1 for variance and cdf runs (they estimate level differences)")
+    check_target_run(study.config, max_cost=max_cost, model=study.model)
     estimation = study.config.estimation
-    if estimation.initial_samples < MIN_TARGET_SAMPLES:
-        raise InvalidParameterError(
-            "estimation.initial_samples", estimation.initial_samples,
-            f"an integer >= {MIN_TARGET_SAMPLES} for variance and cdf runs (the variance of a level's "
-            "variance term needs four samples)",
-        )
-    check_target_budget(study.config, max_cost=max_cost, model=study.model)
     max_cost = estimation.max_cost if max_cost is None else max_cost
     key = target_run_id(study, target=target, tol=tol, request=request)
     earlier = _earlier_run(study, key)
@@ -1542,6 +1535,36 @@ def run_target(
 
 #: The option of ``roughuq mlmc`` that asks for a target run, and gives its tolerance.
 _TARGET_OPTIONS = {"variance": "--tol-var", "cdf": "--tol-cdf"}
+
+
+def check_target_run(
+    config: StudyConfig, *, max_cost: float | None = None, model: ContactModel | None = None
+) -> None:
+    """Refuse, before any sample, a variance or cdf run that ``config`` cannot give.
+
+    What :func:`run_target` checks before it opens a record, for callers that
+    check before a study file exists (``roughuq mlmc --config``, which would
+    otherwise leave an empty study file behind): ``grid.max_level`` at least
+    1, ``estimation.initial_samples`` at least :data:`MIN_TARGET_SAMPLES`, and
+    the budget (:func:`check_target_budget`; ``model`` as there).
+
+    Raises
+    ------
+    InvalidParameterError
+        Naming ``grid.max_level`` or ``estimation.initial_samples``.
+    EstimationError
+        A budget below the least cost of the initial samples.
+    """
+    if config.grid.max_level < 1:
+        raise InvalidParameterError("grid.max_level", config.grid.max_level,
+                                    "an integer >= 1 for variance and cdf runs (they estimate level differences)")
+    if config.estimation.initial_samples < MIN_TARGET_SAMPLES:
+        raise InvalidParameterError(
+            "estimation.initial_samples", config.estimation.initial_samples,
+            f"an integer >= {MIN_TARGET_SAMPLES} for variance and cdf runs (the variance of a level's "
+            "variance term needs four samples)",
+        )
+    check_target_budget(config, max_cost=max_cost, model=model)
 
 
 def check_target_budget(
