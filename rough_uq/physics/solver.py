@@ -978,28 +978,16 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
     checkpoint_error, checkpoint_iter = math.inf, st.n_iter
     while True:
         active = st.p if st.active is None else st.active  # what defines I: the pressure or its mask
-        if st.exact:
-            active_total, n_active, shifted_squares = _gap_pass(st.w, ops.heights, active, st.gbar)
-        else:
-            increment = ops.direction_fft.padded  # K (p - p_ref), from the last step
-            active_total, n_active, shifted_squares = _gap_pass(
-                st.w, ops.heights, active, st.gbar, st.u_ref, st.p_scale, increment
-            )
-        previous_gbar, st.gbar = st.gbar, active_total / n_active
+        n_active, g_squares = _gap(ops, st, active)
         t_mean = st.sum_t / n_active
-        g_squares = max(shifted_squares - n_active * (st.gbar - previous_gbar) ** 2, 0.0)  # sum_I g^2
         if precondition:
             residual = ops.direction_fft.padded
             complementarity, overlap, sum_g = _residual_pass(st.w, st.p, st.gbar, residual)
         else:
             rho = g_squares
-            beta = st.delta * rho / st.rho_old if st.rho_old > 0 else 0.0
+            beta = _beta(st, rho)
             complementarity, overlap, s_gt = _plain_direction(st.w, st.p, st.gbar, beta, t_mean, st.t)
-        st.error = (st.p_scale * complementarity + ops.load * overlap) / ops.error_scale
-        if not math.isfinite(st.error):
-            raise ConvergenceError(
-                f"non-finite convergence measure at iteration {st.n_iter} (inputs were finite; this is a bug)"
-            )
+        _set_error(ops, st, complementarity, overlap)
         stall = precondition and st.n_iter - checkpoint_iter >= _STALL_WINDOW
         status = _stop(st, tol=tol, max_iter=max_iter, stall=stall, checkpoint_error=checkpoint_error)
         if not st.exact and (status or st.error < _REFRESH_FACTOR * st.exact_error):
@@ -1013,50 +1001,100 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
         if st.error < 0.5 * checkpoint_error:
             checkpoint_error, checkpoint_iter = st.error, st.n_iter
 
+        overlap_scale = 1.0
         if precondition:
-            y, sum_gy = ops.precondition()  # M applied to r = g on I, 0 elsewhere; <r, y> = sum_I g y
-            y_mean = _active_sum(y, active) / n_active
-            # rho = <g, P M P g> over I, P the projection on zero sum over I.
-            rho = sum_gy - y_mean * sum_g
-            beta = st.delta * rho / st.rho_old if st.rho_old > 0 else 0.0
-            s_gt = _direction(y, st.w, active, st.gbar, y_mean, beta, t_mean, st.t, residual)
-            overlap_scale = _overlap_scale(rho, g_squares)
-        else:
-            overlap_scale = 1.0
+            s_gt, beta, rho, overlap_scale = _preconditioned_direction(
+                ops, st, active, residual, n_active=n_active, t_mean=t_mean, sum_g=sum_g, g_squares=g_squares
+            )
         st.rho_old = rho
         curvature = ops.curvature()
         if not (s_gt > 0 and curvature > 0 and math.isfinite(s_gt / curvature)):
-            if beta != 0.0:
-                # Rounding has spoilt the conjugate direction: retry with the
-                # (preconditioned) steepest-descent direction.
-                st.delta = 0.0
-                st.update_displacement(ops)
-                continue
-            if st.n_iter == 0 and st.n_restarts == 0 and st.has_guess:
-                # The warm start leaves no descent direction on its active set
-                # (e.g. all pressure on one node): start again from uniform pressure.
-                st.n_restarts += 1
-                st.restart_uniform(ops)
-                continue
-            if not st.exact:
-                st.update_displacement(ops)
+            if _prepare_retry(ops, st, beta):
                 continue
             return "no_descent"
-        tau = s_gt / curvature
-        # With a reference pressure the step also writes p - p_ref into the single-precision FFT input.
-        increment = None if st.p_ref is None else ops.direction_fft.padded
-        total, n_overlap, st.sum_t = _step(
-            st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau * overlap_scale, st.p_ref, increment, st.active
+        _advance(ops, st, tau=s_gt / curvature, overlap_scale=overlap_scale)
+
+
+def _gap(ops: _Operators, st: _State, active: np.ndarray) -> tuple[int, float]:
+    """The gap pass: ``st.w <- u - s`` and ``st.gbar`` its mean over I; returns ``|I|`` and ``sum_I g^2``."""
+    if st.exact:
+        active_total, n_active, shifted_squares = _gap_pass(st.w, ops.heights, active, st.gbar)
+    else:
+        increment = ops.direction_fft.padded  # K (p - p_ref), from the last step
+        active_total, n_active, shifted_squares = _gap_pass(
+            st.w, ops.heights, active, st.gbar, st.u_ref, st.p_scale, increment
         )
-        st.n_iter += 1
-        # Nodes added from the overlap restart the conjugate directions.
-        st.delta = 0.0 if n_overlap else 1.0
-        if total > 0:
-            _update_displacement_after_step(ops, st, total)
-        else:
-            # Every node was clamped and none overlapped (cannot happen for a
-            # descent step, but never divide by zero).
-            st.restart_uniform(ops)
+    previous_gbar, st.gbar = st.gbar, active_total / n_active
+    return n_active, max(shifted_squares - n_active * (st.gbar - previous_gbar) ** 2, 0.0)
+
+
+def _beta(st: _State, rho: float) -> float:
+    """The conjugate-gradient weight of the old direction (0 after a restart, ``st.delta = 0``)."""
+    return st.delta * rho / st.rho_old if st.rho_old > 0 else 0.0
+
+
+def _set_error(ops: _Operators, st: _State, complementarity: float, overlap: float) -> None:
+    """``st.error`` from the residual pass's sums (module docstring); a non-finite one is a bug, raised."""
+    st.error = (st.p_scale * complementarity + ops.load * overlap) / ops.error_scale
+    if not math.isfinite(st.error):
+        raise ConvergenceError(
+            f"non-finite convergence measure at iteration {st.n_iter} (inputs were finite; this is a bug)"
+        )
+
+
+def _preconditioned_direction(
+    ops: _Operators, st: _State, active: np.ndarray, residual: np.ndarray, *,
+    n_active: int, t_mean: float, sum_g: float, g_squares: float,
+) -> tuple[float, float, float, float]:
+    """The search direction from ``y = M r`` into ``st.t`` and ``residual`` (the curvature's FFT input).
+
+    Returns ``sum_I g t``, ``beta``, ``rho`` and the scale of the overlap's new pressures (:func:`_overlap_scale`).
+    """
+    y, sum_gy = ops.precondition()  # M applied to r = g on I, 0 elsewhere; <r, y> = sum_I g y
+    y_mean = _active_sum(y, active) / n_active
+    # rho = <g, P M P g> over I, P the projection on zero sum over I.
+    rho = sum_gy - y_mean * sum_g
+    beta = _beta(st, rho)
+    s_gt = _direction(y, st.w, active, st.gbar, y_mean, beta, t_mean, st.t, residual)
+    return s_gt, beta, rho, _overlap_scale(rho, g_squares)
+
+
+def _prepare_retry(ops: _Operators, st: _State, beta: float) -> bool:
+    """After a direction without descent: set up a retry and return True, or False if none is left."""
+    if beta != 0.0:
+        # Rounding has spoilt the conjugate direction: retry with the
+        # (preconditioned) steepest-descent direction.
+        st.delta = 0.0
+        st.update_displacement(ops)
+        return True
+    if st.n_iter == 0 and st.n_restarts == 0 and st.has_guess:
+        # The warm start leaves no descent direction on its active set
+        # (e.g. all pressure on one node): start again from uniform pressure.
+        st.n_restarts += 1
+        st.restart_uniform(ops)
+        return True
+    if not st.exact:
+        st.update_displacement(ops)
+        return True
+    return False
+
+
+def _advance(ops: _Operators, st: _State, *, tau: float, overlap_scale: float) -> None:
+    """The step of length ``tau`` along ``st.t`` (clamped, overlap added), and the new displacement."""
+    # With a reference pressure the step also writes p - p_ref into the single-precision FFT input.
+    increment = None if st.p_ref is None else ops.direction_fft.padded
+    total, n_overlap, st.sum_t = _step(
+        st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau * overlap_scale, st.p_ref, increment, st.active
+    )
+    st.n_iter += 1
+    # Nodes added from the overlap restart the conjugate directions.
+    st.delta = 0.0 if n_overlap else 1.0
+    if total > 0:
+        _update_displacement_after_step(ops, st, total)
+    else:
+        # Every node was clamped and none overlapped (cannot happen for a
+        # descent step, but never divide by zero).
+        st.restart_uniform(ops)
 
 
 def _stop(st: _State, *, tol: float, max_iter: int, stall: bool, checkpoint_error: float) -> str:
