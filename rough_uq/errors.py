@@ -14,7 +14,26 @@ from collections.abc import Sequence
 
 
 class RoughUQError(Exception):
-    """Base class of all errors a user can act on."""
+    """Base class of all errors a user can act on.
+
+    Every one pickles with its attributes (:meth:`__reduce__`), so that an
+    error raised in a pool or dask worker reaches the caller as itself.
+    """
+
+    def __reduce__(self) -> tuple:
+        # Exception's own reduction calls ``type(self)(*self.args)``, and args is
+        # the message alone: the subclasses whose __init__ takes the fields
+        # (InvalidParameterError and others) failed to unpickle, and a process
+        # pool reported the failure as a worker "terminated abruptly".
+        return _rebuilt_error, (type(self), self.args, self.__dict__)
+
+
+def _rebuilt_error(cls: type[RoughUQError], args: tuple, state: dict) -> RoughUQError:
+    """An error of class ``cls`` with ``args`` and attributes ``state``, without calling its ``__init__``."""
+    error = cls.__new__(cls)
+    error.args = args
+    error.__dict__.update(state)
+    return error
 
 
 def is_real_number(value: object) -> bool:

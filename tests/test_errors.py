@@ -1,0 +1,49 @@
+"""The error classes: each pickles with its fields, so a worker's error reaches the caller as itself."""
+
+from __future__ import annotations
+
+import inspect
+import pickle
+from concurrent.futures import ProcessPoolExecutor
+
+import pytest
+
+import rough_uq.errors as errors
+
+#: One instance of every error class of rough_uq.errors, built as the code builds them.
+INSTANCES = [
+    errors.RoughUQError("plain"),
+    errors.ConfigError("config.yaml: bad"),
+    errors.InvalidParameterError("load.relative", -1.0, "a number > 0"),
+    errors.MisplacedOptionError("--shards", 3, context="without --plan", allowed="only with --plan"),
+    errors.ConvergenceError("no convergence", solution=None),
+    errors.StudyFileError("locked", "results.h5"),
+    errors.EstimationError("too few levels"),
+    errors.PlanTooLargeError(n_planned=[10, 2], total=12.0, max_samples=5, tol=[0.1], advice="loosen it"),
+    errors.ExecutorError("worker died"),
+]
+
+
+def test_every_error_class_is_covered():
+    defined = {cls for _, cls in inspect.getmembers(errors, inspect.isclass)
+               if issubclass(cls, errors.RoughUQError) and cls.__module__ == errors.__name__}
+    assert defined == {type(error) for error in INSTANCES}
+
+
+@pytest.mark.parametrize("error", INSTANCES, ids=lambda error: type(error).__name__)
+def test_an_error_pickles_with_its_message_and_fields(error):
+    copy = pickle.loads(pickle.dumps(error))
+    assert type(copy) is type(error) and copy.args == error.args and str(copy) == str(error)
+    assert vars(copy) == vars(error)
+
+
+def _refuse(value: float) -> None:
+    raise errors.InvalidParameterError("load.relative", value, "a number > 0")
+
+
+def test_an_error_raised_in_a_pool_worker_reaches_the_caller_as_itself():
+    """It did not unpickle, and the pool said a worker had been "terminated abruptly"."""
+    with ProcessPoolExecutor(1) as pool:
+        with pytest.raises(errors.InvalidParameterError, match="load.relative: got -1.0") as caught:
+            pool.submit(_refuse, -1.0).result()
+    assert caught.value.name == "load.relative" and caught.value.value == -1.0
