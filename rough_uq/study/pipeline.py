@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from rough_uq import __version__
-from rough_uq.study.config import StudyConfig, config_from_stored_text, config_hash, resolved_yaml
+from rough_uq.study.config import StudyConfig, SurfaceConfig, config_from_stored_text, config_hash, resolved_yaml
 from rough_uq.errors import (
     EstimationError,
     InvalidParameterError,
@@ -156,9 +156,20 @@ _SURFACE_FIELDS = {
 }
 
 
-def _surface_fields(names: str) -> str:
-    """The spectrum's parameter names of an error (``"rms_height, system_size"``) as config fields."""
-    return ", ".join(_SURFACE_FIELDS.get(name, name) for name in names.split(", "))
+def _spectrum(surface: SurfaceConfig) -> SurfaceSpectrum:
+    """The spectrum of a config's ``surface``; its refusals name the config's fields (``surface.rms_height``)."""
+    try:
+        return SurfaceSpectrum(
+            system_size=surface.system_size,
+            k_l=surface.k_l,
+            k_r=surface.k_r,
+            k_s=surface.k_s,
+            hurst=surface.hurst,
+            rms_height=surface.rms_height,
+        )
+    except InvalidParameterError as error:
+        names = ", ".join(_SURFACE_FIELDS.get(name, name) for name in error.name.split(", "))
+        raise InvalidParameterError(names, error.value, error.allowed) from None
 
 
 def build_model(config: StudyConfig) -> ContactModel:
@@ -179,17 +190,7 @@ def build_model(config: StudyConfig) -> ContactModel:
         slope variance ``m2`` outside the float range).
     """
     surface = config.surface
-    try:
-        spectrum = SurfaceSpectrum(
-            system_size=surface.system_size,
-            k_l=surface.k_l,
-            k_r=surface.k_r,
-            k_s=surface.k_s,
-            hurst=surface.hurst,
-            rms_height=surface.rms_height,
-        )
-    except InvalidParameterError as error:
-        raise InvalidParameterError(_surface_fields(error.name), error.value, error.allowed) from None
+    spectrum = _spectrum(surface)
     e_star = config.material.e_star
     kind = RelativeLoad if config.load.kind == "relative" else AbsoluteLoad
     loads = tuple(kind(value) for value in config.load.values)
