@@ -138,7 +138,7 @@ import dataclasses
 import functools
 import math
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -198,6 +198,7 @@ __all__ = [
     "mlmc",
     "plan",
     "refuse_large_plan",
+    "refuse_large_start",
     "starting_plan",
     "starting_samples",
 ]
@@ -1399,6 +1400,24 @@ def refuse_large_plan(n_planned, *, max_samples: int | None, tol: np.ndarray, ad
         raise PlanTooLargeError(
             n_planned=n_planned, total=total, max_samples=max_samples, tol=np.ravel(tol), advice=advice
         )
+
+
+def refuse_large_start(n_initial: int, levels: Sequence[int], *, max_samples: int | None) -> None:
+    """Raise :class:`~rough_uq.errors.InvalidParameterError` naming ``n_initial`` if it alone exceeds ``max_samples``.
+
+    A run that starts with ``n_initial`` samples on each of ``levels`` plans
+    them whatever the tolerance: when they exceed ``max_samples`` the
+    tolerance is not to blame (:func:`refuse_large_plan` would say so), and
+    the refusal comes before any sample. ``max_samples`` None: no limit.
+    """
+    n_levels = len(levels)
+    if max_samples is None or n_initial * n_levels <= max_samples:
+        return
+    where = f"level {levels[0]}" if n_levels == 1 else f"levels {levels[0]}..{levels[-1]}"
+    raise InvalidParameterError(
+        "n_initial", n_initial, f"at most max_samples / levels = {max_samples // n_levels}: the initial samples of "
+        f"{where} alone exceed max_samples = {max_samples}",
+    )
 
 
 def _final(events: Iterator[Event]) -> EstimationResult:

@@ -107,6 +107,7 @@ from rough_uq.multilevel.drivers import (
     _planning_variances,
     affordable_count,
     refuse_large_plan,
+    refuse_large_start,
 )
 from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias
 from rough_uq.multilevel.statistics import _readonly
@@ -637,6 +638,7 @@ def adaptive_mlmc(
     _check_tol(tol, None)  # fails early; the number of groups is known after the first batch
     levels = [_Level(level) for level in range(min_finest_level + 1)]
     planned = [n_initial] * len(levels)
+    refuse_large_start(n_initial, range(len(levels)), max_samples=max_samples)
     gamma = RATE_FLOOR
     tol_groups: np.ndarray | None = None
     stop_reason = ""

@@ -303,7 +303,7 @@ def mlmc(
         richardson=richardson,
         coarsest_level=None if statistics is not None else 0,
     )
-    result = _run_to_end(events, max_samples=max_samples, tol=tol)
+    result = _run_to_end(events, max_samples=max_samples, tol=tol, n_initial=n_initial if statistics is None else None)
     _warn_not_converged(sampler, "mlmc")
     return result
 
@@ -383,6 +383,7 @@ def mc(
     tol = _tolerances(tol, problem.n_qoi)
     max_samples = _max_samples(max_samples)
     mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
+    statistics = _screening_statistics(screening)
     stage = run_stage("mc", run_id("mc", problem.columns, tol, theta, level))
     sampler = problem.sampler(stage, executor=executor)
     events = drivers.iter_mc(
@@ -394,10 +395,10 @@ def mc(
         n_initial=n_initial,
         max_cost=max_cost,
         batch_size=batch_size,
-        screening=_screening_statistics(screening),
+        screening=statistics,
         kurtosis_limit=kurtosis_limit,
     )
-    result = _run_to_end(events, max_samples=max_samples, tol=tol)
+    result = _run_to_end(events, max_samples=max_samples, tol=tol, n_initial=n_initial if statistics is None else None)
     _warn_not_converged(sampler, "mc")
     return result
 
@@ -406,10 +407,19 @@ def _max_samples(max_samples: object) -> int | None:
     return None if max_samples is None else checked_integer("max_samples", max_samples, 1)
 
 
-def _run_to_end(events, *, max_samples: int | None, tol: np.ndarray) -> EstimationResult:
-    """The result of a run's events; refuses a plan of more than ``max_samples`` samples before drawing them."""
+def _run_to_end(events, *, max_samples: int | None, tol: np.ndarray, n_initial: int | None) -> EstimationResult:
+    """The result of a run's events; refuses a plan of more than ``max_samples`` samples before drawing them.
+
+    ``n_initial``: a run without a screening, whose initial plan is
+    ``n_initial`` samples on each of its levels; if they alone are too many,
+    the refusal names ``n_initial``, not the tolerance. None: the initial
+    plan follows from the tolerance (a screening's).
+    """
     for event in events:
         if isinstance(event, drivers.PlanUpdated):
+            if event.reason == "initial" and n_initial is not None:
+                levels = event.levels[event.n_planned > 0].tolist()
+                drivers.refuse_large_start(n_initial, levels, max_samples=max_samples)
             drivers.refuse_large_plan(
                 event.n_planned, max_samples=max_samples, tol=tol,
                 advice="loosen tol, or pass max_cost (a budget) with max_samples=None",

@@ -1,0 +1,63 @@
+"""Arguments of the public runs (mlmc, mc, variance, distribution) refused by name, before any sample is drawn."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import rough_uq
+from rough_uq.multilevel.moments import variance_level_term
+from rough_uq.multilevel.targets import adaptive_mlmc
+
+
+class _NoSampling:
+    """An executor that fails the test if a run draws a sample."""
+
+    def run(self, model, items):
+        raise AssertionError(f"a sample was drawn: {list(items)[:1]}")
+
+
+def _never_sampled(level, indices):
+    raise AssertionError(f"a sample was drawn on level {level}")
+
+
+def _problem(qoi=("contact_area",)) -> rough_uq.ContactProblem:
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    return rough_uq.ContactProblem(
+        spectrum, load=rough_uq.RelativeLoad(0.2), qoi=list(qoi), coarsest=8, max_level=2, solver_tol=1e-8, seed=2026
+    )
+
+
+@pytest.fixture(autouse=True)
+def _quiet():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        yield
+
+
+def test_initial_samples_beyond_max_samples_are_refused_naming_n_initial_before_sampling():
+    # Drew all 900 initial samples, then blamed the tolerance ("loosen the tolerance").
+    problem = _problem()
+    calls = [
+        lambda: rough_uq.mlmc(problem, tol=2.0, n_initial=300, max_samples=100, executor=_NoSampling()),
+        lambda: rough_uq.mc(problem, tol=2.0, level=1, n_initial=300, max_samples=100, executor=_NoSampling()),
+        lambda: rough_uq.variance(problem, tol=20.0, n_initial=300, max_samples=100, executor=_NoSampling()),
+        lambda: rough_uq.distribution(
+            problem, tol=0.2, thresholds=[0, 50, 100], n_initial=10**8, max_samples=100, executor=_NoSampling()
+        ),
+    ]
+    for call in calls:
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            call()
+        assert caught.value.name == "n_initial" and "alone exceed max_samples = 100" in str(caught.value)
+        assert "tolerance" not in str(caught.value) and "loosen" not in str(caught.value)
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^n_initial: got 40; allowed: at most max_samples / "):
+        adaptive_mlmc(_never_sampled, term=variance_level_term, tol=1.0, n_initial=40, max_samples=100)
+
+
+def test_initial_samples_within_max_samples_still_run():
+    problem = _problem()
+    result = rough_uq.variance(problem, tol=1e3, n_initial=4, max_samples=12)
+    assert result.n_samples.tolist() == [4, 4, 4]
