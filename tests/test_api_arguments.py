@@ -61,3 +61,25 @@ def test_initial_samples_within_max_samples_still_run():
     problem = _problem()
     result = rough_uq.variance(problem, tol=1e3, n_initial=4, max_samples=12)
     assert result.n_samples.tolist() == [4, 4, 4]
+
+
+@pytest.fixture(scope="module")
+def two_qoi_screening() -> rough_uq.ScreeningResult:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return rough_uq.screen(_problem(qoi=("contact_area", "mean_gap")), samples=2)
+
+
+def test_a_screening_or_rates_of_other_qois_are_refused_by_name_before_sampling(two_qoi_screening):
+    # Said "tol: got array([2., 2.]); allowed: a scalar or 1 values (one per QoI)" once sampling had begun.
+    problem, none = _problem(), _NoSampling()
+    for name, call in (
+        ("screening", lambda: rough_uq.mlmc(problem, tol=2.0, screening=two_qoi_screening, executor=none)),
+        ("screening", lambda: rough_uq.mlmc(problem, tol=2.0, screening=two_qoi_screening.statistics, executor=none)),
+        ("rates", lambda: rough_uq.mlmc(problem, tol=2.0, rates=two_qoi_screening.rates, executor=none)),
+        ("screening", lambda: rough_uq.mc(problem, tol=2.0, screening=two_qoi_screening, executor=none)),
+        ("screening", lambda: rough_uq.mc(problem, tol=2.0, level=1, screening=two_qoi_screening, executor=none)),
+    ):
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            call()
+        assert caught.value.name == name and str(caught.value).endswith("it has 2 QoIs, the problem 1")

@@ -204,6 +204,15 @@ def _screening_statistics(screening: object) -> LevelStatistics | None:
     raise InvalidParameterError("screening", screening, "a ScreeningResult (rough_uq.screen), LevelStatistics or None")
 
 
+def _check_qoi_count(problem: ContactProblem, name: str, n_qoi: int) -> None:
+    """Refuse a screening or rates (``name``) of another number of QoIs than ``problem``'s, before any sample."""
+    if n_qoi != problem.n_qoi:
+        raise InvalidParameterError(
+            name, f"{name} of {n_qoi} QoIs", f"{name} of the problem's QoIs: it has {n_qoi} QoIs, the problem "
+            f"{problem.n_qoi}",
+        )
+
+
 def _warn_not_converged(sampler: ContactSampler, method: str) -> None:
     if sampler.n_not_converged:
         warnings.warn(
@@ -285,9 +294,13 @@ def mlmc(
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi)
     max_samples = _max_samples(max_samples)
+    statistics = _screening_statistics(screening)
+    if statistics is not None:
+        _check_qoi_count(problem, "screening", statistics.n_qoi)
+    if isinstance(rates, Rates):
+        _check_qoi_count(problem, "rates", rates.n_qoi)
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor)
-    statistics = _screening_statistics(screening)
     events = drivers.iter_mlmc(
         sampler,
         tol=tol,
@@ -382,8 +395,10 @@ def mc(
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi)
     max_samples = _max_samples(max_samples)
-    mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
     statistics = _screening_statistics(screening)
+    if statistics is not None:
+        _check_qoi_count(problem, "screening", statistics.n_qoi)
+    mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
     stage = run_stage("mc", run_id("mc", problem.columns, tol, theta, level))
     sampler = problem.sampler(stage, executor=executor)
     events = drivers.iter_mc(
