@@ -83,3 +83,27 @@ def test_a_screening_or_rates_of_other_qois_are_refused_by_name_before_sampling(
         with pytest.raises(rough_uq.InvalidParameterError) as caught:
             call()
         assert caught.value.name == name and str(caught.value).endswith("it has 2 QoIs, the problem 1")
+
+
+def test_a_min_finest_level_above_max_level_is_refused_naming_min_finest_level():
+    # Said "max_level: got 2; allowed: an integer >= 3": the problem's max_level, not an argument of the call.
+    problem, none = _problem(), _NoSampling()
+    for call in (
+        lambda: rough_uq.mlmc(problem, tol=2.0, min_finest_level=3, executor=none),
+        lambda: rough_uq.variance(problem, tol=20.0, min_finest_level=3, executor=none),
+        lambda: rough_uq.distribution(problem, tol=0.2, thresholds=[0, 50, 100], min_finest_level=3, executor=none),
+    ):
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            call()
+        assert caught.value.name == "min_finest_level" and caught.value.value == 3
+        assert caught.value.allowed == "an integer in 1..max_level = 2"
+    # An MLMC run spans levels 0..2 at least; said "coarsest_level: got 0; allowed: at most max_level - 2 = -1".
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^max_level: got 1; allowed: an integer >= 2$"):
+        rough_uq.mlmc(_problem_of_levels(1), tol=2.0, min_finest_level=1, executor=none)
+
+
+def _problem_of_levels(max_level: int) -> rough_uq.ContactProblem:
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    return rough_uq.ContactProblem(
+        spectrum, load=rough_uq.RelativeLoad(0.2), qoi=["contact_area"], coarsest=8, max_level=max_level, seed=2026
+    )

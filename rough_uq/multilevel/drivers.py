@@ -189,6 +189,7 @@ __all__ = [
     "RichardsonRefused",
     "Sampler",
     "affordable_count",
+    "check_finest_levels",
     "diagnose",
     "fit_rates",
     "iter_mc",
@@ -1047,8 +1048,8 @@ def iter_mlmc(
     """
     theta = _check_fraction("theta", theta)
     n_initial = checked_integer("n_initial", n_initial, 2)
-    min_finest_level = checked_integer("min_finest_level", min_finest_level, 1)
-    max_level = checked_integer("max_level", max_level, min_finest_level)
+    # Two levels above the base (>= 0) to fit the rates from: levels 0..2 at least.
+    min_finest_level, max_level = check_finest_levels(min_finest_level, max_level, least_max_level=2)
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
     n_qoi = screening.n_qoi if screening is not None else (rates.n_qoi if rates is not None else None)
@@ -1071,6 +1072,20 @@ def iter_mlmc(
     )
     batch_cap = batch_size if batch_size is not None else math.inf
     return _drive(functools.partial(_MlmcRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
+
+
+def check_finest_levels(min_finest_level: object, max_level: object, *, least_max_level: int) -> tuple[int, int]:
+    """``min_finest_level`` (an integer >= 1) and ``max_level`` (>= ``least_max_level``, the fewest a run needs).
+
+    A ``min_finest_level`` above ``max_level`` is refused naming
+    ``min_finest_level``: ``max_level`` is often the problem's, which the
+    caller of a run did not give as an argument.
+    """
+    min_finest_level = checked_integer("min_finest_level", min_finest_level, 1)
+    max_level = checked_integer("max_level", max_level, least_max_level)
+    if min_finest_level > max_level:
+        raise InvalidParameterError("min_finest_level", min_finest_level, f"an integer in 1..max_level = {max_level}")
+    return min_finest_level, max_level
 
 
 @dataclass(frozen=True, eq=False)

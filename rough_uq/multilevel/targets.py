@@ -106,6 +106,7 @@ from rough_uq.multilevel.drivers import (
     _fill_costs,
     _planning_variances,
     affordable_count,
+    check_finest_levels,
     refuse_large_plan,
     refuse_large_start,
 )
@@ -630,8 +631,7 @@ def adaptive_mlmc(
     """
     theta = _check_fraction("theta", theta)
     n_initial = checked_integer("n_initial", n_initial, 4)
-    min_finest_level = checked_integer("min_finest_level", min_finest_level, 1)
-    max_level = checked_integer("max_level", max_level, min_finest_level)
+    min_finest_level, max_level = check_finest_levels(min_finest_level, max_level, least_max_level=1)
     batch_cap = math.inf if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
     max_samples = None if max_samples is None else checked_integer("max_samples", max_samples, 1)
