@@ -107,3 +107,11 @@ def _problem_of_levels(max_level: int) -> rough_uq.ContactProblem:
     return rough_uq.ContactProblem(
         spectrum, load=rough_uq.RelativeLoad(0.2), qoi=["contact_area"], coarsest=8, max_level=max_level, seed=2026
     )
+
+
+def test_rates_of_another_type_are_refused_by_name():
+    # An AttributeError deep in drivers.iter_mlmc.
+    for rates in ("x", 0.5, {"alpha": 1.0}):
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            rough_uq.mlmc(_problem(), tol=2.0, rates=rates, executor=_NoSampling())
+        assert caught.value.name == "rates" and caught.value.value is rates and "a Rates" in caught.value.allowed

@@ -1052,6 +1052,8 @@ def iter_mlmc(
     min_finest_level, max_level = check_finest_levels(min_finest_level, max_level, least_max_level=2)
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
+    if rates is not None and not isinstance(rates, Rates):
+        raise InvalidParameterError("rates", rates, "a Rates (e.g. the rates of rough_uq.screen's result) or None")
     n_qoi = screening.n_qoi if screening is not None else (rates.n_qoi if rates is not None else None)
     tol = _check_tol(tol, n_qoi)
     if rates is not None:
