@@ -115,3 +115,20 @@ def test_rates_of_another_type_are_refused_by_name():
         with pytest.raises(rough_uq.InvalidParameterError) as caught:
             rough_uq.mlmc(_problem(), tol=2.0, rates=rates, executor=_NoSampling())
         assert caught.value.name == "rates" and caught.value.value is rates and "a Rates" in caught.value.allowed
+
+
+@pytest.mark.parametrize("bias", ["a", "0.5", True, np.bool_(True), [0.5, "1"], [True], np.array(["0.5"]), np.nan,
+                                  [np.inf], [[0.5]]])
+def test_a_bias_that_is_not_finite_numbers_is_refused_by_name(bias):
+    # "a" was a bare ValueError; "0.5" and True were taken as 0.5 and 1.
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.mc(_problem(), tol=2.0, level=1, bias=bias, executor=_NoSampling())
+    assert caught.value.name == "bias" and caught.value.value is bias
+
+
+def test_a_bias_of_numbers_is_taken_as_before():
+    problem = _problem()
+    given = {"scalar": 0.5, "list": [0.5], "array": np.array([-0.5]), "numpy scalar": np.float32(0.5)}
+    for bias in given.values():
+        result = rough_uq.mc(problem, tol=20.0, level=0, bias=bias, n_initial=2)
+        assert result.is_bias_estimated and float(np.ravel(result.bias_estimate)[0]) == 0.5

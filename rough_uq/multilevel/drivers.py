@@ -1511,21 +1511,34 @@ def iter_mc(
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
     tol = _check_tol(tol, screening.n_qoi if screening is not None else None)
-    if bias is not None:
-        bias = np.atleast_1d(np.abs(np.asarray(bias, dtype=float)))
-        if bias.ndim != 1 or not np.all(np.isfinite(bias)):
-            raise InvalidParameterError("bias", bias, "a finite number or 1-d array (one per QoI)")
     options = _McOptions(
         tol=tol,
         level=level,
         theta=theta,
-        bias=bias,
+        bias=None if bias is None else _checked_bias(bias),
         n_initial=n_initial,
         screening=screening,
         kurtosis_limit=_check_positive("kurtosis_limit", kurtosis_limit),
     )
     batch_cap = batch_size if batch_size is not None else math.inf
     return _drive(functools.partial(_McRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
+
+
+def _checked_bias(bias: object) -> np.ndarray:
+    """``|bias|`` as a 1-d float array; strings, booleans and non-finite values are refused naming ``bias``."""
+    values = np.asarray(bias, dtype=float) if _is_real_array(bias) else None
+    if values is None or values.ndim > 1 or not np.all(np.isfinite(values)):
+        raise InvalidParameterError("bias", bias, "a finite number or a 1-d array of them (one per QoI)")
+    return np.atleast_1d(np.abs(values))
+
+
+def _is_real_array(value: object) -> bool:
+    """A real number (:func:`~rough_uq.errors.is_real_number`) or an array or sequence of them: nothing to convert."""
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind in "iuf"
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return all(_is_real_array(item) for item in value)
+    return is_real_number(value)
 
 
 def _mc_screened_variance(screening: LevelStatistics, level: int) -> tuple[np.ndarray, float | np.ndarray]:
