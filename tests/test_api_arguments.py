@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import rough_uq
+from rough_uq.multilevel.distribution import cdf_level_term
 from rough_uq.multilevel.moments import variance_level_term
 from rough_uq.multilevel.targets import adaptive_mlmc
 
@@ -132,3 +133,22 @@ def test_a_bias_of_numbers_is_taken_as_before():
     for bias in given.values():
         result = rough_uq.mc(problem, tol=20.0, level=0, bias=bias, n_initial=2)
         assert result.is_bias_estimated and float(np.ravel(result.bias_estimate)[0]) == 0.5
+
+
+@pytest.mark.parametrize("bandwidth", ["abc", "2", [1.0], True, np.array([1.0]), np.nan, -1.0])
+def test_a_bandwidth_that_is_not_a_positive_number_is_refused_by_name(bandwidth):
+    # "abc" was a bare ValueError, [1.0] and "2" a TypeError, and True was taken as 1.
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.distribution(
+            _problem(), tol=0.2, thresholds=[0, 50, 100], bandwidth=bandwidth, executor=_NoSampling()
+        )
+    assert caught.value.name == "bandwidth" and caught.value.value is bandwidth
+
+
+def test_a_bandwidth_rate_that_is_not_a_number_is_refused_by_name():
+    fine = np.linspace(0.0, 1.0, 8)[:, None]
+    for rate in ("1", True, [1.0]):
+        with pytest.raises(rough_uq.InvalidParameterError, match="^bandwidth_rate: "):
+            cdf_level_term(fine, None, 0, thresholds=[0.0, 1.0], bandwidth=0.5, bandwidth_rate=rate)
+    numbers = [cdf_level_term(fine, None, 0, thresholds=[0.0, 1.0], bandwidth=b, bandwidth_rate=1) for b in (1, 1.0)]
+    np.testing.assert_array_equal(numbers[0].mean, numbers[1].mean)

@@ -119,9 +119,10 @@ def _check_thresholds(thresholds: object) -> np.ndarray:
 
 
 def _check_bandwidth(bandwidth: float, bandwidth_rate: float) -> None:
-    if not float(bandwidth) > 0 or not np.isfinite(bandwidth):
+    """Refuse by name a bandwidth or rate that is not a finite number (strings and booleans are not converted)."""
+    if not (is_real_number(bandwidth) and np.isfinite(bandwidth) and bandwidth > 0):
         raise InvalidParameterError("bandwidth", bandwidth, "a positive number (the unit of Q)")
-    if not float(bandwidth_rate) >= 0 or not np.isfinite(bandwidth_rate):
+    if not (is_real_number(bandwidth_rate) and np.isfinite(bandwidth_rate) and bandwidth_rate >= 0):
         raise InvalidParameterError("bandwidth_rate", bandwidth_rate, "a non-negative number")
 
 
