@@ -485,6 +485,11 @@ class LoadConfig(_Section):
         return len(self.values)
 
 
+#: The smallest solver tolerance: ``rough_uq.problem.contact.MIN_SOLVER_TOL``, which says why (this module
+#: imports nothing of the core; tests/test_config.py checks they agree).
+MIN_SOLVER_TOL = 1e-14
+
+
 class SolverConfig(_Section):
     """The constrained conjugate-gradient contact solver (SPEC section 2)."""
 
@@ -496,8 +501,8 @@ class SolverConfig(_Section):
             "(4- or 8-connectivity) by at most 0.014 per unit area on the classic settings against tol 1e-10, "
             "under 1 % of the tightest classic tolerances (scripts/tolerance_study.py, README)"
         ),
-        allowed="number in (0, 1)",
-        gt=0,
+        allowed=f"number in [{MIN_SOLVER_TOL:g}, 1) (below it rounding stops the solver before the tolerance)",
+        ge=MIN_SOLVER_TOL,
         lt=1,
     )
     max_iter: Int = _field(
