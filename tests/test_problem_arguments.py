@@ -41,3 +41,41 @@ def test_the_config_takes_the_same_smallest_solver_tolerance() -> None:
     data["solver"] = {"tol": 1e-17}
     with pytest.raises(ConfigError, match=r"solver\.tol.*1e-14, 1\)"):
         config_module.config_from_dict(data)
+
+
+@pytest.mark.parametrize(
+    ("level", "indices", "name"),
+    [
+        (99, [0], "level"),  # OverflowError deep in surface.py
+        (3, [0], "level"),  # beyond max_level = 2: silently sampled a 64^2 grid
+        (-1, [0], "level"),
+        (2.0, [0], "level"),  # the error named n
+        (True, [0], "level"),
+        (0, [-1], "indices"),
+        (0, [0.5], "indices"),  # silently sampled index 0
+        (0, np.array([1.0]), "indices"),
+        (0, [True], "indices"),
+        (0, ["1"], "indices"),
+        (0, np.array([2**63], dtype=np.uint64), "indices"),
+    ],
+)
+def test_a_sampler_refuses_a_level_or_indices_it_has_not_by_name(level, indices, name) -> None:
+    sampler = _problem().sampler(1)
+    for ask in (sampler, sampler.batch):
+        with pytest.raises(InvalidParameterError, match=f"^{name}: ") as caught:
+            ask(level, indices)
+        assert ("max_level = 2" in caught.value.allowed) == (name == "level")
+    assert sampler.n_samples == 0
+
+
+def test_a_sampler_takes_integer_indices_of_any_dtype_with_the_same_samples() -> None:
+    sampler = _problem().sampler(1)
+    reference = sampler.batch(1, np.array([0, 3], dtype=np.int64))
+    for indices in ([0, 3], np.array([0, 3], dtype=np.uint8), np.array([[0], [3]], dtype=np.int32)):
+        batch = sampler.batch(np.int64(1), indices)
+        assert batch.indices.dtype == np.int64
+        np.testing.assert_array_equal(batch.fine, reference.fine)
+        np.testing.assert_array_equal(batch.coarse, reference.coarse)
+    fine, coarse, cost = sampler(2, np.arange(1))
+    assert fine.shape == (1, 1) and cost.shape == (1,)
+    assert sampler.batch(0, np.zeros(0, dtype=np.int64)).n_samples == 0

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, checked_integer, is_real_number
+from rough_uq.errors import InvalidParameterError, checked_integer, is_integer, is_real_number
 from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES
 from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
@@ -424,7 +424,34 @@ class ContactProblem:
                 "executor", executor, "None (this process) or an executor with run(model, items), e.g. "
                 "rough_uq.study.executors.PoolExecutor"
             )
-        return ContactSampler(self.model, stage=checked_integer("stage", stage, 0), executor=executor)
+        stage = checked_integer("stage", stage, 0)
+        return ContactSampler(self.model, stage=stage, executor=executor, max_level=self.max_level)
+
+
+def _checked_level(level: object, max_level: int | None) -> int:
+    """``level`` as an int, or :class:`InvalidParameterError` naming ``level`` unless an integer in 0..max_level."""
+    top = "" if max_level is None else f" and <= max_level = {max_level}"
+    if not (is_integer(level) and 0 <= level and (max_level is None or level <= max_level)):
+        raise InvalidParameterError("level", level, f"an integer >= 0{top} (the problem's levels)")
+    return int(level)
+
+
+def _checked_indices(indices: object) -> np.ndarray:
+    """``indices`` as a flat int64 array, or :class:`InvalidParameterError` naming ``indices`` unless integers >= 0.
+
+    Integers of any numpy integer dtype (or a list of ints) are taken; floats
+    (even integral ones), booleans and negative numbers are refused, never converted.
+    """
+    allowed = "integers >= 0 (sample indices; an int, a sequence of ints or an integer array)"
+    try:
+        array = np.asarray(indices).reshape(-1)
+    except (TypeError, ValueError):
+        raise InvalidParameterError("indices", indices, allowed) from None
+    if array.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if array.dtype.kind not in "iu" or array.min() < 0 or array.max() > np.iinfo(np.int64).max:
+        raise InvalidParameterError("indices", indices, allowed)
+    return array.astype(np.int64)
 
 
 def _ordered(batches: Sequence[LevelBatch], indices: np.ndarray) -> LevelBatch:
@@ -448,6 +475,8 @@ class ContactSampler:
     ----------
     model : ContactModel
     stage : int
+    max_level : int or None
+        The finest level a batch may ask for (the problem's); None: no bound.
     n_samples : int
         Samples computed so far.
     n_not_converged : int
@@ -460,18 +489,29 @@ class ContactSampler:
         the kernels (about 0.3 s in a fresh process) is not timed as a sample.
     """
 
-    def __init__(self, model: ContactModel, *, stage: int, executor: BatchExecutor | None = None) -> None:
+    def __init__(
+        self, model: ContactModel, *, stage: int, executor: BatchExecutor | None = None, max_level: int | None = None
+    ) -> None:
         self.model = model
         self.stage = stage
         self.executor = executor
+        self.max_level = max_level
         self.n_samples = 0
         self.n_not_converged = 0
         self.seconds = 0.0
         self._is_warm = False
 
     def batch(self, level: int, indices: np.ndarray) -> LevelBatch:
-        """Samples ``(stage, level, i)`` for ``i`` in ``indices``, in that order, with their solver records."""
-        indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+        """Samples ``(stage, level, i)`` for ``i`` in ``indices``, in that order, with their solver records.
+
+        Raises
+        ------
+        InvalidParameterError
+            Naming ``level`` unless an integer in ``0..max_level``, or
+            ``indices`` unless integers >= 0.
+        """
+        level = _checked_level(level, self.max_level)
+        indices = _checked_indices(indices)
         if self.executor is None or indices.size <= 1:
             if not self._is_warm:
                 # Load the kernels before the first sample computed here is timed
