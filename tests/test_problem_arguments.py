@@ -79,3 +79,32 @@ def test_a_sampler_takes_integer_indices_of_any_dtype_with_the_same_samples() ->
     fine, coarse, cost = sampler(2, np.arange(1))
     assert fine.shape == (1, 1) and cost.shape == (1,)
     assert sampler.batch(0, np.zeros(0, dtype=np.int64)).n_samples == 0
+
+
+@pytest.mark.parametrize("k_s", [32768.5, 3e4 * 2, 1e12, 1e200])
+def test_a_short_cut_off_no_grid_resolves_is_refused_by_name(k_s) -> None:
+    # k_s = 1e4 took seconds, 1e12 ended in a MemoryError, 1e200 in an OverflowError.
+    with pytest.raises(InvalidParameterError, match=r"^k_s: .*<= 32768 \(MAX_K_S: half the largest grid"):
+        rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=k_s, hurst=0.8, rms_height=1.0)
+    with pytest.raises(InvalidParameterError, match=r"^lambda_s: got 1e-300; allowed: a wavelength >= system_size"):
+        rough_uq.SurfaceSpectrum.from_wavelengths(
+            system_size=1, lambda_l=1, lambda_r=0.5, lambda_s=1e-300, hurst=0.8, rms_height=1
+        )
+
+
+def test_the_largest_short_cut_off_is_half_the_largest_grid_in_every_layer() -> None:
+    from rough_uq.physics.surface import MAX_K_S
+    from rough_uq.problem.contact import MAX_GRID
+    from tests.test_config import _base
+
+    assert MAX_K_S == config_module.MAX_K_S == MAX_GRID // 2
+    data = _base()
+    data["surface"]["wavelengths"]["lambda_s"] = data["surface"]["system_size"] / MAX_K_S
+    assert config_module.config_from_dict(data).surface.k_s == MAX_K_S
+    data["surface"]["wavelengths"]["lambda_s"] = 1e-300
+    with pytest.raises(ConfigError, match=r"surface\.wavelengths\.lambda_s: .*got 1e-300; allowed: number >= system"):
+        config_module.config_from_dict(data)
+    data["surface"].pop("wavelengths")
+    data["surface"]["wavenumbers"] = {"k_l": 2, "k_r": 2, "k_s": 1e12}
+    with pytest.raises(ConfigError, match=r"surface\.wavenumbers\.k_s: .*got 1000000000000.0; allowed: .*<= 32768"):
+        config_module.config_from_dict(data)

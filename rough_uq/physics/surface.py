@@ -66,13 +66,25 @@ __all__ = [
     "sample_coupled",
     "project_surface",
     "PROJECTIONS",
+    "MAX_K_S",
 ]
 
 #: Relative tolerance on the squared band edges ``k_l^2`` and ``k_s^2``.
 _EDGE_RTOL = 1e-10
 
+#: The largest short cut-off ``k_s`` (periods per box): half of the largest grid,
+#: ``rough_uq.problem.contact.MAX_GRID`` = 65536 (tests/test_problem_arguments.py
+#: checks they agree; physics may not import the problem). No grid resolves a
+#: larger ``k_s`` (a grid ``n`` resolves ``|k0|, |k1| < n / 2``), and the band sums
+#: over all its wave vectors take a time quadratic in ``k_s`` (some 7 s at 1e4),
+#: memory linear in it (1e12: MemoryError) and overflow beyond (1e200).
+MAX_K_S = 32768
+
 #: Projections from a fine onto the nested coarse grid (see :func:`project_surface`).
 PROJECTIONS = ("truncation", "injection")
+
+
+_K_S_ALLOWED = f"a finite number > 0 and <= {MAX_K_S} (MAX_K_S: half the largest grid, 65536, resolves no larger k_s)"
 
 
 def _check_real(name: str, value: object, *, allowed: str) -> float:
@@ -104,7 +116,8 @@ class SurfaceSpectrum:
     k_r : float
         Roll-off wave number (periods per box), ``0 < k_r <= k_s``.
     k_s : float
-        Upper (short-wavelength) cut-off wave number (periods per box), > 0.
+        Upper (short-wavelength) cut-off wave number (periods per box), > 0
+        and <= :data:`MAX_K_S` (32768: the largest grid resolves no larger one).
     hurst : float
         Hurst exponent ``H``, dimensionless, ``0 <= H <= 1``.
     rms_height : float
@@ -148,7 +161,7 @@ class SurfaceSpectrum:
             "hurst": _check_real("hurst", self.hurst, allowed="a number in [0, 1]"),
             "k_l": _check_real("k_l", self.k_l, allowed="a finite number with 0 <= k_l <= k_r"),
             "k_r": _check_real("k_r", self.k_r, allowed="a finite number with 0 < k_r <= k_s"),
-            "k_s": _check_real("k_s", self.k_s, allowed=positive),
+            "k_s": _check_real("k_s", self.k_s, allowed=_K_S_ALLOWED),
         }
         if values["system_size"] <= 0:
             raise InvalidParameterError("system_size", self.system_size, positive)
@@ -156,8 +169,8 @@ class SurfaceSpectrum:
             raise InvalidParameterError("rms_height", self.rms_height, positive)
         if not 0.0 <= values["hurst"] <= 1.0:
             raise InvalidParameterError("hurst", self.hurst, "a number in [0, 1]")
-        if values["k_s"] <= 0:
-            raise InvalidParameterError("k_s", self.k_s, positive)
+        if not 0 < values["k_s"] <= MAX_K_S:
+            raise InvalidParameterError("k_s", self.k_s, _K_S_ALLOWED)
         # k_r = 0 would make the self-affine branch C (k / k_r)^(-2-2H) undefined.
         if not 0.0 < values["k_r"] <= values["k_s"]:
             raise InvalidParameterError("k_r", self.k_r, f"0 < k_r <= k_s = {values['k_s']}")
@@ -226,6 +239,11 @@ class SurfaceSpectrum:
                     name, wavelength, "a wavelength > 0" + (" (inf for k_l = 0)" if allow_inf else "")
                 )
             wave_numbers["k" + name[-2:]] = size / value
+        if not wave_numbers["k_s"] <= MAX_K_S:
+            raise InvalidParameterError(
+                "lambda_s", lambda_s, f"a wavelength >= system_size / {MAX_K_S} = {size / MAX_K_S:g} (k_s = "
+                f"system_size / lambda_s <= MAX_K_S: half the largest grid, 65536, resolves no larger k_s)"
+            )
         try:
             return cls(system_size=size, hurst=hurst, rms_height=rms_height, **wave_numbers)
         except InvalidParameterError as error:

@@ -197,6 +197,15 @@ class _Section(BaseModel):
 # ---------------------------------------------------------------------------
 
 
+#: The largest grid (nodes per side) of a study: ``rough_uq.problem.contact.MAX_GRID``, which
+#: says why (this module imports nothing of the core; tests/test_config.py checks they agree).
+MAX_GRID = 65536
+
+#: The largest short cut-off wave number: ``rough_uq.physics.surface.MAX_K_S``, half of MAX_GRID
+#: (tests/test_problem_arguments.py checks they agree).
+MAX_K_S = MAX_GRID // 2
+
+
 class Wavelengths(_Section):
     """Spectrum cut-offs as wavelengths (length unit)."""
 
@@ -232,8 +241,9 @@ class Wavenumbers(_Section):
     )
     k_s: Float = _field(
         description="Short cut-off wave number k_s (periods per box, dimensionless)",
-        allowed="number > 0",
+        allowed=f"number > 0 and <= {MAX_K_S} (half the largest grid, {MAX_GRID}, resolves no larger k_s)",
         gt=0,
+        le=MAX_K_S,
     )
 
 
@@ -325,6 +335,11 @@ class SurfaceConfig(_Section):
                     )
                 ]
             )
+        if self.wavelengths is not None and not k_s <= MAX_K_S:
+            lambda_s, smallest = self.wavelengths.lambda_s, self.system_size / MAX_K_S
+            _fail([_problem("wavelengths.lambda_s", f"is shorter than system_size / {MAX_K_S} = {smallest:g}",
+                            lambda_s, f"number >= system_size / {MAX_K_S} (k_s = system_size / lambda_s <= "
+                            f"{MAX_K_S}: half the largest grid, {MAX_GRID}, resolves no larger k_s)")])
         if not _band_has_wave_vector(k_l, k_s):
             name = "wavelengths" if self.wavelengths is not None else "wavenumbers"
             _fail(
@@ -678,11 +693,6 @@ QOI_NAMES: tuple[str, ...] = tuple(_QOI_MODELS)
 # ---------------------------------------------------------------------------
 # Levels, screening, estimation, output
 # ---------------------------------------------------------------------------
-
-
-#: The largest grid (nodes per side) of a study: ``rough_uq.problem.contact.MAX_GRID``, which
-#: says why (this module imports nothing of the core; tests/test_config.py checks they agree).
-MAX_GRID = 65536
 
 
 class GridConfig(_Section):
