@@ -108,3 +108,40 @@ def test_the_largest_short_cut_off_is_half_the_largest_grid_in_every_layer() -> 
     data["surface"]["wavenumbers"] = {"k_l": 2, "k_r": 2, "k_s": 1e12}
     with pytest.raises(ConfigError, match=r"surface\.wavenumbers\.k_s: .*got 1000000000000.0; allowed: .*<= 32768"):
         config_module.config_from_dict(data)
+
+
+def _surface(n: int = 32) -> np.ndarray:
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    return rough_uq.sample_surface(spectrum, n, np.random.default_rng(3))
+
+
+def test_load_curve_warm_starts_may_be_a_stack_of_fields_one_per_load() -> None:
+    # A stacked array was refused as "got '2 fields'; allowed: a sequence of 2 fields".
+    heights, loads = _surface(), [0.1, 0.2]
+    guesses = [np.ones((32, 32)), np.ones((16, 16))]
+    stacked = rough_uq.solve_load_curve(heights, system_size=1.0, mean_pressures=loads,
+                                        initial_pressures=np.stack([np.ones((32, 32))] * 2))
+    listed = rough_uq.solve_load_curve(heights, system_size=1.0, mean_pressures=loads,
+                                       initial_pressures=[np.ones((32, 32))] * 2)
+    for a, b in zip(stacked.solutions, listed.solutions):
+        np.testing.assert_array_equal(a.pressure, b.pressure)
+    assert rough_uq.solve_load_curve(heights, system_size=1.0, mean_pressures=loads, initial_pressures=guesses)
+
+
+@pytest.mark.parametrize(
+    ("guesses", "got"),
+    [
+        (np.ones((2, 32)), "an array of shape (2, 32)"),  # a single field would be taken row by row
+        (np.ones((3, 32, 32)), "an array of shape (3, 32, 32)"),
+        (np.array(1.0), "an array of shape ()"),
+        (5, "an object of type int"),
+        ((np.ones((32, 32)) for _ in range(2)), "an object of type generator"),
+        ("ab", "an object of type str"),
+        ([np.ones((32, 32))], "a sequence of 1 fields"),
+    ],
+)
+def test_load_curve_warm_starts_that_are_not_one_field_per_load_are_refused_by_name(guesses, got) -> None:
+    with pytest.raises(InvalidParameterError) as caught:
+        rough_uq.solve_load_curve(_surface(), system_size=1.0, mean_pressures=[0.1, 0.2], initial_pressures=guesses)
+    assert caught.value.name == "initial_pressures" and caught.value.value == got
+    assert caught.value.allowed.startswith("a sequence of 2 fields (2-D arrays), one per load, or an array of shape")

@@ -104,20 +104,30 @@ def check_mean_pressures(mean_pressures: object) -> np.ndarray:
     return np.array(values, dtype=np.float64)
 
 
+def _guess_fields(initial_pressures: object, n_loads: int) -> Sequence[np.ndarray]:
+    """The fields of ``initial_pressures``: a sequence of ``n_loads`` fields, or an array stacking them."""
+    allowed = f"a sequence of {n_loads} fields (2-D arrays), one per load, or an array of shape ({n_loads}, m, m)"
+    if isinstance(initial_pressures, np.ndarray):
+        # A single field (n, n) would be taken row by row: only a stack of fields is one per load.
+        if initial_pressures.ndim != 3 or initial_pressures.shape[0] != n_loads:
+            raise InvalidParameterError("initial_pressures", f"an array of shape {initial_pressures.shape}", allowed)
+        return list(initial_pressures)
+    if not isinstance(initial_pressures, Sequence) or isinstance(initial_pressures, (str, bytes)):
+        given = f"an object of type {type(initial_pressures).__name__}"
+        raise InvalidParameterError("initial_pressures", given, allowed)
+    if len(initial_pressures) != n_loads:
+        raise InvalidParameterError("initial_pressures", f"a sequence of {len(initial_pressures)} fields", allowed)
+    return initial_pressures
+
+
 def _given_guesses(pressures: np.ndarray, initial_pressure, initial_pressures) -> dict[float, np.ndarray]:
     """Load -> warm start given by the caller (the first one given for a repeated load)."""
     if initial_pressures is None:
         return {} if initial_pressure is None else {float(pressures.min()): initial_pressure}
     if initial_pressure is not None:
         raise InvalidParameterError("initial_pressure", "a field", "None when initial_pressures is given")
-    if isinstance(initial_pressures, np.ndarray) or len(initial_pressures) != pressures.size:
-        raise InvalidParameterError(
-            "initial_pressures",
-            f"{len(initial_pressures)} fields",
-            f"a sequence of {pressures.size} fields, one per load",
-        )
     guesses: dict[float, np.ndarray] = {}
-    for load, guess in zip(pressures.tolist(), initial_pressures):
+    for load, guess in zip(pressures.tolist(), _guess_fields(initial_pressures, pressures.size)):
         guesses.setdefault(load, guess)
     return guesses
 
@@ -163,7 +173,7 @@ def solve_load_curve(
     initial_pressure : ndarray, optional
         Warm start of the smallest load; the others start from the previous
         load's solution.
-    initial_pressures : sequence of ndarray, optional
+    initial_pressures : sequence of ndarray, or ndarray of shape (n_loads, m, m), optional
         One warm start per load, in the order of ``mean_pressures`` (e.g. the
         coarse solutions of the same surface, on a grid whose size differs by
         a power of two), used instead of the previous load's solution; not
@@ -181,7 +191,8 @@ def solve_load_curve(
     ------
     InvalidParameterError
         For an empty or non-positive ``mean_pressures``, a negative
-        ``retry_iter``, and whatever :func:`~rough_uq.physics.solver.solve_contact`
+        ``retry_iter``, an ``initial_pressures`` that is not one field per
+        load, and whatever :func:`~rough_uq.physics.solver.solve_contact`
         refuses.
     """
     pressures = check_mean_pressures(mean_pressures)
