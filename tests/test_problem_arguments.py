@@ -145,3 +145,19 @@ def test_load_curve_warm_starts_that_are_not_one_field_per_load_are_refused_by_n
         rough_uq.solve_load_curve(_surface(), system_size=1.0, mean_pressures=[0.1, 0.2], initial_pressures=guesses)
     assert caught.value.name == "initial_pressures" and caught.value.value == got
     assert caught.value.allowed.startswith("a sequence of 2 fields (2-D arrays), one per load, or an array of shape")
+
+
+@pytest.mark.parametrize("names", [None, 5, 0.5])
+def test_qoi_names_that_are_not_names_are_refused_by_name(names) -> None:
+    # A bare TypeError: 'NoneType' object is not iterable.
+    with pytest.raises(InvalidParameterError, match=r"^names: got .*allowed: a name or an iterable of names"):
+        rough_uq.evaluate_qoi(names, pressure=np.ones((4, 4)))
+
+
+def test_a_gap_of_another_shape_than_the_pressure_is_refused_by_name() -> None:
+    # The mean of gap[:3] was returned as the mean gap.
+    pressure, gap = np.zeros((4, 4)), np.arange(16.0).reshape(4, 4)
+    pressure[0, 0] = 1.0
+    with pytest.raises(InvalidParameterError, match=r"^gap: got 'an array of shape \(3, 4\)'; allowed: .*\(4, 4\)"):
+        rough_uq.evaluate_qoi(["mean_gap"], pressure=pressure, gap=gap[:3])
+    assert rough_uq.evaluate_qoi(("mean_gap",), pressure=pressure, gap=gap)[0] == np.mean(gap)

@@ -336,6 +336,33 @@ def count_clusters(contact: np.ndarray, *, connectivity: int = 4) -> int:
     return _periodic_components(contact, connectivity)[2]
 
 
+def _names(names: object) -> tuple[str, ...]:
+    """``names`` of :func:`evaluate_qoi` as a tuple, or :class:`InvalidParameterError` naming ``names``."""
+    if isinstance(names, str):
+        return (names,)
+    try:
+        names = tuple(names)  # type: ignore[arg-type]
+    except TypeError:
+        allowed = "a name or an iterable of names from " + ", ".join(QOI_NAMES)
+        raise InvalidParameterError("names", names, allowed) from None
+    for name in names:
+        if name not in QOI_NAMES:
+            raise InvalidParameterError("names", name, "one of " + ", ".join(QOI_NAMES))
+    return names
+
+
+def _gap(gap: object, shape: tuple[int, ...]) -> np.ndarray:
+    """The gap field of ``"mean_gap"``: finite, of the pressure's ``shape`` (the nodes it averages over)."""
+    if gap is None:
+        raise InvalidParameterError("gap", None, "a gap field when 'mean_gap' is requested")
+    array = _field("gap", gap)
+    if array.shape != shape:
+        raise InvalidParameterError(
+            "gap", f"an array of shape {array.shape}", f"an array of the pressure's shape {shape}"
+        )
+    return array
+
+
 def evaluate_qoi(
     names: Iterable[str] | str,
     *,
@@ -380,14 +407,12 @@ def evaluate_qoi(
     Raises
     ------
     InvalidParameterError
-        An unknown name (``name="names"``, listing the allowed ones), a missing
-        ``gap`` / ``critical_pressure``, a bad ``connectivity`` or
+        An unknown name or ``names`` that are not an iterable (``name="names"``,
+        listing the allowed ones), a missing ``gap`` / ``critical_pressure``, a
+        ``gap`` of another shape than ``pressure``, a bad ``connectivity`` or
         ``area_estimator`` (``name="estimator"``), a non-finite field, or a negative pressure.
     """
-    names = (names,) if isinstance(names, str) else tuple(names)
-    for name in names:
-        if name not in QOI_NAMES:
-            raise InvalidParameterError("names", name, "one of " + ", ".join(QOI_NAMES))
+    names = _names(names)
     _check_cluster_count(connectivity)  # a bad setting is an error even when clusters are not asked for
     _check_estimator(area_estimator)
     pressure = _pressure(pressure)
@@ -400,9 +425,7 @@ def evaluate_qoi(
         elif name == "clusters":
             values[name] = cluster_count(pressure > 0.0, connectivity)
         elif name == "mean_gap":
-            if gap is None:
-                raise InvalidParameterError("gap", None, "a gap field when 'mean_gap' is requested")
-            values[name] = mean_gap(gap)
+            values[name] = mean_gap(_gap(gap, pressure.shape))
         elif name == "max_pressure":
             values[name] = max_pressure(pressure)
         else:  # "area_above"
