@@ -18,12 +18,13 @@ never share samples.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError
+from rough_uq.errors import EstimationWarning, InvalidParameterError
 from rough_uq.multilevel.distribution import CdfEstimate, Quantiles, _check_thresholds, mlmc_cdf, quantiles
 from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
@@ -165,7 +166,26 @@ def variance(
         min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
     )
     _warn_not_converged(sampler, "variance")
+    _warn_negative_variance(result, problem.columns)
     return result
+
+
+def _warn_negative_variance(result: TargetEstimate, columns: Sequence[str]) -> None:
+    """An :class:`~rough_uq.errors.EstimationWarning` for each variance estimated below zero.
+
+    The multilevel estimator is unbiased, not positive: with few samples a
+    small variance can come out negative, within its error. It is returned
+    as estimated (clipping it would bias it); the warning says so.
+    """
+    for column, value, rmse in zip(columns, result.estimate, result.rmse):
+        if value < 0:
+            warnings.warn(
+                EstimationWarning(
+                    f"variance of {column}: the estimate {value:.3g} is negative (RMSE {rmse:.3g}); the unbiased "
+                    "multilevel estimator can be, with few samples: a tighter tol takes more"
+                ),
+                stacklevel=3,
+            )
 
 
 @dataclass(frozen=True, eq=False)
