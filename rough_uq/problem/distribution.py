@@ -106,7 +106,9 @@ def estimate_target(
         max_samples=max_samples,
     )
     if target == "variance":
-        return mlmc_variance(sampler, tol=tol, **options)
+        result = mlmc_variance(sampler, tol=tol, **options)
+        _warn_negative_variance(result)
+        return result
     if target != "cdf":
         raise InvalidParameterError("target", target, f"one of {', '.join(TARGETS)}")
     s = _check_thresholds(thresholds)
@@ -166,23 +168,23 @@ def variance(
         min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
     )
     _warn_not_converged(sampler, "variance")
-    _warn_negative_variance(result, problem.columns)
     return result
 
 
-def _warn_negative_variance(result: TargetEstimate, columns: Sequence[str]) -> None:
+def _warn_negative_variance(result: TargetEstimate) -> None:
     """An :class:`~rough_uq.errors.EstimationWarning` for each variance estimated below zero.
 
     The multilevel estimator is unbiased, not positive: with few samples a
     small variance can come out negative, within its error. It is returned
-    as estimated (clipping it would bias it); the warning says so.
+    as estimated (clipping it would bias it); the warning says so (a study
+    run stores it with its diagnostics, which the report shows).
     """
-    for column, value, rmse in zip(columns, result.estimate, result.rmse):
+    for column, (value, rmse) in enumerate(zip(result.estimate, result.rmse)):
         if value < 0:
             warnings.warn(
                 EstimationWarning(
-                    f"variance of {column}: the estimate {value:.3g} is negative (RMSE {rmse:.3g}); the unbiased "
-                    "multilevel estimator can be, with few samples: a tighter tol takes more"
+                    f"variance of QoI [{column}]: the estimate {value:.3g} is negative (RMSE {rmse:.3g}); the "
+                    "unbiased multilevel estimator can be, with few samples: a tighter tol takes more"
                 ),
                 stacklevel=3,
             )
