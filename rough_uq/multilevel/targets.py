@@ -636,16 +636,37 @@ def adaptive_mlmc(
     max_cost = _check_optional_positive("max_cost", max_cost)
     max_samples = None if max_samples is None else checked_integer("max_samples", max_samples, 1)
     _check_tol(tol, None)  # fails early; the number of groups is known after the first batch
-    levels = [_Level(level) for level in range(min_finest_level + 1)]
+    refuse_large_start(n_initial, range(min_finest_level + 1), max_samples=max_samples)
+    levels, stop_reason = _sample_to_tolerance(
+        sampler, term, tol, theta=theta, n_initial=n_initial, n_start_levels=min_finest_level + 1,
+        max_level=max_level, batch_cap=batch_cap, max_cost=max_cost, max_samples=max_samples,
+    )
+    return _final_estimate(
+        levels, term, tol, theta=theta, stop_reason=stop_reason, min_finest_level=min_finest_level
+    )
+
+
+def _sample_to_tolerance(
+    sampler: Sampler,
+    term: TermFunction,
+    tol: float | np.ndarray,
+    *,
+    theta: float,
+    n_initial: int,
+    n_start_levels: int,
+    max_level: int,
+    batch_cap: float,
+    max_cost: float | None,
+    max_samples: int | None,
+) -> tuple[list[_Level], str]:
+    """The sampling rounds of :func:`adaptive_mlmc`: its levels with their samples, and why it stopped."""
+    levels = [_Level(level) for level in range(n_start_levels)]
     planned = [n_initial] * len(levels)
-    refuse_large_start(n_initial, range(len(levels)), max_samples=max_samples)
     gamma = RATE_FLOOR
     tol_groups: np.ndarray | None = None
-    stop_reason = ""
-    while not stop_reason:
+    while True:
         if not _draw(sampler, levels, planned, batch_cap, max_cost, gamma, n_initial):
-            stop_reason = "max_cost"
-            break
+            return levels, "max_cost"
         terms = [s.term(term) if s.n else None for s in levels]
         sampled = [t for t in terms if t is not None]
         if tol_groups is None:
@@ -659,19 +680,29 @@ def adaptive_mlmc(
             continue
         bias = _remaining_bias(means, variances, sampled[0].groups, alpha)
         if np.all(bias <= math.sqrt(theta) * tol_groups):
-            stop_reason = "tol_met"
-        elif len(levels) - 1 >= max_level:
-            stop_reason = "max_level"
-        else:
-            levels.append(_Level(len(levels)))
-            planned = _targets(levels, terms + [None], n_initial, tol_groups, theta, beta, gamma)
-            refuse_large_plan(planned, max_samples=max_samples, tol=tol_groups, advice="loosen the tolerance")
+            return levels, "tol_met"
+        if len(levels) - 1 >= max_level:
+            return levels, "max_level"
+        levels.append(_Level(len(levels)))
+        planned = _targets(levels, terms + [None], n_initial, tol_groups, theta, beta, gamma)
+        refuse_large_plan(planned, max_samples=max_samples, tol=tol_groups, advice="loosen the tolerance")
+
+
+def _final_estimate(
+    levels: Sequence[_Level],
+    term: TermFunction,
+    tol: float | np.ndarray,
+    *,
+    theta: float,
+    stop_reason: str,
+    min_finest_level: int,
+) -> TargetEstimate:
+    """The estimate of :func:`adaptive_mlmc` from the samples of its levels, with the rates refitted to them."""
     # Level 0 always has its samples, and levels are sampled in order (module docstring).
     sampled_levels = [s for s in levels if s.n]
     terms = [s.term(term) for s in sampled_levels]
     groups = terms[0].groups
-    if tol_groups is None:
-        tol_groups = _check_tol(tol, terms[0].n_groups)
+    tol_groups = _check_tol(tol, terms[0].n_groups)
     means, variances, n_samples = _stack(terms)
     # Rates of the final samples (a run stopped by max_cost may not have refitted them).
     alpha, beta = _term_rates(means, variances, n_samples, groups)
