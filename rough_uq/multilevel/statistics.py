@@ -268,35 +268,44 @@ def _level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> _M
     )
 
 
+#: The per-level moments :func:`_assemble` stacks into :class:`LevelStatistics` (fields of :class:`_Moments`).
+_MOMENT_FIELDS = (
+    "mean_fine",
+    "var_fine",
+    "mean_coarse",
+    "var_coarse",
+    "mean_diff",
+    "var_diff",
+    "kurtosis",
+    "var_delta",
+    "var_delta_se",
+    "mean_cost",
+    "var_cost",
+)
+
+
 def _assemble(levels: Sequence[int], moments: Sequence[_Moments], base_level: int = 0) -> LevelStatistics:
     """Stack per-level moments and add the cross-level checks (``base_level``: see :class:`LevelStatistics`)."""
     levels_array = np.asarray(levels, dtype=np.int64)
-
-    def stack(name: str) -> np.ndarray:
-        return np.array([getattr(m, name) for m in moments], dtype=float)
-
-    table = {
-        name: stack(name)
-        for name in (
-            "mean_fine",
-            "var_fine",
-            "mean_coarse",
-            "var_coarse",
-            "mean_diff",
-            "var_diff",
-            "kurtosis",
-            "var_delta",
-            "var_delta_se",
-            "mean_cost",
-            "var_cost",
-        )
-    }
+    table = {name: np.array([getattr(m, name) for m in moments], dtype=float) for name in _MOMENT_FIELDS}
     n_samples = np.array([m.n for m in moments], dtype=np.int64)
+    return LevelStatistics(
+        base_level=int(base_level),
+        levels=_readonly(levels_array),
+        n_samples=_readonly(n_samples),
+        consistency=_readonly(_consistency(table, n_samples, levels_array)),
+        coupling_ratio=_readonly(_coupling_ratio(table, levels_array, base_level)),
+        **{name: _readonly(value) for name, value in table.items()},
+    )
+
+
+def _consistency(table: dict[str, np.ndarray], n_samples: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """The telescoping check per level and QoI (:attr:`LevelStatistics.consistency`)."""
     consistency = np.zeros_like(table["mean_fine"])
-    for row in range(1, len(moments)):
+    for row in range(1, len(levels)):
         below = row - 1
         fewest = min(n_samples[row], n_samples[below])
-        if levels_array[below] != levels_array[row] - 1 or fewest < 2:
+        if levels[below] != levels[row] - 1 or fewest < 2:
             continue
         # E[Y_l] - (E[Q_l] - E[Q_{l-1}]) equals mean_fine[l-1] - mean_coarse[l] (the fine
         # means cancel); computed that way it is exactly 0 for a deterministic problem.
@@ -316,6 +325,11 @@ def _assemble(levels: Sequence[int], moments: Sequence[_Moments], base_level: in
         if fewest < CONSISTENCY_CHECK_SAMPLES:
             ratio[:] = 0.0
         consistency[row] = np.where(~has_spread & (gap > rounding), np.inf, ratio)
+    return consistency
+
+
+def _coupling_ratio(table: dict[str, np.ndarray], levels: np.ndarray, base_level: int) -> np.ndarray:
+    """``V_l / Var(Q_l)`` per level and QoI (:attr:`LevelStatistics.coupling_ratio`)."""
     # Where Q_l never varies, V_l > 0 means the coarse value adds all the variance
     # (ratio inf, not coupled); V_l = 0 as well means there is nothing to reduce (0).
     coupling = np.divide(
@@ -324,15 +338,8 @@ def _assemble(levels: Sequence[int], moments: Sequence[_Moments], base_level: in
         out=np.where(table["var_diff"] > 0, np.inf, 0.0),
         where=table["var_fine"] > 0,
     )
-    coupling[levels_array <= base_level] = 1.0
-    return LevelStatistics(
-        base_level=int(base_level),
-        levels=_readonly(levels_array),
-        n_samples=_readonly(n_samples),
-        consistency=_readonly(consistency),
-        coupling_ratio=_readonly(coupling),
-        **{name: _readonly(value) for name, value in table.items()},
-    )
+    coupling[levels <= base_level] = 1.0
+    return coupling
 
 
 def level_statistics(
