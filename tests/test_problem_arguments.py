@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -108,6 +110,30 @@ def test_the_largest_short_cut_off_is_half_the_largest_grid_in_every_layer() -> 
     data["surface"]["wavenumbers"] = {"k_l": 2, "k_r": 2, "k_s": 1e12}
     with pytest.raises(ConfigError, match=r"surface\.wavenumbers\.k_s: .*got 1000000000000.0; allowed: .*<= 32768"):
         config_module.config_from_dict(data)
+
+
+@pytest.mark.parametrize("system_size", [3.0, 0.7, 1e-3])
+def test_the_smallest_wavelength_a_refusal_names_is_accepted(system_size) -> None:
+    # The refusal printed system_size / 32768 to six digits: 3 / 32768 as 9.15527e-05, whose k_s, 32768.0098, was
+    # refused in turn. (Only checked, not built: a spectrum with k_s = 32768 takes minutes to set up.)
+    from tests.test_config import _base
+
+    def named_bound(text: str) -> float:
+        return float(re.search(r"system_size / 32768 = ([0-9.e+-]+)", text).group(1))
+
+    with pytest.raises(InvalidParameterError) as info:
+        rough_uq.SurfaceSpectrum.from_wavelengths(
+            system_size=system_size, lambda_l=system_size, lambda_r=system_size / 2, lambda_s=system_size / 4e4,
+            hurst=0.8, rms_height=1,
+        )
+    assert system_size / named_bound(str(info.value)) <= 32768
+    data = _base()
+    data["surface"]["system_size"] = system_size
+    data["surface"]["wavelengths"] = {"lambda_l": system_size, "lambda_r": system_size / 2, "lambda_s": 1e-9}
+    with pytest.raises(ConfigError) as refusal:
+        config_module.config_from_dict(data)
+    data["surface"]["wavelengths"]["lambda_s"] = named_bound(str(refusal.value))
+    assert config_module.config_from_dict(data).surface.k_s <= 32768
 
 
 def _surface(n: int = 32) -> np.ndarray:

@@ -241,7 +241,7 @@ class SurfaceSpectrum:
             wave_numbers["k" + name[-2:]] = size / value
         if not wave_numbers["k_s"] <= MAX_K_S:
             raise InvalidParameterError(
-                "lambda_s", lambda_s, f"a wavelength >= system_size / {MAX_K_S} = {size / MAX_K_S:g} (k_s = "
+                "lambda_s", lambda_s, f"a wavelength >= system_size / {MAX_K_S} = {size / MAX_K_S!r} (k_s = "
                 f"system_size / lambda_s <= MAX_K_S: half the largest grid, 65536, resolves no larger k_s)"
             )
         try:

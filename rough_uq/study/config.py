@@ -337,7 +337,7 @@ class SurfaceConfig(_Section):
             )
         if self.wavelengths is not None and not k_s <= MAX_K_S:
             lambda_s, smallest = self.wavelengths.lambda_s, self.system_size / MAX_K_S
-            _fail([_problem("wavelengths.lambda_s", f"is shorter than system_size / {MAX_K_S} = {smallest:g}",
+            _fail([_problem("wavelengths.lambda_s", f"is shorter than system_size / {MAX_K_S} = {smallest!r}",
                             lambda_s, f"number >= system_size / {MAX_K_S} (k_s = system_size / lambda_s <= "
                             f"{MAX_K_S}: half the largest grid, {MAX_GRID}, resolves no larger k_s)")])
         if not _band_has_wave_vector(k_l, k_s):
