@@ -870,10 +870,17 @@ def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi
 def _run_mean(tol: Sequence[str], *, method: str, choice: str, level: int | None, show_plan: bool,
               shard_size: int | None, with_resources: bool, opts: _RunOptions) -> None:
     """A run of the mean (``--tol``): print its plan (``--plan``), or run it and show it; exit 3 if missed."""
-    from rough_uq.study.pipeline import choose_method, open_existing_study, parse_tolerances, run_id
+    from rough_uq.study.pipeline import (
+        check_initial_samples,
+        choose_method,
+        open_existing_study,
+        parse_tolerances,
+        run_id,
+    )
 
     # Only MC on a given --level needs no screening: any other run would find the new study empty and refuse.
-    config = _config_creating_study(opts, may_create=level is not None and not show_plan)
+    config = _config_creating_study(opts, may_create=level is not None and not show_plan,
+                                    check=lambda config: check_initial_samples(config, n_levels=1, run="mc --level"))
     with open_existing_study(opts.study_path, config=config, writable=not show_plan) as study:
         tolerances = parse_tolerances(tol, study.config)
         cap = study.config.estimation.max_cost if opts.max_cost is None else opts.max_cost

@@ -543,7 +543,9 @@ def test_a_run_that_needs_a_screening_does_not_create_an_empty_study_from_its_co
     ({"grid": {"coarsest": 8, "max_level": 0}}, ("--tol-var", "5"), "grid.max_level"),
     ({"estimation": {"initial_samples": 3, "batch_size": 4}}, ("--tol-var", "5"), "estimation.initial_samples"),
     ({}, ("--tol-cdf", "0.1", "--qoi", "nosuch"), "--qoi"),
-], ids=["unknown QoI", "one level", "three initial samples", "unknown column"])
+    ({"estimation": {"initial_samples": 3_333_334, "batch_size": 4}}, ("--tol-var", "5"),
+     "estimation.initial_samples"),
+], ids=["unknown QoI", "one level", "three initial samples", "unknown column", "initial samples beyond any plan"])
 def test_a_target_run_refused_before_its_first_sample_leaves_no_study_file(tmp_path, monkeypatch, config, args, field):
     """`mlmc --config` created the study, then run_target refused: an empty study file stayed behind."""
     monkeypatch.chdir(tmp_path)
@@ -551,6 +553,37 @@ def test_a_target_run_refused_before_its_first_sample_leaves_no_study_file(tmp_p
     line = one_error_line(run("mlmc", "--config", "bad.yaml", "--study", "new.h5", *args, "--workers", "1", expect=2))
     assert line.startswith(f"error: {field}: got ")
     assert [path.name for path in tmp_path.iterdir()] == ["bad.yaml"]
+
+
+@pytest.mark.parametrize("initial, allowed", [(10_000_001, 10_000_000), (3_333_334, 3_333_333)],
+                         ids=["mc --level", "variance"])
+def test_initial_samples_no_plan_may_hold_are_refused_naming_the_field_before_a_study_exists(
+    tmp_path, monkeypatch, initial, allowed
+):
+    """`initial_samples: 100000000` began an mc --level run of some 80 hours, and a variance run's refusal named
+    n_initial (the Python argument) after the study file had been created."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "big.yaml", tiny_config(estimation={"initial_samples": initial, "batch_size": 4}))
+    args = ("mc", "--level", "1", "--tol", "1") if allowed == 10_000_000 else ("mlmc", "--tol-var", "5")
+    line = one_error_line(run(*args, "--config", "big.yaml", "--study", "new.h5", "--workers", "1", expect=2))
+    assert line.startswith(f"error: estimation.initial_samples: got {initial}; allowed: an integer <= {allowed} ")
+    assert [path.name for path in tmp_path.iterdir()] == ["big.yaml"]
+
+
+def test_mc_on_a_level_refuses_a_tolerance_whose_plan_no_run_could_draw(tmp_path, monkeypatch):
+    """`mc --level 1 --tol 1e-5` planned 2e10 samples after its initial ones and began to draw them (ETA years):
+    without a screening no forecast refused it. Its --plan, once the initial samples are stored, refuses alike."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "tiny.yaml", tiny_config())
+    common = ("--study", "new.h5", "--level", "1", "--workers", "1", "-q")
+    run("mc", "--config", "tiny.yaml", *common, "--tol", "100")  # creates the study; met by the initial samples
+    line = one_error_line(run("mc", *common, "--tol", "1e-5", expect=2))
+    match = re.fullmatch(r"error: --tol contact_area=1e-05 needs about ([0-9.e+]+) samples \(N_l \d+\), "
+                         r"more than max_samples = 10000000: loosen --tol", line)
+    assert match and float(match.group(1)) > 1e7, line
+    assert one_error_line(run("mc", *common, "--tol", "1e-5", "--plan", expect=2)) == line
+    statuses = [entry["status"] for entry in json.loads(run("report", "new.h5", "--json").output)["runs"]]
+    assert sorted(statuses) == ["finished", "refused"]
 
 
 def test_a_study_without_screening_is_told_the_screen_command_for_its_own_file(tmp_path, monkeypatch):

@@ -115,6 +115,7 @@ __all__ = [
     "run_screening",
     "run_estimation",
     "run_target",
+    "check_initial_samples",
     "check_target_budget",
     "check_target_run",
     "target_run_id",
@@ -838,6 +839,43 @@ def forecast_run(
     return forecast
 
 
+def _refusing_large_plans(events: Iterator[object], names: Sequence[str], tol: np.ndarray) -> Iterator[object]:
+    """``events``, refused (:class:`~rough_uq.errors.PlanTooLargeError`) at a plan of more than MAX_PLANNED_SAMPLES.
+
+    For runs no forecast checks (``mc --level``): the plan that follows the
+    initial samples comes from their variance, and a tight ``--tol`` asked for
+    some 1e10 samples (an ETA of years) that the run then began to draw.
+    """
+    try:
+        for event in events:
+            if isinstance(event, PlanUpdated) and float(np.sum(event.n_planned)) > MAX_PLANNED_SAMPLES:
+                raise PlanTooLargeError(
+                    n_planned=event.n_planned, total=float(np.sum(event.n_planned)), max_samples=MAX_PLANNED_SAMPLES,
+                    tol=tol, tolerance=f"--tol {_tol_text(names, tol)}", advice="loosen --tol",
+                )
+            yield event
+    finally:
+        events.close()
+
+
+def check_initial_samples(config: StudyConfig, *, n_levels: int, run: str) -> None:
+    """Refuse ``estimation.initial_samples`` whose samples on ``n_levels`` levels alone exceed MAX_PLANNED_SAMPLES.
+
+    A run without a screening (``run``: ``mc --level``, or a variance or cdf
+    run) starts with that many samples on each of its first levels, whatever
+    the tolerance; before this check ``initial_samples: 100000000`` began a
+    run of some 80 hours on the quickstart's level 1.
+    """
+    n_initial = config.estimation.initial_samples
+    if n_initial * n_levels > MAX_PLANNED_SAMPLES:
+        where = "its level" if n_levels == 1 else f"each of its first {n_levels} levels"
+        raise InvalidParameterError(
+            "estimation.initial_samples", n_initial,
+            f"an integer <= {MAX_PLANNED_SAMPLES // n_levels} for {run} (it starts with that many samples on "
+            f"{where}; at most {MAX_PLANNED_SAMPLES} samples in all)",
+        )
+
+
 def _stalled(names: Sequence[str], rates: Rates) -> list[str]:
     """The QoIs whose fitted bias does not decay, with their ``alpha``, in words."""
     return [f"{name} (alpha = {a:.2g})" for name, a in zip(names, np.atleast_1d(rates.alpha)) if not a > 0]
@@ -1066,8 +1104,8 @@ def _events(
         batch_size=estimation.batch_size,
     )
     if method == "mc" and level is not None:
-        # An explicit level needs no screening; the bias of that level is then unknown.
-        return iter_mc(sampler, level=level, **options), {"level": level}
+        # An explicit level needs no screening (and so no forecast); the bias of that level is then unknown.
+        return _refusing_large_plans(iter_mc(sampler, level=level, **options), config.qoi_names, tol), {"level": level}
     statistics, rates, prediction = _estimation_plan(study, tol, method=method)
     predicted = PlanRecord.from_plan(prediction, _screened_seconds_per_cost(read_screening_record(study.store)))
     context: dict[str, Any] = {"screening_rates": RatesRecord.from_rates(rates), "predicted": predicted}
@@ -1227,6 +1265,8 @@ def _check_run_arguments(study: Study, method: str, level: int | None) -> None:
         raise InvalidParameterError("--level", level, "nothing: a level is given to mc only")
     if level is not None and not 0 <= level <= max_level:
         raise InvalidParameterError("--level", level, f"an integer in 0..{max_level} (grid.max_level)")
+    if level is not None:
+        check_initial_samples(study.config, n_levels=1, run="mc --level")
 
 
 def _started_record(
@@ -1546,8 +1586,9 @@ def check_target_run(
     What :func:`run_target` checks before it opens a record, for callers that
     check before a study file exists (``roughuq mlmc --config``, which would
     otherwise leave an empty study file behind): ``grid.max_level`` at least
-    1, ``estimation.initial_samples`` at least :data:`MIN_TARGET_SAMPLES`, and
-    the budget (:func:`check_target_budget`; ``model`` as there).
+    1, ``estimation.initial_samples`` at least :data:`MIN_TARGET_SAMPLES` and
+    within :func:`check_initial_samples`, and the budget
+    (:func:`check_target_budget`; ``model`` as there).
 
     Raises
     ------
@@ -1565,6 +1606,8 @@ def check_target_run(
             f"an integer >= {MIN_TARGET_SAMPLES} for variance and cdf runs (the variance of a level's "
             "variance term needs four samples)",
         )
+    check_initial_samples(config, n_levels=initial_finest_level(config.grid.max_level) + 1,
+                          run="variance and cdf runs")
     check_target_budget(config, max_cost=max_cost, model=model)
 
 
