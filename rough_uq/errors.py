@@ -81,6 +81,19 @@ def checked_integer(name: str, value: object, minimum: int) -> int:
     return int(value)
 
 
+def checked_bool(name: str, value: object) -> bool:
+    """``value`` as a bool, or :class:`InvalidParameterError` naming ``name`` unless ``True`` or ``False``.
+
+    numpy's booleans count; anything else with a truth value (``"no"``, ``0``,
+    ``None``) is refused rather than read as a flag.
+    """
+    import numpy as np  # here, not at the top: the CLI imports this module at startup, before it needs numpy
+
+    if not isinstance(value, (bool, np.bool_)):
+        raise InvalidParameterError(name, value, "True or False")
+    return bool(value)
+
+
 class MisplacedOptionError(InvalidParameterError):
     """A command-line option was given where it does not apply (e.g. ``--resources`` without ``--plan``).
 

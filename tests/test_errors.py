@@ -6,6 +6,7 @@ import inspect
 import pickle
 from concurrent.futures import ProcessPoolExecutor
 
+import numpy as np
 import pytest
 
 import rough_uq.errors as errors
@@ -47,3 +48,10 @@ def test_an_error_raised_in_a_pool_worker_reaches_the_caller_as_itself():
         with pytest.raises(errors.InvalidParameterError, match="load.relative: got -1.0") as caught:
             pool.submit(_refuse, -1.0).result()
     assert caught.value.name == "load.relative" and caught.value.value == -1.0
+
+
+def test_checked_bool_takes_python_and_numpy_booleans_and_nothing_else():
+    assert errors.checked_bool("flag", np.True_) is True and errors.checked_bool("flag", False) is False
+    for value in ("no", "True", 0, 1, None, 1.0):
+        with pytest.raises(errors.InvalidParameterError, match=r"^flag: got .*; allowed: True or False$"):
+            errors.checked_bool("flag", value)

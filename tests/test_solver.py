@@ -364,6 +364,19 @@ def test_invalid_input_names_the_parameter(kwargs, name):
         solve_contact(heights, **arguments)
 
 
+@pytest.mark.parametrize("flag", ["no", "False", 0, 1, None, [False]])
+def test_precondition_that_is_not_a_bool_is_refused_by_name(flag):
+    # "no" (any non-empty string) ran preconditioned, 0 and None ran plain: read by their truth value.
+    with pytest.raises(InvalidParameterError, match=r"^precondition: got .*; allowed: True or False$"):
+        solve_contact(random_surface(8, k_s=3), system_size=1.0, mean_pressure=0.1, precondition=flag)
+
+
+def test_precondition_takes_numpy_booleans():
+    heights = random_surface(8, k_s=3)
+    for flag, path in ((np.True_, "preconditioned"), (np.False_, "plain")):
+        assert solve_contact(heights, system_size=1.0, mean_pressure=0.1, precondition=flag).path == path
+
+
 def test_flat_surface_is_uniform_pressure():
     sol = solve_contact(np.zeros((16, 16)), system_size=1.0, mean_pressure=0.7)
     assert sol.converged and sol.n_iter == 0

@@ -157,7 +157,9 @@ import numba
 import numpy as np
 
 from rough_uq.physics.elastic import HalfSpace, multiply_spectrum
-from rough_uq.errors import ConvergenceError, InvalidParameterError, checked_integer, is_integer, is_real_number
+from rough_uq.errors import (
+    ConvergenceError, InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_number,
+)
 from rough_uq.physics.fft import RealFFT, get_fft
 
 __all__ = ["ContactSolution", "solve_contact", "resample_pressure"]
@@ -681,11 +683,14 @@ def solve_contact(
         For non-square, odd-sized or non-finite heights (or subnormal RMS
         height), non-positive ``mean_pressure`` (zero load included, see
         above), ``system_size`` or ``e_star``, a dimensionless load out of
-        range (see ``mean_pressure``), ``threads`` not an integer >= 1, or
-        an invalid ``initial_pressure`` (negative, all zero, not square, or
-        from a grid whose size does not differ from ``n`` by a power of two).
+        range (see ``mean_pressure``), ``threads`` not an integer >= 1,
+        ``precondition`` not a bool (numpy's too; a string such as ``"no"``
+        is refused, not read by its truth value), or an invalid
+        ``initial_pressure`` (negative, all zero, not square, or from a grid
+        whose size does not differ from ``n`` by a power of two).
     """
     s = _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, threads)
+    precondition = checked_bool("precondition", precondition)  # a truthy "no" would run preconditioned
     p0 = _initial_guess(initial_pressure, s.shape[0])
     # Scaled units (module docstring): heights with zero mean and unit RMS, E* = 1, L = 1.
     # From here on heights, pressures, gaps and the load are in these units.
