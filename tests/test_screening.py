@@ -238,6 +238,26 @@ def test_estimated_bias_is_the_largest_of_model_and_measured_means():
     np.testing.assert_allclose(bias, [0.75, 0.125 / 3.0])
 
 
+@pytest.mark.parametrize("level", ["2", 2.0, 2.5, -1, True, None, [1, 2]])
+def test_rate_models_refuse_a_level_that_is_not_an_integer_from_0_by_name(level):
+    # "2" and None gave bare TypeErrors; 2.5, -1, True (level 1) and [1, 2] (a value per entry) a model value.
+    rates = Rates(alpha=1.0, beta=2.0, gamma=1.0, c_alpha=1.0, c_beta=1.0, c_gamma=1.0)
+    for model in (rates.bias_model, rates.variance_model, rates.cost_model):
+        with pytest.raises(InvalidParameterError, match=r"^level: got .*; allowed: an integer >= 0$"):
+            model(level)
+    with pytest.raises(InvalidParameterError, match="^level: "):
+        estimated_bias(rates=rates, level=level)
+
+
+def test_rate_models_take_python_and_numpy_integer_levels():
+    rates = Rates(alpha=1.0, beta=2.0, gamma=1.0, c_alpha=2.0, c_beta=3.0, c_gamma=4.0)
+    for level in (3, np.int64(3)):
+        np.testing.assert_allclose(rates.bias_model(level), [0.25])
+        np.testing.assert_allclose(rates.variance_model(level), [3.0 / 64])
+        assert rates.cost_model(level) == 32.0
+    assert rates.cost_model(0) == 4.0
+
+
 def test_the_classic_cluster_counts_bias_is_not_underestimated_where_its_differences_change_sign():
     # The reference hierarchy of the classic cluster study (mean count, docs/classic): level
     # means 61.2, 13.2, -0.67 on 384^2 ... 1536^2, then -1.26 and -0.46 on 3072^2 and 6144^2.

@@ -92,7 +92,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer
 from rough_uq.multilevel.statistics import LevelStatistics, _readonly
 
 __all__ = [
@@ -178,16 +178,46 @@ class Rates:
         return len(self.alpha)
 
     def bias_model(self, level: int) -> np.ndarray:
-        """Model ``|E[Y_l]|``, shape (n_qoi,)."""
-        return self.c_alpha * 2.0 ** (-self.alpha * level)
+        """Model ``|E[Y_l]|``, shape (n_qoi,), at level ``level`` (an integer >= 0).
+
+        Raises
+        ------
+        InvalidParameterError
+            If ``level`` is not an integer >= 0 (a string, a float, a boolean or an array included).
+        """
+        return self.c_alpha * 2.0 ** (-self.alpha * _level(level))
 
     def variance_model(self, level: int) -> np.ndarray:
-        """Model ``V_l``, shape (n_qoi,)."""
-        return self.c_beta * 2.0 ** (-self.beta * level)
+        """Model ``V_l``, shape (n_qoi,), at level ``level`` (an integer >= 0).
+
+        Raises
+        ------
+        InvalidParameterError
+            If ``level`` is not an integer >= 0 (a string, a float, a boolean or an array included).
+        """
+        return self.c_beta * 2.0 ** (-self.beta * _level(level))
 
     def cost_model(self, level: int) -> float:
-        """Model cost ``C_l`` of one level-``level`` sample."""
-        return self.c_gamma * 2.0 ** (self.gamma * level)
+        """Model cost ``C_l`` of one level-``level`` sample (``level`` an integer >= 0).
+
+        Raises
+        ------
+        InvalidParameterError
+            If ``level`` is not an integer >= 0 (a string, a float, a boolean or an array included).
+        """
+        return self.c_gamma * 2.0 ** (self.gamma * _level(level))
+
+
+def _level(level: object) -> int:
+    """``level`` as an int, or :class:`InvalidParameterError` naming ``level`` unless an integer ``>= 0``.
+
+    Levels are numbered ``0, 1, 2, ...`` from the coarsest grid (module
+    docstring): neither a fractional nor a negative level names a grid of the
+    hierarchy. A string, a boolean or an array is refused, not converted
+    (``True`` would pass for level 1, an array would give one model value per
+    entry).
+    """
+    return checked_integer("level", level, 0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -421,6 +451,13 @@ def estimated_bias(
         ``max(c_alpha 2^(-alpha L), |mean(Y_L)|, |mean(Y_{L-1})| 2^-alpha,
         |mean(Y_{L-2})| 2^(-2 alpha)) / (2^alpha - 1)`` over the terms
         given, in the QoI's unit.
+
+    Raises
+    ------
+    InvalidParameterError
+        If ``level`` is not an integer >= 0.
+    EstimationError
+        If some ``alpha <= 0`` (:func:`remaining_bias`).
     """
     expected = rates.bias_model(level)
     if mean_diff is not None or coarser is not None:
