@@ -11,6 +11,10 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 class RoughUQError(Exception):
@@ -92,6 +96,38 @@ def checked_bool(name: str, value: object) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise InvalidParameterError(name, value, "True or False")
     return bool(value)
+
+
+def is_real_array(value: object) -> bool:
+    """A real number (:func:`is_real_number`), or an array or (nested) sequence of them: nothing to convert.
+
+    An array (anything with a numpy ``dtype``, numpy's scalars too) counts by
+    its dtype, integer or floating; strings, booleans, complex numbers and
+    objects are refused, never converted (``"0.5"`` would pass for 0.5).
+    """
+    kind = getattr(getattr(value, "dtype", None), "kind", None)
+    if kind is not None:
+        return kind in "iuf"
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return all(is_real_array(item) for item in value)
+    return is_real_number(value)
+
+
+def checked_real_array(name: str, value: object, allowed: str) -> np.ndarray:
+    """``value`` as a float64 ndarray, or :class:`InvalidParameterError` naming ``name`` unless a real array.
+
+    Refused: what :func:`is_real_array` refuses, a ragged sequence (no array
+    shape) and integers beyond the float range. The values themselves (sign,
+    range, NaN) are the caller's to check.
+    """
+    import numpy as np  # here, not at the top: see checked_bool
+
+    if is_real_array(value):
+        try:
+            return np.asarray(value, dtype=np.float64)
+        except (ValueError, OverflowError):  # a ragged sequence; an integer such as 10**400
+            pass
+    raise InvalidParameterError(name, value, allowed)
 
 
 class MisplacedOptionError(InvalidParameterError):

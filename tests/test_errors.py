@@ -55,3 +55,12 @@ def test_checked_bool_takes_python_and_numpy_booleans_and_nothing_else():
     for value in ("no", "True", 0, 1, None, 1.0):
         with pytest.raises(errors.InvalidParameterError, match=r"^flag: got .*; allowed: True or False$"):
             errors.checked_bool("flag", value)
+
+
+def test_checked_real_array_converts_real_numbers_and_refuses_what_it_would_have_to_guess():
+    for value in (2, np.float32(2.5), [1, 2.5], np.arange(3, dtype=np.int8), ((1, 2), (3, 4))):
+        converted = errors.checked_real_array("x", value, "numbers")
+        assert converted.dtype == np.float64 and np.array_equal(converted, np.asarray(value, dtype=np.float64))
+    for value in ("0.5", b"1", True, np.bool_(True), [1, "2"], [1, None], 1j, np.array([1j]), [[1], [2, 3]], 10**400):
+        with pytest.raises(errors.InvalidParameterError, match="^x: got .*; allowed: numbers$"):
+            errors.checked_real_array("x", value, "numbers")

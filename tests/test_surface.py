@@ -90,6 +90,28 @@ def test_psd_values() -> None:
     assert spectrum.psd(3.0).shape == ()
 
 
+@pytest.mark.parametrize(
+    "k",
+    ["abc", "3", ["1", 2], np.array(["3"]), None, True, 1j, [1, None], [[1, 2], [3]],
+     pytest.param(10**400, id="1e400")],
+)
+def test_psd_refuses_wave_numbers_that_are_not_real_numbers_by_name(k) -> None:
+    # "abc" and the ragged list gave bare ValueErrors, 1j a TypeError, 10**400 an OverflowError; "3", ["1", 2]
+    # and True were converted to numbers and None to NaN (Phi = 0).
+    spectrum = SurfaceSpectrum(system_size=2.0, k_l=0.0, k_r=4.0, k_s=10.0, hurst=0.5, rms_height=1.0)
+    with pytest.raises(InvalidParameterError, match=r"^k: got .*; allowed: a real number or an array of real"):
+        spectrum.psd(k)
+
+
+def test_psd_takes_numbers_and_arrays_of_them_of_any_real_type() -> None:
+    spectrum = SurfaceSpectrum(system_size=2.0, k_l=0.0, k_r=4.0, k_s=10.0, hurst=0.5, rms_height=1.0)
+    expected = spectrum.C * np.array([[1.0, 2.0**-3], [2.5**-3, 0.0]])
+    for k in ([[4, 8.0], [10, 11]], np.array([[4, 8], [10, 11]]), np.array([[4, 8], [10, 11]], dtype=np.float32)):
+        np.testing.assert_allclose(spectrum.psd(k), expected, rtol=1e-14)
+    for k in (8, np.int32(8), np.float32(8.0), 8.0):
+        assert spectrum.psd(k) == expected[0, 1] and spectrum.psd(k).dtype == np.float64
+
+
 def test_amplitude_does_not_depend_on_the_system_size_but_slope_does() -> None:
     small = SurfaceSpectrum(system_size=1.0, k_l=2, k_r=4, k_s=10, hurst=0.7, rms_height=0.8)
     large = SurfaceSpectrum(system_size=2.0, k_l=2, k_r=4, k_s=10, hurst=0.7, rms_height=0.8)

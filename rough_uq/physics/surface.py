@@ -57,7 +57,7 @@ from typing import Literal
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, is_integer, is_real_number
+from rough_uq.errors import InvalidParameterError, checked_real_array, is_integer, is_real_number
 from rough_uq.physics.fft import get_fft
 
 __all__ = [
@@ -300,8 +300,15 @@ class SurfaceSpectrum:
         -------
         ndarray of float64, shape of ``k``
             ``Phi(k)``; 0 at ``k = 0`` (the mean is not part of the surface).
+
+        Raises
+        ------
+        InvalidParameterError
+            If ``k`` is not a real number or an array of them (strings such
+            as ``"3"``, booleans, complex numbers, ``None`` or a ragged list),
+            naming ``k``.
         """
-        k = np.asarray(k, dtype=np.float64)
+        k = checked_real_array("k", k, "a real number or an array of real numbers (wave numbers, periods per box)")
         return self.C * self._shape_k2(k * k)
 
     def grid_psd(self, n: int) -> np.ndarray:
