@@ -230,6 +230,19 @@ def test_too_few_samples_and_unbracketed_quantiles_are_refused():
     assert np.isfinite(middle.lower[0]) and np.isfinite(middle.upper[0])
 
 
+@pytest.mark.parametrize(
+    "probabilities", ["0.5", "abc", ["0.5", 0.9], np.array(["0.5"]), [0.5, True], 0.5j, [[0.1], [0.2, 0.3]], None]
+)
+def test_quantiles_refuse_probabilities_that_are_not_numbers_by_name(probabilities):
+    # "abc" and the ragged list gave bare ValueErrors, 0.5j a TypeError; "0.5" and ["0.5", 0.9] were converted.
+    fine = np.linspace(-2.0, 2.0, 200)
+    result = cdf_from_samples(fine=[fine], coarse=[fine], thresholds=np.linspace(-3.0, 3.0, 25), bandwidth=0.1)
+    allowed = "allowed: a number or a 1-d sequence of numbers strictly between 0 and 1$"
+    with pytest.raises(InvalidParameterError, match=r"^probabilities: got .*; " + allowed):
+        quantiles(result, probabilities=probabilities)
+    np.testing.assert_array_equal(quantiles(result, probabilities=0.5).values, [0.0])
+
+
 def test_a_fixed_bandwidth_converges_to_the_smoothed_cdf():
     # bandwidth_rate = 0: the telescoped sum is E[g((s - Q_L)/delta)], the smoothed CDF of Q_L,
     # here Q_3 ~ N(0, 1 + 4^-3), computed by quadrature.

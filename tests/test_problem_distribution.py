@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import rough_uq
+from rough_uq.multilevel.distribution import cdf_from_samples
 from rough_uq.multilevel.moments import h2, h2_difference_variance
 
 #: A random stage no run uses (runs have hashed stages), for the plain MC checks.
@@ -83,6 +84,17 @@ def test_bad_column_and_unbracketed_quantiles_say_what_is_wrong():
     assert np.all(result.cdf.cdf == 0)
     with pytest.raises(rough_uq.EstimationError, match="bracket"):
         result.quantiles()
+
+
+@pytest.mark.parametrize("probabilities", ["0.5", "abc", ["0.05", 0.95], [0.5, None], 1.5])
+def test_quantiles_of_a_result_refuse_probabilities_that_are_not_numbers_in_0_1_by_name(probabilities):
+    # "abc" gave a bare ValueError; "0.5" and ["0.05", 0.95] were converted to numbers.
+    fine = np.linspace(10.0, 30.0, 101)
+    law = cdf_from_samples(fine=[fine], coarse=[fine], thresholds=np.linspace(0.0, 40.0, 41), bandwidth=0.5)
+    result = rough_uq.DistributionResult(column="contact_area", cdf=law)
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^probabilities: got .*strictly between 0 and 1$"):
+        result.quantiles(probabilities)
+    np.testing.assert_allclose(result.quantiles([0.5]).values, [20.0])
 
 
 def test_a_budget_that_stops_on_level_0_leaves_the_tolerance_not_met():

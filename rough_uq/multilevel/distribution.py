@@ -72,7 +72,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
+from rough_uq.errors import EstimationError, InvalidParameterError, checked_real_array, is_real_number
 from rough_uq.multilevel.drivers import Sampler
 from rough_uq.multilevel.statistics import _readonly
 from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc, telescope
@@ -438,7 +438,7 @@ def quantiles(estimate: CdfEstimate, *, probabilities: Sequence[float] | np.ndar
     Parameters
     ----------
     estimate : CdfEstimate
-    probabilities : sequence of float, shape (k,)
+    probabilities : float or sequence of float, shape (k,)
         ``p`` in (0, 1).
 
     Returns
@@ -447,13 +447,18 @@ def quantiles(estimate: CdfEstimate, *, probabilities: Sequence[float] | np.ndar
 
     Raises
     ------
+    InvalidParameterError
+        If ``probabilities`` is not a number or a 1-d sequence of numbers
+        strictly between 0 and 1 (strings such as ``"0.5"`` and booleans are
+        refused, not converted).
     EstimationError
         If the estimated CDF does not cross some ``p`` inside the grid
         (extend the thresholds).
     """
-    p = np.atleast_1d(np.asarray(probabilities, dtype=float))
+    allowed = "a number or a 1-d sequence of numbers strictly between 0 and 1"
+    p = np.atleast_1d(checked_real_array("probabilities", probabilities, allowed))
     if p.ndim != 1 or not np.all((p > 0) & (p < 1)):
-        raise InvalidParameterError("probabilities", probabilities, "values strictly between 0 and 1")
+        raise InvalidParameterError("probabilities", probabilities, allowed)
     cdf, s = estimate.cdf, estimate.thresholds
     values = np.array([_invert(cdf, s, float(pk)) for pk in p])
     outside = ~np.isfinite(values)
