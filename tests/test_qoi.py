@@ -100,6 +100,33 @@ def test_non_finite_fields_are_refused() -> None:
 
 
 @pytest.mark.parametrize(
+    ("measure", "name"),
+    [
+        (contact_area, "pressure"),
+        (lambda p: contact_area(p, estimator="nodes"), "pressure"),
+        (lambda p: area_above(p, 0.5), "pressure"),
+        (max_pressure, "pressure"),
+        (mean_gap, "gap"),
+        (lambda p: count_clusters(np.asarray(p) > 0), "contact"),
+        (lambda p: label_clusters(np.asarray(p) > 0, connectivity=8), "contact"),
+        (lambda p: contact_perimeter(np.asarray(p) > 0), "contact"),
+        (lambda p: evaluate_qoi(("max_pressure",), pressure=p), "pressure"),
+        (lambda p: evaluate_qoi(("mean_gap",), pressure=np.ones((1, 3)), gap=p), "gap"),
+    ],
+)
+@pytest.mark.parametrize("field", [np.array([1.0, 0.0, 2.0]), np.zeros(3), np.ones((2, 2, 2)), 5.0, np.zeros((0, 3))])
+def test_fields_that_are_not_2d_grids_are_refused_by_name(measure, name, field) -> None:
+    # contact_area refused a 1-d field only for partial contact with the corrected estimator: no contact, full
+    # contact or "nodes" gave an area (a scalar 5.0 an area of 1), and mean_gap, max_pressure and area_above
+    # took any shape.
+    refusal = r"^\w+: got 'array of shape .*'; allowed: a non-empty 2-d array$"
+    with pytest.raises(InvalidParameterError, match=refusal) as info:
+        measure(field)
+    assert info.value.name == name
+    measure(np.ones((1, 3)))  # a grid of one row is a grid
+
+
+@pytest.mark.parametrize(
     "measure",
     [
         contact_area,

@@ -88,8 +88,20 @@ AREA_ESTIMATORS = ("corrected", "nodes")
 PERIMETER_COEFFICIENT = (math.pi - 1.0 + math.log(2.0)) / 24.0
 
 
+def _grid_shaped(name: str, array: np.ndarray) -> np.ndarray:
+    """``array`` if it is a non-empty 2-d grid ``(n0, n1)``, else :class:`InvalidParameterError` naming ``name``.
+
+    The shape check of every field and contact map: a 1-d, 3-d or scalar
+    field would otherwise give a contact area, mean or maximum of nodes that
+    are no grid (the perimeter and the clusters need two axes).
+    """
+    if array.ndim != 2 or array.size == 0:
+        raise InvalidParameterError(name, f"array of shape {array.shape}", "a non-empty 2-d array")
+    return array
+
+
 def _field(name: str, values: object) -> np.ndarray:
-    """A non-empty, finite float64 array, or :class:`InvalidParameterError` naming ``name``.
+    """A non-empty, finite 2-d float64 array, or :class:`InvalidParameterError` naming ``name``.
 
     A NaN would silently compare as "not in contact", so it is refused here.
     """
@@ -99,8 +111,7 @@ def _field(name: str, values: object) -> np.ndarray:
         array = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError):  # text, a ragged list
         raise InvalidParameterError(name, type(values).__name__, "an array of finite numbers") from None
-    if array.size == 0:
-        raise InvalidParameterError(name, f"array of shape {array.shape}", "a non-empty array")
+    _grid_shaped(name, array)
     if not np.all(np.isfinite(array)):
         raise InvalidParameterError(name, "an array with non-finite entries", "finite values")
     return array
@@ -126,9 +137,7 @@ def _contact_map(name: str, contact: object) -> np.ndarray:
     array = np.asarray(contact)
     if array.dtype != np.bool_:
         raise InvalidParameterError(name, f"array of dtype {array.dtype}", "a boolean array (e.g. pressure > 0)")
-    if array.ndim != 2 or 0 in array.shape:
-        raise InvalidParameterError(name, f"array of shape {array.shape}", "a non-empty 2-d array")
-    return array
+    return _grid_shaped(name, array)
 
 
 def _check_cluster_count(connectivity: object) -> object:
@@ -169,6 +178,11 @@ def contact_perimeter(contact: np.ndarray) -> int:
     -------
     int
         The perimeter ``P`` in grid edges (multiply by ``h`` for a length).
+
+    Raises
+    ------
+    InvalidParameterError
+        If ``contact`` is not a non-empty 2-d boolean array.
     """
     contact = _contact_map("contact", contact)
     # Compare each node with its successor along each axis, the last with the first;
@@ -203,14 +217,19 @@ def contact_area(pressure: np.ndarray, *, estimator: str = "corrected") -> float
     -------
     float
         Area fraction in ``[0, 1]`` (dimensionless).
+
+    Raises
+    ------
+    InvalidParameterError
+        If ``pressure`` is not a non-empty 2-d array of finite, non-negative
+        numbers (a 1-d field included, whatever the estimator), or for an
+        unknown ``estimator``.
     """
     estimator = _check_estimator(estimator)
     contact = _pressure(pressure) > 0.0
     n_contact = np.count_nonzero(contact)
     if estimator == "nodes" or n_contact == 0 or n_contact == contact.size:
         return float(n_contact / contact.size)
-    if contact.ndim != 2:
-        raise InvalidParameterError("pressure", f"array of shape {contact.shape}", "a 2-d array")
     corrected = n_contact - PERIMETER_COEFFICIENT * contact_perimeter(contact)
     return float(corrected / contact.size)
 
@@ -230,6 +249,12 @@ def area_above(pressure: np.ndarray, critical_pressure: float) -> float:
     -------
     float
         ``mean(pressure > critical_pressure)``, in ``[0, 1]`` (dimensionless).
+
+    Raises
+    ------
+    InvalidParameterError
+        If ``pressure`` is not a non-empty 2-d array of finite, non-negative
+        numbers, or ``critical_pressure`` not a finite number >= 0.
     """
     threshold = float(critical_pressure) if is_real_number(critical_pressure) else math.nan
     if not (np.isfinite(threshold) and threshold >= 0.0):
@@ -239,12 +264,24 @@ def area_above(pressure: np.ndarray, critical_pressure: float) -> float:
 
 
 def mean_gap(gap: np.ndarray) -> float:
-    """Mean gap between the surfaces (unit of ``L``), zero-gap contact nodes included."""
+    """Mean gap between the surfaces (unit of ``L``), zero-gap contact nodes included.
+
+    Raises
+    ------
+    InvalidParameterError
+        If ``gap`` is not a non-empty 2-d array ``(n0, n1)`` of finite numbers.
+    """
     return float(np.mean(_field("gap", gap)))
 
 
 def max_pressure(pressure: np.ndarray) -> float:
-    """Largest nodal pressure (unit of ``E*``)."""
+    """Largest nodal pressure (unit of ``E*``).
+
+    Raises
+    ------
+    InvalidParameterError
+        If ``pressure`` is not a non-empty 2-d array ``(n0, n1)`` of finite, non-negative numbers.
+    """
     return float(np.max(_pressure(pressure)))
 
 
@@ -309,6 +346,11 @@ def label_clusters(contact: np.ndarray, *, connectivity: int = 4) -> np.ndarray:
         0 outside the contact; clusters numbered ``1, 2, ...`` in the raster
         order of their first node. A cluster crossing the periodic boundary
         has one label.
+
+    Raises
+    ------
+    InvalidParameterError
+        If ``contact`` is not a non-empty 2-d boolean array, or for a bad ``connectivity``.
     """
     contact = _contact_map("contact", contact)
     labels, component, _ = _periodic_components(contact, connectivity)
@@ -331,6 +373,11 @@ def count_clusters(contact: np.ndarray, *, connectivity: int = 4) -> int:
     -------
     int
         Absolute number of clusters (a cluster crossing the boundary counts once).
+
+    Raises
+    ------
+    InvalidParameterError
+        If ``contact`` is not a non-empty 2-d boolean array, or for a bad ``connectivity``.
     """
     contact = _contact_map("contact", contact)
     return _periodic_components(contact, connectivity)[2]
@@ -410,7 +457,8 @@ def evaluate_qoi(
         An unknown name or ``names`` that are not an iterable (``name="names"``,
         listing the allowed ones), a missing ``gap`` / ``critical_pressure``, a
         ``gap`` of another shape than ``pressure``, a bad ``connectivity`` or
-        ``area_estimator`` (``name="estimator"``), a non-finite field, or a negative pressure.
+        ``area_estimator`` (``name="estimator"``), a field that is not a
+        non-empty 2-d array, a non-finite field, or a negative pressure.
     """
     names = _names(names)
     _check_cluster_count(connectivity)  # a bad setting is an error even when clusters are not asked for
