@@ -143,7 +143,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError, checked_integer, is_real_number
+from rough_uq.errors import (
+    EstimationError,
+    InvalidParameterError,
+    PlanTooLargeError,
+    checked_bool,
+    checked_integer,
+    is_real_array,
+    is_real_number,
+)
 from rough_uq.multilevel.allocation import (
     Plan,
     _check_fraction,
@@ -489,12 +497,6 @@ def _check_positive(name: str, value: object) -> float:
     if not (is_real_number(value) and value > 0):
         raise InvalidParameterError(name, value, "a number > 0")
     return float(value)
-
-
-def _check_bool(name: str, value: object) -> bool:
-    if not isinstance(value, (bool, np.bool_)):
-        raise InvalidParameterError(name, value, "True or False")
-    return bool(value)
 
 
 def _shape_out(values: np.ndarray, is_scalar: bool) -> float | np.ndarray:
@@ -1069,7 +1071,7 @@ def iter_mlmc(
         screening=screening,
         rates=rates,
         kurtosis_limit=_check_positive("kurtosis_limit", kurtosis_limit),
-        richardson=_check_bool("richardson", richardson),
+        richardson=checked_bool("richardson", richardson),
         coarsest_level=None if coarsest_level is None else checked_integer("coarsest_level", coarsest_level, 0),
     )
     batch_cap = batch_size if batch_size is not None else math.inf
@@ -1526,19 +1528,10 @@ def iter_mc(
 
 def _checked_bias(bias: object) -> np.ndarray:
     """``|bias|`` as a 1-d float array; strings, booleans and non-finite values are refused naming ``bias``."""
-    values = np.asarray(bias, dtype=float) if _is_real_array(bias) else None
+    values = np.asarray(bias, dtype=float) if is_real_array(bias) else None
     if values is None or values.ndim > 1 or not np.all(np.isfinite(values)):
         raise InvalidParameterError("bias", bias, "a finite number or a 1-d array of them (one per QoI)")
     return np.atleast_1d(np.abs(values))
-
-
-def _is_real_array(value: object) -> bool:
-    """A real number (:func:`~rough_uq.errors.is_real_number`) or an array or sequence of them: nothing to convert."""
-    if isinstance(value, np.ndarray):
-        return value.dtype.kind in "iuf"
-    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
-        return all(_is_real_array(item) for item in value)
-    return is_real_number(value)
 
 
 def _mc_screened_variance(screening: LevelStatistics, level: int) -> tuple[np.ndarray, float | np.ndarray]:

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, checked_integer, is_integer, is_real_number
+from rough_uq.errors import InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_number
 from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES
 from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
@@ -332,9 +332,7 @@ class ContactProblem:
             )
         set_(self, "solver_tol", float(tol))
         set_(self, "max_iter", checked_integer("max_iter", self.max_iter, 1))
-        if not isinstance(self.warm_start, (bool, np.bool_)):
-            raise InvalidParameterError("warm_start", self.warm_start, "True or False")
-        set_(self, "warm_start", bool(self.warm_start))
+        set_(self, "warm_start", checked_bool("warm_start", self.warm_start))
         set_(self, "threads", checked_integer("threads", self.threads, 1))
 
     def _build_model(self) -> ContactModel:
