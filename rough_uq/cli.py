@@ -565,12 +565,13 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     Creates the study file (or continues an interrupted screening in it).
     """
     from rough_uq.study.config import load_config
-    from rough_uq.study.pipeline import create_study, run_screening
+    from rough_uq.study.pipeline import create_study, removed_if_left_unused, run_screening
     from rough_uq.report.summary import render_screening, screening_json
 
     _check_executor_options(executor, scheduler, workers)
     config = load_config(config_path)
-    with create_study(config, out) as study:  # which builds the model before it creates the file
+    # The file is created before the screening's own checks: refused, or interrupted before a sample, it goes again.
+    with removed_if_left_unused(out or config.output.path), create_study(config, out) as study:
         _warm_kernels(study.model, quiet=quiet or as_json)
         with _executor(config, workers, executor, scheduler) as pool:
             watch = (study.config, pool, executor, "a smaller screening.levels")
@@ -622,12 +623,15 @@ def _estimation_command(method: str) -> Callable[..., Any]:
         _refuse_misplaced_options(target, choice, show_plan, shard_size, with_resources)
         _check_executor_options(executor, scheduler, workers)
         opts = _RunOptions(study_path, config_path, max_cost, as_json, workers, executor, scheduler, quiet)
-        if target is not None:
-            _run_target(target, tol_var=tol_var, tol_cdf=tol_cdf, qoi=qoi, thresholds=thresholds,
-                        probabilities=probabilities, opts=opts)
-        else:
-            _run_mean(tol, method=method, choice=choice, level=level, show_plan=show_plan, shard_size=shard_size,
-                      with_resources=with_resources, opts=opts)
+        from rough_uq.study.pipeline import removed_if_left_unused
+
+        with removed_if_left_unused(study_path):  # a study file created from --config, then refused
+            if target is not None:
+                _run_target(target, tol_var=tol_var, tol_cdf=tol_cdf, qoi=qoi, thresholds=thresholds,
+                            probabilities=probabilities, opts=opts)
+            else:
+                _run_mean(tol, method=method, choice=choice, level=level, show_plan=show_plan,
+                          shard_size=shard_size, with_resources=with_resources, opts=opts)
 
     command = _user_errors(command)
     for option in reversed(_estimation_options(method)):

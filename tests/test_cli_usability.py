@@ -555,6 +555,44 @@ def test_a_target_run_refused_before_its_first_sample_leaves_no_study_file(tmp_p
     assert [path.name for path in tmp_path.iterdir()] == ["bad.yaml"]
 
 
+def test_a_screening_refused_before_its_first_sample_leaves_no_study_file_to_refuse_the_corrected_config(
+    tmp_path, monkeypatch
+):
+    """`screen` created results.h5, then refused grid.max_level 1; the corrected config was then refused as
+    'written by another config'."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "s.yaml", tiny_config(grid={"coarsest": 8, "max_level": 1}))
+    assert one_error_line(run("screen", "s.yaml", "--workers", "1", expect=2)).startswith("error: grid.max_level: ")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["s.yaml"]
+    write_config(tmp_path / "s.yaml", tiny_config())
+    run("screen", "s.yaml", "--workers", "1", "-q")
+    assert (tmp_path / "results.h5").is_file()
+
+
+@pytest.mark.parametrize("args, field", [
+    (("--level", "7", "--tol", "0.5"), "--level"),
+    (("--level", "0", "--tol", "0"), "--tol"),
+    (("--level", "0", "--tol", "clusters=1"), "--tol"),
+])
+def test_mc_on_a_level_refused_before_its_first_sample_leaves_no_study_file(tmp_path, monkeypatch, args, field):
+    """`mc --config` created the study, then refused the level or the tolerance: an empty file stayed behind."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "tiny.yaml", tiny_config())
+    line = one_error_line(run("mc", "--config", "tiny.yaml", "--study", "new.h5", *args, "--workers", "1", expect=2))
+    assert line.startswith(f"error: {field}: got ")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]
+
+
+def test_a_study_file_is_kept_once_it_holds_anything(tmp_path, monkeypatch):
+    """Only a file the command created and left empty goes: a refusal after samples keeps them."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "tiny.yaml", tiny_config())
+    common = ("--config", "tiny.yaml", "--study", "new.h5", "--level", "1", "--workers", "1", "-q")
+    one_error_line(run("mc", *common, "--tol", "1e-5", expect=2))  # refused once its initial samples are stored
+    statuses = [entry["status"] for entry in json.loads(run("report", "new.h5", "--json").output)["runs"]]
+    assert statuses == ["refused"]
+
+
 @pytest.mark.parametrize("initial, allowed", [(10_000_001, 10_000_000), (3_333_334, 3_333_333)],
                          ids=["mc --level", "variance"])
 def test_initial_samples_no_plan_may_hold_are_refused_naming_the_field_before_a_study_exists(

@@ -110,6 +110,7 @@ __all__ = [
     "StudySampler",
     "build_model",
     "create_study",
+    "removed_if_left_unused",
     "open_existing_study",
     "parse_tolerances",
     "run_screening",
@@ -299,6 +300,36 @@ def create_study(config: StudyConfig, path: str | Path | None = None, *, remedy:
         code_version=__version__,
     )
     return Study(config, store, model)
+
+
+@contextmanager
+def removed_if_left_unused(path: str | Path) -> Iterator[None]:
+    """Remove the study file at ``path`` if the block creates it and raises before storing anything in it.
+
+    A command that creates its study file (``screen``, ``mlmc``/``mc
+    --config``) and is then refused before its first sample (a config too
+    shallow to screen, a bad ``--level`` or ``--tol``), or interrupted then,
+    left an empty file behind, which refused the corrected config as "written
+    by another config". A file that existed before the block, or that holds a
+    sample, a screening or a run record, is kept.
+    """
+    path = Path(path)
+    existed = path.exists()
+    try:
+        yield
+    except BaseException:
+        if not existed and path.is_file() and _is_unused(path):
+            path.unlink()
+        raise
+
+
+def _is_unused(path: Path) -> bool:
+    """Whether the study file at ``path`` holds no sample, no screening and no run record (False if unreadable)."""
+    try:
+        with open_study_readonly(path) as store:
+            return not store.levels() and store.read_screening() is None and not store.read_runs()
+    except (RoughUQError, OSError):
+        return False
 
 
 def _refuse_other_config(path: Path, config: StudyConfig, remedy: str) -> None:
