@@ -381,6 +381,29 @@ def test_max_cost_stops_honestly():
     assert mc_result.stop_reason == "max_cost" and not mc_result.tol_met and mc_result.cost <= 500.0
 
 
+@pytest.mark.parametrize(("driver", "level", "budget", "n_drawn"), [
+    (mc, 3, 1e-9, 2), (mc, 3, 3.5, 3), (mlmc, 0, 1e-9, 2), (mlmc, 0, 3.5, 3),
+])
+def test_a_budget_below_the_first_batch_stops_after_a_probe_and_claims_nothing(driver, level, budget, n_drawn):
+    # No cost is known before the first batch (10 samples), and it was drawn whatever the budget: `roughuq mc
+    # --level 0 --max-cost 1e-5` spent 1300 times its budget and MC reported the tolerance met. Two samples come
+    # first now; the run draws what the rest of the budget pays (``budget`` in samples of the level) and stops.
+    problem = Synthetic(seed=2)
+    unit = problem.cost(level)
+    result = driver(problem, tol=1.0, max_cost=budget * unit, **({"level": level} if driver is mc else {}))
+    assert result.stop_reason == "max_cost" and not result.tol_met
+    assert result.levels.tolist() == [level] and result.n_samples.tolist() == [n_drawn]
+    assert result.cost == pytest.approx(n_drawn * unit, rel=1e-12)
+
+
+@pytest.mark.parametrize(("driver", "options"), [(mc, {"level": 2}), (mlmc, {})])
+def test_a_budget_that_pays_the_run_changes_nothing(driver, options):
+    free = driver(Synthetic(seed=5), tol=0.1, **options)
+    paid = driver(Synthetic(seed=5), tol=0.1, max_cost=1.01 * free.cost, **options)
+    assert paid.tol_met and free.tol_met
+    assert paid.n_samples.tolist() == free.n_samples.tolist() and paid.estimate == free.estimate
+
+
 @pytest.mark.parametrize(("tol", "max_cost", "levels"), [(10.0, 1e-9, [0]), (10.0, 30.0, [0, 1])])
 def test_a_budget_stop_before_the_bias_is_estimated_does_not_claim_the_tolerance(tol, max_cost, levels):
     # Levels 0 and 1 cost 10 and 20: the run stops below min_finest_level = 2, before its first bias test.

@@ -340,7 +340,9 @@ class EstimationResult:
         Bias share of ``eps^2``.
     tol_met : bool
         ``stat_error^2 + bias_estimate^2 <= tol^2`` for every QoI, with an
-        estimated bias (MC without a ``bias``: the statistical error alone).
+        estimated bias (MC without a ``bias``: the statistical error alone);
+        False for MC stopped by ``max_cost`` before it drew the samples it
+        starts with (``n_initial``, 2 from a screening).
     stop_reason : str
         ``"tol_met"``, ``"max_cost"``, ``"max_level"`` (MLMC: the bias needs a
         level beyond ``max_level``) or ``"bias"`` (MC: the statistical target is
@@ -884,18 +886,39 @@ class _Run:
 
 def _draw(
     run: _Run, sampler: Sampler, samples: _LevelSamples, batch_cap: float, max_cost: float | None
-) -> _Batch | None:
-    """Draw and store the next batch of one level; None if ``max_cost`` forbids it."""
+) -> tuple[list[_Batch], bool]:
+    """Draw and store the next samples of one level; the batches, and whether ``max_cost`` stops the run.
+
+    The run stops when the budget affords no sample, or when it cannot pay
+    the rest of a batch whose cost a probe had to tell first (:data:`_PROBE`).
+    """
     hierarchy = run.hierarchy
     level = samples.level
     wanted = int(min(hierarchy.targets[level] - samples.n, batch_cap))
+    batches = []
+    is_probed = max_cost is not None and wanted > _PROBE and _per_sample_cost(hierarchy, level, run.cost_rate) <= 0
+    if is_probed:
+        batches.append(_draw_batch(run, sampler, samples, _PROBE))
+        wanted -= _PROBE
     n = _batch_size(hierarchy, level, wanted, max_cost, run.cost_rate)
-    if n == 0:
-        return None
-    batch = _call_sampler(sampler, level, samples.n, n)
-    run.accept(batch, level)
+    if n:
+        batches.append(_draw_batch(run, sampler, samples, n))
+    return batches, n == 0 if not is_probed else n < wanted
+
+
+#: Samples drawn first, alone, where a run with a budget knows no cost yet (its first batch): a budget below
+#: the cost of the first batch (``n_initial`` samples) paid all of it before, e.g. 1300 times
+#: ``--max-cost 1e-5`` for an MC run on one level; now the run stops once the probe shows the rest unaffordable.
+_PROBE = 2
+
+
+def _draw_batch(run: _Run, sampler: Sampler, samples: _LevelSamples, n: int) -> _Batch:
+    """Draw ``n`` samples of ``samples``' level and store them."""
+    hierarchy = run.hierarchy
+    batch = _call_sampler(sampler, samples.level, samples.n, n)
+    run.accept(batch, samples.level)
     # The base level is sampled as Q_base: its coarse values are not part of the sum.
-    coarse = np.zeros_like(batch.fine) if level == hierarchy.base else batch.coarse
+    coarse = np.zeros_like(batch.fine) if samples.level == hierarchy.base else batch.coarse
     samples.add(batch.fine, coarse, batch.cost)
     hierarchy.spent += float(np.sum(batch.cost))
     return batch
@@ -930,11 +953,12 @@ def _drive(
     while not run.stop_reason:
         pending = hierarchy.pending()
         for samples in pending:
-            batch = _draw(run, sampler, samples, batch_cap, max_cost)
-            if batch is None:
+            batches, is_over_budget = _draw(run, sampler, samples, batch_cap, max_cost)
+            for batch in batches:
+                yield _batch_event(hierarchy, samples.level, batch)
+            if is_over_budget:
                 run.stop_reason = "max_cost"
                 break
-            yield _batch_event(hierarchy, samples.level, batch)
         if run.stop_reason:
             break
         if pending:
@@ -1601,6 +1625,14 @@ class _McRun(_Run):
         return self.bias if self.bias is not None else np.zeros(self.n_qoi)
 
     def is_tol_met(self) -> bool:
+        """``Var / N + bias^2 <= eps^2``, once the run has the samples it starts with (``max_cost`` may stop it first).
+
+        Fewer than the first plan's samples (``n_initial``, or 2 from a
+        screening) give no variance estimate to trust: a budget that stopped
+        the run after a probe of two (:data:`_PROBE`) claimed the tolerance met.
+        """
+        if self.samples.n < self.hierarchy.floor:
+            return False
         stat_variance = self.variance() / self.samples.n
         return bool(np.all(stat_variance + self.bias_values() ** 2 <= self.tol**2 * (1 + 1e-12)))
 
