@@ -926,9 +926,10 @@ def _estimate(study: Any, method: str, tolerances: Any, cap: float | None, level
         if not (opts.as_json or opts.quiet):
             _print_forecast(forecast, method)
         watch = (study.config, pool, opts.executor, "a smaller --level" if level is not None else "a looser --tol")
+        # The option itself (None: the config's estimation.max_cost, which the run then names so).
         return run_estimation(study, method=method, tol=tolerances, executor=pool,
-                              progress=_progress(opts.quiet or opts.as_json, watch), max_cost=cap, level=level,
-                              forecast=forecast)
+                              progress=_progress(opts.quiet or opts.as_json, watch), max_cost=opts.max_cost,
+                              level=level, forecast=forecast)
 
 
 #: Choices of ``roughuq mlmc --method``.

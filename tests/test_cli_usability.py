@@ -583,6 +583,25 @@ def test_mc_on_a_level_refused_before_its_first_sample_leaves_no_study_file(tmp_
     assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]
 
 
+@pytest.mark.parametrize("budget", [("--max-cost", "1e-5"), ("--config", "budget.yaml")], ids=["option", "config"])
+def test_mc_on_a_level_refuses_a_budget_below_its_initial_samples_before_any_sample(tmp_path, monkeypatch, budget):
+    """`mc --level 0 --max-cost 1e-5` drew its 10 initial samples anyway (1300 times the budget) and reported the
+    tolerance met, exit 0."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "tiny.yaml", tiny_config())
+    estimation = {"initial_samples": 4, "batch_size": 4, "max_cost": 1e-5}
+    write_config(tmp_path / "budget.yaml", tiny_config(estimation=estimation))
+    config = ("--config", "budget.yaml") if budget[0] == "--config" else ("--config", "tiny.yaml", *budget)
+    line = one_error_line(run("mc", *config, "--study", "new.h5", "--level", "0", "--tol", "5", "--workers", "1",
+                              "-q", expect=2))
+    option = "--max-cost" if budget[0] == "--max-cost" else "estimation.max_cost"
+    assert re.fullmatch(rf"error: {option} 1e-05 is too small for the initial samples of level 0 \(\d+\), which "
+                        rf"cost at least [0-9.e-]+ reference seconds of modelled cost \(even if every solve converged "
+                        rf"at once\); without them the run has no variance estimate: raise {option} \(or lower "
+                        rf"estimation.initial_samples\)", line), line
+    assert not (tmp_path / "new.h5").exists()
+
+
 def test_a_study_file_is_kept_once_it_holds_anything(tmp_path, monkeypatch):
     """Only a file the command created and left empty goes: a refusal after samples keeps them."""
     monkeypatch.chdir(tmp_path)

@@ -392,8 +392,11 @@ def test_a_plain_mc_run_stopped_by_its_budget_is_not_said_to_miss_bias_levels():
     from rough_uq.report.summary import format_run
 
     study = _study()
+    # Above the least cost of the 4 initial samples (a budget below it is refused before any sample), below their
+    # cost with the solves' iterations: the run stops once a probe of two samples shows the rest unaffordable.
+    budget = 1.2 * 4 * float(modelled_cost(study.model, 1, np.zeros((1, 2)))[0])
     record = run_estimation(study, method="mc", tol=np.array([0.01]), executor=SerialExecutor(), progress=QUIET,
-                            level=1, max_cost=1e-6)
+                            level=1, max_cost=budget)
     outcome = record.outcome
     assert outcome.stop_reason == "max_cost" and not outcome.is_bias_estimated and not outcome.tol_met
     lines = format_run(record, study.config.qoi_names, {"contact_area": "%"})

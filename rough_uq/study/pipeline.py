@@ -1247,6 +1247,9 @@ def run_estimation(
         The finished run (``roughuq report --json`` shows its ``to_json``).
     """
     _check_run_arguments(study, method, level)
+    if level is not None:  # no screening's forecast checks its budget: at least its initial samples
+        _check_initial_budget(study.config, [level], max_cost=max_cost, model=study.model,
+                              without="the run has no variance estimate")
     tol = np.asarray(tol, dtype=float)
     max_cost = study.config.estimation.max_cost if max_cost is None else max_cost
     estimation = study.config.estimation
@@ -1666,20 +1669,36 @@ def check_target_budget(
         estimation.initial_samples)`` (``estimation.max_cost X`` where that is
         the budget).
     """
+    finest = initial_finest_level(config.grid.max_level)
+    _check_initial_budget(config, list(range(finest + 1)), max_cost=max_cost, model=model,
+                          without="no bias is estimated")
+
+
+def _check_initial_budget(
+    config: StudyConfig, levels: Sequence[int], *, max_cost: float | None, model: ContactModel | None, without: str
+) -> None:
+    """Refuse a budget below the least modelled cost of ``estimation.initial_samples`` on each of ``levels``.
+
+    The least cost is that of solves that need no iteration at all.
+    ``max_cost`` None takes ``estimation.max_cost`` (so named in the
+    message); no budget at all passes. ``without`` says what the run lacks
+    without those samples.
+    """
     option = "estimation.max_cost" if max_cost is None else "--max-cost"
     max_cost = config.estimation.max_cost if max_cost is None else max_cost
     if max_cost is None:
         return
     model = build_model(config) if model is None else model
-    finest = initial_finest_level(config.grid.max_level)
     n_initial = config.estimation.initial_samples
     no_iterations = np.zeros((1, 2))
-    least = n_initial * sum(float(modelled_cost(model, level, no_iterations)[0]) for level in range(finest + 1))
+    least = n_initial * sum(float(modelled_cost(model, level, no_iterations)[0]) for level in levels)
     if max_cost < least:
+        where = f"level {levels[0]}" if len(levels) == 1 else f"levels {levels[0]}..{levels[-1]}"
         raise EstimationError(
-            f"{option} {max_cost:g} is too small for the initial samples of levels 0..{finest} ({n_initial} each), "
+            f"{option} {max_cost:g} is too small for the initial samples of {where} "
+            f"({n_initial}{' each' if len(levels) > 1 else ''}), "
             f"which cost at least {least:.3g} reference seconds of modelled cost (even if every solve converged at "
-            f"once); without them no bias is estimated: raise {option} (or lower estimation.initial_samples)"
+            f"once); without them {without}: raise {option} (or lower estimation.initial_samples)"
         )
 
 
