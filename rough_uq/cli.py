@@ -19,6 +19,8 @@ Exit status (also in ``roughuq --help`` and the README):
   beyond ``grid.max_level``, ``--max-cost`` reached, MC bias too large); its
   result is stored and printed, with what to change;
 * 130 / 143: stopped by Ctrl-C / SIGTERM; completed samples are saved;
+* 141: the reader of the output went away (``roughuq report FILE | head``),
+  as for a program that SIGPIPE ends; nothing is printed;
 * 1: a bug (a traceback follows).
 """
 
@@ -42,6 +44,8 @@ from rough_uq.errors import InvalidParameterError, MisplacedOptionError, RoughUQ
 DEFAULT_STUDY = "results.h5"
 #: Exit status of a run that ended without meeting its tolerance (its result is stored).
 EXIT_TOL_NOT_MET = 3
+#: Exit status when the reader of the output has gone (a closed pipe), 128 + SIGPIPE as for a program it ends.
+EXIT_BROKEN_PIPE = 141
 #: A kernel warm-up slower than this (seconds) is announced as compilation.
 COMPILE_NOTICE_SECONDS = 2.0
 #: Most thresholds ``--thresholds START:STOP:COUNT`` takes (COUNT); finer grids say nothing more.
@@ -55,7 +59,8 @@ Exit status: 0 done (mlmc/mc: tolerance met); 2 an error in what was typed
 computed; or refused on the way, e.g. a plan over 10^7 samples: the run is
 recorded as refused), one line 'error: ...'; 3 mlmc/mc finished without
 meeting the tolerance (result stored; the message says what to change);
-130 Ctrl-C, 143 SIGTERM (completed samples saved); 1 a bug (traceback)."""
+130 Ctrl-C, 143 SIGTERM (completed samples saved); 141 the output's reader
+went away (| head); 1 a bug (traceback)."""
 
 
 class _Terminated(KeyboardInterrupt):
@@ -139,6 +144,11 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             what, status = ("terminated", 143) if isinstance(exc, _Terminated) else ("interrupted", 130)
             click.echo(f"{what}: every completed sample is saved; run the same command to continue", err=True)
             sys.exit(status)
+        except BrokenPipeError:
+            # The reader of the output has gone (`roughuq report FILE | head`): stop quietly, as a program that
+            # SIGPIPE ends does (status 141), instead of click's status 1, which says "a bug" here.
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - the interpreter's final flush must not fail again
+            sys.exit(EXIT_BROKEN_PIPE)
         finally:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
@@ -150,9 +160,15 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
 def _console() -> Any:
     from rich.console import Console
 
+    class _PipedConsole(Console):
+        def on_broken_pipe(self) -> None:
+            # rich exits with status 1 (a bug, here); the commands' wrapper stops with EXIT_BROKEN_PIPE instead.
+            self.quiet = True
+            raise BrokenPipeError
+
     # Logs and pipes get full-width tables rather than rich's default of 80 columns.
     is_terminal = sys.stdout.isatty()
-    return Console(width=None if is_terminal or os.environ.get("COLUMNS") else 160)
+    return _PipedConsole(width=None if is_terminal or os.environ.get("COLUMNS") else 160)
 
 
 def _progress(quiet: bool, watch: tuple[Any, Any, str, str] | None = None) -> Any:
@@ -266,8 +282,13 @@ def _check_not_empty(option: str, text: str | None) -> None:
 
 
 def _check_output_file(option: str, text: str) -> None:
-    """Refuse an empty output file path, or one in a directory that does not exist (none is created)."""
+    """Refuse an empty output file path, a directory's, or one in a directory that does not exist (none is created).
+
+    A path ending in a separator names a directory: ``sub/`` wrote a file named ``sub``.
+    """
     _check_not_empty(option, text)
+    if text.endswith(("/", os.sep)) or Path(text).is_dir():
+        raise InvalidParameterError(option, text, "a file path (this one names a directory)")
     parent = Path(text).parent
     if not parent.exists():
         raise InvalidParameterError(option, text, f"a file in an existing directory ({parent} does not exist; "
@@ -429,10 +450,20 @@ def validate(config_paths: Sequence[str]) -> None:
             ", too little for it" if finest > memory else "")
         click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about {_memory(finest)} "
                    f"per worker{here})")
-        click.echo(f"  screening: levels 0..{config.screening.levels - 1}, {config.screening.samples} samples each")
+        click.echo(f"  screening: {_screening_summary(config)}")
         click.echo(f"  study file: {config.output.path}")
     if n_bad:
         sys.exit(2)
+
+
+def _screening_summary(config: Any) -> str:
+    """What ``roughuq screen`` would screen for ``config``, or why it cannot (a study too shallow to screen)."""
+    from rough_uq.problem.runs import MIN_SCREENED_LEVELS
+
+    if config.grid.max_level + 1 < MIN_SCREENED_LEVELS:
+        return (f"none: it needs levels 0..{MIN_SCREENED_LEVELS - 1} and grid.max_level is {config.grid.max_level}; "
+                "runs without a screening only (mlmc --tol-var / --tol-cdf, mc --level)")
+    return f"levels 0..{config.screening.levels - 1}, {config.screening.samples} samples each"
 
 
 def _warm_kernels(model: Any, *, quiet: bool = False) -> None:
@@ -564,6 +595,7 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
 
     Creates the study file (or continues an interrupted screening in it).
     """
+    _check_not_empty("--out", out)
     from rough_uq.study.config import load_config
     from rough_uq.study.pipeline import create_study, removed_if_left_unused, run_screening
     from rough_uq.report.summary import render_screening, screening_json
@@ -619,6 +651,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
         _check_tolerance_texts("--tol", tol)
         _check_tolerance_texts("--tol-var", tol_var)
         _check_not_empty("--config", config_path)
+        _check_not_empty("--study", study_path)
         target = _target_of(tol, tol_var, tol_cdf, qoi=qoi, thresholds=thresholds, probabilities=probabilities)
         _refuse_misplaced_options(target, choice, show_plan, shard_size, with_resources)
         _check_executor_options(executor, scheduler, workers)
@@ -1164,6 +1197,7 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
 
     The shard is written under a temporary name and renamed when complete.
     """
+    _check_not_empty("--study", study_path)
     from rough_uq.study.pipeline import compute_shard, open_existing_study
 
     _check_executor_options("local", None, workers)
@@ -1185,6 +1219,7 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
 @_user_errors
 def merge(shards: Sequence[str], study_path: str) -> None:
     """Add the samples of shard files to a study (duplicates are skipped with a warning)."""
+    _check_not_empty("--into", study_path)
     from rough_uq.study.pipeline import merge_shards, open_existing_study
 
     with open_existing_study(study_path) as study:
@@ -1285,6 +1320,7 @@ def _sweep_assignment(assignments: Sequence[str]) -> tuple[str, list[str]]:
 @_user_errors
 def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     """Show what a study file holds: config, screening, rates, every run, warnings."""
+    _check_not_empty("FILE", study_path)
     from rough_uq.study.pipeline import open_existing_study
     from rough_uq.report.summary import render_report, study_report
 
@@ -1348,6 +1384,7 @@ def _stage_of(study: Any, text: str) -> int:
 @_user_errors
 def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
     """Recompute one stored sample from its seed and draw heights, pressure and contact clusters."""
+    _check_not_empty("--study", study_path)
     from rough_uq.study.pipeline import open_existing_study
     from rough_uq.report.figures import write_sample_figure
 
@@ -1379,6 +1416,7 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
     A dropped run no longer appears in reports; running the same command
     again brings it back and reuses its stored samples.
     """
+    _check_not_empty("--study", study_path)
     from rough_uq.study.pipeline import open_existing_study
     from rough_uq.study.records import read_run_records
 

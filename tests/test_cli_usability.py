@@ -437,6 +437,60 @@ def test_screen_warns_about_non_converged_solves_where_they_happen(tmp_path, mon
 # -- commands that behave as documented -----------------------------------------------------------
 
 
+@pytest.mark.parametrize("args, option", [
+    (("mlmc", "--tol", "5", "--study", ""), "--study"),
+    (("mc", "--tol", "5", "--study", ""), "--study"),
+    (("screen", "tiny.yaml", "--out", ""), "--out"),
+    (("report", ""), "FILE"),
+    (("drop", "some-run", "--study", ""), "--study"),
+    (("merge", "shard.h5", "--into", ""), "--into"),
+    (SAMPLE + ("--out", "x.h5", "--study", ""), "--study"),
+    (SHOW + ("--out", "x.png", "--study", ""), "--study"),
+], ids=["mlmc", "mc", "screen", "report", "drop", "merge", "sample", "show"])
+def test_an_empty_study_path_is_refused_by_name(screened, args, option):
+    """An empty study path became '.': `error: . is not a file` named something the user never typed."""
+    before = sorted(path.name for path in screened.iterdir())
+    assert one_error_line(run(*args, expect=2)) == f"error: {option}: got ''; allowed: a non-empty path"
+    assert sorted(path.name for path in screened.iterdir()) == before
+
+
+@pytest.mark.parametrize("out", ["sub/", "existing"])
+def test_an_output_path_naming_a_directory_is_refused(tmp_path, monkeypatch, out):
+    """`init classic-area --out sub/` wrote a file named sub."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "existing").mkdir()
+    result = run("init", "classic-area", "--out", out, expect=2)
+    assert one_error_line(result).startswith("error: ") and "director" in result.stderr
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["existing"]
+
+
+def test_a_cdf_run_without_thresholds_says_none_were_given(tmp_path, monkeypatch):
+    """It said `--thresholds: got None`, Python's word for an option the user never gave."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "tiny.yaml", tiny_config())
+    line = one_error_line(run("mlmc", "--config", "tiny.yaml", "--study", "new.h5", "--tol-cdf", "0.1", expect=2))
+    assert line.startswith("error: --thresholds: got 'none (neither the option nor the config gives them)'; ")
+    assert "None" not in line and not (tmp_path / "new.h5").exists()
+
+
+def test_validate_says_a_study_too_shallow_to_screen_has_no_screening(tmp_path):
+    """With grid.max_level 1 it listed grids 8, 16 and 'screening: levels 0..2', which screen then refused."""
+    config = write_config(tmp_path / "shallow.yaml", tiny_config(grid={"coarsest": 8, "max_level": 1}))
+    lines = run("validate", str(config)).output.splitlines()
+    assert "  screening: none: it needs levels 0..2 and grid.max_level is 1; runs without a screening only " \
+           "(mlmc --tol-var / --tol-cdf, mc --level)" in lines
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly_with_status_141(screened):
+    """`roughuq report results.h5 | head -1` exited with status 1, which says 'a bug'."""
+    process = subprocess.Popen([sys.executable, "-m", "rough_uq.cli", "report", "results.h5"], cwd=screened,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # before the first line is written
+    stderr = process.stderr.read()
+    process.stderr.close()
+    assert process.wait(timeout=120) == 141 and stderr == b""
+
+
 def test_validate_accepts_several_files_and_fails_if_any_is_bad(tmp_path):
     shipped = sorted(str(path) for path in (ROOT / "rough_uq" / "study" / "configs").glob("*.yaml"))
     assert len(shipped) >= 2

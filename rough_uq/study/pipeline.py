@@ -1432,7 +1432,8 @@ def cdf_request(
     settings = config.estimation.distribution.get(_qoi_of(config, column))
     if thresholds is None and (settings is None or settings.thresholds is None):
         raise InvalidParameterError(
-            "--thresholds", None, f"the values s where F(s) = P({column} <= s) is estimated: give --thresholds "
+            "--thresholds", "none (neither the option nor the config gives them)",
+            f"the values s where F(s) = P({column} <= s) is estimated: give --thresholds "
             f"START:STOP:COUNT (the QoI's unit) or set estimation.distribution.{_qoi_of(config, column)}.thresholds "
             "in the config",
         )
