@@ -349,6 +349,28 @@ def test_work_ratio_and_measured_ratio():
     assert derive_runs([mlmc, _run(MC_DROPPED)])[0].measured_ratio is None
 
 
+def test_a_richardson_run_is_told_apart_from_plain_mlmc_at_the_same_tolerance():
+    # Both runs were headed "mlmc contact_area=3, clusters=8: tolerance met"; only a warning named the run.
+    from rough_uq.report.summary import format_run
+
+    refused = _run(RICHARDSON)
+    plain = replace(refused, run_id=RICHARDSON.removesuffix("_richardson"),
+                    outcome=replace(refused.outcome, richardson="off", richardson_reason=""))
+    applied = replace(refused, outcome=replace(refused.outcome, richardson="applied", richardson_reason=""))
+    running = replace(refused, status="running", outcome=None)
+    units = {"contact_area": "%", "clusters": "clusters per unit area"}
+    names = refused.qoi_names
+    heads = {name: format_run(run, names, units)[0] for name, run in
+             [("plain", plain), ("refused", refused), ("applied", applied), ("running", running)]}
+    assert heads["plain"].startswith("mlmc contact_area=3, clusters=8: ")
+    for name in ("refused", "applied", "running"):
+        assert heads[name].startswith("mlmc (Richardson) contact_area=3, clusters=8: "), heads[name]
+    assert not plain.is_richardson and refused.is_richardson and not _run(MC_LEVEL).is_richardson
+    refusal = "  Richardson extrapolation refused: the estimate is plain MLMC (see warning)"
+    assert refusal in format_run(refused, names, units) and refusal not in format_run(applied, names, units)
+    assert all(len(line) <= 80 for line in format_run(refused, names, units))
+
+
 def test_diagnostic_kinds():
     kinds = {
         "level 2: consistency check failed for QoI [0] (...)": "consistency",

@@ -360,7 +360,7 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     """
     if run.method in TARGET_METHODS and run.qoi_names:
         qoi_names = run.qoi_names  # a cdf run has one column, whatever the study's
-    head = f"{run.method} {_tol_text(qoi_names, run.tol)}"
+    head = f"{_method_text(run)} {_tol_text(qoi_names, run.tol)}"
     outcome = run.outcome
     if run.status != "finished" or outcome is None:
         if run.status == "running":
@@ -379,6 +379,8 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
         lines = [f"{head}: tolerance met", f"  {where}"]
     else:
         lines = [f"{head}: NOT MET ({reason})", f"  {_stop_text(outcome, run.method)}; {where}"]
+    if outcome.richardson == "refused":
+        lines.append("  Richardson extrapolation refused: the estimate is plain MLMC (see warning)")
     if run.method == "variance":
         lines += [_variance_line(outcome, q, name, run.tol[q], units) for q, name in enumerate(qoi_names)]
     elif run.method == "cdf":
@@ -396,6 +398,16 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
             text += f", {_g(measured_ratio, 2)} measured"
         lines.append(text)
     return lines
+
+
+def _method_text(run: RunRecord) -> str:
+    """The method in a run's heading: ``mlmc``, or ``mlmc (Richardson)`` for a Richardson-extrapolated run.
+
+    A run that asked for the extrapolation is named so even where it was
+    refused: it is another run, with its own samples, than plain MLMC at the
+    same tolerance.
+    """
+    return f"{run.method} (Richardson)" if run.is_richardson else run.method
 
 
 def _stop_text(outcome: Any, method: str) -> str:

@@ -942,6 +942,18 @@ class RunRecord:
     def is_finished(self) -> bool:
         return self.status == "finished" and self.outcome is not None
 
+    @property
+    def is_richardson(self) -> bool:
+        """An MLMC run that asked for Richardson extrapolation, applied or refused.
+
+        Its name ends in ``_richardson`` (:func:`~rough_uq.problem.runs.run_id`);
+        a finished run also says so in ``outcome.richardson``.
+        """
+        if self.method != "mlmc":
+            return False
+        asked = self.outcome is not None and self.outcome.richardson in ("applied", "refused")
+        return asked or self.run_id.endswith("_richardson")
+
     def to_json(self) -> dict[str, Any]:
         """The stored mapping (without ``run_id``, which names the record in the store)."""
         head = [
