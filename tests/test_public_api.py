@@ -420,6 +420,23 @@ def test_mlmc_mc_screen_on_small_grids():
     assert planned.is_bias_estimated and 0 <= planned.levels[0] <= problem.max_level
 
 
+def test_screen_names_the_qois_in_its_diagnostics(monkeypatch):
+    # The checks gave column indices ("for QoI [1]"); screen knows the names of its columns.
+    from rough_uq.problem import runs
+
+    seen = []
+    real = runs.diagnose
+
+    def spy(statistics, **options):
+        seen.append(options)
+        return real(statistics, **options)
+
+    monkeypatch.setattr(runs, "diagnose", spy)
+    problem = _problem(qoi=["contact_area", "mean_gap"])
+    rough_uq.screen(problem, levels=3, samples=3)
+    assert seen == [{"names": ("contact_area", "mean_gap")}] and problem.columns == ("contact_area", "mean_gap")
+
+
 def test_same_seed_same_estimate_other_seed_other_estimate():
     first = rough_uq.mlmc(_problem(), tol=2.0)
     again = rough_uq.mlmc(_problem(), tol=2.0)

@@ -376,6 +376,7 @@ def test_diagnostic_kinds():
         "level 2: consistency check failed for QoI [0] (...)": "consistency",
         "level 1: kurtosis 412 of Q_l - Q_l-1 for QoI [0] exceeds 100; ...": "kurtosis",
         "mlmc: level 1: Var(Q_l - Q_l-1) >= Var(Q_l) for QoI [0] (ratio 2.67); ...": "coupling",
+        "level 1: Var(Q_l - Q_l-1) >= Var(Q_l) for area_above (ratio 1.07): the levels are weakly ...": "coupling",
         "level 0: 1 sample(s), variance unknown": "few_samples",
         "no cost prediction: the bias of contact_area (alpha = -0.9) does not decrease ...": "prediction",
         "something new": "other",

@@ -407,7 +407,28 @@ def test_independent_coarse_samples_are_flagged():
     # Independent coarse values: V_l ~ Var(Q_l) + Var(Q_l-1) ~ 2 Var(Q_l).
     assert not np.any(table.is_coupled[1:])
     assert np.all(table.coupling_ratio[1:, 0] > 1.5)
-    assert any("not coupled" in message for message in diagnose(table))
+    assert any("weakly coupled" in message for message in diagnose(table))
+
+
+def test_the_coupling_warning_names_the_qoi_and_does_not_claim_a_defect():
+    # Reported as "... for QoI [4] (ratio 1.07); the coarse sample is not coupled to the fine one": a ratio
+    # a little above 1 on a coarse grid can be the noise of a weakly coupled QoI, and [4] named nothing.
+    rng = np.random.default_rng(5)
+    fine = rng.normal(size=(20, 3))
+    coarse = fine + [0.01, 0.01, 1.5] * rng.normal(size=(20, 3))  # the third column: barely coupled
+    table = level_statistics(fine=[rng.normal(size=(20, 3)), fine], coarse=[np.zeros((20, 3)), coarse],
+                             cost=[np.ones(20)] * 2)
+    assert table.coupling_ratio[1, 2] >= 1.0 and np.all(table.coupling_ratio[1, :2] < 1.0)
+    (named,) = diagnose(table, names=("contact_area", "clusters", "area_above"))
+    ratio = f"{table.coupling_ratio[1, 2]:.3g}"
+    assert named.startswith(f"level 1: Var(Q_l - Q_l-1) >= Var(Q_l) for area_above (ratio {ratio}): ")
+    assert "weakly coupled" in named and "noise" in named and "not coupled" not in named
+    assert "QoI [" not in named and "contact_area" not in named
+    (indexed,) = diagnose(table)
+    assert "for QoI [2] (ratio" in indexed and "weakly coupled" in indexed
+    for names in (("contact_area", "clusters"), "abc", ("a", "b", 3)):
+        with pytest.raises(InvalidParameterError, match="names"):
+            diagnose(table, names=names)
 
 
 def test_coarse_from_the_wrong_distribution_fails_the_consistency_check():

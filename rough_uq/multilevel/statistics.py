@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, EstimationWarning
+from rough_uq.errors import EstimationError, EstimationWarning, InvalidParameterError
 
 __all__ = [
     "CONSISTENCY_CHECK_SAMPLES",
@@ -115,8 +115,9 @@ class LevelStatistics:
         zero and the means differ.
     coupling_ratio : ndarray, shape (n_levels, n_qoi)
         ``V_l / Var(Q_l)``: how much the coupling reduces the variance; 1 on
-        level 0 by definition. Above 1 on a level ``l >= 1`` the coarse
-        sample is not coupled to the fine one (MLMC cannot beat MC there).
+        level 0 by definition. At least 1 on a level ``l >= 1``: the levels
+        are at best weakly coupled for that QoI (MLMC gains nothing over MC
+        there); about 2 or more: fine and coarse values look uncorrelated.
         Where ``Var(Q_l) = 0``: ``inf`` if ``V_l > 0``, else 0.
     base_level : int
         The level the hierarchy starts on (0 unless an estimation run dropped
@@ -428,7 +429,84 @@ COUPLING_CHECK_SAMPLES = 10
 """Fewest samples on a level for the coupling check of :func:`diagnose`."""
 
 
-def diagnose(statistics: LevelStatistics, *, kurtosis_limit: float = KURTOSIS_LIMIT) -> tuple[str, ...]:
+def _checked_names(names: object, n_qoi: int) -> list[str] | None:
+    """``names`` as a list of ``n_qoi`` strings (None stays None), else an error naming the argument."""
+    if names is None:
+        return None
+    allowed = f"a sequence of {n_qoi} QoI names (strings), one per column"
+    if isinstance(names, (str, bytes)) or not isinstance(names, Sequence):
+        raise InvalidParameterError("names", names, allowed)
+    if len(names) != n_qoi or not all(isinstance(name, str) for name in names):
+        raise InvalidParameterError("names", names, allowed)
+    return list(names)
+
+
+def _qoi_text(columns: np.ndarray, names: Sequence[str] | None) -> str:
+    """The QoIs of ``columns`` in a message: by name (``clusters, area_above``), else by index (``QoI [1, 4]``)."""
+    if names is None:
+        return f"QoI {columns.tolist()}"
+    return ", ".join(names[column] for column in columns)
+
+
+def _coupling_message(level: int, ratios: np.ndarray, names: Sequence[str] | None) -> str | None:
+    """The coupling check of one level (:func:`diagnose`), or None where ``V_l < Var(Q_l)`` for every QoI."""
+    loose = np.flatnonzero(ratios >= 1.0)
+    if not loose.size:
+        return None
+    if names is None:
+        found = f"for QoI {loose.tolist()} (ratio {float(np.max(ratios)):.3g})"
+    else:
+        found = "for " + ", ".join(f"{names[q]} (ratio {float(ratios[q]):.3g})" for q in loose)
+    # A ratio of variances from ten or twenty samples is noisy, and a noisy QoI (a count, a maximum) on a
+    # coarse grid is weakly coupled without anything being wrong: say what was seen, not a defect.
+    which, it = ("this QoI", "it") if loose.size == 1 else ("these QoIs", "them")
+    return (
+        f"level {level}: Var(Q_l - Q_l-1) >= Var(Q_l) {found}: the levels are weakly coupled for {which}, "
+        f"so MLMC gains little for {it}; on coarse grids this can be noise (a ratio near 2 or above means the "
+        "coarse values look unrelated to the fine ones)"
+    )
+
+
+def _level_messages(
+    statistics: LevelStatistics, row: int, kurtosis_limit: float, names: Sequence[str] | None
+) -> list[str]:
+    """The failed checks of row ``row`` of ``statistics`` (:func:`diagnose`)."""
+    level, n = statistics.levels[row], statistics.n_samples[row]
+    if n < 2:
+        return [f"level {level}: {n} sample(s), variance unknown"]
+    messages = []
+    bad = np.flatnonzero(statistics.consistency[row] > 1.0)
+    if bad.size:
+        worst = float(np.max(statistics.consistency[row]))
+        messages.append(
+            f"level {level}: consistency check failed for {_qoi_text(bad, names)} "
+            f"(|E[Q_l - Q_l-1] - (E[Q_l] - E[Q_l-1])| = {worst:.3g} x 3 standard deviations); "
+            "the coarse sample of level l does not match the fine sample of level l-1"
+        )
+    heavy = np.flatnonzero(statistics.kurtosis[row] > kurtosis_limit)
+    if heavy.size:
+        messages.append(
+            f"level {level}: kurtosis {float(np.max(statistics.kurtosis[row])):.3g} of Q_l - Q_l-1 "
+            f"for {_qoi_text(heavy, names)} exceeds {kurtosis_limit:g}; its variance estimate is unreliable"
+        )
+    if level <= statistics.base_level:
+        return messages
+    frozen = np.flatnonzero((statistics.var_diff[row] == 0) & (statistics.var_fine[row] > 0))
+    if frozen.size:
+        messages.append(
+            f"level {level}: Q_l - Q_l-1 is the same in all {n} samples for {_qoi_text(frozen, names)} "
+            "although Q_l varies; if the differences are rare events (integer QoIs), this level's "
+            "mean and variance are underestimated -- use more samples per level"
+        )
+    coupling = _coupling_message(level, statistics.coupling_ratio[row], names)
+    if coupling is not None and n >= COUPLING_CHECK_SAMPLES:
+        messages.append(coupling)
+    return messages
+
+
+def diagnose(
+    statistics: LevelStatistics, *, kurtosis_limit: float = KURTOSIS_LIMIT, names: Sequence[str] | None = None
+) -> tuple[str, ...]:
     """The failed MLMC checks of a screening table, as one message each.
 
     Checks (SPEC section 5): the consistency check (ratio above 1; below
@@ -447,46 +525,19 @@ def diagnose(statistics: LevelStatistics, *, kurtosis_limit: float = KURTOSIS_LI
         The table to check.
     kurtosis_limit : float
         Largest acceptable kurtosis (default 100, as in ``mlmc_test``).
+    names : sequence of str, optional
+        Names of the QoI columns, length ``n_qoi``: messages name the QoIs
+        (``for area_above``); without them they give column indices
+        (``for QoI [4]``).
 
     Returns
     -------
     tuple of str
         Empty when every check passes.
     """
+    names = _checked_names(names, statistics.mean_fine.shape[1])
     messages = []
-    for row, level in enumerate(statistics.levels):
-        n = statistics.n_samples[row]
-        if n < 2:
-            messages.append(f"level {level}: {n} sample(s), variance unknown")
-            continue
-        bad = np.flatnonzero(statistics.consistency[row] > 1.0)
-        if bad.size:
-            worst = float(np.max(statistics.consistency[row]))
-            messages.append(
-                f"level {level}: consistency check failed for QoI {bad.tolist()} "
-                f"(|E[Q_l - Q_l-1] - (E[Q_l] - E[Q_l-1])| = {worst:.3g} x 3 standard deviations); "
-                "the coarse sample of level l does not match the fine sample of level l-1"
-            )
-        heavy = np.flatnonzero(statistics.kurtosis[row] > kurtosis_limit)
-        if heavy.size:
-            messages.append(
-                f"level {level}: kurtosis {float(np.max(statistics.kurtosis[row])):.3g} of Q_l - Q_l-1 "
-                f"for QoI {heavy.tolist()} exceeds {kurtosis_limit:g}; its variance estimate is unreliable"
-            )
-        if level > statistics.base_level:
-            frozen = np.flatnonzero((statistics.var_diff[row] == 0) & (statistics.var_fine[row] > 0))
-            if frozen.size:
-                messages.append(
-                    f"level {level}: Q_l - Q_l-1 is the same in all {n} samples for QoI {frozen.tolist()} "
-                    "although Q_l varies; if the differences are rare events (integer QoIs), this level's "
-                    "mean and variance are underestimated -- use more samples per level"
-                )
-            loose = np.flatnonzero(statistics.coupling_ratio[row] >= 1.0)
-            if loose.size and n >= COUPLING_CHECK_SAMPLES:
-                messages.append(
-                    f"level {level}: Var(Q_l - Q_l-1) >= Var(Q_l) for QoI {loose.tolist()} "
-                    f"(ratio {float(np.max(statistics.coupling_ratio[row])):.3g}); the coarse sample "
-                    "is not coupled to the fine one"
-                )
+    for row in range(len(statistics.levels)):
+        messages += _level_messages(statistics, row, kurtosis_limit, names)
     return tuple(messages)
 

@@ -180,7 +180,7 @@ def screen(
         statistics=statistics,
         rates=fit_rates(statistics),
         n_not_converged=sampler.n_not_converged,
-        diagnostics=tuple(diagnose(statistics)),
+        diagnostics=tuple(diagnose(statistics, names=problem.columns)),
     )
 
 
