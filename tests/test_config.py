@@ -255,6 +255,30 @@ def test_more_defects(change, expected: str) -> None:
     assert expected in _message(data)
 
 
+@pytest.mark.parametrize(
+    ("line", "expected"),
+    [
+        # The user wrote no quotes: there are none to remove.
+        ("tol: abc", "solver.tol: must be a number, not a string (got 'abc'"),
+        ("tol: nan", "solver.tol: must be a number, not a string (got 'nan'"),
+        ("tol: '0.5'", "solver.tol: must be a number, not a string (remove the quotes) (got '0.5'"),
+        ('tol: " 1e-7"', "solver.tol: must be a number, not a string (remove the quotes) (got ' 1e-7'"),
+        # pydantic wrote the bound as 0.00000000000001
+        ("tol: 0", "solver.tol: must be greater than or equal to 1e-14 (got 0;"),
+        ("tol: 2", "solver.tol: must be less than 1 (got 2;"),
+        ("max_iter: 0", "solver.max_iter: must be greater than or equal to 1 (got 0;"),
+    ],
+)
+def test_a_bad_number_in_a_yaml_file_is_told_as_written(line: str, expected: str) -> None:
+    text = yaml.safe_dump(_base(), sort_keys=False) + f"solver:\n  {line}\n"
+    with pytest.raises(ConfigError) as info:
+        config_from_yaml_text(text)
+    message = str(info.value)
+    assert expected in message, message
+    assert ("remove the quotes" in message) == ("'" in line or '"' in line), message
+    assert "0.0000" not in message
+
+
 def test_memory_is_a_run_time_warning_not_a_validation_rule(monkeypatch: pytest.MonkeyPatch) -> None:
     assert solver_memory_bytes(1024) == 20 * 8 * 1024**2
     # Pretend the machine has just enough memory for one 512 x 512 solve.

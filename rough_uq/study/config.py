@@ -145,8 +145,18 @@ def _reject_non_number(value: object) -> object:
     if isinstance(value, bool):
         raise PydanticCustomError("bool_not_number", "must be a number, not a boolean")
     if isinstance(value, str):
-        raise PydanticCustomError("str_not_number", "must be a number, not a string (remove the quotes)")
+        # Only a string that reads as a number was (probably) quoted: `tol: abc` has no quotes to remove.
+        hint = " (remove the quotes)" if _reads_as_number(value) else ""
+        raise PydanticCustomError("str_not_number", "must be a number, not a string" + hint)
     return value
+
+
+def _reads_as_number(text: str) -> bool:
+    """Whether ``text`` is a finite number written as text (``'0.5'``, ``' 1e-7'``; not ``'abc'``, ``'nan'``)."""
+    try:
+        return math.isfinite(float(text))
+    except ValueError:
+        return False
 
 
 def _reject_non_bool(value: object) -> object:
@@ -1143,6 +1153,33 @@ def _clean_loc(loc: tuple[object, ...]) -> tuple[str, ...]:
     return parts
 
 
+#: pydantic's bound errors: the key of the bound in the error's context and the words for it.
+_BOUNDS = {
+    "greater_than": ("gt", "greater than"),
+    "greater_than_equal": ("ge", "greater than or equal to"),
+    "less_than": ("lt", "less than"),
+    "less_than_equal": ("le", "less than or equal to"),
+}
+
+
+def _number_text(value: object) -> str:
+    """A bound as the user would write it: ``1e-14``, ``0.5``, ``10000`` (pydantic writes 0.00000000000001)."""
+    if isinstance(value, float):
+        return f"{value:.12g}"
+    return str(value)
+
+
+def _pydantic_what(item: Mapping[str, Any]) -> str:
+    """What is wrong, in the words of a config message, for one of pydantic's own errors."""
+    bound = _BOUNDS.get(item["type"])
+    context = item.get("ctx") or {}
+    if bound is not None and bound[0] in context:
+        return f"must be {bound[1]} {_number_text(context[bound[0]])}"
+    msg = item["msg"]
+    what = "must be " + msg[len("Input should be ") :] if msg.startswith("Input should be ") else msg
+    return what[:1].lower() + what[1:]
+
+
 def _format_errors(error: ValidationError) -> list[str]:
     lines: list[str] = []
     for item in error.errors(include_url=False):
@@ -1168,9 +1205,7 @@ def _format_errors(error: ValidationError) -> list[str]:
         elif kind in ("model_type", "model_attributes_type", "dict_type"):
             what = "must be a mapping"
         else:
-            msg = item["msg"]
-            what = "must be " + msg[len("Input should be ") :] if msg.startswith("Input should be ") else msg
-            what = what[:1].lower() + what[1:]
+            what = _pydantic_what(item)
         lines.append(f"{path}: {what} (got {_show(value)}; allowed: {_allowed(loc)})")
     return lines
 
