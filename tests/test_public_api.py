@@ -6,6 +6,7 @@ import ast
 import dataclasses
 import functools
 import math
+import os
 import re
 import subprocess
 import sys
@@ -546,16 +547,35 @@ def test_api_computes_what_the_pipeline_computes(monkeypatch):
 # --------------------------------------------------------------------------
 
 
-def test_readme_from_python_example_runs(capsys):
+def _readme_python_blocks() -> list[str]:
+    """The Python code blocks of the README's section "From Python", in order."""
     readme = (ROOT / "README.md").read_text()
     section = readme.split("\n## From Python\n", 1)[1].split("\n## ", 1)[0]
-    (block,) = re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    return re.findall(r"```python\n(.*?)```", section, flags=re.S)
+
+
+def test_readme_from_python_example_runs(capsys):
+    block = _readme_python_blocks()[0]
     namespace: dict[str, object] = {}
     exec(compile(block, "README.md (From Python)", "exec"), namespace)
     result = namespace["result"]
     assert isinstance(result, rough_uq.EstimationResult)
     assert result.tol_met and result.rmse[0] <= 0.5
     assert str(result.stop_reason) in capsys.readouterr().out
+
+
+def test_readme_pool_example_runs_as_a_script(tmp_path):
+    # The recipe had no `if __name__ == "__main__":`; as a script, every spawned worker re-ran it and it failed.
+    (_, block) = _readme_python_blocks()
+    assert 'if __name__ == "__main__":' in block and "PoolExecutor(2)" in block
+    script = tmp_path / "pool.py"
+    script.write_text(block)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    result = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True,
+                            timeout=300, env=env)
+    assert result.returncode == 0, result.stderr
+    estimate, rmse = (float(text.strip("[]")) for text in result.stdout.split())
+    assert 0 < estimate < 100 and 0 < rmse <= 0.5
 
 
 def test_mc_from_a_screening_whose_bias_grows_says_to_pass_a_level():
