@@ -5,7 +5,11 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
+import sys
+import textwrap
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -173,3 +177,44 @@ def test_a_ctrl_c_while_workers_are_spawned_comes_after_the_spawning_once():
         assert seen == [handler, True, False]
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+#: A script that starts a pool without `if __name__ == "__main__":` (as the README's recipe once read).
+UNGUARDED_SCRIPT = textwrap.dedent("""
+    import rough_uq
+    from rough_uq.study.executors import PoolExecutor
+
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.2), qoi=["contact_area"],
+                                      coarsest=16, max_level=2, seed=7)
+    with PoolExecutor(2) as pool:
+        rough_uq.mlmc(problem, tol=2.0, executor=pool)
+""")
+
+
+def test_a_script_that_starts_a_pool_unguarded_is_told_to_add_the_main_guard(tmp_path):
+    # Each spawned worker re-ran the script, failed with multiprocessing's RuntimeError, and the script ended
+    # in "a worker process died while computing samples ...: run the command again" (there was no command).
+    script = tmp_path / "unguarded.py"
+    script.write_text(UNGUARDED_SCRIPT)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    result = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True,
+                            timeout=300, env=env)
+    assert result.returncode == 1
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("rough_uq.errors.ExecutorError: a worker process failed while starting: "), last
+    assert "`if __name__ == '__main__':`" in last and "run the command again" not in last
+    assert "freeze_support" not in result.stderr  # the workers ended before multiprocessing's RuntimeError
+
+
+def test_a_broken_pool_is_explained_by_when_it_broke():
+    unguarded = executors._broken_pool_message([executors.UNGUARDED_MAIN_STATUS, -15], is_starting=True)
+    assert "`if __name__ == '__main__':`" in unguarded
+    starting = executors._broken_pool_message([1, -15], is_starting=True)
+    assert starting.startswith("a worker process failed while starting, before it computed any sample (")
+    computing = executors._broken_pool_message([-9], is_starting=False)
+    assert computing.startswith("a worker process died while computing samples (killed, or out of memory)")
+    for message in (unguarded, starting, computing):
+        assert "run the command again" not in message  # a Python script has no command to run again

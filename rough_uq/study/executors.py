@@ -31,6 +31,14 @@ numba and roughuq for seconds before it can say so, and Ctrl-C reaches the
 whole process group: workers are therefore started with SIGINT blocked
 (:func:`_sigint_held_back`), and one that arrives while they import waits
 until they ignore it, instead of ending the import with a traceback.
+
+A spawned worker imports the main module of its parent again (as
+``__mp_main__``). A script that starts a pool outside ``if __name__ ==
+"__main__":`` would thus start one in every worker while it starts;
+multiprocessing refuses that with a RuntimeError. A worker that finds itself
+starting a pool while it is being spawned ends at once with the exit status
+:data:`UNGUARDED_MAIN_STATUS`, and the parent's :class:`ExecutorError` names
+the cause (:func:`_broken_pool_message`).
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -59,6 +68,7 @@ __all__ = [
     "PoolExecutor",
     "DaskExecutor",
     "MAX_WORKERS_PER_CORE",
+    "UNGUARDED_MAIN_STATUS",
     "available_cores",
     "default_workers",
     "max_workers",
@@ -74,6 +84,10 @@ WorkItem = tuple[int, int, np.ndarray]
 
 #: Most local worker processes per available core (:func:`max_workers`, module docstring).
 MAX_WORKERS_PER_CORE = 4
+
+#: Exit status of a worker that was asked to start a pool while it was being spawned (module docstring):
+#: its parent's script starts a :class:`PoolExecutor` outside ``if __name__ == "__main__":``.
+UNGUARDED_MAIN_STATUS = 86
 
 
 def available_cores() -> int:
@@ -278,6 +292,48 @@ def _sigint_held_back() -> Iterator[None]:
                 signal.raise_signal(signal.SIGINT)
 
 
+def _is_being_spawned() -> bool:
+    """Whether this process is a spawned worker still importing its parent's main module.
+
+    ``multiprocessing`` marks the process so while it prepares it, and refuses to
+    start a child then (its RuntimeError about the bootstrapping phase).
+    """
+    return bool(getattr(multiprocessing.current_process(), "_inheriting", False))
+
+
+def _exit_statuses(pool: ProcessPoolExecutor, timeout: float = 2.0) -> list[int]:
+    """Exit statuses of the workers of a broken pool (none where the pool does not list its workers).
+
+    The pool is broken as soon as a worker's end is seen, a moment before its
+    status can be read, and it terminates the other workers: each is given
+    until ``timeout`` seconds in all to end.
+    """
+    # ProcessPoolExecutor keeps its workers in the private _processes (as close() uses it too).
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    deadline = time.monotonic() + timeout
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
+    return [process.exitcode for process in processes if process.exitcode is not None]
+
+
+def _broken_pool_message(statuses: Sequence[int], *, is_starting: bool) -> str:
+    """What an :class:`ExecutorError` says about a pool whose worker died, given the workers' exit statuses."""
+    if UNGUARDED_MAIN_STATUS in statuses:
+        return (
+            "a worker process failed while starting: each worker imports the main script again, and this "
+            "script starts a PoolExecutor when imported; scripts that start a PoolExecutor need "
+            "`if __name__ == '__main__':` around the code that does"
+        )
+    if is_starting:
+        # Other statuses do not tell the cause: the pool terminates the other workers once one has died.
+        return ("a worker process failed while starting, before it computed any sample (killed, out of memory, "
+                "or an error in the worker, printed above)")
+    return (
+        "a worker process died while computing samples (killed, or out of memory); a study file keeps the "
+        "samples already stored: the same roughuq command run again computes the rest"
+    )
+
+
 class PoolExecutor(Executor):
     """A local pool of ``n_workers`` spawned processes (module docstring).
 
@@ -296,6 +352,10 @@ class PoolExecutor(Executor):
 
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:
+            if _is_being_spawned():
+                # Our parent's script started a pool at import (module docstring): starting one here
+                # would fail with multiprocessing's RuntimeError; end with a status the parent recognises.
+                raise SystemExit(UNGUARDED_MAIN_STATUS)
             _start_quiet_resource_tracker()
             self._pool = ProcessPoolExecutor(
                 max_workers=self.n_workers,
@@ -316,9 +376,18 @@ class PoolExecutor(Executor):
             finally:
                 os.environ.clear()
                 os.environ.update(saved)
+            self._wait_for_start(started)
+        return self._pool
+
+    def _wait_for_start(self, started: Sequence[Future]) -> None:
+        """Wait until every worker has run a first (trivial) task; an :class:`ExecutorError` if one died first."""
+        try:
             for future in started:
                 future.result()
-        return self._pool
+        except BrokenProcessPool as exc:
+            statuses = _exit_statuses(self._pool)
+            self._pool = None
+            raise ExecutorError(_broken_pool_message(statuses, is_starting=True)) from exc
 
     def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
         queue = list(items)
@@ -336,11 +405,9 @@ class PoolExecutor(Executor):
                     yield future.result()
             is_done = True
         except BrokenProcessPool as exc:
+            statuses = [] if self._pool is None else _exit_statuses(self._pool)
             self._pool = None
-            raise ExecutorError(
-                "a worker process died while computing samples (killed, or out of memory); samples "
-                "already stored are kept: run the command again to compute the rest"
-            ) from exc
+            raise ExecutorError(_broken_pool_message(statuses, is_starting=False)) from exc
         finally:
             if not is_done:
                 for future in pending:
