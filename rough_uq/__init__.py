@@ -3,6 +3,7 @@
 The public Python API, for notebooks and scripts (no config file, no study
 file, no pydantic)::
 
+    import numpy
     import rough_uq
     spectrum = rough_uq.SurfaceSpectrum(system_size=2, k_l=2, k_r=2, k_s=128, hurst=0.8, rms_height=1)
     problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.1), qoi=["contact_area"], coarsest=256)

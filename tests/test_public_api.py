@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import builtins
 import dataclasses
 import functools
 import math
@@ -10,6 +11,7 @@ import os
 import re
 import subprocess
 import sys
+import textwrap
 import warnings
 from pathlib import Path
 
@@ -562,6 +564,18 @@ def test_readme_from_python_example_runs(capsys):
     assert isinstance(result, rough_uq.EstimationResult)
     assert result.tol_met and result.rmse[0] <= 0.5
     assert str(result.stop_reason) in capsys.readouterr().out
+
+
+def test_the_package_docstring_example_imports_every_name_it_uses():
+    # The example called numpy.linspace without `import numpy`.
+    example = rough_uq.__doc__.split("::\n", 1)[1].split("\n\n", 1)[0]
+    tree = ast.parse(textwrap.dedent(example))
+    bound = {alias.asname or alias.name for node in ast.walk(tree) if isinstance(node, ast.Import)
+             for alias in node.names}
+    bound |= {node.id for node in ast.walk(tree) if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store)}
+    used = {node.id for node in ast.walk(tree) if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Load)}
+    assert {"numpy", "rough_uq"} <= used
+    assert used - bound - set(dir(builtins)) == set()
 
 
 def test_readme_pool_example_runs_as_a_script(tmp_path):
