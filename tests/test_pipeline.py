@@ -722,3 +722,19 @@ def test_the_run_record_predicts_seconds_from_the_screening_time_per_modelled_co
     predicted = record.predicted
     assert predicted.mlmc_seconds == pytest.approx(predicted.mlmc_cost * per_cost)
     assert predicted.mc_seconds == pytest.approx(predicted.mc_cost * per_cost)
+
+
+def test_the_screening_checks_name_the_qois(monkeypatch):
+    # The coupling warning of a five-QoI screening said "for QoI [4]": the screening passed no names.
+    import rough_uq.study.pipeline as pipeline
+
+    seen = []
+
+    def recording(statistics, **options):
+        seen.append(options.get("names"))
+        return ()
+
+    monkeypatch.setattr(pipeline, "diagnose", recording)
+    study = _study(qoi={"contact_area": {"unit": "percent", "tol": 2.0}, "mean_gap": {"tol": 0.1}})
+    run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    assert seen == [study.config.qoi_names] and len(study.config.qoi_names) == 2

@@ -661,7 +661,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
     progress.stop()
     seconds_per_cost = _seconds_per_cost(batches, study.model)
     predictions, problems = _predictions(config, statistics, rates, seconds_per_cost)
-    checks = [Diagnostic(text) for text in (*diagnose(statistics), *problems)]
+    checks = [Diagnostic(text) for text in (*diagnose(statistics, names=config.qoi_names), *problems)]
     coarsest = choose_coarsest_level(statistics)
     record = ScreeningRecord(
         created=utc_timestamp(),
