@@ -14,7 +14,7 @@ import pytest
 
 from rough_uq.errors import InvalidParameterError, RoughUQError
 from rough_uq.problem.batch import LevelBatch
-from rough_uq.report.summary import derive_runs
+from rough_uq.report.summary import ReportedRun, derive_runs
 from rough_uq.study.records import (
     MIN_ALPHA,
     RATE_TIE,
@@ -341,9 +341,14 @@ def test_work_ratio_and_measured_ratio():
     mlmc, mc = _run(MLMC), replace(_run(MC_DROPPED), status="finished")
     assert mlmc.outcome.work_ratio == mlmc.outcome.mc_cost / mlmc.outcome.cost
     (shown_mlmc, shown_mc) = derive_runs([mlmc, mc])
-    assert shown_mlmc.mc_seconds_measured == mc.outcome.seconds
-    assert shown_mlmc.measured_ratio == mc.outcome.seconds / mlmc.outcome.seconds
+    assert shown_mlmc.mc_seconds_measured == mc.outcome.seconds and shown_mlmc.mc_cost_measured == mc.outcome.cost
+    # In modelled cost, as the predicted ratio (CPU-seconds depend on the machine's load during each run).
+    assert shown_mlmc.measured_ratio == mc.outcome.cost / mlmc.outcome.cost
     assert shown_mc.measured_ratio is None and shown_mc.to_json()["work_ratio"] == mc.outcome.work_ratio
+    assert ReportedRun.from_json(shown_mlmc.to_json()) == shown_mlmc
+    # MC on a level of the user's choosing (no screening's plan) measures nothing for MLMC at that tolerance.
+    on_level = replace(mc, run_id=MC_LEVEL, screening_rates=None, level=0)
+    assert derive_runs([mlmc, on_level])[0].measured_ratio is None
     # A dropped MC run is neither shown nor measured against.
     assert [run.record.run_id for run in derive_runs([mlmc, _run(MC_DROPPED)])] == [MLMC]
     assert derive_runs([mlmc, _run(MC_DROPPED)])[0].measured_ratio is None

@@ -40,7 +40,9 @@ report says so instead of printing a meaningless number.
 The report reads the typed records of :mod:`rough_uq.study.records`; its
 JSON form (:func:`study_report`) is the records' ``to_json`` with the derived
 numbers added (the screening's ``complexity``, a run's ``work_ratio``,
-``mc_seconds_measured`` and ``measured_ratio``).
+``mc_seconds_measured``, ``mc_cost_measured`` and ``measured_ratio``). The
+MC/MLMC ratios, predicted and measured, and the predicted plain MC beside
+them are in modelled cost.
 
 Load curves
 -----------
@@ -186,36 +188,45 @@ class ReportedRun:
     ----------
     record : RunRecord
         Its status is as seen now (a ``running`` record is ``running`` or ``interrupted``).
-    mc_seconds_measured : float or None
-        CPU-seconds of a finished MC run at the same tolerances (MLMC runs only).
+    mc_seconds_measured, mc_cost_measured : float or None
+        CPU-seconds and modelled cost of a finished plain MC run at the same
+        tolerances on the level the screening picks (``roughuq mc --tol``;
+        MLMC runs only).
     """
 
     record: RunRecord
     mc_seconds_measured: float | None = None
+    mc_cost_measured: float | None = None
 
     @property
     def measured_ratio(self) -> float | None:
-        """Measured MC over MLMC CPU-seconds (None without a measured MC run)."""
-        if self.mc_seconds_measured is None or self.record.outcome is None:
+        """Measured MC over MLMC modelled cost (None without a measured MC run).
+
+        In modelled cost, as the predicted ratio: CPU-seconds depend on the
+        load of the machine while each run ran.
+        """
+        if self.mc_cost_measured is None or self.record.outcome is None:
             return None
-        seconds = self.record.outcome.seconds
-        return self.mc_seconds_measured / seconds if seconds > 0 else math.inf
+        cost = self.record.outcome.cost
+        return self.mc_cost_measured / cost if cost > 0 else math.inf
 
     def to_json(self) -> dict[str, Any]:
         """The run as ``roughuq report --json`` lists it: ``run_id``, the stored record, the derived ratios."""
         data = {"run_id": self.record.run_id, **self.record.to_json()}
         if self.record.is_finished:
             data["work_ratio"] = self.record.outcome.work_ratio
-        if self.mc_seconds_measured is not None:
+        if self.mc_cost_measured is not None:
             data["mc_seconds_measured"] = self.mc_seconds_measured
+            data["mc_cost_measured"] = self.mc_cost_measured
             data["measured_ratio"] = self.measured_ratio
         return data
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> ReportedRun:
         """Read an entry of the report's ``runs`` (the derived ratios are recomputed, not read)."""
-        measured = data.get("mc_seconds_measured")
-        return cls(RunRecord.from_json(data), None if measured is None else float(measured))
+        seconds, cost = data.get("mc_seconds_measured"), data.get("mc_cost_measured")
+        return cls(RunRecord.from_json(data), None if seconds is None else float(seconds),
+                   None if cost is None else float(cost))
 
 
 def derive_runs(runs: Sequence[RunRecord]) -> list[ReportedRun]:
@@ -223,16 +234,20 @@ def derive_runs(runs: Sequence[RunRecord]) -> list[ReportedRun]:
 
     ``work_ratio`` (:attr:`~rough_uq.study.records.RunOutcome.work_ratio`):
     predicted plain-MC modelled cost over the run's modelled cost. Where a
-    finished MC run at the same tolerances exists, ``mc_seconds_measured``
-    (its CPU-seconds) and ``measured_ratio`` (over the MLMC run's
-    CPU-seconds). Dropped runs (``roughuq drop``) are left out.
+    finished plain MC run at the same tolerances exists on the level the
+    screening picks (``roughuq mc --tol``; not ``mc --level``, another
+    level's bias), ``mc_seconds_measured`` and ``mc_cost_measured`` (its
+    CPU-seconds and modelled cost) and ``measured_ratio`` (over the MLMC
+    run's modelled cost). Dropped runs (``roughuq drop``) are left out.
     """
     kept = [run for run in runs if run.status != "dropped"]
-    measured_mc = {run.tol: run.outcome.seconds for run in kept if run.method == "mc" and run.is_finished}
-    return [
-        ReportedRun(run, measured_mc.get(run.tol) if run.method == "mlmc" and run.is_finished else None)
-        for run in kept
-    ]
+    measured_mc = {run.tol: run.outcome for run in kept
+                   if run.method == "mc" and run.is_finished and run.screening_rates is not None}
+    shown = []
+    for run in kept:
+        mc = measured_mc.get(run.tol) if run.method == "mlmc" and run.is_finished else None
+        shown.append(ReportedRun(run) if mc is None else ReportedRun(run, float(mc.seconds), float(mc.cost)))
+    return shown
 
 
 def _seen_status(run: ReportedRun, is_running: bool) -> ReportedRun:
@@ -392,8 +407,8 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
         f"modelled cost {_g(outcome.cost)} ref-s"
     )
     if run.method != "mc":
-        text = (f"  plain MC: {format_duration(outcome.mc_seconds_predicted)} CPU predicted; "
-                f"MC/MLMC {_g(outcome.work_ratio, 2)} predicted")
+        # Modelled cost, as the ratios: CPU-seconds converted at the screening's rate contradicted them.
+        text = f"  plain MC: {_g(outcome.mc_cost)} ref-s predicted; MC/MLMC {_g(outcome.work_ratio, 2)} predicted"
         if measured_ratio is not None:
             text += f", {_g(measured_ratio, 2)} measured"
         lines.append(text)

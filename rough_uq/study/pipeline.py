@@ -1179,37 +1179,17 @@ class _RunClock:
         return time.monotonic() - self.started
 
 
-def _pooled_mc_cost(study: Study, sampler: StudySampler, result: Any) -> float:
-    """Modelled cost of plain MC to the run's tolerance, from the best ``Var(Q_L)`` available.
+def _screened_mc_cost(study: Study, tol: np.ndarray) -> float:
+    """Modelled cost of plain MC to ``tol`` as the screening predicts it: ``roughuq mc --tol``'s forecast.
 
-    ``Var(Q_L)`` of the finest level pools (weights ``n - 1``) the sample
-    variance of the run's fine values with the screening's on that level (or,
-    beyond the screening, on its finest level: ``Var(Q_l)`` converges with the
-    level); the run alone often has two samples there. The cost of one fine
-    solve is the run's.
+    On the level the screening's bias model needs for ``tol``, with its
+    ``Var(Q)`` there. Not on the MLMC run's finest level: the levels a run
+    starts with and its own bias test (two samples on its finest levels) can
+    take it beyond, and plain MC priced there came out some 20 times dearer
+    than the MC run at the same tolerance.
     """
-    finest = int(result.levels[-1])
-    n_run = int(result.n_samples[-1])
-    values = [sampler.samples(finest, np.arange(n_run)).fine]
-    screening = read_screening_record(study.store)
-    if screening is not None:
-        below = [level for level in screening.statistics.levels if level <= finest]
-        if below:
-            n = screening.n_screened
-            values.append(study.store.read_samples(level=below[-1], stage=STAGE_SCREENING).fine[:n])
-    groups = [v for v in values if v.shape[0] >= 2]
-    if not groups:
-        return float(result.mc_cost)
-    # Each group about its own mean: the screened level's mean differs from the run's finest level's.
-    pooled = sum((v.shape[0] - 1) * np.var(v, axis=0, ddof=1) for v in groups) / sum(v.shape[0] - 1 for v in groups)
-    budget = (1.0 - result.theta) * np.asarray(result.tol, dtype=float) ** 2
-    run_var = np.asarray(result.statistics.var_fine[-1], dtype=float)
-    n_mc_run = float(np.max(np.ceil(run_var / budget)))
-    per_sample = result.mc_cost / n_mc_run if n_mc_run > 0 else 0.0
-    if per_sample <= 0:
-        return float(result.mc_cost)
-    n_mc = float(np.max(np.ceil(pooled / budget)))
-    return max(n_mc, 1.0) * per_sample
+    _, rates, prediction = _estimation_plan(study, np.asarray(tol, dtype=float), method="mc")
+    return _planned_samples("mc", None, prediction, rates)[2]
 
 
 def run_estimation(
@@ -1361,7 +1341,7 @@ def _outcome(
     screening = read_screening_record(study.store)
     if screening is not None and screening.seconds_per_cost:
         seconds_per_cost = float(screening.seconds_per_cost)  # robust to the pool's start-up
-    mc_cost = _pooled_mc_cost(study, sampler, result) if method == "mlmc" else result.mc_cost
+    mc_cost = _screened_mc_cost(study, result.tol) if method == "mlmc" else result.mc_cost
     return RunOutcome.from_result(
         result,
         mean_seconds=[float(np.mean(batch.cost)) for batch in used],
