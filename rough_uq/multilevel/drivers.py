@@ -1030,9 +1030,11 @@ def iter_mlmc(
         shortened) only if its predicted cost fits in what is left, otherwise
         the run stops with ``stop_reason = "max_cost"``. The prediction is the
         level's mean cost so far, or the nearest sampled level's scaled by
-        ``2^gamma`` per level; the first batch of level 0 is always drawn. The
-        total can exceed ``max_cost`` only by that batch or a misprediction of
-        a level's first batch. A run stopped before its bias is estimated
+        ``2^gamma`` per level; before any cost is known the run draws two
+        samples first (:data:`_PROBE`) and then what the rest of the budget
+        pays, stopping if that is not the whole first batch. The total can
+        exceed ``max_cost`` only by those two samples or a misprediction of a
+        level's first batch. A run stopped before its bias is estimated
         does not meet ``tol`` (module docstring, step 4). None (or
         ``math.inf``): no budget.
     batch_size : int or None
@@ -1519,7 +1521,9 @@ def iter_mc(
     n_initial : int
         Samples before the variance is trusted (>= 2), without a screening.
     max_cost : float, optional
-        Budget in the sampler's cost unit (as in :func:`iter_mlmc`).
+        Budget in the sampler's cost unit (as in :func:`iter_mlmc`); a run it
+        stops before its first ``n_initial`` samples (2 from a screening) does
+        not meet ``tol``.
     batch_size : int or None
         Largest batch per sampler call.
     screening : LevelStatistics, optional
