@@ -607,6 +607,24 @@ def test_ratio_instability_names_the_failed_check(means, errors, expected):
     assert (expected in reason) if expected else reason == ""
 
 
+def test_ratio_instability_names_the_qoi_that_failed():
+    # "... within two standard errors (0.46) of 0 (QoI 1): ..." named a column index.
+    means = np.array([[0.5, 0.5], [0.25, 0.25], [0.125, 0.02]])
+    errors = np.array([[0.01, 0.001], [0.01, 0.001], [0.01, 0.015]])
+    indexed = ratio_instability(means, errors, [1, 2, 3])
+    assert indexed == (
+        "the mean of Y_3 = 0.02 is within two standard errors (0.015) of 0 (QoI 1): its ratio to the next level "
+        "is noise"
+    )
+    named = ratio_instability(means, errors, [1, 2, 3], names=("contact_area", "clusters"))
+    assert named == indexed.replace("(QoI 1)", "(clusters)")
+    single = ratio_instability(means[:, 1:], errors[:, 1:], [1, 2, 3], names=["clusters"])
+    assert single == indexed.replace("(QoI 1)", "(clusters)")
+    assert "QoI" not in ratio_instability(means[:, 1:], errors[:, 1:], [1, 2, 3]) and single
+    with pytest.raises(InvalidParameterError, match="^names"):
+        ratio_instability(means, errors, [1, 2, 3], names=("clusters",))
+
+
 def test_richardson_weight_and_bias_on_exact_hierarchies():
     np.testing.assert_allclose(richardson_weight(np.array([1.0, 2.0])), [2.0, 4.0 / 3.0])
     levels = np.arange(1, 5)

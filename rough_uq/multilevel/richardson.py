@@ -61,6 +61,7 @@ import numpy as np
 
 from rough_uq.errors import EstimationError
 from rough_uq.multilevel.rates import RATIO_LOG2_TOLERANCE, remaining_bias
+from rough_uq.multilevel.statistics import _checked_names
 
 __all__ = [
     "RICHARDSON_MIN_LEVELS",
@@ -150,6 +151,7 @@ def ratio_instability(
     *,
     min_levels: int = RICHARDSON_MIN_LEVELS,
     window: int = 3,
+    names: Sequence[str] | None = None,
 ) -> str:
     """Why the ratios of successive level means are not stable enough to extrapolate ("" if they are).
 
@@ -164,6 +166,10 @@ def ratio_instability(
         Fewest levels needed (two ratios by default).
     window : int
         Number of finest ratios checked.
+    names : sequence of str, optional
+        Names of the QoI columns, length ``n_qoi``: the reason names the QoI
+        that failed (``(contact_area)``); without them it gives its column
+        index (``(QoI 0)``), and nothing for a single QoI.
 
     Returns
     -------
@@ -183,27 +189,28 @@ def ratio_instability(
             f"has {len(levels)} ({levels})"
         )
     rows = slice(max(0, len(levels) - window - 1), len(levels))
-    means, errors, names = mean_diff[rows], mean_se[rows], levels[rows]
+    means, errors, shown = mean_diff[rows], mean_se[rows], levels[rows]
+    names = _checked_names(names, means.shape[1])
     for q in range(means.shape[1]):
         m, se = means[:, q], errors[:, q]
-        tag = f" (QoI {q})" if means.shape[1] > 1 else ""
+        tag = f" ({names[q]})" if names is not None else (f" (QoI {q})" if means.shape[1] > 1 else "")
         weak = np.flatnonzero(np.abs(m) < 2.0 * se)
         if weak.size:
             row = int(weak[0])
             return (
-                f"the mean of Y_{names[row]} = {m[row]:.3g} is within two standard errors ({se[row]:.2g}) of 0"
+                f"the mean of Y_{shown[row]} = {m[row]:.3g} is within two standard errors ({se[row]:.2g}) of 0"
                 f"{tag}: its ratio to the next level is noise"
             )
         ratios = m[1:] / m[:-1]
         for k, ratio in enumerate(ratios):
             if ratio <= 0:
                 return (
-                    f"the level means change sign between levels {names[k]} and {names[k + 1]} "
+                    f"the level means change sign between levels {shown[k]} and {shown[k + 1]} "
                     f"({m[k]:.3g}, {m[k + 1]:.3g}){tag}: the bias is not in its asymptotic regime"
                 )
             if ratio >= 1:
                 return (
-                    f"the level means do not decay between levels {names[k]} and {names[k + 1]} "
+                    f"the level means do not decay between levels {shown[k]} and {shown[k + 1]} "
                     f"({m[k]:.3g}, {m[k + 1]:.3g}){tag}"
                 )
         rel = se / np.abs(m)
@@ -214,7 +221,7 @@ def ratio_instability(
             if spread > RATIO_LOG2_TOLERANCE + 2.0 * noise:
                 return (
                     f"the ratios of successive level means are not stable: E[Y_l] / E[Y_l-1] = "
-                    f"{ratios[k - 1]:.3g} at level {names[k]} and {ratios[k]:.3g} at level {names[k + 1]}{tag}"
+                    f"{ratios[k - 1]:.3g} at level {shown[k]} and {ratios[k]:.3g} at level {shown[k + 1]}{tag}"
                 )
     return ""
 

@@ -429,15 +429,19 @@ COUPLING_CHECK_SAMPLES = 10
 """Fewest samples on a level for the coupling check of :func:`diagnose`."""
 
 
-def _checked_names(names: object, n_qoi: int) -> list[str] | None:
-    """``names`` as a list of ``n_qoi`` strings (None stays None), else an error naming the argument."""
+def _checked_names(names: object, n_qoi: int | None, *, argument: str = "names") -> list[str] | None:
+    """``names`` as a list of ``n_qoi`` strings (None stays None), else an error naming ``argument``.
+
+    ``n_qoi`` None (the number of QoIs is not known yet) accepts any number of names.
+    """
     if names is None:
         return None
-    allowed = f"a sequence of {n_qoi} QoI names (strings), one per column"
+    count = "" if n_qoi is None else f"{n_qoi} "
+    allowed = f"a sequence of {count}QoI names (strings), one per column"
     if isinstance(names, (str, bytes)) or not isinstance(names, Sequence):
-        raise InvalidParameterError("names", names, allowed)
-    if len(names) != n_qoi or not all(isinstance(name, str) for name in names):
-        raise InvalidParameterError("names", names, allowed)
+        raise InvalidParameterError(argument, names, allowed)
+    if n_qoi not in (None, len(names)) or not all(isinstance(name, str) for name in names):
+        raise InvalidParameterError(argument, names, allowed)
     return list(names)
 
 
