@@ -182,6 +182,22 @@ def test_fit_rates_refuses_too_few_usable_levels():
         fit_rates(flat)
 
 
+def test_fit_rates_names_the_qoi_it_cannot_fit():
+    # "cannot fit alpha for QoI 1" named a column index; with the names the error names the QoI.
+    rng = np.random.default_rng(1)
+    q = rng.normal(size=(100, 2))
+    # Column 0 never changes with the level (E[Y_l] = 0: unusable for alpha); column 1 does.
+    fine = [q, q + [[0.0, 0.5]], q + [[0.0, 0.75]]]
+    coarse = [0 * q, q, q + [[0.0, 0.5]]]
+    table = level_statistics(fine=fine, coarse=coarse, cost=[np.ones(100)] * 3)
+    with pytest.raises(EstimationError, match=r"^cannot fit alpha for QoI 0: needs"):
+        fit_rates(table)
+    with pytest.raises(EstimationError, match=r"^cannot fit alpha for contact_area: needs"):
+        fit_rates(table, names=("contact_area", "clusters"))
+    with pytest.raises(InvalidParameterError, match="^names"):
+        fit_rates(table, names=("contact_area",))
+
+
 # Pre-asymptotic hierarchy: E[Y_l] = 16 * 8^-l + 2^-l. The fast term dominates levels 1-2,
 # the slow one (the asymptotic rate alpha = 1) from level 3 on; V_l tiny, so means are exact
 # to about 1e-3 relative.

@@ -88,12 +88,13 @@ and ignore the coarse value, so the prediction is what a run pays.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer
-from rough_uq.multilevel.statistics import LevelStatistics, _readonly
+from rough_uq.multilevel.statistics import LevelStatistics, _checked_names, _readonly
 
 __all__ = [
     "DROP_MARGIN",
@@ -318,7 +319,7 @@ def _fit_gamma(statistics: LevelStatistics, min_level: int) -> tuple[_Line | Non
     return line, f"levels with zero cost (unusable): {zero}" if zero else ""
 
 
-def fit_rates(statistics: LevelStatistics, *, min_level: int = 1) -> Rates:
+def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequence[str] | None = None) -> Rates:
     """Fit ``alpha``, ``beta``, ``gamma`` and their constants by least squares.
 
     Ordinary least squares of ``log2 |E[Y_l]|``, ``log2 V_l`` and
@@ -336,6 +337,10 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1) -> Rates:
         because ``Y_0 = Q_0`` follows none of the models, and because a
         level-0 sample has no coarse solve, so its cost is off the ``gamma``
         model too.
+    names : sequence of str, optional
+        Names of the QoI columns, length ``n_qoi``: an error names the QoI
+        (``for contact_area``); without them it gives its column index
+        (``for QoI 0``).
 
     Returns
     -------
@@ -358,13 +363,15 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1) -> Rates:
     N_l)``, ``Var(s^2)/sigma^4 = (kurtosis - (N-3)/(N-1))/N`` for ``V_l``
     and ``se(C_l) = sd(cost)/sqrt(N_l)``.
     """
+    names = _checked_names(names, statistics.n_qoi)
     alpha, beta = [], []
     for q in range(statistics.n_qoi):
+        qoi = names[q] if names is not None else f"QoI {q}"
         for name, fit, out in (("alpha", _fit_alpha, alpha), ("beta", _fit_beta, beta)):
             line, note = fit(statistics, q, min_level)
             if line is None:
                 raise EstimationError(
-                    f"cannot fit {name} for QoI {q}: needs at least two usable levels >= {min_level} "
+                    f"cannot fit {name} for {qoi}: needs at least two usable levels >= {min_level} "
                     f"with two or more samples each; screened levels {statistics.levels.tolist()}"
                     + (f"; {note}" if note else "")
                 )
