@@ -5,7 +5,9 @@ Statistical assertions use fixed seeds; each states where its slack comes from.
 
 from __future__ import annotations
 
+import functools
 import math
+import re
 import warnings
 
 import numpy as np
@@ -704,6 +706,84 @@ def test_a_screening_with_unstable_ratios_refuses_richardson_at_the_start():
     assert events[1].reason.startswith("screening: the level means change sign between levels 1 and 2")
     assert sum(isinstance(e, RichardsonRefused) for e in events) == 1
     assert events[-1].result.richardson == "refused"
+
+
+# --------------------------------------------------------------------------
+# QoI names in the messages of a run
+# --------------------------------------------------------------------------
+
+NAMES = ("contact_area", "clusters")
+
+
+def _messages(caught):
+    return [str(w.message) for w in caught]
+
+
+def test_the_warnings_of_a_run_name_its_qois():
+    # A run warned "mlmc: level 1: Var(Q_l - Q_l-1) >= Var(Q_l) for QoI [0, 1] (ratio 2.1); ...".
+    problem = Synthetic(seed=8, loose_levels=(1,), scales=(1.0, 2.0))
+    _, indexed = run_quietly(mlmc, problem, tol=0.2, max_level=3)
+    result, named = run_quietly(mlmc, problem, tol=0.2, max_level=3, qoi_names=NAMES)
+    ratio = f"{result.statistics.coupling_ratio[1, 0]:.3g}"
+    coupling = [m for m in _messages(named) if "weakly coupled" in m]
+    assert coupling and coupling[0].startswith(
+        f"mlmc: level 1: Var(Q_l - Q_l-1) >= Var(Q_l) for contact_area (ratio {ratio}), clusters (ratio {ratio}): "
+    )
+    assert not any("QoI [" in m for m in _messages(named))
+    # Without names the messages are those of before, column indices and all.
+    assert f"mlmc: level 1: Var(Q_l - Q_l-1) >= Var(Q_l) for QoI [0, 1] (ratio {ratio}): " in [
+        m[: m.index(": the levels") + 2] for m in _messages(indexed) if "weakly coupled" in m
+    ]
+
+
+def test_a_richardson_refusal_names_the_qoi():
+    # The refusal said "... change sign between levels 1 and 2 (-0.25, 0.0625) (QoI 0): ...".
+    problem = Synthetic(seed=3, a=1.0, b=-3.0, alpha=1.0, alpha2=2.0, v1=1e-4, scales=(1.0, 2.0))
+    indexed, _ = run_quietly(mlmc, problem, tol=0.02, richardson=True)
+    named, caught = run_quietly(mlmc, problem, tol=0.02, richardson=True, qoi_names=NAMES)
+    assert "change sign" in indexed.richardson_reason and "(QoI 0): " in indexed.richardson_reason
+    assert named.richardson_reason == indexed.richardson_reason.replace("(QoI 0)", "(contact_area)")
+    assert f"mlmc: Richardson extrapolation refused, the estimate is plain MLMC: {named.richardson_reason}" in (
+        _messages(caught)
+    )
+
+
+def test_a_screening_refusal_of_richardson_names_the_qoi():
+    problem = Synthetic(seed=4, a=1.0, b=-3.0, alpha=1.0, alpha2=2.0, v1=1e-4, scales=(1.0, 2.0))
+    screened = Synthetic(seed=40, a=1.0, b=-3.0, alpha=1.0, alpha2=2.0, v1=1e-4, scales=(1.0, 2.0))
+    screening = level_statistics(**sample_levels(screened, range(4), 20))
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always", EstimationWarning)
+        events = list(iter_mlmc(problem, tol=0.02, screening=screening, richardson=True, qoi_names=NAMES))
+    refusal = next(e for e in events if isinstance(e, RichardsonRefused))
+    assert refusal.reason.startswith("screening: the level means change sign between levels 1 and 2 ")
+    assert "(contact_area): the bias is not in its asymptotic regime" in refusal.reason
+
+
+def test_the_kurtosis_warning_of_mc_names_its_qois():
+    # "mc: kurtosis 3.1 of Q on level 1 exceeds 2" did not say of which QoI.
+    problem = Synthetic(seed=9, scales=(1.0, 2.0))
+    _, indexed = run_quietly(mc, problem, tol=0.5, level=1, kurtosis_limit=2.0)
+    _, named = run_quietly(mc, problem, tol=0.5, level=1, kurtosis_limit=2.0, qoi_names=NAMES)
+    (plain,) = [m for m in _messages(indexed) if "kurtosis" in m]
+    assert re.fullmatch(r"mc: kurtosis [\d.]+ of Q on level 1 exceeds 2; the variance and error estimates are "
+                        r"unreliable", plain)
+    assert _messages(named) == [plain.replace("on level 1 exceeds", "on level 1 for contact_area, clusters exceeds")]
+
+
+@pytest.mark.parametrize("qoi_names", [("contact_area",), "ab", ("contact_area", 2), 3])
+def test_qoi_names_that_do_not_fit_the_qois_are_refused(qoi_names):
+    problem = Synthetic(seed=1, scales=(1.0, 2.0))
+    message = "^qoi_names: got .*; allowed: a sequence of (2 )?QoI names"
+    for run in (functools.partial(mlmc, tol=0.1), functools.partial(mc, tol=0.1, level=1)):
+        with pytest.raises(InvalidParameterError, match=message):
+            run(problem, qoi_names=qoi_names)
+    # Known from a screening, the number of QoIs refuses them before any sample.
+    screening = level_statistics(**sample_levels(problem, range(3), 10))
+    with pytest.raises(InvalidParameterError, match="^qoi_names: got .*; allowed: a sequence of 2 QoI names"):
+        iter_mlmc(problem, tol=0.1, screening=screening, qoi_names=qoi_names)
+    with pytest.raises(InvalidParameterError, match="^qoi_names: got .*; allowed: a sequence of 2 QoI names"):
+        iter_mc(problem, tol=0.1, level=1, screening=screening, qoi_names=qoi_names)
 
 
 def test_a_plan_beyond_max_samples_is_refused_with_its_numbers():

@@ -177,8 +177,10 @@ from rough_uq.multilevel.statistics import (
     EstimationWarning,
     LevelStatistics,
     _assemble,
+    _checked_names,
     _level_moments,
     _Moments,
+    _qoi_text,
     _readonly,
     diagnose,
     level_statistics,
@@ -823,7 +825,8 @@ def _batch_size(hierarchy: _Hierarchy, level: int, wanted: int, max_cost: float 
 class _Options:
     """The checked arguments every run takes (:func:`iter_mlmc`, :func:`iter_mc`).
 
-    ``tol`` has shape (n_qoi,), or (1,) while the number of QoIs is unknown.
+    ``tol`` has shape (n_qoi,), or (1,) while the number of QoIs is unknown;
+    ``qoi_names`` is checked against the number of QoIs once it is known.
     """
 
     tol: np.ndarray
@@ -831,6 +834,7 @@ class _Options:
     n_initial: int
     screening: LevelStatistics | None
     kurtosis_limit: float
+    qoi_names: tuple[str, ...] | None
 
 
 class _Run:
@@ -863,6 +867,7 @@ class _Run:
         if self.n_qoi is None:
             self.n_qoi, self.is_scalar = batch.fine.shape[1], batch.is_scalar
             self.tol = _check_tol(self.tol, self.n_qoi)
+            _check_qoi_names(self.options.qoi_names, self.n_qoi)
             self.on_qoi_count(self.n_qoi)
         elif batch.fine.shape[1] != self.n_qoi:
             raise EstimationError(f"sampler returned {batch.fine.shape[1]} QoIs on level {level}, earlier {self.n_qoi}")
@@ -972,6 +977,12 @@ def _drive(
     yield from run.finish()
 
 
+def _check_qoi_names(qoi_names: object, n_qoi: int | None) -> tuple[str, ...] | None:
+    """``qoi_names`` as a tuple of ``n_qoi`` strings (any number while ``n_qoi`` is None), or None."""
+    names = _checked_names(qoi_names, n_qoi, argument="qoi_names")
+    return None if names is None else tuple(names)
+
+
 def _warn_zero_cost(statistics: LevelStatistics) -> None:
     if np.any(statistics.mean_cost <= 0):
         warnings.warn(
@@ -1002,6 +1013,7 @@ def iter_mlmc(
     kurtosis_limit: float = KURTOSIS_LIMIT,
     richardson: bool = False,
     coarsest_level: int | None = 0,
+    qoi_names: Sequence[str] | None = None,
 ) -> Iterator[Event]:
     """Adaptive MLMC to a tolerance, as a generator of events.
 
@@ -1061,6 +1073,10 @@ def iter_mlmc(
         (:func:`~rough_uq.multilevel.rates.choose_coarsest_level`; 0 without a
         screening; 0 if ``max_level`` leaves fewer than two levels above the
         chosen one); ``EstimationResult.dropped_levels`` says why.
+    qoi_names : sequence of str, optional
+        Names of the QoI columns, one per QoI: warnings and the Richardson
+        refusal name the QoIs (``for contact_area``); without them they give
+        column indices (``for QoI [0]``).
 
     Yields
     ------
@@ -1090,6 +1106,7 @@ def iter_mlmc(
             raise EstimationError(f"rates have {rates.n_qoi} QoIs, the screening {screening.n_qoi}")
     options = _MlmcOptions(
         tol=tol,
+        qoi_names=_check_qoi_names(qoi_names, n_qoi),
         theta=theta,
         n_initial=n_initial,
         min_finest_level=min_finest_level,
@@ -1164,7 +1181,7 @@ def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
     targets = starting_samples(initial, min_finest_level=options.min_finest_level)
     extrapolation, refusal = "off", ""
     if richardson:
-        refusal = _screening_instability(screening, base)
+        refusal = _screening_instability(screening, base, options.qoi_names)
         extrapolation = "refused" if refusal else ("active" if initial.is_richardson else "pending")
     return _MlmcStart(
         base=base, dropped=initial.dropped_levels, targets=targets, floor=MIN_LEVEL_SAMPLES,
@@ -1309,7 +1326,7 @@ class _MlmcRun(_Run):
     def _check_richardson(self) -> Iterator[Event]:
         """Activate or refuse the extrapolation on the run's means; returns whether the plan changed."""
         hierarchy = self.hierarchy
-        reason = _run_instability(hierarchy)
+        reason = _run_instability(hierarchy, self.options.qoi_names)
         enough = hierarchy.n_levels - 1 - hierarchy.base >= RICHARDSON_MIN_LEVELS
         before = self.extrapolation
         if reason and enough:
@@ -1330,7 +1347,7 @@ class _MlmcRun(_Run):
     def finish(self) -> Iterator[Event]:
         hierarchy = self.hierarchy
         if self.extrapolation == "pending":
-            self.refusal = _run_instability(hierarchy) or "the ratios were never checked"
+            self.refusal = _run_instability(hierarchy, self.options.qoi_names) or "the ratios were never checked"
         elif self.extrapolation == "active" and not self.is_bias_estimated():
             self.refusal = (f"max_cost stopped the run before levels {hierarchy.base}..{self.bias_levels} had "
                             "samples")
@@ -1339,7 +1356,7 @@ class _MlmcRun(_Run):
             yield RichardsonRefused(levels=hierarchy.levels(), reason=self.refusal)
         statistics = hierarchy.statistics()
         result = _mlmc_result(self, statistics)
-        for message in diagnose(statistics, kurtosis_limit=self.options.kurtosis_limit):
+        for message in diagnose(statistics, kurtosis_limit=self.options.kurtosis_limit, names=self.options.qoi_names):
             warnings.warn(f"mlmc: {message}", EstimationWarning, stacklevel=3)
         if self.extrapolation == "refused":
             warnings.warn(
@@ -1398,40 +1415,49 @@ def _predicted_mc_cost(statistics: LevelStatistics, gamma: float, tol: np.ndarra
     return float(mc_n * costs[finest] * fine_cost_share(gamma, finest))
 
 
-def _screening_instability(screening: LevelStatistics, base: int) -> str:
-    """Why the screening's means of levels above ``base`` forbid extrapolation ("" if they do not, or cannot tell)."""
+def _screening_instability(screening: LevelStatistics, base: int, names: Sequence[str] | None) -> str:
+    """Why the screening's means of levels above ``base`` forbid extrapolation ("" if they do not, or cannot tell).
+
+    ``names``: of the QoIs, for the reason (:func:`~rough_uq.multilevel.richardson.ratio_instability`).
+    """
     rows = [r for r in range(screening.n_levels) if screening.levels[r] > base and screening.n_samples[r] >= 2]
     if len(rows) < 2:
         return ""
     errors = np.sqrt(screening.var_diff[rows] / screening.n_samples[rows][:, None])
     reason = ratio_instability(
-        screening.mean_diff[rows], errors, [int(screening.levels[r]) for r in rows], min_levels=2
+        screening.mean_diff[rows], errors, [int(screening.levels[r]) for r in rows], min_levels=2, names=names
     )
     return f"screening: {reason}" if reason else ""
 
 
-def _run_instability(hierarchy: _Hierarchy) -> str:
-    """Why the pooled means of the run's levels above its base are not stable ("" if they are)."""
+def _run_instability(hierarchy: _Hierarchy, names: Sequence[str] | None) -> str:
+    """Why the pooled means of the run's levels above its base are not stable ("" if they are).
+
+    ``names``: of the QoIs, for the reason (:func:`~rough_uq.multilevel.richardson.ratio_instability`).
+    """
     levels = [s.level for s in hierarchy.samples[hierarchy.base + 1 :] if s.n >= 2]
     if not levels:
         return ratio_instability(np.zeros((0, 1)), np.zeros((0, 1)), [])
     means, errors = hierarchy.bias_means(hierarchy.samples[levels[0]].moments().mean_diff.size)
-    return ratio_instability(means[levels], errors[levels], levels)
+    return ratio_instability(means[levels], errors[levels], levels, names=names)
 
 
-def mlmc(sampler: Sampler, *, tol: float | np.ndarray, **options: object) -> EstimationResult:
+def mlmc(
+    sampler: Sampler, *, tol: float | np.ndarray, qoi_names: Sequence[str] | None = None, **options: object
+) -> EstimationResult:
     """Adaptive MLMC estimate of ``E[Q]`` to RMS tolerance ``tol``.
 
-    Runs :func:`iter_mlmc` to the end; ``options`` are its keyword arguments
+    Runs :func:`iter_mlmc` to the end; ``qoi_names`` (names of the QoI
+    columns, for the warnings) and ``options`` are its keyword arguments
     (``theta``, ``n_initial``, ``min_finest_level``, ``max_level``,
     ``max_cost``, ``batch_size``, ``screening``, ``rates``,
-    ``kurtosis_limit``, ``richardson``).
+    ``kurtosis_limit``, ``richardson``, ``coarsest_level``).
 
     Returns
     -------
     EstimationResult
     """
-    return _final(iter_mlmc(sampler, tol=tol, **options))
+    return _final(iter_mlmc(sampler, tol=tol, qoi_names=qoi_names, **options))
 
 
 def refuse_large_plan(n_planned, *, max_samples: int | None, tol: np.ndarray, advice: str) -> None:
@@ -1489,6 +1515,7 @@ def iter_mc(
     batch_size: int | None = 1000,
     screening: LevelStatistics | None = None,
     kurtosis_limit: float = KURTOSIS_LIMIT,
+    qoi_names: Sequence[str] | None = None,
 ) -> Iterator[Event]:
     """Plain MC on one level to a tolerance, as a generator of events.
 
@@ -1530,6 +1557,9 @@ def iter_mc(
         Screening table (independent samples) of the same hierarchy.
     kurtosis_limit : float
         Kurtosis of ``Q`` above which a warning is issued.
+    qoi_names : sequence of str, optional
+        Names of the QoI columns, one per QoI: the kurtosis warning names the
+        QoIs it concerns (``for clusters``); without them it names none.
 
     Yields
     ------
@@ -1540,9 +1570,11 @@ def iter_mc(
     n_initial = checked_integer("n_initial", n_initial, 2)
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = _check_optional_positive("max_cost", max_cost)
-    tol = _check_tol(tol, screening.n_qoi if screening is not None else None)
+    n_qoi = screening.n_qoi if screening is not None else None
+    tol = _check_tol(tol, n_qoi)
     options = _McOptions(
         tol=tol,
+        qoi_names=_check_qoi_names(qoi_names, n_qoi),
         level=level,
         theta=theta,
         bias=None if bias is None else _checked_bias(bias),
@@ -1649,10 +1681,12 @@ class _McRun(_Run):
     def finish(self) -> Iterator[Event]:
         moments = self.samples.moments()
         result = _mc_result(self)
-        limit = self.options.kurtosis_limit
-        if np.any(moments.kurtosis > limit):
+        limit, names = self.options.kurtosis_limit, self.options.qoi_names
+        heavy = np.flatnonzero(moments.kurtosis > limit)
+        if heavy.size:
+            which = "" if names is None else f" for {_qoi_text(heavy, names)}"
             warnings.warn(
-                f"mc: kurtosis {float(np.max(moments.kurtosis)):.3g} of Q on level {self.level} exceeds "
+                f"mc: kurtosis {float(np.max(moments.kurtosis)):.3g} of Q on level {self.level}{which} exceeds "
                 f"{limit:g}; the variance and error estimates are unreliable",
                 EstimationWarning,
                 stacklevel=3,
@@ -1697,15 +1731,19 @@ def _check_bias(bias: np.ndarray, n_qoi: int) -> np.ndarray:
     return bias
 
 
-def mc(sampler: Sampler, *, tol: float | np.ndarray, level: int, **options: object) -> EstimationResult:
+def mc(
+    sampler: Sampler, *, tol: float | np.ndarray, level: int, qoi_names: Sequence[str] | None = None,
+    **options: object,
+) -> EstimationResult:
     """Plain Monte Carlo estimate of ``E[Q_level]`` to RMS tolerance ``tol``.
 
-    Runs :func:`iter_mc` to the end; ``options`` are its keyword arguments
+    Runs :func:`iter_mc` to the end; ``qoi_names`` (names of the QoI
+    columns, for the warnings) and ``options`` are its keyword arguments
     (``theta``, ``bias``, ``n_initial``, ``max_cost``, ``batch_size``,
-    ``kurtosis_limit``).
+    ``screening``, ``kurtosis_limit``).
 
     Returns
     -------
     EstimationResult
     """
-    return _final(iter_mc(sampler, tol=tol, level=level, **options))
+    return _final(iter_mc(sampler, tol=tol, level=level, qoi_names=qoi_names, **options))
