@@ -440,6 +440,26 @@ def test_screen_names_the_qois_in_its_diagnostics(monkeypatch):
     assert seen == [{"names": ("contact_area", "mean_gap")}] and problem.columns == ("contact_area", "mean_gap")
 
 
+def test_the_warnings_of_runs_name_the_problems_columns():
+    # The runs warned "for QoI [0] (ratio 1.82)" although the problem knows its columns.
+    problem = _problem(qoi=["contact_area", "mean_gap"], coarsest=8)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", rough_uq.EstimationWarning)
+        rough_uq.mlmc(problem, tol=[2.0, 0.1])
+        rough_uq.mc(problem, tol=[2.0, 0.1], level=1, kurtosis_limit=2.0)
+    messages = [str(w.message) for w in caught]
+    assert any(m.startswith("mlmc: level 1: Var(Q_l - Q_l-1) >= Var(Q_l) for contact_area (ratio ") for m in messages)
+    assert any(m.startswith("mc: kurtosis ") and " on level 1 for mean_gap exceeds 2; " in m for m in messages)
+    assert not any("QoI [" in m for m in messages), messages
+
+
+def test_a_screening_whose_rates_cannot_be_fitted_names_the_column():
+    # "cannot fit alpha for QoI 1": far past full contact the area is 100 % on every level, the gap is not.
+    problem = _problem(qoi=["mean_gap", "contact_area"], coarsest=8, load=rough_uq.RelativeLoad(1e6))
+    with pytest.raises(rough_uq.EstimationError, match="^cannot fit alpha for contact_area: needs at least two"):
+        rough_uq.screen(problem, levels=3, samples=3)
+
+
 def test_same_seed_same_estimate_other_seed_other_estimate():
     first = rough_uq.mlmc(_problem(), tol=2.0)
     again = rough_uq.mlmc(_problem(), tol=2.0)

@@ -178,7 +178,7 @@ def screen(
     )
     return ScreeningResult(
         statistics=statistics,
-        rates=fit_rates(statistics),
+        rates=fit_rates(statistics, names=problem.columns),
         n_not_converged=sampler.n_not_converged,
         diagnostics=tuple(diagnose(statistics, names=problem.columns)),
     )
@@ -315,6 +315,7 @@ def mlmc(
         kurtosis_limit=kurtosis_limit,
         richardson=richardson,
         coarsest_level=None if statistics is not None else 0,
+        qoi_names=problem.columns,
     )
     result = _run_to_end(events, max_samples=max_samples, tol=tol, n_initial=n_initial if statistics is None else None)
     _warn_not_converged(sampler, "mlmc")
@@ -333,7 +334,10 @@ def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, scr
         raise InvalidParameterError("level", None, "a level to sample, or a screening to choose it from")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
-        rates = screening.rates if isinstance(screening, ScreeningResult) else fit_rates(statistics)
+        if isinstance(screening, ScreeningResult):
+            rates = screening.rates
+        else:
+            rates = fit_rates(statistics, names=problem.columns)
     try:
         prediction = plan(
             tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=problem.max_level, coarsest_level=None
@@ -412,6 +416,7 @@ def mc(
         batch_size=batch_size,
         screening=statistics,
         kurtosis_limit=kurtosis_limit,
+        qoi_names=problem.columns,
     )
     result = _run_to_end(events, max_samples=max_samples, tol=tol, n_initial=n_initial if statistics is None else None)
     _warn_not_converged(sampler, "mc")
