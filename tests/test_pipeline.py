@@ -724,6 +724,16 @@ def test_the_run_record_predicts_seconds_from_the_screening_time_per_modelled_co
     assert predicted.mc_seconds == pytest.approx(predicted.mc_cost * per_cost)
 
 
+def test_the_stored_warnings_of_a_run_name_the_qois():
+    # A two-QoI run stored "mlmc: level 1: Var(Q_l - Q_l-1) >= Var(Q_l) for QoI [0] (ratio 2.91); ...".
+    study = _screened(qoi={"contact_area": {"unit": "percent", "tol": 2.0}, "mean_gap": {"tol": 0.1}})
+    run_estimation(study, method="mlmc", tol=np.array([2.0, 0.1]), executor=SerialExecutor(), progress=QUIET)
+    (run,) = read_run_records(study.store)
+    warnings = [d.to_json() for d in run.outcome.diagnostics]
+    assert any(w.startswith("mlmc: level 1: Var(Q_l - Q_l-1) >= Var(Q_l) for contact_area (ratio ") for w in warnings)
+    assert not any("QoI [" in w for w in warnings), warnings
+
+
 def test_the_screening_checks_name_the_qois(monkeypatch):
     # The coupling warning of a five-QoI screening said "for QoI [4]": the screening passed no names.
     import rough_uq.study.pipeline as pipeline

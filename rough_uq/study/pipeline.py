@@ -683,7 +683,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
 
 def _screening_rates(statistics: LevelStatistics, qoi_names: Sequence[str]) -> Rates:
     try:
-        return fit_rates(statistics)
+        return fit_rates(statistics, names=qoi_names)
     except EstimationError as exc:
         constant = [name for q, name in enumerate(qoi_names) if _is_constant(statistics, q)]
         advice = (
@@ -792,7 +792,7 @@ def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[Lev
     statistics, _ = screening_statistics(study)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)
-        rates = fit_rates(statistics)
+        rates = fit_rates(statistics, names=study.config.qoi_names)
     return statistics, rates, _run_plan(study.config, tol, rates, statistics, method=method)
 
 
@@ -849,7 +849,7 @@ def forecast_run(
         statistics, _ = screening_statistics(study)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", EstimationWarning)
-            rates = fit_rates(statistics)
+            rates = fit_rates(statistics, names=config.qoi_names)
         stalled = _stalled(config.qoi_names, rates)
         if stalled and is_given_level:
             return None  # MC on a given level needs no bias model, and there is none to predict from
@@ -1133,6 +1133,7 @@ def _events(
         n_initial=estimation.initial_samples,
         max_cost=max_cost,
         batch_size=estimation.batch_size,
+        qoi_names=config.qoi_names,
     )
     if method == "mc" and level is not None:
         # An explicit level needs no screening (and so no forecast); the bias of that level is then unknown.
