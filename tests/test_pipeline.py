@@ -734,6 +734,24 @@ def test_the_stored_warnings_of_a_run_name_the_qois():
     assert not any("QoI [" in w for w in warnings), warnings
 
 
+def test_a_variance_run_names_the_columns_of_its_warnings(monkeypatch):
+    # A negative variance estimate of a study's --tol-var run was stored as "variance of QoI [0]: ...".
+    import rough_uq.study.pipeline as pipeline
+
+    seen = []
+    real = pipeline.estimate_target
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("qoi_names"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "estimate_target", spy)
+    study = _study()
+    run_target(study, target="variance", tol=np.array([60.0]), executor=SerialExecutor(), progress=QUIET,
+               max_cost=1.01 * _initial_cost_floor(study))
+    assert seen == [study.config.qoi_names] == [("contact_area",)]
+
+
 def test_the_screening_checks_name_the_qois(monkeypatch):
     # The coupling warning of a five-QoI screening said "for QoI [4]": the screening passed no names.
     import rough_uq.study.pipeline as pipeline

@@ -13,6 +13,9 @@ import pytest
 import rough_uq
 from rough_uq.multilevel.distribution import cdf_from_samples
 from rough_uq.multilevel.moments import h2, h2_difference_variance
+from rough_uq.problem.distribution import estimate_target
+from rough_uq.problem.runs import run_id
+from rough_uq.problem.sampler import run_stage
 
 #: A random stage no run uses (runs have hashed stages), for the plain MC checks.
 CHECK_STAGE = 4242
@@ -124,6 +127,14 @@ def test_a_negative_variance_estimate_is_returned_with_a_warning():
     spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
     problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.2), qoi=["contact_area"], coarsest=8,
                                       max_level=2, solver_tol=1e-8, seed=7)
-    with pytest.warns(rough_uq.EstimationWarning, match=r"variance of QoI \[0\]: the estimate -.* is negative"):
+    with pytest.warns(rough_uq.EstimationWarning, match=r"^variance of contact_area: the estimate -.* is negative"):
         result = rough_uq.variance(problem, tol=100.0, n_initial=4)
     assert result.estimate[0] < 0 and result.rmse[0] > -result.estimate[0]  # returned as estimated, within its error
+    # On a bare sampler, without the column names, the warning gives the column index as before.
+    stage = run_stage("mlmc", run_id("variance", problem.columns, np.array([100.0]), 0.5))
+    with pytest.warns(rough_uq.EstimationWarning, match=r"^variance of QoI \[0\]: the estimate -.* is negative"):
+        bare = estimate_target(problem.sampler(stage), target="variance", tol=np.array([100.0]), max_level=2,
+                               n_initial=4)
+    assert bare.estimate[0] == result.estimate[0]
+    with pytest.raises(rough_uq.InvalidParameterError, match="^qoi_names"):
+        estimate_target(problem.sampler(stage), target="variance", tol=np.array([100.0]), max_level=2, qoi_names="a")

@@ -28,6 +28,7 @@ from rough_uq.errors import EstimationWarning, InvalidParameterError
 from rough_uq.multilevel.distribution import CdfEstimate, Quantiles, _check_thresholds, mlmc_cdf, quantiles
 from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
+from rough_uq.multilevel.statistics import _checked_names, _qoi_text
 from rough_uq.multilevel.targets import TargetEstimate
 from rough_uq.problem.contact import BatchExecutor, ContactProblem
 from rough_uq.problem.runs import _problem, _tolerances, _warn_not_converged, run_id
@@ -69,6 +70,7 @@ def estimate_target(
     max_cost: float | None = None,
     batch_size: int | None = 10,
     max_samples: int | None = MAX_PLANNED_SAMPLES,
+    qoi_names: Sequence[str] | None = None,
 ) -> TargetEstimate | CdfEstimate:
     """The adaptive driver of ``target`` on a level sampler, with the defaults of this module.
 
@@ -91,11 +93,16 @@ def estimate_target(
         the mean threshold spacing).
     theta, n_initial, min_finest_level, max_cost, batch_size, max_samples
         As for :func:`variance` (``min_finest_level`` default ``min(2, max_level)``).
+    qoi_names : sequence of str, optional
+        For ``"variance"``: names of the columns, one per QoI, for the warning
+        about a negative estimate (``variance of contact_area``); without them
+        it gives the column index (``variance of QoI [0]``).
     """
     if max_level < 1:
         # The driver would name its min_finest_level (min(2, 0) = 0), which the caller never gave.
         raise InvalidParameterError("max_level", max_level, "an integer >= 1: variance and distribution runs "
                                     "estimate level differences")
+    _checked_names(qoi_names, None, argument="qoi_names")
     options = dict(
         theta=theta,
         n_initial=n_initial,
@@ -107,7 +114,7 @@ def estimate_target(
     )
     if target == "variance":
         result = mlmc_variance(sampler, tol=tol, **options)
-        _warn_negative_variance(result)
+        _warn_negative_variance(result, _checked_names(qoi_names, result.estimate.size, argument="qoi_names"))
         return result
     if target != "cdf":
         raise InvalidParameterError("target", target, f"one of {', '.join(TARGETS)}")
@@ -166,25 +173,28 @@ def variance(
     result = estimate_target(
         sampler, target="variance", tol=tol, max_level=problem.max_level, theta=theta, n_initial=n_initial,
         min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
+        qoi_names=problem.columns,
     )
     _warn_not_converged(sampler, "variance")
     return result
 
 
-def _warn_negative_variance(result: TargetEstimate) -> None:
+def _warn_negative_variance(result: TargetEstimate, names: Sequence[str] | None) -> None:
     """An :class:`~rough_uq.errors.EstimationWarning` for each variance estimated below zero.
 
     The multilevel estimator is unbiased, not positive: with few samples a
     small variance can come out negative, within its error. It is returned
     as estimated (clipping it would bias it); the warning says so (a study
-    run stores it with its diagnostics, which the report shows).
+    run stores it with its diagnostics, which the report shows), naming the
+    column by its name in ``names``, else by its index.
     """
     for column, (value, rmse) in enumerate(zip(result.estimate, result.rmse)):
         if value < 0:
             warnings.warn(
                 EstimationWarning(
-                    f"variance of QoI [{column}]: the estimate {value:.3g} is negative (RMSE {rmse:.3g}); the "
-                    "unbiased multilevel estimator can be, with few samples: a tighter tol takes more"
+                    f"variance of {_qoi_text(np.array([column]), names)}: the estimate {value:.3g} is negative "
+                    f"(RMSE {rmse:.3g}); the unbiased multilevel estimator can be, with few samples: a tighter tol "
+                    "takes more"
                 ),
                 stacklevel=3,
             )

@@ -1708,7 +1708,7 @@ def _follow_target(
 ) -> tuple[Any, list[Diagnostic]]:
     """Run the targets' adaptive driver with progress; its estimate and the diagnostics it raised."""
     config = study.config
-    cdf = {} if target == "variance" else dict(
+    per_target = dict(qoi_names=config.qoi_names) if target == "variance" else dict(
         thresholds=request.thresholds, qoi=config.qoi_names.index(request.column)
     )
     planned = _PlannedSampler(sampler, progress)
@@ -1718,7 +1718,7 @@ def _follow_target(
             result = estimate_target(
                 planned, target=target, tol=tol, max_level=config.grid.max_level, theta=config.estimation.theta,
                 n_initial=config.estimation.initial_samples, max_cost=max_cost,
-                batch_size=config.estimation.batch_size, **cdf,
+                batch_size=config.estimation.batch_size, **per_target,
             )
     except BaseException:
         progress.stop(is_complete=False)
