@@ -191,7 +191,9 @@ def test_a_dead_worker_loses_only_its_samples(tmp_path, reference):
     _, stderr = process.communicate(timeout=120)
     if process.returncode != 0:  # the run may have finished before the kill
         assert process.returncode == 2, stderr
-        assert "worker process died" in stderr and "Traceback" not in stderr
+        # Killed while computing, or (a slow start, e.g. beside other tests) before its first sample.
+        assert ("worker process died" in stderr or "worker process failed while starting" in stderr), stderr
+        assert "Traceback" not in stderr
     final = _finish(directory, "--workers", "2")
     for key in ("estimate", "stat_error", "bias_estimate", "n_samples", "cost"):
         assert final[key] == reference[key], key
