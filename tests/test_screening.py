@@ -182,6 +182,23 @@ def test_fit_rates_refuses_too_few_usable_levels():
         fit_rates(flat)
 
 
+def test_a_level_mean_zero_to_rounding_is_unusable_for_alpha():
+    # Cluster-count differences whose pooled mean is exactly 0 came out as 1.93e-17: log2(2.06 / 1.93e-17)
+    # fitted alpha = 56.6 and every bias term rounded to 0 (a run certified "bias 1.8e-34").
+    rng = np.random.default_rng(0)
+    n = 30
+    start, coarse1, coarse2 = rng.normal(size=(3, n))
+    steps = rng.integers(-1, 2, size=n).astype(float)
+    table = level_statistics(fine=[start, coarse1 + 2.0 + rng.normal(size=n), coarse2 + steps],
+                             coarse=[0 * start, coarse1, coarse2], cost=[np.ones(n)] * 3)
+    means = np.array(table.mean_diff)
+    means[2, 0] = 1.93e-17
+    with pytest.raises(EstimationError, match=r"E\[Q_l - Q_l-1\] = 0 \(unusable\): \[2\]"):
+        fit_rates(dataclasses.replace(table, mean_diff=means))
+    means[2, 0] = 1e-6 * math.sqrt(table.var_diff[2, 0])  # small, but resolvable by enough samples: used
+    assert fit_rates(dataclasses.replace(table, mean_diff=means)).alpha[0] > 10
+
+
 def test_fit_rates_names_the_qoi_it_cannot_fit():
     # "cannot fit alpha for QoI 1" named a column index; with the names the error names the QoI.
     rng = np.random.default_rng(1)
