@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import re
@@ -430,3 +431,31 @@ def test_the_cli_and_the_python_front_door_draw_the_same_samples_and_agree(tiny,
     python = rough_uq.distribution(problem, tol=0.3, thresholds=np.linspace(25, 60, 36), n_initial=4, batch_size=4)
     assert cli["n_samples"] == python.cdf.n_samples.tolist()
     np.testing.assert_allclose(cli["distribution"]["cdf"], python.cdf.cdf, atol=1e-9)
+
+
+def test_the_variance_table_shows_no_bias_or_rmse_for_a_run_that_did_not_estimate_its_bias(tiny):
+    # A run --max-cost stopped before its bias was estimated says "bias not estimated" in its lines; the table
+    # showed "bias 0" and an RMSE equal to the statistical error.
+    from dataclasses import replace
+
+    from rich.console import Console
+
+    from rough_uq.report.summary import _variance_table
+
+    run("mlmc", "--config", str(tiny), "--tol-var", "60", "--workers", "1", "-q", expect=(0, 3))
+    variance = next(r for r in stored_runs(tiny.parent / "results.h5").values() if r.method == "variance")
+    units = {"contact_area": "%"}
+
+    def row(record):
+        console = Console(width=200, record=True, file=io.StringIO())
+        console.print(_variance_table([record], units))
+        return next(line for line in console.export_text().splitlines() if "contact_area" in line)
+
+    # Columns: QoI, Var(Q) ± stat., sd(Q), RMSE, tol, bias, levels, N_l, met (at least two spaces apart).
+    estimated = re.split(r"\s{2,}", row(variance).strip())
+    stopped = re.split(r"\s{2,}", row(replace(variance, outcome=replace(variance.outcome,
+                                                                         is_bias_estimated=False))).strip())
+    assert variance.outcome.is_bias_estimated and len(estimated) == len(stopped) == 9
+    assert estimated[3] != "-" and estimated[5] != "-" and stopped[3] == stopped[5] == "-"
+    assert [cell for k, cell in enumerate(stopped) if k not in (3, 5)] == \
+        [cell for k, cell in enumerate(estimated) if k not in (3, 5)]

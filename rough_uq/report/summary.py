@@ -588,11 +588,15 @@ def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
         outcome = run.outcome
         for q, name in enumerate(run.qoi_names or ()):
             variance = outcome.estimate[q]
+            # A run stopped before its bias was estimated has no RMSE, only a statistical error (its line says
+            # "bias not estimated"): "-" rather than a bias of 0 and an RMSE equal to the statistical error.
+            is_estimated = outcome.is_bias_estimated
             table.add_row(
                 escape(_labelled(name, _column_unit(units, name), 2)),
                 _value_error(variance, outcome.stat_error[q]),
                 _g(math.sqrt(variance), 4) if variance >= 0 else "-",
-                _g(outcome.rmse[q], 2), _g(run.tol[q]), _g(outcome.bias_estimate[q], 2),
+                _g(outcome.rmse[q], 2) if is_estimated else "-", _g(run.tol[q]),
+                _g(outcome.bias_estimate[q], 2) if is_estimated else "-",
                 f"0..{outcome.levels[-1]}", " ".join(str(n) for n in outcome.n_samples),
                 "yes" if outcome.tol_met else "no",
             )
