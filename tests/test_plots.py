@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import sys
 
 import numpy as np
@@ -38,6 +39,29 @@ def report() -> dict:
     for method, tol in (("mlmc", 4.0), ("mlmc", 2.0), ("mc", 4.0)):
         run_estimation(study, method=method, tol=np.array([tol]), executor=SerialExecutor(), progress=Progress())
     return study_report(study.store, study.config)
+
+
+@pytest.fixture
+def figures(monkeypatch) -> dict:
+    """The matplotlib figures the next calls save, by file name."""
+    drawn = {}
+    save = plots._save
+
+    def keep(figure, path):
+        drawn[path.name] = figure
+        return save(figure, path)
+
+    monkeypatch.setattr(plots, "_save", keep)
+    return drawn
+
+
+def _lines(ax) -> dict:
+    """The lines of ``ax`` by legend label (those without a label left out)."""
+    return {line.get_label(): line for line in ax.get_lines() if not line.get_label().startswith("_")}
+
+
+def _legend_texts(ax) -> list[str]:
+    return [text.get_text() for text in ax.get_legend().get_texts()]
 
 
 def _assert_pngs(paths: list, names: list[str]) -> None:
@@ -130,3 +154,16 @@ def test_sample_figure_shows_the_stored_contact_area(tmp_path, monkeypatch):
     fine = compute_batch(model, stage=stage, level=level, indices=[index]).fine[0]
     titles = [ax.get_title() for ax in drawn[0].axes if ax.get_title()]
     assert f"contact {fine[0]:.2f} %, {int(fine[1])} clusters (8-connected)" in titles
+
+
+def test_cost_against_tolerance_leaves_out_mc_on_a_chosen_level(tmp_path, report, figures):
+    # `mc --level L` samples a level the user chose: no measure of plain MC to a tolerance (as derive_runs).
+    planned = next(run for run in report["runs"] if run["method"] == "mc")
+    chosen = {key: value for key, value in copy.deepcopy(planned).items() if key != "screening_rates"}
+    chosen.update(run_id=planned["run_id"] + "_level-1", tol=[2.0])  # the tightest MLMC run's tolerance
+    plots.write_report_plots(dict(report, runs=[*report["runs"], chosen]), tmp_path)
+    (ax,) = figures["cost_vs_tol.png"].axes
+    assert list(_lines(ax)["MC measured CPU-s"].get_xdata()) == [4.0]
+    loosest, tightest = (ax for ax in figures["samples_per_level.png"].axes if ax.get_legend() is not None)
+    assert _legend_texts(loosest) == ["MLMC $N_l$", "MC $N$"] and _legend_texts(tightest) == ["MLMC $N_l$"]
+

@@ -16,6 +16,9 @@ Conventions
   straight lines. The top axis names the grid ``n_l`` of each level.
 * Several QoIs share one tolerance axis: cost against tolerance and the
   choice of the loosest / tightest run use the first QoI's tolerance.
+* Plain MC is measured by ``mc --tol`` runs only, as in the text report
+  (:func:`~rough_uq.report.summary.derive_runs`): ``mc --level`` runs sample
+  a level the user chose, with another bias.
 * Missing data (no screening, no finished run) skips a figure; it is never
   an error.
 """
@@ -202,6 +205,17 @@ def _cost_panel(ax: Any, stats: Any, rates: Any, span: Sequence[int], grids: Seq
     ax.legend(fontsize="small")
 
 
+def _measures_plain_mc(run: RunRecord) -> bool:
+    """An MC run planned by the screening (``mc --tol``): a measure of plain MC to its tolerance.
+
+    ``mc --level`` runs (no ``screening_rates``) sample a level the user
+    chose, with a bias of its own; the text report leaves them out of the
+    measured MC/MLMC ratio by the same rule
+    (:func:`~rough_uq.report.summary.derive_runs`).
+    """
+    return run.method == "mc" and run.screening_rates is not None
+
+
 def _tol_label(drawn: _Drawn) -> str:
     if not drawn.qoi_names:
         return "tolerance"
@@ -227,9 +241,10 @@ def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
         ([(p.tol[0], p.mc_seconds) for p in predictions if _positive(p.mc_seconds)],
          "--", "C3", "MC predicted CPU-s" + (f" (eps^-{mc_exponent:.2f})" if _positive(mc_exponent) else "")),
     ]
-    for method, style, colour in (("mlmc", "o", "C0"), ("mc", "s", "C3")):
-        points = sorted((run.tol[0], run.outcome.seconds) for run in drawn.finished(method)
-                        if _positive(run.outcome.seconds))
+    measured = {"mlmc": drawn.finished("mlmc"),
+                "mc": [run for run in drawn.finished("mc") if _measures_plain_mc(run)]}
+    for (method, runs), style, colour in zip(measured.items(), ("o", "s"), ("C0", "C3")):
+        points = sorted((run.tol[0], run.outcome.seconds) for run in runs if _positive(run.outcome.seconds))
         series.append((points, style, colour, f"{method.upper()} measured CPU-s"))
     if not any(points for points, *_ in series):
         return None
@@ -258,7 +273,7 @@ def _samples_figure(drawn: _Drawn, path: Path) -> Path | None:
     if not mlmc:
         return None
     shown = [mlmc[0]] if len(mlmc) == 1 else [mlmc[0], mlmc[-1]]
-    mc_by_tol = {run.tol: run.outcome for run in drawn.finished("mc")}
+    mc_by_tol = {run.tol: run.outcome for run in drawn.finished("mc") if _measures_plain_mc(run)}
 
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
@@ -391,7 +406,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
         ``cost_vs_tol.png``
             Log-log cost in seconds against the first QoI's tolerance: the
             screening's predicted MLMC and MC costs as lines, the measured
-            wall time of finished MLMC and MC runs as points. Needs a
+            wall time of finished MLMC and ``mc --tol`` runs as points. Needs a
             screening or a finished run.
         ``samples_per_level.png``
             ``N_l`` per level (log scale) of the loosest and the tightest
