@@ -167,3 +167,27 @@ def test_cost_against_tolerance_leaves_out_mc_on_a_chosen_level(tmp_path, report
     loosest, tightest = (ax for ax in figures["samples_per_level.png"].axes if ax.get_legend() is not None)
     assert _legend_texts(loosest) == ["MLMC $N_l$", "MC $N$"] and _legend_texts(tightest) == ["MLMC $N_l$"]
 
+
+@pytest.fixture(scope="module")
+def two_qoi_report() -> dict:
+    """Two QoIs screened with tolerances 2 % and 0.05 (ratio 0.025); MLMC at that ratio and at another."""
+    study = _study(qoi={"contact_area": {"unit": "percent", "tol": 2.0}, "mean_gap": {"tol": 0.05}})
+    run_screening(study, executor=SerialExecutor(), progress=Progress())
+    for tol in ((4.0, 0.1), (2.0, 0.5)):
+        run_estimation(study, method="mlmc", tol=np.array(tol), executor=SerialExecutor(), progress=Progress())
+    return study_report(study.store, study.config)
+
+
+def test_cost_against_tolerance_of_two_qois_states_the_ratio_and_marks_runs_off_it(tmp_path, two_qoi_report,
+                                                                                    figures):
+    plots.write_report_plots(two_qoi_report, tmp_path)
+    (ax,) = figures["cost_vs_tol.png"].axes
+    assert ax.get_xlabel() == "tolerance on contact_area [%]\n(lines: mean_gap at 0.025 × this tolerance)"
+    lines = _lines(ax)
+    on, off = lines["MLMC measured CPU-s"], lines["MLMC measured CPU-s, other tol ratio than the lines"]
+    assert list(on.get_xdata()) == [4.0] and list(off.get_xdata()) == [2.0]
+    assert off.get_markerfacecolor() == "none" and on.get_markerfacecolor() != "none"
+    # The predicted costs' exponents of both QoIs, not only the first's.
+    (mc_label,) = [label for label in lines if label.startswith("MC predicted")]
+    assert "contact_area eps^-" in mc_label and "mean_gap " in mc_label
+

@@ -15,7 +15,10 @@ Conventions
   ``C_l = c_gamma 2^(gamma l)`` (:class:`~rough_uq.multilevel.rates.Rates`) as
   straight lines. The top axis names the grid ``n_l`` of each level.
 * Several QoIs share one tolerance axis: cost against tolerance and the
-  choice of the loosest / tightest run use the first QoI's tolerance.
+  choice of the loosest / tightest run use the first QoI's tolerance. The
+  screening predicts costs for one ratio of the QoIs' tolerances (its base
+  tolerances, scaled); the axis label states it, and runs at another ratio
+  are drawn hollow, labelled as such: their cost belongs to other lines.
 * Plain MC is measured by ``mc --tol`` runs only, as in the text report
   (:func:`~rough_uq.report.summary.derive_runs`): ``mc --level`` runs sample
   a level the user chose, with another bias.
@@ -26,6 +29,7 @@ Conventions
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -216,12 +220,58 @@ def _measures_plain_mc(run: RunRecord) -> bool:
     return run.method == "mc" and run.screening_rates is not None
 
 
-def _tol_label(drawn: _Drawn) -> str:
+def _tol_ratio(tol: Sequence[float]) -> np.ndarray:
+    """Each QoI's tolerance over the first QoI's."""
+    return np.asarray(tol, dtype=float) / float(tol[0])
+
+
+def _is_on_curve(run: RunRecord, ratio: np.ndarray | None) -> bool:
+    """Whether ``run`` used the tolerance ratio of the predicted lines (always, with one QoI or no lines)."""
+    if ratio is None:
+        return True
+    return len(run.tol) == ratio.size and bool(np.allclose(_tol_ratio(run.tol), ratio, rtol=1e-6))
+
+
+def _no_break(text: str) -> str:
+    """``text`` with no-break spaces, which :func:`_fill` never breaks at."""
+    return text.replace(" ", "\u00a0")
+
+
+def _fill(text: str, width: int) -> str:
+    """``text`` wrapped to ``width`` characters (textwrap breaks only at ASCII white space)."""
+    return textwrap.fill(text, width).replace("\u00a0", " ")
+
+
+def _tol_label(drawn: _Drawn, ratio: np.ndarray | None) -> str:
+    """The first QoI's tolerance; with several QoIs, the others' tolerances of the predicted lines as multiples."""
     if not drawn.qoi_names:
         return "tolerance"
     name = drawn.qoi_names[0]
-    unit = drawn.units.get(name)
-    return f"tolerance on {name}" + (f" [{unit}]" if unit else "")
+    unit = drawn.units.get(name, drawn.units.get(split_column(name)[0]))
+    label = f"tolerance on {name}" + (f" [{unit}]" if unit else "")
+    if ratio is None or ratio.size < 2:
+        return label
+    others = [f"{other} at {r:.3g} ×" for other, r in zip(drawn.qoi_names[1:], ratio[1:])]
+    return label + "\n" + _fill(f"(lines: {', '.join(map(_no_break, others))} this tolerance)", 72)
+
+
+def _exponent_note(drawn: _Drawn, complexities: Sequence[Any], *, is_mc: bool) -> str:
+    """The predicted cost's power of ``1/eps``, for the legend: per QoI when there are several."""
+    if not complexities:
+        return ""
+    if len(complexities) == 1:
+        (c,) = complexities
+        if is_mc:
+            return f" (eps^-{c.mc_exponent:.2f})" if _positive(c.mc_exponent) else ""
+        return f" ({c.mlmc_regime})"
+    notes = []
+    for name, c in zip(drawn.qoi_names, complexities):
+        if is_mc:
+            note = f"eps^-{c.mc_exponent:.2f}" if _positive(c.mc_exponent) else "not fitted"
+        else:
+            note = c.mlmc_regime.split(" (")[0] if c.mlmc_exponent is not None else "not fitted"
+        notes.append(f"{name} {note}")
+    return "\n" + _fill("; ".join(map(_no_break, notes)), 50)
 
 
 def _positive(value: object) -> bool:
@@ -232,20 +282,24 @@ def _positive(value: object) -> bool:
 def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
     screening = drawn.screening
     predictions = sorted(screening.predictions if screening else (), key=lambda p: p.tol[0])
-    complexity = screening.complexity[0] if screening is not None and screening.complexity else None
-    mc_exponent = complexity.mc_exponent if complexity is not None else None
-    regime = f" ({complexity.mlmc_regime})" if complexity is not None else ""
-    series = [  # (points, style, colour, label)
-        ([(p.tol[0], p.mlmc_seconds) for p in predictions if _positive(p.mlmc_seconds)],
-         "-", "C0", "MLMC predicted CPU-s" + regime),
-        ([(p.tol[0], p.mc_seconds) for p in predictions if _positive(p.mc_seconds)],
-         "--", "C3", "MC predicted CPU-s" + (f" (eps^-{mc_exponent:.2f})" if _positive(mc_exponent) else "")),
+    complexities = screening.complexity if screening is not None else ()
+    ratio = _tol_ratio(predictions[0].tol) if predictions else None
+    series = [  # (points, format, keywords of Axes.plot)
+        ([(p.tol[0], p.mlmc_seconds) for p in predictions if _positive(p.mlmc_seconds)], "-",
+         {"color": "C0", "label": "MLMC predicted CPU-s" + _exponent_note(drawn, complexities, is_mc=False)}),
+        ([(p.tol[0], p.mc_seconds) for p in predictions if _positive(p.mc_seconds)], "--",
+         {"color": "C3", "label": "MC predicted CPU-s" + _exponent_note(drawn, complexities, is_mc=True)}),
     ]
     measured = {"mlmc": drawn.finished("mlmc"),
                 "mc": [run for run in drawn.finished("mc") if _measures_plain_mc(run)]}
-    for (method, runs), style, colour in zip(measured.items(), ("o", "s"), ("C0", "C3")):
-        points = sorted((run.tol[0], run.outcome.seconds) for run in runs if _positive(run.outcome.seconds))
-        series.append((points, style, colour, f"{method.upper()} measured CPU-s"))
+    for (method, runs), marker, colour in zip(measured.items(), ("o", "s"), ("C0", "C3")):
+        runs = [run for run in runs if _positive(run.outcome.seconds)]
+        for is_on_curve in (True, False):
+            points = sorted((run.tol[0], run.outcome.seconds) for run in runs
+                            if _is_on_curve(run, ratio) == is_on_curve)
+            label = f"{method.upper()} measured CPU-s" + ("" if is_on_curve else ", other tol ratio than the lines")
+            face = colour if is_on_curve else "none"
+            series.append((points, marker, {"color": colour, "markerfacecolor": face, "label": label}))
     if not any(points for points, *_ in series):
         return None
 
@@ -253,14 +307,14 @@ def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
 
     figure = _new_figure(6.4, 4.8)
     ax = figure.subplots()
-    for points, style, colour, label in series:
+    for points, style, keywords in series:
         if points:
             x, y = np.array(points, dtype=float).T
-            ax.plot(x, y, style, color=colour, label=label)
+            ax.plot(x, y, style, **keywords)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.xaxis.set_minor_formatter(NullFormatter())
-    ax.set_xlabel(_tol_label(drawn))
+    ax.set_xlabel(_tol_label(drawn, ratio))
     ax.set_ylabel("CPU-seconds of the samples")
     ax.set_title("CPU time against tolerance")
     ax.grid(True, which="both", alpha=0.3)
@@ -405,9 +459,11 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             Needs a screening.
         ``cost_vs_tol.png``
             Log-log cost in seconds against the first QoI's tolerance: the
-            screening's predicted MLMC and MC costs as lines, the measured
-            wall time of finished MLMC and ``mc --tol`` runs as points. Needs a
-            screening or a finished run.
+            screening's predicted MLMC and MC costs as lines (with each QoI's
+            exponent; the other QoIs' tolerances as multiples of the first's
+            in the axis label), the measured wall time of finished MLMC and
+            ``mc --tol`` runs as points, hollow for a run at another ratio of
+            tolerances. Needs a screening or a finished run.
         ``samples_per_level.png``
             ``N_l`` per level (log scale) of the loosest and the tightest
             finished MLMC run, beside the sample count of a finished MC run
