@@ -191,3 +191,17 @@ def test_cost_against_tolerance_of_two_qois_states_the_ratio_and_marks_runs_off_
     (mc_label,) = [label for label in lines if label.startswith("MC predicted")]
     assert "contact_area eps^-" in mc_label and "mean_gap " in mc_label
 
+
+def test_load_curve_legend_names_method_level_and_grid(tmp_path, figures):
+    study = _study(load={"relative": [0.1, 0.2]})
+    run_screening(study, executor=SerialExecutor(), progress=Progress())
+    run_estimation(study, method="mlmc", tol=np.full(2, 4.0), executor=SerialExecutor(), progress=Progress())
+    for level in (1, 2):
+        run_estimation(study, method="mc", tol=np.full(2, 4.0), level=level, executor=SerialExecutor(),
+                       progress=Progress())
+    plots.write_report_plots(study_report(study.store, study.config), tmp_path)
+    (ax,) = figures["load_curve.png"].axes
+    mlmc, *mc = _legend_texts(ax)
+    assert mc == ["MC, level 1 (16²) (± RMSE)", "MC, level 2 (32²) (± RMSE)"]
+    assert mlmc.startswith("MLMC, levels 0..") and mlmc.endswith("²) (± RMSE)")
+

@@ -361,6 +361,28 @@ def _samples_figure(drawn: _Drawn, path: Path) -> Path | None:
     return _save(figure, path)
 
 
+def _grid_text(grids: Sequence[int], level: int) -> str:
+    return f"{grids[level]}²" if 0 <= level < len(grids) else "grid ?"
+
+
+def _run_name(run: RunRecord | None, method: str, grids: Sequence[int]) -> str:
+    """``MC, level 2 (128²)`` or ``MLMC, levels 0..2 (32²..128²)``: the method and the grids it sampled."""
+    if run is None or run.outcome is None or not run.outcome.levels:
+        return method.upper()
+    levels = run.outcome.levels
+    if len(levels) == 1:
+        return f"{method.upper()}, level {levels[0]} ({_grid_text(grids, levels[0])})"
+    return (f"{method.upper()}, levels {levels[0]}..{levels[-1]} "
+            f"({_grid_text(grids, levels[0])}..{_grid_text(grids, levels[-1])})")
+
+
+def _load_curve_names(drawn: _Drawn) -> list[str]:
+    """A legend name per load curve (:func:`_run_name`); runs that would share one get ``, run k``."""
+    by_id = {run.run_id: run for run in drawn.runs}
+    names = [_run_name(by_id.get(entry.get("run_id")), entry["method"], drawn.grids) for entry in drawn.load_curves]
+    return [f"{name}, run {k + 1}" if names.count(name) > 1 else name for k, name in enumerate(names)]
+
+
 def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
     """Each QoI of a load-curve study against the relative load, one line with an RMSE band per finished run."""
     curves = drawn.load_curves
@@ -370,14 +392,15 @@ def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
     units = drawn.units
     figure = _new_figure(5.5 * len(names), 4.5)
     axes = figure.subplots(1, len(names), squeeze=False)[0]
+    run_names = _load_curve_names(drawn)
     for ax, name in zip(axes, names):
-        for k, entry in enumerate(curves):
+        for k, (entry, run_name) in enumerate(zip(curves, run_names)):
             load = np.asarray(entry["relative_loads"], dtype=float)
             value = np.asarray(entry["curves"][name]["estimate"], dtype=float)
             error = np.asarray(entry["curves"][name]["rmse"], dtype=float)
             colour = f"C{k % 10}"
             ax.fill_between(load, value - error, value + error, color=colour, alpha=0.25, linewidth=0)
-            ax.plot(load, value, "o-", color=colour, label=f"{entry['method'].upper()} run {k + 1} (± RMSE)")
+            ax.plot(load, value, "o-", color=colour, label=f"{run_name} (± RMSE)")
             fit = entry.get("kappa")
             if name == "contact_area" and fit is not None:
                 scale = 100.0 if units.get(name) == "%" else 1.0
@@ -469,8 +492,9 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             finished MLMC run, beside the sample count of a finished MC run
             at the same tolerance where there is one. Needs a finished MLMC run.
         ``load_curve.png``
-            Per QoI, the estimates of every finished run against the relative
-            load ``p / (E* sqrt(m2))`` with a band of one RMSE, and for the
+            Per QoI, the estimates of every finished run (named by method,
+            levels and grids) against the relative load
+            ``p / (E* sqrt(m2))`` with a band of one RMSE, and for the
             contact area the fitted small-load line ``kappa r``
             (:func:`~rough_uq.report.summary.fit_area_slope`). Needs a study
             with several loads and a finished run.
