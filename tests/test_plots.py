@@ -205,3 +205,13 @@ def test_load_curve_legend_names_method_level_and_grid(tmp_path, figures):
     assert mc == ["MC, level 1 (16²) (± RMSE)", "MC, level 2 (32²) (± RMSE)"]
     assert mlmc.startswith("MLMC, levels 0..") and mlmc.endswith("²) (± RMSE)")
 
+
+def test_rates_draw_no_bias_line_where_the_text_says_not_fitted(tmp_path, report, figures):
+    screening = copy.deepcopy(report["screening"])
+    screening["rates"]["alpha"] = [0.04]  # <= MIN_ALPHA: the report prints "not fitted"
+    plots.write_report_plots(dict(report, screening=screening), tmp_path)
+    bias = figures["rates.png"].axes[0]
+    assert bias.get_title().endswith(": bias")
+    assert [len(line.get_xdata()) > 0 for line in bias.get_lines()] == [True, False]  # data; a legend entry only
+    assert _legend_texts(bias)[1] == r"$\alpha$ = 0.04: not fitted, the bias does not decay"
+

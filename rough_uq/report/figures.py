@@ -22,6 +22,9 @@ Conventions
 * Plain MC is measured by ``mc --tol`` runs only, as in the text report
   (:func:`~rough_uq.report.summary.derive_runs`): ``mc --level`` runs sample
   a level the user chose, with another bias.
+* A bias rate the text report calls not fitted (``alpha`` at most
+  :data:`~rough_uq.study.records.MIN_ALPHA`) gets no fitted line, only a
+  legend entry saying so.
 * Missing data (no screening, no finished run) skips a figure; it is never
   an error.
 """
@@ -42,7 +45,7 @@ from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
 from rough_uq.report.summary import split_column
-from rough_uq.study.records import RunRecord, ScreeningRecord
+from rough_uq.study.records import MIN_ALPHA, RunRecord, ScreeningRecord
 
 __all__ = ["write_report_plots", "write_sample_figure"]
 
@@ -167,13 +170,21 @@ def _rates_figure(drawn: _Drawn, path: Path) -> Path | None:
     return _save(figure, path)
 
 
+def _is_bias_fitted(alpha: float | None) -> bool:
+    """A bias rate above :data:`~rough_uq.study.records.MIN_ALPHA`, the rule of ``records.complexity``."""
+    return alpha is not None and math.isfinite(alpha) and alpha > MIN_ALPHA
+
+
 def _bias_panel(ax: Any, stats: Any, rates: Any, q: int, span: Sequence[int], upper: np.ndarray, title: str) -> None:
     levels = np.asarray(stats.levels, dtype=int)
     x, y = _log2_points(levels[upper], np.abs(np.asarray(stats.mean_diff, float))[upper, q])
     ax.plot(x, y, "o-", color="C0", label="$|E[Y_l]|$")
     alpha = rates.alpha[q]
-    _fit_line(ax, span, rates.c_alpha[q], -alpha,
-              rf"$c_\alpha 2^{{-\alpha l}}$, $\alpha$ = {alpha:.2f} ± {rates.alpha_se[q]:.2f}", "C0")
+    if _is_bias_fitted(alpha):
+        _fit_line(ax, span, rates.c_alpha[q], -alpha,
+                  rf"$c_\alpha 2^{{-\alpha l}}$, $\alpha$ = {alpha:.2f} ± {rates.alpha_se[q]:.2f}", "C0")
+    else:  # as the text report: a legend entry without a line
+        ax.plot([], [], " ", label=rf"$\alpha$ = {alpha:.2f}: not fitted, the bias does not decay")
     ax.set_title(f"{title}: bias")
     ax.set_ylabel(r"$\log_2 |E[Y_l]|$")
 
@@ -477,9 +488,9 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
         ``rates.png``
             Per QoI, ``log2 |E[Y_l]|`` (levels >= 1), ``log2 Var(Y_l)`` and
             ``log2 Var(Q_l)`` against the level, with the screening's fitted
-            ``alpha`` and ``beta`` lines; and the cost per sample (modelled
-            ``C_l`` and measured wall seconds) with the ``gamma`` line.
-            Needs a screening.
+            ``alpha`` (unless not fitted) and ``beta`` lines; and the cost per
+            sample (modelled ``C_l`` and measured wall seconds) with the
+            ``gamma`` line. Needs a screening.
         ``cost_vs_tol.png``
             Log-log cost in seconds against the first QoI's tolerance: the
             screening's predicted MLMC and MC costs as lines (with each QoI's
