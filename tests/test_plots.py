@@ -215,3 +215,18 @@ def test_rates_draw_no_bias_line_where_the_text_says_not_fitted(tmp_path, report
     assert [len(line.get_xdata()) > 0 for line in bias.get_lines()] == [True, False]  # data; a legend entry only
     assert _legend_texts(bias)[1] == r"$\alpha$ = 0.04: not fitted, the bias does not decay"
 
+
+def test_sample_figure_titles_fit_and_name_the_load_drawn(tmp_path, figures):
+    qoi = {"contact_area": {"unit": "percent"}, "clusters": {"connectivity": "mean"}}
+    model = build_model(config_from_dict(tiny_config(qoi=qoi, load={"relative": [0.1, 0.2]})))
+    plots.write_sample_figure(model=model, stage=STAGE_SCREENING, level=1, index=0, path=tmp_path / "s.png")
+    figure = figures["s.png"]
+    renderer = figure.canvas.get_renderer()
+    figure.draw(renderer)
+    box = figure.bbox
+    (suptitle,) = figure.texts
+    for text in [ax.title for ax in figure.axes if ax.get_title()] + [suptitle]:
+        extent = text.get_window_extent(renderer)
+        assert box.x0 <= extent.x0 and extent.x1 <= box.x1 and extent.y1 <= box.y1, text.get_text()
+    assert "mean of 4- and 8-connected" in figure.axes[2].get_title()
+    assert "load 1 of 2: $p / (E^* \\sqrt{m_2})$ = 0.1 " in suptitle.get_text()

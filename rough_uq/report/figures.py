@@ -573,12 +573,26 @@ def _clusters_panel(ax: Any, model: ContactModel, solution: ContactSolution, ext
     colours = _cluster_colours(contact, labels)
     # Transposed like the maps of _map_panel.
     ax.imshow(np.transpose(colours, (1, 0, 2)), origin="lower", extent=extent, interpolation="nearest")
-    counted = "mean of 4- and 8-connected" if model.connectivity == "mean" else f"{model.connectivity}-connected"
-    ax.set_title(f"contact {area:.2f} %, {n_clusters:g} clusters ({counted})")
+    if model.connectivity == "mean":  # on one line, the title is wider than the panel
+        ax.set_title(f"contact {area:.2f} %, {n_clusters:g} clusters\nmean of 4- and 8-connected\n(map: 8-connected)")
+    else:
+        ax.set_title(f"contact {area:.2f} %, {n_clusters:g} clusters ({model.connectivity}-connected)")
+
+
+def _load_text(model: ContactModel) -> str:
+    """Of a load curve, which load the figure draws (``SampleSolution.fine``: the first): empty for one load."""
+    if model.n_loads == 1:
+        return ""
+    relative = model.mean_pressure / (model.e_star * model.spectrum.rms_slope)
+    return (f"\nload 1 of {model.n_loads}: $p / (E^* \\sqrt{{m_2}})$ = {relative:.3g} "
+            f"(mean pressure {model.mean_pressure:.3g} $E^*$)")
 
 
 def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: int, path: str | Path) -> Path:
     """Draw one sample: its heights, its contact pressure and its contact clusters.
+
+    Of a load curve, the first load of the config is drawn; the title says
+    which.
 
     The sample is recomputed from its random stream exactly as
     :func:`~rough_uq.problem.sampler.compute_batch` computes its fine grid (coupled
@@ -623,5 +637,5 @@ def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: i
         ax.set_xlabel("x")
         ax.set_ylabel("y")
     kind = "coupled" if is_coupled_stage(stage) and level > 0 else "single"
-    figure.suptitle(f"sample stage {stage}, level {level} (grid {n}), index {index} [{kind} draw]")
+    figure.suptitle(f"sample stage {stage}, level {level} (grid {n}), index {index} [{kind} draw]" + _load_text(model))
     return _save(figure, path)
