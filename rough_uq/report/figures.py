@@ -45,7 +45,7 @@ from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
 from rough_uq.report.summary import split_column
-from rough_uq.study.records import MIN_ALPHA, RunRecord, ScreeningRecord
+from rough_uq.study.records import RunRecord, ScreeningRecord, is_bias_decaying
 
 __all__ = ["write_report_plots", "write_sample_figure"]
 
@@ -170,17 +170,12 @@ def _rates_figure(drawn: _Drawn, path: Path) -> Path | None:
     return _save(figure, path)
 
 
-def _is_bias_fitted(alpha: float | None) -> bool:
-    """A bias rate above :data:`~rough_uq.study.records.MIN_ALPHA`, the rule of ``records.complexity``."""
-    return alpha is not None and math.isfinite(alpha) and alpha > MIN_ALPHA
-
-
 def _bias_panel(ax: Any, stats: Any, rates: Any, q: int, span: Sequence[int], upper: np.ndarray, title: str) -> None:
     levels = np.asarray(stats.levels, dtype=int)
     x, y = _log2_points(levels[upper], np.abs(np.asarray(stats.mean_diff, float))[upper, q])
     ax.plot(x, y, "o-", color="C0", label="$|E[Y_l]|$")
     alpha = rates.alpha[q]
-    if _is_bias_fitted(alpha):
+    if is_bias_decaying(alpha):
         _fit_line(ax, span, rates.c_alpha[q], -alpha,
                   rf"$c_\alpha 2^{{-\alpha l}}$, $\alpha$ = {alpha:.2f} ± {rates.alpha_se[q]:.2f}", "C0")
     else:  # as the text report: a legend entry without a line
@@ -218,17 +213,6 @@ def _cost_panel(ax: Any, stats: Any, rates: Any, span: Sequence[int], grids: Seq
     _label_grids(ax, levels, grids)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")
-
-
-def _measures_plain_mc(run: RunRecord) -> bool:
-    """An MC run planned by the screening (``mc --tol``): a measure of plain MC to its tolerance.
-
-    ``mc --level`` runs (no ``screening_rates``) sample a level the user
-    chose, with a bias of its own; the text report leaves them out of the
-    measured MC/MLMC ratio by the same rule
-    (:func:`~rough_uq.report.summary.derive_runs`).
-    """
-    return run.method == "mc" and run.screening_rates is not None
 
 
 def _tol_ratio(tol: Sequence[float]) -> np.ndarray:
@@ -302,7 +286,7 @@ def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
          {"color": "C3", "label": "MC predicted CPU-s" + _exponent_note(drawn, complexities, is_mc=True)}),
     ]
     measured = {"mlmc": drawn.finished("mlmc"),
-                "mc": [run for run in drawn.finished("mc") if _measures_plain_mc(run)]}
+                "mc": [run for run in drawn.finished("mc") if run.measures_plain_mc]}
     for (method, runs), marker, colour in zip(measured.items(), ("o", "s"), ("C0", "C3")):
         runs = [run for run in runs if _positive(run.outcome.seconds)]
         for is_on_curve in (True, False):
@@ -338,7 +322,7 @@ def _samples_figure(drawn: _Drawn, path: Path) -> Path | None:
     if not mlmc:
         return None
     shown = [mlmc[0]] if len(mlmc) == 1 else [mlmc[0], mlmc[-1]]
-    mc_by_tol = {run.tol: run.outcome for run in drawn.finished("mc") if _measures_plain_mc(run)}
+    mc_by_tol = {run.tol: run.outcome for run in drawn.finished("mc") if run.measures_plain_mc}
 
     from matplotlib.ticker import FuncFormatter, NullFormatter
 

@@ -241,8 +241,7 @@ def derive_runs(runs: Sequence[RunRecord]) -> list[ReportedRun]:
     run's modelled cost). Dropped runs (``roughuq drop``) are left out.
     """
     kept = [run for run in runs if run.status != "dropped"]
-    measured_mc = {run.tol: run.outcome for run in kept
-                   if run.method == "mc" and run.is_finished and run.screening_rates is not None}
+    measured_mc = {run.tol: run.outcome for run in kept if run.measures_plain_mc and run.is_finished}
     shown = []
     for run in kept:
         mc = measured_mc.get(run.tol) if run.method == "mlmc" and run.is_finished else None

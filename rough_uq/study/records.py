@@ -69,6 +69,7 @@ __all__ = [
     "RunRecord",
     "ScreeningRecord",
     "complexity",
+    "is_bias_decaying",
     "count_not_converged",
     "read_run_records",
     "read_screening_record",
@@ -123,6 +124,14 @@ class Complexity:
                 "mlmc_regime": self.mlmc_regime}
 
 
+def is_bias_decaying(alpha: float | None) -> bool:
+    """Whether a fitted bias rate shows a measurable decay: finite and above :data:`MIN_ALPHA`.
+
+    The one rule of the report's "not fitted" (:func:`complexity`, the rates figure).
+    """
+    return alpha is not None and math.isfinite(alpha) and alpha > MIN_ALPHA
+
+
 def complexity(alpha: float | None, beta: float | None, gamma: float | None) -> Complexity:
     """Cost exponents of MC and MLMC in ``1/eps`` from the rates of one QoI.
 
@@ -131,7 +140,7 @@ def complexity(alpha: float | None, beta: float | None, gamma: float | None) -> 
     ``eps^-(2 + (gamma - beta)/alpha)``. A bias rate at most :data:`MIN_ALPHA`
     (no measurable decay) gives no exponent.
     """
-    if alpha is None or not math.isfinite(alpha) or alpha <= MIN_ALPHA:
+    if not is_bias_decaying(alpha):
         return Complexity(None, None, "not fitted: the bias does not decay over the screened levels")
     if gamma is None or not math.isfinite(gamma):
         return Complexity(None, None, "not fitted: no cost rate gamma")
@@ -941,6 +950,16 @@ class RunRecord:
     @property
     def is_finished(self) -> bool:
         return self.status == "finished" and self.outcome is not None
+
+    @property
+    def measures_plain_mc(self) -> bool:
+        """An MC run the screening planned (``mc --tol``): a measure of plain MC to its tolerance.
+
+        ``mc --level`` runs (no ``screening_rates``) sample a level the user
+        chose, with a bias of their own: the report's measured MC/MLMC ratio
+        and its figures leave them out.
+        """
+        return self.method == "mc" and self.screening_rates is not None
 
     @property
     def is_richardson(self) -> bool:
