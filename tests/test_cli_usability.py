@@ -668,6 +668,23 @@ def test_mc_on_a_level_refuses_a_budget_below_its_initial_samples_before_any_sam
     assert not (tmp_path / "new.h5").exists()
 
 
+def test_a_run_its_budget_stops_says_stopped_not_done(tmp_path, monkeypatch):
+    """Progress ended 'done in 2s' for a run --max-cost stopped (NOT MET, exit 3)."""
+    from rough_uq.problem.sampler import modelled_cost
+    from rough_uq.study.config import config_from_dict
+    from rough_uq.study.pipeline import build_model
+
+    monkeypatch.chdir(tmp_path)
+    config = tiny_config()
+    write_config(tmp_path / "tiny.yaml", config)
+    # Above the least cost of the 4 initial samples of level 1, below their cost with iterations: a probe, then stop.
+    budget = 1.2 * 4 * float(modelled_cost(build_model(config_from_dict(config)), 1, np.zeros((1, 2)))[0])
+    result = run("mc", "--config", "tiny.yaml", "--study", "new.h5", "--level", "1", "--tol", "0.01",
+                 "--max-cost", f"{budget:.6g}", "--workers", "1", expect=EXIT_TOL_NOT_MET)
+    last = [line for line in result.stderr.splitlines() if line.startswith("[mc ")][-1]
+    assert re.fullmatch(r"\[mc contact_area=0\.01\] stopped after \d+s", last), result.stderr
+
+
 def test_a_study_file_is_kept_once_it_holds_anything(tmp_path, monkeypatch):
     """Only a file the command created and left empty goes: a refusal after samples keeps them."""
     monkeypatch.chdir(tmp_path)

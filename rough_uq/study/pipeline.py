@@ -1323,7 +1323,8 @@ def _follow(events: Iterator[object], progress: Progress, title: str) -> tuple[A
     except BaseException:
         progress.stop(is_complete=False)
         raise
-    progress.stop()
+    # A run its budget stopped did not draw what it planned: "stopped after", not "done in".
+    progress.stop(is_complete=getattr(result, "stop_reason", None) != "max_cost")
     if result is None:  # pragma: no cover - the event stream always ends with Finished
         raise RoughUQError("the estimator stopped without a result")
     return result, diagnostics
@@ -1723,7 +1724,7 @@ def _follow_target(
     except BaseException:
         progress.stop(is_complete=False)
         raise
-    progress.stop()
+    progress.stop(is_complete=getattr(result, "stop_reason", None) != "max_cost")  # as _follow
     return result, diagnostics
 
 
