@@ -409,3 +409,25 @@ def test_the_prediction_table_marks_tolerances_whose_bias_the_finest_grid_cannot
     assert " 1 *" in text and " 2 *" not in text and "mlmc refuses it" in text
     console.print(_predictions_table(SimpleNamespace(predictions=(row(2.0, True),))))
     assert console.export_text().count("mlmc refuses") == 0
+
+
+def test_the_rates_say_no_decay_only_for_a_bias_that_does_not_decay():
+    # Without a cost rate gamma there is no complexity exponent, and the alpha of a decaying bias was printed
+    # "(no decay)" all the same.
+    import io
+
+    from rich.console import Console
+
+    from rough_uq.report.summary import _print_rates
+
+    screening = _screening()
+    no_gamma = replace(screening, rates=replace(screening.rates, gamma=math.nan))
+
+    def printed(record):
+        console = Console(width=200, file=io.StringIO(), record=True)
+        _print_rates(console, record, ("contact_area", "clusters"))
+        return console.export_text()
+
+    assert screening.rates.alpha[0] > MIN_ALPHA and no_gamma.complexity[0].mc_exponent is None
+    assert "(no decay)" not in printed(screening).splitlines()[2] and "(no decay)" not in printed(no_gamma)
+    assert "not fitted: no cost rate gamma" in printed(no_gamma)

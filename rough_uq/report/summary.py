@@ -77,6 +77,7 @@ from rough_uq.study.records import (
     ScreeningRecord,
     complexity,
     count_not_converged,
+    is_bias_decaying,
     read_run_records,
     read_screening_record,
 )
@@ -540,7 +541,7 @@ def _print_rates(console: Any, screening: ScreeningRecord, qoi_names: Sequence[s
     for q, name in enumerate(qoi_names):
         c = screening.complexity[q]
         alpha, beta = rates.alpha[q], rates.beta[q]
-        alpha_text = _pm(alpha, rates.alpha_se[q]) if c.mc_exponent is not None else f"{_g(alpha, 2)} (no decay)"
+        alpha_text = _pm(alpha, rates.alpha_se[q]) if is_bias_decaying(alpha) else f"{_g(alpha, 2)} (no decay)"
         console.print(f"  {name}: alpha = {alpha_text}, beta = {_pm(beta, rates.beta_se[q])}")
         if c.mc_exponent is None:
             console.print(f"    {c.mlmc_regime}")
