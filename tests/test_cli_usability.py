@@ -685,6 +685,14 @@ def test_a_run_its_budget_stops_says_stopped_not_done(tmp_path, monkeypatch):
     assert re.fullmatch(r"\[mc contact_area=0\.01\] stopped after \d+s", last), result.stderr
 
 
+def test_a_single_sample_is_counted_in_the_singular(screened):
+    """The shard output said '1 samples of stage ...'."""
+    result = run(*SAMPLE[:5], "--indices", "0:1", "--workers", "1", "--out", "one.h5")
+    assert ": 1 sample of stage " in result.stdout and "1 samples" not in result.stdout
+    merged = run("merge", "one.h5")
+    assert ": added 0 samples from 1 shard" in merged.output and "skipped 1 sample already" in merged.stderr
+
+
 def test_a_study_file_is_kept_once_it_holds_anything(tmp_path, monkeypatch):
     """Only a file the command created and left empty goes: a refusal after samples keeps them."""
     monkeypatch.chdir(tmp_path)
