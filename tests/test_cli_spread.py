@@ -410,7 +410,7 @@ def test_bad_distribution_settings_in_the_config_name_the_field(tmp_path, distri
     config = write_config(tmp_path / "bad.yaml", tiny_config(estimation={"distribution": distribution}))
     result = run("validate", str(config), expect=2)
     lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"error: {field}: "), result.stderr
+    assert len(lines) == 1 and lines[0].startswith(f"error: {config}: {field}: "), result.stderr
 
 
 def test_the_cli_and_the_python_front_door_draw_the_same_samples_and_agree(tiny, monkeypatch):

@@ -693,6 +693,16 @@ def test_a_single_sample_is_counted_in_the_singular(screened):
     assert ": added 0 samples from 1 shard" in merged.output and "skipped 1 sample already" in merged.stderr
 
 
+@pytest.mark.parametrize("command", [("solve",), ("screen", "--workers", "1"), ("validate",)])
+def test_a_config_error_names_the_file(tmp_path, monkeypatch, command):
+    """`roughuq solve bad.yaml` said 'error: surface.hurst: ...': in a loop over configs, not which file."""
+    monkeypatch.chdir(tmp_path)
+    surface = {**tiny_config()["surface"], "hurst": 1.8}
+    write_config(tmp_path / "bad.yaml", tiny_config(surface=surface))
+    line = one_error_line(run(command[0], "bad.yaml", *command[1:], expect=2))
+    assert line.startswith("error: bad.yaml: surface.hurst: must be less than or equal to 1 (got 1.8; "), line
+
+
 def test_a_study_file_is_kept_once_it_holds_anything(tmp_path, monkeypatch):
     """Only a file the command created and left empty goes: a refusal after samples keeps them."""
     monkeypatch.chdir(tmp_path)

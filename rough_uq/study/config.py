@@ -1261,7 +1261,7 @@ def load_config(path: str | os.PathLike[str]) -> StudyConfig:
     ConfigError
         For a missing, unreadable, empty or malformed file and for every
         invalid field; the message has one line per problem,
-        ``<field.path>: <what is wrong> (got <value>; allowed: <what>)``.
+        ``<file>: <field.path>: <what is wrong> (got <value>; allowed: <what>)``.
     """
     name = os.fspath(path)
     try:
@@ -1273,7 +1273,12 @@ def load_config(path: str | os.PathLike[str]) -> StudyConfig:
     except (OSError, UnicodeDecodeError) as exc:
         line = f"{name}: cannot be read: {exc} (got {name!r}; allowed: a readable UTF-8 YAML file)"
         raise _config_error([line]) from None
-    return config_from_yaml_text(text, source=name)
+    try:
+        return config_from_yaml_text(text, source=name)
+    except ConfigError as error:
+        # Each problem names the file: `roughuq screen a.yaml` in a loop over configs said which field, not where.
+        lines = [line if line.startswith(f"{name}: ") else f"{name}: {line}" for line in error.problems]
+        raise _config_error(lines) from None
 
 
 def config_from_stored_text(text: str, *, source: str = "config") -> StudyConfig:
