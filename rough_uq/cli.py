@@ -1038,8 +1038,12 @@ def _print_forecast(forecast: Any, method: str) -> None:
     if method == "mc":
         samples = f"level {forecast.finest_level} ({forecast.grid}^2), N {forecast.n_samples[0]}"
     else:
-        samples = (f"levels 0..{forecast.finest_level} (finest {forecast.grid}^2), "
-                   f"N_l {' '.join(str(n) for n in forecast.n_samples)}")
+        # From the plan's coarsest level, as the run reports its levels: "levels 0..3, N_l 0 11 2 2" read as
+        # another hierarchy than the run's "levels 1..3, N_l 11 2 2".
+        counts = list(forecast.n_samples)
+        base = next((level for level, n in enumerate(counts) if n > 0), 0)
+        samples = (f"levels {base}..{forecast.finest_level} (finest {forecast.grid}^2), "
+                   f"N_l {' '.join(str(n) for n in counts[base:])}")
     click.echo(f"forecast: {samples}", err=True)
     elapsed, cpu = (format_duration(seconds, digits=2) for seconds in (forecast.wall_seconds, forecast.cpu_seconds))
     click.echo(f"forecast: about {elapsed} elapsed ({cpu} CPU, modelled cost {forecast.modelled_cost:.3g} ref-s), "

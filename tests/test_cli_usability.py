@@ -146,6 +146,18 @@ def test_the_forecast_prints_durations_without_exponents(capsys):
     assert "forecast: about 100 s elapsed (110 min CPU, " in capsys.readouterr().err
 
 
+def test_the_forecast_names_the_levels_the_run_samples(capsys):
+    """The quickstart's forecast said 'levels 0..3 ... N_l 0 7 2 2', the run then 'levels 1..3, N_l 7 2 2'."""
+    from types import SimpleNamespace
+
+    from rough_uq.cli import _print_forecast
+
+    forecast = SimpleNamespace(finest_level=3, grid=256, n_samples=[0, 7, 2, 2], wall_seconds=1.0, cpu_seconds=1.0,
+                               modelled_cost=1.0, memory_bytes=2**20)
+    _print_forecast(forecast, "mlmc")
+    assert "forecast: levels 1..3 (finest 256^2), N_l 7 2 2\n" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("command", ["mlmc", "mc"])
 def test_quiet_prints_only_the_result_and_warnings(screened, command):
     result = run(command, "--tol", "5", "--workers", "1", "--quiet")
