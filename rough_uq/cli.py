@@ -275,9 +275,9 @@ def _warn_memory(config: Any, level: int, pool: Any, executor: str = "local", *,
         click.echo(f"warning: {text}", err=True)
 
 
-def _samples(n: int) -> str:
-    """``1 sample``, ``2 samples``: a count of samples in words ("1 samples" read as a typo)."""
-    return f"{n} sample" if n == 1 else f"{n} samples"
+def _counted(n: int, noun: str) -> str:
+    """``1 sample``, ``2 samples``: a count in words ("1 samples" read as a typo)."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 def _check_not_empty(option: str, text: str | None) -> None:
@@ -1076,7 +1076,7 @@ def _print_plan(work: Any, as_json: bool, shard_size: int | None = None, resourc
     if as_json:
         _dump({"run_id": work.run_id, "stage": work.stage, "n_missing": work.n_missing, "levels": rows})
         return
-    click.echo(f"run {work.run_id} (stage {work.stage}): {_samples(work.n_missing)} missing")
+    click.echo(f"run {work.run_id} (stage {work.stage}): {_counted(work.n_missing, 'sample')} missing")
     for row in rows:
         click.echo(f"  level {row['level']}: {row['n_missing']} missing, indices {' '.join(row['indices'])}")
 
@@ -1218,7 +1218,7 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
             watch = (study.config, pool, "local", "a study with a smaller grid.max_level")
             path = compute_shard(study, stage=stage_id, level=level, indices=wanted, out=out, executor=pool,
                                  progress=_progress(quiet, watch))
-    click.echo(f"{path}: {_samples(wanted.size)} of stage {stage_id}, level {level}")
+    click.echo(f"{path}: {_counted(wanted.size, 'sample')} of stage {stage_id}, level {level}")
 
 
 @main.command()
@@ -1233,10 +1233,9 @@ def merge(shards: Sequence[str], study_path: str) -> None:
 
     with open_existing_study(study_path) as study:
         counts = merge_shards(study, shards)
-    shards_text = f"{len(shards)} shard" + ("" if len(shards) == 1 else "s")
-    click.echo(f"{study_path}: added {_samples(counts['added'])} from {shards_text}")
+    click.echo(f"{study_path}: added {_counted(counts['added'], 'sample')} from {_counted(len(shards), 'shard')}")
     if counts["duplicates"]:
-        click.echo(f"warning: skipped {_samples(counts['duplicates'])} already in the study", err=True)
+        click.echo(f"warning: skipped {_counted(counts['duplicates'], 'sample')} already in the study", err=True)
 
 
 @main.command()
