@@ -149,7 +149,7 @@ from rough_uq.errors import (
     PlanTooLargeError,
     checked_bool,
     checked_integer,
-    is_real_array,
+    checked_real_array,
     is_real_number,
 )
 from rough_uq.multilevel.allocation import (
@@ -908,7 +908,8 @@ def _draw(
     n = _batch_size(hierarchy, level, wanted, max_cost, run.cost_rate)
     if n:
         batches.append(_draw_batch(run, sampler, samples, n))
-    return batches, n == 0 if not is_probed else n < wanted
+    is_over_budget = n < wanted if is_probed else n == 0
+    return batches, is_over_budget
 
 
 #: Samples drawn first, alone, where a run with a budget knows no cost yet (its first batch): a budget below
@@ -1460,16 +1461,20 @@ def mlmc(
     return _final(iter_mlmc(sampler, tol=tol, qoi_names=qoi_names, **options))
 
 
-def refuse_large_plan(n_planned, *, max_samples: int | None, tol: np.ndarray, advice: str) -> None:
+def refuse_large_plan(
+    n_planned, *, max_samples: int | None, tol: np.ndarray, advice: str, tolerance: str | None = None
+) -> None:
     """Raise :class:`~rough_uq.errors.PlanTooLargeError` for a plan of more than ``max_samples`` samples in all.
 
     ``n_planned`` are the samples per level; ``advice`` ends the message (what
-    to change). ``max_samples`` None: no limit.
+    to change); ``tolerance`` names the tolerance in it (default ``tol`` and
+    its values). ``max_samples`` None: no limit.
     """
     total = float(np.sum(n_planned))
     if max_samples is not None and total > max_samples:
         raise PlanTooLargeError(
-            n_planned=n_planned, total=total, max_samples=max_samples, tol=np.ravel(tol), advice=advice
+            n_planned=n_planned, total=total, max_samples=max_samples, tol=np.ravel(tol), advice=advice,
+            tolerance=tolerance,
         )
 
 
@@ -1588,9 +1593,10 @@ def iter_mc(
 
 def _checked_bias(bias: object) -> np.ndarray:
     """``|bias|`` as a 1-d float array; strings, booleans and non-finite values are refused naming ``bias``."""
-    values = np.asarray(bias, dtype=float) if is_real_array(bias) else None
-    if values is None or values.ndim > 1 or not np.all(np.isfinite(values)):
-        raise InvalidParameterError("bias", bias, "a finite number or a 1-d array of them (one per QoI)")
+    allowed = "a finite number or a 1-d array of them (one per QoI)"
+    values = checked_real_array("bias", bias, allowed)
+    if values.ndim > 1 or not np.all(np.isfinite(values)):
+        raise InvalidParameterError("bias", bias, allowed)
     return np.atleast_1d(np.abs(values))
 
 

@@ -60,6 +60,7 @@ from rough_uq.multilevel.drivers import (
     RichardsonRefused,
     iter_mc,
     iter_mlmc,
+    refuse_large_plan,
     starting_plan,
     starting_samples,
 )
@@ -879,11 +880,9 @@ def _refusing_large_plans(events: Iterator[object], names: Sequence[str], tol: n
     """
     try:
         for event in events:
-            if isinstance(event, PlanUpdated) and float(np.sum(event.n_planned)) > MAX_PLANNED_SAMPLES:
-                raise PlanTooLargeError(
-                    n_planned=event.n_planned, total=float(np.sum(event.n_planned)), max_samples=MAX_PLANNED_SAMPLES,
-                    tol=tol, tolerance=f"--tol {_tol_text(names, tol)}", advice="loosen --tol",
-                )
+            if isinstance(event, PlanUpdated):
+                refuse_large_plan(event.n_planned, max_samples=MAX_PLANNED_SAMPLES, tol=tol, advice="loosen --tol",
+                                  tolerance=f"--tol {_tol_text(names, tol)}")
             yield event
     finally:
         events.close()
