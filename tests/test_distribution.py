@@ -6,6 +6,7 @@ Statistical checks are seeded; each states where its slack comes from.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from moment_problems import PerturbedLimit
 from scipy import integrate, stats
 from scipy.optimize import isotonic_regression
 
-from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.errors import EstimationError, EstimationWarning, InvalidParameterError
 from rough_uq.multilevel.distribution import (
     cdf_from_samples,
     cdf_level_term,
@@ -175,6 +176,82 @@ def test_quantile_error_bars_follow_the_delta_method():
     density = stats.norm.pdf(found.values)
     np.testing.assert_allclose(found.half_width * density / result.rmse, 1.0, rtol=0.05)
     assert np.all(np.abs(found.values - stats.norm.ppf(PROBABILITIES)) < 4 * found.half_width)
+
+
+# --------------------------------------------------------------------------
+# Thresholds that miss the samples
+# --------------------------------------------------------------------------
+
+
+def level_ranges(problem: PerturbedLimit, n_samples: np.ndarray) -> list[tuple[float, float]]:
+    """Smallest and largest value (``Q_l``, and ``Q_{l-1}`` on ``l >= 1``) of the samples a run used, per level."""
+    ranges = []
+    for level, n in enumerate(n_samples):
+        fine, coarse, _ = problem(level, np.arange(n))
+        values = fine if level == 0 else np.concatenate([fine, coarse])
+        ranges.append((float(values.min()), float(values.max())))
+    return ranges
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("side", ["below", "above"])
+def test_thresholds_beyond_every_sample_do_not_claim_the_tolerance(seed, side):
+    # Every threshold 8 to 12 standard deviations from the mean: the indicators are 0 (or 1) on every sample,
+    # the sample variances 0, and the run reported a sup-norm RMSE 0 and "tol_met".
+    problem = PerturbedLimit(seed=seed)
+    s = np.linspace(-12.0, -8.0, 9) if side == "below" else np.linspace(8.0, 12.0, 9)
+    with pytest.warns(EstimationWarning) as caught:
+        result = mlmc_cdf(problem, thresholds=s, tol=0.05, bandwidth=BANDWIDTH)
+    assert np.all(result.cdf == (1.0 if side == "above" else 0.0)) and result.rmse == 0.0
+    assert not result.tol_met and not result.target.tol_met
+    assert result.stop_reason == result.target.stop_reason == "thresholds_miss_samples"
+    assert result.missed_levels.tolist() == result.levels.tolist()
+    (message,) = [str(w.message) for w in caught]
+    ranges = ", ".join(f"level {level} (values {low:.4g} .. {high:.4g})"
+                       for level, (low, high) in enumerate(level_ranges(problem, result.n_samples)))
+    assert message.startswith(f"cdf: the thresholds [{s[0]:g}, {s[-1]:g}] miss the samples of {ranges}: ")
+    assert "the tolerance is not met" in message
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_thresholds_over_part_of_the_distribution_still_meet_the_tolerance(seed):
+    # The lower half only: levels have values on both sides of the thresholds near the median.
+    problem = PerturbedLimit(seed=seed)
+    s = np.linspace(problem.limit.ppf(0.005) - 0.5, 0.0, 21)
+    result = mlmc_cdf(problem, thresholds=s, tol=0.05, bandwidth=BANDWIDTH)  # warnings are errors
+    assert result.missed_levels.size == 0
+    assert result.stop_reason == "tol_met" and result.tol_met and 0 < result.rmse <= 0.05
+
+
+@pytest.mark.parametrize(
+    ("level_1", "is_missed_1"),
+    [
+        (([5.0, 6.0], [5.5, 7.0]), True),  # every value above the grid, beyond the bandwidths 0.5 and 1
+        (([5.0, 6.0], [2.9, 7.0]), False),  # a coarse value within delta_0 = 1 of the last threshold
+        (([2.4, 6.0], [5.5, 7.0]), False),  # a fine value within delta_1 = 0.5 of it
+        (([-5.0, 6.0], [5.5, 7.0]), False),  # fine values on both sides of every threshold
+        (([5.0, 6.0], [-5.0, -6.0]), True),  # every fine value above, every coarse one below: the term is -1 on all
+    ],
+)
+@pytest.mark.parametrize(("level_0", "is_missed_0"), [([4.0, 9.0, 6.5], True), ([2.5, 9.0, 6.5], False)])
+def test_a_level_is_missed_where_its_values_lie_beyond_the_bandwidth_on_one_side_of_every_threshold(
+    level_0, is_missed_0, level_1, is_missed_1
+):
+    fine = [np.array(level_0), np.array(level_1[0])]
+    coarse = [np.zeros(3), np.array(level_1[1])]
+    missed = [level for level, is_missed in enumerate([is_missed_0, is_missed_1]) if is_missed]
+    options = {"thresholds": [0.0, 1.0, 2.0], "bandwidth": 1.0, "tol": 0.5}
+    if not missed:
+        result = cdf_from_samples(fine=fine, coarse=coarse, **options)  # warnings are errors
+        assert result.missed_levels.size == 0 and result.stop_reason == "given"
+        return
+    values = [fine[0], np.concatenate([fine[1], coarse[1]])]
+    named = ", ".join(f"level {level} (values {values[level].min():g} .. {values[level].max():g})" for level in missed)
+    expected = f"cdf: the thresholds [0, 2] miss the samples of {named}: "
+    with pytest.warns(EstimationWarning, match="^" + re.escape(expected)):
+        result = cdf_from_samples(fine=fine, coarse=coarse, **options)
+    assert result.missed_levels.tolist() == missed
+    assert not result.tol_met and result.stop_reason == "thresholds_miss_samples"
 
 
 # --------------------------------------------------------------------------

@@ -82,11 +82,35 @@ def test_bad_column_and_unbracketed_quantiles_say_what_is_wrong():
     with pytest.raises(rough_uq.InvalidParameterError, match="tol"):
         rough_uq.variance(problem, tol=-1.0)
     # Thresholds far below the contact area: the CDF is 0 on the grid, no quantile is bracketed,
-    # and the estimate stays available.
-    result = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(0, 1, 11), n_initial=8)
+    # and the estimate stays available (with a warning that the thresholds miss the samples).
+    with pytest.warns(rough_uq.EstimationWarning, match="miss the samples"):
+        result = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(0, 1, 11), n_initial=8)
     assert np.all(result.cdf.cdf == 0)
     with pytest.raises(rough_uq.EstimationError, match="bracket"):
         result.quantiles()
+
+
+@pytest.mark.parametrize(("thresholds", "side"), [(np.linspace(0, 10, 11), 0.0), (np.linspace(90, 100, 11), 1.0)])
+def test_a_distribution_whose_thresholds_miss_the_contact_area_does_not_meet_its_tolerance(thresholds, side):
+    # The contact area is 30-45 %: every indicator was 0 (or 1) on every sample, and the run reported
+    # a sup-norm RMSE of 0 and its tolerance met.
+    problem = _problem()
+    with pytest.warns(rough_uq.EstimationWarning) as caught:
+        result = rough_uq.distribution(problem, tol=0.1, thresholds=thresholds, n_initial=8)
+    law = result.cdf
+    assert np.all(law.cdf == side) and law.rmse == 0.0
+    assert not law.tol_met and law.stop_reason == "thresholds_miss_samples"
+    assert law.missed_levels.tolist() == law.levels.tolist() == list(range(problem.max_level + 1))
+    (message,) = [str(w.message) for w in caught]
+    stage = run_stage("mlmc", run_id("cdf", ["contact_area"], np.array([0.1]), 0.5))
+    for level, n in zip(law.levels, law.n_samples):
+        fine, coarse, _ = problem.sampler(stage)(int(level), np.arange(n, dtype=np.int64))
+        values = np.ravel(fine) if level == 0 else np.concatenate([np.ravel(fine), np.ravel(coarse)])
+        assert f"level {level} (values {values.min():.4g} .. {values.max():.4g})" in message
+    assert message.startswith(f"cdf: the thresholds [{thresholds[0]:g}, {thresholds[-1]:g}] miss the samples of ")
+    # The same problem on thresholds over the lower part of its range only: no level is missed.
+    partial = rough_uq.distribution(problem, tol=0.1, thresholds=np.linspace(20, 36, 17), n_initial=8).cdf
+    assert partial.missed_levels.size == 0 and partial.stop_reason != "thresholds_miss_samples"
 
 
 @pytest.mark.parametrize("probabilities", ["0.5", "abc", ["0.05", 0.95], [0.5, None], 1.5])

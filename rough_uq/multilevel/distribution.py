@@ -41,6 +41,27 @@ of the squared supremum, ``E[max_j |Fhat(s_j) - F(s_j)|^2]``, is larger
 (by a factor that grows slowly with the number of effectively independent
 thresholds): for a simultaneous band, widen accordingly.
 
+Thresholds that miss the samples
+--------------------------------
+The variance of a level term is estimated from the spread of its samples at
+the thresholds. Where every value of level ``l`` (``Q_l``, and ``Q_{l-1}``
+on ``l >= 1``) lies at least its bandwidth away on one side of each
+threshold (e.g. every threshold below the smallest value, or above the
+largest), the smoothed indicators are 0 on all samples or 1 on all, and the
+term's sample variance is 0 at every threshold whatever ``F`` is: the
+samples do not measure it. (``N`` values on one side of ``s`` only bound the
+probability of the other side by about ``3/N`` (95 %), so the term's true
+standard error can be up to about ``sqrt(3)/N``.) The thresholds then *miss
+the samples* of that level, and the estimate lists the level in
+``missed_levels``, warns (:class:`~rough_uq.errors.EstimationWarning`,
+naming the thresholds and, per missed level, the range of its values),
+reports ``stop_reason = "thresholds_miss_samples"`` and does not meet its
+tolerance, whatever its error estimate (0 where every level is missed)
+says. A grid over part of the distribution misses no level as long as each
+level has a value within a bandwidth of some threshold, or values on both
+sides of one; a grid over a thin tail alone can miss a level of few
+samples: extend the grid, or draw more initial samples.
+
 Monotone output
 ---------------
 The raw sum ``cdf_raw`` need not be monotone or lie in ``[0, 1]``. The
@@ -67,12 +88,19 @@ interpolation alone).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, checked_real_array, is_real_number
+from rough_uq.errors import (
+    EstimationError,
+    EstimationWarning,
+    InvalidParameterError,
+    checked_real_array,
+    is_real_number,
+)
 from rough_uq.multilevel.drivers import Sampler
 from rough_uq.multilevel.statistics import _readonly
 from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc, telescope
@@ -80,6 +108,7 @@ from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc
 __all__ = [
     "CdfEstimate",
     "Quantiles",
+    "THRESHOLDS_MISS_SAMPLES",
     "cdf_from_samples",
     "cdf_level_term",
     "isotonic",
@@ -88,6 +117,9 @@ __all__ = [
     "quantiles",
     "smoothed_step",
 ]
+
+#: ``stop_reason`` of an estimate whose thresholds miss the samples of a level (module docstring).
+THRESHOLDS_MISS_SAMPLES = "thresholds_miss_samples"
 
 #: Rows of samples per block when evaluating the smoothed indicators (bounds memory to block x thresholds).
 _BLOCK = 4096
@@ -210,6 +242,41 @@ def cdf_level_term(
     )
 
 
+def _is_one_sided(values: np.ndarray, s: np.ndarray, delta: float) -> bool:
+    """Whether every value lies ``delta`` or more on one side of each threshold (``g`` 0 on all, or 1 on all).
+
+    ``g`` is monotone: the smallest and the largest value decide.
+    """
+    low = smoothed_step((s - np.max(values)) / delta)
+    high = smoothed_step((s - np.min(values)) / delta)
+    return bool(np.all((low == high) & ((low == 0.0) | (low == 1.0))))
+
+
+def _missed_range(
+    fine: np.ndarray,
+    coarse: np.ndarray | None,
+    level: int,
+    *,
+    thresholds: np.ndarray,
+    bandwidth: float,
+    bandwidth_rate: float,
+    qoi: int,
+) -> tuple[float, float] | None:
+    """The range of the level's values (unit of ``Q``) if the thresholds miss them (module docstring), else None.
+
+    Arguments as in :func:`cdf_level_term`, ``thresholds`` already checked.
+    """
+    sides = [(_column(fine, qoi, "fine"), level)]
+    if coarse is not None:
+        sides.append((_column(coarse, qoi, "coarse"), level - 1))
+    for values, bandwidth_level in sides:
+        delta = level_bandwidth(bandwidth_level, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
+        if not _is_one_sided(values, thresholds, delta):
+            return None
+    values = np.concatenate([values for values, _ in sides])
+    return float(np.min(values)), float(np.max(values))
+
+
 def isotonic(values: np.ndarray) -> np.ndarray:
     """Least-squares non-decreasing fit of a sequence (pool-adjacent violators, equal weights).
 
@@ -260,6 +327,10 @@ class CdfEstimate:
     target : TargetEstimate
         The underlying telescoping estimate (levels, ``n_samples``, terms,
         rates, cost, ``stop_reason``, ``tol``).
+    missed_levels : ndarray of int, shape (k,)
+        Levels whose samples the thresholds miss (module docstring): their
+        variance estimate is 0 whatever ``F`` is, and ``tol_met`` is False.
+        Empty where every level's samples meet a threshold.
     """
 
     thresholds: np.ndarray
@@ -270,6 +341,7 @@ class CdfEstimate:
     rmse: float
     bandwidths: np.ndarray
     target: TargetEstimate
+    missed_levels: np.ndarray
 
     @property
     def levels(self) -> np.ndarray:
@@ -283,7 +355,11 @@ class CdfEstimate:
 
     @property
     def stop_reason(self) -> str:
-        """Why the run stopped (see :class:`~rough_uq.multilevel.targets.TargetEstimate`)."""
+        """Why the run stopped (see :class:`~rough_uq.multilevel.targets.TargetEstimate`).
+
+        ``"thresholds_miss_samples"`` (:data:`THRESHOLDS_MISS_SAMPLES`) where the thresholds miss the samples of
+        a level (``missed_levels``), whatever the driver's reason: the tolerance is not met.
+        """
         return self.target.stop_reason
 
     @property
@@ -293,13 +369,52 @@ class CdfEstimate:
 
     @property
     def tol_met(self) -> bool:
-        """``rmse <= tol`` with an estimated bias (False without a tolerance or that estimate)."""
+        """``rmse <= tol`` with an estimated bias; False without a tolerance or that estimate, or with missed levels."""
         return self.target.tol_met
 
 
+@dataclass(frozen=True, eq=False)
+class _UnmeasuredTarget(TargetEstimate):
+    """A telescoping estimate whose thresholds miss a level's samples (module docstring): never meets its tolerance."""
+
+    @property
+    def tol_met(self) -> bool:
+        return False
+
+
+def _unmeasured(target: TargetEstimate) -> _UnmeasuredTarget:
+    """``target`` with ``stop_reason`` :data:`THRESHOLDS_MISS_SAMPLES` and ``tol_met`` False."""
+    values = {field.name: getattr(target, field.name) for field in fields(target)}
+    return _UnmeasuredTarget(**(values | {"stop_reason": THRESHOLDS_MISS_SAMPLES}))
+
+
+def _warn_thresholds_miss(thresholds: np.ndarray, missed: dict[int, tuple[float, float]]) -> None:
+    """The :class:`~rough_uq.errors.EstimationWarning` of an estimate whose thresholds miss some level's samples."""
+    ranges = ", ".join(
+        f"level {level} (values {low:.4g} .. {high:.4g})" for level, (low, high) in sorted(missed.items())
+    )
+    warnings.warn(
+        EstimationWarning(
+            f"cdf: the thresholds [{thresholds[0]:.6g}, {thresholds[-1]:.6g}] miss the samples of {ranges}: every "
+            "value lies beyond the smoothing bandwidth on one side of each threshold, so the variance estimate "
+            "there is 0 whatever F is, and the tolerance is not met; put thresholds among the values (extend the "
+            "grid) or draw more initial samples"
+        ),
+        stacklevel=4,  # the caller of mlmc_cdf or cdf_from_samples
+    )
+
+
 def _cdf_estimate(
-    target: TargetEstimate, thresholds: np.ndarray, bandwidth: float, bandwidth_rate: float
+    target: TargetEstimate,
+    thresholds: np.ndarray,
+    bandwidth: float,
+    bandwidth_rate: float,
+    missed: dict[int, tuple[float, float]],
 ) -> CdfEstimate:
+    """The CDF estimate of ``target``; ``missed``: the value range per level whose samples the thresholds miss."""
+    if missed:
+        _warn_thresholds_miss(thresholds, missed)
+        target = _unmeasured(target)
     raw = target.estimate
     return CdfEstimate(
         thresholds=_readonly(thresholds),
@@ -312,6 +427,7 @@ def _cdf_estimate(
             [level_bandwidth(int(level), bandwidth=bandwidth, bandwidth_rate=bandwidth_rate) for level in target.levels]
         ),
         target=target,
+        missed_levels=_readonly(np.array(sorted(missed), dtype=np.int64)),
     )
 
 
@@ -339,15 +455,22 @@ def cdf_from_samples(
     Returns
     -------
     CdfEstimate
+
+    Warns
+    -----
+    EstimationWarning
+        Where the thresholds miss the samples of a level (module docstring):
+        ``tol_met`` is then False, ``stop_reason`` ``"thresholds_miss_samples"``.
     """
     s = _check_thresholds(thresholds)
     if len(fine) != len(coarse) or len(fine) == 0:
         raise EstimationError(f"fine and coarse need one entry per level, got {len(fine)} and {len(coarse)}")
     options = {"thresholds": s, "bandwidth": bandwidth, "bandwidth_rate": bandwidth_rate, "qoi": qoi}
-    terms = [
-        cdf_level_term(f, None if level == 0 else c, level, **options) for level, (f, c) in enumerate(zip(fine, coarse))
-    ]
-    return _cdf_estimate(telescope(terms, tol=tol), s, bandwidth, bandwidth_rate)
+    pairs = [(f, None if level == 0 else c) for level, (f, c) in enumerate(zip(fine, coarse))]
+    terms = [cdf_level_term(f, c, level, **options) for level, (f, c) in enumerate(pairs)]
+    ranges = {level: _missed_range(f, c, level, **options) for level, (f, c) in enumerate(pairs)}
+    missed = {level: values for level, values in ranges.items() if values is not None}
+    return _cdf_estimate(telescope(terms, tol=tol), s, bandwidth, bandwidth_rate, missed)
 
 
 def mlmc_cdf(
@@ -379,6 +502,13 @@ def mlmc_cdf(
     Returns
     -------
     CdfEstimate
+
+    Warns
+    -----
+    EstimationWarning
+        Where the thresholds miss the samples of a level (module docstring):
+        the run does not meet ``tol``, its ``stop_reason`` is
+        ``"thresholds_miss_samples"``, whatever the driver stopped for.
     """
     s = _check_thresholds(thresholds)
     _check_bandwidth(bandwidth, bandwidth_rate)
@@ -386,13 +516,17 @@ def mlmc_cdf(
         # F is a probability: an RMS error of 1 or more is met by any estimate.
         raise InvalidParameterError("tol", tol, "one number in (0, 1) (the RMS error of F on the sup norm)")
 
+    settings = {"thresholds": s, "bandwidth": bandwidth, "bandwidth_rate": bandwidth_rate, "qoi": qoi}
+    # Per level, from the samples of its latest term: the driver's final estimate uses that term.
+    ranges: dict[int, tuple[float, float] | None] = {}
+
     def term(fine: np.ndarray, coarse: np.ndarray | None, level: int) -> LevelTerm:
-        return cdf_level_term(
-            fine, coarse, level, thresholds=s, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate, qoi=qoi
-        )
+        ranges[level] = _missed_range(fine, coarse, level, **settings)
+        return cdf_level_term(fine, coarse, level, **settings)
 
     target = adaptive_mlmc(sampler, term=term, tol=tol, **options)
-    return _cdf_estimate(target, s, bandwidth, bandwidth_rate)
+    missed = {int(level): ranges[int(level)] for level in target.levels if ranges[int(level)] is not None}
+    return _cdf_estimate(target, s, bandwidth, bandwidth_rate, missed)
 
 
 @dataclass(frozen=True, eq=False)

@@ -273,6 +273,10 @@ def distribution(
         Strictly increasing values ``s_j`` in the column's unit; they must
         bracket the quantiles asked for, with a spacing well below the
         quantiles' error bars (:mod:`rough_uq.multilevel.distribution`).
+        Thresholds that miss the samples of a level (every value of the
+        level a bandwidth or more on one side of each threshold, e.g. all
+        thresholds below the smallest contact area) leave its variance
+        unmeasured: the run then warns and does not meet ``tol``.
     column : str, optional
         Column of ``problem.columns``; default the first.
     bandwidth : float, optional
@@ -285,6 +289,14 @@ def distribution(
     -------
     DistributionResult
         ``cdf`` and, by :meth:`DistributionResult.quantiles`, the quantiles.
+
+    Warns
+    -----
+    EstimationWarning
+        Where the thresholds miss the samples of a level, naming the
+        thresholds and the range of the level's values; ``cdf.tol_met`` is
+        then False, ``cdf.stop_reason`` ``"thresholds_miss_samples"`` and
+        ``cdf.missed_levels`` lists the levels.
     """
     problem = _problem(problem)
     index = _column_index(problem, column)

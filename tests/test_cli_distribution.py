@@ -1,0 +1,38 @@
+"""`roughuq mlmc --tol-cdf` through the real CLI on thresholds that miss the samples (fast, tiny study)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rough_uq.cli import main
+from rough_uq.study.store import open_study_readonly
+from tests.study_configs import tiny_config, write_config
+
+
+@pytest.mark.parametrize("thresholds", ["1:10:10", "80:99:20"])
+def test_a_cdf_run_whose_thresholds_miss_the_samples_is_not_met_and_says_why(tmp_path, monkeypatch, thresholds):
+    # The tiny study's contact area is about 35-55 %: every indicator was 0 (or 1) on every sample, and the run
+    # printed "sup-norm RMSE 0 <= tol 0.1" and "tolerance met" (exit 0) next to warnings on the quantiles.
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    result = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.1", "--thresholds",
+                                       thresholds, "--workers", "1", "--json", "-q"])
+    assert result.exit_code == 3, (result.output, result.exception)
+    shown = json.loads(result.stdout)
+    assert not shown["tol_met"] and shown["stop_reason"] == "thresholds_miss_samples" and shown["rmse"] == [0.0]
+    assert "tolerance not met (thresholds_miss_samples)" in result.stderr
+    # The stored warning names the thresholds and, per level, the range of the values the run used.
+    start, stop, _ = (float(text) for text in thresholds.split(":"))
+    (message,) = [text for text in shown["warnings"] if text.startswith("cdf: ")]
+    assert message.startswith(f"cdf: the thresholds [{start:g}, {stop:g}] miss the samples of level 0 (values ")
+    with open_study_readonly(tmp_path / "results.h5") as store:
+        for level, n in zip(shown["levels"], shown["n_samples"]):
+            batch = store.read_samples(level=level, stage=shown["stage"])
+            used = np.argsort(batch.indices)[:n]
+            values = batch.fine[used, 0] if level == 0 else np.concatenate([batch.fine[used, 0], batch.coarse[used, 0]])
+            assert f"level {level} (values {values.min():.4g} .. {values.max():.4g})" in message
+            assert np.all(values > stop) or np.all(values < start)
