@@ -90,7 +90,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -373,21 +373,6 @@ class CdfEstimate:
         return self.target.tol_met
 
 
-@dataclass(frozen=True, eq=False)
-class _UnmeasuredTarget(TargetEstimate):
-    """A telescoping estimate whose thresholds miss a level's samples (module docstring): never meets its tolerance."""
-
-    @property
-    def tol_met(self) -> bool:
-        return False
-
-
-def _unmeasured(target: TargetEstimate) -> _UnmeasuredTarget:
-    """``target`` with ``stop_reason`` :data:`THRESHOLDS_MISS_SAMPLES` and ``tol_met`` False."""
-    values = {field.name: getattr(target, field.name) for field in fields(target)}
-    return _UnmeasuredTarget(**(values | {"stop_reason": THRESHOLDS_MISS_SAMPLES}))
-
-
 def _warn_thresholds_miss(thresholds: np.ndarray, missed: dict[int, tuple[float, float]]) -> None:
     """The :class:`~rough_uq.errors.EstimationWarning` of an estimate whose thresholds miss some level's samples."""
     ranges = ", ".join(
@@ -414,7 +399,7 @@ def _cdf_estimate(
     """The CDF estimate of ``target``; ``missed``: the value range per level whose samples the thresholds miss."""
     if missed:
         _warn_thresholds_miss(thresholds, missed)
-        target = _unmeasured(target)
+        target = replace(target, stop_reason=THRESHOLDS_MISS_SAMPLES, is_variance_measured=False)
     raw = target.estimate
     return CdfEstimate(
         thresholds=_readonly(thresholds),

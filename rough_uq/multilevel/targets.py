@@ -203,6 +203,10 @@ class TargetEstimate:
         Whether ``bias`` is an estimate: the adaptive driver sampled levels
         ``0..min_finest_level`` (module docstring, "Adaptive driver"); given
         terms reach level 1 at least. Without it ``tol_met`` is False.
+    is_variance_measured : bool
+        False where the samples cannot measure a term's variance (a CDF
+        whose thresholds miss a level's samples,
+        :mod:`rough_uq.multilevel.distribution`): ``tol_met`` is False then.
     """
 
     estimate: np.ndarray
@@ -221,6 +225,7 @@ class TargetEstimate:
     theta: float
     stop_reason: str
     is_bias_estimated: bool
+    is_variance_measured: bool = True
 
     @property
     def rmse(self) -> np.ndarray:
@@ -232,8 +237,8 @@ class TargetEstimate:
 
     @property
     def tol_met(self) -> bool:
-        """``rmse <= tol`` in every group, with an estimated bias (False without a tolerance or that estimate)."""
-        return self.is_bias_estimated and bool(np.all(self.rmse**2 <= self.tol**2 * (1 + 1e-12)))
+        """``rmse <= tol`` in every group, with an estimated bias and measured variances (False otherwise)."""
+        return self.is_bias_estimated and self.is_variance_measured and bool(np.all(self.rmse**2 <= self.tol**2 * (1 + 1e-12)))
 
     @property
     def finest_level(self) -> int:
