@@ -40,6 +40,7 @@ make the :class:`Plan` (``_allocated_plan``).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,7 +61,7 @@ from rough_uq.multilevel.richardson import (
     richardson_weight,
     second_order_rate,
 )
-from rough_uq.multilevel.statistics import LevelStatistics, _readonly
+from rough_uq.multilevel.statistics import LevelStatistics, _checked_names, _readonly
 
 __all__ = [
     "Plan",
@@ -139,7 +140,8 @@ class Plan:
         and it needs fewer levels than plain MLMC): ``bias`` is its remaining
         bias, ``n_samples`` and ``stat_variance`` weight ``V_L`` by ``w^2``.
     richardson_note : str
-        Why a requested extrapolation was not planned ("" otherwise).
+        Why a requested extrapolation was not planned ("" otherwise), naming the QoI by :func:`plan`'s
+        ``qoi_names`` where given.
     coarsest_level : int
         ``b``, the level the hierarchy starts on (its ``V_b`` is ``Var(Q_b)``;
         ``n_samples`` and ``variances`` are 0 below it).
@@ -218,6 +220,7 @@ def plan(
     bias_from: str = "both",
     richardson: bool = False,
     coarsest_level: int | None = 0,
+    qoi_names: Sequence[str] | None = None,
 ) -> Plan:
     """Finest level and optimal ``N_l`` for a tolerance (SPEC section 5).
 
@@ -258,6 +261,11 @@ def plan(
         Level the hierarchy starts on (default 0); None chooses it with
         :func:`~rough_uq.multilevel.rates.choose_coarsest_level` from
         ``statistics`` (0 without). It is capped at the finest level.
+    qoi_names : sequence of str, optional
+        Names of the QoI columns, length ``n_qoi``: ``richardson_note`` names
+        the QoI whose screened means refused the extrapolation
+        (``(contact_area)``); without them it gives its column index
+        (``(QoI 0)``), and nothing for a single QoI.
 
     Returns
     -------
@@ -281,11 +289,13 @@ def plan(
     if statistics is not None and statistics.n_qoi != rates.n_qoi:
         raise EstimationError(f"rates have {rates.n_qoi} QoIs, the statistics {statistics.n_qoi}")
     tol = _check_tol(tol, rates.n_qoi)
+    names = _checked_names(qoi_names, rates.n_qoi, argument="qoi_names")
     variances = _explicit_variances(variances, rates.n_qoi)
     costs = _explicit_costs(costs)
     bias_model = _BiasModel(rates=rates, statistics=statistics, bias_from=bias_from)
     finest = _plan_finest(
-        bias_model, math.sqrt(theta) * tol, finest_level=finest_level, max_level=max_level, richardson=richardson
+        bias_model, math.sqrt(theta) * tol, finest_level=finest_level, max_level=max_level, richardson=richardson,
+        names=names,
     )
     base, dropped = _plan_base(statistics, coarsest_level, finest.level)
     inputs = _level_inputs(
@@ -386,6 +396,7 @@ def _plan_finest(
     finest_level: int | None,
     max_level: int | None,
     richardson: bool,
+    names: Sequence[str] | None = None,
 ) -> _FinestLevel:
     """The finest level of :func:`plan`: given or the first to meet the bias, fewer if the extrapolation allows."""
     if finest_level is None:
@@ -397,7 +408,8 @@ def _plan_finest(
     is_plain_met = bool(np.all(bias <= bias_limit))
     if not richardson:
         return _FinestLevel(level=finest_level, bias=bias, is_bias_met=is_plain_met)
-    extrapolated = _richardson_level(bias_model.statistics, bias_model.rates, bias_limit, finest_level, is_plain_met)
+    extrapolated = _richardson_level(bias_model.statistics, bias_model.rates, bias_limit, finest_level, is_plain_met,
+                                     names=names)
     if isinstance(extrapolated, str):
         return _FinestLevel(level=finest_level, bias=bias, is_bias_met=is_plain_met, richardson_note=extrapolated)
     level, bias = extrapolated
@@ -541,8 +553,13 @@ def _richardson_level(
     bias_limit: np.ndarray,
     plain_level: int,
     is_plain_met: bool,
+    *,
+    names: Sequence[str] | None = None,
 ) -> tuple[int, np.ndarray] | str:
-    """Finest level and remaining bias of the extrapolated estimate, or why there is none (:func:`plan`)."""
+    """Finest level and remaining bias of the extrapolated estimate, or why there is none (:func:`plan`).
+
+    The reason names the QoI that refused it by ``names`` where given (:func:`plan`'s ``qoi_names``).
+    """
     if statistics is None:
         return "Richardson extrapolation needs screened level means"
     rows = [r for r in range(statistics.n_levels) if statistics.levels[r] >= 1 and statistics.n_samples[r] >= 2]
@@ -551,7 +568,7 @@ def _richardson_level(
         return f"Richardson extrapolation needs the screened means of levels 1 and 2 at least (has {levels})"
     means = statistics.mean_diff[rows]
     errors = np.sqrt(statistics.var_diff[rows] / statistics.n_samples[rows][:, None])
-    reason = ratio_instability(means, errors, levels, min_levels=2)
+    reason = ratio_instability(means, errors, levels, min_levels=2, names=names)
     if reason:
         return f"Richardson extrapolation refused: {reason}"
     alpha = rates.alpha
