@@ -100,6 +100,7 @@ __all__ = [
     "render_report",
     "render_runs",
     "render_targets",
+    "run_label",
     "TARGET_METHODS",
     "render_screening",
     "screening_json",
@@ -364,7 +365,42 @@ def _column_unit(units: dict[str, str], column: str) -> str:
 
 
 def _tol_text(names: Sequence[str], tol: Sequence[float]) -> str:
-    return ", ".join(f"{name}={eps:g}" for name, eps in zip(names, tol))
+    """The tolerances as ``--tol`` takes them: ``contact_area=2, clusters=0.5``.
+
+    The columns of a load curve are grouped by QoI: the value most of its
+    loads share, then the columns set apart, ``mean_gap=0.05,
+    mean_gap@0.02=0.1`` (not one ``name@load=eps`` per column, which made a
+    line of hundreds of characters). Distinct tolerances give distinct texts.
+    """
+    columns: dict[str, list[tuple[str, float]]] = {}
+    for name, eps in zip(names, tol):
+        columns.setdefault(split_column(name)[0], []).append((name, float(eps)))
+    parts = []
+    for qoi, pairs in columns.items():
+        if len(pairs) == 1:
+            parts.append(f"{pairs[0][0]}={pairs[0][1]:g}")
+            continue
+        values = [eps for _, eps in pairs]
+        common = max(values, key=values.count)
+        parts += [f"{qoi}={common:g}"] + [f"{name}={eps:g}" for name, eps in pairs if eps != common]
+    return ", ".join(parts)
+
+
+def run_label(run: RunRecord, qoi_names: Sequence[str]) -> str:
+    """A run in a few words: ``mlmc, tol contact_area=2, mean_gap=0.05, theta 0.5``; ``mc on level 1, ...``.
+
+    Method (``mlmc (Richardson)`` for an extrapolated run), the level of an
+    ``mc --level`` run (not that an ``mc --tol`` run chose), tolerances
+    (:func:`_tol_text`) and ``theta``: what its run id is made of
+    (:func:`~rough_uq.problem.runs.run_id`), so distinct runs have distinct
+    labels, in a fraction of the id's length. The id itself is in ``roughuq
+    report``'s ``samples stored`` line and in its ``--json`` (``run_id``),
+    for ``roughuq drop`` and ``roughuq show --stage``.
+    """
+    is_given_level = run.method == "mc" and run.level is not None and not run.measures_plain_mc
+    where = f" on level {run.level}" if is_given_level else ""
+    theta = "" if run.theta is None else f", theta {run.theta:g}"
+    return f"{_method_text(run)}{where}, tol {_tol_text(run.qoi_names or qoi_names, run.tol)}{theta}"
 
 
 def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], *,
@@ -779,7 +815,8 @@ def load_curves(qoi_names: Sequence[str], runs: Sequence[RunRecord], config: Any
     Returns
     -------
     list of dict
-        Per finished run: ``run_id``, ``method``, ``loads`` (as given in the
+        Per finished run: ``run_id``, ``label`` (:func:`run_label`, the
+        table's heading), ``method``, ``loads`` (as given in the
         config, increasing), ``relative_loads`` (``p / (E* sqrt(m2))``),
         ``curves`` (QoI name -> ``{"estimate", "rmse", "stat_error"}``, lists
         over the loads), and ``kappa`` (:class:`SlopeFit` as a dict, or None
@@ -809,16 +846,21 @@ def load_curves(qoi_names: Sequence[str], runs: Sequence[RunRecord], config: Any
             fit = fit_area_slope(relative_loads=relative, area=np.array(area["estimate"]) * scale,
                                  area_error=np.array(area["rmse"]) * scale)
             kappa = None if fit is None else dict(vars(fit))
-        out.append({"run_id": run.run_id, "method": run.method, "loads": loads.tolist(),
+        out.append({"run_id": run.run_id, "label": run_label(run, qoi_names), "method": run.method,
+                    "loads": loads.tolist(),
                     "relative_loads": relative.tolist(), "curves": curves, "kappa": kappa})
     return out
 
 
 def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: dict[str, str] | None = None) -> None:
-    """One table per finished run: each QoI's estimate ± RMSE against the load, and the fitted ``kappa``."""
+    """One table per finished run: each QoI's estimate ± RMSE against the load, and the fitted ``kappa``.
+
+    A table is headed by the run's label (:func:`run_label`), not by its id:
+    a curve's id names every column's tolerance and runs to hundreds of characters.
+    """
     units = units or {}
     for entry in curves:
-        table = _table(escape(f"Load curve of {entry['run_id']} (estimate ± RMSE)"))
+        table = _table(escape(f"Load curve of {entry['label']} (estimate ± RMSE)"))
         table.add_column("load", justify="right")
         table.add_column("p/(E* sqrt(m2))", justify="right")
         names = list(entry["curves"])

@@ -1,0 +1,107 @@
+"""A load-curve run is named in the report by a short label, not by its run id of hundreds of characters."""
+
+from __future__ import annotations
+
+import io
+import itertools
+import json
+import os
+import re
+
+import pytest
+
+from rough_uq.problem.runs import run_id
+from rough_uq.report.summary import render_report
+from rough_uq.study.records import RatesRecord, RunRecord
+
+CURVE = [0.2, 0.02, 0.1, 0.05, 0.3]  # relative loads
+COLUMNS = ("contact_area@0.02", "contact_area@0.2", "mean_gap@0.02", "mean_gap@0.2")
+
+
+def _rates(n_qoi: int) -> RatesRecord:
+    per_qoi = (1.0,) * n_qoi
+    return RatesRecord(alpha=per_qoi, alpha_se=per_qoi, beta=per_qoi, beta_se=per_qoi, gamma=2.0, gamma_se=0.1,
+                       c_alpha=per_qoi, c_beta=per_qoi, c_gamma=1.0, levels_alpha=((1, 2),) * n_qoi,
+                       levels_beta=((1, 2),) * n_qoi, levels_gamma=(1, 2))
+
+
+def _record(kind: str, tol: tuple[float, ...], theta: float) -> RunRecord:
+    """A run of ``kind``: mlmc, mlmc-richardson, mc-tol (the screening chose level 1) or mc-level-<l>."""
+    method = kind.split("-")[0]
+    level = int(kind.rsplit("-", 1)[1]) if kind.startswith("mc-level") else None
+    key = run_id(method, COLUMNS, tol, theta, level, richardson=kind == "mlmc-richardson")
+    return RunRecord(run_id=key, method=method, status="running", tol=tol, qoi_names=COLUMNS, theta=theta,
+                     level=1 if kind == "mc-tol" else level,
+                     screening_rates=None if level is not None else _rates(len(COLUMNS)))
+
+
+def test_labels_tell_apart_every_run_the_run_ids_tell_apart():
+    from rough_uq.report.summary import run_label
+
+    kinds = ("mlmc", "mlmc-richardson", "mc-tol", "mc-level-1", "mc-level-2")
+    runs = [_record(kind, tol, theta) for kind in kinds for tol in itertools.product((1.0, 2.5), repeat=4)
+            for theta in (0.5, 0.25)]
+    labels = {run.run_id: run_label(run, COLUMNS) for run in runs}
+    assert len(set(labels)) == len(runs) and len(set(labels.values())) == len(runs)
+    # mc on a given level is named by it; mc --tol (which chose level 1) is not.
+    assert labels[run_id("mc", COLUMNS, (1.0,) * 4, 0.5, 1)].startswith("mc on level 1, tol ")
+    assert labels[run_id("mc", COLUMNS, (1.0,) * 4, 0.5)].startswith("mc, tol ")
+    # A QoI whose loads share a tolerance is written once.
+    assert labels[run_id("mlmc", COLUMNS, (2.5, 2.5, 1.0, 2.5), 0.5)] == (
+        "mlmc, tol contact_area=2.5, mean_gap=1, mean_gap@0.2=2.5, theta 0.5"
+    )
+
+
+@pytest.fixture(scope="module")
+def curve_report(tmp_path_factory):
+    """The ``report --json`` of a 5-load study with two MLMC runs at different tolerances (real CLI)."""
+    from click.testing import CliRunner
+
+    from rough_uq.cli import main
+    from tests.study_configs import tiny_config, write_config
+
+    directory = tmp_path_factory.mktemp("labels")
+    qoi = {"contact_area": {"tol": 4.0}, "mean_gap": {"tol": 0.1}}
+    study = str(directory / "curve.h5")
+    path = write_config(directory / "curve.yaml", tiny_config(load={"relative": CURVE}, qoi=qoi,
+                                                                output={"path": study}))
+    previous = os.getcwd()
+    os.chdir(directory)
+    try:
+        for args in (["screen", str(path)], ["mlmc", "--study", study], ["mlmc", "--study", study, "--tol",
+                                                                         "mean_gap@0.02=0.2"]):
+            result = CliRunner().invoke(main, [*args, "--workers", "1", "--quiet"])
+            assert result.exit_code == 0, (args, result.output, result.exception)
+        result = CliRunner().invoke(main, ["report", study, "--json"])
+        assert result.exit_code == 0, result.output
+    finally:
+        os.chdir(previous)
+    return json.loads(result.output)
+
+
+def _rendered(report: dict) -> str:
+    from rich.console import Console
+
+    out = io.StringIO()
+    render_report(report, Console(file=out, width=1000))  # no line but a table title wraps
+    return out.getvalue()
+
+
+def test_load_curve_tables_are_headed_by_labels_and_the_ids_stay_findable(curve_report):
+    ids = [run["run_id"] for run in curve_report["runs"]]
+    assert len(ids) == 2 and all(len(key) > 200 for key in ids)
+    text = _rendered(curve_report)
+    # A table's title wraps at the table's width: read it across its lines.
+    headings = re.findall(r"Load curve of (.*?) \(estimate ± RMSE\)", " ".join(text.split()))
+    assert len(headings) == 2 and len(set(headings)) == 2
+    for heading in headings:
+        assert len(heading) <= 80 and not any(key in heading for key in ids), heading
+        assert heading.startswith("mlmc, tol contact_area=4, mean_gap=0.1") and heading.endswith(", theta 0.5")
+    assert "mean_gap@0.02=0.2" in headings[1] and "mean_gap@0.02" not in headings[0]
+    # The runs' own headings give the tolerances the same way (they listed all ten columns).
+    heads = [line.split(": ")[0] for line in text.splitlines() if line.startswith("mlmc ")]
+    assert heads == ["mlmc contact_area=4, mean_gap=0.1", "mlmc contact_area=4, mean_gap=0.1, mean_gap@0.02=0.2"]
+    # The ids, which `roughuq drop` and `roughuq show --stage` take, are in the text and in the JSON.
+    samples_line = next(line for line in text.splitlines() if line.startswith("samples stored"))
+    assert all(key in samples_line for key in ids)
+    assert [entry["run_id"] for entry in curve_report["load_curves"]] == ids
