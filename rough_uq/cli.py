@@ -1379,6 +1379,22 @@ def _stage_of(study: Any, text: str) -> int:
     return stage
 
 
+def _load_index(load: Any, text: str | None) -> int:
+    """``show --load``: the position of the load ``text`` among the config's ``load`` values (0 without it)."""
+    from rough_uq.problem.loads import load_label
+
+    if text is None:
+        return 0
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if value not in load.values:
+        loads = ", ".join(load_label(v) for v in load.values)
+        raise InvalidParameterError("--load", text, f"one of the study's {load.kind} loads ({loads})")
+    return load.values.index(value)
+
+
 @main.command()
 @click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
               help="Study file (only read).")
@@ -1388,10 +1404,16 @@ def _stage_of(study: Any, text: str) -> int:
 @click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the sample.")
 @click.option("--index", type=click.IntRange(min=0, max=MAX_INT64), required=True,
               help="Index of a stored sample.")
+@click.option("--load", "load_text", default=None, metavar="LOAD",
+              help="Of a load-curve study, the load to draw, as the config gives it (e.g. 0.05); "
+                   "default: the config's first.")
 @click.option("--out", "out", type=click.Path(dir_okay=False), required=True, help="PNG file to write.")
 @_user_errors
-def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
-    """Recompute one stored sample from its seed and draw heights, pressure and contact clusters."""
+def show(study_path: str, stage: str, level: int, index: int, load_text: str | None, out: str) -> None:
+    """Recompute one stored sample from its seed and draw heights, pressure and contact clusters.
+
+    Of a load curve, the pressure and the clusters at one load (--load).
+    """
     _check_not_empty("--study", study_path)
     from rough_uq.study.pipeline import open_existing_study
     from rough_uq.report.figures import write_sample_figure
@@ -1400,6 +1422,7 @@ def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
     with open_existing_study(study_path, writable=False) as study:
         if level > study.config.grid.max_level:
             raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")
+        load_index = _load_index(study.config.load, load_text)
         stage_id = _stage_of(study, stage)
         stored = study.store.sample_indices(level=level, stage=stage_id)
         model = study.model_for(level)  # the FFT plans the sample was computed with
@@ -1408,7 +1431,8 @@ def show(study_path: str, stage: str, level: int, index: int, out: str) -> None:
         raise InvalidParameterError("--index", index, f"a sample of stage {stage} on level {level} ({have})")
 
     def write() -> Any:
-        return write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out)
+        return write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out,
+                                   load_index=load_index)
 
     click.echo(f"wrote {_writing(out, write)}")
 

@@ -300,6 +300,48 @@ def test_report_plots_and_show_write_figures(screened):
     assert "--level" in result.stderr
 
 
+def test_show_draws_the_load_of_a_curve_that_load_names(tmp_path, monkeypatch):
+    # show drew a load curve's first load only.
+    pytest.importorskip("matplotlib")
+    from rough_uq.report import figures
+
+    monkeypatch.chdir(tmp_path)
+    curve = [0.2, 0.02, 0.1, 0.05, 0.3]
+    config = write_config(tmp_path / "curve.yaml", tiny_config(load={"relative": curve}))
+    run("screen", str(config), "--workers", "1", "--quiet")
+    drawn = {}
+    save = figures._save
+    monkeypatch.setattr(figures, "_save", lambda figure, path: drawn.setdefault(Path(path).name, figure) and
+                        save(figure, path))
+
+    def shown(out: str, *load: str) -> tuple[float, str]:
+        """The mean of the drawn pressure map and the figure's title."""
+        run("show", "--level", "1", "--index", "2", *load, "--out", out)
+        figure = drawn[out]
+        panel = next(ax for ax in figure.axes if ax.get_title().startswith("pressure"))
+        return float(panel.images[0].get_array().mean()), figure.texts[0].get_text()
+
+    first, title = shown("default.png")
+    assert "load 1 of 5" in title
+    for k, load in enumerate(curve):
+        pressure, title = shown(f"load{k}.png", "--load", str(load))
+        # The solver imposes the mean pressure: the maps scale as the relative loads.
+        assert pressure / first == pytest.approx(load / curve[0], rel=1e-9)
+        assert f"load {k + 1} of 5" in title and f"= {load:.3g}" in title
+    for bad in ("0.5", "small"):
+        line = run("show", "--level", "1", "--index", "2", "--load", bad, "--out", "x.png", expect=2).stderr.strip()
+        assert line == f"error: --load: got '{bad}'; allowed: one of the study's relative loads (0.2, 0.02, 0.1, " \
+                       "0.05, 0.3)"
+    from rough_uq.errors import InvalidParameterError
+    from rough_uq.study.pipeline import open_existing_study
+
+    with open_existing_study(tmp_path / "results.h5", writable=False) as study:
+        model = study.model_for(1)
+    for bad in (5, -1, 1.0):
+        with pytest.raises(InvalidParameterError, match=r"^load_index: .* an integer in 0\.\.4"):
+            figures.write_sample_figure(model=model, stage=0, level=1, index=2, path="x.png", load_index=bad)
+
+
 def _truncate(path: Path) -> None:
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2])

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from rough_uq.errors import RoughUQError
+from rough_uq.errors import InvalidParameterError, RoughUQError, is_integer
 from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
@@ -563,20 +563,29 @@ def _clusters_panel(ax: Any, model: ContactModel, solution: ContactSolution, ext
         ax.set_title(f"contact {area:.2f} %, {n_clusters:g} clusters ({model.connectivity}-connected)")
 
 
-def _load_text(model: ContactModel) -> str:
-    """Of a load curve, which load the figure draws (``SampleSolution.fine``: the first): empty for one load."""
+def _load_text(model: ContactModel, load_index: int) -> str:
+    """Of a load curve, which load the figure draws: empty for one load."""
     if model.n_loads == 1:
         return ""
-    relative = model.mean_pressure / (model.e_star * model.spectrum.rms_slope)
-    return (f"\nload 1 of {model.n_loads}: $p / (E^* \\sqrt{{m_2}})$ = {relative:.3g} "
-            f"(mean pressure {model.mean_pressure:.3g} $E^*$)")
+    pressure = model.loads[load_index]
+    relative = pressure / (model.e_star * model.spectrum.rms_slope)
+    return (f"\nload {load_index + 1} of {model.n_loads}: $p / (E^* \\sqrt{{m_2}})$ = {relative:.3g} "
+            f"(mean pressure {pressure:.3g} $E^*$)")
 
 
-def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: int, path: str | Path) -> Path:
+def _checked_load_index(model: ContactModel, load_index: object) -> int:
+    if not (is_integer(load_index) and 0 <= load_index < model.n_loads):
+        raise InvalidParameterError("load_index", load_index, f"an integer in 0..{model.n_loads - 1}")
+    return int(load_index)
+
+
+def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: int, path: str | Path,
+                        load_index: int = 0) -> Path:
     """Draw one sample: its heights, its contact pressure and its contact clusters.
 
-    Of a load curve, the first load of the config is drawn; the title says
-    which.
+    Of a load curve, the pressure and the clusters are those at the load
+    ``load_index`` (in the config's order; default the first); the title
+    says which.
 
     The sample is recomputed from its random stream exactly as
     :func:`~rough_uq.problem.sampler.compute_batch` computes its fine grid (coupled
@@ -591,6 +600,8 @@ def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: i
         The sample's key (:mod:`rough_uq.problem.sampler`).
     path : str or Path
         PNG file to write; its folder must exist.
+    load_index : int
+        Which of ``model.loads`` to draw, ``0..n_loads - 1`` (0 for a single load).
 
     Returns
     -------
@@ -601,11 +612,14 @@ def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: i
     ------
     RoughUQError
         If matplotlib is not installed.
+    InvalidParameterError
+        If ``load_index`` is not one of the model's loads.
     """
     _matplotlib()
+    load_index = _checked_load_index(model, load_index)
     path = Path(path)
     sample = solve_sample(model, stage=stage, level=level, index=index)
-    heights, solution = sample.heights, sample.fine
+    heights, solution = sample.heights, sample.fine_curve.solutions[load_index]
     n = heights.shape[0]
     size = model.spectrum.system_size
     extent = (0.0, size, 0.0, size)
@@ -614,12 +628,15 @@ def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: i
     axes = figure.subplots(1, 3)
     _map_panel(figure, axes[0], heights, extent, cmap="viridis", label="height (length unit)",
                title=f"heights, rms {np.std(heights):.3g}")
+    unconverged = "" if solution.converged else " (not converged)"
+    pressure_title = f"pressure, mean {model.loads[load_index]:.3g}{unconverged}"
     _map_panel(figure, axes[1], solution.pressure, extent, cmap="magma", label="pressure (unit of $E^*$)",
-               title=f"pressure, mean {model.mean_pressure:.3g}" + ("" if solution.converged else " (not converged)"))
+               title=pressure_title)
     _clusters_panel(axes[2], model, solution, extent)
     for ax in axes:
         ax.set_xlabel("x")
         ax.set_ylabel("y")
     kind = "coupled" if is_coupled_stage(stage) and level > 0 else "single"
-    figure.suptitle(f"sample stage {stage}, level {level} (grid {n}), index {index} [{kind} draw]" + _load_text(model))
+    figure.suptitle(f"sample stage {stage}, level {level} (grid {n}), index {index} [{kind} draw]"
+                    + _load_text(model, load_index))
     return _save(figure, path)
