@@ -1022,6 +1022,9 @@ def _what_to_change(outcome: Any, option: str = "--tol") -> str:
     if reason == "bias":
         return (f"the bias on this level exceeds the tolerance's share; loosen {option}, use `roughuq mlmc`, or "
                 "a study with a larger grid.max_level")
+    if reason == "thresholds_miss_samples":
+        return ("the thresholds miss the samples of a level (see the warning); put thresholds among the values "
+                "(extend --thresholds or the config's thresholds) or raise estimation.initial_samples")
     if reason == "max_level":
         return (f"the bias needs a grid finer than grid.max_level; loosen {option}, or screen a new study with a "
                 "larger grid.max_level")

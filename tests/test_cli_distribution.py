@@ -25,6 +25,7 @@ def test_a_cdf_run_whose_thresholds_miss_the_samples_is_not_met_and_says_why(tmp
     shown = json.loads(result.stdout)
     assert not shown["tol_met"] and shown["stop_reason"] == "thresholds_miss_samples" and shown["rmse"] == [0.0]
     assert "tolerance not met (thresholds_miss_samples)" in result.stderr
+    assert "put thresholds among the values" in result.stderr  # not "loosen --tol-cdf, raise --max-cost"
     # The stored warning names the thresholds and, per level, the range of the values the run used.
     start, stop, _ = (float(text) for text in thresholds.split(":"))
     (message,) = [text for text in shown["warnings"] if text.startswith("cdf: ")]
@@ -36,3 +37,17 @@ def test_a_cdf_run_whose_thresholds_miss_the_samples_is_not_met_and_says_why(tmp
             values = batch.fine[used, 0] if level == 0 else np.concatenate([batch.fine[used, 0], batch.coarse[used, 0]])
             assert f"level {level} (values {values.min():.4g} .. {values.max():.4g})" in message
             assert np.all(values > stop) or np.all(values < start)
+
+
+def test_the_report_of_such_a_run_shows_no_error_it_did_not_measure(tmp_path, monkeypatch):
+    # The report printed "sup-norm RMSE 0 <= tol 0.1" under NOT MET, and the raw reason.
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    run = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.1", "--thresholds", "1:10:10",
+                                    "--workers", "1", "-q"])
+    assert run.exit_code == 3, (run.output, run.exception)
+    report = CliRunner().invoke(main, ["report", str(tmp_path / "results.h5")], terminal_width=200)
+    assert report.exit_code == 0, (report.output, report.exception)
+    assert "sup-norm RMSE not measured (the thresholds miss a level's samples), tol 0.1" in report.stdout
+    assert "RMSE 0 <=" not in report.stdout
+    assert "the thresholds miss the samples of a level, whose variance they do not measure" in report.stdout

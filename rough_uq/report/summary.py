@@ -115,6 +115,7 @@ _STOP_REASONS = {
     "max_level": "the bias needs a grid finer than grid.max_level",
     "max_cost": "stopped at --max-cost",
     "bias": "the bias of this level is larger than the tolerance allows",
+    "thresholds_miss_samples": "the thresholds miss the samples of a level, whose variance they do not measure",
 }
 
 
@@ -513,7 +514,10 @@ def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
     unit = _column_unit(units, distribution.column)
     s = distribution.thresholds
     error = _error_text(outcome, outcome.rmse[0], tol, "sup-norm ")
-    if outcome.is_bias_estimated:
+    if outcome.stop_reason == "thresholds_miss_samples":
+        # A zero variance estimate there says nothing (rough_uq.multilevel.distribution): no error to show.
+        error = f"sup-norm RMSE not measured (the thresholds miss a level's samples), tol {_g(tol)}"
+    elif outcome.is_bias_estimated:
         error += f" (stat. {_g(max(outcome.stat_error), 2)}, bias {_g(outcome.bias_estimate[0], 2)})"
     else:
         error += " (bias not estimated)"
