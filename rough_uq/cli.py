@@ -430,14 +430,12 @@ def validate(config_paths: Sequence[str]) -> None:
     solver's range (a dimensionless load p_mean L / (E* rms_height) in about
     [2e-298, 1e15]). Nothing is solved.
     """
-    from rough_uq.study.config import _physical_memory_bytes, load_config, solver_memory_bytes
-    from rough_uq.study.pipeline import build_model
+    from rough_uq.study.config import _physical_memory_bytes, solver_memory_bytes
 
     n_bad = 0
     for config_path in config_paths:
         try:
-            config = load_config(config_path)
-            build_model(config)
+            config, _ = _config_file(config_path)
         except RoughUQError as exc:
             if len(config_paths) == 1:
                 raise
@@ -523,7 +521,7 @@ def solve(config_path: str | None, level: int, index: int) -> None:
         config = load_config(config_path)
     if level > config.grid.max_level:
         raise InvalidParameterError("--level", level, f"an integer in 0..{config.grid.max_level} (grid.max_level)")
-    model = build_model(config)
+    model = build_model(config, source=config_path or "quickstart")
     _warm_kernels(model)
     start = time.perf_counter()
     batch = compute_batch(model, stage=STAGE_SCREENING, level=level, indices=[index])
@@ -601,14 +599,13 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     Creates the study file (or continues an interrupted screening in it).
     """
     _check_not_empty("--out", out)
-    from rough_uq.study.config import load_config
     from rough_uq.study.pipeline import create_study, removed_if_left_unused, run_screening
     from rough_uq.report.summary import render_screening, screening_json
 
     _check_executor_options(executor, scheduler, workers)
-    config = load_config(config_path)
+    config, model = _config_file(config_path)
     # The file is created before the screening's own checks: refused, or interrupted before a sample, it goes again.
-    with removed_if_left_unused(out or config.output.path), create_study(config, out) as study:
+    with removed_if_left_unused(out or config.output.path), create_study(config, out, model=model) as study:
         _warm_kernels(study.model, quiet=quiet or as_json)
         with _executor(config, workers, executor, scheduler) as pool:
             watch = (study.config, pool, executor, "a smaller screening.levels")
@@ -854,22 +851,40 @@ def _probabilities(text: str | None) -> tuple[float, ...] | None:
 
 
 def _config_creating_study(opts: _RunOptions, *, may_create: bool = True,
-                           check: Callable[[Any], None] | None = None) -> Any:
+                           check: Callable[[Any, Any], None] | None = None) -> Any:
     """The ``--config`` (None without one); if ``may_create``, a new study is created from it where none exists.
 
-    Target runs and MC on a given ``--level`` need no screening. ``check(config)``
-    runs before the file is created: what the run refuses before its first
-    sample would otherwise leave an empty study file behind.
+    Target runs and MC on a given ``--level`` need no screening. ``check(config,
+    model)`` runs before the file is created: what the run refuses before its
+    first sample would otherwise leave an empty study file behind.
     """
     from rough_uq.study.config import load_config
     from rough_uq.study.pipeline import create_study
 
-    config = load_config(opts.config_path) if opts.config_path else None
-    if config is not None and may_create and not Path(opts.study_path).exists():
-        if check is not None:
-            check(config)
-        create_study(config, opts.study_path).close()  # refuses a config whose model build_model refuses first
+    if not opts.config_path:
+        return None
+    if not (may_create and not Path(opts.study_path).exists()):
+        return load_config(opts.config_path)
+    config, model = _config_file(opts.config_path)  # a model build_model refuses: refused before the file exists
+    if check is not None:
+        check(config, model)
+    create_study(config, opts.study_path, model=model).close()
     return config
+
+
+def _config_file(config_path: str) -> tuple[Any, Any]:
+    """The config in the file ``config_path`` and its contact model, whose refusals name the file too.
+
+    :func:`~rough_uq.study.config.load_config` names the file in its errors;
+    the model's refusals (``surface.rms_height, surface.system_size: got
+    (1.0, 1e-300)``) are of the same file, and a loop over configs needs to
+    know which one.
+    """
+    from rough_uq.study.config import load_config
+    from rough_uq.study.pipeline import build_model
+
+    config = load_config(config_path)
+    return config, build_model(config, source=config_path)
 
 
 def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi: str | None,
@@ -894,9 +909,9 @@ def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi
             return parse_tolerances(tol_var, config, option="--tol-var", use_config=False), None
         return _cdf_tolerance(tol_cdf), cdf_request(config, column=qoi, thresholds=grid, probabilities=wanted)
 
-    def check(config: Any) -> None:
+    def check(config: Any, model: Any) -> None:
         requested(config)
-        check_target_run(config, max_cost=opts.max_cost)
+        check_target_run(config, max_cost=opts.max_cost, model=model)
 
     config = _config_creating_study(opts, check=check)
     with open_existing_study(opts.study_path, config=config) as study:
@@ -922,7 +937,8 @@ def _run_mean(tol: Sequence[str], *, method: str, choice: str, level: int | None
 
     # Only MC on a given --level needs no screening: any other run would find the new study empty and refuse.
     config = _config_creating_study(opts, may_create=level is not None and not show_plan,
-                                    check=lambda config: check_initial_samples(config, n_levels=1, run="mc --level"))
+                                    check=lambda config, _: check_initial_samples(config, n_levels=1,
+                                                                                  run="mc --level"))
     with open_existing_study(opts.study_path, config=config, writable=not show_plan) as study:
         tolerances = parse_tolerances(tol, study.config)
         cap = study.config.estimation.max_cost if opts.max_cost is None else opts.max_cost
@@ -1272,8 +1288,8 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     key, values = _sweep_assignment(assignments)
     config = load_config(config_path)
     configs = sweep_configs(config, key=key, values=values, fixed_spacing=fixed_spacing)
-    for _, swept in configs:  # every value, before the first one's study is made and run
-        build_model(swept)
+    for value, swept in configs:  # every value, before the first one's study is made and run
+        build_model(swept, source=f"--set {key}={value}")
     max_level = min(swept.grid.max_level for _, swept in configs)
     if level > max_level:  # before any study of the sweep is created
         raise InvalidParameterError("--level", level, f"an integer in 0..{max_level} (grid.max_level)")

@@ -555,9 +555,10 @@ def test_validate_refuses_what_screen_refuses_before_solving_with_the_same_line(
     line = one_error_line(run("validate", str(config), expect=2))
     assert line == one_error_line(run("screen", str(config), "--workers", "1", "-q", expect=2))
     good = write_config(tmp_path / "good.yaml", tiny_config())
-    result = run("validate", str(good), str(config), expect=2)  # several files: each bad one is named
+    assert line.startswith(f"error: {config}: ")  # one file or several: the bad one is named (once)
+    result = run("validate", str(good), str(config), expect=2)
     assert result.stdout.startswith(f"{good}: valid") and f"{config}: valid" not in result.stdout
-    assert result.stderr.strip() == line.replace("error: ", f"error: {config}: ", 1)
+    assert result.stderr.strip() == line
 
 
 @pytest.mark.parametrize("surface, fields", [
@@ -567,7 +568,7 @@ def test_validate_refuses_what_screen_refuses_before_solving_with_the_same_line(
 def test_a_spectrum_that_cannot_be_built_is_refused_naming_the_config_fields(tmp_path, surface, fields):
     """The spectrum's own parameter names (``rms_height``) were printed, not the config's fields."""
     config = write_config(tmp_path / "bad.yaml", tiny_config(surface={**TINY_SURFACE, **surface}))
-    assert one_error_line(run("validate", str(config), expect=2)).startswith(f"error: {fields}: got ")
+    assert one_error_line(run("validate", str(config), expect=2)).startswith(f"error: {config}: {fields}: got ")
 
 
 @pytest.mark.parametrize("load, field", [
@@ -580,25 +581,25 @@ def test_a_load_no_solve_takes_is_refused_by_name_before_a_study_file_exists(tmp
     line = one_error_line(run("screen", str(config), "--workers", "1", "-q", expect=2))
     value = load["relative" if "relative" in load else "absolute"]
     value = value[-1] if isinstance(value, list) else value
-    assert line.startswith(f"error: {field}: got {value!r}; allowed: a ")
+    assert line.startswith(f"error: {config}: {field}: got {value!r}; allowed: a ")
     assert "2.2e-298, 1e+15]" in line or "total over the finest grid's 32^2 nodes is finite" in line
     assert [path.name for path in tmp_path.iterdir()] == ["bad.yaml"]
     assert line == one_error_line(run("solve", str(config), expect=2))  # the check before its solve
 
 
-@pytest.mark.parametrize("args", [
-    ("screen", "bad.yaml"),
-    ("mlmc", "--config", "bad.yaml", "--tol-var", "5"),
-    ("mc", "--config", "bad.yaml", "--level", "0", "--tol", "5"),
-    ("sweep", "good.yaml", "--set", "surface.system_size=1,1e-300", "--tol", "5"),
+@pytest.mark.parametrize("args, source", [
+    (("screen", "bad.yaml"), "bad.yaml"),
+    (("mlmc", "--config", "bad.yaml", "--tol-var", "5"), "bad.yaml"),
+    (("mc", "--config", "bad.yaml", "--level", "0", "--tol", "5"), "bad.yaml"),
+    (("sweep", "good.yaml", "--set", "surface.system_size=1,1e-300", "--tol", "5"), "--set surface.system_size=1e-300"),
 ], ids=["screen", "mlmc --tol-var", "mc --level", "sweep"])
-def test_a_config_whose_problem_cannot_be_built_leaves_no_study_file(tmp_path, monkeypatch, args):
+def test_a_config_whose_problem_cannot_be_built_leaves_no_study_file(tmp_path, monkeypatch, args, source):
     """A study file was created, then the model refused: the corrected config then met 'written by another config'."""
     monkeypatch.chdir(tmp_path)
     write_config(tmp_path / "bad.yaml", tiny_config(surface={**TINY_SURFACE, "system_size": 1e-300}))
     write_config(tmp_path / "good.yaml", tiny_config())
     line = one_error_line(run(*args, "--workers", "1", "-q", expect=2))
-    assert line.startswith("error: surface.rms_height, surface.system_size: got (1.0, 1e-300);")
+    assert line.startswith(f"error: {source}: surface.rms_height, surface.system_size: got (1.0, 1e-300);")
     assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml", "good.yaml"]
 
 
@@ -713,6 +714,37 @@ def test_a_config_error_names_the_file(tmp_path, monkeypatch, command):
     write_config(tmp_path / "bad.yaml", tiny_config(surface=surface))
     line = one_error_line(run(command[0], "bad.yaml", *command[1:], expect=2))
     assert line.startswith("error: bad.yaml: surface.hurst: must be less than or equal to 1 (got 1.8; "), line
+
+
+#: Each command given one config file, as the arguments after it.
+ONE_CONFIG_COMMANDS = {
+    "validate": ("validate", "bad.yaml"),
+    "solve": ("solve", "bad.yaml"),
+    "screen": ("screen", "bad.yaml", "--workers", "1"),
+    "mc --level": ("mc", "--config", "bad.yaml", "--study", "new.h5", "--level", "0", "--tol", "5", "--workers", "1"),
+    "mlmc --tol-var": ("mlmc", "--config", "bad.yaml", "--study", "new.h5", "--tol-var", "5", "--workers", "1"),
+    "mlmc --tol-var --max-cost": ("mlmc", "--config", "bad.yaml", "--study", "new.h5", "--tol-var", "5",
+                                  "--max-cost", "100", "--workers", "1"),
+}
+
+
+@pytest.mark.parametrize("args", ONE_CONFIG_COMMANDS.values(), ids=ONE_CONFIG_COMMANDS.keys())
+@pytest.mark.parametrize("overrides, field", [
+    ({"surface": {**TINY_SURFACE, "rms_height": 1.0, "system_size": 1e-300}},
+     "surface.rms_height, surface.system_size"),
+    ({"load": {"relative": 1e200}}, "load.relative"),
+], ids=["m2 overflows", "load out of range"])
+def test_a_config_whose_model_cannot_be_built_is_refused_naming_its_file(tmp_path, monkeypatch, args, overrides,
+                                                                          field):
+    """The fields of a config parse, its model does not: the refusal named the field but not the file (only
+    `validate` of several files did), unlike the config's other errors."""
+    monkeypatch.chdir(tmp_path)
+    config = tiny_config(**overrides)
+    write_config(tmp_path / "bad.yaml", config)
+    line = one_error_line(run(*args, expect=2))
+    assert line.startswith(f"error: bad.yaml: {field}: got "), line
+    assert line.count("bad.yaml") == 1  # named once
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml"]
 
 
 def test_a_study_file_is_kept_once_it_holds_anything(tmp_path, monkeypatch):

@@ -108,6 +108,31 @@ def test_the_model_of_a_config_refuses_a_load_no_solve_takes(load, field, text):
     assert str(caught.value) == str(same.value)
 
 
+def test_the_model_of_a_config_file_names_the_file_in_its_refusal():
+    """The CLI passed no source: `roughuq screen bad.yaml` said which field, not which file (load_config does)."""
+    from rough_uq.errors import ConfigError
+
+    config = config_from_dict(tiny_config(load={"relative": 1e200}))
+    with pytest.raises(InvalidParameterError) as plain:
+        build_model(config)
+    with pytest.raises(ConfigError) as named:
+        build_model(config, source="runs/bad.yaml")
+    assert str(named.value) == f"runs/bad.yaml: {plain.value}"
+    assert isinstance(named.value.__cause__, InvalidParameterError) and named.value.__cause__.name == "load.relative"
+    assert build_model(config_from_dict(tiny_config()), source="good.yaml") == build_model(
+        config_from_dict(tiny_config()))
+
+
+def test_a_study_created_with_its_model_does_not_build_it_again(tmp_path, monkeypatch):
+    import rough_uq.study.pipeline as pipeline
+
+    config = config_from_dict(tiny_config())
+    model = build_model(config)
+    monkeypatch.setattr(pipeline, "build_model", lambda config: pytest.fail("built again"))
+    with create_study(config, tmp_path / "s.h5", model=model) as study:
+        assert study.model is model
+
+
 def test_a_refused_config_creates_no_study_file_and_leaves_none_open(tmp_path):
     from rough_uq.study.config import config_hash, resolved_yaml
     from rough_uq.study.store import open_study

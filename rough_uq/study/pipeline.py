@@ -45,6 +45,7 @@ import numpy as np
 from rough_uq import __version__
 from rough_uq.study.config import StudyConfig, SurfaceConfig, config_from_stored_text, config_hash, resolved_yaml
 from rough_uq.errors import (
+    ConfigError,
     EstimationError,
     InvalidParameterError,
     PlanTooLargeError,
@@ -175,7 +176,7 @@ def _spectrum(surface: SurfaceConfig) -> SurfaceSpectrum:
         raise InvalidParameterError(names, error.value, error.allowed) from None
 
 
-def build_model(config: StudyConfig) -> ContactModel:
+def build_model(config: StudyConfig, *, source: str | None = None) -> ContactModel:
     """The contact model (surface, load, solver, QoIs) of a study config, checked before any solve.
 
     Every load is checked as a :class:`~rough_uq.problem.contact.ContactProblem`
@@ -186,12 +187,32 @@ def build_model(config: StudyConfig) -> ContactModel:
     ``load.relative.1`` in a load curve). Every path that opens a study builds
     its model here, so none of them can start a study no solve would take.
 
+    ``source`` names where the config comes from (its file, or a sweep's
+    ``--set KEY=VALUE``): a refusal then names it first, as
+    :func:`~rough_uq.study.config.load_config` names the file in its errors
+    (``bad.yaml: surface.rms_height, surface.system_size: got ...``), so that
+    a loop over config files says which one is wrong.
+
     Raises
     ------
     InvalidParameterError
-        A load no solve takes, or a spectrum that cannot be built (e.g. a
-        slope variance ``m2`` outside the float range).
+        Without ``source``: a load no solve takes, or a spectrum that cannot
+        be built (e.g. a slope variance ``m2`` outside the float range),
+        naming the config field.
+    ConfigError
+        With ``source``: the same refusal, ``<source>: <field>: got ...``
+        (the :class:`InvalidParameterError` is its ``__cause__``).
     """
+    if source is None:
+        return _model(config)
+    try:
+        return _model(config)
+    except InvalidParameterError as error:
+        raise ConfigError(f"{source}: {error}") from error
+
+
+def _model(config: StudyConfig) -> ContactModel:
+    """:func:`build_model` without a source: its refusals name only the config field."""
     surface = config.surface
     spectrum = _spectrum(surface)
     e_star = config.material.e_star
@@ -279,7 +300,10 @@ class Study:
 _SCREEN_REMEDY = "use another --out file or the config it was written with"
 
 
-def create_study(config: StudyConfig, path: str | Path | None = None, *, remedy: str = _SCREEN_REMEDY) -> Study:
+def create_study(
+    config: StudyConfig, path: str | Path | None = None, *, remedy: str = _SCREEN_REMEDY,
+    model: ContactModel | None = None,
+) -> Study:
     """Open the study file of ``config`` for writing, creating it if missing.
 
     An existing file must have been created with the same config (hash of
@@ -287,10 +311,12 @@ def create_study(config: StudyConfig, path: str | Path | None = None, *, remedy:
     message ends in ``remedy`` (what the command at hand lets the user do;
     the default names ``roughuq screen``'s ``--out``). A config whose model
     :func:`build_model` refuses is refused before the file is created: a file
-    left behind would refuse the corrected config as another one.
+    left behind would refuse the corrected config as another one. ``model``
+    is the config's (:func:`build_model`, e.g. with the config file as its
+    ``source``), built here if not given.
     """
     path = Path(path if path is not None else config.output.path)
-    model = build_model(config)
+    model = build_model(config) if model is None else model
     _refuse_other_config(path, config, remedy)
     store = open_study(
         path,
