@@ -1264,7 +1264,8 @@ def merge(shards: Sequence[str], study_path: str) -> None:
                    "output.* or screening.*, which a sweep does not use).")
 @click.option("--fixed-spacing", is_flag=True,
               help="With surface.system_size: scale grid.coarsest with the box (same grid spacing).")
-@click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS", help="MC tolerance (as for `roughuq mc`).")
+@click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS",
+              help="MC tolerance (as for `roughuq mc`), in each study's unit of the QoI; not for a swept qoi.NAME.tol.")
 @click.option("--level", type=click.IntRange(min=0), default=0, show_default=True, help="Level sampled by MC.")
 @click.option("--dir", "directory", type=click.Path(file_okay=False), default=None,
               help="Where the configs and study files go (default: sweep-KEY, e.g. sweep-surface.system_size).")
@@ -1296,7 +1297,7 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     with _executor(config, workers, "local", None) as pool:
         largest = max((swept for _, swept in configs), key=lambda swept: swept.grid.n_at(level))
         _warn_memory(largest, level, pool, lower_with="a smaller --level")
-        rows = run_sweep(configs, directory=directory or f"sweep-{key}", tol=tol, level=level, executor=pool,
+        rows = run_sweep(configs, key=key, directory=directory or f"sweep-{key}", tol=tol, level=level, executor=pool,
                          progress=_progress(quiet or as_json))
     if as_json:
         _dump([row.to_json() for row in rows])

@@ -231,8 +231,8 @@ def test_sweeps_of_two_fields_with_the_same_last_name_go_to_two_folders(tmp_path
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config())
     folders = []
-    for key in ("solver.tol", "qoi.contact_area.tol"):
-        rows = json.loads(run("sweep", str(config), "--set", f"{key}=0.001", "--tol", "5", "--workers", "1",
+    for key, value, tol in (("solver.tol", "0.001", ("--tol", "5")), ("qoi.contact_area.tol", "5", ())):
+        rows = json.loads(run("sweep", str(config), "--set", f"{key}={value}", *tol, "--workers", "1",
                               "--json").output)
         folders.append(Path(rows[0]["study"]).parent)
     assert folders == [Path("sweep-solver.tol"), Path("sweep-qoi.contact_area.tol")]
@@ -251,6 +251,21 @@ def test_sweep_refuses_what_would_run_a_study_twice_or_sweep_nothing(tmp_path, m
     result = run("sweep", str(config), *options, "--tol", "5", "--workers", "1", expect=2)
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: --set: got") and text in lines[0], result.stderr
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]  # nothing computed, no folder
+
+
+@pytest.mark.parametrize("tol, column", [("5", "contact_area"), ("contact_area=5", "contact_area"),
+                                         ("contact_area@0.2=5", "contact_area@0.2")],
+                         ids=["bare", "by name", "one column of a load curve"])
+def test_sweep_refuses_a_tol_that_overrides_the_swept_qoi_tolerance(tmp_path, monkeypatch, tol, column):
+    """--tol took precedence over each value of qoi.contact_area.tol: every study of the sweep ran tolerance 5."""
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(load={"relative": [0.2, 0.3]}))
+    result = run("sweep", str(config), "--set", "qoi.contact_area.tol=1,2", "--tol", tol, "--workers", "1", expect=2)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: --tol: got {tol!r}; allowed: no tolerance for "
+                                                   f"contact_area in a sweep of qoi.contact_area.tol"), result.stderr
+    assert f"every study would run {column}=5 " in lines[0]
     assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]  # nothing computed, no folder
 
 

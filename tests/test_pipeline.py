@@ -562,9 +562,25 @@ def test_a_sweep_refuses_an_empty_tolerance_item_before_writing_anything(tmp_pat
 
     configs = sweep_configs(config_from_dict(tiny_config()), key="seed", values=["1", "2"])
     with pytest.raises(InvalidParameterError, match="no empty item"):
-        run_sweep(configs, directory=tmp_path / "sweep", tol=["5,"], level=0, executor=SerialExecutor(),
+        run_sweep(configs, key="seed", directory=tmp_path / "sweep", tol=["5,"], level=0, executor=SerialExecutor(),
                   progress=QUIET)
     assert not (tmp_path / "sweep").exists()
+
+
+def test_a_sweep_of_a_qoi_tolerance_refuses_a_tol_for_that_qoi_but_not_for_another(tmp_path):
+    """--tol overrode every swept qoi.contact_area.tol: two files, one study, one tolerance."""
+    from rough_uq.study.config import sweep_configs
+
+    key = "qoi.contact_area.tol"
+    qoi = {"contact_area": {"unit": "percent", "tol": 2.0}, "mean_gap": {"tol": 0.5}}
+    configs = sweep_configs(config_from_dict(tiny_config(qoi=qoi)), key=key, values=["4", "8"])
+    options = dict(key=key, directory=tmp_path / "sweep", level=0, executor=SerialExecutor(), progress=QUIET)
+    with pytest.raises(InvalidParameterError) as info:
+        run_sweep(configs, tol=["mean_gap=0.5", "contact_area=3"], **options)
+    assert info.value.name == "--tol" and "every study would run contact_area=3 " in info.value.allowed
+    assert not (tmp_path / "sweep").exists()
+    rows = run_sweep(configs, tol=["mean_gap=0.5"], **options)  # the swept QoI at its swept tolerances
+    assert [list(row.run.tol) for row in rows] == [[4.0, 0.5], [8.0, 0.5]]
 
 
 def test_study_file_roundtrip_and_mismatch(tmp_path):
@@ -664,7 +680,8 @@ def test_a_sweep_refuses_another_configs_study_before_writing_any_config(tmp_pat
     create_study(config_from_dict(tiny_config(seed=1)), second).close()  # value 2: a study of another seed
     second.with_suffix(".yaml").write_text("the config of that study\n")
     with pytest.raises(StudyFileError, match="another config") as info:
-        run_sweep(configs, directory=directory, tol=["5"], level=0, executor=SerialExecutor(), progress=QUIET)
+        run_sweep(configs, key="surface.system_size", directory=directory, tol=["5"], level=0,
+                  executor=SerialExecutor(), progress=QUIET)
     assert "--dir" in str(info.value) and "--out" not in str(info.value) and "--study" not in str(info.value)
     assert second.with_suffix(".yaml").read_text() == "the config of that study\n"
     assert not first.exists() and not first.with_suffix(".yaml").exists()

@@ -776,6 +776,20 @@ def parse_tolerances(
     squared) ignores the config's ``qoi.<name>.tol``. ``values`` None or
     empty: no tolerance given, every one from the config.
     """
+    given = _given_tolerances(values, config, option=option)
+    tol = []
+    for column, name, settings in config.qoi_columns:
+        configured = getattr(settings, "tol", None) if use_config else None
+        eps = given.get(column, given.get(name, configured))
+        if eps is None:
+            where = f" or set qoi.{name}.tol" if use_config else ""
+            raise InvalidParameterError(option, name, f"a tolerance for every QoI: give {option} {name}=EPS{where}")
+        tol.append(eps)
+    return np.array(tol, dtype=float)
+
+
+def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, option: str) -> dict[str, float]:
+    """The tolerances ``values`` give (:func:`parse_tolerances`), by QoI or column name (a bare EPS: the one QoI's)."""
     columns = config.qoi_columns
     names = tuple(config.qoi) + tuple(column for column, _, _ in columns if column not in config.qoi)
     given: dict[str, float] = {}
@@ -803,15 +817,7 @@ def parse_tolerances(
                 raise InvalidParameterError(option, part, f"one tolerance per QoI; {name} was already given "
                                             f"{given[name]:g}")
             given[name] = eps
-    tol = []
-    for column, name, settings in columns:
-        configured = getattr(settings, "tol", None) if use_config else None
-        eps = given.get(column, given.get(name, configured))
-        if eps is None:
-            where = f" or set qoi.{name}.tol" if use_config else ""
-            raise InvalidParameterError(option, name, f"a tolerance for every QoI: give {option} {name}=EPS{where}")
-        tol.append(eps)
-    return np.array(tol, dtype=float)
+    return given
 
 
 def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[LevelStatistics, Rates, Plan]:
@@ -1993,6 +1999,7 @@ class SweepRow:
 def run_sweep(
     configs: Sequence[tuple[str, StudyConfig]],
     *,
+    key: str,
     directory: str | Path,
     tol: Sequence[str] | None,
     level: int,
@@ -2001,17 +2008,23 @@ def run_sweep(
 ) -> list[SweepRow]:
     """Plain MC on ``level`` for every config of a sweep (:func:`~rough_uq.study.config.sweep_configs`).
 
-    Each value gets its config (``<output stem>.yaml``) and its study file in
-    ``directory``; a rerun resumes every study. ``tol`` are ``--tol`` strings
-    (:func:`parse_tolerances`, per config). Tolerances it refuses, and a
-    study file in ``directory`` written by another config
-    (:class:`StudyFileError`), refuse the sweep before any file is written,
-    so a config file never disagrees with its study.
+    ``configs`` are the sweep of the dotted ``key``. Each value gets its
+    config (``<output stem>.yaml``) and its study file in ``directory``; a
+    rerun resumes every study. ``tol`` are ``--tol`` strings
+    (:func:`parse_tolerances`, per config), each in the unit of its QoI in
+    each study. Refused before any file is written, so that a config file
+    never disagrees with its study (:class:`InvalidParameterError` unless
+    said otherwise): tolerances :func:`parse_tolerances` refuses; a ``tol``
+    for the QoI whose ``qoi.<name>.tol`` is ``key`` (it would override every
+    swept value: the studies would run the same tolerance); a study file in
+    ``directory`` written by another config (:class:`StudyFileError`).
     """
     directory = Path(directory)
     remedy = f"use another --dir than {str(directory)!r}, or the config and --set of that sweep"
     paths = [directory / Path(config.output.path).name for _, config in configs]
     tolerances = [parse_tolerances(tol, config) for _, config in configs]
+    if configs:  # every value has the same QoIs
+        _refuse_overridden_tolerance(key, configs[0][1], tol)
     for study_path, (_, config) in zip(paths, configs):
         _refuse_other_config(study_path, config, remedy)
     directory.mkdir(parents=True, exist_ok=True)
@@ -2031,3 +2044,26 @@ def run_sweep(
         rows.append(SweepRow(value=value, config=str(config_path), study=str(study_path),
                              grid=config.grid.n_at(level), run=record))
     return rows
+
+
+def _refuse_overridden_tolerance(key: str, config: StudyConfig, tol: Sequence[str] | None) -> None:
+    """Refuse a ``--tol`` for the QoI whose tolerance ``qoi.<name>.tol`` the sweep of ``key`` varies.
+
+    ``--tol`` takes precedence over the config's tolerance, so every study of
+    such a sweep would run the same tolerance: one study computed under
+    several names, the swept values ignored.
+    """
+    section, _, rest = key.partition(".")
+    name, _, field = rest.partition(".")
+    if section != "qoi" or field != "tol" or not tol:
+        return
+    given = _given_tolerances(tol, config, option="--tol")
+    columns = {column for column, qoi, _ in config.qoi_columns if qoi == name}
+    overriding = ", ".join(f"{given_name}={eps:g}" for given_name, eps in given.items()
+                           if given_name == name or given_name in columns)
+    if overriding:
+        raise InvalidParameterError(
+            "--tol", ",".join(tol), f"no tolerance for {name} in a sweep of {key}: --tol overrides the swept "
+            f"value, so every study would run {overriding} (leave out --tol to run each study at its swept "
+            f"tolerance, or give --tol for the other QoIs only)"
+        )
