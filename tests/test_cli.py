@@ -244,7 +244,9 @@ def test_sweeps_of_two_fields_with_the_same_last_name_go_to_two_folders(tmp_path
     (("--set", "load.relative=0.1,1e-1"), "distinct values: 1e-1 is the same as 0.1"),
     (("--set", "output.path=a.h5,b.h5"), "a field outside output.*: the sweep names"),
     (("--set", "screening.samples=4,5"), "a field outside screening.*: a sweep runs plain MC"),
-], ids=["two --set", "a value twice", "one value written twice", "output", "screening"])
+    (("--set", "qoi.contact_area.unit=fraction,percent"),
+     "values that keep each QoI's unit: contact_area would be in fraction (value fraction) and in % (value percent)"),
+], ids=["two --set", "a value twice", "one value written twice", "output", "screening", "a unit"])
 def test_sweep_refuses_what_would_run_a_study_twice_or_sweep_nothing(tmp_path, monkeypatch, options, text):
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config())

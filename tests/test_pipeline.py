@@ -567,6 +567,21 @@ def test_a_sweep_refuses_an_empty_tolerance_item_before_writing_anything(tmp_pat
     assert not (tmp_path / "sweep").exists()
 
 
+@pytest.mark.parametrize("tol", [["0.5"], None], ids=["--tol", "the config's"])
+def test_a_sweep_refuses_studies_that_give_a_qoi_in_different_units(tmp_path, tol):
+    """One tolerance, 0.5, was 0.5 percentage points in one study and half the nominal area in the other."""
+    from rough_uq.study.config import sweep_configs
+
+    key = "qoi.contact_area.unit"
+    configs = sweep_configs(config_from_dict(tiny_config()), key=key, values=["percent", "fraction"])
+    with pytest.raises(InvalidParameterError) as info:
+        run_sweep(configs, key=key, directory=tmp_path / "sweep", tol=tol, level=0, executor=SerialExecutor(),
+                  progress=QUIET)
+    assert info.value.name == "--set" and info.value.value == f"{key}=percent,fraction"
+    assert "contact_area would be in % (value percent) and in fraction (value fraction)" in info.value.allowed
+    assert not (tmp_path / "sweep").exists()
+
+
 def test_a_sweep_of_a_qoi_tolerance_refuses_a_tol_for_that_qoi_but_not_for_another(tmp_path):
     """--tol overrode every swept qoi.contact_area.tol: two files, one study, one tolerance."""
     from rough_uq.study.config import sweep_configs

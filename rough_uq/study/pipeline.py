@@ -2016,8 +2016,10 @@ def run_sweep(
     never disagrees with its study (:class:`InvalidParameterError` unless
     said otherwise): tolerances :func:`parse_tolerances` refuses; a ``tol``
     for the QoI whose ``qoi.<name>.tol`` is ``key`` (it would override every
-    swept value: the studies would run the same tolerance); a study file in
-    ``directory`` written by another config (:class:`StudyFileError`).
+    swept value: the studies would run the same tolerance); studies that give
+    a QoI in different units (one tolerance would ask each for another
+    accuracy); a study file in ``directory`` written by another config
+    (:class:`StudyFileError`).
     """
     directory = Path(directory)
     remedy = f"use another --dir than {str(directory)!r}, or the config and --set of that sweep"
@@ -2025,6 +2027,7 @@ def run_sweep(
     tolerances = [parse_tolerances(tol, config) for _, config in configs]
     if configs:  # every value has the same QoIs
         _refuse_overridden_tolerance(key, configs[0][1], tol)
+    _refuse_mixed_units(key, configs)
     for study_path, (_, config) in zip(paths, configs):
         _refuse_other_config(study_path, config, remedy)
     directory.mkdir(parents=True, exist_ok=True)
@@ -2067,3 +2070,27 @@ def _refuse_overridden_tolerance(key: str, config: StudyConfig, tol: Sequence[st
             f"value, so every study would run {overriding} (leave out --tol to run each study at its swept "
             f"tolerance, or give --tol for the other QoIs only)"
         )
+
+
+def _refuse_mixed_units(key: str, configs: Sequence[tuple[str, StudyConfig]]) -> None:
+    """Refuse a sweep whose studies give a QoI in different units (a sweep of ``qoi.<name>.unit``).
+
+    A tolerance, ``--tol`` or ``qoi.<name>.tol``, is a number in each study's
+    own unit of the QoI: one number would ask each study for another accuracy
+    (0.5 percentage points, or a fraction of 0.5). And a unit only rescales
+    the same samples, so such a sweep has nothing to compare.
+    """
+    if not configs:
+        return
+    first_value, first = configs[0]
+    for value, config in configs[1:]:
+        for name, settings in config.qoi.items():
+            unit, first_unit = settings.unit_label, first.qoi[name].unit_label
+            if unit != first_unit:
+                values = ",".join(swept for swept, _ in configs)
+                raise InvalidParameterError(
+                    "--set", f"{key}={values}", f"values that keep each QoI's unit: {name} would be in {first_unit} "
+                    f"(value {first_value}) and in {unit} (value {value}), and a tolerance (--tol or qoi.{name}.tol) "
+                    f"is a number in each study's own unit, so one number would ask each study for another accuracy "
+                    f"(a unit only rescales the same samples: sweep another field)"
+                )
