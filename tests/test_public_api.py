@@ -327,7 +327,8 @@ def test_validate_refuses_the_loads_the_problem_refuses_with_the_same_message(tm
             dataclasses.replace(problem, load=loads)
         config = write_config(tmp_path / "load.yaml", tiny_config(load={"relative": value}))
         result = CliRunner().invoke(main, ["validate", str(config)])
-        assert result.exit_code == 2 and result.stderr == f"error: {caught.value}\n"
+        # The same message, after the name of the file (validate names the file of every refusal).
+        assert result.exit_code == 2 and result.stderr == f"error: {config}: {caught.value}\n"
 
 
 @pytest.mark.parametrize("run", ["mlmc", "mc", "variance", "distribution"])
