@@ -1466,7 +1466,8 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
     """Forget abandoned run records; their samples stay in the file.
 
     A dropped run no longer appears in reports; running the same command
-    again brings it back and reuses its stored samples.
+    again brings it back with a record of its own (timed afresh) and reuses
+    its stored samples.
     """
     _check_not_empty("--study", study_path)
     from rough_uq.study.pipeline import open_existing_study

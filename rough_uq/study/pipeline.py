@@ -1199,8 +1199,11 @@ class _RunClock:
 
     @classmethod
     def start(cls, earlier: RunRecord | None) -> _RunClock:
-        """Start now; ``earlier`` is the run's stored record (:func:`_earlier_run`), if any."""
-        outcome = None if earlier is None else earlier.outcome
+        """Start now; ``earlier`` is the run's stored record (:func:`_earlier_run`), if any.
+
+        Only a finished record counts: a dropped one keeps the outcome it had, which is not this run's.
+        """
+        outcome = earlier.outcome if earlier is not None and earlier.is_finished else None
         elapsed = None if outcome is None or outcome.elapsed is None else float(outcome.elapsed)
         return cls(started=time.monotonic(), earlier_elapsed=elapsed)
 
