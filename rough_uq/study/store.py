@@ -86,6 +86,14 @@ may fail while a writer is active on another machine, and succeeds once it
 stops. A writable one reads its own file through its writing handle and keeps
 what it has read in memory.
 
+A SWMR reader retries a metadata read that fails (a writer may be halfway
+through writing it) with a doubling sleep; HDF5's default number of attempts
+makes that hours on a damaged file, so the store allows about a second
+(``_SWMR_READ_ATTEMPTS``). A file HDF5 cannot read (truncated, overwritten,
+marked as held by a writer in a superblock that does not match its checksum)
+raises :class:`~rough_uq.errors.StudyFileError` naming the file, saying it
+is truncated or damaged and what to do.
+
 Choices where the specification is silent
 -----------------------------------------
 * ``read_samples(level=l)`` without a stage returns all rows of the level
@@ -112,8 +120,10 @@ Choices where the specification is silent
 
 from __future__ import annotations
 
+import ctypes
 import errno
 import fcntl
+import functools
 import json
 import os
 import re
@@ -167,6 +177,10 @@ _RUN_ID = re.compile(r"^[A-Za-z0-9_.\-]+$")
 # files stay readable by HDF5 1.10 to 1.14 whatever library writes them.
 _LIBVER = ("v110", "v110")
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+# A SWMR reader retries a metadata read that fails its checksum or ends past the end of the file (a writer
+# may be halfway through writing it), sleeping 1, 2, 4, ... ns in between. HDF5's default of 100 attempts
+# makes that hours on a damaged file; 31 attempts give a writer about a second (2**30 ns).
+_SWMR_READ_ATTEMPTS = 31
 
 _T = TypeVar("_T")
 
@@ -650,14 +664,60 @@ def _release_lock(path: Path, fd: int) -> None:
     os.close(fd)
 
 
+#: What to do with a study file HDF5 cannot read (a reader on NFS may fail while another machine writes).
+_UNREADABLE_REMEDY = (
+    "if a roughuq command on another machine is writing it, try again once it has finished; "
+    "otherwise restore the file from a copy or start a new study file"
+)
+
+# What h5py raises for a file it cannot read: OSError, and RuntimeError or KeyError for some damaged metadata.
+_HDF5_READ_ERRORS = (OSError, RuntimeError, KeyError)
+
+
+def _unreadable(path: Path, exc: BaseException) -> StudyFileError:
+    """The error for a study file HDF5 cannot read: names the file, says it is damaged, says what to do."""
+    reason = exc.args[0] if len(exc.args) == 1 and isinstance(exc.args[0], str) else str(exc)
+    return StudyFileError(f"{path} cannot be read: truncated or damaged study file ({reason}); {_UNREADABLE_REMEDY}",
+                          path)
+
+
 def _read_text(dataset: Any) -> str:
     value = dataset[()]
     return value.decode("utf-8") if isinstance(value, bytes) else str(value)
 
 
+@functools.cache
+def _read_attempts_setter() -> Callable[[int, int], int] | None:
+    """HDF5's ``H5Pset_metadata_read_attempts`` (h5py does not wrap it), from the library h5py uses; None if absent."""
+    try:
+        setter = ctypes.CDLL(h5py.h5p.__file__).H5Pset_metadata_read_attempts  # searches h5p's libhdf5 too
+    except (OSError, AttributeError):
+        return None
+    setter.argtypes = [ctypes.c_int64, ctypes.c_uint]  # hid_t is 64 bits since HDF5 1.10
+    setter.restype = ctypes.c_int
+    return setter
+
+
+def _swmr_access() -> h5py.h5p.PropFAID:
+    """File access for a SWMR open: HDF5's file locking off (module docstring), bounded metadata read retries."""
+    fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+    fapl.set_file_locking(False, True)
+    setter = _read_attempts_setter()
+    if setter is not None and setter(fapl.id, _SWMR_READ_ATTEMPTS) < 0:  # pragma: no cover - HDF5 refused
+        raise RuntimeError(f"H5Pset_metadata_read_attempts refused {_SWMR_READ_ATTEMPTS}")
+    return fapl
+
+
 def _open_for_reading(path: Path) -> h5py.File:
-    """Open ``path`` read-only in SWMR mode: works while a writer appends, and after one died."""
-    return h5py.File(path, "r", locking=False, swmr=True)
+    """Open ``path`` read-only in SWMR mode: works while a writer appends, and after one died.
+
+    A read that finds damaged metadata fails after :data:`_SWMR_READ_ATTEMPTS`
+    attempts (about a second) instead of retrying for hours.
+    """
+    fapl = _swmr_access()
+    fapl.set_libver_bounds(h5py.h5f.LIBVER_EARLIEST, h5py.h5f.LIBVER_LATEST)  # h5py's default for reading
+    flags = h5py.h5f.ACC_RDONLY | h5py.h5f.ACC_SWMR_READ
+    return h5py.File(h5py.h5f.open(os.fsencode(path), flags, fapl=fapl))
 
 
 def _open_checked(path: Path) -> h5py.File:
@@ -729,8 +789,8 @@ def _read_header(path: Path) -> dict[str, Any]:
             }
     except StudyFileError:
         raise
-    except (OSError, KeyError, ValueError, TypeError) as exc:
-        raise StudyFileError(f"{path} cannot be read: truncated or damaged study file ({exc})", path) from None
+    except (*_HDF5_READ_ERRORS, ValueError, TypeError) as exc:
+        raise _unreadable(path, exc) from None
 
 
 def _write_header(
@@ -762,7 +822,9 @@ def _create_level(f: h5py.File, level: int, columns: Mapping[str, np.ndarray]) -
 def _committed_rows(f: h5py.File, version: int) -> dict[int, int]:
     """Committed row count of every level group (version 1: every row)."""
     counts = {}
-    for group in f["samples"].values():
+    samples = f["samples"]
+    for name in samples:
+        group = samples[name]  # not values(), which gives None for a group HDF5 cannot read (a damaged file)
         level = int(group.attrs["level"])
         counts[level] = int(group[_COMMITTED][()]) if version >= 2 else int(group["index"].shape[0])
     return counts
@@ -846,7 +908,9 @@ class StudyFile(StudyStore):
                 _rewrite(self.path)
             try:
                 self._h5 = _open_for_reading(self.path) if self.read_only else _open_for_writing(self.path)
-            except OSError as exc:
+            except _HDF5_READ_ERRORS as exc:
+                if self.read_only:
+                    raise _unreadable(self.path, exc) from None
                 raise StudyFileError(f"{self.path} cannot be opened ({exc})", self.path) from None
         return self._h5
 
@@ -875,8 +939,8 @@ class StudyFile(StudyStore):
                     yield f
             else:
                 yield self._handle()
-        except OSError as exc:
-            raise StudyFileError(f"{self.path} cannot be read ({exc})", self.path) from None
+        except _HDF5_READ_ERRORS as exc:
+            raise _unreadable(self.path, exc) from None
 
     def _committed_counts(self) -> dict[int, int]:
         if self._is_closed:
@@ -1011,9 +1075,8 @@ def _open_for_writing(path: Path) -> h5py.File:
     followed by ``swmr_mode = True`` marks it "writer" first: a kill in
     between leaves a file that neither a SWMR nor a plain reader opens.)
     """
-    fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+    fapl = _swmr_access()
     fapl.set_libver_bounds(h5py.h5f.LIBVER_V110, h5py.h5f.LIBVER_V110)
-    fapl.set_file_locking(False, True)
     flags = h5py.h5f.ACC_RDWR | h5py.h5f.ACC_SWMR_WRITE
     return h5py.File(h5py.h5f.open(os.fsencode(path), flags, fapl=fapl))
 
@@ -1049,24 +1112,27 @@ def _rewrite(path: Path) -> None:
     """
     try:
         src = _open_for_reading(path)
-    except OSError as exc:
-        raise StudyFileError(f"{path} cannot be read ({exc})", path) from None
+    except _HDF5_READ_ERRORS as exc:
+        raise _unreadable(path, exc) from None
     with src:
-        version = int(src.attrs["format_version"])
-        committed = _committed_rows(src, version)
+        try:
+            committed = _committed_rows(src, int(src.attrs["format_version"]))
+            _replace_atomically(path, lambda dst: _copy_committed(src, dst, committed), copy_from=None)
+        except _HDF5_READ_ERRORS as exc:  # reading ``src`` failed (_replace_atomically reports its writing)
+            raise _unreadable(path, exc) from None
 
-        def write(dst: h5py.File) -> None:
-            for name in ("format", "config_hash", "code_version", "created"):
-                dst.attrs[name] = src.attrs[name]
-            dst.attrs["format_version"] = np.int64(FORMAT_VERSION)
-            for name in ("config_yaml", "qoi_names", "runs", "screening"):
-                if name in src:
-                    src.copy(src[name], dst, name)
-            dst.create_group("samples")
-            for level, n_rows in sorted(committed.items()):
-                _create_level(dst, level, _read_columns(src, level, n_rows))
 
-        _replace_atomically(path, write, copy_from=None)
+def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int]) -> None:
+    """Copy the header, records and ``committed`` rows per level of ``src`` into the new file ``dst`` (version 2)."""
+    for name in ("format", "config_hash", "code_version", "created"):
+        dst.attrs[name] = src.attrs[name]
+    dst.attrs["format_version"] = np.int64(FORMAT_VERSION)
+    for name in ("config_yaml", "qoi_names", "runs", "screening"):
+        if name in src:
+            src.copy(src[name], dst, name)
+    dst.create_group("samples")
+    for level, n_rows in sorted(committed.items()):
+        _create_level(dst, level, _read_columns(src, level, n_rows))
 
 
 def _installed_version() -> str:

@@ -1,0 +1,139 @@
+"""Damaged study files are refused within seconds, through the real CLI; a reader beside a live writer still reads.
+
+HDF5 retries a SWMR reader's metadata read that fails (a writer may be
+halfway through it) with a doubling sleep; unbounded, a damaged file held
+``roughuq report`` for hours. Each command here runs in a subprocess with a
+timeout, so a hang fails the test instead of hanging it.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rough_uq.study.config import load_config
+from rough_uq.study.pipeline import create_study
+from rough_uq.study.store import open_study_readonly
+from tests.study_configs import tiny_config, write_config
+from tests.test_store import _WRITER_KEYS, _child, _writer_code, assert_same_batch, make_batch
+
+ROOT = Path(__file__).resolve().parent.parent
+# Seconds a refusal may take: it takes a few (a second per failed metadata read); a hang takes hours.
+TIMEOUT = 30
+# The superblock of the HDF5 1.10 file format (version 3, 8-byte addresses): signature, version, sizes, flags,
+# four addresses, checksum. Byte 11 holds the flags, which mark a file held by a writer.
+SUPERBLOCK_BYTES = 48
+FLAGS_BYTE = 11
+
+
+def _study_bytes(directory: Path) -> tuple[bytes, bytes]:
+    """A tiny study file as a writer that died while appending left it (its mark set), and as it is once closed."""
+    config = load_config(write_config(directory / "tiny.yaml", tiny_config()))
+    path = directory / "source.h5"
+    with create_study(config, path) as study:
+        n_qoi = len(config.qoi_names)
+        for start in (0, 5):  # the second batch is appended in place, through the writer's SWMR handle
+            study.store.append_samples(make_batch(0, 0, range(start, start + 5), n_qoi=n_qoi))
+        held = path.read_bytes()
+    closed = path.read_bytes()
+    path.unlink()
+    assert held[FLAGS_BYTE] != 0 and closed[FLAGS_BYTE] == 0  # what the kinds of damage below start from
+    return held, closed
+
+
+def _noise(n: int) -> bytes:
+    return np.random.default_rng(2026).integers(0, 256, size=n, dtype=np.uint8).tobytes()
+
+
+def _marked_by_hand(closed: bytes) -> bytes:
+    """The flags of a writer set in the superblock without its checksum (a file edited or damaged there)."""
+    return closed[:FLAGS_BYTE] + b"\x05" + closed[FLAGS_BYTE + 1:]
+
+
+DAMAGES: dict[str, Callable[[bytes, bytes], bytes]] = {
+    "held-truncated": lambda held, closed: held[: len(held) // 2],
+    "held-noise-after-superblock": lambda held, closed: held[:SUPERBLOCK_BYTES] + _noise(len(held) - SUPERBLOCK_BYTES),
+    "marked-by-hand": lambda held, closed: _marked_by_hand(closed),
+    "noise-after-signature": lambda held, closed: held[:8] + _noise(len(held) - 8),
+}
+
+
+@pytest.fixture(scope="module")
+def study_bytes(tmp_path_factory) -> tuple[bytes, bytes]:
+    return _study_bytes(tmp_path_factory.mktemp("source"))
+
+
+def _roughuq(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Run the CLI in a subprocess; a command still running after TIMEOUT seconds fails the test."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    try:
+        return subprocess.run([sys.executable, "-m", "rough_uq.cli", *args], cwd=cwd, env=env, capture_output=True,
+                              text=True, timeout=TIMEOUT)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"roughuq {' '.join(args)} still running after {TIMEOUT} s")
+
+
+def _assert_refused_as_damaged(result: subprocess.CompletedProcess, name: str) -> None:
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1, result.stderr
+    assert lines[0].startswith(f"error: {name} cannot be read: truncated or damaged study file")
+    assert "restore the file from a copy or start a new study file" in lines[0]
+
+
+def test_a_file_a_dead_writer_left_undamaged_is_read(tmp_path, study_bytes):
+    # The case the retries exist for, and the control of the tests below: only the damage makes them fail.
+    (tmp_path / "study.h5").write_bytes(study_bytes[0])
+    result = _roughuq("report", "study.h5", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+
+
+@pytest.mark.parametrize("damage", DAMAGES)
+def test_report_refuses_a_damaged_file_quickly(tmp_path, study_bytes, damage):
+    (tmp_path / "study.h5").write_bytes(DAMAGES[damage](*study_bytes))
+    _assert_refused_as_damaged(_roughuq("report", "study.h5", cwd=tmp_path), "study.h5")
+
+
+@pytest.mark.parametrize("damage", ["held-truncated", "marked-by-hand"])
+def test_a_writing_command_refuses_a_damaged_file_quickly(tmp_path, study_bytes, damage):
+    data = DAMAGES[damage](*study_bytes)
+    (tmp_path / "study.h5").write_bytes(data)
+    _assert_refused_as_damaged(_roughuq("drop", "some-run", "--study", "study.h5", cwd=tmp_path), "study.h5")
+    assert (tmp_path / "study.h5").read_bytes() == data
+
+
+def _read_while_writing(path: Path, seconds: float) -> list[int]:
+    """Open ``path`` read-only again and again for ``seconds``, checking every row; the row counts seen."""
+    counts = []
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        with open_study_readonly(path) as reader:
+            n_rows = 0
+            for level, stage in _WRITER_KEYS:
+                stored = reader.read_samples(level=level, stage=stage)
+                assert_same_batch(stored, make_batch(level, stage, range(stored.n_samples)))
+                n_rows += stored.n_samples
+            reader.read_runs()
+        counts.append(n_rows)
+    return counts
+
+
+def test_a_reader_reads_while_a_writer_appends(tmp_path):
+    path = tmp_path / "study.h5"
+    with _child(_writer_code(path, None)) as writer:
+        try:
+            assert writer.stdout.readline() == "opening\n", writer.stderr.read()
+            for _ in range(len(_WRITER_KEYS) + 1):  # every level exists: later batches are appended in place
+                assert writer.stdout.readline(), writer.stderr.read()
+            counts = _read_while_writing(path, seconds=3.0)
+            assert writer.poll() is None, writer.stderr.read()  # the writer appended all along
+        finally:
+            writer.kill()
+            writer.wait()
+    assert len(counts) >= 3 and counts == sorted(counts) and counts[-1] > counts[0]
