@@ -238,7 +238,8 @@ class TargetEstimate:
     @property
     def tol_met(self) -> bool:
         """``rmse <= tol`` in every group, with an estimated bias and measured variances (False otherwise)."""
-        return self.is_bias_estimated and self.is_variance_measured and bool(np.all(self.rmse**2 <= self.tol**2 * (1 + 1e-12)))
+        is_within = bool(np.all(self.rmse**2 <= self.tol**2 * (1 + 1e-12)))
+        return self.is_bias_estimated and self.is_variance_measured and is_within
 
     @property
     def finest_level(self) -> int:
