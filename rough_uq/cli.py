@@ -605,7 +605,8 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     _check_executor_options(executor, scheduler, workers)
     config, model = _config_file(config_path)
     # The file is created before the screening's own checks: refused, or interrupted before a sample, it goes again.
-    with removed_if_left_unused(out or config.output.path), create_study(config, out, model=model) as study:
+    study_path = out or config.output.path
+    with removed_if_left_unused(study_path), create_study(config, out, model=model, source=config_path) as study:
         _warm_kernels(study.model, quiet=quiet or as_json)
         with _executor(config, workers, executor, scheduler) as pool:
             watch = (study.config, pool, executor, "a smaller screening.levels")
@@ -911,10 +912,10 @@ def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi
 
     def check(config: Any, model: Any) -> None:
         requested(config)
-        check_target_run(config, max_cost=opts.max_cost, model=model)
+        check_target_run(config, max_cost=opts.max_cost, model=model, source=opts.config_path)
 
     config = _config_creating_study(opts, check=check)
-    with open_existing_study(opts.study_path, config=config) as study:
+    with open_existing_study(opts.study_path, config=config, source=opts.config_path) as study:
         tolerances, request = requested(study.config)
         with _executor(study.config, opts.workers, opts.executor, opts.scheduler) as pool:
             watch = (study.config, pool, opts.executor, "a looser tolerance")
@@ -936,10 +937,12 @@ def _run_mean(tol: Sequence[str], *, method: str, choice: str, level: int | None
     )
 
     # Only MC on a given --level needs no screening: any other run would find the new study empty and refuse.
-    config = _config_creating_study(opts, may_create=level is not None and not show_plan,
-                                    check=lambda config, _: check_initial_samples(config, n_levels=1,
-                                                                                  run="mc --level"))
-    with open_existing_study(opts.study_path, config=config, writable=not show_plan) as study:
+    def check(config: Any, model: Any) -> None:
+        check_initial_samples(config, n_levels=1, run="mc --level", source=opts.config_path)
+
+    config = _config_creating_study(opts, may_create=level is not None and not show_plan, check=check)
+    with open_existing_study(opts.study_path, config=config, writable=not show_plan,
+                             source=opts.config_path) as study:
         tolerances = parse_tolerances(tol, study.config)
         cap = study.config.estimation.max_cost if opts.max_cost is None else opts.max_cost
         run_method = _chosen_method(study, choice, method, tolerances, cap, choose_method, opts.quiet or opts.as_json)
@@ -1298,7 +1301,7 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
         largest = max((swept for _, swept in configs), key=lambda swept: swept.grid.n_at(level))
         _warn_memory(largest, level, pool, lower_with="a smaller --level")
         rows = run_sweep(configs, key=key, directory=directory or f"sweep-{key}", tol=tol, level=level, executor=pool,
-                         progress=_progress(quiet or as_json))
+                         progress=_progress(quiet or as_json), source=config_path)
     if as_json:
         _dump([row.to_json() for row in rows])
         return

@@ -619,11 +619,12 @@ def test_a_run_that_needs_a_screening_does_not_create_an_empty_study_from_its_co
 
 @pytest.mark.parametrize("config, args, field", [
     ({}, ("--tol-var", "nosuch=5"), "--tol-var"),
-    ({"grid": {"coarsest": 8, "max_level": 0}}, ("--tol-var", "5"), "grid.max_level"),
-    ({"estimation": {"initial_samples": 3, "batch_size": 4}}, ("--tol-var", "5"), "estimation.initial_samples"),
+    ({"grid": {"coarsest": 8, "max_level": 0}}, ("--tol-var", "5"), "bad.yaml: grid.max_level"),
+    ({"estimation": {"initial_samples": 3, "batch_size": 4}}, ("--tol-var", "5"),
+     "bad.yaml: estimation.initial_samples"),
     ({}, ("--tol-cdf", "0.1", "--qoi", "nosuch"), "--qoi"),
     ({"estimation": {"initial_samples": 3_333_334, "batch_size": 4}}, ("--tol-var", "5"),
-     "estimation.initial_samples"),
+     "bad.yaml: estimation.initial_samples"),
 ], ids=["unknown QoI", "one level", "three initial samples", "unknown column", "initial samples beyond any plan"])
 def test_a_target_run_refused_before_its_first_sample_leaves_no_study_file(tmp_path, monkeypatch, config, args, field):
     """`mlmc --config` created the study, then run_target refused: an empty study file stayed behind."""
@@ -641,7 +642,8 @@ def test_a_screening_refused_before_its_first_sample_leaves_no_study_file_to_ref
     'written by another config'."""
     monkeypatch.chdir(tmp_path)
     write_config(tmp_path / "s.yaml", tiny_config(grid={"coarsest": 8, "max_level": 1}))
-    assert one_error_line(run("screen", "s.yaml", "--workers", "1", expect=2)).startswith("error: grid.max_level: ")
+    line = one_error_line(run("screen", "s.yaml", "--workers", "1", expect=2))
+    assert line.startswith("error: s.yaml: grid.max_level: ")
     assert sorted(path.name for path in tmp_path.iterdir()) == ["s.yaml"]
     write_config(tmp_path / "s.yaml", tiny_config())
     run("screen", "s.yaml", "--workers", "1", "-q")
@@ -674,7 +676,8 @@ def test_mc_on_a_level_refuses_a_budget_below_its_initial_samples_before_any_sam
     line = one_error_line(run("mc", *config, "--study", "new.h5", "--level", "0", "--tol", "5", "--workers", "1",
                               "-q", expect=2))
     option = "--max-cost" if budget[0] == "--max-cost" else "estimation.max_cost"
-    assert re.fullmatch(rf"error: {option} 1e-05 is too small for the initial samples of level 0 \(\d+\), which "
+    where = "" if budget[0] == "--max-cost" else "budget.yaml: "  # the config's budget: its file named first
+    assert re.fullmatch(rf"error: {where}{option} 1e-05 is too small for the initial samples of level 0 \(\d+\), which "
                         rf"cost at least [0-9.e-]+ reference seconds of modelled cost \(even if every solve converged "
                         rf"at once\); without them the run has no variance estimate: raise {option} \(or lower "
                         rf"estimation.initial_samples\)", line), line
@@ -747,6 +750,64 @@ def test_a_config_whose_model_cannot_be_built_is_refused_naming_its_file(tmp_pat
     assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml"]
 
 
+#: Commands given a config file whose field is refused once the config is loaded, the study file they create or
+#: open ("new.h5"; "old.h5" exists, made from the config with good fields), and the field.
+REFUSED_FIELD_COMMANDS = {
+    "screen": (("screen", "bad.yaml", "--out", "new.h5"), {"grid": {"coarsest": 8, "max_level": 1}},
+               "grid.max_level"),
+    "mc --level, new study": (("mc", "--config", "bad.yaml", "--study", "new.h5", "--level", "1", "--tol", "1"),
+                              {"estimation": {"initial_samples": 10_000_001, "batch_size": 4}},
+                              "estimation.initial_samples"),
+    "mc --level, existing study": (("mc", "--config", "bad.yaml", "--study", "old.h5", "--level", "1", "--tol", "1"),
+                                   {"estimation": {"initial_samples": 10_000_001, "batch_size": 4}},
+                                   "estimation.initial_samples"),
+    "mlmc --tol-var, new study": (("mlmc", "--config", "bad.yaml", "--study", "new.h5", "--tol-var", "5"),
+                                  {"estimation": {"initial_samples": 3, "batch_size": 4}},
+                                  "estimation.initial_samples"),
+    "mlmc --tol-var, existing study": (("mlmc", "--config", "bad.yaml", "--study", "old.h5", "--tol-var", "5"),
+                                       {"estimation": {"initial_samples": 3, "batch_size": 4}},
+                                       "estimation.initial_samples"),
+    "mlmc --tol-cdf, existing study": (("mlmc", "--config", "bad.yaml", "--study", "old.h5", "--tol-cdf", "0.1",
+                                        "--thresholds", "0:60:7"),
+                                       {"estimation": {"initial_samples": 3, "batch_size": 4}},
+                                       "estimation.initial_samples"),
+    "mlmc --tol-var, budget": (("mlmc", "--config", "bad.yaml", "--study", "new.h5", "--tol-var", "5"),
+                               {"estimation": {"initial_samples": 4, "batch_size": 4, "max_cost": 1e-9}},
+                               "estimation.max_cost"),
+    "sweep": (("sweep", "bad.yaml", "--set", "surface.system_size=1,2", "--tol", "1", "--dir", "swept"),
+              {"estimation": {"initial_samples": 10_000_001, "batch_size": 4}}, "estimation.initial_samples"),
+}
+
+
+@pytest.mark.parametrize("args, overrides, field", REFUSED_FIELD_COMMANDS.values(),
+                         ids=REFUSED_FIELD_COMMANDS.keys())
+def test_a_config_whose_field_is_refused_after_loading_is_refused_naming_its_file(tmp_path, monkeypatch, args,
+                                                                                   overrides, field):
+    """Refusals of a loaded config's fields by the screening and the runs' checks named the field, not the file
+    given on the command line (build_model's refusals did); a sweep refused initial_samples only after it had
+    written its first study."""
+    from rough_uq.study.config import load_config
+    from rough_uq.study.pipeline import create_study
+
+    monkeypatch.chdir(tmp_path)
+    create_study(load_config(write_config(tmp_path / "good.yaml", tiny_config())), "old.h5").close()
+    write_config(tmp_path / "bad.yaml", tiny_config(**overrides))
+    line = one_error_line(run(*args, "--workers", "1", expect=2))
+    assert line.startswith(f"error: bad.yaml: {field}"), line
+    assert line.count("bad.yaml") == 1  # named once
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml", "good.yaml", "old.h5"]
+
+
+def test_a_sweep_of_the_refused_field_names_the_swept_value(tmp_path, monkeypatch):
+    """The value of the swept field comes from --set, not from the file: the refusal names it as build_model's do."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "c.yaml", tiny_config())
+    line = one_error_line(run("sweep", "c.yaml", "--set", "estimation.initial_samples=4,10000001", "--tol", "1",
+                              "--dir", "swept", "--workers", "1", expect=2))
+    assert line.startswith("error: --set estimation.initial_samples=10000001: estimation.initial_samples: got "), line
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["c.yaml"]
+
+
 def test_a_study_file_is_kept_once_it_holds_anything(tmp_path, monkeypatch):
     """Only a file the command created and left empty goes: a refusal after samples keeps them."""
     monkeypatch.chdir(tmp_path)
@@ -768,7 +829,8 @@ def test_initial_samples_no_plan_may_hold_are_refused_naming_the_field_before_a_
     write_config(tmp_path / "big.yaml", tiny_config(estimation={"initial_samples": initial, "batch_size": 4}))
     args = ("mc", "--level", "1", "--tol", "1") if allowed == 10_000_000 else ("mlmc", "--tol-var", "5")
     line = one_error_line(run(*args, "--config", "big.yaml", "--study", "new.h5", "--workers", "1", expect=2))
-    assert line.startswith(f"error: estimation.initial_samples: got {initial}; allowed: an integer <= {allowed} ")
+    assert line.startswith(f"error: big.yaml: estimation.initial_samples: got {initial}; allowed: an integer <= "
+                           f"{allowed} ")
     assert [path.name for path in tmp_path.iterdir()] == ["big.yaml"]
 
 

@@ -404,7 +404,7 @@ def test_a_study_builds_its_model_once(tmp_path, monkeypatch):
 
     calls = []
     real = pipeline.build_model
-    monkeypatch.setattr(pipeline, "build_model", lambda config: calls.append(1) or real(config))
+    monkeypatch.setattr(pipeline, "build_model", lambda config, **named: calls.append(1) or real(config, **named))
     config = config_from_dict(tiny_config())
     with pipeline.create_study(config, tmp_path / "s.h5") as study:
         assert len(calls) == 1

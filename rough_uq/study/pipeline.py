@@ -203,10 +203,25 @@ def build_model(config: StudyConfig, *, source: str | None = None) -> ContactMod
         With ``source``: the same refusal, ``<source>: <field>: got ...``
         (the :class:`InvalidParameterError` is its ``__cause__``).
     """
+    with naming_source(source):
+        return _model(config)
+
+
+@contextmanager
+def naming_source(source: str | None) -> Iterator[None]:
+    """Refusals of a config's fields in the block name ``source``, where the config comes from, first.
+
+    An :class:`InvalidParameterError` raised in the block becomes a
+    :class:`ConfigError` ``<source>: <field>: got ...`` (the refusal is its
+    ``__cause__``), as :func:`~rough_uq.study.config.load_config` names the
+    file in its errors. The block must refuse only the config's fields (not
+    command-line options). ``source`` None: refusals pass unchanged.
+    """
     if source is None:
-        return _model(config)
+        yield
+        return
     try:
-        return _model(config)
+        yield
     except InvalidParameterError as error:
         raise ConfigError(f"{source}: {error}") from error
 
@@ -257,16 +272,19 @@ class Study:
 
     Building the model draws on the spectrum, whose set-up grows like ``k_s^2``
     (seconds at ``k_s`` in the thousands): a caller that has built it passes it.
+    ``source`` is where ``config`` comes from when a command was given it (its
+    file): the refusals of its fields then name it first (:func:`naming_source`).
     """
 
     config: StudyConfig
     store: StudyStore
     model: ContactModel | None = None
+    source: str | None = None
 
     def __post_init__(self) -> None:
         if self.model is None:
             try:
-                self.model = build_model(self.config)
+                self.model = build_model(self.config, source=self.source)
             except BaseException:
                 self.store.close()  # a refused config leaves no open file behind
                 raise
@@ -302,7 +320,7 @@ _SCREEN_REMEDY = "use another --out file or the config it was written with"
 
 def create_study(
     config: StudyConfig, path: str | Path | None = None, *, remedy: str = _SCREEN_REMEDY,
-    model: ContactModel | None = None,
+    model: ContactModel | None = None, source: str | None = None,
 ) -> Study:
     """Open the study file of ``config`` for writing, creating it if missing.
 
@@ -313,10 +331,11 @@ def create_study(
     :func:`build_model` refuses is refused before the file is created: a file
     left behind would refuse the corrected config as another one. ``model``
     is the config's (:func:`build_model`, e.g. with the config file as its
-    ``source``), built here if not given.
+    ``source``), built here if not given. ``source`` is where ``config``
+    comes from (its file; :class:`Study`).
     """
     path = Path(path if path is not None else config.output.path)
-    model = build_model(config) if model is None else model
+    model = build_model(config, source=source) if model is None else model
     _refuse_other_config(path, config, remedy)
     store = open_study(
         path,
@@ -326,7 +345,7 @@ def create_study(
         create=True,
         code_version=__version__,
     )
-    return Study(config, store, model)
+    return Study(config, store, model, source)
 
 
 @contextmanager
@@ -377,12 +396,15 @@ def _stored_config(store: StudyStore) -> StudyConfig:
     return config_from_stored_text(store.config_text, source=f"{path} (stored config)")
 
 
-def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, writable: bool = True) -> Study:
+def open_existing_study(
+    path: str | Path, *, config: StudyConfig | None = None, writable: bool = True, source: str | None = None
+) -> Study:
     """Open an existing study file.
 
     The study's config is the one stored in the file unless ``config`` is
     given; a given config must hash like the stored one (it may differ in
-    estimation settings and QoI tolerances, which do not change samples). A
+    estimation settings and QoI tolerances, which do not change samples), and
+    ``source`` is where it comes from (its file; :class:`Study`). A
     file whose stored ``qoi_names`` are not the result columns of its stored
     config is refused as damaged (:class:`StudyFileError`).
     """
@@ -403,8 +425,9 @@ def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, 
             "the stored one is used) or another --study file",
             path,
         )
+    source = source if config is not None else None
     if not writable:
-        return Study(config or stored, open_study_readonly(path))
+        return Study(config or stored, open_study_readonly(path), source=source)
     store = open_study(
         path,
         config_text=config_text,
@@ -413,7 +436,7 @@ def open_existing_study(path: str | Path, *, config: StudyConfig | None = None, 
         create=False,
         code_version=__version__,
     )
-    return Study(config or stored, store)
+    return Study(config or stored, store, source=source)
 
 
 def _check_columns(path: Path, stored_names: Sequence[str], config_names: Sequence[str]) -> None:
@@ -662,17 +685,13 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
 
     A study with ``grid.max_level < 2`` (a valid config for the runs that
     need no screening) is refused before any sample is computed
-    (:class:`~rough_uq.errors.InvalidParameterError` naming ``grid.max_level``):
+    (:class:`~rough_uq.errors.InvalidParameterError` naming ``grid.max_level``,
+    or :class:`~rough_uq.errors.ConfigError` naming the study's ``source`` first):
     a screening needs levels ``0..2`` (:data:`~rough_uq.problem.runs.MIN_SCREENED_LEVELS`).
     """
     config = study.config
-    if config.grid.max_level + 1 < MIN_SCREENED_LEVELS:
-        raise InvalidParameterError(
-            "grid.max_level", config.grid.max_level,
-            f"an integer >= {MIN_SCREENED_LEVELS - 1} to screen: a screening needs levels 0..{MIN_SCREENED_LEVELS - 1} "
-            "(the rates are fitted on levels >= 1, two of them at least); runs without a screening need none "
-            "(mlmc --tol-var / --tol-cdf, mc --level)",
-        )
+    with naming_source(study.source):
+        _check_screenable(config)
     levels = list(range(config.screening.levels))
     n = config.screening.samples
     sampler = StudySampler(study, stage=STAGE_SCREENING, executor=executor, progress=progress)
@@ -706,6 +725,17 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
     )
     study.store.write_screening(record.to_json())
     return ScreeningOutcome(statistics, rates, record)
+
+
+def _check_screenable(config: StudyConfig) -> None:
+    """Refuse a config too shallow to screen (:func:`run_screening`), naming ``grid.max_level``."""
+    if config.grid.max_level + 1 < MIN_SCREENED_LEVELS:
+        raise InvalidParameterError(
+            "grid.max_level", config.grid.max_level,
+            f"an integer >= {MIN_SCREENED_LEVELS - 1} to screen: a screening needs levels 0..{MIN_SCREENED_LEVELS - 1} "
+            "(the rates are fitted on levels >= 1, two of them at least); runs without a screening need none "
+            "(mlmc --tol-var / --tol-cdf, mc --level)",
+        )
 
 
 def _screening_rates(statistics: LevelStatistics, qoi_names: Sequence[str]) -> Rates:
@@ -920,22 +950,24 @@ def _refusing_large_plans(events: Iterator[object], names: Sequence[str], tol: n
         events.close()
 
 
-def check_initial_samples(config: StudyConfig, *, n_levels: int, run: str) -> None:
+def check_initial_samples(config: StudyConfig, *, n_levels: int, run: str, source: str | None = None) -> None:
     """Refuse ``estimation.initial_samples`` whose samples on ``n_levels`` levels alone exceed MAX_PLANNED_SAMPLES.
 
     A run without a screening (``run``: ``mc --level``, or a variance or cdf
     run) starts with that many samples on each of its first levels, whatever
     the tolerance; before this check ``initial_samples: 100000000`` began a
-    run of some 80 hours on the quickstart's level 1.
+    run of some 80 hours on the quickstart's level 1. ``source`` (the
+    config's file) is named first in the refusal (:func:`naming_source`).
     """
     n_initial = config.estimation.initial_samples
     if n_initial * n_levels > MAX_PLANNED_SAMPLES:
         where = "its level" if n_levels == 1 else f"each of its first {n_levels} levels"
-        raise InvalidParameterError(
-            "estimation.initial_samples", n_initial,
-            f"an integer <= {MAX_PLANNED_SAMPLES // n_levels} for {run} (it starts with that many samples on "
-            f"{where}; at most {MAX_PLANNED_SAMPLES} samples in all)",
-        )
+        with naming_source(source):
+            raise InvalidParameterError(
+                "estimation.initial_samples", n_initial,
+                f"an integer <= {MAX_PLANNED_SAMPLES // n_levels} for {run} (it starts with that many samples on "
+                f"{where}; at most {MAX_PLANNED_SAMPLES} samples in all)",
+            )
 
 
 def _stalled(names: Sequence[str], rates: Rates) -> list[str]:
@@ -1264,7 +1296,7 @@ def run_estimation(
     _check_run_arguments(study, method, level)
     if level is not None:  # no screening's forecast checks its budget: at least its initial samples
         _check_initial_budget(study.config, [level], max_cost=max_cost, model=study.model,
-                              without="the run has no variance estimate")
+                              without="the run has no variance estimate", source=study.source)
     tol = np.asarray(tol, dtype=float)
     max_cost = study.config.estimation.max_cost if max_cost is None else max_cost
     estimation = study.config.estimation
@@ -1315,7 +1347,7 @@ def _check_run_arguments(study: Study, method: str, level: int | None) -> None:
     if level is not None and not 0 <= level <= max_level:
         raise InvalidParameterError("--level", level, f"an integer in 0..{max_level} (grid.max_level)")
     if level is not None:
-        check_initial_samples(study.config, n_levels=1, run="mc --level")
+        check_initial_samples(study.config, n_levels=1, run="mc --level", source=study.source)
 
 
 def _started_record(
@@ -1599,7 +1631,7 @@ def run_target(
     tol = np.asarray(tol, dtype=float)
     if target == "cdf" and (request is None or tol.shape != (1,)):
         raise InvalidParameterError("--tol-cdf", tol.tolist(), "one number, with the column and thresholds")
-    check_target_run(study.config, max_cost=max_cost, model=study.model)
+    check_target_run(study.config, max_cost=max_cost, model=study.model, source=study.source)
     estimation = study.config.estimation
     max_cost = estimation.max_cost if max_cost is None else max_cost
     key = target_run_id(study, target=target, tol=tol, request=request)
@@ -1630,7 +1662,8 @@ _TARGET_OPTIONS = {"variance": "--tol-var", "cdf": "--tol-cdf"}
 
 
 def check_target_run(
-    config: StudyConfig, *, max_cost: float | None = None, model: ContactModel | None = None
+    config: StudyConfig, *, max_cost: float | None = None, model: ContactModel | None = None,
+    source: str | None = None,
 ) -> None:
     """Refuse, before any sample, a variance or cdf run that ``config`` cannot give.
 
@@ -1639,15 +1672,24 @@ def check_target_run(
     otherwise leave an empty study file behind): ``grid.max_level`` at least
     1, ``estimation.initial_samples`` at least :data:`MIN_TARGET_SAMPLES` and
     within :func:`check_initial_samples`, and the budget
-    (:func:`check_target_budget`; ``model`` as there).
+    (:func:`check_target_budget`; ``model`` and ``source`` as there).
 
     Raises
     ------
     InvalidParameterError
         Naming ``grid.max_level`` or ``estimation.initial_samples``.
+    ConfigError
+        The same, with ``source`` (the config's file) named first (:func:`naming_source`).
     EstimationError
         A budget below the least cost of the initial samples.
     """
+    with naming_source(source):
+        _check_target_fields(config)
+    check_target_budget(config, max_cost=max_cost, model=model, source=source)
+
+
+def _check_target_fields(config: StudyConfig) -> None:
+    """The levels and initial samples a variance or cdf run needs (:func:`check_target_run`)."""
     if config.grid.max_level < 1:
         raise InvalidParameterError("grid.max_level", config.grid.max_level,
                                     "an integer >= 1 for variance and cdf runs (they estimate level differences)")
@@ -1659,11 +1701,11 @@ def check_target_run(
         )
     check_initial_samples(config, n_levels=initial_finest_level(config.grid.max_level) + 1,
                           run="variance and cdf runs")
-    check_target_budget(config, max_cost=max_cost, model=model)
 
 
 def check_target_budget(
-    config: StudyConfig, *, max_cost: float | None = None, model: ContactModel | None = None
+    config: StudyConfig, *, max_cost: float | None = None, model: ContactModel | None = None,
+    source: str | None = None,
 ) -> None:
     """Refuse, before any sample, a variance or cdf run whose budget cannot pay for its initial samples.
 
@@ -1676,7 +1718,8 @@ def check_target_budget(
     :func:`forecast_run`). ``max_cost`` is ``--max-cost`` (reference seconds);
     None takes ``estimation.max_cost``, named so in the message; no budget at
     all passes. ``model`` is the config's (:func:`build_model`), built here if
-    not given.
+    not given. ``source`` (the config's file) is named first in a refusal of
+    ``estimation.max_cost``.
 
     Raises
     ------
@@ -1688,31 +1731,34 @@ def check_target_budget(
     """
     finest = initial_finest_level(config.grid.max_level)
     _check_initial_budget(config, list(range(finest + 1)), max_cost=max_cost, model=model,
-                          without="no bias is estimated")
+                          without="no bias is estimated", source=source)
 
 
 def _check_initial_budget(
-    config: StudyConfig, levels: Sequence[int], *, max_cost: float | None, model: ContactModel | None, without: str
+    config: StudyConfig, levels: Sequence[int], *, max_cost: float | None, model: ContactModel | None, without: str,
+    source: str | None = None,
 ) -> None:
     """Refuse a budget below the least modelled cost of ``estimation.initial_samples`` on each of ``levels``.
 
     The least cost is that of solves that need no iteration at all.
     ``max_cost`` None takes ``estimation.max_cost`` (so named in the
     message); no budget at all passes. ``without`` says what the run lacks
-    without those samples.
+    without those samples. ``source`` (the config's file) is named first
+    where the budget is ``estimation.max_cost``.
     """
     option = "estimation.max_cost" if max_cost is None else "--max-cost"
+    where_given = f"{source}: " if source is not None and max_cost is None else ""
     max_cost = config.estimation.max_cost if max_cost is None else max_cost
     if max_cost is None:
         return
-    model = build_model(config) if model is None else model
+    model = build_model(config, source=source) if model is None else model
     n_initial = config.estimation.initial_samples
     no_iterations = np.zeros((1, 2))
     least = n_initial * sum(float(modelled_cost(model, level, no_iterations)[0]) for level in levels)
     if max_cost < least:
         where = f"level {levels[0]}" if len(levels) == 1 else f"levels {levels[0]}..{levels[-1]}"
         raise EstimationError(
-            f"{option} {max_cost:g} is too small for the initial samples of {where} "
+            f"{where_given}{option} {max_cost:g} is too small for the initial samples of {where} "
             f"({n_initial}{' each' if len(levels) > 1 else ''}), "
             f"which cost at least {least:.3g} reference seconds of modelled cost (even if every solve converged at "
             f"once); without them {without}: raise {option} (or lower estimation.initial_samples)"
@@ -2008,6 +2054,7 @@ def run_sweep(
     level: int,
     executor: Executor,
     progress: Progress,
+    source: str | None = None,
 ) -> list[SweepRow]:
     """Plain MC on ``level`` for every config of a sweep (:func:`~rough_uq.study.config.sweep_configs`).
 
@@ -2021,7 +2068,10 @@ def run_sweep(
     for the QoI whose ``qoi.<name>.tol`` is ``key`` (it would override every
     swept value: the studies would run the same tolerance); studies that give
     a QoI in different units (one tolerance would ask each for another
-    accuracy); a study file in ``directory`` written by another config
+    accuracy); ``estimation.initial_samples`` beyond what MC on ``level``
+    may draw (:func:`check_initial_samples`; :class:`ConfigError` naming
+    ``source``, the swept config's file, or ``--set KEY=VALUE`` where ``key``
+    is that field); a study file in ``directory`` written by another config
     (:class:`StudyFileError`).
     """
     directory = Path(directory)
@@ -2031,13 +2081,16 @@ def run_sweep(
     if configs:  # every value has the same QoIs
         _refuse_overridden_tolerance(key, configs[0][1], tol)
     _refuse_mixed_units(key, configs)
+    for value, config in configs:
+        where = f"--set {key}={value}" if key == "estimation.initial_samples" else source
+        check_initial_samples(config, n_levels=1, run=f"a sweep (mc on level {level})", source=where)
     for study_path, (_, config) in zip(paths, configs):
         _refuse_other_config(study_path, config, remedy)
     directory.mkdir(parents=True, exist_ok=True)
     rows = []
     for study_path, tolerance, (value, config) in zip(paths, tolerances, configs):
         config_path = study_path.with_suffix(".yaml")
-        with create_study(config, study_path, remedy=remedy) as study:
+        with create_study(config, study_path, remedy=remedy, source=source) as study:
             config_path.write_text(resolved_yaml(config))
             record = run_estimation(
                 study,
