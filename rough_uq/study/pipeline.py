@@ -131,6 +131,7 @@ __all__ = [
     "run_id",
     "compute_shard",
     "merge_shards",
+    "naming_source",
     "run_sweep",
     "ScreeningOutcome",
     "SweepRow",
