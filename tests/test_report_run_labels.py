@@ -105,3 +105,49 @@ def test_load_curve_tables_are_headed_by_labels_and_the_ids_stay_findable(curve_
     samples_line = next(line for line in text.splitlines() if line.startswith("samples stored"))
     assert all(key in samples_line for key in ids)
     assert [entry["run_id"] for entry in curve_report["load_curves"]] == ids
+
+
+@pytest.fixture(scope="module")
+def memory_curve():
+    """A screened 3-load study of two QoIs in memory, with MLMC at the config's tolerances and one column apart."""
+    import numpy as np
+
+    from rough_uq.study.executors import SerialExecutor
+    from rough_uq.study.pipeline import run_estimation, run_screening
+    from rough_uq.study.progress import Progress
+    from tests.test_plots import _study
+
+    study = _study(load={"relative": [0.1, 0.2, 0.3]}, qoi={"contact_area": {"tol": 4.0}, "mean_gap": {"tol": 0.1}})
+    run_screening(study, executor=SerialExecutor(), progress=Progress())
+    for tol in ([4.0, 4.0, 4.0, 0.1, 0.1, 0.1], [4.0, 4.0, 4.0, 0.2, 0.1, 0.1]):
+        run_estimation(study, method="mlmc", tol=np.array(tol), executor=SerialExecutor(), progress=Progress())
+    return study
+
+
+def test_run_warnings_start_with_the_label_and_the_drop_hint_keeps_the_id(memory_curve):
+    from rough_uq.report.summary import study_report
+    from rough_uq.study.store import MemoryStore
+
+    source = memory_curve.store
+    store = MemoryStore(qoi_names=source.qoi_names)
+    finished = source.read_runs()[0]
+    names = finished["qoi_names"]
+    store.write_run(finished["run_id"], {**finished, "warnings": ["the kurtosis of level 2 is large"]})
+    loose = run_id("mlmc", names, (8.0,) * 6, 0.5)  # a run whose process died: its record says "running"
+    store.write_run(loose, {"method": "mlmc", "stage": 7, "status": "running", "tol": [8.0] * 6,
+                            "qoi_names": names, "theta": 0.5})
+    report = study_report(store, memory_curve.config)
+    ids = [finished["run_id"], loose]
+    assert all(len(key) > 100 for key in ids)
+    (diagnostic,) = [text for text in report["warnings"] if "kurtosis" in text]
+    assert diagnostic == "mlmc, tol contact_area=4, mean_gap=0.1, theta 0.5: the kurtosis of level 2 is large"
+    (interrupted,) = [text for text in report["warnings"] if "interrupted" in text]
+    assert interrupted.startswith("mlmc, tol contact_area=8, mean_gap=8, theta 0.5: interrupted; ")
+    assert interrupted.count(loose) == 1 and interrupted.endswith(f"`roughuq drop {loose}` to forget it")
+    assert finished["run_id"] not in " ".join(report["warnings"])
+    # The JSON keeps each run's warnings by id, for a consumer that read the id off the text.
+    assert report["run_warnings"] == [
+        {"run_id": ids[0], "label": diagnostic.split(": ")[0], "message": "the kurtosis of level 2 is large"},
+        {"run_id": loose, "label": interrupted.split(": ")[0], "message": interrupted.split(": ", 1)[1]},
+    ]
+

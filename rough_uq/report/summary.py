@@ -259,17 +259,29 @@ def _seen_status(run: ReportedRun, is_running: bool) -> ReportedRun:
     return replace(run, record=replace(run.record, status="running" if is_running else "interrupted"))
 
 
-def _report_warnings(screening: ScreeningRecord | None, runs: Sequence[ReportedRun], n_not_converged: int) -> list[str]:
-    warnings = [d.message for d in screening.diagnostics] if screening is not None else []
+def _run_warnings(runs: Sequence[ReportedRun], qoi_names: Sequence[str]) -> list[dict[str, str]]:
+    """Each run's warnings as ``{"run_id", "label", "message"}``: its diagnostics, and that it was interrupted.
+
+    The text names a run by its label (:func:`run_label`); its id, hundreds
+    of characters for a load curve, only where the user types it (``roughuq drop``).
+    """
+    warnings = []
     for run in runs:
         record = run.record
         diagnostics = record.outcome.diagnostics if record.outcome is not None else ()
-        warnings += [f"{record.run_id}: {d.message}" for d in diagnostics]
+        messages = [d.message for d in diagnostics]
         if record.status == "interrupted":
-            warnings.append(
-                f"{record.run_id}: interrupted; rerun the same command to resume, or "
-                f"`roughuq drop {record.run_id}` to forget it"
-            )
+            messages.append(f"interrupted; rerun the same command to resume, or `roughuq drop {record.run_id}` "
+                            "to forget it")
+        label = run_label(record, qoi_names)
+        warnings += [{"run_id": record.run_id, "label": label, "message": message} for message in messages]
+    return warnings
+
+
+def _report_warnings(screening: ScreeningRecord | None, run_warnings: Sequence[dict[str, str]],
+                     n_not_converged: int) -> list[str]:
+    warnings = [d.message for d in screening.diagnostics] if screening is not None else []
+    warnings += [f"{warning['label']}: {warning['message']}" for warning in run_warnings]
     if n_not_converged:
         warnings.append(
             f"{n_not_converged} stored samples have a solve that did not converge even after the retry; "
@@ -286,13 +298,18 @@ def screening_json(screening: ScreeningRecord | None) -> dict[str, Any] | None:
 
 
 def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
-    """Everything ``roughuq report`` shows, as a JSON-able dict (see :func:`derive_runs` for the ratios)."""
+    """Everything ``roughuq report`` shows, as a JSON-able dict (see :func:`derive_runs` for the ratios).
+
+    ``warnings`` are the texts printed; ``run_warnings`` those of the runs
+    with their ids (:func:`_run_warnings`), which the texts leave out.
+    """
     screening = read_screening_record(store)
     stored_runs = read_run_records(store)
     path = getattr(store, "path", "")
     is_running = bool(path) and is_locked_by_running_process(path)
     runs = [_seen_status(run, is_running) for run in derive_runs(stored_runs)]
     n_not_converged = _not_converged(store)
+    run_warnings = _run_warnings(runs, store.qoi_names)
     return {
         "path": str(path),
         "format_version": FORMAT_VERSION,
@@ -307,7 +324,8 @@ def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
         "dropped_runs": [run.run_id for run in stored_runs if run.status == "dropped"],
         "is_running": is_running,
         "n_not_converged": n_not_converged,
-        "warnings": _report_warnings(screening, runs, n_not_converged),
+        "warnings": _report_warnings(screening, run_warnings, n_not_converged),
+        "run_warnings": run_warnings,
         "load_curves": load_curves(list(store.qoi_names), [run.record for run in runs], config),
     }
 
