@@ -404,10 +404,11 @@ def test_the_prediction_table_marks_tolerances_whose_bias_the_finest_grid_cannot
                           mlmc_seconds=1.0, mc_seconds=1.0, work_ratio=1.0, is_bias_met=is_bias_met)
 
     console = Console(width=120, record=True)
-    console.print(_predictions_table(SimpleNamespace(predictions=(row(2.0, True), row(1.0, False)))))
+    names = ("contact_area",)
+    console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=(row(2.0, True), row(1.0, False)))))
     text = console.export_text()
-    assert " 1 *" in text and " 2 *" not in text and "mlmc refuses it" in text
-    console.print(_predictions_table(SimpleNamespace(predictions=(row(2.0, True),))))
+    assert "contact_area=1 *" in text and "contact_area=2 *" not in text and "mlmc refuses it" in text
+    console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=(row(2.0, True),))))
     assert console.export_text().count("mlmc refuses") == 0
 
 

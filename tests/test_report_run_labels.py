@@ -151,3 +151,22 @@ def test_run_warnings_start_with_the_label_and_the_drop_hint_keeps_the_id(memory
         {"run_id": loose, "label": interrupted.split(": ")[0], "message": interrupted.split(": ", 1)[1]},
     ]
 
+
+def test_screening_predictions_name_the_tolerances_grouped_by_qoi(memory_curve):
+    from rich.console import Console
+
+    from rough_uq.report.summary import render_screening
+    from rough_uq.study.records import read_screening_record
+
+    screening = read_screening_record(memory_curve.store)
+    names = screening.qoi_names
+    assert len(names) == 6 and screening.predictions
+    out = io.StringIO()
+    render_screening(Console(file=out, width=1000), screening, names)
+    text = out.getvalue()
+    table = text[text.index("Predicted from the screening"):]
+    for plan in screening.predictions:
+        contact, gap = plan.tol[0], plan.tol[3]
+        assert plan.tol == (contact,) * 3 + (gap,) * 3
+        assert f"contact_area={contact:g}, mean_gap={gap:g} " in table
+    assert "@" not in table

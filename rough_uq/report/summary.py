@@ -608,6 +608,7 @@ def _print_rates(console: Any, screening: ScreeningRecord, qoi_names: Sequence[s
 
 
 def _predictions_table(screening: ScreeningRecord) -> Any:
+    """Cost of MLMC and MC at each planned tolerance; a load curve's tolerances grouped by QoI (:func:`_tol_text`)."""
     # A tolerance whose bias the finest allowed grid cannot reach is planned on that grid all the same
     # (the rows stay comparable); the mark says that `mlmc` refuses it.
     unreachable = any(not p.is_bias_met for p in screening.predictions)
@@ -618,7 +619,7 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
         table.add_column(column, justify="right")
     for p in screening.predictions:
         table.add_row(
-            ", ".join(_g(t) for t in p.tol) + ("" if p.is_bias_met else " *"),
+            _tol_text(screening.qoi_names, p.tol) + ("" if p.is_bias_met else " *"),
             f"0..{p.finest_level}",
             " ".join(str(n) for n in p.n_samples),
             format_duration(p.mlmc_seconds),
