@@ -206,6 +206,50 @@ def test_load_curve_legend_names_method_level_and_grid(tmp_path, figures):
     assert mlmc.startswith("MLMC, levels 0..") and mlmc.endswith("²) (± RMSE)")
 
 
+
+def test_load_curve_legend_tells_runs_of_one_name_apart_by_what_differs(tmp_path, figures):
+    # Two runs on one grid were "MC, level 1 (16²), run 1" and "..., run 2": which was which?
+    study = _study(load={"relative": [0.1, 0.2]}, qoi={"contact_area": {"tol": 4.0}, "mean_gap": {"tol": 1.0}})
+    run_screening(study, executor=SerialExecutor(), progress=Progress())
+    for tol in ([4.0, 4.0, 1.0, 1.0], [4.0, 4.0, 1.0, 0.5]):
+        run_estimation(study, method="mc", tol=np.array(tol), level=1, executor=SerialExecutor(), progress=Progress())
+    plots.write_report_plots(study_report(study.store, study.config), tmp_path)
+    legends = [_legend_texts(ax) for ax in figures["load_curve.png"].axes]
+    assert legends[0] == legends[1] == ["MC, level 1 (16²)\ntol mean_gap@0.2=1 (± RMSE)",
+                                        "MC, level 1 (16²)\ntol mean_gap@0.2=0.5 (± RMSE)"]
+
+
+def test_load_curve_names_of_many_runs_stay_distinct_and_short():
+    import itertools
+
+    from rough_uq.problem.runs import run_id
+    from rough_uq.study.records import RunRecord
+
+    columns = tuple(f"{qoi}@{load}" for qoi in ("contact_area", "mean_gap", "clusters") for load in (0.01, 0.02, 0.05))
+
+    def record(tol: tuple[float, ...], theta: float, richardson: bool) -> RunRecord:
+        key = run_id("mlmc", columns, tol, theta, richardson=richardson)
+        return RunRecord(run_id=key, method="mlmc", status="finished", tol=tol, qoi_names=columns, theta=theta)
+
+    def names_of(runs: list[RunRecord]) -> list[str]:
+        entries = tuple({"run_id": run.run_id, "method": run.method, "label": run.run_id} for run in runs)
+        return plots._load_curve_names(plots._Drawn(None, tuple(runs), columns, {}, (), entries))
+
+    runs = [record(tuple(scale * (1.0 + ((k + j) % 7) / 10) for j in range(len(columns))), theta, richardson)
+            for k, (richardson, theta, scale) in enumerate(itertools.product((False, True), (0.5, 0.25), (1.0, 3.0)))]
+    # Two runs that differ only in the last of many differing columns, past what a legend shows.
+    runs += [record(runs[0].tol[:-1] + (9.0,), 0.5, False), record(runs[0].tol[:-1] + (8.0,), 0.5, False)]
+    names = names_of(runs)  # every column has its own tolerance, in every run another
+    assert len(set(names)) == len(runs)
+    for name in names:
+        lines = name.split("\n")
+        assert lines[0] == "MLMC" and len(lines) <= 1 + plots.LEGEND_LINES, name
+        assert all(len(line) <= plots.LEGEND_WIDTH for line in lines), name
+    # Runs that differ only in the extrapolation are told apart by it.
+    pair = names_of([record(runs[0].tol, 0.5, False), record(runs[0].tol, 0.5, True)])
+    assert pair == ["MLMC\nno Richardson", "MLMC\nRichardson"]
+
+
 def test_rates_draw_no_bias_line_where_the_text_says_not_fitted(tmp_path, report, figures):
     screening = copy.deepcopy(report["screening"])
     screening["rates"]["alpha"] = [0.04]  # <= MIN_ALPHA: the report prints "not fitted"

@@ -44,7 +44,7 @@ from rough_uq.errors import InvalidParameterError, RoughUQError, is_integer
 from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
-from rough_uq.report.summary import split_column
+from rough_uq.report.summary import run_label, split_column, tol_text
 from rough_uq.study.records import RunRecord, ScreeningRecord, is_bias_decaying
 
 __all__ = ["write_report_plots", "write_sample_figure"]
@@ -371,11 +371,64 @@ def _run_name(run: RunRecord | None, method: str, grids: Sequence[int]) -> str:
             f"({_grid_text(grids, levels[0])}..{_grid_text(grids, levels[-1])})")
 
 
+#: A load curve's legend name sets a run apart from others of the same method and grids in at most
+#: ``LEGEND_LINES`` lines of ``LEGEND_WIDTH`` characters (more would crowd out the curves).
+LEGEND_WIDTH = 48
+LEGEND_LINES = 2
+
+
+def _differences(runs: Sequence[RunRecord], qoi_names: Sequence[str]) -> list[str]:
+    """What sets each run apart from the others: the tolerances that differ (:func:`tol_text`), theta, Richardson.
+
+    Every run's label (:func:`run_label`) where the runs have different
+    columns; a run id tells runs apart by these and by an ``mc --level``.
+    """
+    columns = {run.qoi_names or tuple(qoi_names) for run in runs}
+    if len(columns) > 1 or len({len(run.tol) for run in runs}) > 1:
+        return [run_label(run, qoi_names) for run in runs]
+    (names,) = columns
+    differing = [j for j in range(len(names)) if len({run.tol[j] for run in runs}) > 1]
+    texts = []
+    for run in runs:  # the short differences first: a long list of tolerances may be cut
+        parts = []
+        if len({r.is_richardson for r in runs}) > 1:
+            parts.append("Richardson" if run.is_richardson else "no Richardson")
+        if len({r.theta for r in runs}) > 1:
+            parts.append("no theta" if run.theta is None else f"theta {run.theta:g}")
+        if differing:
+            parts.append(f"tol {tol_text([names[j] for j in differing], [run.tol[j] for j in differing])}")
+        texts.append(", ".join(parts))
+    return texts if len(set(texts)) == len(texts) else [run_label(run, qoi_names) for run in runs]
+
+
+def _shortened(text: str) -> str:
+    """``text`` in at most :data:`LEGEND_LINES` lines of :data:`LEGEND_WIDTH` characters, cut with ``...``."""
+    lines = textwrap.wrap(text, LEGEND_WIDTH, max_lines=LEGEND_LINES, placeholder=" ...")
+    return "\n".join(lines)
+
+
+def _told_apart(runs: Sequence[RunRecord | None], qoi_names: Sequence[str]) -> list[str]:
+    """Last lines of legend names that would clash: :func:`_differences`, shortened; ``run k: `` where still equal."""
+    if any(run is None for run in runs):
+        return [f"run {k + 1}" for k in range(len(runs))]
+    texts = _differences(runs, qoi_names)
+    short = [_shortened(text) for text in texts]
+    return [_shortened(f"run {k + 1}: {text}") if short.count(cut) > 1 else cut
+            for k, (text, cut) in enumerate(zip(texts, short))]
+
+
 def _load_curve_names(drawn: _Drawn) -> list[str]:
-    """A legend name per load curve (:func:`_run_name`); runs that would share one get ``, run k``."""
+    """A legend name per load curve (:func:`_run_name`); runs sharing one say how they differ on a second line."""
     by_id = {run.run_id: run for run in drawn.runs}
-    names = [_run_name(by_id.get(entry.get("run_id")), entry["method"], drawn.grids) for entry in drawn.load_curves]
-    return [f"{name}, run {k + 1}" if names.count(name) > 1 else name for k, name in enumerate(names)]
+    runs = [by_id.get(entry.get("run_id")) for entry in drawn.load_curves]
+    names = [_run_name(run, entry["method"], drawn.grids) for run, entry in zip(runs, drawn.load_curves)]
+    out = list(names)
+    for name in set(names):
+        group = [k for k, other in enumerate(names) if other == name]
+        if len(group) > 1:
+            for k, text in zip(group, _told_apart([runs[k] for k in group], drawn.qoi_names)):
+                out[k] = f"{name}\n{text}"
+    return out
 
 
 def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
@@ -488,7 +541,9 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             at the same tolerance where there is one. Needs a finished MLMC run.
         ``load_curve.png``
             Per QoI, the estimates of every finished run (named by method,
-            levels and grids) against the relative load
+            levels and grids; runs of one such name on a second line by
+            what differs: tolerances, ``theta``, Richardson, cut to
+            :data:`LEGEND_LINES` lines) against the relative load
             ``p / (E* sqrt(m2))`` with a band of one RMSE, and for the
             contact area the fitted small-load line ``kappa r``
             (:func:`~rough_uq.report.summary.fit_area_slope`). Needs a study

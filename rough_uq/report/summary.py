@@ -101,6 +101,7 @@ __all__ = [
     "render_runs",
     "render_targets",
     "run_label",
+    "tol_text",
     "TARGET_METHODS",
     "render_screening",
     "screening_json",
@@ -383,7 +384,7 @@ def _column_unit(units: dict[str, str], column: str) -> str:
     return units.get(column, units.get(split_column(column)[0], ""))
 
 
-def _tol_text(names: Sequence[str], tol: Sequence[float]) -> str:
+def tol_text(names: Sequence[str], tol: Sequence[float]) -> str:
     """The tolerances as ``--tol`` takes them: ``contact_area=2, clusters=0.5``.
 
     The columns of a load curve are grouped by QoI: the value most of its
@@ -410,7 +411,7 @@ def run_label(run: RunRecord, qoi_names: Sequence[str]) -> str:
 
     Method (``mlmc (Richardson)`` for an extrapolated run), the level of an
     ``mc --level`` run (not that an ``mc --tol`` run chose), tolerances
-    (:func:`_tol_text`) and ``theta``: what its run id is made of
+    (:func:`tol_text`) and ``theta``: what its run id is made of
     (:func:`~rough_uq.problem.runs.run_id`), so distinct runs have distinct
     labels, in a fraction of the id's length. The id itself is in ``roughuq
     report``'s ``samples stored`` line and in its ``--json`` (``run_id``),
@@ -419,7 +420,7 @@ def run_label(run: RunRecord, qoi_names: Sequence[str]) -> str:
     is_given_level = run.method == "mc" and run.level is not None and not run.measures_plain_mc
     where = f" on level {run.level}" if is_given_level else ""
     theta = "" if run.theta is None else f", theta {run.theta:g}"
-    return f"{_method_text(run)}{where}, tol {_tol_text(run.qoi_names or qoi_names, run.tol)}{theta}"
+    return f"{_method_text(run)}{where}, tol {tol_text(run.qoi_names or qoi_names, run.tol)}{theta}"
 
 
 def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], *,
@@ -430,7 +431,7 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     """
     if run.method in TARGET_METHODS and run.qoi_names:
         qoi_names = run.qoi_names  # a cdf run has one column, whatever the study's
-    head = f"{_method_text(run)} {_tol_text(qoi_names, run.tol)}"
+    head = f"{_method_text(run)} {tol_text(qoi_names, run.tol)}"
     outcome = run.outcome
     if run.status != "finished" or outcome is None:
         if run.status == "running":
@@ -608,7 +609,7 @@ def _print_rates(console: Any, screening: ScreeningRecord, qoi_names: Sequence[s
 
 
 def _predictions_table(screening: ScreeningRecord) -> Any:
-    """Cost of MLMC and MC at each planned tolerance; a load curve's tolerances grouped by QoI (:func:`_tol_text`)."""
+    """Cost of MLMC and MC at each planned tolerance; a load curve's tolerances grouped by QoI (:func:`tol_text`)."""
     # A tolerance whose bias the finest allowed grid cannot reach is planned on that grid all the same
     # (the rows stay comparable); the mark says that `mlmc` refuses it.
     unreachable = any(not p.is_bias_met for p in screening.predictions)
@@ -619,7 +620,7 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
         table.add_column(column, justify="right")
     for p in screening.predictions:
         table.add_row(
-            _tol_text(screening.qoi_names, p.tol) + ("" if p.is_bias_met else " *"),
+            tol_text(screening.qoi_names, p.tol) + ("" if p.is_bias_met else " *"),
             f"0..{p.finest_level}",
             " ".join(str(n) for n in p.n_samples),
             format_duration(p.mlmc_seconds),
