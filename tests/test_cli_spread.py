@@ -352,7 +352,8 @@ def test_a_budget_below_the_initial_samples_is_refused_before_the_study_file_is_
     result = run("mlmc", "--config", str(config), "--study", "new.h5", "--tol-var", "contact_area=60", *given,
                  "--workers", "1", expect=2)
     (line,) = result.stderr.strip().splitlines()
-    assert line.startswith(f"error: {option} 1e-09 is too small for the initial samples"), line
+    where = "" if option == "--max-cost" else f"{config}: "  # a field of the config names its file first
+    assert line.startswith(f"error: {where}{option} 1e-09 is too small for the initial samples"), line
     assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]
 
 
