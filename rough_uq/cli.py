@@ -1030,6 +1030,8 @@ def _show_finished_run(study_path: str, run_id: str, outcome: Any, *, as_json: b
 
 def _what_to_change(outcome: Any, option: str = "--tol") -> str:
     """What to change so that a run whose ``outcome`` missed its tolerance meets it (``option`` is its tolerance's)."""
+    from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
+
     reason = outcome.stop_reason
     if reason == "max_cost" and not outcome.is_bias_estimated and option != "--tol":
         # A variance or cdf run estimates its bias once its first levels have their initial samples, whatever
@@ -1041,7 +1043,7 @@ def _what_to_change(outcome: Any, option: str = "--tol") -> str:
     if reason == "bias":
         return (f"the bias on this level exceeds the tolerance's share; loosen {option}, use `roughuq mlmc`, or "
                 "a study with a larger grid.max_level")
-    if reason == "thresholds_miss_samples":
+    if reason == THRESHOLDS_MISS_SAMPLES:
         return ("the thresholds miss the samples of a level (see the warning); put thresholds among the values "
                 "(extend --thresholds or the config's thresholds) or raise estimation.initial_samples")
     if reason == "max_level":

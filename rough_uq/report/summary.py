@@ -67,6 +67,7 @@ from typing import Any
 import numpy as np
 from rich.markup import escape
 
+from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.study.config import LOAD_SEPARATOR
 from rough_uq.study.progress import format_duration
@@ -116,7 +117,7 @@ _STOP_REASONS = {
     "max_level": "the bias needs a grid finer than grid.max_level",
     "max_cost": "stopped at --max-cost",
     "bias": "the bias of this level is larger than the tolerance allows",
-    "thresholds_miss_samples": "the thresholds miss the samples of a level, whose variance they do not measure",
+    THRESHOLDS_MISS_SAMPLES: "the thresholds miss the samples of a level, whose variance they do not measure",
 }
 
 
@@ -533,7 +534,7 @@ def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
     unit = _column_unit(units, distribution.column)
     s = distribution.thresholds
     error = _error_text(outcome, outcome.rmse[0], tol, "sup-norm ")
-    if outcome.stop_reason == "thresholds_miss_samples":
+    if outcome.stop_reason == THRESHOLDS_MISS_SAMPLES:
         # A zero variance estimate there says nothing (rough_uq.multilevel.distribution): no error to show.
         error = f"sup-norm RMSE not measured (the thresholds miss a level's samples), tol {_g(tol)}"
     elif outcome.is_bias_estimated:
