@@ -9,7 +9,7 @@ double-precision FFT pair of the same plan (the unit of the per-iteration target
 
 The point: the preconditioned iteration needs five half transforms in
 single precision (the preconditioner ``M r``, the transform of the search
-direction, the displacement of the pressure increment ``K (p - p_ref)``),
+direction, the displacement of the pressure increment ``K e``),
 plus a double-precision pair for the exact displacement whenever the error
 has fallen a hundredfold. Timed inside the solve, where the arrays of the
 iteration do not fit in the cache together, the transforms alone cost about

@@ -57,21 +57,30 @@ number after ``max_iter`` iterations.
 
 One preconditioned iteration costs two and a half single-precision FFT
 pairs: the preconditioner, the transform of ``t``, and the displacement of
-the new pressure. That displacement is recomputed from ``p`` rather than
-updated as ``u <- u - tau K t``, because in almost every iteration some node
-is clamped or added (a median of 45 nodes per iteration for plain
-Polonsky-Keer, 97 preconditioned, on the benchmark surface at 512^2), so the
-update would rarely be exact. It is computed as ``u = u_ref + K (p -
-p_ref)``: ``u_ref = K p_ref`` in double precision for a reference pressure,
-the increment's displacement in single precision (0.55-0.7 of the time of a
-double pair at 1024^2-2048^2). Its rounding, about 1e-7 of the displacement
-of the increment, shrinks with the increment: whenever the error has fallen
-by ``_REFRESH_FACTOR`` (1e-2) since the last exact displacement, the current
-pressure becomes the reference (one double pair), and every stop (converged,
-``max_iter``, stalled) is decided on an exact displacement. On the benchmark
-surface the iteration counts did not change (73 at 1024^2; 90 or 92 at
-2048^2, as the rounding falls) and a solve took 0.81-0.87 of the time of
-exact double-precision displacements. The five single-precision half
+the step's pressure increment. That displacement is not updated as
+``u <- u - tau K t``, because in almost every iteration some node is
+clamped or added (a median of 45 nodes per iteration for plain
+Polonsky-Keer, 97 preconditioned, on the benchmark surface at 512^2), so
+that update would rarely be exact. The step writes its increment ``e``
+(the new pressure, before the mean pressure is imposed again by a factor
+``c``, minus the old one) in single precision, and the gap pass updates
+the gap in place, ``w <- c w + (c - 1) s + K (c e)``, with ``K (c e)`` in
+single precision (0.55-0.7 of the time of a double pair at
+1024^2-2048^2). The rounding of each increment's displacement, about 1e-7
+of it, shrinks with the increments and adds up between exact
+displacements: whenever the error has fallen by ``_REFRESH_FACTOR`` (1e-2)
+since the last exact displacement, the displacement is computed from the
+pressure in double precision (one double pair), and every stop
+(converged, ``max_iter``, stalled) is decided on an exact displacement. On
+the benchmark surface the iteration counts did not change (73 at 1024^2; 88
+to 92 at 2048^2, as the rounding falls) and a solve took 0.81-0.87 of the time of
+exact double-precision displacements. The increments used to be counted from
+a reference pressure kept with its exact displacement (``u = u_ref + K (p -
+p_ref)``): two more double-precision arrays of the grid's size, which the
+step and the gap pass read in every iteration. Without them an iteration
+took 0.955-0.974 of the time at 1024^2 and 0.93 at 2048^2 (interleaved
+solves, 16 and 6 pairs), with the same iterations and contact sets and
+pressures within 3.4e-9 (relative L2) of those solves. The five single-precision half
 transforms share one in-place buffer (FFTW's padded layout, see
 :class:`~rough_uq.physics.fft.RealFFT`): one buffer instead of separate
 real and spectral ones, less memory traffic, and an iteration took 0.94-0.96 /
@@ -245,12 +254,12 @@ class ContactSolution:
 
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _gap_pass(w, s, active, shift, u_ref=None, scale=1.0, v=None):  # pragma: no cover - compiled
-    # w <- w - s everywhere, in place (w holds u = K p on entry); with a
-    # reference displacement (u_ref, v given) w <- scale u_ref + v - s instead:
-    # the displacement in double precision at the reference pressure and the
-    # single-precision displacement of the pressure increment since (see
-    # _State.update_displacement). Returns sums over I: (sum w, |I|,
+def _gap_pass(w, s, active, shift, scale=1.0, v=None):  # pragma: no cover - compiled
+    # w <- w - s everywhere, in place (w holds u = K p on entry); with the
+    # displacement v of the last step's increment (single precision, see
+    # _State.update_displacement) w <- scale w + (scale - 1) s + v instead
+    # (w holds the last gap u - s on entry, scale is the new pressure's
+    # factor). Returns sums over I: (sum w, |I|,
     # sum (w - shift)^2). With gbar = mean_I w,
     # sum_I (w - gbar)^2 = sum_I (w - shift)^2 - |I| (gbar - shift)^2; a shift
     # close to gbar (the previous one) keeps the difference free of
@@ -265,10 +274,10 @@ def _gap_pass(w, s, active, shift, u_ref=None, scale=1.0, v=None):  # pragma: no
     count = 0
     for i in numba.prange(n0):
         for j in range(n1):
-            if u_ref is None:
+            if v is None:
                 wij = w[i, j] - s[i, j]
             else:
-                wij = scale * u_ref[i, j] + v[i, j] - s[i, j]
+                wij = scale * w[i, j] + (scale - 1.0) * s[i, j] + v[i, j]
             w[i, j] = wij
             is_active = active[i, j] > 0
             weight = 1.0 if is_active else 0.0
@@ -405,14 +414,14 @@ def _multiply_energy(spectrum, kernel):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, parallel=True, fastmath=_FASTMATH)
-def _step(w, p, t, gbar, scale, tau, tau_overlap, p_ref=None, increment=None, active=None):  # pragma: no cover
+def _step(w, p, t, gbar, scale, tau, tau_overlap, increment=None, active=None):  # pragma: no cover - compiled
     # One Polonsky-Keer update of the pressure scale * p, in place:
     #   active nodes: p <- max(scale p - tau t, 0)  (t = 0 off I)
     #   nodes left at zero pressure with g < 0 (overlap): p <- -tau_overlap g
-    # With a reference pressure (p_ref, increment given) it also writes the
-    # increment (new p) - p_ref in single precision (the input of the
-    # increment's displacement, see _State.update_displacement); with
-    # ``active`` the 0/1 mask of the new active set.
+    # With ``increment`` it also writes the increment (new p) - scale * (old p)
+    # in single precision (the input of the increment's displacement, see
+    # _State.update_displacement); with ``active`` the 0/1 mask of the new
+    # active set.
     # Returns (sum of new p, number of overlap nodes, sum of t over the new
     # active set, for the next direction; t = 0 on overlap nodes).
     n0, n1 = w.shape
@@ -422,7 +431,8 @@ def _step(w, p, t, gbar, scale, tau, tau_overlap, p_ref=None, increment=None, ac
     for i in numba.prange(n0):
         for j in range(n1):
             tij = t[i, j]
-            q = scale * p[i, j] - tau * tij
+            old = scale * p[i, j]
+            q = old - tau * tij
             q = q if q > 0.0 else 0.0
             s_t += tij if q > 0.0 else 0.0
             g = w[i, j] - gbar
@@ -430,7 +440,7 @@ def _step(w, p, t, gbar, scale, tau, tau_overlap, p_ref=None, increment=None, ac
             q = -tau_overlap * g if overlapping else q
             p[i, j] = q
             if increment is not None:
-                increment[i, j] = q - p_ref[i, j]
+                increment[i, j] = q - old
             if active is not None:
                 active[i, j] = 1 if q > 0.0 else 0
             total += q
@@ -840,12 +850,13 @@ class _State:
     of ``u = K p``, which saves a pass over the grid. ``w`` (the plan's output)
     holds ``u = K p`` at the top of an iteration and ``w = u - s`` after the gap pass.
 
-    Preconditioned solves keep a reference pressure ``p_ref`` and its exact
-    displacement ``u_ref`` (:meth:`update_displacement`); between updates the
-    displacement is ``u_ref`` plus that of the increment ``p - p_ref``, in
-    single precision (``exact`` is False then). They also keep the active set
-    ``p > 0`` as a 0/1 mask (``active``, one byte per node), which the passes
-    that only need the set read instead of the pressure.
+    Preconditioned solves update the displacement step by step between exact
+    ones (:meth:`update_displacement`): ``w`` gets the displacement of each
+    step's pressure increment, in single precision (``exact`` is False then).
+    They also keep the active set ``p > 0`` as a 0/1 mask (``active``, one
+    byte per node), which the passes that only need the set read instead of
+    the pressure; ``active`` is None in plain Polonsky-Keer, whose
+    displacements are all exact.
     """
 
     p: np.ndarray
@@ -853,10 +864,8 @@ class _State:
     t: np.ndarray  # the search direction, zero off the active set
     has_guess: bool
     is_plain: bool
-    p_ref: np.ndarray | None = None
-    u_ref: np.ndarray | None = None
     active: np.ndarray | None = None  # uint8, 1 where p > 0 (preconditioned)
-    exact: bool = True  # w holds the double-precision displacement of p (not u_ref + increment)
+    exact: bool = True  # w holds the double-precision displacement of p (not updated by increments)
     exact_error: float = math.inf  # the error at the last exact evaluation
     p_scale: float = 1.0
     sum_t: float = 0.0  # sum of t over the active set
@@ -879,8 +888,6 @@ class _State:
         t.fill(0.0)
         state = cls(p=fft.real, w=fft.output, t=t, has_guess=p0 is not None, is_plain=not precondition)
         if precondition:
-            state.p_ref = np.empty_like(fft.real)
-            state.u_ref = np.empty_like(fft.output)
             state.active = np.empty(fft.real.shape, dtype=np.uint8)
         state.update_displacement(ops, uniform=p0 is None)
         return state
@@ -888,14 +895,14 @@ class _State:
     def update_displacement(self, ops: _Operators, *, uniform: bool = False) -> None:
         """``w <- u = K (p_scale p)`` in double precision, with ``p_scale`` imposing the mean pressure.
 
-        Preconditioned solves also make the current pressure the reference:
-        between two such updates the iteration computes ``u = K p`` as
-        ``u_ref + K (p - p_ref)`` with the second term in single precision (one
-        single-precision FFT pair per iteration instead of a double one). Its
-        rounding, about 1e-7 of the displacement of the increment, shrinks
-        with the increment; an update whenever the error has fallen by
-        :data:`_REFRESH_FACTOR` keeps it far below the error, and every stop is
-        decided on an exact displacement.
+        Preconditioned solves also normalise ``p`` (``p_scale = 1``): between
+        two such updates each step adds the displacement of its pressure
+        increment to ``u``, computed in single precision (one single-precision
+        FFT pair per iteration instead of a double one; :func:`_gap_pass`).
+        Its rounding, about 1e-7 of the displacement of each increment,
+        shrinks with the increments; an update whenever the error has fallen
+        by :data:`_REFRESH_FACTOR` keeps the sum far below the error, and
+        every stop is decided on an exact displacement.
 
         ``uniform`` says that ``p`` is uniform (the cold start): its
         displacement is zero, since the kernel's zero mode is, and is written
@@ -903,15 +910,13 @@ class _State:
         double-precision FFT pair less per solve).
         """
         self.p_scale = ops.total_force / self.p.sum()
-        if self.p_ref is None:
+        if self.active is None:
             self._displace(ops, self.p_scale, uniform=uniform)
             return
         self.p *= self.p_scale
         self.p_scale = 1.0
         np.greater(self.p, 0.0, out=self.active.view(bool))
         self._displace(ops, 1.0, uniform=uniform)
-        np.copyto(self.p_ref, self.p)
-        np.copyto(self.u_ref, self.w)
         self.exact = True
 
     def restart_uniform(self, ops: _Operators) -> None:
@@ -938,7 +943,7 @@ class _State:
         self.rho_old = 1.0
         self.is_plain = True
         self.update_displacement(ops)
-        self.p_ref = self.u_ref = self.active = None
+        self.active = None
 
 
 #: Between two exact displacements of the preconditioned iteration the error
@@ -1025,10 +1030,8 @@ def _gap(ops: _Operators, st: _State, active: np.ndarray) -> tuple[int, float]:
     if st.exact:
         active_total, n_active, shifted_squares = _gap_pass(st.w, ops.heights, active, st.gbar)
     else:
-        increment = ops.direction_fft.padded  # K (p - p_ref), from the last step
-        active_total, n_active, shifted_squares = _gap_pass(
-            st.w, ops.heights, active, st.gbar, st.u_ref, st.p_scale, increment
-        )
+        increment = ops.direction_fft.padded  # the displacement of the last step's increment
+        active_total, n_active, shifted_squares = _gap_pass(st.w, ops.heights, active, st.gbar, st.p_scale, increment)
     previous_gbar, st.gbar = st.gbar, active_total / n_active
     return n_active, max(shifted_squares - n_active * (st.gbar - previous_gbar) ** 2, 0.0)
 
@@ -1086,10 +1089,10 @@ def _prepare_retry(ops: _Operators, st: _State, beta: float) -> bool:
 
 def _advance(ops: _Operators, st: _State, *, tau: float, overlap_scale: float) -> None:
     """The step of length ``tau`` along ``st.t`` (clamped, overlap added), and the new displacement."""
-    # With a reference pressure the step also writes p - p_ref into the single-precision FFT input.
-    increment = None if st.p_ref is None else ops.direction_fft.padded
+    # Preconditioned, the step also writes its pressure increment into the single-precision FFT input.
+    increment = None if st.active is None else ops.direction_fft.padded
     total, n_overlap, st.sum_t = _step(
-        st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau * overlap_scale, st.p_ref, increment, st.active
+        st.w, st.p, st.t, st.gbar, st.p_scale, tau, tau * overlap_scale, increment, st.active
     )
     st.n_iter += 1
     # Nodes added from the overlap restart the conjugate directions.
@@ -1116,26 +1119,23 @@ def _stop(st: _State, *, tol: float, max_iter: int, stall: bool, checkpoint_erro
 def _update_displacement_after_step(ops: _Operators, st: _State, total: float) -> None:
     """Impose the mean pressure and compute the displacement of the new pressure (exact or as an increment)."""
     st.p_scale = ops.total_force / total
-    if st.p_ref is None:
+    if st.active is None:
         ops.half_space.apply(st.p_scale)
     else:
-        # p_scale * p - p_ref = p_scale (p - p_ref) + (p_scale - 1) p_ref, so
-        # u = p_scale (u_ref + K (p - p_ref)): the increment's displacement is
-        # computed with the factor p_scale, the gap pass scales u_ref.
+        # The step wrote e = p - c_old p_old (p the new unnormalised pressure, c_old p_old the old pressure);
+        # the new pressure is c p (c = p_scale), so u_new = K (c p) = c u_old + K (c e): the increment's
+        # displacement is computed with the factor c, the gap pass scales u_old (and folds in the heights).
         ops.increment_displacement(st.p_scale)
         st.exact = False
 
 
 def _result_arrays(ops: _Operators, st: _State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Arrays for the pressure, displacement and gap of the result: the solve's own work arrays where it can.
+    """Arrays for the pressure, displacement and gap of the result: the scaled heights become the gap.
 
-    Their memory has been used already; new arrays are fresh memory, whose first use costs more than filling
-    it (1.5-1.8 ms per MB on the development VM, some 40 ms for the three fields at 1024^2). The reference
-    pressure and displacement of a preconditioned solve become the pressure and the displacement; the scaled
-    heights (new for every solve, :func:`_scaled_heights`) become the gap.
+    The heights are new for every solve (:func:`_scaled_heights`) and their memory has been used already; a
+    new array is fresh memory, whose first use costs more than filling it (1.5-1.8 ms per MB on the
+    development VM). The pressure and the displacement need new arrays: the solve's are the FFT plan's buffers.
     """
-    if st.p_ref is not None:
-        return st.p_ref, st.u_ref, ops.heights
     return np.empty_like(st.p), np.empty_like(st.w), ops.heights
 
 
