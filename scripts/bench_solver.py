@@ -9,8 +9,9 @@ run, so the ratios are meaningful even where the absolute times are not:
 * FFT floor: the time of one double-precision real FFT pair (rfft2 + irfft2,
   median over batches) of every implementation at hand on the same grid and
   threads: pyFFTW with estimated, measured and patient plans (patient up to
-  2048^2), each out of place and in place (FFTW's padded layout, the faster:
-  half the memory traffic), ``scipy.fft`` and ``numpy.fft``, each measured twice, before and
+  2048^2), each out of place and in place (FFTW's padded layout: half the
+  memory traffic, the faster from 1024^2 on; at 256^2 the slower),
+  ``scipy.fft`` and ``numpy.fft``, each measured twice, before and
   after the solver's timed solve, and planned afresh each time (a patient
   plan is only as good as the timings it was chosen by); the fastest of all
   is the floor, and the solver's time per iteration is printed over it
