@@ -129,7 +129,7 @@ def test_study_from_another_config_is_refused_and_untouched(screened):
     result = run("screen", str(other), expect=2)
     assert "another config" in result.stderr or "different config" in result.stderr
     result = run("mlmc", "--tol", "1", "--config", str(other), expect=2)
-    assert "another config" in result.stderr
+    assert "another config" in result.stderr and "differs in seed: 2026 in the file, 1 in this config" in result.stderr
     assert (screened / "results.h5").read_bytes() == before
 
 
@@ -199,7 +199,7 @@ def test_merge_refuses_a_shard_of_another_config(screened):
         "--out", "foreign.h5", "--workers", "1", "--quiet")
     before = (screened / "results.h5").read_bytes()
     result = run("merge", "foreign.h5", "--into", "results.h5", expect=2)
-    assert "another study" in result.stderr
+    assert "another study" in result.stderr and "differs in seed: 99 in the shard, " in result.stderr
     assert (screened / "results.h5").read_bytes() == before
     result = run("sample", "--study", "results.h5", "--stage", "screening", "--level", "0", "--indices", "5:2",
                  "--out", "x.h5", expect=2)

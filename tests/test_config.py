@@ -6,6 +6,7 @@ import dataclasses
 import re
 from pathlib import Path
 
+import numpy as np
 import pydantic
 import pytest
 import yaml
@@ -17,6 +18,7 @@ from rough_uq.study.config import (
     config_from_dict,
     config_from_stored_text,
     config_from_yaml_text,
+    config_differences,
     config_hash,
     load_config,
     memory_warning,
@@ -382,6 +384,52 @@ def test_hash_is_stable_and_tracks_physics_only() -> None:
     assert hash_with(lambda d: d.update(screening={"levels": 3, "samples": 50})) == reference
     assert hash_with(lambda d: d["qoi"]["contact_area"].update(tol=0.05)) == reference
     assert hash_with(lambda d: d["qoi"]["contact_area"].update(unit="fraction")) != reference
+
+
+#: Changes of _base(): (what, the keys config_differences must name). Keys not hashed name none.
+_CHANGES = [
+    (lambda d: d["surface"].update(hurst=0.7), ["surface.hurst"]),
+    (lambda d: d.update(seed=8), ["seed"]),
+    (lambda d: d.update(load={"absolute": 0.5}), ["load.absolute", "load.relative"]),
+    (lambda d: d["grid"].update(max_level=3), ["grid.max_level"]),
+    (lambda d: d["surface"].update(wavelengths={"lambda_l": 1.0, "lambda_r": 0.5, "lambda_s": 1 / 64}),
+     ["surface.wavenumbers.k_r"]),
+    (lambda d: d["qoi"].update(mean_gap={}), ["qoi"]),
+    (lambda d: d["qoi"]["contact_area"].update(unit="fraction"), ["qoi.contact_area.unit"]),
+    (lambda d: d.setdefault("solver", {}).update(tol=1e-8), ["solver.tol"]),
+    (lambda d: d.setdefault("solver", {}).update(threads=2), []),
+    (lambda d: d.setdefault("estimation", {}).update(theta=0.3), []),
+    (lambda d: d["qoi"]["contact_area"].update(tol=0.05), []),
+]
+
+
+def test_config_differences_name_what_changes_the_hash() -> None:
+    # Random combinations of the changes above (seeded): the differences are exactly the changed hashed keys,
+    # with both values, and there are none exactly when the hashes agree.
+    rng = np.random.default_rng(2026)
+    reference = config_from_dict(_base())
+    for _ in range(40):
+        chosen = rng.choice(len(_CHANGES), size=rng.integers(1, 4), replace=False)
+        data = _base()
+        for index in chosen:
+            _CHANGES[index][0](data)
+        other = config_from_dict(data)
+        differences = config_differences(reference, other)
+        expected = {key for index in chosen for key in _CHANGES[index][1]}
+        assert sorted(key for key, _, _ in differences) == sorted(expected)
+        assert (not differences) == (config_hash(other) == config_hash(reference))
+        for key, ours, theirs in differences:
+            assert ours != theirs
+    (difference,) = config_differences(reference, config_from_dict({**_base(), "seed": 8}))
+    assert difference == ("seed", 7, 8)
+
+
+def test_config_differences_name_a_new_qoi_order() -> None:
+    first, second = _base(), _base()
+    first["qoi"] = {"contact_area": {}, "mean_gap": {}}
+    second["qoi"] = {"mean_gap": {}, "contact_area": {}}
+    differences = config_differences(config_from_dict(first), config_from_dict(second))
+    assert differences == [("qoi (column order)", ["contact_area", "mean_gap"], ["mean_gap", "contact_area"])]
 
 
 def test_config_from_yaml_text_roundtrips_resolved_yaml() -> None:

@@ -152,6 +152,31 @@ def test_a_refused_config_creates_no_study_file_and_leaves_none_open(tmp_path):
     open_study(path, create=False, **header).close()  # not locked by the refused open
 
 
+def test_a_study_from_before_the_corrected_area_is_refused_naming_the_estimator(tmp_path):
+    import yaml
+
+    from rough_uq.study.config import resolved_yaml
+    from rough_uq.study.store import open_study
+
+    config = config_from_dict(tiny_config())
+    legacy = yaml.safe_load(resolved_yaml(config))
+    del legacy["qoi"]["contact_area"]["estimator"]  # written before the option existed: node counts
+    path = tmp_path / "study.h5"
+    open_study(path, create=True, config_text=yaml.safe_dump(legacy, sort_keys=False), config_hash="0" * 64,
+               qoi_names=config.qoi_names, code_version="0").close()
+    for refuse in (lambda: open_existing_study(path, config=config), lambda: create_study(config, path)):
+        with pytest.raises(StudyFileError, match="another config") as info:
+            refuse()
+        assert "differs in qoi.contact_area.estimator: nodes in the file, corrected in this config" in str(info.value)
+    # A stored config this version cannot read: still refused, by its hash, naming no settings.
+    unreadable = tmp_path / "unreadable.h5"
+    open_study(unreadable, create=True, config_text="surface: [", config_hash="0" * 64, qoi_names=config.qoi_names,
+               code_version="0").close()
+    with pytest.raises(StudyFileError, match="another config") as info:
+        create_study(config, unreadable)
+    assert "differs" not in str(info.value)
+
+
 def test_sample_does_not_depend_on_its_batch():
     model = build_model(config_from_dict(tiny_config()))
     together = compute_batch(model, stage=MLMC_STAGE, level=2, indices=[0, 1, 2, 3])
@@ -682,6 +707,32 @@ def test_another_configs_study_is_refused_naming_the_options_of_the_command(tmp_
     assert "another --out file" in str(screen.value)  # roughuq screen CONFIG --out
     assert "--config" in str(mlmc.value) and "another --study file" in str(mlmc.value)
     assert "--out" not in str(mlmc.value)
+    # Both name the setting that differs, with its two values.
+    for refusal in (screen, mlmc):
+        assert "differs in seed: 2026 in the file, 1 in this config" in str(refusal.value)
+
+
+def test_another_configs_refusals_name_the_differing_settings_and_how_many_more(tmp_path):
+    config = config_from_dict(tiny_config())
+    path, shard = tmp_path / "study.h5", tmp_path / "shard.h5"
+    create_study(config, path).close()
+    surface = {**tiny_config()["surface"], "hurst": 0.6, "rms_height": 2.0}
+    changes = {"seed": 5, "surface": surface, "load": {"absolute": 0.5}, "grid": {"coarsest": 16, "max_level": 2}}
+    other = config_from_dict(tiny_config(**changes))
+    with pytest.raises(StudyFileError, match="another config") as info:
+        open_existing_study(path, config=other)
+    message = str(info.value)
+    assert "grid.coarsest: 8 in the file, 16 in this config" in message
+    assert "load.absolute: unset in the file, 0.5 in this config" in message
+    assert "load.relative: 0.2 in the file, unset in this config" in message
+    assert "seed: 2026 in the file, 5 in this config" in message
+    assert "; and 2 more setting(s)" in message  # surface.hurst and surface.rms_height
+    assert "surface.hurst" not in message
+    # A shard of another config names them too, as the shard's values against the study's.
+    create_study(config_from_dict(tiny_config(seed=5)), shard).close()
+    with create_study(config, path) as study, pytest.raises(StudyFileError, match="another study") as merge:
+        merge_shards(study, [shard])
+    assert "differs in seed: 5 in the shard, 2026 in this study" in str(merge.value)
 
 
 def test_a_sweep_refuses_another_configs_study_before_writing_any_config(tmp_path):

@@ -116,6 +116,7 @@ __all__ = [
     "config_from_stored_text",
     "resolved_yaml",
     "config_hash",
+    "config_differences",
     "memory_warning",
     "solver_memory_bytes",
 ]
@@ -1388,6 +1389,14 @@ def config_hash(config: StudyConfig) -> str:
     order is the column order), serialised as JSON with sorted keys and no
     whitespace.
     """
+    data = _hashed_settings(config)
+    data["qoi"] = [[name, settings] for name, settings in data["qoi"].items()]
+    canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()
+
+
+def _hashed_settings(config: StudyConfig) -> dict[str, Any]:
+    """What :func:`config_hash` hashes, with the quantities of interest still a mapping (in column order)."""
     data = _resolved_dict(config)
     del data["output"]
     del data["solver"]["threads"]
@@ -1398,9 +1407,50 @@ def config_hash(config: StudyConfig) -> str:
     surface = data["surface"]
     surface.pop("wavelengths", None)
     surface["wavenumbers"] = {"k_l": config.surface.k_l, "k_r": config.surface.k_r, "k_s": config.surface.k_s}
-    data["qoi"] = [[name, settings] for name, settings in data["qoi"].items()]
-    canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
-    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()
+    return data
+
+
+def config_differences(first: StudyConfig, second: StudyConfig) -> list[tuple[str, object, object]]:
+    """The settings that make two configs hash differently (:func:`config_hash`).
+
+    ``(key, value in first, value in second)`` for every dotted key (e.g.
+    ``surface.hurst``) whose values differ, in key order; a key set in one
+    config only has ``None`` in the other. Other quantities of interest give
+    the key ``qoi`` with the two lists of names (their settings are not
+    listed), the same ones in another order the key ``qoi (column order)``.
+    Empty if and only if the hashes are equal.
+    """
+    ours, theirs = _hashed_settings(first), _hashed_settings(second)
+    names, other_names = list(ours["qoi"]), list(theirs["qoi"])
+    for settings, shared in ((ours, other_names), (theirs, names)):
+        settings["qoi"] = {name: value for name, value in settings["qoi"].items() if name in shared}
+    flat_ours, flat_theirs = _flattened(ours), _flattened(theirs)
+    differences = [
+        (key, flat_ours.get(key), flat_theirs.get(key))
+        for key in sorted(flat_ours.keys() | flat_theirs.keys())
+        if _canonical(flat_ours.get(key)) != _canonical(flat_theirs.get(key))
+    ]
+    if set(names) != set(other_names):
+        differences.append(("qoi", names, other_names))
+    elif names != other_names:
+        differences.append(("qoi (column order)", names, other_names))
+    return differences
+
+
+def _canonical(value: object) -> str:
+    """A value as :func:`config_hash` serialises it (so that ``1`` and ``1.0`` differ there and here alike)."""
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def _flattened(data: dict[str, Any], prefix: str = "") -> dict[str, object]:
+    """Nested mappings as one mapping of dotted keys to the values that are not mappings."""
+    flat: dict[str, object] = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            flat.update(_flattened(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 def _parse_scalar(text: str) -> object:

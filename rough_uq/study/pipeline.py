@@ -41,9 +41,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from rough_uq import __version__
-from rough_uq.study.config import StudyConfig, SurfaceConfig, config_from_stored_text, config_hash, resolved_yaml
+from rough_uq.study.config import (
+    StudyConfig, SurfaceConfig, config_differences, config_from_stored_text, config_hash, resolved_yaml,
+)
 from rough_uq.errors import (
     ConfigError,
     EstimationError,
@@ -384,17 +387,58 @@ def _refuse_other_config(path: Path, config: StudyConfig, remedy: str) -> None:
     if not path.is_file():
         return  # missing: created; anything else: open_study says what is wrong
     with open_study_readonly(path) as store:
-        stored = store.config_hash
+        stored, stored_text = store.config_hash, store.config_text
     wanted = config_hash(config)
     if stored != wanted:
+        stored_config = _readable_config(stored_text, source=f"{path} (stored config)")
+        differences = _differences_text(stored_config, config, there="in the file", here="in this config")
         raise StudyFileError(
-            f"{path} was written by another config (hash {stored[:12]}… ≠ {wanted[:12]}…); {remedy}", path
+            f"{path} was written by another config (hash {stored[:12]}… ≠ {wanted[:12]}…{differences}); {remedy}",
+            path,
         )
 
 
 def _stored_config(store: StudyStore) -> StudyConfig:
     path = getattr(store, "path", "study")
     return config_from_stored_text(store.config_text, source=f"{path} (stored config)")
+
+
+def _readable_config(text: str, *, source: str) -> StudyConfig | None:
+    """The config stored as ``text``, or ``None`` if this version cannot read it (a refusal then names no settings)."""
+    try:
+        return config_from_stored_text(text, source=source)
+    except RoughUQError:
+        return None
+
+
+#: The most differing settings a refusal of another config names (:func:`_differences_text`).
+_SHOWN_DIFFERENCES = 4
+
+
+def _differences_text(first: StudyConfig | None, second: StudyConfig, *, there: str, here: str) -> str:
+    """``"; differs in seed: 2026 <there>, 1 <here>"`` for the settings that make the configs hash differently.
+
+    Empty when ``first`` is ``None`` (unreadable) or no setting differs. At
+    most :data:`_SHOWN_DIFFERENCES` settings are named, then how many more.
+    """
+    if first is None:
+        return ""
+    differences = config_differences(first, second)
+    if not differences:
+        return ""
+    shown = [
+        f"{key}: {_setting_text(ours)} {there}, {_setting_text(theirs)} {here}"
+        for key, ours, theirs in differences[:_SHOWN_DIFFERENCES]
+    ]
+    more = len(differences) - _SHOWN_DIFFERENCES
+    return "; differs in " + "; ".join(shown) + (f"; and {more} more setting(s)" if more > 0 else "")
+
+
+def _setting_text(value: object) -> str:
+    """A config value in a message: as in the YAML file, ``unset`` where the config does not have the key."""
+    if value is None:
+        return "unset"
+    return yaml.safe_dump(value, default_flow_style=True, width=10**6).strip().removesuffix("...").strip()
 
 
 def open_existing_study(
@@ -420,10 +464,11 @@ def open_existing_study(
         stored = _stored_config(header)
     _check_columns(path, qoi_names, stored.qoi_names)
     if config is not None and config_hash(config) != stored_hash:
+        differences = _differences_text(stored, config, there="in the file", here="in this config")
         raise StudyFileError(
             f"study file {str(path)!r} was created with another config (hash {stored_hash[:12]}, "
-            f"this config {config_hash(config)[:12]}): use the config it was made with (or leave out --config: "
-            "the stored one is used) or another --study file",
+            f"this config {config_hash(config)[:12]}{differences}): use the config it was made with (or leave out "
+            "--config: the stored one is used) or another --study file",
             path,
         )
     source = source if config is not None else None
@@ -2001,9 +2046,11 @@ def _check_shard(study: Study, path: str | Path, shard: StudyStore) -> None:
     """Refuse a shard of another config, or with other QoI columns than the study's (one of them is damaged)."""
     here = study.store
     if shard.config_hash != here.config_hash:
+        shard_config = _readable_config(shard.config_text, source=f"{path} (stored config)")
+        differences = _differences_text(shard_config, study.config, there="in the shard", here="in this study")
         raise StudyFileError(
             f"shard {str(path)!r} belongs to another study (config hash {shard.config_hash[:12]}, "
-            f"this study {here.config_hash[:12]}); nothing was merged",
+            f"this study {here.config_hash[:12]}{differences}); nothing was merged",
             path,
         )
     if tuple(shard.qoi_names) != tuple(here.qoi_names):
