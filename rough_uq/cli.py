@@ -166,9 +166,11 @@ def _console() -> Any:
             self.quiet = True
             raise BrokenPipeError
 
-    # Logs and pipes get full-width tables rather than rich's default of 80 columns.
-    is_terminal = sys.stdout.isatty()
-    return _PipedConsole(width=None if is_terminal or os.environ.get("COLUMNS") else 160)
+    # Logs and pipes get full-width tables rather than rich's default of 80 columns, and lines of text that are
+    # not broken at that width (soft wrap): a run's sample counts or a command in a warning stay on one line, for
+    # grep and copy-paste. A width asked for in COLUMNS is kept, as on a terminal.
+    is_free_width = not sys.stdout.isatty() and not os.environ.get("COLUMNS")
+    return _PipedConsole(width=160 if is_free_width else None, soft_wrap=is_free_width)
 
 
 def _progress(quiet: bool, watch: tuple[Any, Any, str, str] | None = None) -> Any:

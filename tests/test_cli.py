@@ -155,6 +155,20 @@ def test_stored_samples_are_what_the_cli_reports(screened):
     assert estimate == pytest.approx(record["estimate"][0], rel=1e-12)
 
 
+def test_piped_report_keeps_each_line_of_text_whole(screened, monkeypatch):
+    # Piped (not a terminal, no COLUMNS), lines of text are not broken at the console's width: the sample counts of
+    # many runs stay on one line, whole, for grep and copy-paste.
+    monkeypatch.delenv("COLUMNS", raising=False)
+    for tol in ("5", "4", "3", "2.5", "2"):
+        assert CliRunner().invoke(main, ["mlmc", "--tol", tol, "--workers", "1", "--quiet"]).exit_code in (0, 3)
+    output = run("report", "results.h5").output
+    (line,) = [line for line in output.splitlines() if line.startswith("samples stored:")]
+    run_ids = [entry["run_id"] for entry in json.loads(run("report", "results.h5", "--json").output)["runs"]]
+    assert len(line) > 160 and len(run_ids) == 5
+    for run_id in run_ids:
+        assert f"{run_id}: L" in line
+
+
 def test_shards_in_any_order_merge_to_the_serial_result(screened, tmp_path):
     """The cluster workflow: plan, compute shards (out of order), merge, repeat; then mlmc computes nothing."""
     reference = json.loads(run("mlmc", "--tol", "5", "--study", "results.h5", "--workers", "1", "--json").output)

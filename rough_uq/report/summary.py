@@ -637,7 +637,7 @@ def render_runs(console: Any, runs: Sequence[ReportedRun], qoi_names: Sequence[s
     console.print("[bold]Estimation runs[/bold]")
     for run in runs:
         for line in format_run(run.record, qoi_names, units or {}, measured_ratio=run.measured_ratio):
-            console.print(escape(line), highlight=False, soft_wrap=False)
+            console.print(escape(line), highlight=False)
 
 
 def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
