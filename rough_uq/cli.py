@@ -541,6 +541,14 @@ def solve(config_path: str | None, level: int, index: int) -> None:
 SHIPPED_CONFIGS = ("quickstart", "classic-area", "classic-clusters")
 
 
+def _has_text(path: Path, text: str) -> bool:
+    """Whether the file at ``path`` holds exactly ``text`` (False if it cannot be read as UTF-8 text)."""
+    try:
+        return path.is_file() and path.read_text(encoding="utf-8") == text
+    except (OSError, UnicodeDecodeError):
+        return False
+
+
 def _shipped_config_text(name: str) -> str:
     """The text of a shipped config, read through importlib.resources (works from a wheel too)."""
     from importlib.resources import files
@@ -576,6 +584,10 @@ def init(name: str | None, out: str | None, force: bool, show_list: bool) -> Non
     text = _shipped_config_text(name)
     target = Path(out or f"{name}.yaml")
     if target.exists() and not force:
+        if _has_text(target, text):
+            # The README's quick start runs `roughuq init quickstart && roughuq screen ...`: a second time, go on.
+            click.echo(f"{target} is already the shipped {name} config, unchanged; next: roughuq screen {target}")
+            return
         raise RoughUQError(f"{target} already exists; add --force to overwrite it, or --out FILE to write elsewhere")
     try:
         target.write_text(text, encoding="utf-8")

@@ -57,6 +57,23 @@ def test_init_refuses_to_overwrite_unless_forced(tmp_path, monkeypatch):
     assert not (tmp_path / "quickstart.yaml").exists()  # --out, not the default name
 
 
+def test_init_again_on_the_unchanged_config_goes_on(tmp_path, monkeypatch):
+    # The README's quick start, `roughuq init quickstart && roughuq screen ...`, run twice in one directory.
+    monkeypatch.chdir(tmp_path)
+    run("init", "quickstart")
+    before = (tmp_path / "quickstart.yaml").stat().st_mtime_ns
+    result = run("init", "quickstart")
+    assert "already the shipped quickstart config, unchanged" in result.stdout
+    assert "roughuq screen quickstart.yaml" in result.stdout
+    assert (tmp_path / "quickstart.yaml").stat().st_mtime_ns == before  # not rewritten
+    # Edited, or another shipped config under that name: refused as before, the file kept.
+    for text in ("my edits\n", files("rough_uq.study").joinpath("configs", "classic-area.yaml").read_text()):
+        (tmp_path / "quickstart.yaml").write_text(text)
+        result = run("init", "quickstart", expect=2)
+        assert "already exists" in result.stderr and "--force" in result.stderr
+        assert (tmp_path / "quickstart.yaml").read_text() == text
+
+
 def test_unknown_name_exits_2_with_the_list(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for args in (("init", "classic_area"), ("init",)):
