@@ -447,6 +447,7 @@ def test_unfittable_rates_are_said_plainly(tmp_path, monkeypatch):
     assert "clusters (alpha = " in warning and "[" not in warning
     line = one_error_line(run("mlmc", "--workers", "1", expect=2))
     assert "does not decrease" in line and "[" not in line and "mc --level" in line
+    assert "run `roughuq screen` again on this study" in line  # more levels extend this study: no new one needed
     result = run("mc", "--level", "1", "--tol", "2", "--workers", "1")  # as the message suggests
     assert "forecast: none" in result.stderr and "bias not estimated" in result.stdout
 

@@ -965,8 +965,9 @@ def forecast_run(
         if stalled:
             raise EstimationError(
                 f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, "
-                "so no finest grid can be chosen for a tolerance: screen finer grids (a new study with a larger "
-                "grid.coarsest or more screening.levels), or use `roughuq mc --level L` (bias not estimated)"
+                "so no finest grid can be chosen for a tolerance: screen finer grids (raise screening.levels and run "
+                "`roughuq screen` again on this study, which extends its screening, or start a new study with a "
+                "larger grid.coarsest), or use `roughuq mc --level L` (bias not estimated)"
             )
         prediction = _run_plan(config, tol, rates, statistics, method=method, richardson=richardson)
         if not prediction.is_bias_met and not is_given_level:
