@@ -399,6 +399,11 @@ def _foreign_hdf5(path: Path, tmp_path: Path) -> None:
         f["data"] = np.arange(3)
 
 
+def _other_format_hdf5(path: Path, tmp_path: Path) -> None:
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = "netcdf4"
+
+
 @pytest.mark.parametrize(
     ("make", "message"),
     [
@@ -406,9 +411,10 @@ def _foreign_hdf5(path: Path, tmp_path: Path) -> None:
         (_truncated, "truncated or damaged"),
         (_empty, "is empty"),
         (_wrong_version, "format version 3; this roughuq reads versions 1 and 2"),
-        (_foreign_hdf5, "not a roughuq study file"),
+        (_foreign_hdf5, r"not a roughuq study file \(no 'format' attribute; a study file's is 'roughuq-study'\)"),
+        (_other_format_hdf5, r"not a roughuq study file \(its 'format' attribute is 'netcdf4'; a study file's is "),
     ],
-    ids=["not-hdf5", "truncated", "empty", "wrong-version", "foreign-hdf5"],
+    ids=["not-hdf5", "truncated", "empty", "wrong-version", "foreign-hdf5", "other-format-hdf5"],
 )
 @pytest.mark.parametrize("opener", ["create", "resume", "readonly"])
 def test_bad_files_are_refused_and_unchanged(tmp_path: Path, make, message: str, opener: str) -> None:

@@ -767,8 +767,9 @@ def _read_header(path: Path) -> dict[str, Any]:
             if isinstance(found, bytes):
                 found = found.decode("utf-8", "replace")
             if found != FORMAT:
+                attribute = "no 'format' attribute" if found is None else f"its 'format' attribute is {found!r}"
                 raise StudyFileError(
-                    f"{path} is an HDF5 file but not a roughuq study file (format {found!r}, expected {FORMAT!r})",
+                    f"{path} is an HDF5 file but not a roughuq study file ({attribute}; a study file's is {FORMAT!r})",
                     path,
                 )
             version = f.attrs.get("format_version")
