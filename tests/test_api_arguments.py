@@ -152,3 +152,36 @@ def test_a_bandwidth_rate_that_is_not_a_number_is_refused_by_name():
             cdf_level_term(fine, None, 0, thresholds=[0.0, 1.0], bandwidth=0.5, bandwidth_rate=rate)
     numbers = [cdf_level_term(fine, None, 0, thresholds=[0.0, 1.0], bandwidth=b, bandwidth_rate=1) for b in (1, 1.0)]
     np.testing.assert_array_equal(numbers[0].mean, numbers[1].mean)
+
+
+def test_tolerances_by_column_name_equal_those_in_column_order():
+    # The CLI takes NAME=EPS and `units=` is a mapping: `tol=` takes one too, and gives the run of the same list.
+    problem = _problem(qoi=("contact_area", "mean_gap"))
+    by_name = rough_uq.mlmc(problem, tol={"mean_gap": 0.05, "contact_area": 4.0}, n_initial=4)
+    in_order = rough_uq.mlmc(problem, tol=[4.0, 0.05], n_initial=4)
+    np.testing.assert_array_equal(by_name.tol, [4.0, 0.05])
+    np.testing.assert_array_equal(by_name.estimate, in_order.estimate)
+    np.testing.assert_array_equal(by_name.n_samples, in_order.n_samples)
+
+
+def test_tolerances_by_name_must_name_every_column_and_no_other_before_sampling():
+    problem, none = _problem(qoi=("contact_area", "mean_gap")), _NoSampling()
+    cases = [
+        ({"contact_area": 2.0}, "no tolerance for mean_gap",
+         "one tolerance for every QoI column (contact_area, mean_gap)"),
+        ({"contact_area": 2.0, "mean_gap": 0.1, "area": 1.0}, "key 'area'", "QoI column names: contact_area, mean_gap"),
+        ({"contact_area": 2.0, "mean_gap": -0.1}, None, None),
+    ]
+    for tol, value, allowed in cases:
+        for call in (
+            lambda: rough_uq.mlmc(problem, tol=tol, executor=none),
+            lambda: rough_uq.mc(problem, tol=tol, level=1, executor=none),
+            lambda: rough_uq.variance(problem, tol=tol, executor=none),
+        ):
+            with pytest.raises(rough_uq.InvalidParameterError) as caught:
+                call()
+            assert caught.value.name == "tol"
+            if value is not None:
+                assert caught.value.value == value and caught.value.allowed == allowed
+            else:
+                assert "or a mapping of every QoI column (contact_area, mean_gap) to one" in caught.value.allowed

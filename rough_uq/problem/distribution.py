@@ -141,10 +141,10 @@ def variance(
     Parameters
     ----------
     problem : ContactProblem
-    tol : float or sequence of float
+    tol : float, sequence of float or mapping of str to float
         Tolerance on the RMS error of the variance, one for all columns or
-        one per column, in the square of each QoI's unit (e.g. percent^2 for
-        the contact area).
+        one per column (in column order or by column name), in the square of
+        each QoI's unit (e.g. percent^2 for the contact area).
     theta : float
         Bias share of ``tol^2``, in (0, 1).
     n_initial, min_finest_level, max_cost, batch_size
@@ -167,7 +167,7 @@ def variance(
         ``n_samples`` of shape ``(n_levels,)``.
     """
     problem = _problem(problem)
-    tol = _tolerances(tol, problem.n_qoi)
+    tol = _tolerances(tol, problem.n_qoi, problem.columns)
     stage = run_stage("mlmc", run_id("variance", problem.columns, tol, theta))
     sampler = problem.sampler(stage, executor=executor)
     result = estimate_target(

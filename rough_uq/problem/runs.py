@@ -22,7 +22,7 @@ the numbers agree to rounding, not bit for bit.)
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -184,7 +184,10 @@ def screen(
     )
 
 
-def _tolerances(tol: object, n_qoi: int) -> np.ndarray:
+def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -> np.ndarray:
+    """``tol`` as one tolerance per QoI: a number, ``n_qoi`` numbers, or (``columns`` given) a mapping by column."""
+    if columns is not None and isinstance(tol, Mapping):
+        tol = _tolerances_by_name(tol, columns)
     try:
         values = None if isinstance(tol, (str, bytes, bool)) else np.asarray(tol, dtype=float)
     except (TypeError, ValueError):
@@ -193,7 +196,20 @@ def _tolerances(tol: object, n_qoi: int) -> np.ndarray:
         values = np.broadcast_to(values.reshape(-1), (n_qoi,)).copy()
         if np.all(np.isfinite(values)) and np.all(values > 0):
             return values
-    raise InvalidParameterError("tol", tol, f"a number > 0 or {n_qoi} of them (one per QoI, in its unit)")
+    by_name = "" if columns is None else f", or a mapping of every QoI column ({', '.join(columns)}) to one"
+    raise InvalidParameterError("tol", tol, f"a number > 0 or {n_qoi} of them (one per QoI, in its unit){by_name}")
+
+
+def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
+    """The values of ``tol`` in column order; every column must have one, and no other key may be there."""
+    unknown = [key for key in tol if key not in columns]
+    if unknown:
+        raise InvalidParameterError("tol", f"key {unknown[0]!r}", f"QoI column names: {', '.join(columns)}")
+    missing = [name for name in columns if name not in tol]
+    if missing:
+        every = f"one tolerance for every QoI column ({', '.join(columns)})"
+        raise InvalidParameterError("tol", f"no tolerance for {', '.join(missing)}", every)
+    return [tol[name] for name in columns]
 
 
 def _screening_statistics(screening: object) -> LevelStatistics | None:
@@ -253,9 +269,11 @@ def mlmc(
     Parameters
     ----------
     problem : ContactProblem
-    tol : float or sequence of float
+    tol : float, sequence of float or mapping of str to float
         Tolerance ``eps`` on the root-mean-square error, one for all QoIs or
-        one per QoI, in the QoIs' units (e.g. percent of contact area).
+        one per QoI (in column order, or by column name, e.g.
+        ``{"contact_area": 0.5, "clusters": 50}``), in the QoIs' units (e.g.
+        percent of contact area).
     theta : float
         Bias share of ``eps^2``, in (0, 1).
     screening : ScreeningResult or LevelStatistics, optional
@@ -292,7 +310,7 @@ def mlmc(
         For failed diagnostics of the run and for samples whose solve did not converge.
     """
     problem = _problem(problem)
-    tol = _tolerances(tol, problem.n_qoi)
+    tol = _tolerances(tol, problem.n_qoi, problem.columns)
     max_samples = _max_samples(max_samples)
     statistics = _screening_statistics(screening)
     if statistics is not None:
@@ -373,9 +391,10 @@ def mc(
     Parameters
     ----------
     problem : ContactProblem
-    tol : float or sequence of float
+    tol : float, sequence of float or mapping of str to float
         Tolerance ``eps`` on the root-mean-square error, one for all QoIs or
-        one per QoI, in the QoIs' units.
+        one per QoI (in column order or by column name, as in :func:`mlmc`),
+        in the QoIs' units.
     level : int, optional
         Level to sample, ``0..problem.max_level``; required without ``screening``.
     theta : float
@@ -397,7 +416,7 @@ def mc(
         As :func:`mlmc`'s, with ``levels == [level]``.
     """
     problem = _problem(problem)
-    tol = _tolerances(tol, problem.n_qoi)
+    tol = _tolerances(tol, problem.n_qoi, problem.columns)
     max_samples = _max_samples(max_samples)
     statistics = _screening_statistics(screening)
     if statistics is not None:
