@@ -234,7 +234,7 @@ def test_an_interrupted_run_resumes_to_the_record_of_an_uninterrupted_one(tiny, 
                       expect=130)
         assert "every completed sample is saved" in stopped.stderr
     partial = stored_runs(tiny.parent / "resumed.h5")
-    assert [r.status for r in partial.values()] == ["running"]
+    assert [r.status for r in partial.values()] == ["interrupted"]
     resumed = run("mlmc", *target, "--study", "resumed.h5", "--workers", "1", "--json", "-q",
                   expect=whole.exit_code)
     first, second = json.loads(whole.stdout), json.loads(resumed.stdout)

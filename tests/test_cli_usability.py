@@ -988,6 +988,30 @@ def test_report_says_running_while_another_process_holds_the_study(screened):
     assert "interrupted" in text and "roughuq drop mlmc_contact_area-9_theta-0.5" in text
 
 
+def test_report_says_interrupted_for_a_stopped_run_while_another_run_holds_the_study(screened, monkeypatch):
+    # A run stopped by Ctrl-C showed as "running (another process is computing it)" whenever any process held the
+    # study's lock, e.g. while the user ran another tolerance.
+    from rough_uq.study import pipeline
+    from rough_uq.study.config import config_hash, load_config, resolved_yaml
+
+    original = pipeline.StudySampler.compute
+
+    def interrupted(self, level, indices):
+        if self.missing(level, indices).size:
+            raise KeyboardInterrupt
+        return original(self, level, indices)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(pipeline.StudySampler, "compute", interrupted)
+        run("mlmc", "--tol", "5", "--workers", "1", "--quiet", expect=130)
+    config = load_config(screened / "tiny.yaml")
+    with open_study(screened / "results.h5", config_text=resolved_yaml(config), config_hash=config_hash(config),
+                    qoi_names=config.qoi_names, create=False, code_version="test"):  # another run holds the study
+        text = run("report", "results.h5").stdout
+    assert "mlmc contact_area=5: interrupted; rerun the same command to resume" in text
+    assert "running" not in text
+
+
 def test_drop_forgets_a_run_and_keeps_its_samples(screened):
     run("mlmc", "--tol", "5", "--workers", "1", "--quiet")
     key = "mlmc_contact_area-5_theta-0.5"

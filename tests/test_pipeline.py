@@ -315,7 +315,7 @@ def test_interrupted_mlmc_resumes_to_the_uninterrupted_result(n_items):
     stored = sum(study.store.sample_indices(level=l, stage=stage).size for l in study.store.levels())
     assert stored == n_items  # every completed sample was kept
     (run,) = study.store.read_runs()
-    assert run["status"] == "running"
+    assert run["status"] == "interrupted"
     resumed = run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
     assert resumed.outcome.n_computed == sum(reference.outcome.n_samples) - n_items
     for key in ("estimate", "stat_error", "bias_estimate", "n_samples", "cost"):

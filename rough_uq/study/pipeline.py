@@ -1330,8 +1330,8 @@ def run_estimation(
     run starts (``status = "running"``) and when it ends (``"finished"``, or
     ``"refused"`` with the reason when the estimator raises
     :class:`~rough_uq.errors.EstimationError`, which is raised on); an
-    interrupted run keeps its samples and its ``running`` record, and the
-    same command resumes it. A rerun of a finished run leaves the finished
+    interrupted run (Ctrl-C, SIGTERM) keeps its samples, its record says
+    ``interrupted``, and the same command resumes it. A rerun of a finished run leaves the finished
     record in place until it finishes itself, so a rerun that is refused,
     interrupted or fails keeps the earlier result.
 
@@ -1365,7 +1365,8 @@ def run_estimation(
 
 @contextmanager
 def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None) -> Iterator[None]:
-    """Store ``record`` (``running``) for the block; as ``refused``, with the message, if it raises EstimationError.
+    """Store ``record`` (``running``) for the block; ``refused`` with the message if it raises EstimationError,
+    ``interrupted`` if KeyboardInterrupt (Ctrl-C or SIGTERM).
 
     A refused run is not an interrupted one: rerunning it as it is would be
     refused again, so its record must not stay ``running`` (which the report
@@ -1382,6 +1383,12 @@ def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None) ->
     except EstimationError as exc:
         if not is_kept:
             study.store.write_run(record.run_id, replace(record, status="refused", reason=str(exc)).to_json())
+        raise
+    except KeyboardInterrupt:
+        # Ctrl-C or SIGTERM: recorded as such, so that a report while another run holds the study does not show
+        # this one as running (a process killed outright leaves "running", which the report reads by the lock).
+        if not is_kept:
+            study.store.write_run(record.run_id, replace(record, status="interrupted").to_json())
         raise
 
 

@@ -894,7 +894,9 @@ class RunRecord:
     The record is stored when the run starts (``status = "running"``, no
     outcome) and again when it ends (``"finished"``, or ``"refused"`` with
     the ``reason`` when the estimator refused to go on, e.g. a plan beyond
-    ``max_samples``); ``roughuq drop`` marks it ``"dropped"``.
+    ``max_samples``, or ``"interrupted"`` after Ctrl-C or SIGTERM); ``roughuq
+    drop`` marks it ``"dropped"``. A ``"running"`` record whose process is
+    gone (killed outright) is an interrupted run too.
 
     Attributes
     ----------
