@@ -1500,7 +1500,12 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
                 raise InvalidParameterError("RUN_ID", key, f"a run of this study ({known})")
         for key in run_ids:
             study.store.write_run(key, replace(runs[key], status="dropped").to_json())
+    finished = [key for key in run_ids if runs[key].is_finished]
     click.echo(f"{study_path}: dropped {', '.join(run_ids)} (samples kept)")
+    if finished:
+        # `drop` is meant for abandoned runs: say so when a finished result went with it.
+        click.echo(f"note: {', '.join(finished)} had finished; its result is no longer reported (the same command "
+                   "brings it back from the kept samples)")
 
 
 def run() -> None:

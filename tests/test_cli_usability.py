@@ -1010,13 +1010,16 @@ def test_report_says_interrupted_for_a_stopped_run_while_another_run_holds_the_s
         text = run("report", "results.h5").stdout
     assert "mlmc contact_area=5: interrupted; rerun the same command to resume" in text
     assert "running" not in text
+    assert "note:" not in run("drop", "mlmc_contact_area-5_theta-0.5").stdout  # abandoned, not finished: no note
 
 
 def test_drop_forgets_a_run_and_keeps_its_samples(screened):
     run("mlmc", "--tol", "5", "--workers", "1", "--quiet")
     key = "mlmc_contact_area-5_theta-0.5"
     before = json.loads(run("report", "results.h5", "--json").output)
-    assert "dropped" in run("drop", key).stdout
+    dropped = run("drop", key).stdout
+    assert "dropped" in dropped
+    assert f"note: {key} had finished; its result is no longer reported" in dropped  # a finished run, not abandoned
     after = json.loads(run("report", "results.h5", "--json").output)
     assert after["runs"] == [] and after["dropped_runs"] == [key]
     assert after["samples"] == before["samples"]
