@@ -356,10 +356,23 @@ class _UsageLine(click.ClickException):
         message = " ".join(exc.format_message().split()).removesuffix(".")
         path = ctx.command_path if ctx is not None else "roughuq"
         where = f"{ctx.info_name}: " if ctx is not None and ctx.parent is not None else ""
-        super().__init__(f"{where}{message}; see `{path} --help`")
+        super().__init__(f"{where}{message}{_misplaced_option_hint(exc, ctx)}; see `{path} --help`")
 
     def show(self, file: Any = None) -> None:
         click.echo(f"error: {self.format_message()}", file=file, err=file is None)
+
+
+def _misplaced_option_hint(exc: click.UsageError, ctx: click.Context | None) -> str:
+    """For an option of some commands given before the command (``roughuq --workers 1 mlmc``): where it goes."""
+    if not isinstance(exc, click.NoSuchOption) or ctx is None or not isinstance(ctx.command, click.Group):
+        return ""
+    group = ctx.command
+    owners = [name for name in group.list_commands(ctx)
+              if any(exc.option_name in param.opts for param in group.commands[name].params)]
+    if not owners:
+        return ""
+    example = f"roughuq {owners[0]} {exc.option_name} ..."
+    return f" (it is an option of {', '.join(owners)}: put it after the command, e.g. `{example}`)"
 
 
 class _OneLineUsage:

@@ -871,12 +871,14 @@ def test_a_study_without_screening_is_told_the_screen_command_for_its_own_file(t
     (("report", "a.h5", "b.h5"), "report: Got unexpected extra argument (b.h5)"),
     (("frob",), "No such command 'frob'"),
     (("--frob",), "No such option '--frob'"),
+    (("--workers", "1", "mlmc"), "No such option '--workers' (it is an option of mc, mlmc, sample, screen, sweep: put "
+                                 "it after the command, e.g. `roughuq mc --workers ...`)"),
 ], ids=["unknown option", "option without value", "choice", "int range", "required option", "missing argument",
-        "extra argument", "unknown command", "unknown group option"])
+        "extra argument", "unknown command", "unknown group option", "a command's option before the command"])
 def test_click_usage_errors_are_one_line_naming_the_command_help(tmp_path, monkeypatch, args, text):
     monkeypatch.chdir(tmp_path)
     line = one_error_line(run(*args, expect=2))
-    command = "roughuq" if args[0] in ("frob", "--frob") else f"roughuq {args[0]}"
+    command = "roughuq" if args[0] in ("frob", "--frob", "--workers") else f"roughuq {args[0]}"
     assert line.startswith(f"error: {text}") and line.endswith(f"; see `{command} --help`"), line
     assert "Usage:" not in line and not list(tmp_path.iterdir())
 
