@@ -37,9 +37,29 @@ def test_plain_progress_lines_are_throttled_and_complete():
                           "[mlmc] plan: samples per level L0: 40, L1: 4, L2: 2"]
     level_lines = [line for line in lines if "level 1:" in line]
     assert level_lines[0].startswith("[mlmc] level 1: 1/4 samples") and "eta" not in level_lines[0]
-    assert level_lines[-1].startswith("[mlmc] level 1: 4/4 samples")  # completion is always printed
+    assert level_lines[-1].startswith("[mlmc] level 1: 4/4 samples")  # where the level ended is always printed
     assert len(level_lines) == 2
     assert "[mlmc] hello" in lines and lines[-1].startswith("[mlmc] done in")
+
+
+def test_a_plan_that_grows_with_every_batch_is_not_a_line_per_batch():
+    # Adaptive MLMC raises a level's plan after each batch, and each batch reaches it: the log said "18/18",
+    # "21/21", ... one line per batch, each reading as done. Within an interval: the first line and the last.
+    stream = io.StringIO()
+    progress = PlainProgress(stream, interval=3600)
+    progress.start("mlmc")
+    done = 0
+    for planned in range(3, 30, 3):
+        progress.plan([0, 1], [planned, 2], [done, 0])
+        progress.advance(0, planned - done)
+        done = planned
+    progress.advance(1, 2)
+    progress.stop(is_complete=False)
+    lines = stream.getvalue().splitlines()
+    level_lines = [line for line in lines if "] level " in line]
+    assert [line.split(",")[0] for line in level_lines] == [
+        "[mlmc] level 0: 3/3 samples", "[mlmc] level 1: 2/2 samples", "[mlmc] level 0: 27/27 samples"]
+    assert lines[-1].startswith("[mlmc] stopped after")
 
 
 def test_make_progress_picks_plain_for_pipes_and_nothing_when_quiet():

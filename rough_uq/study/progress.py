@@ -109,6 +109,7 @@ class PlainProgress(Progress):
         self._started: dict[int, tuple[float, int]] = {}
         self._first: dict[int, tuple[float, int]] = {}
         self._last_line: dict[int, float] = {}
+        self._printed: dict[int, int] = {}  # the count of a level's last line
         self._last_plan = -math.inf
         self._t0 = time.monotonic()
 
@@ -123,6 +124,7 @@ class PlainProgress(Progress):
         self._started.clear()
         self._first.clear()
         self._last_line.clear()
+        self._printed.clear()
         self._last_plan = -math.inf
         self._print(f"[{title}] started")
 
@@ -144,16 +146,21 @@ class PlainProgress(Progress):
             self._print(f"[{self._title}] plan: samples per level {text}")
 
     def advance(self, level: int, n: int) -> None:
+        # At most one line per level and interval. A level that reaches its plan is not printed at once: the
+        # adaptive plan grows after every batch, so "18/18", "21/21", ... would be a line per batch, each
+        # saying done; stop() prints every level's last count instead.
         now = time.monotonic()
         self._done[level] = self._done.get(level, 0) + int(n)
         self._started.setdefault(level, (now, self._done[level] - int(n)))
         self._first.setdefault(level, (now, self._done[level]))
-        done, planned = self._done[level], self._planned.get(level, 0)
-        is_level_done = planned > 0 and done >= planned
-        if is_level_done or now - self._last_line.get(level, -1e9) >= self._interval:
-            self._last_line[level] = now
-            self._print(f"[{self._title}] level {level}: {done}/{planned} samples, "
-                        f"elapsed {format_duration(now - self._t0, clock=True)}{self._eta(level, now)}")
+        if now - self._last_line.get(level, -1e9) >= self._interval:
+            self._print_level(level, now, eta=True)
+
+    def _print_level(self, level: int, now: float, *, eta: bool) -> None:
+        self._last_line[level] = now
+        self._printed[level] = self._done[level]
+        self._print(f"[{self._title}] level {level}: {self._done[level]}/{self._planned.get(level, 0)} samples, "
+                    f"elapsed {format_duration(now - self._t0, clock=True)}{self._eta(level, now) if eta else ''}")
 
     def _eta(self, level: int, now: float) -> str:
         t_first, done_at_first = self._first.get(level, (now, self._done[level]))
@@ -167,8 +174,12 @@ class PlainProgress(Progress):
         self._print(f"[{self._title}] {text}")
 
     def stop(self, *, is_complete: bool = True) -> None:
+        now = time.monotonic()
+        for level in sorted(self._done):
+            if self._printed.get(level) != self._done[level]:
+                self._print_level(level, now, eta=False)  # where every level ended
         what = "done in" if is_complete else "stopped after"
-        self._print(f"[{self._title}] {what} {format_duration(time.monotonic() - self._t0, clock=True)}")
+        self._print(f"[{self._title}] {what} {format_duration(now - self._t0, clock=True)}")
 
 
 def _eta_column_class() -> type:
