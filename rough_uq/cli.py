@@ -1517,8 +1517,8 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
     click.echo(f"{study_path}: dropped {', '.join(run_ids)} (samples kept)")
     if finished:
         # `drop` is meant for abandoned runs: say so when a finished result went with it.
-        click.echo(f"note: {', '.join(finished)} had finished; its result is no longer reported (the same command "
-                   "brings it back from the kept samples)")
+        click.echo(f"note: finished runs dropped too: {', '.join(finished)} (no longer reported; the same command "
+                   "brings a result back from the kept samples)")
 
 
 def run() -> None:

@@ -1021,7 +1021,7 @@ def test_drop_forgets_a_run_and_keeps_its_samples(screened):
     before = json.loads(run("report", "results.h5", "--json").output)
     dropped = run("drop", key).stdout
     assert "dropped" in dropped
-    assert f"note: {key} had finished; its result is no longer reported" in dropped  # a finished run, not abandoned
+    assert f"note: finished runs dropped too: {key} (no longer reported" in dropped  # finished, not abandoned
     after = json.loads(run("report", "results.h5", "--json").output)
     assert after["runs"] == [] and after["dropped_runs"] == [key]
     assert after["samples"] == before["samples"]

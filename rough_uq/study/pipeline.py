@@ -1331,9 +1331,9 @@ def run_estimation(
     ``"refused"`` with the reason when the estimator raises
     :class:`~rough_uq.errors.EstimationError`, which is raised on); an
     interrupted run (Ctrl-C, SIGTERM) keeps its samples, its record says
-    ``interrupted``, and the same command resumes it. A rerun of a finished run leaves the finished
-    record in place until it finishes itself, so a rerun that is refused,
-    interrupted or fails keeps the earlier result.
+    ``interrupted``, and the same command resumes it. A rerun of a finished
+    run leaves the finished record in place until it finishes itself, so a
+    rerun that is refused, interrupted or fails keeps the earlier result.
 
     Returns
     -------
@@ -1365,8 +1365,10 @@ def run_estimation(
 
 @contextmanager
 def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None) -> Iterator[None]:
-    """Store ``record`` (``running``) for the block; ``refused`` with the message if it raises EstimationError,
-    ``interrupted`` if KeyboardInterrupt (Ctrl-C or SIGTERM).
+    """Store ``record`` as ``running`` for the block, then ``refused`` (EstimationError) or ``interrupted`` (Ctrl-C).
+
+    ``refused`` comes with the error's message; ``interrupted`` follows a
+    KeyboardInterrupt, which SIGTERM raises too.
 
     A refused run is not an interrupted one: rerunning it as it is would be
     refused again, so its record must not stay ``running`` (which the report
