@@ -67,6 +67,7 @@ def test_unreachable_tolerance_is_refused_before_any_sample(screened, tol, plan)
     result = run(*args, expect=2)
     line = one_error_line(result)
     assert "cannot be reached" in line and "grid.max_level = 2" in line
+    assert "a prediction from 8 screened samples per level (a run estimates the bias from its own samples" in line
     limit = _reachable_limit(line)
     assert limit > float(tol)
     assert (screened / "results.h5").read_bytes() == before  # no record, no sample
