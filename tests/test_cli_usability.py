@@ -1016,6 +1016,31 @@ def test_report_says_interrupted_for_a_stopped_run_while_another_run_holds_the_s
     assert "note:" not in run("drop", "mlmc_contact_area-5_theta-0.5").stdout  # abandoned, not finished: no note
 
 
+def test_report_of_an_interrupted_screening_says_it_is_not_finished(tmp_path, monkeypatch):
+    # Said "no screening yet" although the screening's samples were stored and the same command finishes it.
+    from rough_uq.study import pipeline
+
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    original, calls = pipeline.StudySampler.compute, {"n": 0}
+
+    def interrupted(self, level, indices):
+        calls["n"] += 1
+        if calls["n"] > 1:
+            raise KeyboardInterrupt
+        return original(self, level, indices)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(pipeline.StudySampler, "compute", interrupted)
+        run("screen", str(config), "--workers", "1", "--quiet", expect=130)
+    report = run("report", "results.h5").stdout
+    assert "samples stored: screening: L0 8" in report
+    assert "screening not finished: run `roughuq screen CONFIG` again to complete it" in report
+    assert "no screening yet" not in report
+    run("screen", str(config), "--workers", "1", "--quiet")
+    assert "screened levels 0..2, 8 samples each" in run("report", "results.h5").stdout
+
+
 def test_drop_forgets_a_run_and_keeps_its_samples(screened):
     run("mlmc", "--tol", "5", "--workers", "1", "--quiet")
     key = "mlmc_contact_area-5_theta-0.5"

@@ -722,6 +722,9 @@ def render_report(report: dict[str, Any], console: Any) -> None:
     if report["screening"] is not None:
         screening = ScreeningRecord.from_json(report["screening"])
         render_screening(console, screening, report["qoi_names"], units, grids=grids)
+    elif "screening" in report["samples"]:  # samples but no record: stopped before it finished
+        console.print("screening not finished: run `roughuq screen CONFIG` again to complete it (its stored samples "
+                      "are kept and not computed again)")
     else:
         console.print("no screening yet: run `roughuq screen CONFIG`")
     if report["runs"]:
