@@ -451,6 +451,9 @@ def test_unfittable_rates_are_said_plainly(tmp_path, monkeypatch):
     assert "run `roughuq screen` again on this study" in line  # more levels extend this study: no new one needed
     result = run("mc", "--level", "1", "--tol", "2", "--workers", "1")  # as the message suggests
     assert "forecast: none" in result.stderr and "bias not estimated" in result.stdout
+    # Not "tolerance met": only the statistical error is known to be within it.
+    assert "mc clusters=2: statistical error within tolerance, bias not estimated" in result.stdout
+    assert "tolerance met" not in result.stdout
 
 
 def test_screen_warns_about_non_converged_solves_where_they_happen(tmp_path, monkeypatch):

@@ -447,7 +447,10 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     else:
         where = f"levels {levels[0]}..{levels[-1]}, N_l {' '.join(str(n) for n in outcome.n_samples)}"
     reason = outcome.stop_reason
-    if outcome.tol_met:
+    if outcome.tol_met and not outcome.is_bias_estimated:
+        # `mc --level`: its statistical error is within the tolerance, its bias unknown (the RMSE may not be).
+        lines = [f"{head}: statistical error within tolerance, bias not estimated", f"  {where}"]
+    elif outcome.tol_met:
         lines = [f"{head}: tolerance met", f"  {where}"]
     else:
         lines = [f"{head}: NOT MET ({reason})", f"  {_stop_text(outcome, run.method)}; {where}"]
