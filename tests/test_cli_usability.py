@@ -371,6 +371,15 @@ def test_results_are_readable_at_80_columns_with_total_rmse(screened):
     assert len(summary.findall(report)) == 2  # the mlmc and the mc run
 
 
+def test_report_says_what_check_and_the_planned_levels_mean(screened, monkeypatch):
+    # The screening's "check" column and the plan's "levels 0..1, N_l 0 7" beside a run's "levels 1..3, N_l 11 2 2"
+    # read as unexplained or contradictory.
+    monkeypatch.delenv("COLUMNS", raising=False)
+    report = run("report", "results.h5").stdout
+    assert "check: |mean Y - (mean Q_l - mean Q_(l-1))| over 3 times the sum of the three means' standard " in report
+    assert "levels, N_l: the optimal plan (0: a level it leaves out); a run takes at least two levels above" in report
+
+
 def test_each_kind_of_time_has_one_name_and_unit(screened):
     run("mc", "--tol", "5", "--workers", "1", "--quiet")
     output = run("mlmc", "--tol", "5", "--workers", "1").stdout

@@ -585,6 +585,10 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
 
 def _screening_table(stats: Any, q: int, name: str, unit: str | None) -> Any:
     table = _table(escape(f"Screening of {_labelled(name, unit or '')} per level"))
+    # What a reader cannot guess from the header (the rest is the usual MLMC notation, README).
+    table.caption = ("Y = Q_l - Q_(l-1) on coupled grids; check: |mean Y - (mean Q_l - mean Q_(l-1))| over 3 times "
+                     "the sum of the three means' standard errors; above 1 the levels do not telescope")
+    table.caption_justify = "left"
     for column in ("level", "N", "mean Q", "var Q", "mean Y", "var Y", "kurt", "check"):
         table.add_column(column, justify="right")
     for i, level in enumerate(stats.levels):
@@ -617,9 +621,12 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
     # A tolerance whose bias the finest allowed grid cannot reach is planned on that grid all the same
     # (the rows stay comparable); the mark says that `mlmc` refuses it.
     unreachable = any(not p.is_bias_met for p in screening.predictions)
-    caption = "* bias above sqrt(theta) tol on the finest allowed grid: mlmc refuses it" if unreachable else None
+    captions = ["levels, N_l: the optimal plan (0: a level it leaves out); a run takes at least two levels above the "
+                "plan's coarsest for its bias test, so its own levels and N_l differ"]
+    if unreachable:
+        captions.append("* bias above sqrt(theta) tol on the finest allowed grid: mlmc refuses it")
     table = _table("Predicted from the screening (CPU time of the samples)")
-    table.caption, table.caption_justify = caption, "left"
+    table.caption, table.caption_justify = "\n".join(captions), "left"
     for column in ("tol", "levels", "N_l", "MLMC", "MC", "MC/MLMC"):
         table.add_column(column, justify="right")
     for p in screening.predictions:
