@@ -185,3 +185,12 @@ def test_tolerances_by_name_must_name_every_column_and_no_other_before_sampling(
                 assert caught.value.value == value and caught.value.allowed == allowed
             else:
                 assert "or a mapping of every QoI column (contact_area, mean_gap) to one" in caught.value.allowed
+
+
+def test_a_screening_prints_as_a_one_line_summary(two_qoi_screening):
+    # print(screening) dumped every per-level array, some 40 lines of numpy repr.
+    text = repr(two_qoi_screening)
+    assert "\n" not in text and len(text) < 300 and str(two_qoi_screening) == text
+    assert text.startswith("ScreeningResult(levels=[0, 1, 2], n_samples=[2, 2, 2], alpha=[")
+    rates = two_qoi_screening.rates
+    assert f"alpha={[float(f'{a:.3g}') for a in rates.alpha]}" in text and f"gamma={rates.gamma:.3g}" in text

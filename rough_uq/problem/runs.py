@@ -110,6 +110,20 @@ class ScreeningResult:
         """Samples per screened level, shape ``(n_levels,)``."""
         return self.statistics.n_samples
 
+    def __repr__(self) -> str:
+        # A summary for notebooks and print(): the per-level arrays (some 40 lines) stay in ``statistics``.
+        rates = self.rates
+        return (
+            f"ScreeningResult(levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()}, "
+            f"alpha={_rounded(rates.alpha)}, beta={_rounded(rates.beta)}, gamma={rates.gamma:.3g}, "
+            f"n_not_converged={self.n_not_converged}, diagnostics={self.diagnostics!r})"
+        )
+
+
+def _rounded(values: np.ndarray) -> list[float]:
+    """Three significant digits of each value, for a summary."""
+    return [float(f"{value:.3g}") for value in np.asarray(values, dtype=float)]
+
 
 def _problem(problem: object) -> ContactProblem:
     if not isinstance(problem, ContactProblem):
