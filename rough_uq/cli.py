@@ -1334,20 +1334,10 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     if as_json:
         _dump([row.to_json() for row in rows])
         return
-    from rich.table import Table
+    from rough_uq.report.summary import render_sweep
 
-    from rough_uq.study.progress import format_duration
-
-    table = Table(title=f"Sweep of {key} (plain MC on level {level})")
-    for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "CPU"):
-        table.add_column(column, justify="right")
-    for row in rows:
-        outcome = row.run.outcome
-        for q, name in enumerate(row.run.qoi_names):
-            table.add_row(row.value, str(row.grid), name,
-                          f"{outcome.estimate[q]:.5g} ± {outcome.stat_error[q]:.2g}", str(outcome.n_samples[0]),
-                          f"{format_duration(outcome.seconds)} CPU")
-    _console().print(table)
+    units = {name: settings.unit_label for name, settings in config.qoi.items()}
+    render_sweep(_console(), rows, key=key, level=level, units=units)
 
 
 #: Config sections a sweep does not use, and why sweeping them means nothing.

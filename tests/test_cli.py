@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import math
 import os
+import re
 from pathlib import Path
 
 import h5py
@@ -234,6 +236,15 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
                            "--tol", "5", "--workers", "1", "--json").output)
     assert [row["estimate"] for row in again] == [row["estimate"] for row in rows]
     assert all(row["n_computed"] == 0 for row in again)
+    # The table, as the report writes a run: the QoI's unit, the estimate to the error's second digit.
+    table = run("sweep", str(config), "--set", "surface.system_size=1,2", "--fixed-spacing", "--tol", "5",
+                "--workers", "1", "--quiet").output
+    assert "Sweep of surface.system_size (plain MC on level 0; bias not estimated)" in table
+    for row in rows:
+        error = row["stat_error"][0]
+        decimals = max(0, 1 - math.floor(math.log10(error)))
+        cell = re.escape(f"{row['estimate'][0]:.{decimals}f} ± {error:.2g}")
+        assert re.search(rf"contact_area \[%\]\s+{cell}\s", table), table
     result = run("sweep", str(config), "--set", "surface.system_size=1.1", "--fixed-spacing", expect=2)
     assert "even integer" in result.stderr
     result = run("sweep", str(config), "--set", "surface.colour=1", expect=2)

@@ -100,6 +100,7 @@ __all__ = [
     "load_text",
     "render_report",
     "render_runs",
+    "render_sweep",
     "render_targets",
     "run_label",
     "tol_text",
@@ -708,6 +709,25 @@ def render_targets(console: Any, runs: Sequence[RunRecord], units: dict[str, str
         console.print(_variance_table(variance, units))
     if cdf:
         console.print(_distribution_table(cdf, units))
+
+
+def render_sweep(console: Any, rows: Sequence[Any], *, key: str, level: int, units: dict[str, str]) -> None:
+    """The table of ``roughuq sweep``: each value's MC estimate per QoI, written as the report writes one.
+
+    ``units`` maps QoI names to their unit labels (``%``, ...), as the report's config summary does.
+    """
+    table = _table(escape(f"Sweep of {key} (plain MC on level {level}; bias not estimated)"))
+    for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "CPU"):
+        table.add_column(column, justify="right")
+    for row in rows:
+        outcome = row.run.outcome
+        for q, name in enumerate(row.run.qoi_names):
+            table.add_row(
+                escape(row.value), str(row.grid), escape(_labelled(name, _column_unit(units, name))),
+                _value_error(outcome.estimate[q], outcome.stat_error[q]), str(outcome.n_samples[0]),
+                f"{format_duration(outcome.seconds)} CPU",
+            )
+    console.print(table)
 
 
 def render_report(report: dict[str, Any], console: Any) -> None:
