@@ -194,3 +194,16 @@ def test_a_screening_prints_as_a_one_line_summary(two_qoi_screening):
     assert text.startswith("ScreeningResult(levels=[0, 1, 2], n_samples=[2, 2, 2], alpha=[")
     rates = two_qoi_screening.rates
     assert f"alpha={[float(f'{a:.3g}') for a in rates.alpha]}" in text and f"gamma={rates.gamma:.3g}" in text
+
+
+def test_warnings_of_the_public_runs_name_the_callers_line():
+    # They named lines inside the package (e.g. problem/distribution.py for thresholds that miss the samples): a
+    # fixed stacklevel counted the frames of one call path only.
+    problem = _problem()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rough_uq.distribution(problem, tol=0.1, thresholds=np.linspace(80, 99, 20), n_initial=4, max_samples=200)
+        rough_uq.mlmc(problem, tol=2.0, n_initial=2)
+    messages = [str(w.message) for w in caught]
+    assert any("miss the samples" in text for text in messages), messages
+    assert all(w.filename == __file__ for w in caught), [(w.filename, w.lineno) for w in caught]

@@ -88,7 +88,6 @@ interpolation alone).
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -100,6 +99,7 @@ from rough_uq.errors import (
     InvalidParameterError,
     checked_real_array,
     is_real_number,
+    warn_at_caller,
 )
 from rough_uq.multilevel.drivers import Sampler
 from rough_uq.multilevel.statistics import _readonly
@@ -378,14 +378,13 @@ def _warn_thresholds_miss(thresholds: np.ndarray, missed: dict[int, tuple[float,
     ranges = ", ".join(
         f"level {level} (values {low:.4g} .. {high:.4g})" for level, (low, high) in sorted(missed.items())
     )
-    warnings.warn(
+    warn_at_caller(
         EstimationWarning(
             f"cdf: the thresholds [{thresholds[0]:.6g}, {thresholds[-1]:.6g}] miss the samples of {ranges}: every "
             "value lies beyond the smoothing bandwidth on one side of each threshold, so the variance estimate "
             "there is 0 whatever F is, and the tolerance is not met; put thresholds among the values (extend the "
             "grid) or draw more initial samples"
         ),
-        stacklevel=4,  # the caller of mlmc_cdf or cdf_from_samples
     )
 
 

@@ -137,7 +137,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
@@ -151,6 +150,7 @@ from rough_uq.errors import (
     checked_integer,
     checked_real_array,
     is_real_number,
+    warn_at_caller,
 )
 from rough_uq.multilevel.allocation import (
     Plan,
@@ -950,7 +950,7 @@ def _drive(
 
     ``make_run`` is called on the first event, so that errors in the run's
     set-up surface where the events are consumed. Warnings of
-    :meth:`_Run.finish` use ``stacklevel=3``: finish, this loop, the consumer.
+    :meth:`_Run.finish` name the consumer's line (:func:`~rough_uq.errors.warn_at_caller`).
     """
     run = make_run()
     hierarchy = run.hierarchy
@@ -986,11 +986,10 @@ def _check_qoi_names(qoi_names: object, n_qoi: int | None) -> tuple[str, ...] | 
 
 def _warn_zero_cost(statistics: LevelStatistics) -> None:
     if np.any(statistics.mean_cost <= 0):
-        warnings.warn(
+        warn_at_caller(
             f"the sampler reported zero cost on levels {statistics.levels[statistics.mean_cost <= 0].tolist()}; "
             "the sample allocation uses costs extrapolated with the cost rate instead",
             EstimationWarning,
-            stacklevel=4,  # this function, finish, the loop, the consumer
         )
 
 
@@ -1358,12 +1357,11 @@ class _MlmcRun(_Run):
         statistics = hierarchy.statistics()
         result = _mlmc_result(self, statistics)
         for message in diagnose(statistics, kurtosis_limit=self.options.kurtosis_limit, names=self.options.qoi_names):
-            warnings.warn(f"mlmc: {message}", EstimationWarning, stacklevel=3)
+            warn_at_caller(f"mlmc: {message}", EstimationWarning)
         if self.extrapolation == "refused":
-            warnings.warn(
+            warn_at_caller(
                 f"mlmc: Richardson extrapolation refused, the estimate is plain MLMC: {self.refusal}",
                 EstimationWarning,
-                stacklevel=3,
             )
         _warn_zero_cost(statistics)
         yield Finished(result=result)
@@ -1691,11 +1689,10 @@ class _McRun(_Run):
         heavy = np.flatnonzero(moments.kurtosis > limit)
         if heavy.size:
             which = "" if names is None else f" for {_qoi_text(heavy, names)}"
-            warnings.warn(
+            warn_at_caller(
                 f"mc: kurtosis {float(np.max(moments.kurtosis)):.3g} of Q on level {self.level}{which} exceeds "
                 f"{limit:g}; the variance and error estimates are unreliable",
                 EstimationWarning,
-                stacklevel=3,
             )
         yield Finished(result=result)
 

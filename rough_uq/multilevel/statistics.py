@@ -28,13 +28,12 @@ Symbols (SPEC section 5):
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, EstimationWarning, InvalidParameterError
+from rough_uq.errors import EstimationError, EstimationWarning, InvalidParameterError, warn_at_caller
 
 __all__ = [
     "CONSISTENCY_CHECK_SAMPLES",
@@ -416,10 +415,9 @@ def level_statistics(
         if level == 0 and np.any(c != 0):
             raise EstimationError("coarse values on level 0 must be zero (there is no coarser level)")
         if f.shape[0] < 2:
-            warnings.warn(
+            warn_at_caller(
                 f"level {level} has a single sample: its variances are unknown and reported as 0",
                 EstimationWarning,
-                stacklevel=2,
             )
         moments.append(_level_moments(f, c, k))
     return _assemble(levels, moments)

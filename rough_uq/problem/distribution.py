@@ -18,13 +18,12 @@ never share samples.
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationWarning, InvalidParameterError
+from rough_uq.errors import EstimationWarning, InvalidParameterError, warn_at_caller
 from rough_uq.multilevel.distribution import CdfEstimate, Quantiles, _check_thresholds, mlmc_cdf, quantiles
 from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
@@ -190,13 +189,12 @@ def _warn_negative_variance(result: TargetEstimate, names: Sequence[str] | None)
     """
     for column, (value, rmse) in enumerate(zip(result.estimate, result.rmse)):
         if value < 0:
-            warnings.warn(
+            warn_at_caller(
                 EstimationWarning(
                     f"variance of {_qoi_text(np.array([column]), names)}: the estimate {value:.3g} is negative "
                     f"(RMSE {rmse:.3g}); the unbiased multilevel estimator can be, with few samples: a tighter tol "
                     "takes more"
                 ),
-                stacklevel=3,
             )
 
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer, is_integer
+from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer, is_integer, warn_at_caller
 from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import _check_fraction, plan
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
@@ -245,11 +245,10 @@ def _check_qoi_count(problem: ContactProblem, name: str, n_qoi: int) -> None:
 
 def _warn_not_converged(sampler: ContactSampler, method: str) -> None:
     if sampler.n_not_converged:
-        warnings.warn(
+        warn_at_caller(
             f"{method}: {sampler.n_not_converged} of {sampler.n_samples} samples had a solve that did not converge "
             "(kept with the QoIs of the last iterate); raise max_iter or solver_tol",
             EstimationWarning,
-            stacklevel=3,
         )
 
 

@@ -128,7 +128,6 @@ import json
 import os
 import re
 import shutil
-import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -140,7 +139,7 @@ import h5py
 import numpy as np
 
 from rough_uq.problem.batch import LevelBatch
-from rough_uq.errors import DuplicateSampleWarning, StudyFileError
+from rough_uq.errors import DuplicateSampleWarning, StudyFileError, warn_at_caller
 from rough_uq.study.records import utc_timestamp
 
 __all__ = [
@@ -274,11 +273,10 @@ def _warn_duplicates(batch: LevelBatch, keep: np.ndarray) -> None:
     if n_dup:
         shown = ", ".join(str(i) for i in np.asarray(batch.indices)[~keep][:10])
         more = ", ..." if n_dup > 10 else ""
-        warnings.warn(
+        warn_at_caller(
             f"{n_dup} sample(s) of stage {batch.stage}, level {batch.level} already stored and skipped "
             f"(indices {shown}{more})",
             DuplicateSampleWarning,
-            stacklevel=3,
         )
 
 
