@@ -54,7 +54,7 @@ MAX_THRESHOLDS = 10_000
 MAX_INT64 = 2**63 - 1
 
 _EXIT_CODES = """\b
-Exit status: 0 done (mlmc/mc: tolerance met); 2 an error in what was typed
+Exit status: 0 done (mlmc/mc: tolerance met; mc --level: its statistical error within it); 2 an error in what was typed
 (config, options, files, a tolerance refused before starting: nothing
 computed; or refused on the way, e.g. a plan over 10^7 samples: the run is
 recorded as refused), one line 'error: ...'; 3 mlmc/mc finished without
@@ -353,10 +353,13 @@ class _UsageLine(click.ClickException):
 
     def __init__(self, exc: click.UsageError, fallback: click.Context | None) -> None:
         ctx = exc.ctx or fallback
+        hint = _misplaced_option_hint(exc, ctx)
+        if hint:
+            exc.possibilities = []  # click's "Did you mean ..." of a group option would contradict the hint
         message = " ".join(exc.format_message().split()).removesuffix(".")
         path = ctx.command_path if ctx is not None else "roughuq"
         where = f"{ctx.info_name}: " if ctx is not None and ctx.parent is not None else ""
-        super().__init__(f"{where}{message}{_misplaced_option_hint(exc, ctx)}; see `{path} --help`")
+        super().__init__(f"{where}{message}{hint}; see `{path} --help`")
 
     def show(self, file: Any = None) -> None:
         click.echo(f"error: {self.format_message()}", file=file, err=file is None)
@@ -368,11 +371,11 @@ def _misplaced_option_hint(exc: click.UsageError, ctx: click.Context | None) -> 
         return ""
     group = ctx.command
     owners = [name for name in group.list_commands(ctx)
-              if any(exc.option_name in param.opts for param in group.commands[name].params)]
+              if any(exc.option_name in (*param.opts, *param.secondary_opts) for param in group.commands[name].params)]
     if not owners:
         return ""
-    example = f"roughuq {owners[0]} {exc.option_name} ..."
-    return f" (it is an option of {', '.join(owners)}: put it after the command, e.g. `{example}`)"
+    usage = f"roughuq COMMAND {exc.option_name} ..."
+    return f" (it is an option of {', '.join(owners)}: put it after the command, `{usage}`)"
 
 
 class _OneLineUsage:
@@ -1336,7 +1339,8 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
         return
     from rough_uq.report.summary import render_sweep
 
-    units = {name: settings.unit_label for name, settings in config.qoi.items()}
+    # Each value's own units: qoi.NAME.unit may be the swept field.
+    units = [{name: settings.unit_label for name, settings in swept.qoi.items()} for _, swept in configs]
     render_sweep(_console(), rows, key=key, level=level, units=units)
 
 
@@ -1494,6 +1498,8 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
     _check_not_empty("--study", study_path)
     from rough_uq.study.pipeline import open_existing_study
     from rough_uq.study.records import read_run_records
+
+    run_ids = list(dict.fromkeys(run_ids))  # one each, in the order given
 
     with open_existing_study(study_path) as study:
         runs = {run.run_id: run for run in read_run_records(study.store)}

@@ -169,8 +169,10 @@ def test_tolerances_by_name_must_name_every_column_and_no_other_before_sampling(
     cases = [
         ({"contact_area": 2.0}, "no tolerance for mean_gap",
          "one tolerance for every QoI column (contact_area, mean_gap)"),
-        ({"contact_area": 2.0, "mean_gap": 0.1, "area": 1.0}, "key 'area'", "QoI column names: contact_area, mean_gap"),
-        ({"contact_area": 2.0, "mean_gap": -0.1}, None, None),
+        ({"contact_area": 2.0, "mean_gap": 0.1, "area": 1.0}, "key 'area'",
+         "QoI or column names: contact_area, mean_gap"),
+        ({"contact_area": 2.0, "mean_gap": -0.1}, "mean_gap: -0.1", "a finite number > 0 for every key"),
+        ({"contact_area": 2.0, "mean_gap": "0.1"}, "mean_gap: '0.1'", "a finite number > 0 for every key"),
     ]
     for tol, value, allowed in cases:
         for call in (
@@ -181,10 +183,7 @@ def test_tolerances_by_name_must_name_every_column_and_no_other_before_sampling(
             with pytest.raises(rough_uq.InvalidParameterError) as caught:
                 call()
             assert caught.value.name == "tol"
-            if value is not None:
-                assert caught.value.value == value and caught.value.allowed == allowed
-            else:
-                assert "or a mapping of every QoI column (contact_area, mean_gap) to one" in caught.value.allowed
+            assert caught.value.value == value and caught.value.allowed == allowed
 
 
 def test_a_screening_prints_as_a_one_line_summary(two_qoi_screening):
@@ -207,3 +206,17 @@ def test_warnings_of_the_public_runs_name_the_callers_line():
     messages = [str(w.message) for w in caught]
     assert any("miss the samples" in text for text in messages), messages
     assert all(w.filename == __file__ for w in caught), [(w.filename, w.lineno) for w in caught]
+
+
+def test_tolerances_by_name_of_a_load_curve_take_a_qoi_for_all_its_loads():
+    # As `--tol contact_area=0.5` does; a column's own name takes precedence.
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    loads = [rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(0.2)]
+    problem = rough_uq.ContactProblem(spectrum, load=loads, qoi=["contact_area", "mean_gap"], coarsest=8, max_level=2,
+                                      seed=7)
+    assert problem.columns == ("contact_area@0.1", "contact_area@0.2", "mean_gap@0.1", "mean_gap@0.2")
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:  # a sample would be drawn before the tolerances
+        rough_uq.mlmc(problem, tol={"contact_area": 2.0, "mean_gap": 0.1, "area": 1.0}, executor=_NoSampling())
+    assert caught.value.value == "key 'area'"
+    result = rough_uq.mlmc(problem, tol={"contact_area": 2.0, "mean_gap": 0.1, "contact_area@0.2": 3.0}, n_initial=2)
+    np.testing.assert_array_equal(result.tol, [2.0, 3.0, 0.1, 0.1])

@@ -251,6 +251,16 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
     assert "not a field" in result.stderr
 
 
+def test_a_sweep_of_a_unit_labels_its_rows_in_their_own_unit(tmp_path, monkeypatch):
+    # The table took the base config's unit (%) for a row computed in fraction.
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())  # contact_area in percent
+    table = run("sweep", str(config), "--set", "qoi.contact_area.unit=fraction", "--tol", "0.05", "--workers", "1",
+                "--quiet").output
+    assert re.search(r"fraction\s+8\s+contact_area\s+0\.\d+ ± ", table), table
+    assert "[%]" not in table
+
+
 def test_sweeps_of_two_fields_with_the_same_last_name_go_to_two_folders(tmp_path, monkeypatch):
     """solver.tol and qoi.contact_area.tol both went to sweep-tol/, the second refused as another study's file."""
     monkeypatch.chdir(tmp_path)

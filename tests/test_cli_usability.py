@@ -457,7 +457,15 @@ def test_unfittable_rates_are_said_plainly(tmp_path, monkeypatch):
     assert "clusters (alpha = " in warning and "[" not in warning
     line = one_error_line(run("mlmc", "--workers", "1", expect=2))
     assert "does not decrease" in line and "[" not in line and "mc --level" in line
-    assert "run `roughuq screen` again on this study" in line  # more levels extend this study: no new one needed
+    # Every level up to max_level is screened (3 levels, max_level 2): only a new study screens finer grids.
+    assert "every level up to grid.max_level is screened: start a new study with a larger grid.coarsest" in line
+    assert "run `roughuq screen` again" not in line
+    # With a finer level allowed, more screening levels extend this study.
+    finer = write_config(tmp_path / "f.yaml", tiny_config(qoi={"clusters": {"tol": 1.0}}, surface=surface,
+                                                          grid={"coarsest": 8, "max_level": 3}))
+    run("screen", str(finer), "--out", "f.h5", "--workers", "1", "--quiet")
+    line = one_error_line(run("mlmc", "--study", "f.h5", "--workers", "1", expect=2))
+    assert "raise screening.levels, up to grid.max_level + 1 = 4, and run `roughuq screen` again on this study" in line
     result = run("mc", "--level", "1", "--tol", "2", "--workers", "1")  # as the message suggests
     assert "forecast: none" in result.stderr and "bias not estimated" in result.stdout
     # Not "tolerance met": only the statistical error is known to be within it.
@@ -885,14 +893,17 @@ def test_a_study_without_screening_is_told_the_screen_command_for_its_own_file(t
     (("frob",), "No such command 'frob'"),
     (("--frob",), "No such option '--frob'"),
     (("--workers", "1", "mlmc"), "No such option '--workers' (it is an option of mc, mlmc, sample, screen, sweep: put "
-                                 "it after the command, e.g. `roughuq mc --workers ...`)"),
+                                 "it after the command, `roughuq COMMAND --workers ...`)"),
+    (("--json", "report", "x.h5"), "No such option '--json' (it is an option of "),  # no "Did you mean '--version'"
 ], ids=["unknown option", "option without value", "choice", "int range", "required option", "missing argument",
-        "extra argument", "unknown command", "unknown group option", "a command's option before the command"])
+        "extra argument", "unknown command", "unknown group option", "a command's option before the command",
+        "no contradicting suggestion"])
 def test_click_usage_errors_are_one_line_naming_the_command_help(tmp_path, monkeypatch, args, text):
     monkeypatch.chdir(tmp_path)
     line = one_error_line(run(*args, expect=2))
-    command = "roughuq" if args[0] in ("frob", "--frob", "--workers") else f"roughuq {args[0]}"
+    command = "roughuq" if args[0] in ("frob", "--frob", "--workers", "--json") else f"roughuq {args[0]}"
     assert line.startswith(f"error: {text}") and line.endswith(f"; see `{command} --help`"), line
+    assert "it is an option of" not in line or "Did you mean" not in line, line
     assert "Usage:" not in line and not list(tmp_path.iterdir())
 
 
@@ -1047,7 +1058,8 @@ def test_report_of_an_interrupted_screening_says_it_is_not_finished(tmp_path, mo
         run("screen", str(config), "--workers", "1", "--quiet", expect=130)
     report = run("report", "results.h5").stdout
     assert "samples stored: screening: L0 8" in report
-    assert "screening not finished: run `roughuq screen CONFIG` again to complete it" in report
+    assert "screening not finished (stopped or refused before its record): run `roughuq screen CONFIG --out " \
+           "results.h5` to complete it" in report
     assert "no screening yet" not in report
     run("screen", str(config), "--workers", "1", "--quiet")
     assert "screened levels 0..2, 8 samples each" in run("report", "results.h5").stdout
@@ -1057,8 +1069,8 @@ def test_drop_forgets_a_run_and_keeps_its_samples(screened):
     run("mlmc", "--tol", "5", "--workers", "1", "--quiet")
     key = "mlmc_contact_area-5_theta-0.5"
     before = json.loads(run("report", "results.h5", "--json").output)
-    dropped = run("drop", key).stdout
-    assert "dropped" in dropped
+    dropped = run("drop", key, key).stdout  # named twice: dropped once
+    assert f"dropped {key} (samples kept)" in dropped and dropped.count(key) == 2
     assert f"note: finished runs dropped too: {key} (no longer reported" in dropped  # finished, not abandoned
     after = json.loads(run("report", "results.h5", "--json").output)
     assert after["runs"] == [] and after["dropped_runs"] == [key]

@@ -430,6 +430,11 @@ def test_config_differences_name_a_new_qoi_order() -> None:
     second["qoi"] = {"mean_gap": {}, "contact_area": {}}
     differences = config_differences(config_from_dict(first), config_from_dict(second))
     assert differences == [("qoi (column order)", ["contact_area", "mean_gap"], ["mean_gap", "contact_area"])]
+    # Other QoIs come first, before any setting (a refusal names only the first four).
+    third = {**_base(), "seed": 8, "material": {"e_star": 2.0}}
+    third["qoi"] = {"contact_area": {}, "clusters": {}}
+    keys = [key for key, _, _ in config_differences(config_from_dict(first), config_from_dict(third))]
+    assert keys[0] == "qoi" and {"seed", "material.e_star"} <= set(keys[1:])
 
 
 def test_config_from_yaml_text_roundtrips_resolved_yaml() -> None:

@@ -324,6 +324,43 @@ def test_interrupted_mlmc_resumes_to_the_uninterrupted_result(n_items):
     assert run["status"] == "finished"
 
 
+class _Failing(Executor):
+    """Serial executor whose work fails (as a crashed worker would) after ``n_items`` work items."""
+
+    def __init__(self, n_items: int) -> None:
+        self.left = n_items
+
+    def run(self, model, items):
+        for item in SerialExecutor().run(model, items):
+            if self.left == 0:
+                raise RuntimeError("a worker died")
+            self.left -= 1
+            yield item
+
+
+def test_a_run_stopped_by_any_failure_is_recorded_interrupted_and_the_failure_kept(monkeypatch):
+    study = _screened()
+    with pytest.raises(RuntimeError, match="a worker died"):
+        run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=_Failing(3), progress=QUIET)
+    (run,) = study.store.read_runs()
+    assert run["status"] == "interrupted"  # not "running": no process computes it any more
+    # The record's write failing too (e.g. the disk full) must not replace the interrupt that stopped the run.
+    study = _screened()
+    writes = {"n": 0}
+    original = type(study.store).write_run
+
+    def write_run(self, run_id, record):
+        writes["n"] += 1
+        if record.get("status") == "interrupted":
+            raise OSError("no space left on device")
+        return original(self, run_id, record)
+
+    monkeypatch.setattr(type(study.store), "write_run", write_run)
+    with pytest.raises(KeyboardInterrupt):
+        run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=_Interrupting(3), progress=QUIET)
+    assert writes["n"] == 2  # running, then the failed interrupted
+
+
 def test_a_mean_run_the_estimator_refuses_is_recorded_as_refused(monkeypatch):
     import rough_uq.study.pipeline as pipeline
     from rough_uq.errors import EstimationError

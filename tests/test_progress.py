@@ -49,6 +49,7 @@ def test_a_plan_that_grows_with_every_batch_is_not_a_line_per_batch():
     progress = PlainProgress(stream, interval=3600)
     progress.start("mlmc")
     done = 0
+    progress.plan([0, 1, 2], [0, 0, 0], [0, 0, 0])  # level 2: one the plan leaves out, never sampled
     for planned in range(3, 30, 3):
         progress.plan([0, 1], [planned, 2], [done, 0])
         progress.advance(0, planned - done)

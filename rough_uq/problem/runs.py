@@ -21,13 +21,16 @@ the numbers agree to rounding, not bit for bit.)
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer, is_integer, warn_at_caller
+from rough_uq.errors import (
+    EstimationError, InvalidParameterError, checked_integer, is_integer, is_real_number, warn_at_caller,
+)
 from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import _check_fraction, plan
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
@@ -41,6 +44,7 @@ from rough_uq.multilevel.statistics import (
 )
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler
+from rough_uq.problem.loads import LOAD_SEPARATOR
 from rough_uq.problem.sampler import modelled_cost, run_stage
 
 __all__ = ["MIN_SCREENED_LEVELS", "ScreeningResult", "mc", "mlmc", "run_id", "screen"]
@@ -215,15 +219,26 @@ def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -
 
 
 def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
-    """The values of ``tol`` in column order; every column must have one, and no other key may be there."""
-    unknown = [key for key in tol if key not in columns]
+    """The values of ``tol`` in column order, by column or by QoI (as ``--tol NAME=EPS``).
+
+    A QoI's name gives all its columns of a load curve (``contact_area`` for
+    ``contact_area@0.1`` and ``contact_area@0.2``); a column's own name takes
+    precedence. Every column must get one, and no other key may be there.
+    """
+    qois = {column: column.split(LOAD_SEPARATOR)[0] for column in columns}
+    known = set(columns) | set(qois.values())
+    unknown = [key for key in tol if key not in known]
     if unknown:
-        raise InvalidParameterError("tol", f"key {unknown[0]!r}", f"QoI column names: {', '.join(columns)}")
-    missing = [name for name in columns if name not in tol]
+        raise InvalidParameterError("tol", f"key {unknown[0]!r}", f"QoI or column names: {', '.join(sorted(known))}")
+    keys = [column if column in tol else qois[column] for column in columns]
+    missing = [column for column, key in zip(columns, keys) if key not in tol]
     if missing:
         every = f"one tolerance for every QoI column ({', '.join(columns)})"
         raise InvalidParameterError("tol", f"no tolerance for {', '.join(missing)}", every)
-    return [tol[name] for name in columns]
+    for key in keys:
+        if not (is_real_number(tol[key]) and math.isfinite(tol[key]) and tol[key] > 0):
+            raise InvalidParameterError("tol", f"{key}: {tol[key]!r}", "a finite number > 0 for every key")
+    return [tol[key] for key in keys]
 
 
 def _screening_statistics(screening: object) -> LevelStatistics | None:

@@ -711,23 +711,30 @@ def render_targets(console: Any, runs: Sequence[RunRecord], units: dict[str, str
         console.print(_distribution_table(cdf, units))
 
 
-def render_sweep(console: Any, rows: Sequence[Any], *, key: str, level: int, units: dict[str, str]) -> None:
+def render_sweep(console: Any, rows: Sequence[Any], *, key: str, level: int,
+                 units: Sequence[dict[str, str]]) -> None:
     """The table of ``roughuq sweep``: each value's MC estimate per QoI, written as the report writes one.
 
-    ``units`` maps QoI names to their unit labels (``%``, ...), as the report's config summary does.
+    ``units`` has one mapping per row, QoI names to their unit labels (``%``, ...), as the report's config
+    summary has (a sweep of ``qoi.NAME.unit`` gives each row its own).
     """
     table = _table(escape(f"Sweep of {key} (plain MC on level {level}; bias not estimated)"))
     for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "CPU"):
         table.add_column(column, justify="right")
-    for row in rows:
+    for row, row_units in zip(rows, units, strict=True):
         outcome = row.run.outcome
         for q, name in enumerate(row.run.qoi_names):
             table.add_row(
-                escape(row.value), str(row.grid), escape(_labelled(name, _column_unit(units, name))),
+                escape(row.value), str(row.grid), escape(_labelled(name, _column_unit(row_units, name))),
                 _value_error(outcome.estimate[q], outcome.stat_error[q]), str(outcome.n_samples[0]),
                 f"{format_duration(outcome.seconds)} CPU",
             )
     console.print(table)
+
+
+def _out_option(path: str) -> str:
+    """`` --out PATH`` for a study file ``roughuq screen`` would not find by the config's default ``output.path``."""
+    return f" --out {escape(path)}" if path else ""
 
 
 def render_report(report: dict[str, Any], console: Any) -> None:
@@ -752,11 +759,13 @@ def render_report(report: dict[str, Any], console: Any) -> None:
     if report["screening"] is not None:
         screening = ScreeningRecord.from_json(report["screening"])
         render_screening(console, screening, report["qoi_names"], units, grids=grids)
-    elif "screening" in report["samples"]:  # samples but no record: stopped before it finished
-        console.print("screening not finished: run `roughuq screen CONFIG` again to complete it (its stored samples "
-                      "are kept and not computed again)")
+    elif "screening" in report["samples"] and report.get("is_running"):
+        console.print("screening in progress (another process holds the study)")
+    elif "screening" in report["samples"]:  # samples but no record: stopped, or refused, before it finished
+        console.print(f"screening not finished (stopped or refused before its record): run `roughuq screen CONFIG"
+                      f"{_out_option(report['path'])}` to complete it (its stored samples are kept)")
     else:
-        console.print("no screening yet: run `roughuq screen CONFIG`")
+        console.print(f"no screening yet: run `roughuq screen CONFIG{_out_option(report['path'])}`")
     if report["runs"]:
         reported = [ReportedRun.from_json(run) for run in report["runs"]]
         render_runs(console, reported, report["qoi_names"], units)

@@ -1417,8 +1417,8 @@ def config_differences(first: StudyConfig, second: StudyConfig) -> list[tuple[st
     ``surface.hurst``) whose values differ, in key order; a key set in one
     config only has ``None`` in the other. Other quantities of interest give
     the key ``qoi`` with the two lists of names (their settings are not
-    listed), the same ones in another order the key ``qoi (column order)``.
-    Empty if and only if the hashes are equal.
+    listed), the same ones in another order the key ``qoi (column order)``;
+    either comes first. Empty if and only if the hashes are equal.
     """
     ours, theirs = _hashed_settings(first), _hashed_settings(second)
     names, other_names = list(ours["qoi"]), list(theirs["qoi"])
@@ -1430,10 +1430,11 @@ def config_differences(first: StudyConfig, second: StudyConfig) -> list[tuple[st
         for key in sorted(flat_ours.keys() | flat_theirs.keys())
         if _canonical(flat_ours.get(key)) != _canonical(flat_theirs.get(key))
     ]
+    # First: other QoIs, or another column order, matter more than any one setting.
     if set(names) != set(other_names):
-        differences.append(("qoi", names, other_names))
+        differences.insert(0, ("qoi", names, other_names))
     elif names != other_names:
-        differences.append(("qoi (column order)", names, other_names))
+        differences.insert(0, ("qoi (column order)", names, other_names))
     return differences
 
 

@@ -35,7 +35,7 @@ import os
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -927,6 +927,16 @@ def _run_plan(
 DEFAULT_COST_CEILING = 7 * 24 * 3600.0
 
 
+def _finer_screening(config: StudyConfig) -> str:
+    """How to screen finer grids: more levels extend this study while the config allows them, else a new study."""
+    levels, max_level = config.screening.levels, config.grid.max_level
+    if levels <= max_level:
+        return (f"raise screening.levels, up to grid.max_level + 1 = {max_level + 1}, and run `roughuq screen` again "
+                "on this study, which extends its screening; or start a new study with a larger grid.coarsest")
+    return ("every level up to grid.max_level is screened: start a new study with a larger grid.coarsest or "
+            "grid.max_level")
+
+
 def _tol_text(names: Sequence[str], tol: np.ndarray) -> str:
     return ", ".join(f"{name}={eps:.3g}" for name, eps in zip(names, tol))
 
@@ -965,9 +975,8 @@ def forecast_run(
         if stalled:
             raise EstimationError(
                 f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, "
-                "so no finest grid can be chosen for a tolerance: screen finer grids (raise screening.levels and run "
-                "`roughuq screen` again on this study, which extends its screening, or start a new study with a "
-                "larger grid.coarsest), or use `roughuq mc --level L` (bias not estimated)"
+                f"so no finest grid can be chosen for a tolerance: screen finer grids ({_finer_screening(config)}), "
+                "or use `roughuq mc --level L` (bias not estimated)"
             )
         prediction = _run_plan(config, tol, rates, statistics, method=method, richardson=richardson)
         if not prediction.is_bias_met and not is_given_level:
@@ -1371,10 +1380,11 @@ def run_estimation(
 
 @contextmanager
 def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None) -> Iterator[None]:
-    """Store ``record`` as ``running`` for the block, then ``refused`` (EstimationError) or ``interrupted`` (Ctrl-C).
+    """Store ``record`` as ``running`` for the block, then ``refused`` (EstimationError) or ``interrupted`` (else).
 
-    ``refused`` comes with the error's message; ``interrupted`` follows a
-    KeyboardInterrupt, which SIGTERM raises too.
+    ``refused`` comes with the error's message; ``interrupted`` follows
+    anything else that stops the block: Ctrl-C, SIGTERM (which raises
+    KeyboardInterrupt too), a failing worker or disk.
 
     A refused run is not an interrupted one: rerunning it as it is would be
     refused again, so its record must not stay ``running`` (which the report
@@ -1392,11 +1402,14 @@ def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None) ->
         if not is_kept:
             study.store.write_run(record.run_id, replace(record, status="refused", reason=str(exc)).to_json())
         raise
-    except KeyboardInterrupt:
-        # Ctrl-C or SIGTERM: recorded as such, so that a report while another run holds the study does not show
-        # this one as running (a process killed outright leaves "running", which the report reads by the lock).
+    except BaseException:
+        # Ctrl-C, SIGTERM, a worker or the disk failing: the run stopped, and the same command resumes it. Recorded
+        # so, that a report while another run holds the study does not show it as running (a process killed
+        # outright leaves "running", which the report reads by the lock). Best effort: the record must not replace
+        # the error or the interrupt that stopped the run.
         if not is_kept:
-            study.store.write_run(record.run_id, replace(record, status="interrupted").to_json())
+            with suppress(Exception):
+                study.store.write_run(record.run_id, replace(record, status="interrupted").to_json())
         raise
 
 

@@ -176,7 +176,8 @@ class PlainProgress(Progress):
     def stop(self, *, is_complete: bool = True) -> None:
         now = time.monotonic()
         for level in sorted(self._done):
-            if self._printed.get(level) != self._done[level]:
+            is_idle = self._done[level] == 0 and self._planned.get(level, 0) == 0  # a level the plan leaves out
+            if self._printed.get(level) != self._done[level] and not is_idle:
                 self._print_level(level, now, eta=False)  # where every level ended
         what = "done in" if is_complete else "stopped after"
         self._print(f"[{self._title}] {what} {format_duration(now - self._t0, clock=True)}")
