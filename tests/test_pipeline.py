@@ -291,15 +291,16 @@ def test_pool_and_serial_store_identical_samples():
 
 
 class _Interrupting(Executor):
-    """Serial executor that raises KeyboardInterrupt after ``n_items`` work items."""
+    """Serial executor that raises ``failure`` (Ctrl-C's KeyboardInterrupt by default) after ``n_items`` work items."""
 
-    def __init__(self, n_items: int) -> None:
+    def __init__(self, n_items: int, failure: BaseException | None = None) -> None:
         self.left = n_items
+        self.failure = KeyboardInterrupt() if failure is None else failure
 
     def run(self, model, items):
         for item in SerialExecutor().run(model, items):
             if self.left == 0:
-                raise KeyboardInterrupt
+                raise self.failure
             self.left -= 1
             yield item
 
@@ -324,24 +325,11 @@ def test_interrupted_mlmc_resumes_to_the_uninterrupted_result(n_items):
     assert run["status"] == "finished"
 
 
-class _Failing(Executor):
-    """Serial executor whose work fails (as a crashed worker would) after ``n_items`` work items."""
-
-    def __init__(self, n_items: int) -> None:
-        self.left = n_items
-
-    def run(self, model, items):
-        for item in SerialExecutor().run(model, items):
-            if self.left == 0:
-                raise RuntimeError("a worker died")
-            self.left -= 1
-            yield item
-
-
 def test_a_run_stopped_by_any_failure_is_recorded_interrupted_and_the_failure_kept(monkeypatch):
     study = _screened()
     with pytest.raises(RuntimeError, match="a worker died"):
-        run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=_Failing(3), progress=QUIET)
+        crashing = _Interrupting(3, RuntimeError("a worker died"))
+        run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=crashing, progress=QUIET)
     (run,) = study.store.read_runs()
     assert run["status"] == "interrupted"  # not "running": no process computes it any more
     # The record's write failing too (e.g. the disk full) must not replace the interrupt that stopped the run.
