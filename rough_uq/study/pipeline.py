@@ -927,10 +927,14 @@ def _run_plan(
 DEFAULT_COST_CEILING = 7 * 24 * 3600.0
 
 
-def _finer_screening(config: StudyConfig) -> str:
-    """How to screen finer grids: more levels extend this study while the config allows them, else a new study."""
-    levels, max_level = config.screening.levels, config.grid.max_level
-    if levels <= max_level:
+def _finer_screening(config: StudyConfig, n_screened: int) -> str:
+    """How to screen finer grids: more levels extend this study while the grids allow them, else a new study.
+
+    ``n_screened`` is the number of levels screened (the screening record's: a study screened again with more
+    levels keeps the screening section of the config it was created with).
+    """
+    max_level = config.grid.max_level
+    if n_screened <= max_level:
         return (f"raise screening.levels, up to grid.max_level + 1 = {max_level + 1}, and run `roughuq screen` again "
                 "on this study, which extends its screening; or start a new study with a larger grid.coarsest")
     return ("every level up to grid.max_level is screened: start a new study with a larger grid.coarsest or "
@@ -973,9 +977,10 @@ def forecast_run(
         if stalled and is_given_level:
             return None  # MC on a given level needs no bias model, and there is none to predict from
         if stalled:
+            finer = _finer_screening(config, len(statistics.levels))
             raise EstimationError(
                 f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, "
-                f"so no finest grid can be chosen for a tolerance: screen finer grids ({_finer_screening(config)}), "
+                f"so no finest grid can be chosen for a tolerance: screen finer grids ({finer}), "
                 "or use `roughuq mc --level L` (bias not estimated)"
             )
         prediction = _run_plan(config, tol, rates, statistics, method=method, richardson=richardson)
