@@ -45,7 +45,6 @@ __all__ = [
     "AbsoluteLoad",
     "RelativeLoad",
     "LOAD_SEPARATOR",
-    "split_column",
     "qoi_scale",
     "load_sequence",
     "load_label",
@@ -196,8 +195,3 @@ def column_names(qoi_names: tuple[str, ...], load_values: tuple[float, ...]) -> 
         return tuple(qoi_names)
     return tuple(f"{name}{LOAD_SEPARATOR}{load_label(v)}" for name in qoi_names for v in load_values)
 
-
-def split_column(column: str) -> tuple[str, float | None]:
-    """``(qoi, load)`` of a result column name (:func:`column_names`); ``load`` is None for a single-load column."""
-    name, separator, label = column.partition(LOAD_SEPARATOR)
-    return (name, float(label)) if separator else (name, None)
