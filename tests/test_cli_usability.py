@@ -138,26 +138,41 @@ def test_forecast_is_printed_before_the_first_sample_and_stored(screened):
 
 
 def test_the_forecast_prints_durations_without_exponents(capsys):
-    from types import SimpleNamespace
-
     from rough_uq.cli import _print_forecast
+    from rough_uq.study.records import Forecast
 
-    forecast = SimpleNamespace(finest_level=1, grid=16, n_samples=[40, 2], wall_seconds=100.0, cpu_seconds=6600.0,
-                               modelled_cost=50.0, memory_bytes=2**20)
+    forecast = Forecast(finest_level=1, grid=16, n_samples=(40, 2), wall_seconds=100.0, cpu_seconds=6600.0,
+                        modelled_cost=50.0, memory_bytes=2**20)
     _print_forecast(forecast, "mlmc")
     assert "forecast: about 100 s elapsed (110 min CPU, " in capsys.readouterr().err
 
 
 def test_the_forecast_names_the_levels_the_run_samples(capsys):
     """The quickstart's forecast said 'levels 0..3 ... N_l 0 7 2 2', the run then 'levels 1..3, N_l 7 2 2'."""
-    from types import SimpleNamespace
-
     from rough_uq.cli import _print_forecast
+    from rough_uq.study.records import Forecast
 
-    forecast = SimpleNamespace(finest_level=3, grid=256, n_samples=[0, 7, 2, 2], wall_seconds=1.0, cpu_seconds=1.0,
-                               modelled_cost=1.0, memory_bytes=2**20)
+    forecast = Forecast(finest_level=3, grid=256, n_samples=(0, 7, 2, 2), wall_seconds=1.0, cpu_seconds=1.0,
+                        modelled_cost=1.0, memory_bytes=2**20)
     _print_forecast(forecast, "mlmc")
     assert "forecast: levels 1..3 (finest 256^2), N_l 7 2 2\n" in capsys.readouterr().err
+
+
+def test_the_forecast_says_why_a_richardson_run_plans_plain_mlmc(screened):
+    """The plan's reason for not extrapolating was computed and never shown: the run began as plain MLMC silently."""
+    from rough_uq.study.pipeline import forecast_run, open_existing_study
+
+    with open_existing_study("results.h5", writable=False) as study:
+        forecast = forecast_run(study, method="mlmc", tol=np.array([5.0]), richardson=True)
+        plain = forecast_run(study, method="mlmc", tol=np.array([5.0]), richardson=False)
+    assert plain.richardson_note == ""
+    # The tiny seeded screening: two levels above the coarsest, too few to extrapolate with fewer levels.
+    assert not forecast.is_richardson and forecast.richardson_note.startswith("Richardson extrapolation")
+    result = run("mlmc", "--tol", "5", "--workers", "1", "--method", "richardson")
+    line = f"forecast: plain MLMC planned ({forecast.richardson_note}); the run decides again from its own level means"
+    assert line in result.stderr.splitlines()
+    stored = json.loads(run("report", "results.h5", "--json").output)["runs"][0]["forecast"]
+    assert stored["richardson_note"] == forecast.richardson_note
 
 
 @pytest.mark.parametrize("command", ["mlmc", "mc"])

@@ -586,4 +586,4 @@ def _richardson_level(
             bias = richardson_bias(means, alpha) * 2.0 ** (-alpha2 * (level - top))
         if np.all(bias <= bias_limit):
             return level, bias
-    return f"Richardson extrapolation needs as many levels as plain MLMC here (L = {plain_level}); plain MLMC planned"
+    return f"Richardson extrapolation needs as many levels as plain MLMC here (L = {plain_level})"

@@ -989,7 +989,8 @@ def forecast_run(
         finest, counts, modelled = _planned_samples(method, level, prediction, rates)
     seconds_per_cost = _screened_seconds_per_cost(screening)
     forecast = _forecast(config, finest=finest, counts=counts, modelled=modelled, seconds_per_cost=seconds_per_cost,
-                         n_workers=n_workers, is_richardson=bool(prediction.is_richardson))
+                         n_workers=n_workers, is_richardson=bool(prediction.is_richardson),
+                         richardson_note=prediction.richardson_note)
     _check_budget(config.qoi_names, tol, forecast, max_cost)
     return forecast
 
@@ -1076,7 +1077,7 @@ def _planned_samples(
 
 def _forecast(
     config: StudyConfig, *, finest: int, counts: tuple[int, ...], modelled: float, seconds_per_cost: float,
-    n_workers: int, is_richardson: bool,
+    n_workers: int, is_richardson: bool, richardson_note: str = "",
 ) -> Forecast:
     from rough_uq.study.config import solver_memory_bytes
 
@@ -1091,6 +1092,7 @@ def _forecast(
         wall_seconds=cpu_seconds / min(n_workers, max(sum(counts), 1)),
         memory_bytes=solver_memory_bytes(config.grid.n_at(int(finest))) * n_workers,
         is_richardson=is_richardson,
+        richardson_note=richardson_note,
     )
 
 

@@ -524,6 +524,9 @@ class Forecast:
     is_richardson : bool
         The prediction is for the Richardson-extrapolated estimate (asked for,
         and the screening's level means allow it).
+    richardson_note : str
+        Why an extrapolation that was asked for is not planned ("" when it is,
+        or was not asked for): the run plans plain MLMC.
     """
 
     finest_level: int
@@ -534,9 +537,13 @@ class Forecast:
     wall_seconds: float
     memory_bytes: int
     is_richardson: bool = False
+    richardson_note: str = ""
 
     def to_json(self) -> dict[str, Any]:
-        return {key: _lists(getattr(self, key)) for key in _FORECAST_KEYS}
+        data = {key: _lists(getattr(self, key)) for key in _FORECAST_KEYS}
+        if self.richardson_note:  # left out when empty: the records of earlier versions read back to the same text
+            data["richardson_note"] = self.richardson_note
+        return data
 
     @classmethod
     def from_json(cls, data: object, where: str = "forecast") -> Forecast:
@@ -548,6 +555,7 @@ class Forecast:
             **{key: fields.required(key, _number) for key in ("modelled_cost", "cpu_seconds", "wall_seconds")},
             memory_bytes=fields.required("memory_bytes", _integer),
             is_richardson=fields.optional("is_richardson", _flag, False),
+            richardson_note=fields.optional("richardson_note", _text, ""),
         )
 
 
