@@ -557,7 +557,16 @@ class SolverConfig(_Section):
 _TOL_DESCRIPTION = "Target root-mean-square error of the estimate, in the unit of this quantity"
 
 
-class ContactAreaQoi(_Section):
+class _QoiSection(_Section):
+    """Settings of one quantity of interest; each model declares its ``kind`` (the key in the ``qoi`` mapping)."""
+
+    @property
+    def name(self) -> str:
+        """The QoI's name, its ``kind``."""
+        return self.kind
+
+
+class ContactAreaQoi(_QoiSection):
     """Fraction of the nominal area in contact (``p > 0``).
 
     ``estimator`` was added after the first schema-1 files: a config without
@@ -584,16 +593,12 @@ class ContactAreaQoi(_Section):
     )
 
     @property
-    def name(self) -> str:
-        return self.kind
-
-    @property
     def unit_label(self) -> str:
         """Short unit label for reports."""
         return "%" if self.unit == "percent" else "fraction"
 
 
-class ClustersQoi(_Section):
+class ClustersQoi(_QoiSection):
     """Number of connected contact patches on the periodic grid."""
 
     kind: Literal["clusters"] = Field("clusters", exclude=True)
@@ -615,15 +620,11 @@ class ClustersQoi(_Section):
     )
 
     @property
-    def name(self) -> str:
-        return self.kind
-
-    @property
     def unit_label(self) -> str:
         return "clusters per unit area" if self.unit == "per_area" else "clusters"
 
 
-class MeanGapQoi(_Section):
+class MeanGapQoi(_QoiSection):
     """Mean gap between the surfaces over the box (length unit)."""
 
     kind: Literal["mean_gap"] = Field("mean_gap", exclude=True)
@@ -632,15 +633,11 @@ class MeanGapQoi(_Section):
     )
 
     @property
-    def name(self) -> str:
-        return self.kind
-
-    @property
     def unit_label(self) -> str:
         return "length"
 
 
-class MaxPressureQoi(_Section):
+class MaxPressureQoi(_QoiSection):
     """Largest nodal contact pressure (unit of E*)."""
 
     kind: Literal["max_pressure"] = Field("max_pressure", exclude=True)
@@ -649,15 +646,11 @@ class MaxPressureQoi(_Section):
     )
 
     @property
-    def name(self) -> str:
-        return self.kind
-
-    @property
     def unit_label(self) -> str:
         return "E*"
 
 
-class AreaAboveQoi(_Section):
+class AreaAboveQoi(_QoiSection):
     """Fraction of the nominal area where the pressure exceeds a critical pressure."""
 
     kind: Literal["area_above"] = Field("area_above", exclude=True)
@@ -674,10 +667,6 @@ class AreaAboveQoi(_Section):
     tol: Float | None = _field(
         None, description=_TOL_DESCRIPTION + " (fraction or percent)", allowed="number > 0 or null", gt=0
     )
-
-    @property
-    def name(self) -> str:
-        return self.kind
 
     @property
     def unit_label(self) -> str:
