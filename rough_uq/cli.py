@@ -1431,7 +1431,7 @@ def _stage_of(study: Any, text: str) -> int:
 
 def _load_index(load: Any, text: str | None) -> int:
     """``show --load``: the position of the load ``text`` among the config's ``load`` values (0 without it)."""
-    from rough_uq.problem.loads import load_label
+    from rough_uq.problem.columns import load_label
 
     if text is None:
         return 0

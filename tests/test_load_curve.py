@@ -192,6 +192,19 @@ def test_config_curve_columns_and_a_one_element_list_is_the_single_load():
     assert listed == single and config_hash(listed) == config_hash(single) and single.qoi_names == ("contact_area",)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_a_column_name_splits_back_into_its_qoi_and_load(seed):
+    from rough_uq.problem.columns import column_name, split_column
+
+    rng = np.random.default_rng([26, seed])
+    loads = np.concatenate([10 ** rng.uniform(-12, 12, 50), rng.uniform(0, 3, 50), rng.integers(1, 100, 5)])
+    for qoi in ("contact_area", "clusters", "area_above"):
+        for load in loads:
+            name, value = split_column(column_name(qoi, load))
+            assert (name, value) == (qoi, float(load))
+    assert split_column("mean_gap") == ("mean_gap", None)
+
+
 def test_problem_columns_and_model_match_the_pipeline():
     import rough_uq
     from rough_uq.study.config import config_from_dict

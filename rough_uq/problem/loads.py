@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 from rough_uq.errors import InvalidParameterError
 from rough_uq.physics.surface import SurfaceSpectrum
+from rough_uq.problem.columns import LOAD_SEPARATOR, column_name, load_label
 
 __all__ = [
     "QOI_UNITS",
@@ -50,9 +51,6 @@ __all__ = [
     "load_label",
     "column_names",
 ]
-
-#: Separates the QoI name from the load in the name of a load-curve column.
-LOAD_SEPARATOR = "@"
 
 #: Units each quantity of interest may be reported in; the first is the default.
 QOI_UNITS: dict[str, tuple[str, ...]] = {
@@ -176,11 +174,6 @@ def load_sequence(load: object) -> tuple[RelativeLoad | AbsoluteLoad, ...]:
     return loads
 
 
-def load_label(value: float) -> str:
-    """The load ``value`` as written in column names: the shortest float repr (``0.05``, ``1e-05``)."""
-    return repr(float(value))
-
-
 def column_names(qoi_names: tuple[str, ...], load_values: tuple[float, ...]) -> tuple[str, ...]:
     """Names of the result columns: ``qoi_names`` for one load, else ``<qoi>@<load>``, QoI-major.
 
@@ -193,5 +186,5 @@ def column_names(qoi_names: tuple[str, ...], load_values: tuple[float, ...]) -> 
     """
     if len(load_values) == 1:
         return tuple(qoi_names)
-    return tuple(f"{name}{LOAD_SEPARATOR}{load_label(v)}" for name in qoi_names for v in load_values)
+    return tuple(column_name(name, v) for name in qoi_names for v in load_values)
 

@@ -44,7 +44,7 @@ from rough_uq.multilevel.statistics import (
 )
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler
-from rough_uq.problem.loads import LOAD_SEPARATOR
+from rough_uq.problem.columns import split_column
 from rough_uq.problem.sampler import modelled_cost, run_stage
 
 __all__ = ["MIN_SCREENED_LEVELS", "ScreeningResult", "mc", "mlmc", "run_id", "screen"]
@@ -225,7 +225,7 @@ def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
     ``contact_area@0.1`` and ``contact_area@0.2``); a column's own name takes
     precedence. Every column must get one, and no other key may be there.
     """
-    qois = {column: column.split(LOAD_SEPARATOR)[0] for column in columns}
+    qois = {column: split_column(column)[0] for column in columns}
     known = set(columns) | set(qois.values())
     unknown = [key for key in tol if key not in known]
     if unknown:

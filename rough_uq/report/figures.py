@@ -44,7 +44,8 @@ from rough_uq.errors import InvalidParameterError, RoughUQError, is_integer
 from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
-from rough_uq.report.summary import run_label, split_column, tol_text
+from rough_uq.problem.columns import split_column
+from rough_uq.report.summary import run_label, tol_text
 from rough_uq.study.records import RunRecord, ScreeningRecord, is_bias_decaying
 
 __all__ = ["write_report_plots", "write_sample_figure"]

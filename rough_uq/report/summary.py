@@ -69,7 +69,7 @@ from rich.markup import escape
 
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
 from rough_uq.problem.batch import STAGE_SCREENING
-from rough_uq.study.config import LOAD_SEPARATOR
+from rough_uq.problem.columns import split_column
 from rough_uq.study.progress import format_duration
 from rough_uq.study.records import (
     MIN_ALPHA,
@@ -107,7 +107,6 @@ __all__ = [
     "TARGET_METHODS",
     "render_screening",
     "screening_json",
-    "split_column",
     "study_report",
 ]
 
@@ -849,12 +848,6 @@ def fit_area_slope(
         n_points=int(small.sum()),
         max_area=max_area,
     )
-
-
-def split_column(column: str) -> tuple[str, float | None]:
-    """``(qoi, load)`` of a result column name; ``load`` is None for a single-load column."""
-    name, separator, label = column.partition(LOAD_SEPARATOR)
-    return (name, float(label)) if separator else (name, None)
 
 
 def _relative_loads(config: Any, loads: np.ndarray) -> np.ndarray:

@@ -86,6 +86,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from rough_uq.errors import ConfigError
+from rough_uq.problem.columns import column_name
 
 __all__ = [
     "sweep_configs",
@@ -123,10 +124,6 @@ __all__ = [
 
 SCHEMA_VERSION = 1
 """The config schema version this code reads and writes."""
-
-LOAD_SEPARATOR = "@"
-"""Separates QoI and load in a load-curve column name (as :data:`rough_uq.problem.loads.LOAD_SEPARATOR`,
-which the config may not import: it stays free of the core)."""
 
 SOLVER_ARRAYS_PER_NODE = 20
 """Estimated number of float64 ``n x n`` arrays alive during one solve."""
@@ -1037,7 +1034,7 @@ class StudyConfig(_Section):
         if len(values) == 1:
             return tuple((name, name, settings) for name, settings in self.qoi.items())
         return tuple(
-            (f"{name}{LOAD_SEPARATOR}{value!r}", name, settings)
+            (column_name(name, value), name, settings)
             for name, settings in self.qoi.items()
             for value in values
         )
