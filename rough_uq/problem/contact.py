@@ -13,7 +13,7 @@ a study config. :class:`ContactSampler` serves its samples to the drivers of
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import KW_ONLY, dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
@@ -42,6 +42,7 @@ __all__ = [
     "ContactProblem",
     "ContactSampler",
     "BatchExecutor",
+    "ProgressReporter",
     "MAX_GRID",
     "MIN_SOLVER_TOL",
     "LOAD_MARGIN",
@@ -57,6 +58,34 @@ class BatchExecutor(Protocol):
     """
 
     def run(self, model: ContactModel, items: Sequence[tuple[int, int, np.ndarray]]) -> Iterable[LevelBatch]: ...
+
+
+class ProgressReporter(Protocol):
+    """What a run reports its progress to: samples planned and done per level.
+
+    :class:`rough_uq.study.progress.PlainProgress` (lines, e.g. in a notebook
+    or a log) and :class:`~rough_uq.study.progress.RichProgress` (bars on a
+    terminal) have this interface; the core only calls it.
+    """
+
+    def start(self, title: str) -> None: ...
+
+    def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None: ...
+
+    def advance(self, level: int, n: int) -> None: ...
+
+    def stop(self, *, is_complete: bool = True) -> None: ...
+
+
+_PROGRESS_METHODS = ("start", "plan", "advance", "stop")
+
+
+def _checked_progress(progress: object) -> ProgressReporter | None:
+    """``progress`` if None or a :class:`ProgressReporter`, else :class:`InvalidParameterError` naming it."""
+    if progress is None or all(callable(getattr(progress, name, None)) for name in _PROGRESS_METHODS):
+        return progress  # type: ignore[return-value]
+    allowed = "None or an object with start, plan, advance and stop, e.g. rough_uq.study.progress.PlainProgress()"
+    raise InvalidParameterError("progress", progress, allowed)
 
 
 #: The largest grid (nodes per side) of a hierarchy. One solve at 65536^2 needs
@@ -403,7 +432,10 @@ class ContactProblem:
         """Nodes per side of ``level``, ``coarsest * 2**level``."""
         return self.coarsest * 2 ** checked_integer("level", level, 0)
 
-    def sampler(self, stage: int, *, executor: BatchExecutor | None = None) -> ContactSampler:
+    def sampler(
+        self, stage: int, *, executor: BatchExecutor | None = None, progress: ProgressReporter | None = None,
+        plans_asked: bool = False,
+    ) -> ContactSampler:
         """The level sampler (:mod:`rough_uq.multilevel.drivers` contract) of random stage ``stage``.
 
         Parameters
@@ -416,6 +448,11 @@ class ContactProblem:
         executor : BatchExecutor, optional
             Where samples are computed (e.g. :mod:`rough_uq.study.executors`);
             default: in this process.
+        progress : ProgressReporter, optional
+            Told of every sample done (:attr:`ContactSampler.progress`).
+        plans_asked : bool
+            Also report the samples asked for so far as the plan (for runs
+            whose estimator announces no plan).
         """
         if executor is not None and not callable(getattr(executor, "run", None)):
             raise InvalidParameterError(
@@ -423,7 +460,8 @@ class ContactProblem:
                 "rough_uq.study.executors.PoolExecutor"
             )
         stage = checked_integer("stage", stage, 0)
-        return ContactSampler(self.model, stage=stage, executor=executor, max_level=self.max_level)
+        return ContactSampler(self.model, stage=stage, executor=executor, max_level=self.max_level,
+                              progress=_checked_progress(progress), plans_asked=bool(plans_asked))
 
 
 def _checked_level(level: object, max_level: int | None) -> int:
@@ -485,19 +523,27 @@ class ContactSampler:
         Before its first sample computed in this process a sampler runs
         :func:`~rough_uq.problem.sampler.warm_up`, uncounted, so that loading
         the kernels (about 0.3 s in a fresh process) is not timed as a sample.
+    progress : ProgressReporter or None
+        Told (``advance``) of each sample as it is done; with ``plans_asked``
+        the samples asked for so far per level are its plan. In this process
+        a batch is then computed one sample at a time (the same numbers).
     """
 
     def __init__(
-        self, model: ContactModel, *, stage: int, executor: BatchExecutor | None = None, max_level: int | None = None
+        self, model: ContactModel, *, stage: int, executor: BatchExecutor | None = None, max_level: int | None = None,
+        progress: ProgressReporter | None = None, plans_asked: bool = False,
     ) -> None:
         self.model = model
         self.stage = stage
         self.executor = executor
         self.max_level = max_level
+        self.progress = progress
+        self.plans_asked = plans_asked
         self.n_samples = 0
         self.n_not_converged = 0
         self.seconds = 0.0
         self._is_warm = False
+        self._asked: dict[int, int] = {}
 
     def batch(self, level: int, indices: np.ndarray) -> LevelBatch:
         """Samples ``(stage, level, i)`` for ``i`` in ``indices``, in that order, with their solver records.
@@ -510,20 +556,36 @@ class ContactSampler:
         """
         level = _checked_level(level, self.max_level)
         indices = _checked_indices(indices)
+        if self.progress is not None and self.plans_asked:
+            done = dict(self._asked)  # every batch asked for before is done
+            self._asked[level] = done.get(level, 0) + int(indices.size)
+            levels = sorted(self._asked)
+            self.progress.plan(levels, [self._asked[lv] for lv in levels], [done.get(lv, 0) for lv in levels])
+        pieces = []
+        for piece in self._pieces(level, indices):
+            pieces.append(piece)
+            if self.progress is not None:
+                self.progress.advance(level, piece.n_samples)
+        batch = pieces[0] if len(pieces) == 1 else _ordered(pieces, indices)
+        self.n_samples += batch.n_samples
+        self.n_not_converged += batch.n_not_converged
+        self.seconds += float(np.sum(batch.cost))
+        return batch
+
+    def _pieces(self, level: int, indices: np.ndarray) -> Iterator[LevelBatch]:
+        """The samples of ``indices`` in batches as they are done: one (or, with progress, one per sample) here."""
         if self.executor is None or indices.size <= 1:
             if not self._is_warm:
                 # Load the kernels before the first sample computed here is timed
                 # (its `seconds`); a few ms once they are loaded in this process.
                 warm_up(self.model)
                 self._is_warm = True
-            batch = compute_batch(self.model, stage=self.stage, level=level, indices=indices)
+            parts = [indices] if self.progress is None or indices.size <= 1 else np.split(indices, indices.size)
+            for part in parts:
+                yield compute_batch(self.model, stage=self.stage, level=level, indices=part)
         else:
             items = [(self.stage, level, indices[i : i + 1]) for i in range(indices.size)]
-            batch = _ordered(list(self.executor.run(self.model, items)), indices)
-        self.n_samples += batch.n_samples
-        self.n_not_converged += batch.n_not_converged
-        self.seconds += float(np.sum(batch.cost))
-        return batch
+            yield from self.executor.run(self.model, items)
 
     def __call__(self, level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         batch = self.batch(level, indices)

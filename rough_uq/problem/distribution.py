@@ -29,8 +29,8 @@ from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
 from rough_uq.multilevel.statistics import _checked_names, _qoi_text
 from rough_uq.multilevel.targets import TargetEstimate
-from rough_uq.problem.contact import BatchExecutor, ContactProblem
-from rough_uq.problem.runs import _problem, _tolerances, _warn_not_converged, run_id
+from rough_uq.problem.contact import BatchExecutor, ContactProblem, ProgressReporter
+from rough_uq.problem.runs import _problem, _reporting, _tol_title, _tolerances, _warn_not_converged, run_id
 from rough_uq.problem.sampler import run_stage
 
 __all__ = ["DistributionResult", "distribution", "estimate_target", "initial_finest_level", "variance"]
@@ -134,6 +134,7 @@ def variance(
     batch_size: int | None = 10,
     max_samples: int | None = MAX_PLANNED_SAMPLES,
     executor: BatchExecutor | None = None,
+    progress: ProgressReporter | None = None,
 ) -> TargetEstimate:
     """Adaptive MLMC estimate of ``Var(Q)`` of every column of a contact problem to RMS tolerance ``tol``.
 
@@ -157,6 +158,11 @@ def variance(
         drawn: the tolerance is out of reach. None: no limit.
     executor : BatchExecutor, optional
         Where samples are computed; default in this process.
+    progress : ProgressReporter, optional
+        Told of the run's start, plan, every sample done and its end, e.g.
+        :class:`rough_uq.study.progress.PlainProgress` (a line per level every
+        10 s, for a notebook or a log) or ``RichProgress`` (bars on a
+        terminal); default: silent.
 
     Returns
     -------
@@ -168,12 +174,13 @@ def variance(
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
     stage = run_stage("mlmc", run_id("variance", problem.columns, tol, theta))
-    sampler = problem.sampler(stage, executor=executor)
-    result = estimate_target(
-        sampler, target="variance", tol=tol, max_level=problem.max_level, theta=theta, n_initial=n_initial,
-        min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
-        qoi_names=problem.columns,
-    )
+    sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
+    with _reporting(sampler.progress, f"variance {_tol_title(problem.columns, tol)}"):
+        result = estimate_target(
+            sampler, target="variance", tol=tol, max_level=problem.max_level, theta=theta, n_initial=n_initial,
+            min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
+            qoi_names=problem.columns,
+        )
     _warn_not_converged(sampler, "variance")
     return result
 
@@ -259,6 +266,7 @@ def distribution(
     batch_size: int | None = 10,
     max_samples: int | None = MAX_PLANNED_SAMPLES,
     executor: BatchExecutor | None = None,
+    progress: ProgressReporter | None = None,
 ) -> DistributionResult:
     """Adaptive MLMC estimate of the distribution function ``F(s) = P(Q <= s)`` and quantiles of one column.
 
@@ -280,7 +288,7 @@ def distribution(
     bandwidth : float, optional
         Smoothing width on level 0, halved per level (the column's unit);
         default twice the mean threshold spacing.
-    theta, n_initial, min_finest_level, max_cost, batch_size, max_samples, executor
+    theta, n_initial, min_finest_level, max_cost, batch_size, max_samples, executor, progress
         As for :func:`variance`.
 
     Returns
@@ -301,11 +309,12 @@ def distribution(
     tol_array = _tolerances(tol, 1)
     name = problem.columns[index]
     stage = run_stage("mlmc", run_id("cdf", [name], tol_array, theta))
-    sampler = problem.sampler(stage, executor=executor)
-    estimate = estimate_target(
-        sampler, target="cdf", tol=tol_array, max_level=problem.max_level, thresholds=thresholds, qoi=index,
-        bandwidth=bandwidth, theta=theta, n_initial=n_initial, min_finest_level=min_finest_level, max_cost=max_cost,
-        batch_size=batch_size, max_samples=max_samples,
-    )
+    sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
+    with _reporting(sampler.progress, f"cdf {_tol_title([name], tol_array)}"):
+        estimate = estimate_target(
+            sampler, target="cdf", tol=tol_array, max_level=problem.max_level, thresholds=thresholds, qoi=index,
+            bandwidth=bandwidth, theta=theta, n_initial=n_initial, min_finest_level=min_finest_level,
+            max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
+        )
     _warn_not_converged(sampler, "distribution")
     return DistributionResult(column=name, cdf=estimate)

@@ -21,9 +21,10 @@ the numbers agree to rounding, not bit for bit.)
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,7 +44,7 @@ from rough_uq.multilevel.statistics import (
     level_statistics,
 )
 from rough_uq.problem.batch import STAGE_SCREENING
-from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler
+from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter
 from rough_uq.problem.columns import split_column
 from rough_uq.problem.sampler import modelled_cost, run_stage
 
@@ -136,7 +137,8 @@ def _problem(problem: object) -> ContactProblem:
 
 
 def screen(
-    problem: ContactProblem, *, levels: int = 3, samples: int = 20, executor: BatchExecutor | None = None
+    problem: ContactProblem, *, levels: int = 3, samples: int = 20, executor: BatchExecutor | None = None,
+    progress: ProgressReporter | None = None,
 ) -> ScreeningResult:
     """Screening: ``samples`` coupled samples on each of levels ``0..levels-1``, per-level statistics and rates.
 
@@ -157,6 +159,11 @@ def screen(
         Samples per level, >= 2 (default 20).
     executor : BatchExecutor, optional
         Where samples are computed; default in this process.
+    progress : ProgressReporter, optional
+        Told of the run's start, plan, every sample done and its end, e.g.
+        :class:`rough_uq.study.progress.PlainProgress` (a line per level every
+        10 s, for a notebook or a log) or ``RichProgress`` (bars on a
+        terminal); default: silent.
 
     Returns
     -------
@@ -185,9 +192,12 @@ def screen(
             "levels", levels, f"at most max_level + 1 = {problem.max_level + 1} (levels 0..{problem.max_level} exist)"
         )
     samples = checked_integer("samples", samples, 2)
-    sampler = problem.sampler(STAGE_SCREENING, executor=executor)
+    sampler = problem.sampler(STAGE_SCREENING, executor=executor, progress=progress)
     indices = np.arange(samples, dtype=np.int64)
-    batches = [sampler.batch(level, indices) for level in range(levels)]
+    with _reporting(sampler.progress, "screening"):
+        if sampler.progress is not None:
+            sampler.progress.plan(list(range(levels)), [samples] * levels, [0] * levels)
+        batches = [sampler.batch(level, indices) for level in range(levels)]
     statistics = level_statistics(
         fine=[b.fine for b in batches],
         coarse=[b.coarse for b in batches],
@@ -282,6 +292,7 @@ def mlmc(
     rates: Rates | None = None,
     kurtosis_limit: float = KURTOSIS_LIMIT,
     executor: BatchExecutor | None = None,
+    progress: ProgressReporter | None = None,
 ) -> EstimationResult:
     """Adaptive MLMC estimate of ``E[Q]`` of a contact problem to RMS tolerance ``tol``.
 
@@ -319,6 +330,11 @@ def mlmc(
         samples are drawn: the tolerance is out of reach. None: no limit.
     executor : BatchExecutor, optional
         Where samples are computed; default in this process.
+    progress : ProgressReporter, optional
+        Told of the run's start, plan, every sample done and its end, e.g.
+        :class:`rough_uq.study.progress.PlainProgress` (a line per level every
+        10 s, for a notebook or a log) or ``RichProgress`` (bars on a
+        terminal); default: silent.
 
     Returns
     -------
@@ -346,7 +362,7 @@ def mlmc(
     if isinstance(rates, Rates):
         _check_qoi_count(problem, "rates", rates.n_qoi)
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
-    sampler = problem.sampler(stage, executor=executor)
+    sampler = problem.sampler(stage, executor=executor, progress=progress)
     events = drivers.iter_mlmc(
         sampler,
         tol=tol,
@@ -363,7 +379,9 @@ def mlmc(
         coarsest_level=None if statistics is not None else 0,
         qoi_names=problem.columns,
     )
-    result = _run_to_end(events, max_samples=max_samples, tol=tol, n_initial=n_initial if statistics is None else None)
+    with _reporting(sampler.progress, f"mlmc {_tol_title(problem.columns, tol)}"):
+        result = _run_to_end(events, max_samples=max_samples, tol=tol,
+                             n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mlmc")
     return result
 
@@ -407,6 +425,7 @@ def mc(
     batch_size: int | None = 10,
     kurtosis_limit: float = KURTOSIS_LIMIT,
     executor: BatchExecutor | None = None,
+    progress: ProgressReporter | None = None,
 ) -> EstimationResult:
     """Plain Monte Carlo estimate of ``E[Q_level]`` of a contact problem to RMS tolerance ``tol``.
 
@@ -437,6 +456,11 @@ def mc(
         As in :func:`mlmc`.
     executor : BatchExecutor, optional
         Where samples are computed; default in this process.
+    progress : ProgressReporter, optional
+        Told of the run's start, plan, every sample done and its end, e.g.
+        :class:`rough_uq.study.progress.PlainProgress` (a line per level every
+        10 s, for a notebook or a log) or ``RichProgress`` (bars on a
+        terminal); default: silent.
 
     Returns
     -------
@@ -451,7 +475,7 @@ def mc(
         _check_qoi_count(problem, "screening", statistics.n_qoi)
     mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
     stage = run_stage("mc", run_id("mc", problem.columns, tol, theta, level))
-    sampler = problem.sampler(stage, executor=executor)
+    sampler = problem.sampler(stage, executor=executor, progress=progress)
     events = drivers.iter_mc(
         sampler,
         tol=tol,
@@ -465,25 +489,51 @@ def mc(
         kurtosis_limit=kurtosis_limit,
         qoi_names=problem.columns,
     )
-    result = _run_to_end(events, max_samples=max_samples, tol=tol, n_initial=n_initial if statistics is None else None)
+    with _reporting(sampler.progress, f"mc {_tol_title(problem.columns, tol)}"):
+        result = _run_to_end(events, max_samples=max_samples, tol=tol,
+                             n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mc")
     return result
+
+
+@contextlib.contextmanager
+def _reporting(progress: ProgressReporter | None, title: str) -> Iterator[None]:
+    """Start and stop ``progress`` (if any) around a run: ``stop(is_complete=False)`` if the run raises."""
+    if progress is None:
+        yield
+        return
+    progress.start(title)
+    try:
+        yield
+    except BaseException:
+        progress.stop(is_complete=False)
+        raise
+    progress.stop()
+
+
+def _tol_title(columns: Sequence[str], tol: np.ndarray) -> str:
+    """``NAME=EPS, ...`` of a run's tolerances, for its progress title (as ``roughuq``'s)."""
+    return ", ".join(f"{name}={eps:.3g}" for name, eps in zip(columns, tol))
 
 
 def _max_samples(max_samples: object) -> int | None:
     return None if max_samples is None else checked_integer("max_samples", max_samples, 1)
 
 
-def _run_to_end(events, *, max_samples: int | None, tol: np.ndarray, n_initial: int | None) -> EstimationResult:
+def _run_to_end(
+    events, *, max_samples: int | None, tol: np.ndarray, n_initial: int | None, progress: ProgressReporter | None
+) -> EstimationResult:
     """The result of a run's events; refuses a plan of more than ``max_samples`` samples before drawing them.
 
     ``n_initial``: a run without a screening, whose initial plan is
     ``n_initial`` samples on each of its levels; if they alone are too many,
     the refusal names ``n_initial``, not the tolerance. None: the initial
-    plan follows from the tolerance (a screening's).
+    plan follows from the tolerance (a screening's). Each plan goes to ``progress``.
     """
     for event in events:
         if isinstance(event, drivers.PlanUpdated):
+            if progress is not None:
+                progress.plan(event.levels.tolist(), event.n_planned.tolist(), event.n_done.tolist())
             if event.reason == "initial" and n_initial is not None:
                 levels = event.levels[event.n_planned > 0].tolist()
                 drivers.refuse_large_start(n_initial, levels, max_samples=max_samples)
