@@ -17,8 +17,10 @@
 #   ROUGHUQ       the roughuq command (default `roughuq`), e.g. "python -m rough_uq.cli"
 #
 # A shard that fails (killed, out of memory) is reported and its samples are
-# planned again in the next round. Stopped at any point, the same command
-# continues: shards already written are merged first.
+# planned again in the next round. Ctrl-C or SIGTERM stops the loop and the
+# shards it runs (status 130 / 143; a stopped shard writes nothing). Stopped
+# at any point, the same command continues: shards already written are
+# merged first.
 set -euo pipefail
 
 jobs="${RUQ_JOBS:-1}"; workers="${RUQ_WORKERS:-}"; retries="${RUQ_RETRIES:-3}"
@@ -54,11 +56,25 @@ merge() {   # every complete shard into the study (a killed shard leaves only a 
 [ -n "$workers" ] || [ "$jobs" -eq 1 ] || workers=1
 worker_opts=()
 [ -z "$workers" ] || worker_opts=(--workers "$workers")
-shard() {   # stage level indices: one shard, its failure reported but not fatal
-    "${ruq[@]}" sample --study "$study" --stage "$1" --level "$2" --indices "$3" \
-        --out "$shards/shard-$1-$2-${3%%:*}.h5" "${worker_opts[@]}" --quiet ||
-        echo "loop_study.sh: shard $3 of level $2 failed (status $?); planned again next round" >&2
+shard_command() {   # stage level indices: the command of one shard, in the array `shard_cmd`
+    shard_cmd=("${ruq[@]}" sample --study "$study" --stage "$1" --level "$2" --indices "$3"
+             --out "$shards/shard-$1-$2-${3%%:*}.h5" "${worker_opts[@]}" --quiet)
 }
+
+# Ctrl-C reaches a shard running in the foreground, which stops with status 130, and then this script, which
+# must stop too rather than take it for a failed shard; shards in the background (--jobs) ignore Ctrl-C (a
+# script's background commands do) and get SIGTERM.
+stop() {   # status: stop the shards still running, then exit
+    trap - INT TERM
+    local running
+    running=$(jobs -pr)
+    [ -z "$running" ] || kill -TERM $running 2> /dev/null || true
+    wait || true
+    echo "loop_study.sh: stopped; run the same command to continue" >&2
+    exit "$1"
+}
+trap 'stop 130' INT
+trap 'stop 143' TERM
 
 # A screening that was stopped is continued by the same command.
 "${ruq[@]}" screen "$config" --out "$study" --quiet
@@ -71,17 +87,26 @@ while true; do
     [ -n "$work" ] || break
     n=0
     while read -r stage level indices; do
+        shard_command "$stage" "$level" "$indices"
         if [ "$jobs" -gt 1 ]; then
             while [ "$(jobs -rp | wc -l)" -ge "$jobs" ]; do wait -n || true; done
-            shard "$stage" "$level" "$indices" &
+            # The command itself in the background (no function, no subshell): its pid is the shard's, for stop.
+            "${shard_cmd[@]}" &
         else
-            shard "$stage" "$level" "$indices"
+            status=0
+            "${shard_cmd[@]}" || status=$?
+            case $status in
+                0) ;;
+                130|143) stop "$status" ;;   # the shard was stopped (Ctrl-C, kill): so is the loop
+                *) echo "loop_study.sh: shard $indices of level $level failed (status $status)" >&2 ;;
+            esac
         fi
         n=$((n + 1))
     done <<< "$work"
-    wait
+    wait || true
     files=("$shards"/shard-*.h5)
     if [ ${#files[@]} -lt "$n" ]; then
+        echo "loop_study.sh: $((n - ${#files[@]})) of $n shards failed; planned again next round" >&2
         failed=$((failed + 1))
         [ "$failed" -lt "$retries" ] \
             || die "$retries rounds in a row had failed shards; fix and run the same command again"

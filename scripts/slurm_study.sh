@@ -85,6 +85,8 @@ done
 absolute() { case "$1" in /*) echo "$1" ;; *) echo "$PWD/$1" ;; esac; }
 config="$(absolute "${positional[0]}")"; tol="${positional[1]}"
 study="$(absolute "${positional[2]:-results.h5}")"; chunk="${positional[3]:-20}"
+# A typo in the config fails here, not in the first job after a queue wait.
+"${ruq[@]}" validate "$config" > /dev/null || die "$config is not a valid config (see above); nothing was submitted"
 shards="${study%.h5}.shards"; logs="$PWD/logs"; state="$shards/submitted"
 mkdir -p "$shards" logs
 

@@ -84,10 +84,12 @@ def environment(tmp_path: Path, **extra: str) -> dict[str, str]:
     shim = bin_dir / "roughuq"
     shim.write_text(
         "#!/usr/bin/env bash\n"
-        "# This checkout's roughuq. KILL_SAMPLES=2,5 kills the 2nd and 5th `roughuq sample` (all: every one).\n"
-        'if [ "$1" = sample ] && [ -n "${KILL_SAMPLES:-}" ]; then\n'
+        "# This checkout's roughuq. KILL_SAMPLES=2,5 kills the 2nd and 5th `roughuq sample` (all: every one);\n"
+        "# INTERRUPT_SAMPLE=2 sends SIGINT to the process group a second into the 2nd (a terminal's Ctrl-C).\n"
+        'if [ "$1" = sample ] && [ -n "${KILL_SAMPLES:-}${INTERRUPT_SAMPLE:-}" ]; then\n'
         '    n=$(( $(cat "$SAMPLE_COUNT" 2> /dev/null || echo 0) + 1 )); echo "$n" > "$SAMPLE_COUNT"\n'
-        '    if [ "$KILL_SAMPLES" = all ] || [[ ",$KILL_SAMPLES," == *",$n,"* ]]; then kill -9 $$; fi\n'
+        '    if [ "${KILL_SAMPLES:-}" = all ] || [[ ",${KILL_SAMPLES:-}," == *",$n,"* ]]; then kill -9 $$; fi\n'
+        '    if [ "${INTERRUPT_SAMPLE:-}" = "$n" ]; then (sleep 1; kill -INT 0) & fi\n'
         "fi\n"
         f'exec {sys.executable} -m rough_uq.cli "$@"\n'
     )
@@ -204,3 +206,34 @@ def test_plan_resources_columns(serial, tmp_path):
     assert memory[0] * 2**20 > BASE_BYTES
     result = CliRunner().invoke(main, ["mlmc", "--study", str(study), "--tol", "0.5", "--plan", "--resources"])
     assert result.exit_code == 2 and "--resources" in result.output
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_ctrl_c_stops_loop_study_and_the_same_command_continues(serial, tmp_path, jobs):
+    """Ctrl-C stopped the running shard (status 130), which the loop took for a failed shard: it went on to the end.
+
+    The shim sends SIGINT to the whole process group, as a terminal's Ctrl-C does, while the second shard runs.
+    """
+    config, serial_study = serial
+    env = environment(tmp_path, INTERRUPT_SAMPLE="2")
+    args = ["bash", str(ROOT / "scripts" / "loop_study.sh"), "--jobs", jobs, "--workers", "1", str(config), TOL,
+            "study.h5", CHUNK]
+    # A session of its own: the group's SIGINT must not reach pytest.
+    done = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, start_new_session=True)
+    assert done.returncode == 130, (done.stdout, done.stderr)
+    assert "loop_study.sh: stopped; run the same command to continue" in done.stderr
+    assert "planned again" not in done.stderr
+    with open_study_readonly(tmp_path / "study.h5") as store:
+        assert store.read_runs() == []  # the loop did not go on to the estimate
+    env.pop("INTERRUPT_SAMPLE")
+    bash("loop_study.sh", "--jobs", jobs, "--workers", "1", str(config), TOL, "study.h5", CHUNK, cwd=tmp_path, env=env)
+    assert_same_as_serial(tmp_path / "study.h5", serial_study)
+
+
+def test_slurm_study_checks_the_config_before_submitting(tmp_path):
+    """A typo in the config name was submitted (exit 0) and failed in three screening jobs, one queue wait each."""
+    env = environment(tmp_path)
+    done = bash("slurm_study.sh", "nope.yaml", "0.3", "study.h5", cwd=tmp_path, env=env, expect=1)
+    assert "nope.yaml is not a valid config (see above); nothing was submitted" in done.stderr
+    assert "nope.yaml" in done.stderr.splitlines()[0]  # roughuq validate's own line first
+    assert not (tmp_path / "spool").exists() or not any((tmp_path / "spool").iterdir())
