@@ -18,7 +18,8 @@ Exit status (also in ``roughuq --help`` and the README):
 * 3: an ``mlmc`` / ``mc`` run finished without meeting its tolerance (bias
   beyond ``grid.max_level``, ``--max-cost`` reached, MC bias too large); its
   result is stored and printed, with what to change;
-* 130 / 143: stopped by Ctrl-C / SIGTERM; completed samples are saved;
+* 130 / 143: stopped by Ctrl-C / SIGTERM; completed samples are saved
+  (``sample`` writes its shard whole or not at all: nothing);
 * 141: the reader of the output went away (``roughuq report FILE | head``),
   as for a program that SIGPIPE ends; nothing is printed;
 * 1: a bug (a traceback follows).
@@ -59,7 +60,7 @@ Exit status: 0 done (mlmc/mc: tolerance met; mc --level: its statistical error w
 computed; or refused on the way, e.g. a plan over 10^7 samples: the run is
 recorded as refused), one line 'error: ...'; 3 mlmc/mc finished without
 meeting the tolerance (result stored; the message says what to change);
-130 Ctrl-C, 143 SIGTERM (completed samples saved); 141 the output's reader
+130 Ctrl-C, 143 SIGTERM (completed samples saved; a stopped `sample` writes no shard); 141 the output's reader
 went away (| head); 1 a bug (traceback)."""
 
 
@@ -117,6 +118,13 @@ def _check_stop() -> None:
         raise _stop_exception(_STOP.signum)
 
 
+#: What a command stopped by Ctrl-C or SIGTERM leaves, by command ("": the commands that store samples as they go).
+_STOPPED_TEXT = {
+    "": "every completed sample is saved; run the same command to continue",
+    "sample": "nothing was written (a shard is written whole or not at all); run the same command to compute it",
+}
+
+
 def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
     """Turn a RoughUQError into one line on stderr and exit status 2; Ctrl-C and SIGTERM into a clean stop."""
     import functools
@@ -142,7 +150,7 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             sys.exit(2)
         except KeyboardInterrupt as exc:
             what, status = ("terminated", 143) if isinstance(exc, _Terminated) else ("interrupted", 130)
-            click.echo(f"{what}: every completed sample is saved; run the same command to continue", err=True)
+            click.echo(f"{what}: {_STOPPED_TEXT.get(command.__name__, _STOPPED_TEXT[''])}", err=True)
             sys.exit(status)
         except BrokenPipeError:
             # The reader of the output has gone (`roughuq report FILE | head`): stop quietly, as a program that
@@ -1269,6 +1277,8 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
 
     _check_executor_options("local", None, workers)
     _check_output_file("--out", out)
+    if Path(out).resolve() == Path(study_path).resolve():
+        raise InvalidParameterError("--out", out, "a new shard file, not the study file (--study) itself")
     stage_id = _stage_number(stage)
     wanted = _parse_indices(indices)
     with open_existing_study(study_path, writable=False) as study:

@@ -208,6 +208,55 @@ def test_shards_in_any_order_merge_to_the_serial_result(screened, tmp_path):
     assert not list(screened.glob("*.partial-*"))
 
 
+def _sample(*extra: str, out: str = "shard.h5", expect: int = 0) -> object:
+    return run("sample", "--study", "results.h5", "--stage", "screening", "--level", "0", "--indices", "100:103",
+               "--out", out, "--workers", "1", *extra, expect=expect)
+
+
+def test_a_stopped_shard_says_that_nothing_was_written(screened, monkeypatch):
+    """Ctrl-C on `sample` said 'every completed sample is saved' and deleted them: a shard is written whole or not."""
+    import rough_uq.cli as cli
+    from rough_uq.study.executors import SerialExecutor
+
+    class Interrupting(SerialExecutor):
+        n_workers = 1
+
+        def run(self, model, items):
+            yield from super().run(model, items[:1])
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_executor", lambda *args: Interrupting())
+    result = _sample("--quiet", expect=130)
+    last = result.stderr.strip().splitlines()[-1]
+    assert last == ("interrupted: nothing was written (a shard is written whole or not at all); run the same "
+                    "command to compute it")
+    assert not list(screened.glob("shard.h5*"))
+
+
+def test_sample_refuses_to_write_into_the_study_itself(screened):
+    """`--out` = `--study` read "shard 'results.h5' already exists; merge or remove it first": remove the study."""
+    for out in ("results.h5", "./results.h5", str(screened / "results.h5")):
+        line = _sample(out=out, expect=2).stderr.strip()
+        assert line == f"error: --out: got {out!r}; allowed: a new shard file, not the study file (--study) itself"
+
+
+def test_a_shard_removes_what_a_killed_run_of_it_left_and_nothing_another_process_holds(screened):
+    """`kill -9` left shard.h5.partial-PID and its .lock; reruns wrote new ones beside them, and `merge dir/*` failed."""
+    from rough_uq.study.store import _acquire_lock, _release_lock
+
+    for name in ("shard.h5.partial-999999", "shard.h5.partial-999999.lock", "shard.h5.partial-999998.lock"):
+        (screened / name).write_text("left by a killed process\n")
+    held = screened / "shard.h5.partial-1"
+    held.write_text("being written\n")
+    fd = _acquire_lock(held)  # as a running process holds it
+    try:
+        result = _sample()
+    finally:
+        _release_lock(held, fd)
+    assert "removed shard.h5.partial-999999, left by a run of this shard that was killed" in result.stderr
+    assert sorted(p.name for p in screened.glob("shard.h5*")) == ["shard.h5", "shard.h5.partial-1"]
+
+
 def test_merge_refuses_a_shard_of_another_config(screened):
     other = write_config(screened / "other.yaml", tiny_config(seed=99))
     run("screen", str(other), "--out", "other.h5", "--workers", "1", "--quiet")

@@ -105,7 +105,7 @@ from rough_uq.problem.sampler import (
 from rough_uq.multilevel.allocation import Plan, plan
 from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
-from rough_uq.study.store import StudyStore, open_study, open_study_readonly
+from rough_uq.study.store import StudyStore, open_study, open_study_readonly, remove_abandoned
 from rough_uq.physics.surface import SurfaceSpectrum
 
 __all__ = [
@@ -1997,7 +1997,9 @@ def compute_shard(
     The shard is a study file with the study's config and hash holding just
     these samples. It is written under a temporary name and renamed to
     ``out`` only when complete, so a killed job never leaves a partial shard
-    under the final name. The study itself is only read.
+    under the final name; what a job killed outright left under the
+    temporary name (``out.partial-PID`` and its lock) is removed by the next
+    run of the shard. The study itself is only read.
     """
     out = Path(out)
     if out.exists():
@@ -2005,6 +2007,7 @@ def compute_shard(
     if not 0 <= level <= study.config.grid.max_level:
         allowed = f"an integer in 0..{study.config.grid.max_level} (grid.max_level)"
         raise InvalidParameterError("--level", level, allowed)
+    abandoned = remove_abandoned(out, ".partial-")  # of this shard, by a run killed outright
     partial = out.with_name(f"{out.name}.partial-{os.getpid()}")
     indices = np.unique(np.asarray(indices, dtype=np.int64))
     shard_store = open_study(
@@ -2017,6 +2020,8 @@ def compute_shard(
     )
     shard = Study(study.config, shard_store)
     progress.start(f"shard stage {stage} level {level}")
+    for path in abandoned:
+        progress.note(f"removed {path.name}, left by a run of this shard that was killed")
     try:
         with shard:
             progress.plan([level], [indices.size], [0])

@@ -153,6 +153,7 @@ __all__ = [
     "MemoryStore",
     "open_study",
     "open_study_readonly",
+    "remove_abandoned",
 ]
 
 FORMAT = "roughuq-study"
@@ -617,6 +618,37 @@ def _remove_stale_tmp(path: Path) -> None:
                 candidate.unlink()
             except OSError:
                 pass  # not ours to fight over; it is ignored either way
+
+
+def remove_abandoned(path: Path, suffix: str) -> list[Path]:
+    """Remove the files ``<path><suffix><pid>`` (and their locks) whose writer has died; the paths removed.
+
+    A study file written under a temporary name (a shard's ``.partial-PID``)
+    is left behind, with its ``.lock``, by a process killed outright
+    (``kill -9``, a lost node). Its writer held the lock while alive
+    (:func:`_acquire_lock`; the system releases it when the process dies),
+    so a file whose lock can be taken is abandoned; one still locked is
+    another process's work and is left alone.
+    """
+    pattern = re.compile(re.escape(path.name + suffix) + r"\d+(\.lock)?$")
+    try:
+        names = {candidate.name.removesuffix(".lock") for candidate in path.parent.iterdir()
+                 if pattern.match(candidate.name)}
+    except OSError:
+        return []
+    removed = []
+    for name in sorted(names):
+        abandoned = path.with_name(name)
+        try:
+            fd = _acquire_lock(abandoned)
+        except StudyFileError:
+            continue  # held: a running process writes it
+        try:
+            abandoned.unlink(missing_ok=True)
+            removed.append(abandoned)
+        finally:
+            _release_lock(abandoned, fd)
+    return removed
 
 
 def _acquire_lock(path: Path) -> int:
