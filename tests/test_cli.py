@@ -241,7 +241,7 @@ def test_sample_refuses_to_write_into_the_study_itself(screened):
 
 
 def test_a_shard_removes_what_a_killed_run_of_it_left_and_nothing_another_process_holds(screened):
-    """`kill -9` left shard.h5.partial-PID and its .lock; reruns wrote new ones beside them, and `merge dir/*` failed."""
+    """`kill -9` left shard.h5.partial-PID and its .lock; reruns wrote new ones beside them; `merge dir/*` failed."""
     from rough_uq.study.store import _acquire_lock, _release_lock
 
     for name in ("shard.h5.partial-999999", "shard.h5.partial-999999.lock", "shard.h5.partial-999998.lock"):
