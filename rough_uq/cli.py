@@ -1110,6 +1110,10 @@ def _print_forecast(forecast: Any, method: str) -> None:
     elapsed, cpu = (format_duration(seconds, digits=2) for seconds in (forecast.wall_seconds, forecast.cpu_seconds))
     click.echo(f"forecast: about {elapsed} elapsed ({cpu} CPU, modelled cost {forecast.modelled_cost:.3g} ref-s), "
                f"memory about {_mib(forecast.memory_bytes)} MiB", err=True)
+    if forecast.n_stored:
+        rest = format_duration(forecast.wall_seconds * forecast.remaining_fraction, digits=2)
+        click.echo(f"forecast: {_counted(sum(forecast.n_stored), 'sample')} of these are stored already (merged "
+                   f"shards or an earlier run); about {rest} elapsed for the rest", err=True)
     if forecast.richardson_note:
         # The screening's level means decided; the run decides again from its own, and may extrapolate after all.
         click.echo(f"forecast: plain MLMC planned ({forecast.richardson_note}); the run decides again from its own "

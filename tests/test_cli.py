@@ -257,6 +257,23 @@ def test_a_shard_removes_what_a_killed_run_of_it_left_and_nothing_another_proces
     assert sorted(p.name for p in screened.glob("shard.h5*")) == ["shard.h5", "shard.h5.partial-1"]
 
 
+def test_the_forecast_counts_the_samples_merged_shards_already_stored(screened):
+    """After the shards were merged, the finishing run forecast the whole plan's time though it computed nothing."""
+    plan = json.loads(run("mlmc", "--tol", "5", "--plan", "--json").output)
+    for row in plan["levels"]:
+        run("sample", "--study", "results.h5", "--stage", str(plan["stage"]), "--level", str(row["level"]),
+            "--indices", ",".join(row["indices"]), "--out", f"shard-{row['level']}.h5", "--workers", "1", "--quiet")
+        run("merge", f"shard-{row['level']}.h5")
+    result = run("mlmc", "--tol", "5", "--workers", "1")
+    counts = re.search(r"forecast: levels 0\.\.2 \(finest \d+\^2\), N_l ([\d ]+)\n", result.stderr).group(1)
+    # The plan's first round is the samples the run asks for first: all of them are stored.
+    assert [int(n) for n in counts.split()] == [row["n_missing"] for row in plan["levels"]]
+    assert (f"forecast: {plan['n_missing']} samples of these are stored already (merged shards or an earlier run); "
+            "about 0 s elapsed for the rest") in result.stderr.splitlines()
+    record = json.loads(run("report", "results.h5", "--json").output)["runs"][0]
+    assert record["forecast"]["n_stored"] == [row["n_missing"] for row in plan["levels"]]
+
+
 def test_merge_refuses_a_shard_of_another_config(screened):
     other = write_config(screened / "other.yaml", tiny_config(seed=99))
     run("screen", str(other), "--out", "other.h5", "--workers", "1", "--quiet")

@@ -986,11 +986,14 @@ def forecast_run(
         prediction = _run_plan(config, tol, rates, statistics, method=method, richardson=richardson)
         if not prediction.is_bias_met and not is_given_level:
             raise _unreachable(config, tol, prediction, n_screened=int(np.min(statistics.n_samples)))
-        finest, counts, modelled = _planned_samples(method, level, prediction, rates)
+        finest, counts, costs = _planned_samples(method, level, prediction, rates)
+    levels = [finest] if method == "mc" else range(len(counts))
+    stored = _stored_counts(study, method, tol, level, richardson, dict(zip(levels, counts)))
     seconds_per_cost = _screened_seconds_per_cost(screening)
-    forecast = _forecast(config, finest=finest, counts=counts, modelled=modelled, seconds_per_cost=seconds_per_cost,
-                         n_workers=n_workers, is_richardson=bool(prediction.is_richardson),
-                         richardson_note=prediction.richardson_note)
+    forecast = _forecast(config, finest=finest, counts=counts, modelled=float(np.dot(counts, costs)),
+                         seconds_per_cost=seconds_per_cost, n_workers=n_workers,
+                         is_richardson=bool(prediction.is_richardson), richardson_note=prediction.richardson_note,
+                         n_stored=stored, stored_cost=float(np.dot(stored, costs)))
     _check_budget(config.qoi_names, tol, forecast, max_cost)
     return forecast
 
@@ -1059,25 +1062,36 @@ def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_sc
 
 def _planned_samples(
     method: str, level: int | None, prediction: Plan, rates: Rates
-) -> tuple[int, tuple[int, ...], float]:
-    """Finest level, samples per level (at least 2 each) and modelled cost of the run ``prediction`` plans."""
+) -> tuple[int, tuple[int, ...], tuple[float, ...]]:
+    """Finest level, samples per level (at least 2 each) and the modelled cost of one sample of each."""
     if method == "mc":
         finest = prediction.finest_level if level is None else int(level)
         counts = (max(int(prediction.mc_n_samples), 2),)
         fine_cost = prediction.mc_cost / max(prediction.mc_n_samples, 1)
         if level is not None:
             fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
-        return finest, counts, counts[0] * float(fine_cost)
+        return finest, counts, (float(fine_cost),)
     # What the run asks for first: nothing below the plan's coarsest level, two levels above it at least.
     counts = starting_samples(prediction)
-    costs = [prediction.costs[level] if level < len(prediction.costs) else rates.cost_model(level)
-             for level in range(len(counts))]
-    return len(counts) - 1, counts, float(np.dot(counts, costs))
+    costs = tuple(float(prediction.costs[level]) if level < len(prediction.costs) else float(rates.cost_model(level))
+                  for level in range(len(counts)))
+    return len(counts) - 1, counts, costs
+
+
+def _stored_counts(study: Study, method: str, tol: np.ndarray, level: int | None, richardson: bool | None,
+                   counts: dict[int, int]) -> tuple[int, ...]:
+    """How many of the first ``counts[l]`` samples of each level the run would find stored (merged shards)."""
+    estimation = study.config.estimation
+    richardson = bool(estimation.richardson) if richardson is None else richardson
+    key = run_id(method, study.config.qoi_names, tol, estimation.theta, level, richardson=richardson)
+    stored = StudySampler(study, stage=run_stage(method, key), executor=SerialExecutor(), progress=Progress())
+    return tuple(int(n - stored.missing(lv, np.arange(n)).size) for lv, n in counts.items())
 
 
 def _forecast(
     config: StudyConfig, *, finest: int, counts: tuple[int, ...], modelled: float, seconds_per_cost: float,
-    n_workers: int, is_richardson: bool, richardson_note: str = "",
+    n_workers: int, is_richardson: bool, richardson_note: str = "", n_stored: tuple[int, ...] = (),
+    stored_cost: float = 0.0,
 ) -> Forecast:
     from rough_uq.study.config import solver_memory_bytes
 
@@ -1093,6 +1107,8 @@ def _forecast(
         memory_bytes=solver_memory_bytes(config.grid.n_at(int(finest))) * n_workers,
         is_richardson=is_richardson,
         richardson_note=richardson_note,
+        n_stored=tuple(n_stored) if any(n_stored) else (),
+        stored_cost=float(stored_cost),
     )
 
 
@@ -1325,7 +1341,8 @@ def _screened_mc_cost(study: Study, tol: np.ndarray) -> float:
     than the MC run at the same tolerance.
     """
     _, rates, prediction = _estimation_plan(study, np.asarray(tol, dtype=float), method="mc")
-    return _planned_samples("mc", None, prediction, rates)[2]
+    _, counts, costs = _planned_samples("mc", None, prediction, rates)
+    return counts[0] * costs[0]
 
 
 def run_estimation(

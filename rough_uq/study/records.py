@@ -527,6 +527,12 @@ class Forecast:
     richardson_note : str
         Why an extrapolation that was asked for is not planned ("" when it is,
         or was not asked for): the run plans plain MLMC.
+    n_stored : tuple of int
+        Of ``n_samples``, how many are stored already (merged shards, an
+        earlier run of the same request), per entry; empty when none is.
+        ``modelled_cost``, ``cpu_seconds`` and ``wall_seconds`` count them too.
+    stored_cost : float
+        Their modelled cost (reference seconds).
     """
 
     finest_level: int
@@ -538,11 +544,23 @@ class Forecast:
     memory_bytes: int
     is_richardson: bool = False
     richardson_note: str = ""
+    n_stored: tuple[int, ...] = ()
+    stored_cost: float = 0.0
+
+    @property
+    def remaining_fraction(self) -> float:
+        """The share of the modelled cost still to compute (1 when nothing is stored)."""
+        if not self.n_stored or not self.modelled_cost > 0:
+            return 1.0
+        return min(max(1.0 - self.stored_cost / self.modelled_cost, 0.0), 1.0)
 
     def to_json(self) -> dict[str, Any]:
         data = {key: _lists(getattr(self, key)) for key in _FORECAST_KEYS}
-        if self.richardson_note:  # left out when empty: the records of earlier versions read back to the same text
+        # Left out when empty: the records of earlier versions read back to the same text.
+        if self.richardson_note:
             data["richardson_note"] = self.richardson_note
+        if self.n_stored:
+            data.update(n_stored=list(self.n_stored), stored_cost=self.stored_cost)
         return data
 
     @classmethod
@@ -556,6 +574,8 @@ class Forecast:
             memory_bytes=fields.required("memory_bytes", _integer),
             is_richardson=fields.optional("is_richardson", _flag, False),
             richardson_note=fields.optional("richardson_note", _text, ""),
+            n_stored=fields.optional("n_stored", _integers, ()),
+            stored_cost=fields.optional("stored_cost", _number, 0.0),
         )
 
 
