@@ -20,7 +20,8 @@
 # planned again in the next round. Ctrl-C or SIGTERM stops the loop and the
 # shards it runs (status 130 / 143; a stopped shard writes nothing). Stopped
 # at any point, the same command continues: shards already written are
-# merged first.
+# merged first. Exit status: 0 the tolerance met, 3 the estimate is stored but
+# did not meet it (as `roughuq mlmc`), 130 / 143 stopped, 1 or 2 an error.
 set -euo pipefail
 
 jobs="${RUQ_JOBS:-1}"; workers="${RUQ_WORKERS:-}"; retries="${RUQ_RETRIES:-3}"
@@ -115,4 +116,5 @@ while true; do
     fi
     merge
 done
-"${ruq[@]}" mlmc --study "$study" --tol "$tol" --quiet || [ $? -eq 3 ]  # 3: tolerance not met, result stored
+# Status as roughuq mlmc's: 0 the tolerance met, 3 not met (the result is stored and says what to change).
+"${ruq[@]}" mlmc --study "$study" --tol "$tol" --quiet

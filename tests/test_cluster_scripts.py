@@ -85,7 +85,11 @@ def environment(tmp_path: Path, **extra: str) -> dict[str, str]:
     shim.write_text(
         "#!/usr/bin/env bash\n"
         "# This checkout's roughuq. KILL_SAMPLES=2,5 kills the 2nd and 5th `roughuq sample` (all: every one);\n"
-        "# INTERRUPT_SAMPLE=2 sends SIGINT to the process group a second into the 2nd (a terminal's Ctrl-C).\n"
+        "# INTERRUPT_SAMPLE=2 sends SIGINT to the process group a second into the 2nd (a terminal's Ctrl-C);\n"
+        "# NOT_MET=1: a run (`mlmc` without --plan) ends with status 3, as one that missed its tolerance.\n"
+        'if [ "$1" = mlmc ] && [ -n "${NOT_MET:-}" ] && [[ " $* " != *" --plan "* ]]; then\n'
+        f'    {sys.executable} -m rough_uq.cli "$@" && exit 3\n'
+        "fi\n"
         'if [ "$1" = sample ] && [ -n "${KILL_SAMPLES:-}${INTERRUPT_SAMPLE:-}" ]; then\n'
         '    n=$(( $(cat "$SAMPLE_COUNT" 2> /dev/null || echo 0) + 1 )); echo "$n" > "$SAMPLE_COUNT"\n'
         '    if [ "${KILL_SAMPLES:-}" = all ] || [[ ",${KILL_SAMPLES:-}," == *",$n,"* ]]; then kill -9 $$; fi\n'
@@ -237,3 +241,12 @@ def test_slurm_study_checks_the_config_before_submitting(tmp_path):
     assert "nope.yaml is not a valid config (see above); nothing was submitted" in done.stderr
     assert "nope.yaml" in done.stderr.splitlines()[0]  # roughuq validate's own line first
     assert not (tmp_path / "spool").exists() or not any((tmp_path / "spool").iterdir())
+
+
+def test_loop_study_ends_with_the_status_of_its_run(serial, tmp_path):
+    """A run that missed its tolerance (status 3) ended the loop with status 0: a shell caller could not tell."""
+    config, _ = serial
+    env = environment(tmp_path, NOT_MET="1")
+    done = bash("loop_study.sh", "--workers", "1", str(config), TOL, "study.h5", CHUNK, cwd=tmp_path, env=env,
+                expect=3)
+    assert "loop_study.sh" not in done.stderr  # not an error of the script's own
