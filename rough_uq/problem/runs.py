@@ -160,10 +160,7 @@ def screen(
     executor : BatchExecutor, optional
         Where samples are computed; default in this process.
     progress : ProgressReporter, optional
-        Told of the run's start, plan, every sample done and its end, e.g.
-        :class:`rough_uq.study.progress.PlainProgress` (a line per level every
-        10 s, for a notebook or a log) or ``RichProgress`` (bars on a
-        terminal); default: silent.
+        As in :func:`mlmc`.
 
     Returns
     -------
@@ -457,10 +454,7 @@ def mc(
     executor : BatchExecutor, optional
         Where samples are computed; default in this process.
     progress : ProgressReporter, optional
-        Told of the run's start, plan, every sample done and its end, e.g.
-        :class:`rough_uq.study.progress.PlainProgress` (a line per level every
-        10 s, for a notebook or a log) or ``RichProgress`` (bars on a
-        terminal); default: silent.
+        As in :func:`mlmc`.
 
     Returns
     -------
