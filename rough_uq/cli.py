@@ -1281,8 +1281,6 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
 
     _check_executor_options("local", None, workers)
     _check_output_file("--out", out)
-    if Path(out).resolve() == Path(study_path).resolve():
-        raise InvalidParameterError("--out", out, "a new shard file, not the study file (--study) itself")
     stage_id = _stage_number(stage)
     wanted = _parse_indices(indices)
     with open_existing_study(study_path, writable=False) as study:

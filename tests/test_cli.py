@@ -235,7 +235,8 @@ def test_a_stopped_shard_says_that_nothing_was_written(screened, monkeypatch):
 
 def test_sample_refuses_to_write_into_the_study_itself(screened):
     """`--out` = `--study` read "shard 'results.h5' already exists; merge or remove it first": remove the study."""
-    for out in ("results.h5", "./results.h5", str(screened / "results.h5")):
+    os.link("results.h5", "linked.h5")  # the same file under another name
+    for out in ("results.h5", "./results.h5", str(screened / "results.h5"), "linked.h5"):
         line = _sample(out=out, expect=2).stderr.strip()
         assert line == f"error: --out: got {out!r}; allowed: a new shard file, not the study file (--study) itself"
 

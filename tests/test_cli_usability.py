@@ -158,6 +158,14 @@ def test_the_forecast_names_the_levels_the_run_samples(capsys):
     assert "forecast: levels 1..3 (finest 256^2), N_l 7 2 2\n" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("plan", [[], ["--plan"]])
+def test_a_plan_beyond_any_budget_is_refused_before_its_stored_samples_are_counted(screened, plan):
+    """Counting the stored samples of a plan of 6e10 samples allocated 439 GiB (a traceback) before its refusal."""
+    result = run("mc", "--level", "0", "--tol", "1e-5", "--workers", "1", *plan, expect=2)
+    line = one_error_line(result)
+    assert re.search(r"needs about \d\.\d+e\+10 samples \(", line) and line.endswith("beyond any budget: loosen --tol")
+
+
 def test_the_forecast_says_why_a_richardson_run_plans_plain_mlmc(screened):
     """The plan's reason for not extrapolating was computed and never shown: the run began as plain MLMC silently."""
     from rough_uq.study.pipeline import forecast_run, open_existing_study

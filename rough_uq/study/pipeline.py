@@ -987,15 +987,16 @@ def forecast_run(
         if not prediction.is_bias_met and not is_given_level:
             raise _unreachable(config, tol, prediction, n_screened=int(np.min(statistics.n_samples)))
         finest, counts, costs = _planned_samples(method, level, prediction, rates)
-    levels = [finest] if method == "mc" else range(len(counts))
-    stored = _stored_counts(study, method, tol, level, richardson, dict(zip(levels, counts)))
     seconds_per_cost = _screened_seconds_per_cost(screening)
     forecast = _forecast(config, finest=finest, counts=counts, modelled=float(np.dot(counts, costs)),
                          seconds_per_cost=seconds_per_cost, n_workers=n_workers,
-                         is_richardson=bool(prediction.is_richardson), richardson_note=prediction.richardson_note,
-                         n_stored=stored, stored_cost=float(np.dot(stored, costs)))
+                         is_richardson=bool(prediction.is_richardson), richardson_note=prediction.richardson_note)
     _check_budget(config.qoi_names, tol, forecast, max_cost)
-    return forecast
+    levels = [finest] if method == "mc" else range(len(counts))
+    stored = _stored_counts(study, method, tol, level, richardson, dict(zip(levels, counts)))
+    if not any(stored):
+        return forecast
+    return replace(forecast, n_stored=stored, stored_cost=float(np.dot(stored, costs)))
 
 
 def _refusing_large_plans(events: Iterator[object], names: Sequence[str], tol: np.ndarray) -> Iterator[object]:
@@ -1080,18 +1081,22 @@ def _planned_samples(
 
 def _stored_counts(study: Study, method: str, tol: np.ndarray, level: int | None, richardson: bool | None,
                    counts: dict[int, int]) -> tuple[int, ...]:
-    """How many of the first ``counts[l]`` samples of each level the run would find stored (merged shards)."""
+    """How many of the first ``counts[l]`` samples of each level the run would find stored (merged shards).
+
+    Counted from the stored indices (unique per stage and level), not from the planned ones: a plan may ask for
+    millions.
+    """
     estimation = study.config.estimation
     richardson = bool(estimation.richardson) if richardson is None else richardson
     key = run_id(method, study.config.qoi_names, tol, estimation.theta, level, richardson=richardson)
-    stored = StudySampler(study, stage=run_stage(method, key), executor=SerialExecutor(), progress=Progress())
-    return tuple(int(n - stored.missing(lv, np.arange(n)).size) for lv, n in counts.items())
+    stage = run_stage(method, key)
+    return tuple(int(np.count_nonzero(study.store.read_samples(level=lv, stage=stage).indices < n))
+                 for lv, n in counts.items())
 
 
 def _forecast(
     config: StudyConfig, *, finest: int, counts: tuple[int, ...], modelled: float, seconds_per_cost: float,
-    n_workers: int, is_richardson: bool, richardson_note: str = "", n_stored: tuple[int, ...] = (),
-    stored_cost: float = 0.0,
+    n_workers: int, is_richardson: bool, richardson_note: str = "",
 ) -> Forecast:
     from rough_uq.study.config import solver_memory_bytes
 
@@ -1107,8 +1112,6 @@ def _forecast(
         memory_bytes=solver_memory_bytes(config.grid.n_at(int(finest))) * n_workers,
         is_richardson=is_richardson,
         richardson_note=richardson_note,
-        n_stored=tuple(n_stored) if any(n_stored) else (),
-        stored_cost=float(stored_cost),
     )
 
 
@@ -2018,6 +2021,7 @@ def compute_shard(
     temporary name (``out.partial-PID`` and its lock) is removed by the next
     run of the shard. The study itself is only read.
     """
+    _refuse_writing_the_study(study, out)
     out = Path(out)
     if out.exists():
         raise StudyFileError(f"shard {str(out)!r} already exists; merge or remove it first", out)
@@ -2085,14 +2089,25 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
     return {"added": added, "duplicates": duplicates}
 
 
+def _is_the_study_file(study: Study, path: str | Path) -> bool:
+    """Whether ``path`` is the study's file (same device and inode: another path or a link too)."""
+    target = getattr(study.store, "path", None)
+    try:
+        return target is not None and os.path.samefile(path, target)
+    except OSError:  # a missing file
+        return False
+
+
+def _refuse_writing_the_study(study: Study, out: str | Path) -> None:
+    """Refuse a shard ``out`` that is the study file (its refusal would otherwise say "remove it first")."""
+    if _is_the_study_file(study, out):
+        raise InvalidParameterError("--out", str(out), "a new shard file, not the study file (--study) itself")
+
+
 def _refuse_the_study_itself(study: Study, path: str | Path) -> None:
     """Refuse a shard that is the study file (same file by device and inode: another path or a link too)."""
     target = getattr(study.store, "path", None)
-    try:
-        is_same = target is not None and os.path.samefile(path, target)
-    except OSError:  # a missing shard: open_study_readonly says so
-        is_same = False
-    if is_same:
+    if _is_the_study_file(study, path):
         raise StudyFileError(
             f"shard {str(path)!r} is the study file {str(target)!r} itself (a file cannot be merged into "
             "itself); nothing was merged",
