@@ -6,6 +6,7 @@ import json
 import math
 import os
 import re
+import time
 from pathlib import Path
 
 import h5py
@@ -245,17 +246,25 @@ def test_a_shard_removes_what_a_killed_run_of_it_left_and_nothing_another_proces
     """`kill -9` left shard.h5.partial-PID and its .lock; reruns wrote new ones beside them; `merge dir/*` failed."""
     from rough_uq.study.store import _acquire_lock, _release_lock
 
+    hour_ago = time.time() - 3600
     for name in ("shard.h5.partial-999999", "shard.h5.partial-999999.lock", "shard.h5.partial-999998.lock"):
         (screened / name).write_text("left by a killed process\n")
+        os.utime(screened / name, (hour_ago, hour_ago))
     held = screened / "shard.h5.partial-1"
     held.write_text("being written\n")
+    os.utime(held, (hour_ago, hour_ago))
+    # Closed (its lock free) a moment ago and about to be renamed by its writer: not abandoned.
+    (screened / "shard.h5.partial-2").write_text("just closed\n")
     fd = _acquire_lock(held)  # as a running process holds it
     try:
         result = _sample()
     finally:
         _release_lock(held, fd)
-    assert "removed shard.h5.partial-999999, left by a run of this shard that was killed" in result.stderr
-    assert sorted(p.name for p in screened.glob("shard.h5*")) == ["shard.h5", "shard.h5.partial-1"]
+    removed = [line for line in result.stderr.splitlines() if " removed " in line]
+    assert len(removed) == 1 and removed[0].endswith(
+        "removed shard.h5.partial-999999, left by a run of this shard that was killed")
+    assert sorted(p.name for p in screened.glob("shard.h5*")) == ["shard.h5", "shard.h5.partial-1",
+                                                                  "shard.h5.partial-2"]
 
 
 def test_the_forecast_counts_the_samples_merged_shards_already_stored(screened):

@@ -125,9 +125,11 @@ import errno
 import fcntl
 import functools
 import json
+import math
 import os
 import re
 import shutil
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -620,15 +622,22 @@ def _remove_stale_tmp(path: Path) -> None:
                 pass  # not ours to fight over; it is ignored either way
 
 
-def remove_abandoned(path: Path, suffix: str) -> list[Path]:
-    """Remove the files ``<path><suffix><pid>`` (and their locks) whose writer has died; the paths removed.
+#: Seconds since its last change before a temporary file whose lock is free counts as abandoned.
+ABANDONED_AFTER_SECONDS = 60.0
+
+
+def remove_abandoned(path: Path, suffix: str, *, min_age: float = ABANDONED_AFTER_SECONDS) -> list[Path]:
+    """Remove the files ``<path><suffix><pid>`` (and their locks) whose writer has died; the files removed.
 
     A study file written under a temporary name (a shard's ``.partial-PID``)
     is left behind, with its ``.lock``, by a process killed outright
     (``kill -9``, a lost node). Its writer held the lock while alive
     (:func:`_acquire_lock`; the system releases it when the process dies),
     so a file whose lock can be taken is abandoned; one still locked is
-    another process's work and is left alone.
+    another process's work and is left alone, and so is one changed in the
+    last ``min_age`` seconds: its writer may have closed it (releasing the
+    lock) and be about to rename it. A lock file without its file is removed
+    too, but not listed.
     """
     pattern = re.compile(re.escape(path.name + suffix) + r"\d+(\.lock)?$")
     try:
@@ -639,16 +648,29 @@ def remove_abandoned(path: Path, suffix: str) -> list[Path]:
     removed = []
     for name in sorted(names):
         abandoned = path.with_name(name)
+        if _age(abandoned) < min_age or _age(_lock_path(abandoned)) < min_age:
+            continue
         try:
             fd = _acquire_lock(abandoned)
         except StudyFileError:
             continue  # held: a running process writes it
         try:
-            abandoned.unlink(missing_ok=True)
-            removed.append(abandoned)
+            if abandoned.exists():
+                abandoned.unlink()
+                removed.append(abandoned)
+        except OSError:
+            pass  # not ours to fight over
         finally:
             _release_lock(abandoned, fd)
     return removed
+
+
+def _age(path: Path) -> float:
+    """Seconds since ``path`` last changed; infinite for a missing file."""
+    try:
+        return time.time() - path.stat().st_mtime
+    except OSError:
+        return math.inf
 
 
 def _acquire_lock(path: Path) -> int:
