@@ -16,9 +16,10 @@
 #   --retries N   rounds in a row with failed shards before stopping [RUQ_RETRIES] (3)
 #   ROUGHUQ       the roughuq command (default `roughuq`), e.g. "python -m rough_uq.cli"
 #
-# A shard that fails (killed, out of memory) is reported and its samples are
-# planned again in the next round. Ctrl-C or SIGTERM stops the loop and the
-# shards it runs (status 130 / 143; a stopped shard writes nothing). Stopped
+# A shard that fails (killed, out of memory) is reported (with --jobs, counted
+# per round) and its samples are planned again in the next round. Ctrl-C, or
+# SIGTERM to the script alone, stops the loop and the commands it runs (status
+# 130 / 143; a stopped shard writes nothing). Stopped
 # at any point, the same command continues: shards already written are
 # merged first. Exit status: 0 the tolerance met, 3 the estimate is stored but
 # did not meet it (as `roughuq mlmc`), 130 / 143 stopped, 1 or 2 an error.
@@ -62,9 +63,13 @@ shard_command() {   # stage level indices: the command of one shard, in the arra
              --out "$shards/shard-$1-$2-${3%%:*}.h5" "${worker_opts[@]}" --quiet)
 }
 
-# Ctrl-C reaches a shard running in the foreground, which stops with status 130, and then this script, which
-# must stop too rather than take it for a failed shard; shards in the background (--jobs) ignore Ctrl-C (a
-# script's background commands do) and get SIGTERM.
+# Every long command (the screening, each shard, the run) runs in the background, --jobs 1 too, and the loop
+# waits for it: a trapped signal interrupts `wait` (not a command in the foreground), and a script's
+# background commands ignore Ctrl-C, so that they stop when this script stops them, with SIGTERM.
+stoppable() {   # command...: run it so that stop() can stop it; its status
+    "$@" &
+    wait $!
+}
 stop() {   # status: stop the shards still running, then exit
     trap - INT TERM
     local running
@@ -78,7 +83,7 @@ trap 'stop 130' INT
 trap 'stop 143' TERM
 
 # A screening that was stopped is continued by the same command.
-"${ruq[@]}" screen "$config" --out "$study" --quiet
+stoppable "${ruq[@]}" screen "$config" --out "$study" --quiet
 merge
 
 failed=0
@@ -89,18 +94,14 @@ while true; do
     n=0
     while read -r stage level indices; do
         shard_command "$stage" "$level" "$indices"
-        if [ "$jobs" -gt 1 ]; then
+        if [ "$jobs" -eq 1 ]; then
+            status=0
+            stoppable "${shard_cmd[@]}" || status=$?
+            [ "$status" -eq 0 ] || echo "loop_study.sh: shard $indices of level $level failed (status $status)" >&2
+        else
             while [ "$(jobs -rp | wc -l)" -ge "$jobs" ]; do wait -n || true; done
             # The command itself in the background (no function, no subshell): its pid is the shard's, for stop.
             "${shard_cmd[@]}" &
-        else
-            status=0
-            "${shard_cmd[@]}" || status=$?
-            case $status in
-                0) ;;
-                130|143) stop "$status" ;;   # the shard was stopped (Ctrl-C, kill): so is the loop
-                *) echo "loop_study.sh: shard $indices of level $level failed (status $status)" >&2 ;;
-            esac
         fi
         n=$((n + 1))
     done <<< "$work"
@@ -117,4 +118,4 @@ while true; do
     merge
 done
 # Status as roughuq mlmc's: 0 the tolerance met, 3 not met (the result is stored and says what to change).
-"${ruq[@]}" mlmc --study "$study" --tol "$tol" --quiet
+stoppable "${ruq[@]}" mlmc --study "$study" --tol "$tol" --quiet

@@ -13,8 +13,10 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -86,7 +88,9 @@ def environment(tmp_path: Path, **extra: str) -> dict[str, str]:
         "#!/usr/bin/env bash\n"
         "# This checkout's roughuq. KILL_SAMPLES=2,5 kills the 2nd and 5th `roughuq sample` (all: every one);\n"
         "# INTERRUPT_SAMPLE=2 sends SIGINT to the process group a second into the 2nd (a terminal's Ctrl-C);\n"
-        "# NOT_MET=1: a run (`mlmc` without --plan) ends with status 3, as one that missed its tolerance.\n"
+        "# NOT_MET=1: a run (`mlmc` without --plan) ends with status 3, as one that missed its tolerance;\n"
+        "# SLOW_SAMPLES=1: every `roughuq sample` is a process that sleeps for a minute.\n"
+        'if [ "$1" = sample ] && [ -n "${SLOW_SAMPLES:-}" ]; then exec sleep 60; fi\n'
         'if [ "$1" = mlmc ] && [ -n "${NOT_MET:-}" ] && [[ " $* " != *" --plan "* ]]; then\n'
         f'    {sys.executable} -m rough_uq.cli "$@" && exit 3\n'
         "fi\n"
@@ -250,3 +254,36 @@ def test_loop_study_ends_with_the_status_of_its_run(serial, tmp_path):
     done = bash("loop_study.sh", "--workers", "1", str(config), TOL, "study.h5", CHUNK, cwd=tmp_path, env=env,
                 expect=3)
     assert "loop_study.sh" not in done.stderr  # not an error of the script's own
+
+
+def _session_processes(sid: int) -> list[str]:
+    """The live processes of session ``sid`` (not zombies, which a container's init may never reap)."""
+    listing = subprocess.run(["ps", "-o", "sid=,stat=,args=", "-e"], capture_output=True, text=True).stdout
+    rows = [line.split(None, 2) for line in listing.splitlines()]
+    return [row[2] for row in rows if len(row) == 3 and row[0] == str(sid) and not row[1].startswith("Z")]
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_sigterm_to_loop_study_alone_stops_its_running_shards(serial, tmp_path, jobs):
+    """`kill PID` (or `timeout`) on the script: with --jobs 1 the shard ran to its end before the loop stopped."""
+    config, _ = serial
+    env = environment(tmp_path, SLOW_SAMPLES="1")
+    args = ["bash", str(ROOT / "scripts" / "loop_study.sh"), "--jobs", jobs, "--workers", "1", str(config), TOL,
+            "study.h5", CHUNK]
+    process = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not any(p.startswith("sleep 60") for p in _session_processes(process.pid)):
+            assert time.monotonic() < deadline and process.poll() is None, process.communicate()
+            time.sleep(0.2)
+        start = time.monotonic()
+        process.send_signal(signal.SIGTERM)  # to the script only, not to its process group
+        _, stderr = process.communicate(timeout=30)
+        assert process.returncode == 143 and time.monotonic() - start < 10, stderr
+        assert "loop_study.sh: stopped; run the same command to continue" in stderr
+        assert _session_processes(process.pid) == []
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.communicate()
