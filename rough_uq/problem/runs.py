@@ -506,8 +506,8 @@ def _reporting(progress: ProgressReporter | None, title: str) -> Iterator[None]:
 
 
 def _tol_title(columns: Sequence[str], tol: np.ndarray) -> str:
-    """``NAME=EPS, ...`` of a run's tolerances, for its progress title (as ``roughuq``'s)."""
-    return ", ".join(f"{name}={eps:.3g}" for name, eps in zip(columns, tol))
+    """``NAME=EPS, ...`` of a run's tolerances, for its progress title (as ``roughuq``'s: ``%g``)."""
+    return ", ".join(f"{name}={eps:g}" for name, eps in zip(columns, tol))
 
 
 def _max_samples(max_samples: object) -> int | None:
