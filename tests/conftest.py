@@ -1,4 +1,4 @@
-"""Test-session settings shared by every test module."""
+"""Test-session settings and fixtures shared by the test modules."""
 
 from __future__ import annotations
 
@@ -14,3 +14,19 @@ def _fftw_wisdom_in_a_temporary_cache(tmp_path_factory):
     yield
     patch.undo()
 
+
+
+@pytest.fixture
+def ctrl_c_after_one_sample(monkeypatch):
+    """The CLI's executor computes one sample of a batch, then raises KeyboardInterrupt (as Ctrl-C would)."""
+    import rough_uq.cli as cli
+    from rough_uq.study.executors import SerialExecutor
+
+    class Interrupting(SerialExecutor):
+        n_workers = 1
+
+        def run(self, model, items):
+            yield from super().run(model, items[:1])
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_executor", lambda *args: Interrupting())

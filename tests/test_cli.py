@@ -214,19 +214,8 @@ def _sample(*extra: str, out: str = "shard.h5", expect: int = 0) -> object:
                "--out", out, "--workers", "1", *extra, expect=expect)
 
 
-def test_a_stopped_shard_says_that_nothing_was_written(screened, monkeypatch):
+def test_a_stopped_shard_says_that_nothing_was_written(screened, ctrl_c_after_one_sample):
     """Ctrl-C on `sample` said 'every completed sample is saved' and deleted them: a shard is written whole or not."""
-    import rough_uq.cli as cli
-    from rough_uq.study.executors import SerialExecutor
-
-    class Interrupting(SerialExecutor):
-        n_workers = 1
-
-        def run(self, model, items):
-            yield from super().run(model, items[:1])
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(cli, "_executor", lambda *args: Interrupting())
     result = _sample("--quiet", expect=130)
     last = result.stderr.strip().splitlines()[-1]
     assert last == ("interrupted: nothing was written (a shard is written whole or not at all); run the same "

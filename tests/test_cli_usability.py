@@ -346,19 +346,8 @@ def test_plan_in_shards_as_json_lists_the_shards_the_text_prints(screened, comma
         assert 0 < last - first == shard["n_samples"] <= 3
 
 
-def test_interrupted_run_does_not_say_done(screened, monkeypatch):
+def test_interrupted_run_does_not_say_done(screened, ctrl_c_after_one_sample):
     """Ctrl-C during a run: status 130, 'stopped after', never 'done' just before 'interrupted'."""
-    import rough_uq.cli as cli
-    from rough_uq.study.executors import SerialExecutor
-
-    class Interrupting(SerialExecutor):
-        n_workers = 1
-
-        def run(self, model, items):
-            yield from super().run(model, items[:1])
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(cli, "_executor", lambda *args: Interrupting())
     result = CliRunner().invoke(main, ["mlmc", "--tol", "5"])
     assert result.exit_code == 130
     assert "done in" not in result.stderr and "stopped after" in result.stderr
