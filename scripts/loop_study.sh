@@ -19,10 +19,10 @@
 # A shard that fails (killed, out of memory) is reported (with --jobs, counted
 # per round) and its samples are planned again in the next round. Ctrl-C, or
 # SIGTERM to the script alone, stops the loop and the commands it runs (status
-# 130 / 143; a stopped shard writes nothing). Stopped
-# at any point, the same command continues: shards already written are
-# merged first. Exit status: 0 the tolerance met, 3 the estimate is stored but
-# did not meet it (as `roughuq mlmc`), 130 / 143 stopped, 1 or 2 an error.
+# 130 / 143; a stopped shard writes nothing). Stopped at any point, the same
+# command continues: shards already written are merged first. Exit status: 0
+# the tolerance met, 3 the estimate is stored but did not meet it (as
+# `roughuq mlmc`), 130 / 143 stopped, 1 or 2 an error.
 set -euo pipefail
 
 jobs="${RUQ_JOBS:-1}"; workers="${RUQ_WORKERS:-}"; retries="${RUQ_RETRIES:-3}"
@@ -70,7 +70,7 @@ stoppable() {   # command...: run it so that stop() can stop it; its status
     "$@" &
     wait $!
 }
-stop() {   # status: stop the shards still running, then exit
+stop() {   # status: stop the commands still running (screening, shards, run), then exit
     trap - INT TERM
     local running
     running=$(jobs -pr)
