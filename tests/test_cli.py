@@ -256,6 +256,30 @@ def test_a_shard_removes_what_a_killed_run_of_it_left_and_nothing_another_proces
                                                                   "shard.h5.partial-2"]
 
 
+def test_a_shard_says_it_is_one_and_is_refused_as_a_study(screened):
+    """`report shard.h5` said "screening not finished: run `roughuq screen CONFIG --out shard.h5`" (not a study)."""
+    _sample("--quiet")
+    text = run("report", "shard.h5").output
+    assert text.startswith("Shard shard.h5 (created ")
+    assert ("a shard of samples (written by `roughuq sample`): add them to their study with "
+            "`roughuq merge --into STUDY shard.h5`") in text
+    assert "roughuq screen" not in text and "screening not finished" not in text
+    assert json.loads(run("report", "shard.h5", "--json").output)["role"] == "shard"
+    assert json.loads(run("report", "results.h5", "--json").output)["role"] == "study"
+    before = (screened / "shard.h5").read_bytes()
+    refusal = ("error: shard.h5 is a shard of samples (written by `roughuq sample`), not a study: add its samples "
+               "to their study with `roughuq merge --into STUDY shard.h5` and run there")
+    for command in (("mlmc", "--tol", "5", "--study", "shard.h5", "--workers", "1"),
+                    ("screen", "tiny.yaml", "--out", "shard.h5", "--workers", "1"),
+                    ("merge", "--into", "shard.h5", "shard.h5")):
+        assert run(*command, expect=2).stderr.strip().splitlines()[-1] == refusal, command
+    assert (screened / "shard.h5").read_bytes() == before
+    stored = json.loads(run("report", "results.h5", "--json").output)["samples"]["screening"]
+    run("merge", "shard.h5")
+    merged = json.loads(run("report", "results.h5", "--json").output)["samples"]["screening"]
+    assert merged == {**stored, "0": stored["0"] + 3}
+
+
 def test_the_forecast_counts_the_samples_merged_shards_already_stored(screened):
     """After the shards were merged, the finishing run forecast the whole plan's time though it computed nothing."""
     plan = json.loads(run("mlmc", "--tol", "5", "--plan", "--json").output)

@@ -213,7 +213,7 @@ def test_header_and_layout(tmp_path: Path) -> None:
     with h5py.File(path, "r") as f:
         assert f.attrs["format"] == FORMAT and f.attrs["format_version"] == FORMAT_VERSION
         assert f.attrs["config_hash"] == HASH and f.attrs["code_version"] == "test"
-        assert "T" in f.attrs["created"]
+        assert "T" in f.attrs["created"] and f.attrs["role"] == "study"
         assert f["config_yaml"].asstr()[()] == CONFIG_TEXT
         assert tuple(f["qoi_names"].asstr()[()]) == QOI
         level = f["samples/level_1"]
@@ -223,6 +223,31 @@ def test_header_and_layout(tmp_path: Path) -> None:
         assert json.loads(f["runs/r1/record"][()].tobytes()) == {"tol": 0.1}
         assert json.loads(f["screening/record"][()].tobytes()) == {"alpha": 1.0}
     assert sorted(os.listdir(tmp_path)) == ["study.h5"]  # no lock or temporary file left
+
+
+def test_a_shard_keeps_its_role_and_is_not_written_as_a_study(tmp_path: Path) -> None:
+    """A shard is marked as one (the report told it to finish its screening), through rewrites too."""
+    path = tmp_path / "shard.h5"
+    with new_study(path, role="shard") as shard:
+        shard.append_samples(make_batch(0, 0, [0, 1]))
+    store_module._rewrite(path)  # as after a writer killed outright
+    with open_study_readonly(path) as reader:
+        assert reader.role == "shard"
+        assert_same_batch(reader.read_samples(level=0, stage=0), make_batch(0, 0, [0, 1]))
+    before = fingerprint(path)
+    with pytest.raises(StudyFileError, match=r"shard\.h5 is a shard of samples .* `roughuq merge --into STUDY "):
+        new_study(path, create=False)
+    assert fingerprint(path) == before
+    with new_study(path, create=False, role="shard") as shard:
+        assert shard.role == "shard" and shard.levels() == [0]
+    with pytest.raises(ValueError, match="role must be one of study, shard, got 'Shard'"):
+        new_study(tmp_path / "other.h5", role="Shard")
+    assert not (tmp_path / "other.h5").exists()
+    version_1 = tmp_path / "v1.h5"  # written before the attribute: a study
+    version_1.write_bytes(VERSION_1.read_bytes())
+    with open_study_readonly(version_1) as reader:
+        assert reader.role == "study"
+    assert MemoryStore(qoi_names=QOI).role == "study"
 
 
 def test_index_set_is_a_set(tmp_path: Path) -> None:

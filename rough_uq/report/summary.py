@@ -317,6 +317,7 @@ def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
         "format_version": FORMAT_VERSION,
         "code_version": store.code_version,
         "created": store.created,
+        "role": store.role,
         "config_hash": store.config_hash,
         "config": _config_summary(config),
         "qoi_names": list(store.qoi_names),
@@ -741,7 +742,8 @@ def render_report(report: dict[str, Any], console: Any) -> None:
     config = report["config"]
     grids = config["grids"]
     units = config["qoi"]
-    console.print(f"[bold]Study[/bold] {escape(report['path'])} (created {report['created']}, "
+    kind = "Shard" if report.get("role") == "shard" else "Study"
+    console.print(f"[bold]{kind}[/bold] {escape(report['path'])} (created {report['created']}, "
                   f"roughuq {report['code_version']})")
     console.print(
         f"surface L={config['system_size']:g}, k = {config['k_l']:g}/{config['k_r']:g}/{config['k_s']:g}, "
@@ -755,7 +757,10 @@ def render_report(report: dict[str, Any], console: Any) -> None:
         for stage, levels in report["samples"].items()
     )
     console.print(f"samples stored: {counts or 'none'}", highlight=False)
-    if report["screening"] is not None:
+    if report.get("role") == "shard":
+        console.print(f"a shard of samples (written by `roughuq sample`): add them to their study with "
+                      f"`roughuq merge --into STUDY {escape(report['path'])}`", highlight=False)
+    elif report["screening"] is not None:
         screening = ScreeningRecord.from_json(report["screening"])
         render_screening(console, screening, report["qoi_names"], units, grids=grids)
     elif "screening" in report["samples"] and report.get("is_running"):

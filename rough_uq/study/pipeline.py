@@ -2038,6 +2038,7 @@ def compute_shard(
         qoi_names=study.store.qoi_names,
         create=True,
         code_version=__version__,
+        role="shard",
     )
     shard = Study(study.config, shard_store)
     progress.start(f"shard stage {stage} level {level}")

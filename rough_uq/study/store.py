@@ -148,6 +148,7 @@ __all__ = [
     "FORMAT",
     "FORMAT_VERSION",
     "READABLE_VERSIONS",
+    "ROLES",
     "ALL_STAGES",
     "DuplicateSampleWarning",
     "StudyStore",
@@ -166,6 +167,12 @@ FORMAT_VERSION = 2
 
 READABLE_VERSIONS = (1, 2)
 """Versions of the layout this code reads (version 1 is converted when opened for writing)."""
+
+ROLES = ("study", "shard")
+"""Values of the root attribute ``role``: a study, or a shard of samples written by ``roughuq sample``.
+
+A file without the attribute (written before it existed) is a study.
+"""
 
 ALL_STAGES = -1
 """``LevelBatch.stage`` of a batch read across all stages."""
@@ -331,6 +338,8 @@ class StudyStore(ABC):
         roughuq version that created the study.
     created : str
         Creation time, ISO 8601 (UTC).
+    role : str
+        ``"study"``, or ``"shard"`` for a file of samples to merge into a study (:data:`ROLES`).
     """
 
     config_text: str
@@ -338,6 +347,7 @@ class StudyStore(ABC):
     qoi_names: tuple[str, ...]
     code_version: str
     created: str
+    role: str = "study"
 
     def __init__(self) -> None:
         # Stored indices per level and stage, built from the rows at the first
@@ -836,6 +846,7 @@ def _read_header(path: Path) -> dict[str, Any]:
                 "config_hash": str(f.attrs["config_hash"]),
                 "code_version": str(f.attrs["code_version"]),
                 "created": str(f.attrs["created"]),
+                "role": _text_attribute(f.attrs.get("role", ROLES[0])),
                 "config_text": _read_text(f["config_yaml"]),
                 "qoi_names": tuple(f["qoi_names"].asstr()[()]),
                 "has_samples": isinstance(f.get("samples"), h5py.Group),
@@ -846,11 +857,16 @@ def _read_header(path: Path) -> dict[str, Any]:
         raise _unreadable(path, exc) from None
 
 
+def _text_attribute(value: Any) -> str:
+    return value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
+
+
 def _write_header(
-    f: h5py.File, *, config_text: str, config_hash: str, qoi_names: Sequence[str], code_version: str
+    f: h5py.File, *, config_text: str, config_hash: str, qoi_names: Sequence[str], code_version: str, role: str
 ) -> None:
     f.attrs["format"] = FORMAT
     f.attrs["format_version"] = np.int64(FORMAT_VERSION)
+    f.attrs["role"] = role
     f.attrs["config_hash"] = config_hash
     f.attrs["code_version"] = code_version
     f.attrs["created"] = utc_timestamp()
@@ -921,6 +937,7 @@ class StudyFile(StudyStore):
         self.qoi_names = tuple(header["qoi_names"])
         self.code_version = header["code_version"]
         self.created = header["created"]
+        self.role = header["role"]
         self._lock_fd = lock_fd
         self._is_closed = False
         self._h5: h5py.File | None = None
@@ -1179,6 +1196,8 @@ def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int]
     """Copy the header, records and ``committed`` rows per level of ``src`` into the new file ``dst`` (version 2)."""
     for name in ("format", "config_hash", "code_version", "created"):
         dst.attrs[name] = src.attrs[name]
+    if "role" in src.attrs:
+        dst.attrs["role"] = src.attrs["role"]
     dst.attrs["format_version"] = np.int64(FORMAT_VERSION)
     for name in ("config_yaml", "qoi_names", "runs", "screening"):
         if name in src:
@@ -1216,7 +1235,7 @@ def _make_directory(path: Path) -> None:
 
 
 def _prepare_locked(
-    path: Path, *, config_text: str, config_hash: str, qoi_names: Sequence[str], code_version: str
+    path: Path, *, config_text: str, config_hash: str, qoi_names: Sequence[str], code_version: str, role: str
 ) -> dict[str, Any]:
     """With the lock held: create the file if missing, check it, bring it to version 2; its header."""
     if not path.exists():
@@ -1228,16 +1247,31 @@ def _prepare_locked(
                 config_hash=config_hash,
                 qoi_names=qoi_names,
                 code_version=str(code_version),
+                role=role,
             ),
             copy_from=None,
         )
     header = _read_header(path)
     _check_header(path, header, config_hash=config_hash, qoi_names=qoi_names)
+    _check_role(path, header["role"], role)
     _remove_stale_tmp(path)  # left by a killed writer; we hold the lock, so none is live
     if header["format_version"] != FORMAT_VERSION or _is_marked_open(path):
         _rewrite(path)
         header = _read_header(path)
     return header
+
+
+def _check_role(path: Path, found: str, wanted: str) -> None:
+    """Refuse to write a shard as a study (or the other way round): its records would never reach the study."""
+    if found == wanted:
+        return
+    if found == "shard":
+        raise StudyFileError(
+            f"{path} is a shard of samples (written by `roughuq sample`), not a study: add its samples to their "
+            f"study with `roughuq merge --into STUDY {path}` and run there",
+            path,
+        )
+    raise StudyFileError(f"{path} is a {found} file, not a {wanted} file", path)
 
 
 def _check_header(path: Path, header: Mapping[str, Any], *, config_hash: str, qoi_names: Sequence[str]) -> None:
@@ -1268,6 +1302,7 @@ def open_study(
     qoi_names: Sequence[str],
     create: bool = True,
     code_version: str | None = None,
+    role: str = "study",
 ) -> StudyFile:
     """Open a study file for writing, creating it if asked; takes the file's lock.
 
@@ -1289,6 +1324,9 @@ def open_study(
         exist. If False, a missing file is an error.
     code_version : str, optional
         Recorded when creating; defaults to the installed roughuq version.
+    role : str
+        Recorded when creating: ``"study"``, or ``"shard"`` for a file of
+        samples to merge into a study (:data:`ROLES`).
 
     Returns
     -------
@@ -1304,13 +1342,20 @@ def open_study(
         other ``qoi_names`` than given. A refused file is not modified.
     """
     path = Path(os.fspath(path))
+    if role not in ROLES:
+        raise ValueError(f"role must be one of {', '.join(ROLES)}, got {role!r}")
     if code_version is None:
         code_version = _installed_version()
     _check_before_lock(path, create=create)
     lock_fd = _acquire_lock(path)
     try:
         header = _prepare_locked(
-            path, config_text=config_text, config_hash=config_hash, qoi_names=qoi_names, code_version=code_version
+            path,
+            config_text=config_text,
+            config_hash=config_hash,
+            qoi_names=qoi_names,
+            code_version=code_version,
+            role=role,
         )
     except BaseException:
         _release_lock(path, lock_fd)
