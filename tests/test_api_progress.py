@@ -79,6 +79,16 @@ def test_screening_reports_its_plan_and_every_sample(executor):
     np.testing.assert_array_equal(screening.statistics.mean_fine, silent.statistics.mean_fine)
 
 
+def test_a_load_curve_run_is_titled_by_qoi_not_by_column():
+    """Six loads made a title of one ``contact_area@LOAD=EPS`` per column; grouped as ``--tol`` takes them."""
+    loads = [rough_uq.RelativeLoad(value) for value in (0.05, 0.1, 0.2, 0.3, 0.4, 0.5)]
+    problem = _problem(load=loads, qoi=["contact_area", "mean_gap"], max_level=1)
+    tol = [2.0] * 6 + [0.5] * 5 + [0.25]
+    progress = _Recorded()
+    rough_uq.mc(problem, tol=tol, level=0, n_initial=2, progress=progress)
+    assert progress.calls[0] == ("start", "mc contact_area=2, mean_gap=0.5, mean_gap@0.5=0.25")
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_mlmc_and_mc_report_the_estimators_plans_and_their_samples(seed):
     problem = _problem(seed)

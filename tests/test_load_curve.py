@@ -372,3 +372,17 @@ def test_report_shows_the_load_curve_table_and_kappa(curve_study, tmp_path):
     output = CliRunner().invoke(main, ["report", str(curve_study), "--plots", str(tmp_path)]).output
     assert "Load curve of" in output and "kappa =" in output and "contact_area@0.02" in output
     assert (tmp_path / "load_curve.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_cli_progress_names_a_curve_runs_tolerances_by_qoi(curve_study, tmp_path):
+    """The progress of a curve run listed one ``mean_gap@LOAD=EPS`` per column (every load of every QoI)."""
+    import shutil
+
+    from click.testing import CliRunner
+
+    from rough_uq.cli import main
+
+    study = shutil.copy(curve_study, tmp_path / "curve.h5")
+    result = CliRunner().invoke(main, ["mlmc", "--study", str(study), "--tol", "mean_gap@0.02=0.1", "--workers", "1"])
+    assert result.exit_code == 0, result.output
+    assert "[mlmc contact_area=2, mean_gap=0.05, mean_gap@0.02=0.1] done in " in result.stderr

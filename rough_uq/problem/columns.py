@@ -7,7 +7,9 @@ name and split columns with the same functions as the contact problem
 
 from __future__ import annotations
 
-__all__ = ["LOAD_SEPARATOR", "load_label", "column_name", "split_column"]
+from collections.abc import Iterable, Sequence
+
+__all__ = ["LOAD_SEPARATOR", "load_label", "column_name", "split_column", "tol_text"]
 
 #: Separates the QoI name from the load in the name of a load-curve column.
 LOAD_SEPARATOR = "@"
@@ -27,3 +29,27 @@ def split_column(column: str) -> tuple[str, float | None]:
     """``(qoi, load)`` of a result column name; ``load`` is None for a single-load column."""
     name, separator, label = column.partition(LOAD_SEPARATOR)
     return (name, float(label)) if separator else (name, None)
+
+
+def tol_text(names: Sequence[str], values: Iterable[float], *, digits: int | None = None) -> str:
+    """Tolerances (or biases) per column as ``--tol`` takes them: ``contact_area=2, clusters=0.5``.
+
+    The columns of a load curve are grouped by QoI: the value most of its
+    loads share, then the columns set apart, ``mean_gap=0.05,
+    mean_gap@0.02=0.1`` (not one ``name@load=eps`` per column, which made a
+    line of hundreds of characters). Distinct values give distinct texts.
+    Values are written with ``%g``, or with ``digits`` significant digits.
+    """
+    form = "g" if digits is None else f".{digits}g"
+    columns: dict[str, list[tuple[str, float]]] = {}
+    for name, value in zip(names, values):
+        columns.setdefault(split_column(name)[0], []).append((name, float(value)))
+    parts = []
+    for qoi, pairs in columns.items():
+        if len(pairs) == 1:
+            parts.append(f"{pairs[0][0]}={pairs[0][1]:{form}}")
+            continue
+        values = [value for _, value in pairs]
+        common = max(values, key=values.count)
+        parts += [f"{qoi}={common:{form}}"] + [f"{name}={value:{form}}" for name, value in pairs if value != common]
+    return ", ".join(parts)

@@ -30,7 +30,8 @@ from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
 from rough_uq.multilevel.statistics import _checked_names, _qoi_text
 from rough_uq.multilevel.targets import TargetEstimate
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ProgressReporter
-from rough_uq.problem.runs import _problem, _reporting, _tol_title, _tolerances, _warn_not_converged, run_id
+from rough_uq.problem.columns import tol_text
+from rough_uq.problem.runs import _problem, _reporting, _tolerances, _warn_not_converged, run_id
 from rough_uq.problem.sampler import run_stage
 
 __all__ = ["DistributionResult", "distribution", "estimate_target", "initial_finest_level", "variance"]
@@ -175,7 +176,7 @@ def variance(
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
     stage = run_stage("mlmc", run_id("variance", problem.columns, tol, theta))
     sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
-    with _reporting(sampler.progress, f"variance {_tol_title(problem.columns, tol)}"):
+    with _reporting(sampler.progress, f"variance {tol_text(problem.columns, tol)}"):
         result = estimate_target(
             sampler, target="variance", tol=tol, max_level=problem.max_level, theta=theta, n_initial=n_initial,
             min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
@@ -310,7 +311,7 @@ def distribution(
     name = problem.columns[index]
     stage = run_stage("mlmc", run_id("cdf", [name], tol_array, theta))
     sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
-    with _reporting(sampler.progress, f"cdf {_tol_title([name], tol_array)}"):
+    with _reporting(sampler.progress, f"cdf {tol_text([name], tol_array)}"):
         estimate = estimate_target(
             sampler, target="cdf", tol=tol_array, max_level=problem.max_level, thresholds=thresholds, qoi=index,
             bandwidth=bandwidth, theta=theta, n_initial=n_initial, min_finest_level=min_finest_level,

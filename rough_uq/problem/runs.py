@@ -45,7 +45,7 @@ from rough_uq.multilevel.statistics import (
 )
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter
-from rough_uq.problem.columns import split_column
+from rough_uq.problem.columns import split_column, tol_text
 from rough_uq.problem.sampler import modelled_cost, run_stage
 
 __all__ = ["MIN_SCREENED_LEVELS", "ScreeningResult", "mc", "mlmc", "run_id", "screen"]
@@ -376,7 +376,7 @@ def mlmc(
         coarsest_level=None if statistics is not None else 0,
         qoi_names=problem.columns,
     )
-    with _reporting(sampler.progress, f"mlmc {_tol_title(problem.columns, tol)}"):
+    with _reporting(sampler.progress, f"mlmc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mlmc")
@@ -483,7 +483,7 @@ def mc(
         kurtosis_limit=kurtosis_limit,
         qoi_names=problem.columns,
     )
-    with _reporting(sampler.progress, f"mc {_tol_title(problem.columns, tol)}"):
+    with _reporting(sampler.progress, f"mc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mc")
@@ -503,11 +503,6 @@ def _reporting(progress: ProgressReporter | None, title: str) -> Iterator[None]:
         progress.stop(is_complete=False)
         raise
     progress.stop()
-
-
-def _tol_title(columns: Sequence[str], tol: np.ndarray) -> str:
-    """``NAME=EPS, ...`` of a run's tolerances, for its progress title (as ``roughuq``'s: ``%g``)."""
-    return ", ".join(f"{name}={eps:g}" for name, eps in zip(columns, tol))
 
 
 def _max_samples(max_samples: object) -> int | None:

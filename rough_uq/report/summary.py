@@ -69,7 +69,7 @@ from rich.markup import escape
 
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
 from rough_uq.problem.batch import STAGE_SCREENING
-from rough_uq.problem.columns import split_column
+from rough_uq.problem.columns import split_column, tol_text
 from rough_uq.study.progress import format_duration
 from rough_uq.study.records import (
     MIN_ALPHA,
@@ -384,28 +384,6 @@ def _labelled(name: str, label: str, power: int = 1) -> str:
 def _column_unit(units: dict[str, str], column: str) -> str:
     """Unit label of a result column: its QoI's (a load-curve column ``qoi@load`` has the unit of ``qoi``)."""
     return units.get(column, units.get(split_column(column)[0], ""))
-
-
-def tol_text(names: Sequence[str], tol: Sequence[float]) -> str:
-    """The tolerances as ``--tol`` takes them: ``contact_area=2, clusters=0.5``.
-
-    The columns of a load curve are grouped by QoI: the value most of its
-    loads share, then the columns set apart, ``mean_gap=0.05,
-    mean_gap@0.02=0.1`` (not one ``name@load=eps`` per column, which made a
-    line of hundreds of characters). Distinct tolerances give distinct texts.
-    """
-    columns: dict[str, list[tuple[str, float]]] = {}
-    for name, eps in zip(names, tol):
-        columns.setdefault(split_column(name)[0], []).append((name, float(eps)))
-    parts = []
-    for qoi, pairs in columns.items():
-        if len(pairs) == 1:
-            parts.append(f"{pairs[0][0]}={pairs[0][1]:g}")
-            continue
-        values = [eps for _, eps in pairs]
-        common = max(values, key=values.count)
-        parts += [f"{qoi}={common:g}"] + [f"{name}={eps:g}" for name, eps in pairs if eps != common]
-    return ", ".join(parts)
 
 
 def run_label(run: RunRecord, qoi_names: Sequence[str]) -> str:

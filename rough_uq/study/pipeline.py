@@ -88,6 +88,7 @@ from rough_uq.study.records import (
     read_screening_record,
     utc_timestamp,
 )
+from rough_uq.problem.columns import tol_text
 from rough_uq.problem.contact import checked_mean_pressures
 from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
@@ -941,10 +942,6 @@ def _finer_screening(config: StudyConfig, n_screened: int) -> str:
             "grid.max_level")
 
 
-def _tol_text(names: Sequence[str], tol: np.ndarray) -> str:
-    return ", ".join(f"{name}={eps:.3g}" for name, eps in zip(names, tol))
-
-
 def forecast_run(
     study: Study, *, method: str, tol: np.ndarray, max_cost: float | None = None, level: int | None = None,
     n_workers: int = 1, richardson: bool | None = None,
@@ -1010,7 +1007,7 @@ def _refusing_large_plans(events: Iterator[object], names: Sequence[str], tol: n
         for event in events:
             if isinstance(event, PlanUpdated):
                 refuse_large_plan(event.n_planned, max_samples=MAX_PLANNED_SAMPLES, tol=tol, advice="loosen --tol",
-                                  tolerance=f"--tol {_tol_text(names, tol)}")
+                                  tolerance=f"--tol {tol_text(names, tol, digits=3)}")
             yield event
     finally:
         events.close()
@@ -1050,12 +1047,12 @@ def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_sc
     """
     names = config.qoi_names
     bias = np.asarray(prediction.bias, dtype=float)
-    reachable = bias / math.sqrt(config.estimation.theta)
+    reachable = [_round_up(x) for x in bias / math.sqrt(config.estimation.theta)]
     return EstimationError(
-        f"--tol {_tol_text(names, tol)} cannot be reached: on the finest grid allowed "
+        f"--tol {tol_text(names, tol, digits=3)} cannot be reached: on the finest grid allowed "
         f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
-        f"screening predicts a bias of {_tol_text(names, bias)}; the smallest reachable tolerance is about "
-        f"{_tol_text(names, [_round_up(x) for x in reachable])}, a prediction from {n_screened} screened samples "
+        f"screening predicts a bias of {tol_text(names, bias, digits=3)}; the smallest reachable tolerance is about "
+        f"{tol_text(names, reachable, digits=3)}, a prediction from {n_screened} screened samples "
         "per level (a run estimates the bias from its own samples and may find it larger: then it stops at "
         "grid.max_level, tolerance not met); or screen a study with a larger grid.max_level"
     )
@@ -1118,19 +1115,20 @@ def _forecast(
 def _check_budget(names: Sequence[str], tol: np.ndarray, forecast: Forecast, max_cost: float | None) -> None:
     """Refuse a forecast beyond any budget, over ``max_cost``, or (without it) over :data:`DEFAULT_COST_CEILING`."""
     total, modelled, cpu_seconds = sum(forecast.n_samples), forecast.modelled_cost, forecast.cpu_seconds
+    asked = tol_text(names, tol, digits=3)
     if total > MAX_PLANNED_SAMPLES or not math.isfinite(modelled):
         raise EstimationError(
-            f"--tol {_tol_text(names, tol)} needs about {total:.3g} samples ({format_duration(cpu_seconds)} "
+            f"--tol {asked} needs about {total:.3g} samples ({format_duration(cpu_seconds)} "
             "CPU); that is beyond any budget: loosen --tol"
         )
     if max_cost is not None and modelled > max_cost:
         raise EstimationError(
-            f"--tol {_tol_text(names, tol)} is predicted to cost {modelled:.3g} reference seconds of modelled cost, "
+            f"--tol {asked} is predicted to cost {modelled:.3g} reference seconds of modelled cost, "
             f"more than --max-cost {max_cost:g}: loosen --tol or raise --max-cost"
         )
     if max_cost is None and cpu_seconds > DEFAULT_COST_CEILING:
         raise EstimationError(
-            f"--tol {_tol_text(names, tol)} is predicted to take {format_duration(cpu_seconds)} of CPU time "
+            f"--tol {asked} is predicted to take {format_duration(cpu_seconds)} of CPU time "
             f"({total} samples), more than the default ceiling of {format_duration(DEFAULT_COST_CEILING)}: "
             "loosen --tol, or allow it with --max-cost SECONDS"
         )
@@ -1396,7 +1394,7 @@ def run_estimation(
     events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost, level=level)
     record = _started_record(study, key=key, method=method, tol=tol, stage=sampler.stage, max_cost=max_cost,
                              context=context, forecast=forecast)
-    title = f"{method} " + ", ".join(f"{n}={t:g}" for n, t in zip(study.config.qoi_names, tol))
+    title = f"{method} {tol_text(study.config.qoi_names, tol)}"
     with _run_recorded(study, record, earlier):
         result, diagnostics = _follow(events, progress, title)
     outcome = _outcome(study, method=method, sampler=sampler, result=result, diagnostics=diagnostics, clock=clock)
@@ -1747,9 +1745,9 @@ def run_target(
         code_version=__version__, qoi_names=tuple(names), theta=estimation.theta, max_cost=max_cost,
         stage=sampler.stage, initial_samples=estimation.initial_samples,
     )
-    title = f"{target} " + ", ".join(f"{n}={t:g}" for n, t in zip(names, tol))
+    title = f"{target} {tol_text(names, tol)}"
     option = _TARGET_OPTIONS[target]
-    given = ", ".join(f"{n}={t:g}" for n, t in zip(names, tol)) if target == "variance" else f"{tol[0]:g}"
+    given = tol_text(names, tol) if target == "variance" else f"{tol[0]:g}"
     with _run_recorded(study, record, earlier), _naming_options(f"{option} {given}", option):
         result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
     outcome = _target_outcome(study, target=target, sampler=sampler, result=result, request=request,
