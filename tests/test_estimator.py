@@ -814,3 +814,19 @@ def test_the_drivers_integers_refuse_booleans_floats_and_strings(driver, name, v
     # errors.checked_integer, the one integer check of every layer: nothing is converted.
     with pytest.raises(InvalidParameterError, match=rf"^{name}: got .*; allowed: an integer >= \d+$"):
         driver(**{name: value})
+
+
+def test_plain_mc_is_priced_on_the_level_the_tolerance_needs_not_the_runs_finest():
+    """A run taken beyond the level its tolerance needs priced plain MC on its finest level (up to ~20x dearer)."""
+    from rough_uq.multilevel.allocation import mc_run_cost
+
+    for seed in range(3):
+        problem = Synthetic(seed=seed)
+        result, _ = run_quietly(mlmc, problem, tol=0.2, min_finest_level=6, max_level=8)
+        assert result.finest_level >= 6
+        needed = plan(tol=result.tol, rates=result.rates, statistics=result.statistics, theta=0.5, max_level=8,
+                      coarsest_level=None)
+        assert needed.finest_level <= 4  # the true bias 2^-L meets sqrt(theta) tol from level 3 on
+        assert result.mc_cost == mc_run_cost(needed)
+        finest = result.statistics.var_fine[-1, 0] / (0.5 * 0.2**2) * problem.cost(result.finest_level)
+        assert result.mc_cost < finest / 2

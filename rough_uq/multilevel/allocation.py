@@ -66,6 +66,7 @@ from rough_uq.multilevel.statistics import LevelStatistics, _checked_names, _rea
 __all__ = [
     "Plan",
     "fine_cost_share",
+    "mc_run_cost",
     "optimal_samples",
     "plan",
 ]
@@ -176,6 +177,15 @@ class Plan:
     def work_ratio(self) -> float:
         """Predicted cost of plain MC over that of MLMC."""
         return self.mc_cost / self.cost if self.cost > 0 else math.inf
+
+
+def mc_run_cost(prediction: Plan) -> float:
+    """Modelled cost of the plain MC run a plan predicts: ``mc_n_samples`` fine solves on its level, at least 2.
+
+    (A run needs two samples for a variance.) What ``roughuq mc --tol`` forecasts and what an MLMC run's
+    ``mc_cost`` compares with.
+    """
+    return max(prediction.mc_n_samples, 2) * prediction.mc_cost / max(prediction.mc_n_samples, 1)
 
 
 def _check_fraction(name: str, value: object) -> float:

@@ -157,6 +157,7 @@ from rough_uq.multilevel.allocation import (
     _check_fraction,
     _check_tol,
     fine_cost_share,
+    mc_run_cost,
     optimal_samples,
     plan,
 )
@@ -328,8 +329,12 @@ class EstimationResult:
     cost : float
         Total cost of the samples (sum of the sampler's costs).
     mc_cost : float
-        Predicted cost of plain MC for the same tolerance on the finest level
-        (fine solves only; for :func:`mc`, the cost its own estimates predict).
+        Predicted cost of plain MC for the same tolerance (fine solves only),
+        on the level the bias model needs for ``tol``
+        (:func:`~rough_uq.multilevel.allocation.mc_run_cost`): for MLMC the
+        run's own statistics and rates (:func:`rough_uq.mlmc` with a screening:
+        the screening's, as ``roughuq mlmc`` reports it); for :func:`mc`, the
+        cost its own estimates predict.
     statistics : LevelStatistics
         Per-level statistics (for MC: of ``Q`` alone, coarse values ignored).
     rates : Rates or None
@@ -1391,7 +1396,7 @@ def _mlmc_result(run: _MlmcRun, statistics: LevelStatistics) -> EstimationResult
         n_samples=statistics.n_samples,
         levels=statistics.levels,
         cost=hierarchy.spent,
-        mc_cost=_predicted_mc_cost(statistics, driver.gamma, tol, run.options.theta),
+        mc_cost=_predicted_mc_cost(statistics, driver, tol, run.options),
         statistics=statistics,
         rates=driver,
         tol=_readonly(tol),
@@ -1405,7 +1410,22 @@ def _mlmc_result(run: _MlmcRun, statistics: LevelStatistics) -> EstimationResult
     )
 
 
-def _predicted_mc_cost(statistics: LevelStatistics, gamma: float, tol: np.ndarray, theta: float) -> float:
+def _predicted_mc_cost(statistics: LevelStatistics, rates: Rates, tol: np.ndarray, options: _MlmcOptions) -> float:
+    """Cost of plain MC for the same tolerance (fine solves only) on the level the run's bias model needs.
+
+    That level, not the run's finest: the levels a run starts with and its bias test can take it beyond what
+    the tolerance needs, and plain MC priced there came out up to some 20 times dearer. On the finest level
+    where the bias model cannot choose one.
+    """
+    try:
+        prediction = plan(tol=tol, rates=rates, statistics=statistics, theta=options.theta,
+                          max_level=options.max_level, coarsest_level=None)
+    except EstimationError:
+        return _finest_mc_cost(statistics, rates.gamma, tol, options.theta)
+    return mc_run_cost(prediction)
+
+
+def _finest_mc_cost(statistics: LevelStatistics, gamma: float, tol: np.ndarray, theta: float) -> float:
     """Cost of plain MC on the finest level for the same tolerance (fine solves only)."""
     finest = statistics.n_levels - 1
     costs = _fill_costs(statistics.mean_cost, np.ones(statistics.n_levels, dtype=bool), gamma)

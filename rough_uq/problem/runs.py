@@ -22,6 +22,7 @@ the numbers agree to rounding, not bit for bit.)
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
@@ -33,7 +34,7 @@ from rough_uq.errors import (
     EstimationError, InvalidParameterError, checked_integer, is_integer, is_real_number, warn_at_caller,
 )
 from rough_uq.multilevel import drivers
-from rough_uq.multilevel.allocation import _check_fraction, plan
+from rough_uq.multilevel.allocation import _check_fraction, mc_run_cost, plan
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
 from rough_uq.multilevel.rates import Rates, fit_rates
 from rough_uq.multilevel.statistics import (
@@ -380,7 +381,27 @@ def mlmc(
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mlmc")
-    return result
+    screened = None if statistics is None else _screened_mc_cost(problem, screening, statistics, tol, theta)
+    return result if screened is None else dataclasses.replace(result, mc_cost=screened)
+
+
+def _screened_mc_cost(problem: ContactProblem, screening, statistics: LevelStatistics, tol: np.ndarray,
+                      theta: float) -> float | None:
+    """Plain MC's cost for ``tol`` as the screening predicts it, as ``roughuq mlmc`` reports it.
+
+    None where the screening's bias model cannot choose a level (``roughuq mlmc`` refuses such a run; the
+    result keeps the run's own prediction).
+    """
+    rates = screening.rates if isinstance(screening, ScreeningResult) else None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
+        rates = rates if rates is not None else fit_rates(statistics, names=problem.columns)
+        try:
+            prediction = plan(tol=tol, rates=rates, statistics=statistics, theta=theta,
+                              max_level=problem.max_level, coarsest_level=None)
+        except EstimationError:
+            return None
+    return mc_run_cost(prediction)
 
 
 def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, screening, bias):
