@@ -145,3 +145,10 @@ def test_a_progress_without_the_methods_is_refused_by_name(bad):
     with pytest.raises(InvalidParameterError, match="^progress: ") as caught:
         rough_uq.mlmc(_problem(), tol=2.0, progress=bad)
     assert "start, plan, advance and stop" in str(caught.value)
+
+
+def test_a_progress_class_is_refused_with_the_instance_it_needs():
+    """``progress=PlainProgress`` failed inside the run: ``start() missing 1 required positional argument``."""
+    with pytest.raises(InvalidParameterError, match="^progress: ") as caught:
+        rough_uq.mlmc(_problem(), tol=2.0, progress=PlainProgress)
+    assert str(caught.value).endswith("(an instance: PlainProgress(), not the class)")

@@ -81,10 +81,19 @@ _PROGRESS_METHODS = ("start", "plan", "advance", "stop")
 
 
 def _checked_progress(progress: object) -> ProgressReporter | None:
-    """``progress`` if None or a :class:`ProgressReporter`, else :class:`InvalidParameterError` naming it."""
-    if progress is None or all(callable(getattr(progress, name, None)) for name in _PROGRESS_METHODS):
+    """``progress`` if None or a :class:`ProgressReporter`, else :class:`InvalidParameterError` naming it.
+
+    A class (``progress=PlainProgress``, its methods callable too) is refused: its methods would be called
+    without an instance.
+    """
+    is_reporter = not isinstance(progress, type) and all(
+        callable(getattr(progress, name, None)) for name in _PROGRESS_METHODS
+    )
+    if progress is None or is_reporter:
         return progress  # type: ignore[return-value]
     allowed = "None or an object with start, plan, advance and stop, e.g. rough_uq.study.progress.PlainProgress()"
+    if isinstance(progress, type):
+        allowed += f" (an instance: {progress.__name__}(), not the class)"
     raise InvalidParameterError("progress", progress, allowed)
 
 
