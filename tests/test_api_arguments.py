@@ -186,6 +186,27 @@ def test_tolerances_by_name_must_name_every_column_and_no_other_before_sampling(
             assert caught.value.value == value and caught.value.allowed == allowed
 
 
+def test_a_tolerance_sequence_must_have_one_value_per_column():
+    """``tol=[0.5]`` for two QoIs was broadcast to both (0.5 clusters per unit area too): a list reads as one per QoI."""
+    problem, none = _problem(qoi=("contact_area", "mean_gap")), _NoSampling()
+    allowed = ("a number > 0 (for every QoI), a sequence of 2 (one per QoI column: contact_area, mean_gap, in its "
+               "unit), or a mapping of every QoI column to one")
+    for tol in ([0.5], (0.5,), np.array([0.5]), [0.5, 0.5, 0.5], [[0.5, 0.5]]):
+        for call in (
+            lambda: rough_uq.mlmc(problem, tol=tol, executor=none),
+            lambda: rough_uq.mc(problem, tol=tol, level=1, executor=none),
+            lambda: rough_uq.variance(problem, tol=tol, executor=none),
+        ):
+            with pytest.raises(rough_uq.InvalidParameterError) as caught:
+                call()
+            assert caught.value.name == "tol" and caught.value.allowed == allowed
+    single = _problem(qoi=("contact_area",))
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.mlmc(single, tol=[1.0, 2.0], executor=none)
+    assert caught.value.allowed == ("a number > 0 (for every QoI), a sequence of one (one per QoI column: "
+                                    "contact_area), or a mapping of every QoI column to one")
+
+
 def test_a_screening_prints_as_a_one_line_summary(two_qoi_screening):
     # print(screening) dumped every per-level array, some 40 lines of numpy repr.
     text = repr(two_qoi_screening)

@@ -211,19 +211,26 @@ def screen(
 
 
 def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -> np.ndarray:
-    """``tol`` as one tolerance per QoI: a number, ``n_qoi`` numbers, or (``columns`` given) a mapping by column."""
+    """``tol`` as one tolerance per QoI: a number (for all), a sequence of ``n_qoi`` numbers, or (``columns``
+    given) a mapping by column.
+
+    A sequence of another length is refused, one number in a list too: ``[0.5]`` for two QoIs read as one per
+    QoI in column order and was applied to both.
+    """
     if columns is not None and isinstance(tol, Mapping):
         tol = _tolerances_by_name(tol, columns)
     try:
         values = None if isinstance(tol, (str, bytes, bool)) else np.asarray(tol, dtype=float)
     except (TypeError, ValueError):
         values = None
-    if values is not None and values.ndim <= 1 and values.size in (1, n_qoi):
+    if values is not None and (values.ndim == 0 or values.shape == (n_qoi,)):
         values = np.broadcast_to(values.reshape(-1), (n_qoi,)).copy()
         if np.all(np.isfinite(values)) and np.all(values > 0):
             return values
-    by_name = "" if columns is None else f", or a mapping of every QoI column ({', '.join(columns)}) to one"
-    raise InvalidParameterError("tol", tol, f"a number > 0 or {n_qoi} of them (one per QoI, in its unit){by_name}")
+    per_qoi = "one per QoI" if columns is None else f"one per QoI column: {', '.join(columns)}"
+    sequence = f"a sequence of {n_qoi} ({per_qoi}, in its unit)" if n_qoi > 1 else f"a sequence of one ({per_qoi})"
+    by_name = "" if columns is None else ", or a mapping of every QoI column to one"
+    raise InvalidParameterError("tol", tol, f"a number > 0 (for every QoI), {sequence}{by_name}")
 
 
 def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
