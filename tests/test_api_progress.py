@@ -108,6 +108,7 @@ def test_mlmc_and_mc_report_the_estimators_plans_and_their_samples(seed):
         np.testing.assert_array_equal(result.n_samples, silent.n_samples)
 
 
+@pytest.mark.filterwarnings(r"ignore:.*tolerance not met \(max_level\):rough_uq.errors.EstimationWarning")
 def test_variance_and_distribution_report_the_samples_asked_for_as_their_plan():
     problem = _problem()
     progress = _Recorded()

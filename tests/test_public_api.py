@@ -641,7 +641,8 @@ def test_a_tolerance_out_of_reach_is_refused_before_its_samples_are_drawn():
         with pytest.raises(rough_uq.InvalidParameterError) as caught:
             run(max_samples=0)
         assert caught.value.name == "max_samples"
-    result = rough_uq.mlmc(problem, tol=1e-6, max_samples=None, max_cost=0.5)  # a budget instead
+    with pytest.warns(rough_uq.EstimationWarning, match=r"^mlmc: tolerance not met \(max_cost\): RMSE "):
+        result = rough_uq.mlmc(problem, tol=1e-6, max_samples=None, max_cost=0.5)  # a budget instead
     assert result.stop_reason == "max_cost"
 
 

@@ -31,7 +31,7 @@ from rough_uq.multilevel.statistics import _checked_names, _qoi_text
 from rough_uq.multilevel.targets import TargetEstimate
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ProgressReporter
 from rough_uq.problem.columns import tol_text
-from rough_uq.problem.runs import _problem, _reporting, _tolerances, _warn_not_converged, run_id
+from rough_uq.problem.runs import _problem, _reporting, _tolerances, _warn_not_converged, run_id, warn_not_met
 from rough_uq.problem.sampler import run_stage
 
 __all__ = ["DistributionResult", "distribution", "estimate_target", "initial_finest_level", "variance"]
@@ -183,6 +183,8 @@ def variance(
             qoi_names=problem.columns,
         )
     _warn_not_converged(sampler, "variance")
+    warn_not_met("variance", problem.columns, tol_met=result.tol_met, stop_reason=result.stop_reason,
+                 rmse=result.rmse, tol=tol, is_bias_estimated=result.is_bias_estimated)
     return result
 
 
@@ -318,4 +320,6 @@ def distribution(
             max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
         )
     _warn_not_converged(sampler, "distribution")
+    warn_not_met(f"distribution of {name}", None, tol_met=estimate.tol_met, stop_reason=estimate.stop_reason,
+                 rmse=estimate.rmse, tol=tol_array, is_bias_estimated=estimate.is_bias_estimated)
     return DistributionResult(column=name, cdf=estimate)

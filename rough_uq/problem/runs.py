@@ -35,6 +35,7 @@ from rough_uq.errors import (
 )
 from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import _check_fraction, mc_run_cost, plan
+from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
 from rough_uq.multilevel.rates import Rates, fit_rates
 from rough_uq.multilevel.statistics import (
@@ -282,6 +283,40 @@ def _warn_not_converged(sampler: ContactSampler, method: str) -> None:
         )
 
 
+#: What to change when a run stops with this ``stop_reason`` and its tolerance not met (the CLI's advice, in
+#: the Python API's arguments).
+_NOT_MET_ADVICE = {
+    "max_level": "the bias needs a grid finer than the problem's max_level: loosen tol or raise max_level",
+    "max_cost": "the run reached max_cost: raise max_cost or loosen tol",
+    "bias": "the bias on this level exceeds the tolerance's share: loosen tol, sample a finer level or use mlmc",
+    THRESHOLDS_MISS_SAMPLES: ("the thresholds miss the samples of a level (see the warning): put thresholds "
+                                "among the values or raise n_initial"),
+}
+
+
+def warn_not_met(method: str, names: Sequence[str] | None, *, tol_met: bool, stop_reason: str, rmse, tol,
+                 is_bias_estimated: bool = True) -> None:
+    """An :class:`EstimationWarning` when a run ended with its tolerance not met (``roughuq`` exits 3 then).
+
+    A notebook user reading ``estimate`` and ``rmse`` was not told (only ``tol_met`` said so). ``names``: of
+    the columns of ``rmse`` and ``tol``; None for one error without a column (a distribution function's).
+    """
+    if tol_met:
+        return
+    advice = _NOT_MET_ADVICE.get(stop_reason, "loosen tol, or raise max_cost or max_level")
+    if stop_reason == "max_cost" and not is_bias_estimated:
+        advice = "the run reached max_cost before its bias was estimated: raise max_cost or lower n_initial"
+    rmse, tol = np.atleast_1d(rmse), np.atleast_1d(tol)
+    if names is None:
+        errors, tolerances = ", ".join(f"{e:.3g}" for e in rmse), ", ".join(f"{e:g}" for e in tol)
+    else:
+        errors, tolerances = tol_text(names, rmse, digits=3), tol_text(names, tol)
+    warn_at_caller(
+        f"{method}: tolerance not met ({stop_reason}): RMSE {errors} against tol {tolerances}; {advice}",
+        EstimationWarning,
+    )
+
+
 def mlmc(
     problem: ContactProblem,
     *,
@@ -388,6 +423,8 @@ def mlmc(
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mlmc")
+    warn_not_met("mlmc", problem.columns, tol_met=result.tol_met, stop_reason=result.stop_reason,
+                 rmse=result.rmse, tol=tol)
     screened = None if statistics is None else _screened_mc_cost(problem, screening, statistics, tol, theta)
     return result if screened is None else dataclasses.replace(result, mc_cost=screened)
 
@@ -515,6 +552,8 @@ def mc(
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mc")
+    warn_not_met("mc", problem.columns, tol_met=result.tol_met, stop_reason=result.stop_reason,
+                 rmse=result.rmse, tol=tol)
     return result
 
 
