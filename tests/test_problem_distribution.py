@@ -181,3 +181,20 @@ def test_a_negative_variance_estimate_is_returned_with_a_warning():
     assert bare.estimate[0] == result.estimate[0]
     with pytest.raises(rough_uq.InvalidParameterError, match="^qoi_names"):
         estimate_target(problem.sampler(stage), target="variance", tol=np.array([100.0]), max_level=2, qoi_names="a")
+
+
+@NOT_MET_IS_BESIDE_THE_POINT
+def test_printed_results_are_one_line_summaries_with_tol_met():
+    """print(distribution(...)) gave some 25 000 characters of arrays, and not whether the tolerance was met."""
+    problem = _problem(qoi=["contact_area", "mean_gap"])
+    law = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(10, 60, 121), n_initial=8)
+    text = repr(law)
+    assert "\n" not in text and len(text) < 300
+    assert text.startswith("DistributionResult(column='contact_area', cdf=CdfEstimate(thresholds=<121 from 10 to 60>, "
+                           f"rmse={law.cdf.rmse:.3g}, tol=0.2, tol_met={law.cdf.tol_met}, "
+                           f"stop_reason='{law.cdf.stop_reason}', levels=")
+    spread = rough_uq.variance(problem, tol=20.0, n_initial=8)
+    text = repr(spread)
+    assert "\n" not in text and len(text) < 300 and str(spread) == text
+    assert f"tol=[20, 20], tol_met={spread.tol_met}, stop_reason='{spread.stop_reason}'" in text
+    assert repr(law.cdf.target).startswith("TargetEstimate(estimate=<121 values>, rmse=[")  # one per threshold

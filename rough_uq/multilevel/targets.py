@@ -246,6 +246,27 @@ class TargetEstimate:
         """``L``."""
         return int(self.levels[-1])
 
+    def __repr__(self) -> str:
+        # One line for notebooks and print(): the per-level term arrays (a CDF's have a column per threshold)
+        # stay in the attributes.
+        return (
+            f"TargetEstimate(estimate={_summary(self.estimate)}, rmse={_summary(self.rmse)}, "
+            f"tol={_summary(self.tol)}, tol_met={self.tol_met}, stop_reason={self.stop_reason!r}, "
+            f"levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()})"
+        )
+
+
+#: Arrays of up to this many values are shown in a summary (:func:`_summary`), longer ones by their size.
+_SHOWN_VALUES = 6
+
+
+def _summary(values: np.ndarray) -> str:
+    """``[1.23, 4.56]`` (three significant digits), or ``<121 values>`` for a long array."""
+    values = np.atleast_1d(np.asarray(values, dtype=float))
+    if values.size > _SHOWN_VALUES:
+        return f"<{values.size} values>"
+    return "[" + ", ".join(f"{value:.3g}" for value in values) + "]"
+
 
 # --------------------------------------------------------------------------
 # Rates and bias of a hierarchy of terms
