@@ -1481,6 +1481,8 @@ def show(study_path: str, stage: str, level: int, index: int, load_text: str | N
     from rough_uq.report.figures import write_sample_figure
 
     _check_output_file("--out", out)
+    if Path(out).suffix.lower() != ".png":  # it wrote PNG bytes into x.pdf, and into x
+        raise InvalidParameterError("--out", out, "a file name ending in .png (the figure is written as PNG)")
     with open_existing_study(study_path, writable=False) as study:
         if level > study.config.grid.max_level:
             raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")

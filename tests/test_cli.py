@@ -439,6 +439,12 @@ def test_report_plots_and_show_write_figures(screened):
     assert (screened / "sample" / "fig.png").stat().st_size > 1000
     result = run("show", "--level", "9", "--index", "0", "--out", "x.png", expect=2)
     assert "--level" in result.stderr
+    for out in ("x.pdf", "x", "x.png.svg"):  # PNG bytes were written into these
+        line = run("show", "--level", "2", "--index", "3", "--out", out, expect=2).stderr.strip()
+        assert line == f"error: --out: got {out!r}; allowed: a file name ending in .png (the figure is written as PNG)"
+        assert not (screened / out).exists()
+    run("show", "--level", "2", "--index", "3", "--out", "upper.PNG")
+    assert (screened / "upper.PNG").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_show_draws_the_load_of_a_curve_that_load_names(tmp_path, monkeypatch):
