@@ -371,6 +371,12 @@ def test_report_shows_the_load_curve_table_and_kappa(curve_study, tmp_path):
 
     output = CliRunner().invoke(main, ["report", str(curve_study), "--plots", str(tmp_path)]).output
     assert "Load curve of" in output and "kappa =" in output and "contact_area@0.02" in output
+    # One small load gives no fit, only the line through it (the report said "fitted ... on the 1 load(s)").
+    for entry in curves:
+        n_points = entry["kappa"]["n_points"]
+        assert (f"fitted through 0\n  on the {n_points} loads with A/A0 < 0.1;" in output) == (n_points > 1)
+        assert ("from the only load with A/A0 < 0.1\n  (no fit: the line through 0 and that load; smaller loads "
+                "in the curve make it one);" in output) == (n_points == 1)
     assert (tmp_path / "load_curve.png").read_bytes().startswith(b"\x89PNG")
 
 

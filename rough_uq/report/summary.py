@@ -916,8 +916,16 @@ def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: di
         fit = entry.get("kappa")
         if fit is not None:
             console.print(
-                f"  kappa = {_value_error(fit['kappa'], fit['error'])} in A/A0 = kappa p/(E* sqrt(m2)), fitted "
-                f"through 0\n  on the {fit['n_points']} load(s) with A/A0 < {fit['max_area']:g}; Persson's theory: "
-                f"sqrt(8/pi) = {math.sqrt(8 / math.pi):.3f}, numerical studies: about 2",
+                f"  kappa = {_value_error(fit['kappa'], fit['error'])} in A/A0 = kappa p/(E* sqrt(m2)), "
+                f"{_slope_source(fit)}; Persson's theory: sqrt(8/pi) = {math.sqrt(8 / math.pi):.3f}, numerical "
+                "studies: about 2",
                 highlight=False,
             )
+
+
+def _slope_source(fit: dict[str, Any]) -> str:
+    """Where ``kappa`` comes from: a fit through 0 on several small loads, or the ratio at the only one."""
+    if fit["n_points"] == 1:
+        return (f"from the only load with A/A0 < {fit['max_area']:g}\n  (no fit: the line through 0 and that load; "
+                "smaller loads in the curve make it one)")
+    return f"fitted through 0\n  on the {fit['n_points']} loads with A/A0 < {fit['max_area']:g}"
