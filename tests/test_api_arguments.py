@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import warnings
 
 import numpy as np
@@ -205,6 +207,27 @@ def test_a_tolerance_sequence_must_have_one_value_per_column():
         rough_uq.mlmc(single, tol=[1.0, 2.0], executor=none)
     assert caught.value.allowed == ("a number > 0 (for every QoI), a sequence of one (one per QoI column: "
                                     "contact_area), or a mapping of every QoI column to one")
+
+
+def test_a_screening_of_another_problem_is_refused_naming_what_differs():
+    """A screening of another load and grid planned (and pooled its variances into) the run without a word."""
+    problem = dataclasses.replace(_problem(), max_level=3)
+    screening = rough_uq.screen(problem, levels=3, samples=3)
+    none = _NoSampling()
+    other = dataclasses.replace(problem, load=rough_uq.RelativeLoad(0.3), coarsest=2 * problem.coarsest)
+    allowed = "a screening of this problem, rough_uq.screen(problem) (it may differ in seed, max_level, threads only)"
+    for call in (lambda: rough_uq.mlmc(other, tol=2.0, screening=screening, executor=none),
+                 lambda: rough_uq.mc(other, tol=2.0, screening=screening, executor=none)):
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            call()
+        assert caught.value.name == "screening" and caught.value.allowed == allowed
+        assert caught.value.value == "a screening of another problem (it differs in load, coarsest)"
+    # Another seed draws other samples of the same problem, and a run may stop at another finest level.
+    same = dataclasses.replace(problem, seed=problem.seed + 1, max_level=4)
+    result = rough_uq.mlmc(same, tol=2.0, screening=screening)
+    assert result.tol_met
+    # Statistics alone carry no problem: nothing to check.
+    rough_uq.mlmc(problem, tol=2.0, screening=screening.statistics)
 
 
 def test_a_screening_prints_as_a_one_line_summary(two_qoi_screening):

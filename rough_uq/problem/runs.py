@@ -100,12 +100,17 @@ class ScreeningResult:
     diagnostics : tuple of str
         Failed checks of :func:`~rough_uq.multilevel.statistics.diagnose`
         (consistency, kurtosis, coupling), in words; empty when all pass.
+    problem : ContactProblem or None
+        The problem screened; :func:`mlmc` and :func:`mc` refuse the
+        screening for a problem that differs in more than
+        :data:`SCREENING_FREE_FIELDS`.
     """
 
     statistics: LevelStatistics
     rates: Rates
     n_not_converged: int
     diagnostics: tuple[str, ...]
+    problem: ContactProblem | None = None
 
     @property
     def levels(self) -> np.ndarray:
@@ -208,6 +213,7 @@ def screen(
         rates=fit_rates(statistics, names=problem.columns),
         n_not_converged=sampler.n_not_converged,
         diagnostics=tuple(diagnose(statistics, names=problem.columns)),
+        problem=problem,
     )
 
 
@@ -255,6 +261,34 @@ def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
         if not (is_real_number(tol[key]) and math.isfinite(tol[key]) and tol[key] > 0):
             raise InvalidParameterError("tol", f"{key}: {tol[key]!r}", "a finite number > 0 for every key")
     return [tol[key] for key in keys]
+
+
+#: The fields of a :class:`ContactProblem` in which a run's problem may differ from the problem its screening
+#: screened: they do not change the distribution of a level's samples. Any other difference (grids, load,
+#: surface, QoIs, solver) makes the screening's level statistics, which a run pools and plans with, another
+#: problem's.
+SCREENING_FREE_FIELDS = ("seed", "max_level", "threads")
+
+
+def _screening_of(problem: ContactProblem, screening: object) -> LevelStatistics | None:
+    """The statistics of ``screening`` (None without one); refused if of another number of QoIs or another problem."""
+    statistics = _screening_statistics(screening)
+    if statistics is None:
+        return None
+    _check_qoi_count(problem, "screening", statistics.n_qoi)
+    screened = getattr(screening, "problem", None)
+    if screened is None:
+        return statistics
+    differing = [f.name for f in dataclasses.fields(ContactProblem)
+                 if f.compare and f.name not in SCREENING_FREE_FIELDS
+                 and getattr(screened, f.name) != getattr(problem, f.name)]
+    if differing:
+        raise InvalidParameterError(
+            "screening", f"a screening of another problem (it differs in {', '.join(differing)})",
+            f"a screening of this problem, rough_uq.screen(problem) (it may differ in "
+            f"{', '.join(SCREENING_FREE_FIELDS)} only)",
+        )
+    return statistics
 
 
 def _screening_statistics(screening: object) -> LevelStatistics | None:
@@ -396,9 +430,7 @@ def mlmc(
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
     max_samples = _max_samples(max_samples)
-    statistics = _screening_statistics(screening)
-    if statistics is not None:
-        _check_qoi_count(problem, "screening", statistics.n_qoi)
+    statistics = _screening_of(problem, screening)
     if isinstance(rates, Rates):
         _check_qoi_count(problem, "rates", rates.n_qoi)
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
@@ -529,9 +561,7 @@ def mc(
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
     max_samples = _max_samples(max_samples)
-    statistics = _screening_statistics(screening)
-    if statistics is not None:
-        _check_qoi_count(problem, "screening", statistics.n_qoi)
+    statistics = _screening_of(problem, screening)
     mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
     stage = run_stage("mc", run_id("mc", problem.columns, tol, theta, level))
     sampler = problem.sampler(stage, executor=executor, progress=progress)
