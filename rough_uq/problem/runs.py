@@ -134,7 +134,7 @@ class ScreeningResult:
 
 def _rounded(values: np.ndarray) -> list[float]:
     """Three significant digits of each value, for a summary."""
-    return [float(f"{value:.3g}") for value in np.asarray(values, dtype=float)]
+    return [float(f"{value:.3g}") + 0.0 for value in np.asarray(values, dtype=float)]  # + 0.0: no -0.0
 
 
 def _problem(problem: object) -> ContactProblem:
@@ -208,13 +208,25 @@ def screen(
         cost=[modelled_cost(problem.model, b.level, b.n_iter) for b in batches],
         levels=list(range(levels)),
     )
+    rates = fit_rates(statistics, names=problem.columns)
     return ScreeningResult(
         statistics=statistics,
-        rates=fit_rates(statistics, names=problem.columns),
+        rates=rates,
         n_not_converged=sampler.n_not_converged,
-        diagnostics=tuple(diagnose(statistics, names=problem.columns)),
+        diagnostics=(*diagnose(statistics, names=problem.columns), *_stalled_bias(problem.columns, rates)),
         problem=problem,
     )
+
+
+def _stalled_bias(columns: Sequence[str], rates: Rates) -> tuple[str, ...]:
+    """The screening's diagnostic for QoIs whose bias does not decay (``roughuq screen`` warns, ``mlmc`` refuses)."""
+    # (+ 0.0: a fitted -0.0 reads "alpha = 0", not "-0".)
+    stalled = [f"{name} (alpha = {a + 0.0:.2g})" for name, a in zip(columns, np.atleast_1d(rates.alpha)) if not a > 0]
+    if not stalled:
+        return ()
+    return (f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, so "
+            "no finest level can be chosen from this screening (roughuq mlmc refuses it); screen finer grids "
+            "(a larger coarsest), or use mc(level=...) (bias not estimated)",)
 
 
 def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -> np.ndarray:

@@ -343,7 +343,7 @@ def _g(value: float | None, digits: int = 3) -> str:
         return "-"
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
-    return f"{value:.{digits}g}"
+    return f"{value + 0.0:.{digits}g}"  # + 0.0: a fitted -0.0 reads "0", not "-0"
 
 
 def _pm(value: float, error: float) -> str:

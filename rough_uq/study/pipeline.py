@@ -719,7 +719,7 @@ def _base_tolerance(config: StudyConfig, statistics: LevelStatistics) -> np.ndar
 def _no_prediction(names: Sequence[str], rates: Rates, exc: Exception) -> str:
     """Why the screening predicts no cost, in words (the QoIs whose bias does not decay, by name)."""
     alpha = np.atleast_1d(rates.alpha)
-    stalled = [f"{name} (alpha = {a:.2g})" for name, a in zip(names, alpha) if not a > 0]
+    stalled = [f"{name} (alpha = {a + 0.0:.2g})" for name, a in zip(names, alpha) if not a > 0]
     if stalled:
         return (f"no cost prediction: the bias of {', '.join(stalled)} does not decrease from level to level "
                 "on the screened grids, so no finest grid can be chosen; screen finer grids (screening.levels, "
@@ -1035,7 +1035,7 @@ def check_initial_samples(config: StudyConfig, *, n_levels: int, run: str, sourc
 
 def _stalled(names: Sequence[str], rates: Rates) -> list[str]:
     """The QoIs whose fitted bias does not decay, with their ``alpha``, in words."""
-    return [f"{name} (alpha = {a:.2g})" for name, a in zip(names, np.atleast_1d(rates.alpha)) if not a > 0]
+    return [f"{name} (alpha = {a + 0.0:.2g})" for name, a in zip(names, np.atleast_1d(rates.alpha)) if not a > 0]
 
 
 def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_screened: int) -> EstimationError:
