@@ -278,3 +278,11 @@ def test_a_screening_whose_bias_does_not_decay_says_so_in_its_diagnostics():
         "level can be chosen from this screening (roughuq mlmc refuses it); screen finer grids (a larger coarsest), "
         "or use mc(level=...) (bias not estimated)")
     assert "alpha=[" in repr(screening) and "-0.0" not in repr(screening)
+
+
+def test_a_result_names_its_columns():
+    """The per-QoI arrays of a result had to be matched against problem.columns by hand."""
+    problem = _problem(qoi=("contact_area", "mean_gap"))
+    for result in (rough_uq.mlmc(problem, tol=[4.0, 0.1], n_initial=4), rough_uq.mc(problem, tol=[4.0, 0.1], level=1)):
+        assert result.qoi_names == problem.columns == ("contact_area", "mean_gap")
+        assert "qoi_names=('contact_area', 'mean_gap')" in repr(result)

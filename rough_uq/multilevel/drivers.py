@@ -368,6 +368,9 @@ class EstimationResult:
         Why the extrapolation was refused ("" otherwise).
     dropped_levels : tuple of DroppedLevel
         MLMC: coarse levels left out (``levels`` then starts above 0) and why.
+    qoi_names : tuple of str or None
+        Names of the QoI columns of the per-QoI fields, in order (the run's
+        ``qoi_names``; a contact problem's columns), None if not given.
     """
 
     method: str
@@ -390,6 +393,7 @@ class EstimationResult:
     richardson: str = "off"
     richardson_reason: str = ""
     dropped_levels: tuple[DroppedLevel, ...] = ()
+    qoi_names: tuple[str, ...] | None = None
 
     @property
     def rmse(self) -> float | np.ndarray:
@@ -1407,6 +1411,7 @@ def _mlmc_result(run: _MlmcRun, statistics: LevelStatistics) -> EstimationResult
         richardson={"active": "applied", "refused": "refused"}.get(run.extrapolation, "off"),
         richardson_reason=run.refusal,
         dropped_levels=run.dropped,
+        qoi_names=run.options.qoi_names,
     )
 
 
@@ -1742,6 +1747,7 @@ def _mc_result(run: _McRun) -> EstimationResult:
         tol_met=run.is_tol_met(),
         stop_reason=run.stop_reason,
         is_bias_estimated=run.bias is not None,
+        qoi_names=run.options.qoi_names,
     )
 
 
