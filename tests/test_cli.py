@@ -280,6 +280,16 @@ def test_a_shard_says_it_is_one_and_is_refused_as_a_study(screened):
     assert merged == {**stored, "0": stored["0"] + 3}
 
 
+def test_report_on_a_config_says_it_is_one(screened):
+    """`roughuq report tiny.yaml` said only "not an HDF5 file"."""
+    line = run("report", "tiny.yaml", expect=2).stderr.strip()
+    assert line == ("error: tiny.yaml is not an HDF5 file (so not a roughuq study file); it looks like a config: "
+                    "`roughuq screen tiny.yaml` creates its study file")
+    (screened / "notes.txt").write_text("a text file\n")
+    assert run("report", "notes.txt", expect=2).stderr.strip() == (
+        "error: notes.txt is not an HDF5 file (so not a roughuq study file)")
+
+
 def test_the_forecast_counts_the_samples_merged_shards_already_stored(screened):
     """After the shards were merged, the finishing run forecast the whole plan's time though it computed nothing."""
     plan = json.loads(run("mlmc", "--tol", "5", "--plan", "--json").output)

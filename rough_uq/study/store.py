@@ -822,7 +822,9 @@ def _read_header(path: Path) -> dict[str, Any]:
     except OSError as exc:
         raise StudyFileError(f"{path} cannot be read ({exc})", path) from None
     if not is_hdf5:
-        raise StudyFileError(f"{path} is not an HDF5 file (so not a roughuq study file)", path)
+        hint = (f"; it looks like a config: `roughuq screen {path}` creates its study file"
+                if path.suffix.lower() in (".yaml", ".yml") else "")
+        raise StudyFileError(f"{path} is not an HDF5 file (so not a roughuq study file){hint}", path)
     try:
         with _open_checked(path) as f:
             found = f.attrs.get("format")
