@@ -221,11 +221,20 @@ def test_a_screening_of_another_problem_is_refused_naming_what_differs():
         with pytest.raises(rough_uq.InvalidParameterError) as caught:
             call()
         assert caught.value.name == "screening" and caught.value.allowed == allowed
-        assert caught.value.value == "a screening of another problem (it differs in load, coarsest)"
+        assert caught.value.value == "a screening of another problem (it differs in coarsest, load)"
+    fraction = dataclasses.replace(problem, units={"contact_area": "fraction"})
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.mlmc(fraction, tol=0.02, screening=screening, executor=none)
+    assert caught.value.value == "a screening of another problem (it differs in units)"
     # Another seed draws other samples of the same problem, and a run may stop at another finest level.
     same = dataclasses.replace(problem, seed=problem.seed + 1, max_level=4)
     result = rough_uq.mlmc(same, tol=2.0, screening=screening)
     assert result.tol_met
+    # The same problem spelled otherwise: a list of one load, the default unit written out, settings of QoIs
+    # it does not compute.
+    for spelled in (dict(load=[rough_uq.RelativeLoad(0.2)]), dict(units={"contact_area": "percent"}),
+                    dict(connectivity=8), dict(critical_pressure=0.5)):
+        rough_uq.mlmc(dataclasses.replace(problem, **spelled), tol=2.0, screening=screening)
     # Statistics alone carry no problem: nothing to check.
     rough_uq.mlmc(problem, tol=2.0, screening=screening.statistics)
 

@@ -276,10 +276,15 @@ def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
 
 
 #: The fields of a :class:`ContactProblem` in which a run's problem may differ from the problem its screening
-#: screened: they do not change the distribution of a level's samples. Any other difference (grids, load,
-#: surface, QoIs, solver) makes the screening's level statistics, which a run pools and plans with, another
-#: problem's.
+#: screened: they do not change the distribution of a level's samples. Any other difference that changes the
+#: samples (grids, load, surface, QoIs and units, solver) makes the screening's level statistics, which a run
+#: pools and plans with, another problem's; settings no QoI uses (``connectivity`` without ``clusters``, ...)
+#: and spellings of the same problem (a load or a list of one, a default unit written out) do not count.
 SCREENING_FREE_FIELDS = ("seed", "max_level", "threads")
+
+#: The :class:`ContactProblem` field that sets each field of its sample model, where the names differ.
+_PROBLEM_FIELD = {"mean_pressure": "load", "mean_pressures": "load", "qoi_names": "qoi", "qoi_scales": "units",
+                  "tol": "solver_tol"}
 
 
 def _screening_of(problem: ContactProblem, screening: object) -> LevelStatistics | None:
@@ -291,9 +296,9 @@ def _screening_of(problem: ContactProblem, screening: object) -> LevelStatistics
     screened = getattr(screening, "problem", None)
     if screened is None:
         return statistics
-    differing = [f.name for f in dataclasses.fields(ContactProblem)
-                 if f.compare and f.name not in SCREENING_FREE_FIELDS
-                 and getattr(screened, f.name) != getattr(problem, f.name)]
+    ours, theirs = _sample_identity(problem), _sample_identity(screened)
+    differing = dict.fromkeys(_PROBLEM_FIELD.get(f.name, f.name) for f in dataclasses.fields(ours)
+                              if f.compare and getattr(ours, f.name) != getattr(theirs, f.name))
     if differing:
         raise InvalidParameterError(
             "screening", f"a screening of another problem (it differs in {', '.join(differing)})",
@@ -301,6 +306,19 @@ def _screening_of(problem: ContactProblem, screening: object) -> LevelStatistics
             f"{', '.join(SCREENING_FREE_FIELDS)} only)",
         )
     return statistics
+
+
+def _sample_identity(problem: ContactProblem):
+    """What decides the distribution of ``problem``'s samples: its sample model without seed and threads, and
+    without the settings of QoIs it does not compute."""
+    model = problem.model
+    qoi = set(model.qoi_names)
+    return dataclasses.replace(
+        model, seed=0, threads=1,
+        connectivity=model.connectivity if "clusters" in qoi else 4,
+        critical_pressure=model.critical_pressure if "area_above" in qoi else None,
+        area_estimator=model.area_estimator if "contact_area" in qoi else "corrected",
+    )
 
 
 def _screening_statistics(screening: object) -> LevelStatistics | None:
