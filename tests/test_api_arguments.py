@@ -295,3 +295,24 @@ def test_a_result_names_its_columns():
     for result in (rough_uq.mlmc(problem, tol=[4.0, 0.1], n_initial=4), rough_uq.mc(problem, tol=[4.0, 0.1], level=1)):
         assert result.qoi_names == problem.columns == ("contact_area", "mean_gap")
         assert "qoi_names=('contact_area', 'mean_gap')" in repr(result)
+
+
+def test_a_run_stopped_by_its_budget_says_what_to_change():
+    """The warning said "loosen tol" where no tolerance mattered yet, and grouped the RMSEs as if tolerances."""
+    loads = [rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(0.2)]
+    problem = dataclasses.replace(_problem(), load=loads)
+
+    def not_met(run) -> str:
+        with pytest.warns(rough_uq.EstimationWarning, match="tolerance not met") as caught:
+            result = run()
+        (message,) = [str(w.message) for w in caught if "tolerance not met" in str(w.message)]
+        errors = ", ".join(f"{name}={e:.3g}" for name, e in zip(problem.columns, result.rmse))
+        assert f"RMSE {errors} (bias not estimated) against tol contact_area=1; " in message  # each column's own
+        return message
+
+    message = not_met(lambda: rough_uq.mlmc(problem, tol=1.0, n_initial=8, max_cost=1e-9))
+    assert message.endswith("the run reached max_cost before its bias was estimated: raise max_cost or lower "
+                            "n_initial")
+    message = not_met(lambda: rough_uq.mc(problem, tol=1.0, level=1, n_initial=8, max_cost=1e-9))
+    assert message.endswith("the run reached max_cost before its first n_initial samples: raise max_cost or lower "
+                            "n_initial")

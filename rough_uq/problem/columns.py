@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 
-__all__ = ["LOAD_SEPARATOR", "load_label", "column_name", "split_column", "tol_text"]
+__all__ = ["LOAD_SEPARATOR", "load_label", "column_name", "split_column", "tol_text", "values_text"]
 
 #: Separates the QoI name from the load in the name of a load-curve column.
 LOAD_SEPARATOR = "@"
@@ -37,8 +37,8 @@ def tol_text(names: Sequence[str], values: Iterable[float], *, digits: int | Non
     The columns of a load curve are grouped by QoI: the value most of its
     loads share, then the columns set apart, ``mean_gap=0.05,
     mean_gap@0.02=0.1`` (not one ``name@load=eps`` per column, which made a
-    line of hundreds of characters). Distinct values give distinct texts.
-    Values are written with ``%g``, or with ``digits`` significant digits.
+    line of hundreds of characters). Values are written with ``%g``, or with
+    ``digits`` significant digits, and grouped as written.
     """
     form = "g" if digits is None else f".{digits}g"
     columns: dict[str, list[tuple[str, float]]] = {}
@@ -49,7 +49,13 @@ def tol_text(names: Sequence[str], values: Iterable[float], *, digits: int | Non
         if len(pairs) == 1:
             parts.append(f"{pairs[0][0]}={pairs[0][1]:{form}}")
             continue
-        values = [value for _, value in pairs]
-        common = max(values, key=values.count)
-        parts += [f"{qoi}={common:{form}}"] + [f"{name}={value:{form}}" for name, value in pairs if value != common]
+        shown = [format(value, form) for _, value in pairs]
+        common = max(shown, key=shown.count)
+        parts += [f"{qoi}={common}"] + [f"{name}={text}" for (name, _), text in zip(pairs, shown) if text != common]
     return ", ".join(parts)
+
+
+def values_text(names: Sequence[str], values: Iterable[float], *, digits: int = 3) -> str:
+    """Values that are not tolerances (errors, biases) per column, each under its own name: ``contact_area@0.1=1.2,
+    contact_area@0.2=0.8`` (grouped as :func:`tol_text` does, one of them would read as the QoI's)."""
+    return ", ".join(f"{name}={float(value):.{digits}g}" for name, value in zip(names, values))

@@ -47,7 +47,7 @@ from rough_uq.multilevel.statistics import (
 )
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter
-from rough_uq.problem.columns import split_column, tol_text
+from rough_uq.problem.columns import split_column, tol_text, values_text
 from rough_uq.problem.sampler import modelled_cost, run_stage
 
 __all__ = ["MIN_SCREENED_LEVELS", "ScreeningResult", "mc", "mlmc", "run_id", "screen"]
@@ -359,24 +359,27 @@ _NOT_MET_ADVICE = {
 
 
 def warn_not_met(method: str, names: Sequence[str] | None, *, tol_met: bool, stop_reason: str, rmse, tol,
-                 is_bias_estimated: bool = True) -> None:
+                 is_bias_estimated: bool = True, advice: str | None = None) -> None:
     """An :class:`EstimationWarning` when a run ended with its tolerance not met (``roughuq`` exits 3 then).
 
     A notebook user reading ``estimate`` and ``rmse`` was not told (only ``tol_met`` said so). ``names``: of
     the columns of ``rmse`` and ``tol``; None for one error without a column (a distribution function's).
+    ``advice`` replaces the advice of ``stop_reason`` (:data:`_NOT_MET_ADVICE`).
     """
     if tol_met:
         return
-    advice = _NOT_MET_ADVICE.get(stop_reason, "loosen tol, or raise max_cost or max_level")
-    if stop_reason == "max_cost" and not is_bias_estimated:
+    if advice is None and stop_reason == "max_cost" and not is_bias_estimated:
         advice = "the run reached max_cost before its bias was estimated: raise max_cost or lower n_initial"
+    if advice is None:
+        advice = _NOT_MET_ADVICE.get(stop_reason, "loosen tol, or raise max_cost or max_level")
     rmse, tol = np.atleast_1d(rmse), np.atleast_1d(tol)
     if names is None:
         errors, tolerances = ", ".join(f"{e:.3g}" for e in rmse), ", ".join(f"{e:g}" for e in tol)
     else:
-        errors, tolerances = tol_text(names, rmse, digits=3), tol_text(names, tol)
+        errors, tolerances = values_text(names, rmse), tol_text(names, tol)
+    unestimated = "" if is_bias_estimated else " (bias not estimated)"
     warn_at_caller(
-        f"{method}: tolerance not met ({stop_reason}): RMSE {errors} against tol {tolerances}; {advice}",
+        f"{method}: tolerance not met ({stop_reason}): RMSE {errors}{unestimated} against tol {tolerances}; {advice}",
         EstimationWarning,
     )
 
@@ -486,7 +489,7 @@ def mlmc(
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mlmc")
     warn_not_met("mlmc", problem.columns, tol_met=result.tol_met, stop_reason=result.stop_reason,
-                 rmse=result.rmse, tol=tol)
+                 rmse=result.rmse, tol=tol, is_bias_estimated=result.is_bias_estimated)
     screened = None if statistics is None else _screened_mc_cost(problem, screening, statistics, tol, theta)
     return result if screened is None else dataclasses.replace(result, mc_cost=screened)
 
@@ -533,6 +536,19 @@ def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, scr
     except EstimationError as error:
         raise EstimationError(f"{error}; pass level= to sample a level of your choice") from error
     return prediction.finest_level, prediction.bias if bias is None else bias
+
+
+def _mc_advice(result: EstimationResult, n_initial: int) -> str | None:
+    """What to change for an MC run that ``max_cost`` stopped (None otherwise: the advice of its stop reason).
+
+    Plain MC estimates no bias, so not "before its bias was estimated"; before its first ``n_initial`` samples,
+    a looser tolerance changes nothing.
+    """
+    if result.stop_reason != "max_cost":
+        return None
+    if int(np.sum(result.n_samples)) < n_initial:
+        return "the run reached max_cost before its first n_initial samples: raise max_cost or lower n_initial"
+    return _NOT_MET_ADVICE["max_cost"]
 
 
 def mc(
@@ -613,7 +629,8 @@ def mc(
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mc")
     warn_not_met("mc", problem.columns, tol_met=result.tol_met, stop_reason=result.stop_reason,
-                 rmse=result.rmse, tol=tol)
+                 rmse=result.rmse, tol=tol, is_bias_estimated=result.is_bias_estimated,
+                 advice=_mc_advice(result, n_initial))
     return result
 
 

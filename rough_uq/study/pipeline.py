@@ -88,7 +88,7 @@ from rough_uq.study.records import (
     read_screening_record,
     utc_timestamp,
 )
-from rough_uq.problem.columns import tol_text
+from rough_uq.problem.columns import tol_text, values_text
 from rough_uq.problem.contact import checked_mean_pressures
 from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
@@ -1051,7 +1051,7 @@ def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_sc
     return EstimationError(
         f"--tol {tol_text(names, tol, digits=3)} cannot be reached: on the finest grid allowed "
         f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
-        f"screening predicts a bias of {tol_text(names, bias, digits=3)}; the smallest reachable tolerance is about "
+        f"screening predicts a bias of {values_text(names, bias)}; the smallest reachable tolerance is about "
         f"{tol_text(names, reachable, digits=3)}, a prediction from {n_screened} screened samples "
         "per level (a run estimates the bias from its own samples and may find it larger: then it stops at "
         "grid.max_level, tolerance not met); or screen a study with a larger grid.max_level"
