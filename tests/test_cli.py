@@ -271,7 +271,10 @@ def test_a_shard_says_it_is_one_and_is_refused_as_a_study(screened):
                "to their study with `roughuq merge --into STUDY shard.h5` and run there")
     for command in (("mlmc", "--tol", "5", "--study", "shard.h5", "--workers", "1"),
                     ("screen", "tiny.yaml", "--out", "shard.h5", "--workers", "1"),
-                    ("merge", "--into", "shard.h5", "shard.h5")):
+                    ("merge", "--into", "shard.h5", "shard.h5"),
+                    # Read only, they told to finish the shard's screening with `screen --out shard.h5`.
+                    ("mlmc", "--tol", "5", "--study", "shard.h5", "--plan"),
+                    ("mc", "--tol", "5", "--study", "shard.h5", "--plan")):
         assert run(*command, expect=2).stderr.strip().splitlines()[-1] == refusal, command
     assert (screened / "shard.h5").read_bytes() == before
     stored = json.loads(run("report", "results.h5", "--json").output)["samples"]["screening"]
@@ -283,8 +286,14 @@ def test_a_shard_says_it_is_one_and_is_refused_as_a_study(screened):
 def test_report_on_a_config_says_it_is_one(screened):
     """`roughuq report tiny.yaml` said only "not an HDF5 file"."""
     line = run("report", "tiny.yaml", expect=2).stderr.strip()
-    assert line == ("error: tiny.yaml is not an HDF5 file (so not a roughuq study file); it looks like a config: "
-                    "`roughuq screen tiny.yaml` creates its study file")
+    hint = ("it looks like a config: a study file is the HDF5 file `roughuq screen CONFIG` writes (the config's "
+            "output.path, or --out)")
+    assert line == f"error: tiny.yaml is not an HDF5 file (so not a roughuq study file); {hint}"
+    # Where the config was given as the study to write, the same words hold.
+    before = (screened / "tiny.yaml").read_text()
+    line = run("screen", "tiny.yaml", "--out", "tiny.yaml", expect=2).stderr.strip()
+    assert line == f"error: tiny.yaml is not an HDF5 file (so not a roughuq study file); {hint}"
+    assert (screened / "tiny.yaml").read_text() == before
     (screened / "notes.txt").write_text("a text file\n")
     assert run("report", "notes.txt", expect=2).stderr.strip() == (
         "error: notes.txt is not an HDF5 file (so not a roughuq study file)")

@@ -106,7 +106,7 @@ from rough_uq.problem.sampler import (
 from rough_uq.multilevel.allocation import Plan, plan
 from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
-from rough_uq.study.store import StudyStore, open_study, open_study_readonly, remove_abandoned
+from rough_uq.study.store import StudyStore, open_study, open_study_readonly, remove_abandoned, shard_refusal
 from rough_uq.physics.surface import SurfaceSpectrum
 
 __all__ = [
@@ -689,6 +689,8 @@ def screening_statistics(study: Study, sampler: StudySampler | None = None) -> t
         for level in levels:
             if sampler.missing(level, indices).size:
                 path = getattr(study.store, "path", None)
+                if study.store.role == "shard":  # its screening is in its study: screening it would be refused
+                    raise shard_refusal(path)
                 out = "" if path is None else f" --out {path}"
                 raise StudyFileError(f"the study has no complete screening yet: run `roughuq screen CONFIG{out}` first",
                                      path)

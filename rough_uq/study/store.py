@@ -157,6 +157,7 @@ __all__ = [
     "open_study",
     "open_study_readonly",
     "remove_abandoned",
+    "shard_refusal",
 ]
 
 FORMAT = "roughuq-study"
@@ -822,8 +823,8 @@ def _read_header(path: Path) -> dict[str, Any]:
     except OSError as exc:
         raise StudyFileError(f"{path} cannot be read ({exc})", path) from None
     if not is_hdf5:
-        hint = (f"; it looks like a config: `roughuq screen {path}` creates its study file"
-                if path.suffix.lower() in (".yaml", ".yml") else "")
+        hint = ("; it looks like a config: a study file is the HDF5 file `roughuq screen CONFIG` writes (the "
+                "config's output.path, or --out)" if path.suffix.lower() in (".yaml", ".yml") else "")
         raise StudyFileError(f"{path} is not an HDF5 file (so not a roughuq study file){hint}", path)
     try:
         with _open_checked(path) as f:
@@ -1268,12 +1269,17 @@ def _check_role(path: Path, found: str, wanted: str) -> None:
     if found == wanted:
         return
     if found == "shard":
-        raise StudyFileError(
-            f"{path} is a shard of samples (written by `roughuq sample`), not a study: add its samples to their "
-            f"study with `roughuq merge --into STUDY {path}` and run there",
-            path,
-        )
+        raise shard_refusal(path)
     raise StudyFileError(f"{path} is a {found} file, not a {wanted} file", path)
+
+
+def shard_refusal(path: Path) -> StudyFileError:
+    """The refusal of a shard file where a study is needed, with what to do instead."""
+    return StudyFileError(
+        f"{path} is a shard of samples (written by `roughuq sample`), not a study: add its samples to their "
+        f"study with `roughuq merge --into STUDY {path}` and run there",
+        path,
+    )
 
 
 def _check_header(path: Path, header: Mapping[str, Any], *, config_hash: str, qoi_names: Sequence[str]) -> None:
