@@ -167,7 +167,7 @@ def test_tolerances_by_column_name_equal_those_in_column_order():
 
 
 def test_tolerances_by_name_must_name_every_column_and_no_other_before_sampling():
-    problem, none = _problem(qoi=("contact_area", "mean_gap")), _NoSampling()
+    problem = _problem(qoi=("contact_area", "mean_gap"))
     cases = [
         ({"contact_area": 2.0}, "no tolerance for mean_gap",
          "one tolerance for every QoI column (contact_area, mean_gap)"),
@@ -177,34 +177,36 @@ def test_tolerances_by_name_must_name_every_column_and_no_other_before_sampling(
         ({"contact_area": 2.0, "mean_gap": "0.1"}, "mean_gap: '0.1'", "a finite number > 0 for every key"),
     ]
     for tol, value, allowed in cases:
-        for call in (
-            lambda: rough_uq.mlmc(problem, tol=tol, executor=none),
-            lambda: rough_uq.mc(problem, tol=tol, level=1, executor=none),
-            lambda: rough_uq.variance(problem, tol=tol, executor=none),
-        ):
-            with pytest.raises(rough_uq.InvalidParameterError) as caught:
-                call()
-            assert caught.value.name == "tol"
-            assert caught.value.value == value and caught.value.allowed == allowed
+        for refusal in _tol_refusals(problem, tol):
+            assert refusal.name == "tol"
+            assert refusal.value == value and refusal.allowed == allowed
+
+
+def _tol_refusals(problem: rough_uq.ContactProblem, tol: object) -> list[rough_uq.InvalidParameterError]:
+    """The refusals of ``tol`` by mlmc, mc and variance, each before any sample."""
+    none, refusals = _NoSampling(), []
+    for call in (
+        lambda: rough_uq.mlmc(problem, tol=tol, executor=none),
+        lambda: rough_uq.mc(problem, tol=tol, level=1, executor=none),
+        lambda: rough_uq.variance(problem, tol=tol, executor=none),
+    ):
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            call()
+        refusals.append(caught.value)
+    return refusals
 
 
 def test_a_tolerance_sequence_must_have_one_value_per_column():
-    """``tol=[0.5]`` for two QoIs was broadcast to both (0.5 clusters per unit area too): a list reads as one per QoI."""
-    problem, none = _problem(qoi=("contact_area", "mean_gap")), _NoSampling()
+    """``tol=[0.5]`` for two QoIs was broadcast to both (0.5 clusters per unit area too): a list is one per QoI."""
+    problem = _problem(qoi=("contact_area", "mean_gap"))
     allowed = ("a number > 0 (for every QoI), a sequence of 2 (one per QoI column: contact_area, mean_gap, in its "
                "unit), or a mapping of every QoI column to one")
     for tol in ([0.5], (0.5,), np.array([0.5]), [0.5, 0.5, 0.5], [[0.5, 0.5]]):
-        for call in (
-            lambda: rough_uq.mlmc(problem, tol=tol, executor=none),
-            lambda: rough_uq.mc(problem, tol=tol, level=1, executor=none),
-            lambda: rough_uq.variance(problem, tol=tol, executor=none),
-        ):
-            with pytest.raises(rough_uq.InvalidParameterError) as caught:
-                call()
-            assert caught.value.name == "tol" and caught.value.allowed == allowed
+        for refusal in _tol_refusals(problem, tol):
+            assert refusal.name == "tol" and refusal.allowed == allowed
     single = _problem(qoi=("contact_area",))
     with pytest.raises(rough_uq.InvalidParameterError) as caught:
-        rough_uq.mlmc(single, tol=[1.0, 2.0], executor=none)
+        rough_uq.mlmc(single, tol=[1.0, 2.0], executor=_NoSampling())
     assert caught.value.allowed == ("a number > 0 (for every QoI), a sequence of one (one per QoI column: "
                                     "contact_area), or a mapping of every QoI column to one")
 

@@ -455,8 +455,8 @@ def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
                 scale = 100.0 if units.get(name) == "%" else 1.0
                 span = np.array([0.0, load.max()])
                 source = "one load" if fit["n_points"] == 1 else f"fit on {fit['n_points']} loads"
-                ax.plot(span, fit["kappa"] * span * scale, ":", color=colour,
-                        label=f"kappa = {fit['kappa']:.3g} ± {fit['error']:.2g} ({source}, A/A0 < {fit['max_area']:g})")
+                label = f"kappa = {fit['kappa']:.3g} ± {fit['error']:.2g} ({source}, A/A0 < {fit['max_area']:g})"
+                ax.plot(span, fit["kappa"] * span * scale, ":", color=colour, label=label)
         unit = units.get(name)
         ax.set_xlabel("load $p / (E^* \\sqrt{m_2})$")
         ax.set_ylabel(f"E[{name}]" + (f" [{unit}]" if unit else ""))
