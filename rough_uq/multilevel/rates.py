@@ -107,6 +107,7 @@ __all__ = [
     "fit_rates",
     "giles_prediction",
     "remaining_bias",
+    "stalled_bias",
 ]
 
 #: Smallest predicted saving (fraction of the MLMC cost) for which coarse levels are dropped.
@@ -325,6 +326,14 @@ def _fit_gamma(statistics: LevelStatistics, min_level: int) -> tuple[_Line | Non
     line = _fit_line(statistics.levels[usable], cost[usable], rel_se, 1.0)
     zero = statistics.levels[use & (cost <= 0)].tolist()
     return line, f"levels with zero cost (unusable): {zero}" if zero else ""
+
+
+def stalled_bias(names: Sequence[str], rates: Rates) -> list[str]:
+    """The QoIs whose fitted bias does not decay (``alpha`` not above 0), in words: ``clusters (alpha = -0.3)``.
+
+    No finest level can be chosen for them from these rates. (A fitted -0.0 reads ``alpha = 0``.)
+    """
+    return [f"{name} (alpha = {a + 0.0:.2g})" for name, a in zip(names, np.atleast_1d(rates.alpha)) if not a > 0]
 
 
 def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequence[str] | None = None) -> Rates:

@@ -32,7 +32,7 @@ def split_column(column: str) -> tuple[str, float | None]:
 
 
 def tol_text(names: Sequence[str], values: Iterable[float], *, digits: int | None = None) -> str:
-    """Tolerances (or biases) per column as ``--tol`` takes them: ``contact_area=2, clusters=0.5``.
+    """Tolerances per column as ``--tol`` takes them: ``contact_area=2, clusters=0.5``.
 
     The columns of a load curve are grouped by QoI: the value most of its
     loads share, then the columns set apart, ``mean_gap=0.05,

@@ -37,7 +37,7 @@ from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import _check_fraction, mc_run_cost, plan
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
-from rough_uq.multilevel.rates import Rates, fit_rates
+from rough_uq.multilevel.rates import Rates, fit_rates, stalled_bias
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
@@ -220,8 +220,7 @@ def screen(
 
 def _stalled_bias(columns: Sequence[str], rates: Rates) -> tuple[str, ...]:
     """The screening's diagnostic for QoIs whose bias does not decay (``roughuq screen`` warns, ``mlmc`` refuses)."""
-    # (+ 0.0: a fitted -0.0 reads "alpha = 0", not "-0".)
-    stalled = [f"{name} (alpha = {a + 0.0:.2g})" for name, a in zip(columns, np.atleast_1d(rates.alpha)) if not a > 0]
+    stalled = stalled_bias(columns, rates)
     if not stalled:
         return ()
     return (f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, so "

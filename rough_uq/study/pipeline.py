@@ -104,7 +104,7 @@ from rough_uq.problem.sampler import (
     run_stage,
 )
 from rough_uq.multilevel.allocation import Plan, plan
-from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates
+from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates, stalled_bias
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
 from rough_uq.study.store import StudyStore, open_study, open_study_readonly, remove_abandoned, shard_refusal
 from rough_uq.physics.surface import SurfaceSpectrum
@@ -720,8 +720,7 @@ def _base_tolerance(config: StudyConfig, statistics: LevelStatistics) -> np.ndar
 
 def _no_prediction(names: Sequence[str], rates: Rates, exc: Exception) -> str:
     """Why the screening predicts no cost, in words (the QoIs whose bias does not decay, by name)."""
-    alpha = np.atleast_1d(rates.alpha)
-    stalled = [f"{name} (alpha = {a + 0.0:.2g})" for name, a in zip(names, alpha) if not a > 0]
+    stalled = stalled_bias(names, rates)
     if stalled:
         return (f"no cost prediction: the bias of {', '.join(stalled)} does not decrease from level to level "
                 "on the screened grids, so no finest grid can be chosen; screen finer grids (screening.levels, "
@@ -972,7 +971,7 @@ def forecast_run(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", EstimationWarning)
             rates = fit_rates(statistics, names=config.qoi_names)
-        stalled = _stalled(config.qoi_names, rates)
+        stalled = stalled_bias(config.qoi_names, rates)
         if stalled and is_given_level:
             return None  # MC on a given level needs no bias model, and there is none to predict from
         if stalled:
@@ -1033,11 +1032,6 @@ def check_initial_samples(config: StudyConfig, *, n_levels: int, run: str, sourc
                 f"an integer <= {MAX_PLANNED_SAMPLES // n_levels} for {run} (it starts with that many samples on "
                 f"{where}; at most {MAX_PLANNED_SAMPLES} samples in all)",
             )
-
-
-def _stalled(names: Sequence[str], rates: Rates) -> list[str]:
-    """The QoIs whose fitted bias does not decay, with their ``alpha``, in words."""
-    return [f"{name} (alpha = {a + 0.0:.2g})" for name, a in zip(names, np.atleast_1d(rates.alpha)) if not a > 0]
 
 
 def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_screened: int) -> EstimationError:
