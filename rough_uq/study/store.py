@@ -829,8 +829,7 @@ def _read_header(path: Path) -> dict[str, Any]:
     try:
         with _open_checked(path) as f:
             found = f.attrs.get("format")
-            if isinstance(found, bytes):
-                found = found.decode("utf-8", "replace")
+            found = None if found is None else _text_attribute(found)
             if found != FORMAT:
                 attribute = "no 'format' attribute" if found is None else f"its 'format' attribute is {found!r}"
                 raise StudyFileError(
