@@ -480,6 +480,11 @@ def validate(config_paths: Sequence[str]) -> None:
         click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about {_memory(finest)} "
                    f"per worker{here})")
         click.echo(f"  screening: {_screening_summary(config)}")
+        if config.surface.k_s >= grids[-1] / 2:
+            click.echo(f"  resolution: k_s = {config.surface.k_s:g} is not below the Nyquist wave number of the "
+                       f"finest grid ({grids[-1]}^2: {grids[-1] // 2}); each level truncates the spectrum at its "
+                       "n/2, so even the finest surface lacks the shortest wavelengths (runs estimate that bias; "
+                       "one that needs more stops at grid.max_level)")
         click.echo(f"  study file: {config.output.path}")
     if n_bad:
         sys.exit(2)

@@ -540,6 +540,20 @@ def test_validate_says_a_study_too_shallow_to_screen_has_no_screening(tmp_path):
            "(mlmc --tol-var / --tol-cdf, mc --level)" in lines
 
 
+def test_validate_says_when_the_finest_grid_does_not_resolve_the_spectrum(tmp_path):
+    """k_s far above the finest grid's Nyquist wave number validated without a word (every level truncates it)."""
+    surface = {**tiny_config()["surface"], "wavenumbers": {"k_l": 1, "k_r": 2, "k_s": 16}}
+    for coarsest, said in ((6, True), (8, True), (16, False)):  # finest 24, 32, 64: Nyquist 12, 16, 32
+        grid = {"coarsest": coarsest, "max_level": 2}
+        config = write_config(tmp_path / "k.yaml", tiny_config(surface=surface, grid=grid))
+        lines = run("validate", str(config)).output.splitlines()
+        finest = 4 * coarsest
+        line = (f"  resolution: k_s = 16 is not below the Nyquist wave number of the finest grid ({finest}^2: "
+                f"{finest // 2}); each level truncates the spectrum at its n/2, so even the finest surface lacks "
+                "the shortest wavelengths (runs estimate that bias; one that needs more stops at grid.max_level)")
+        assert (line in lines) == said, (coarsest, lines)
+
+
 def test_a_reader_that_goes_away_ends_the_command_quietly_with_status_141(screened):
     """`roughuq report results.h5 | head -1` exited with status 1, which says 'a bug'."""
     process = subprocess.Popen([sys.executable, "-m", "rough_uq.cli", "report", "results.h5"], cwd=screened,
