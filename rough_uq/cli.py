@@ -698,6 +698,7 @@ def _estimation_command(method: str) -> Callable[..., Any]:
         _check_tolerance_texts("--tol-var", tol_var)
         _check_not_empty("--config", config_path)
         _check_not_empty("--study", study_path)
+        study_path = _default_study(study_path, config_path)
         target = _target_of(tol, tol_var, tol_cdf, qoi=qoi, thresholds=thresholds, probabilities=probabilities)
         _refuse_misplaced_options(target, choice, show_plan, shard_size, with_resources)
         _check_executor_options(executor, scheduler, workers)
@@ -718,6 +719,21 @@ def _estimation_command(method: str) -> Callable[..., Any]:
     return command
 
 
+def _default_study(study_path: str | None, config_path: str | None) -> str:
+    """``--study``, or by default the study ``roughuq screen`` writes for ``--config`` (its ``output.path``).
+
+    Without this a config whose ``output.path`` is not ``results.h5`` (the shipped classic ones) screened into
+    its file, and ``mlmc --config`` looked for ``results.h5`` (or created a second study there).
+    """
+    if study_path is not None:
+        return study_path
+    if not config_path:
+        return DEFAULT_STUDY
+    from rough_uq.study.config import load_config
+
+    return load_config(config_path).output.path
+
+
 #: The runs of ``roughuq mlmc`` / ``mc`` that create a missing study file from ``--config`` (:func:`_run_mean`).
 _CREATING_RUNS = {"mlmc": "runs with --tol-var or --tol-cdf", "mc": "runs with --level"}
 
@@ -728,8 +744,8 @@ def _estimation_options(method: str) -> list[Callable[[Any], Any]]:
         click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS",
                      help="Target RMS error: a number (single QoI) or NAME=EPS per QoI (each QoI once); "
                           "default: the config's qoi tol."),
-        click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY,
-                     show_default=True, help="Study file."),
+        click.option("--study", "study_path", type=click.Path(dir_okay=False), default=None,
+                     help=f"Study file (default: the --config's output.path, without --config {DEFAULT_STUDY})."),
         click.option("--config", "config_path", type=click.Path(dir_okay=False), default=None,
                      help="Config to take estimation settings and tolerances from (must match the study's); "
                           f"{_CREATING_RUNS[method]}, which need no screening, create a missing --study from it."),

@@ -652,6 +652,25 @@ def test_a_config_whose_problem_cannot_be_built_leaves_no_study_file(tmp_path, m
     assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml", "good.yaml"]
 
 
+def test_runs_with_a_config_use_its_output_path_as_their_study(tmp_path, monkeypatch):
+    """`screen classic-area.yaml && mlmc --config classic-area.yaml` looked for results.h5 (the screening was in the
+    config's output.path), and `--tol-var` quietly created a second study there."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "own.yaml", tiny_config(output={"path": "own.h5"}))
+    run("screen", "own.yaml", "--workers", "1", "-q")
+    result = json.loads(run("mlmc", "--config", "own.yaml", "--tol", "5", "--workers", "1", "--json", "-q").stdout)
+    assert result["tol_met"]
+    run("mlmc", "--config", "own.yaml", "--tol-var", "60", "--workers", "1", "-q", expect=3)  # at max_level
+    assert sorted(path.name for path in tmp_path.glob("*.h5")) == ["own.h5"]
+    methods = [r["method"] for r in json.loads(run("report", "own.h5", "--json").stdout)["runs"]]
+    assert methods == ["mlmc", "variance"]
+    # An explicit --study still wins, and without --config the default is results.h5.
+    line = one_error_line(run("mlmc", "--config", "own.yaml", "--study", "other.h5", "--tol", "5", expect=2))
+    assert line.startswith("error: study file 'other.h5' does not exist")
+    assert one_error_line(run("mlmc", "--tol", "5", expect=2)).startswith(
+        "error: study file 'results.h5' does not exist")
+
+
 @pytest.mark.parametrize("args", [("mlmc", "--tol", "5"), ("mc", "--tol", "5"), ("mlmc", "--method", "auto")],
                          ids=["mlmc", "mc", "mlmc --method auto"])
 def test_a_run_that_needs_a_screening_does_not_create_an_empty_study_from_its_config(tmp_path, monkeypatch, args):
@@ -659,7 +678,8 @@ def test_a_run_that_needs_a_screening_does_not_create_an_empty_study_from_its_co
     monkeypatch.chdir(tmp_path)
     write_config(tmp_path / "good.yaml", tiny_config())
     line = one_error_line(run(*args, "--config", "good.yaml", "--study", "new.h5", "--workers", "1", expect=2))
-    assert line == "error: study file 'new.h5' does not exist; create it with `roughuq screen CONFIG --out new.h5`"
+    assert line == ("error: study file 'new.h5' does not exist; create it with `roughuq screen CONFIG --out new.h5`, "
+                    "or name the study file screen wrote (its config's output.path) with --study or --config")
     assert not (tmp_path / "new.h5").exists()
     creating = {"mlmc": "runs with --tol-var or --tol-cdf, which need no screening, create a missing --study",
                 "mc": "runs with --level, which need no screening, create a missing --study"}

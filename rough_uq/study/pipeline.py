@@ -457,7 +457,8 @@ def open_existing_study(
     path = Path(path)
     if not path.exists():
         raise StudyFileError(
-            f"study file {str(path)!r} does not exist; create it with `roughuq screen CONFIG --out {path}`",
+            f"study file {str(path)!r} does not exist; create it with `roughuq screen CONFIG --out {path}`, or "
+            "name the study file screen wrote (its config's output.path) with --study or --config",
             path,
         )
     with open_study_readonly(path) as header:
