@@ -321,6 +321,17 @@ def test_bad_options_are_one_line_status_2_and_compute_nothing(tiny, options, te
         assert stored_runs(tiny.parent / "results.h5") == {}
 
 
+def test_a_cdf_of_a_study_of_several_columns_without_qoi_names_the_columns(tmp_path, monkeypatch):
+    """It said "--qoi: got None"."""
+    monkeypatch.chdir(tmp_path)
+    qoi = {"contact_area": {"unit": "percent"}, "mean_gap": {}}
+    config = write_config(tmp_path / "two.yaml", tiny_config(qoi=qoi))
+    result = run("mlmc", "--config", str(config), "--tol-cdf", "0.2", "--thresholds", TINY_THRESHOLDS,
+                 "--workers", "1", expect=2)
+    assert result.stderr.strip() == ("error: --qoi: got 'nothing (the study has several result columns)'; allowed: "
+                                     "one result column of this study: contact_area, mean_gap")
+
+
 def test_a_run_refused_on_the_way_is_recorded_as_refused_with_the_reason(tiny):
     result = run("mlmc", "--config", str(tiny), "--tol-var", "1e-6", "--workers", "1", "-q", expect=2)
     (line,) = result.stderr.strip().splitlines()

@@ -1572,6 +1572,9 @@ def cdf_request(
     names = config.qoi_names
     if column is None and len(names) == 1:
         column = names[0]
+    if column is None:  # it read "--qoi: got None"
+        raise InvalidParameterError("--qoi", "nothing (the study has several result columns)",
+                                    f"one result column of this study: {', '.join(names)}")
     if column not in names:
         raise InvalidParameterError("--qoi", column, f"one result column of this study: {', '.join(names)}")
     settings = config.estimation.distribution.get(_qoi_of(config, column))
