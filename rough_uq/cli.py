@@ -1545,7 +1545,8 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
         for key in run_ids:
             if key not in runs or runs[key].status == "dropped":
                 known = ", ".join(k for k, run in runs.items() if run.status != "dropped") or "none"
-                raise InvalidParameterError("RUN_ID", key, f"a run of this study ({known})")
+                shown = f"{key} (dropped already)" if key in runs else key  # it read as a typo
+                raise InvalidParameterError("RUN_ID", shown, f"a run of this study ({known})")
         for key in run_ids:
             study.store.write_run(key, replace(runs[key], status="dropped").to_json())
     finished = [key for key in run_ids if runs[key].is_finished]

@@ -1122,7 +1122,11 @@ def test_drop_forgets_a_run_and_keeps_its_samples(screened):
     assert after["runs"] == [] and after["dropped_runs"] == [key]
     assert after["samples"] == before["samples"]
     assert key not in " ".join(after["warnings"])
-    assert "RUN_ID" in one_error_line(run("drop", key, expect=2))
+    # Dropped twice: it read "got '...'; allowed: a run of this study (none)", as for a typo.
+    assert one_error_line(run("drop", key, expect=2)) == (
+        f"error: RUN_ID: got '{key} (dropped already)'; allowed: a run of this study (none)")
+    assert one_error_line(run("drop", "mlmc_typo", expect=2)) == (
+        "error: RUN_ID: got 'mlmc_typo'; allowed: a run of this study (none)")
     again = json.loads(run("mlmc", "--tol", "5", "--workers", "1", "--json").output)
     assert again["n_computed"] == 0  # the same command brings it back from the kept samples
 
