@@ -34,7 +34,7 @@ from rough_uq.errors import (
     EstimationError, InvalidParameterError, checked_integer, is_integer, is_real_number, warn_at_caller,
 )
 from rough_uq.multilevel import drivers
-from rough_uq.multilevel.allocation import _check_fraction, mc_run_cost, plan
+from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
 from rough_uq.multilevel.rates import Rates, fit_rates, stalled_bias
@@ -500,16 +500,24 @@ def _screened_mc_cost(problem: ContactProblem, screening, statistics: LevelStati
     None where the screening's bias model cannot choose a level (``roughuq mlmc`` refuses such a run; the
     result keeps the run's own prediction).
     """
-    rates = screening.rates if isinstance(screening, ScreeningResult) else None
+    try:
+        return mc_run_cost(_screened_mc_plan(problem, screening, statistics, tol, theta))
+    except EstimationError:
+        return None
+
+
+def _screened_mc_plan(problem: ContactProblem, screening, statistics: LevelStatistics, tol: np.ndarray,
+                      theta: float) -> Plan:
+    """The plain MC run the screening plans for ``tol``: its level, bias and cost (``EstimationError`` where the
+    screening's bias model cannot choose a level)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
-        rates = rates if rates is not None else fit_rates(statistics, names=problem.columns)
-        try:
-            prediction = plan(tol=tol, rates=rates, statistics=statistics, theta=theta,
-                              max_level=problem.max_level, coarsest_level=None)
-        except EstimationError:
-            return None
-    return mc_run_cost(prediction)
+        if isinstance(screening, ScreeningResult):
+            rates = screening.rates
+        else:
+            rates = fit_rates(statistics, names=problem.columns)
+    return plan(tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=problem.max_level,
+                coarsest_level=None)
 
 
 def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, screening, bias):
@@ -522,16 +530,8 @@ def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, scr
         return level, bias
     if statistics is None:
         raise InvalidParameterError("level", None, "a level to sample, or a screening to choose it from")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
-        if isinstance(screening, ScreeningResult):
-            rates = screening.rates
-        else:
-            rates = fit_rates(statistics, names=problem.columns)
     try:
-        prediction = plan(
-            tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=problem.max_level, coarsest_level=None
-        )
+        prediction = _screened_mc_plan(problem, screening, statistics, tol, theta)
     except EstimationError as error:
         raise EstimationError(f"{error}; pass level= to sample a level of your choice") from error
     return prediction.finest_level, prediction.bias if bias is None else bias
