@@ -183,8 +183,7 @@ def variance(
             qoi_names=problem.columns,
         )
     _warn_not_converged(sampler, "variance")
-    warn_not_met("variance", problem.columns, tol_met=result.tol_met, stop_reason=result.stop_reason,
-                 rmse=result.rmse, tol=tol, is_bias_estimated=result.is_bias_estimated)
+    warn_not_met("variance", problem.columns, result, tol)
     return result
 
 
@@ -320,6 +319,5 @@ def distribution(
             max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
         )
     _warn_not_converged(sampler, "distribution")
-    warn_not_met(f"distribution of {name}", None, tol_met=estimate.tol_met, stop_reason=estimate.stop_reason,
-                 rmse=estimate.rmse, tol=tol_array, is_bias_estimated=estimate.is_bias_estimated)
+    warn_not_met(f"distribution of {name}", None, estimate, tol_array)
     return DistributionResult(column=name, cdf=estimate)

@@ -357,21 +357,23 @@ _NOT_MET_ADVICE = {
 }
 
 
-def warn_not_met(method: str, names: Sequence[str] | None, *, tol_met: bool, stop_reason: str, rmse, tol,
-                 is_bias_estimated: bool = True, advice: str | None = None) -> None:
+def warn_not_met(method: str, names: Sequence[str] | None, result, tol, *, advice: str | None = None) -> None:
     """An :class:`EstimationWarning` when a run ended with its tolerance not met (``roughuq`` exits 3 then).
 
-    A notebook user reading ``estimate`` and ``rmse`` was not told (only ``tol_met`` said so). ``names``: of
-    the columns of ``rmse`` and ``tol``; None for one error without a column (a distribution function's).
-    ``advice`` replaces the advice of ``stop_reason`` (:data:`_NOT_MET_ADVICE`).
+    A notebook user reading ``estimate`` and ``rmse`` was not told (only ``tol_met`` said so). ``result``: an
+    :class:`EstimationResult`, ``TargetEstimate`` or ``CdfEstimate`` (its ``tol_met``, ``stop_reason``,
+    ``rmse``, ``is_bias_estimated``). ``names``: of the columns of ``rmse`` and ``tol``; None for one error
+    without a column (a distribution function's). ``advice`` replaces the advice of the stop reason
+    (:data:`_NOT_MET_ADVICE`).
     """
-    if tol_met:
+    if result.tol_met:
         return
+    stop_reason, is_bias_estimated = result.stop_reason, result.is_bias_estimated
     if advice is None and stop_reason == "max_cost" and not is_bias_estimated:
         advice = "the run reached max_cost before its bias was estimated: raise max_cost or lower n_initial"
     if advice is None:
         advice = _NOT_MET_ADVICE.get(stop_reason, "loosen tol, or raise max_cost or max_level")
-    rmse, tol = np.atleast_1d(rmse), np.atleast_1d(tol)
+    rmse, tol = np.atleast_1d(result.rmse), np.atleast_1d(tol)
     if names is None:
         errors, tolerances = ", ".join(f"{e:.3g}" for e in rmse), ", ".join(f"{e:g}" for e in tol)
     else:
@@ -487,8 +489,7 @@ def mlmc(
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mlmc")
-    warn_not_met("mlmc", problem.columns, tol_met=result.tol_met, stop_reason=result.stop_reason,
-                 rmse=result.rmse, tol=tol, is_bias_estimated=result.is_bias_estimated)
+    warn_not_met("mlmc", problem.columns, result, tol)
     screened = None if statistics is None else _screened_mc_cost(problem, screening, statistics, tol, theta)
     return result if screened is None else dataclasses.replace(result, mc_cost=screened)
 
@@ -627,9 +628,7 @@ def mc(
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     _warn_not_converged(sampler, "mc")
-    warn_not_met("mc", problem.columns, tol_met=result.tol_met, stop_reason=result.stop_reason,
-                 rmse=result.rmse, tol=tol, is_bias_estimated=result.is_bias_estimated,
-                 advice=_mc_advice(result, n_initial))
+    warn_not_met("mc", problem.columns, result, tol, advice=_mc_advice(result, n_initial))
     return result
 
 
