@@ -231,6 +231,8 @@ def test_one_line_per_problem() -> None:
         # grids beyond 65536 were "valid", then overflowed in the memory estimate (max_level 1000)
         (lambda d: d["grid"].update(max_level=1000), "grid.max_level: makes the finest grid 256 * 2**1000 larger"),
         (lambda d: d["grid"].update(coarsest=256, max_level=9), "integer with coarsest * 2**max_level <= 65536"),
+        # a coarsest grid too large on its own was blamed on max_level
+        (lambda d: d["grid"].update(coarsest=1_000_000), "grid.coarsest: larger than the largest grid, 65536 (got"),
         (lambda d: d["surface"].update(rms_height=float("nan")), "surface.rms_height: must be a finite number"),
         (lambda d: d.update(qoi={}), "qoi: at least one quantity of interest"),
         (lambda d: d.update(qoi={"area_above": {}}), "qoi.area_above.critical_pressure: required field is missing"),

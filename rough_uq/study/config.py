@@ -722,6 +722,9 @@ class GridConfig(_Section):
 
     @model_validator(mode="after")
     def _finest_at_most_max_grid(self) -> GridConfig:
+        if self.coarsest > MAX_GRID:
+            _fail([_problem("coarsest", f"larger than the largest grid, {MAX_GRID}", self.coarsest,
+                            f"even integer >= 4 and <= {MAX_GRID}")])
         if self.finest > MAX_GRID:
             _fail([_problem("max_level", f"makes the finest grid {self.coarsest} * 2**{self.max_level} larger than "
                             f"{MAX_GRID}", self.max_level, f"integer with coarsest * 2**max_level <= {MAX_GRID}")])
