@@ -602,6 +602,9 @@ def init(name: str | None, out: str | None, force: bool, show_list: bool) -> Non
     `roughuq screen quickstart.yaml`.
     """
     if show_list:
+        if name is not None or out is not None:
+            given = f"NAME {name}" if name is not None else f"--out {out}"
+            raise RoughUQError(f"--list lists the shipped configs and writes none: give it alone (got {given})")
         for shipped in SHIPPED_CONFIGS:
             first = _shipped_config_text(shipped).splitlines()[0].lstrip("# ").strip()
             click.echo(f"{shipped}: {first}")

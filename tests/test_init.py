@@ -90,6 +90,15 @@ def test_list_names_every_shipped_config_with_its_first_comment():
     assert all(len(line.split(": ", 1)[1]) > 10 for line in lines)
 
 
+def test_list_with_a_name_or_out_is_refused(tmp_path, monkeypatch):
+    # `init quickstart --list` listed every config and wrote nothing, without a word about the name
+    monkeypatch.chdir(tmp_path)
+    for args, given in ((("quickstart",), "NAME quickstart"), (("--out", "x.yaml"), "--out x.yaml")):
+        result = run("init", *args, "--list", expect=2)
+        assert result.stderr == f"error: --list lists the shipped configs and writes none: give it alone (got {given})\n"
+    assert not list(tmp_path.iterdir())
+
+
 def test_solve_demo_uses_the_packaged_quickstart(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     output = run("solve").stdout
