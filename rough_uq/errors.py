@@ -188,6 +188,11 @@ class EstimationError(RoughUQError):
     """The estimators cannot proceed (e.g. too few levels to fit rates)."""
 
 
+#: The largest sample count a plan gives a level (2^52: float counts convert to integers exactly below it);
+#: a plan that needs more is capped there (:mod:`rough_uq.multilevel.allocation`, ``drivers``).
+PLANNED_COUNT_CAP = 2**52
+
+
 class PlanTooLargeError(EstimationError):
     """A driver's plan asks for more than ``max_samples`` samples in all: the tolerance is out of reach.
 
@@ -224,10 +229,12 @@ class PlanTooLargeError(EstimationError):
         self.tol = tuple(float(eps) for eps in tol)
         self.advice = advice
         self.tolerance = "tol " + ", ".join(f"{eps:g}" for eps in self.tol) if tolerance is None else tolerance
-        plan_text = " ".join(str(n) for n in self.n_planned)
+        # The planners cap a level's count at PLANNED_COUNT_CAP (exact as a float): the need is then larger.
+        is_capped = any(n >= PLANNED_COUNT_CAP for n in self.n_planned)
+        plan_text = " ".join(str(n) if n < 10**7 else f"{n:.2g}" for n in self.n_planned)
         super().__init__(
-            f"{self.tolerance} needs about {self.total:.3g} samples (N_l {plan_text}), "
-            f"more than max_samples = {self.max_samples}: {advice}"
+            f"{self.tolerance} needs {'more than' if is_capped else 'about'} {self.total:.3g} samples "
+            f"(N_l {plan_text}), more than max_samples = {self.max_samples}: {advice}"
         )
 
     def named(self, *, tolerance: str, advice: str) -> PlanTooLargeError:

@@ -32,6 +32,7 @@ from rough_uq.multilevel.drivers import (
     plan,
     refuse_large_plan,
 )
+from rough_uq.multilevel.allocation import optimal_samples
 from rough_uq.multilevel.rates import estimated_bias
 from rough_uq.multilevel.richardson import ratio_instability, richardson_bias, richardson_weight
 
@@ -801,6 +802,17 @@ def test_a_plan_beyond_max_samples_is_refused_with_its_numbers():
     assert isinstance(named, PlanTooLargeError) and (named.n_planned, named.tol) == (refusal.n_planned, refusal.tol)
     assert str(named) == ("--tol-var a=1e-06, b=0.001 needs about 101 samples (N_l 90 11), "
                           "more than max_samples = 100: loosen --tol-var")
+
+
+def test_a_plan_capped_at_the_largest_count_is_refused_as_a_lower_bound():
+    # A plan for tol 1e-12 (some 1e24 samples) was quoted as "needs about 4.5e+15 samples (N_l 4503599627370496)":
+    # the cap of the planners, not the need.
+    capped = optimal_samples(np.array([[1.0]]), np.array([1.0]), np.array([1e-24]))
+    with pytest.raises(PlanTooLargeError) as caught:
+        refuse_large_plan(np.ceil(capped[:, 0]), max_samples=10**7, tol=np.array([1e-12]), advice="loosen tol")
+    assert str(caught.value).startswith("tol 1e-12 needs more than 4.5e+15 samples (N_l 4.5e+15), more than max_")
+    refusal = PlanTooLargeError(n_planned=[12345678, 3], total=12345681, max_samples=10**7, tol=[0.1], advice="x")
+    assert str(refusal).startswith("tol 0.1 needs about 1.23e+07 samples (N_l 1.2e+07 3), more than max_samples")
 
 
 @pytest.mark.parametrize("value", [True, 2.0, "3", np.float64(3.0)])

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
+from rough_uq.errors import PLANNED_COUNT_CAP, EstimationError, InvalidParameterError, is_real_number
 from rough_uq.multilevel.rates import (
     CoarsestLevel,
     DroppedLevel,
@@ -71,8 +71,7 @@ __all__ = [
     "plan",
 ]
 
-# Largest sample count a plan may ask for; keeps float -> int conversions exact.
-_MAX_COUNT = 2.0**52
+_MAX_COUNT = float(PLANNED_COUNT_CAP)
 
 
 def optimal_samples(variances: np.ndarray, costs: np.ndarray, budget: np.ndarray) -> np.ndarray:

@@ -143,6 +143,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rough_uq.errors import (
+    PLANNED_COUNT_CAP,
     EstimationError,
     InvalidParameterError,
     PlanTooLargeError,
@@ -220,7 +221,7 @@ Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
 #: Lower bound of fitted rates and fallback when a rate cannot be fitted (Giles' ``mlmc``).
 RATE_FLOOR = 0.5
 
-_MAX_COUNT = 2.0**52
+_MAX_COUNT = float(PLANNED_COUNT_CAP)
 #: Plans with more samples than this are beyond any budget: the Python runs
 #: (:mod:`rough_uq.problem.runs`) and ``roughuq`` forecasts refuse them.
 MAX_PLANNED_SAMPLES = 10**7
