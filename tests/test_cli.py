@@ -359,6 +359,15 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
     assert "not a field" in result.stderr
 
 
+def test_a_sweeps_progress_names_the_value_of_each_study(tmp_path, monkeypatch):
+    # Every study's progress read "[mc contact_area=5] ...": which value was running could not be told.
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    result = run("sweep", str(config), "--set", "load.relative=0.1,0.2", "--tol", "5", "--workers", "1")
+    for value in ("0.1", "0.2"):
+        assert f"[load.relative={value}: mc contact_area=5] started" in result.stderr, result.stderr
+
+
 def test_a_sweep_of_a_unit_labels_its_rows_in_their_own_unit(tmp_path, monkeypatch):
     # The table took the base config's unit (%) for a row computed in fraction.
     monkeypatch.chdir(tmp_path)

@@ -70,7 +70,7 @@ from rough_uq.multilevel.drivers import (
 )
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.fft_wisdom import prepare_wisdom
-from rough_uq.study.progress import Progress, format_duration
+from rough_uq.study.progress import PrefixedProgress, Progress, format_duration
 from rough_uq.study.records import (
     Diagnostic,
     DistributionRecord,
@@ -2217,7 +2217,7 @@ def run_sweep(
                 method="mc",
                 tol=tolerance,
                 executor=executor,
-                progress=progress,
+                progress=PrefixedProgress(progress, f"{key}={value}"),
                 level=level,
             )
         rows.append(SweepRow(value=value, config=str(config_path), study=str(study_path),

@@ -24,7 +24,7 @@ import time
 from collections.abc import Sequence
 from typing import IO
 
-__all__ = ["ETA_MIN_SAMPLES", "ETA_MIN_SECONDS", "PlainProgress", "RichProgress", "format_duration", "make_progress"]
+__all__ = ["ETA_MIN_SAMPLES", "ETA_MIN_SECONDS", "PlainProgress", "PrefixedProgress", "RichProgress", "format_duration", "make_progress"]
 
 #: Samples completed after a level's first one before its ETA is shown.
 ETA_MIN_SAMPLES = 3
@@ -49,6 +49,28 @@ class Progress:
 
     def stop(self, *, is_complete: bool = True) -> None:
         """The task ended (``is_complete=False``: it was interrupted or failed)."""
+
+
+class PrefixedProgress(Progress):
+    """Reports to ``inner`` with every task's title prefixed (a sweep's value: ``load.relative=0.2: mc ...``)."""
+
+    def __init__(self, inner: Progress, prefix: str) -> None:
+        self.inner, self.prefix = inner, prefix
+
+    def start(self, title: str) -> None:
+        self.inner.start(f"{self.prefix}: {title}")
+
+    def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
+        self.inner.plan(levels, n_planned, n_done)
+
+    def advance(self, level: int, n: int) -> None:
+        self.inner.advance(level, n)
+
+    def note(self, text: str) -> None:
+        self.inner.note(text)
+
+    def stop(self, *, is_complete: bool = True) -> None:
+        self.inner.stop(is_complete=is_complete)
 
 
 #: ``(below, seconds per unit, unit)``: the unit of :func:`format_duration` by the duration's size.
