@@ -231,7 +231,7 @@ class PlanTooLargeError(EstimationError):
         self.tolerance = "tol " + ", ".join(f"{eps:g}" for eps in self.tol) if tolerance is None else tolerance
         # The planners cap a level's count at PLANNED_COUNT_CAP (exact as a float): the need is then larger.
         is_capped = any(n >= PLANNED_COUNT_CAP for n in self.n_planned)
-        plan_text = " ".join(str(n) if n < 10**7 else f"{n:.2g}" for n in self.n_planned)
+        plan_text = " ".join(str(n) if n < 10**7 else f"{n:.3g}" for n in self.n_planned)
         super().__init__(
             f"{self.tolerance} needs {'more than' if is_capped else 'about'} {self.total:.3g} samples "
             f"(N_l {plan_text}), more than max_samples = {self.max_samples}: {advice}"

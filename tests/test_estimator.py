@@ -812,7 +812,7 @@ def test_a_plan_capped_at_the_largest_count_is_refused_as_a_lower_bound():
         refuse_large_plan(np.ceil(capped[:, 0]), max_samples=10**7, tol=np.array([1e-12]), advice="loosen tol")
     assert str(caught.value).startswith("tol 1e-12 needs more than 4.5e+15 samples (N_l 4.5e+15), more than max_")
     refusal = PlanTooLargeError(n_planned=[12345678, 3], total=12345681, max_samples=10**7, tol=[0.1], advice="x")
-    assert str(refusal).startswith("tol 0.1 needs about 1.23e+07 samples (N_l 1.2e+07 3), more than max_samples")
+    assert str(refusal).startswith("tol 0.1 needs about 1.23e+07 samples (N_l 1.23e+07 3), more than max_samples")
 
 
 @pytest.mark.parametrize("value", [True, 2.0, "3", np.float64(3.0)])
