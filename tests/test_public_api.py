@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import rough_uq
+from rough_uq.multilevel.rates import fit_rates
 from rough_uq.multilevel.statistics import level_statistics
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.runs import run_id
@@ -616,6 +617,22 @@ def test_readme_pool_example_runs_as_a_script(tmp_path):
     assert 0 < estimate < 100 and 0 < rmse <= 0.5
 
 
+def test_mc_from_a_screening_with_a_flat_bias_plans_with_the_rate_mlmc_runs_use():
+    # Level means -0.09, +0.084 (alpha 0.1): the bias |E[Y_2]| / (2^0.1 - 1) = 1.2 sent MC to max_level with a
+    # bias too large for tol 1 ("bias" stop); MLMC runs floor alpha at 0.5 (bias 0.2) and so does MC's plan now.
+    rng = np.random.default_rng(3)
+    fine, coarse = [], []
+    for level, shift in enumerate((0.0, -0.09, 0.085)):
+        q = 20 + rng.normal(size=20)
+        fine.append(q)
+        coarse.append(q - shift + 0.01 * rng.normal(size=20) if level else np.zeros(20))
+    statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0**level) for level in range(3)])
+    assert 0 < fit_rates(statistics).alpha[0] < 0.5
+    result = rough_uq.mc(_problem(), tol=1.0, screening=statistics)
+    assert 0.084 / (2**0.5 - 1) <= result.bias_estimate[0] < 0.3  # at least the data's tail sum with alpha 0.5
+    assert result.stop_reason == "tol_met" and result.tol_met
+
+
 def test_mc_from_a_screening_whose_bias_grows_says_to_pass_a_level():
     # |E[Y_l]| grows with l (alpha < 0): no level meets a bias tolerance, so MC cannot choose one.
     rng = np.random.default_rng(3)
@@ -625,7 +642,7 @@ def test_mc_from_a_screening_whose_bias_grows_says_to_pass_a_level():
         fine.append(q)
         coarse.append(q - shift + 0.01 * rng.normal(size=20) if level else np.zeros(20))
     statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0**level) for level in range(3)])
-    with pytest.raises(rough_uq.EstimationError, match=r"alpha = -[0-9.]+\); .*pass level="):
+    with pytest.raises(rough_uq.EstimationError, match=r"alpha = -[0-9.]+\) does not decrease .*; pass level="):
         rough_uq.mc(_problem(), tol=0.5, screening=statistics)
 
 

@@ -210,6 +210,7 @@ __all__ = [
     "mc",
     "mlmc",
     "plan",
+    "planning_rates",
     "refuse_large_plan",
     "refuse_large_start",
     "starting_plan",
@@ -532,6 +533,21 @@ def _floor_rates(n_qoi: int) -> Rates:
         c_beta=np.zeros(n_qoi),
         c_gamma=1.0,
     )
+
+
+def planning_rates(screening: LevelStatistics) -> Rates:
+    """The rates an MLMC run started from ``screening`` plans with: fitted on levels >= 1, floored at RATE_FLOOR.
+
+    The fits of :func:`~rough_uq.multilevel.rates.fit_rates` with every rate
+    raised to :data:`RATE_FLOOR` (0.5, as in Giles' code; the constants stay
+    those of the fits), and the floor where a rate cannot be fitted. A
+    fitted ``alpha`` near 0 (level means at the noise of the screening)
+    would make the tail sum ``|E[Y_L]| / (2^alpha - 1)`` of the bias many
+    times the level means themselves. Forecasts and the plain MC level
+    chosen from a screening plan with these rates, so that they predict
+    what the run does.
+    """
+    return _lenient_rates(screening, None)
 
 
 def _lenient_rates(
@@ -1182,7 +1198,7 @@ def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
             base=options.coarsest_level or 0, dropped=(), targets=(), floor=options.n_initial, fallback=rates,
             extrapolation="pending" if richardson else "off",
         )
-    screening_rates = rates if rates is not None else _lenient_rates(screening, None)
+    screening_rates = rates if rates is not None else planning_rates(screening)
     initial = starting_plan(
         tol=options.tol, rates=screening_rates, statistics=screening, theta=options.theta,
         max_level=options.max_level, richardson=options.richardson, coarsest_level=options.coarsest_level,

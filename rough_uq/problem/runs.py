@@ -510,14 +510,17 @@ def _screened_mc_cost(problem: ContactProblem, screening, statistics: LevelStati
 def _screened_mc_plan(problem: ContactProblem, screening, statistics: LevelStatistics, tol: np.ndarray,
                       theta: float) -> Plan:
     """The plain MC run the screening plans for ``tol``: its level, bias and cost (``EstimationError`` where the
-    screening's bias model cannot choose a level)."""
+    screening's bias does not decay). Planned with the rates floored as MLMC runs plan
+    (:func:`~rough_uq.multilevel.drivers.planning_rates`), as ``roughuq mc`` does."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
-        if isinstance(screening, ScreeningResult):
-            rates = screening.rates
-        else:
-            rates = fit_rates(statistics, names=problem.columns)
-    return plan(tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=problem.max_level,
+        rates = screening.rates if isinstance(screening, ScreeningResult) else fit_rates(statistics, names=problem.columns)
+        stalled = stalled_bias(problem.columns, rates)
+        if stalled:
+            raise EstimationError(f"the bias of {', '.join(stalled)} does not decrease from level to level on the "
+                                  "screened grids, so no level can be chosen for a tolerance")
+        planned = drivers.planning_rates(statistics)
+    return plan(tol=tol, rates=planned, statistics=statistics, theta=theta, max_level=problem.max_level,
                 coarsest_level=None)
 
 

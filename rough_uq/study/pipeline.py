@@ -64,6 +64,7 @@ from rough_uq.multilevel.drivers import (
     RichardsonRefused,
     iter_mc,
     iter_mlmc,
+    planning_rates,
     refuse_large_plan,
     starting_plan,
     starting_samples,
@@ -719,7 +720,7 @@ def _base_tolerance(config: StudyConfig, statistics: LevelStatistics) -> np.ndar
     return np.array(base)
 
 
-def _no_prediction(names: Sequence[str], rates: Rates, exc: Exception) -> str:
+def _no_prediction(names: Sequence[str], rates: Rates, exc: Exception | None) -> str:
     """Why the screening predicts no cost, in words (the QoIs whose bias does not decay, by name)."""
     stalled = stalled_bias(names, rates)
     if stalled:
@@ -812,11 +813,14 @@ def _predictions(
     """Plans for the multiples :data:`PREDICTION_FACTORS` of the base tolerance, and why any is missing."""
     base = _base_tolerance(config, statistics)
     predictions = []
+    if stalled_bias(config.qoi_names, rates):
+        return (), [_no_prediction(config.qoi_names, rates, None)]
+    planned = planning_rates(statistics)  # floored, as the runs plan (the record keeps the fitted rates)
     for factor in PREDICTION_FACTORS:
         try:
             prediction = plan(
                 tol=base * factor,
-                rates=rates,
+                rates=planned,
                 statistics=statistics,
                 theta=config.estimation.theta,
                 max_level=config.grid.max_level,
@@ -900,12 +904,16 @@ def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, opti
 
 
 def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[LevelStatistics, Rates, Plan]:
-    """The screening's statistics and rates, and the plan the run of ``method`` starts from."""
+    """The screening's statistics and fitted rates, and the plan the run of ``method`` starts from.
+
+    The plan uses the rates floored as the runs use them (:func:`~rough_uq.multilevel.drivers.planning_rates`).
+    """
     statistics, _ = screening_statistics(study)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)
         rates = fit_rates(statistics, names=study.config.qoi_names)
-    return statistics, rates, _run_plan(study.config, tol, rates, statistics, method=method)
+        planned = planning_rates(statistics)
+    return statistics, rates, _run_plan(study.config, tol, planned, statistics, method=method)
 
 
 def _screened_seconds_per_cost(screening: ScreeningRecord | None) -> float:
@@ -982,6 +990,7 @@ def forecast_run(
                 f"so no finest grid can be chosen for a tolerance: screen finer grids ({finer}), "
                 "or use `roughuq mc --level L` (bias not estimated)"
             )
+        rates = planning_rates(statistics)  # floored, as the run plans
         prediction = _run_plan(config, tol, rates, statistics, method=method, richardson=richardson)
         if not prediction.is_bias_met and not is_given_level:
             raise _unreachable(config, tol, prediction, n_screened=int(np.min(statistics.n_samples)))
