@@ -475,6 +475,8 @@ def test_a_bias_at_the_screenings_noise_is_planned_with_the_rate_the_run_uses(tm
         result = run(method, "--tol", "2", "--plan")
         assert "samples missing" in result.stdout
     assert all(p["is_bias_met"] for p in screening["predictions"] if min(p["tol"]) >= 0.5)
+    report = " ".join(run("report", "results.h5").stdout.split())
+    assert "planned, as runs plan, with every rate raised to at least 0.5" in report
     record = json.loads(run("mlmc", "--tol", "2", "--workers", "1", "--json").output)
     assert record["tol_met"] and record["forecast"]["n_samples"] == record["n_samples"][: len(
         record["forecast"]["n_samples"])]

@@ -405,11 +405,18 @@ def test_the_prediction_table_marks_tolerances_whose_bias_the_finest_grid_cannot
 
     console = Console(width=120, record=True)
     names = ("contact_area",)
-    console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=(row(2.0, True), row(1.0, False)))))
+    rates = SimpleNamespace(alpha=(1.0,), beta=(2.0,), gamma=1.5)
+    console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=(row(2.0, True), row(1.0, False)),
+                                                     rates=rates)))
     text = console.export_text()
     assert "contact_area=1 *" in text and "contact_area=2 *" not in text and "mlmc refuses it" in text
-    console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=(row(2.0, True),))))
+    console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=(row(2.0, True),), rates=rates)))
     assert console.export_text().count("mlmc refuses") == 0
+    assert "raised to at least" not in console.export_text()
+    # A fitted rate below the floor is planned at the floor, as runs plan: the table says so.
+    low = SimpleNamespace(alpha=(0.05,), beta=(2.0,), gamma=1.5)
+    console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=(row(2.0, True),), rates=low)))
+    assert "planned, as runs plan, with every rate raised to at least 0.5" in " ".join(console.export_text().split())
 
 
 def test_the_rates_say_no_decay_only_for_a_bias_that_does_not_decay():

@@ -68,6 +68,7 @@ import numpy as np
 from rich.markup import escape
 
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
+from rough_uq.multilevel.drivers import RATE_FLOOR
 from rough_uq.multilevel.statistics import KURTOSIS_LIMIT
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.columns import split_column, tol_text
@@ -606,6 +607,9 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
                 "plan's coarsest for its bias test, so its own levels and N_l differ"]
     if unreachable:
         captions.append("* bias above sqrt(theta) tol on the finest allowed grid: mlmc refuses it")
+    rates = screening.rates
+    if min(np.min(rates.alpha), np.min(rates.beta), rates.gamma) < RATE_FLOOR:
+        captions.append(f"planned, as runs plan, with every rate raised to at least {RATE_FLOOR:g}")
     table = _table("Predicted from the screening (CPU time of the samples)")
     table.caption, table.caption_justify = "\n".join(captions), "left"
     for column in ("tol", "levels", "N_l", "MLMC", "MC", "MC/MLMC"):
