@@ -833,7 +833,8 @@ class EstimationConfig(_Section):
     initial_samples: Int = _field(
         10,
         description=(
-            "Samples before the first variance update in runs without a screening (mc --level; count); "
+            "Samples per level before the first variance update in runs without a screening (mc --level, "
+            "mlmc --tol-var and --tol-cdf; count; more of them steady the bias test of the latter two); "
             "runs started from a screening need only 2 per level"
         ),
         allowed="integer >= 2",
