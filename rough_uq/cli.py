@@ -1108,6 +1108,10 @@ def _what_to_change(outcome: Any, option: str = "--tol") -> str:
     if reason == THRESHOLDS_MISS_SAMPLES:
         return ("the thresholds miss the samples of a level (see the warning); put thresholds among the values "
                 "(extend --thresholds or the config's thresholds) or raise estimation.initial_samples")
+    if reason == "max_level" and any(d.kind == "bias_noise" for d in outcome.diagnostics):
+        return ("the bias estimate rests on level terms within their noise (see the warning); raise "
+                f"estimation.initial_samples to measure it, loosen {option}, or use a study with a larger "
+                "grid.max_level")
     if reason == "max_level":
         return (f"the bias needs a grid finer than grid.max_level; loosen {option}, or screen a new study with a "
                 "larger grid.max_level")

@@ -482,6 +482,27 @@ def test_a_bias_at_the_screenings_noise_is_planned_with_the_rate_the_run_uses(tm
         record["forecast"]["n_samples"])]
 
 
+def test_a_cdf_run_stopped_on_terms_within_their_noise_says_what_would_help(tmp_path, monkeypatch):
+    """The quickstart's CDF at --tol-cdf 0.1 on levels 0..3 with 10 initial samples: NOT MET (max_level), "the bias
+    needs a grid finer than grid.max_level"; with 40 initial samples the same grids met it (the level-3 terms were
+    noise, the bias the level-1 term at the floor rate)."""
+    from importlib.resources import files
+
+    monkeypatch.chdir(tmp_path)
+    text = files("rough_uq.study").joinpath("configs", "quickstart.yaml").read_text()
+    assert "\n  max_level: 4 " in text
+    Path("q.yaml").write_text(text.replace("\n  max_level: 4 ", "\n  max_level: 3 "))
+    result = run("mlmc", "--config", "q.yaml", "--tol-cdf", "0.1", "--thresholds", "17:24:29", "--workers", "1",
+                 "-q", expect=EXIT_TOL_NOT_MET)
+    assert "rests on level terms within their noise" in result.stderr
+    assert result.stderr.endswith("tolerance not met (max_level): the bias estimate rests on level terms within their "
+                                  "noise (see the warning); raise estimation.initial_samples to measure it, loosen "
+                                  "--tol-cdf, or use a study with a larger grid.max_level\n")
+    assert "NOT MET (max_level)\n  the bias test failed on terms within their noise (see the warning)" in result.stdout
+    report = run("report", "results.h5").stdout
+    assert "the bias test failed on terms within their noise" in report and "rests on level terms" in report
+
+
 def test_unfittable_rates_are_said_plainly(tmp_path, monkeypatch):
     """Clusters on very coarse grids: the count grows with the grid, the bias does not decay."""
     monkeypatch.chdir(tmp_path)

@@ -95,7 +95,8 @@ def test_list_with_a_name_or_out_is_refused(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for args, given in ((("quickstart",), "NAME quickstart"), (("--out", "x.yaml"), "--out x.yaml")):
         result = run("init", *args, "--list", expect=2)
-        assert result.stderr == f"error: --list lists the shipped configs and writes none: give it alone (got {given})\n"
+        expected = f"error: --list lists the shipped configs and writes none: give it alone (got {given})\n"
+        assert result.stderr == expected
     assert not list(tmp_path.iterdir())
 
 

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import itertools
 import math
+import warnings
 
 import numpy as np
 import pytest
 from moment_problems import PerturbedLimit
 
 from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.multilevel.statistics import EstimationWarning
 from rough_uq.multilevel.allocation import optimal_samples
 from rough_uq.multilevel.moments import (
     central_moment_level_term,
@@ -257,6 +259,20 @@ def test_max_level_and_max_cost_stop_honestly():
     assert result.stop_reason == "max_level" and not result.tol_met and result.finest_level == 2
     capped = mlmc_variance(problem, tol=0.005, max_cost=20_000.0)
     assert capped.stop_reason == "max_cost" and capped.cost <= 20_000.0 and not capped.tol_met
+
+
+def test_a_max_level_stop_on_terms_within_their_noise_says_so():
+    # Var(Q_2) - Var(Q) = 0.09 / 16 is far below the bias share of 0.035, but the level-2 term is noise and the
+    # bias estimate (0.086) the level-1 term at the floor rate: the run said only that the bias needs a finer grid.
+    with pytest.warns(EstimationWarning, match=r"the bias estimate 0.0855 \(the tolerance's share 0.0354\) rests on "
+                      r"level terms within their noise .* more samples per level \(n_initial\) may measure it"):
+        noisy = mlmc_variance(PerturbedLimit(scale=0.3), tol=0.05, max_level=2, n_initial=8)
+    assert noisy.stop_reason == "max_level" and not noisy.tol_met and noisy.noisy_bias_groups == (0,)
+    # A bias the finest level measures (1/16 against the share 0.035) is not put down to noise.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", EstimationWarning)
+        real = mlmc_variance(PerturbedLimit(scale=1.0), tol=0.05, max_level=2, n_initial=8)
+    assert real.stop_reason == "max_level" and real.noisy_bias_groups == ()
 
 
 @pytest.mark.parametrize(("tol", "max_cost", "levels"), [(60.0, 1e-9, [0]), (0.5, 40.0, [0]), (3.0, 100.0, [0, 1])])

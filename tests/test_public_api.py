@@ -633,6 +633,23 @@ def test_mc_from_a_screening_with_a_flat_bias_plans_with_the_rate_mlmc_runs_use(
     assert result.stop_reason == "tol_met" and result.tol_met
 
 
+def test_a_distribution_stopped_on_terms_within_their_noise_advises_more_samples():
+    # The quickstart problem on levels 0..3: the level-3 terms are noise and the bias the level-1 term at the
+    # floor rate; the not-met warning said "the bias needs a grid finer than the problem's max_level" only.
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=2, k_r=2, k_s=16, hurst=0.8, rms_height=0.004)
+    problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.1), qoi=["contact_area"], coarsest=32,
+                                      max_level=3, seed=12345)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", rough_uq.EstimationWarning)
+        law = rough_uq.distribution(problem, tol=0.1, thresholds=np.linspace(17, 24, 29), n_initial=10)
+    assert law.cdf.stop_reason == "max_level" and law.cdf.noisy_bias_groups == (0,)
+    messages = [str(w.message) for w in caught]
+    assert any("rests on level terms within their noise" in m for m in messages)
+    assert any(m.startswith("distribution of contact_area: tolerance not met (max_level)") and m.endswith(
+        "the bias estimate rests on level terms within their noise (see the warning): raise n_initial to measure "
+        "it, loosen tol or raise max_level") for m in messages), messages
+
+
 def test_mc_from_a_screening_whose_bias_grows_says_to_pass_a_level():
     # |E[Y_l]| grows with l (alpha < 0): no level meets a bias tolerance, so MC cannot choose one.
     rng = np.random.default_rng(3)

@@ -363,6 +363,12 @@ class CdfEstimate:
         return self.target.stop_reason
 
     @property
+    def noisy_bias_groups(self) -> tuple[int, ...]:
+        """``(0,)`` where the bias exceeds its share while no level's terms rise above their noise
+        (:attr:`~rough_uq.multilevel.targets.TargetEstimate.noisy_bias_groups`), else ``()``."""
+        return self.target.noisy_bias_groups
+
+    @property
     def is_bias_estimated(self) -> bool:
         """Whether ``bias`` is an estimate (:class:`~rough_uq.multilevel.targets.TargetEstimate`)."""
         return self.target.is_bias_estimated

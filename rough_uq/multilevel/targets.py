@@ -91,6 +91,7 @@ one that stops with ``"tol_met"`` does.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -111,7 +112,7 @@ from rough_uq.multilevel.drivers import (
     refuse_large_start,
 )
 from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias
-from rough_uq.multilevel.statistics import _readonly
+from rough_uq.multilevel.statistics import EstimationWarning, _readonly
 
 __all__ = [
     "LevelTerm",
@@ -245,6 +246,20 @@ class TargetEstimate:
     def finest_level(self) -> int:
         """``L``."""
         return int(self.levels[-1])
+
+    @property
+    def noisy_bias_groups(self) -> tuple[int, ...]:
+        """The groups whose bias exceeds ``sqrt(theta) tol`` while the finest level's terms are within their noise.
+
+        Their bias estimate is then the noise of those terms, or a coarser detected level's term extrapolated
+        with a rate the undetected levels could not help fit (the floor where fewer than two are detected): more
+        samples per level may measure it smaller, as may a finer level.
+        """
+        if not self.is_bias_estimated or len(self.levels) < 2:
+            return ()
+        detected = _is_detected(*_signal(self.term_means, self.term_variances, self.groups))[-1]
+        share = math.sqrt(self.theta) * self.tol
+        return tuple(int(g) for g in np.flatnonzero((self.bias > share) & ~detected))
 
     def __repr__(self) -> str:
         # One line for notebooks and print(): the per-level term arrays (a CDF's have a column per threshold)
@@ -668,8 +683,30 @@ def adaptive_mlmc(
         sampler, term, tol, theta=theta, n_initial=n_initial, n_start_levels=min_finest_level + 1,
         max_level=max_level, batch_cap=batch_cap, max_cost=max_cost, max_samples=max_samples,
     )
-    return _final_estimate(
+    estimate = _final_estimate(
         levels, term, tol, theta=theta, stop_reason=stop_reason, min_finest_level=min_finest_level
+    )
+    if stop_reason == "max_level" and not estimate.tol_met and estimate.noisy_bias_groups:
+        _warn_noisy_bias(estimate)
+    return estimate
+
+
+def _warn_noisy_bias(estimate: TargetEstimate) -> None:
+    """Say that a run stopped at ``max_level`` on a bias estimate of terms within their noise.
+
+    The groups are :attr:`TargetEstimate.noisy_bias_groups`.
+    """
+    noisy = list(estimate.noisy_bias_groups)
+    share = math.sqrt(estimate.theta) * estimate.tol[noisy]
+    biases = ", ".join(f"{b:.3g}" for b in estimate.bias[noisy])
+    shares = ", ".join(f"{b:.3g}" for b in share)
+    warnings.warn(
+        f"the bias estimate {biases} (the tolerance's share {shares}) rests on level terms within their noise "
+        f"(the finest level's do not differ from 0 beyond it, with N_l {estimate.n_samples.tolist()}): it bounds "
+        "the bias by that noise or by a coarser level's term extrapolated at the fitted or floor rate, and more "
+        "samples per level (n_initial) may measure it smaller, as may a finer max_level",
+        EstimationWarning,
+        stacklevel=3,
     )
 
 

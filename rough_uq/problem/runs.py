@@ -371,6 +371,9 @@ def warn_not_met(method: str, names: Sequence[str] | None, result, tol, *, advic
     stop_reason, is_bias_estimated = result.stop_reason, result.is_bias_estimated
     if advice is None and stop_reason == "max_cost" and not is_bias_estimated:
         advice = "the run reached max_cost before its bias was estimated: raise max_cost or lower n_initial"
+    if advice is None and stop_reason == "max_level" and getattr(result, "noisy_bias_groups", ()):
+        advice = ("the bias estimate rests on level terms within their noise (see the warning): raise n_initial "
+                  "to measure it, loosen tol or raise max_level")
     if advice is None:
         advice = _NOT_MET_ADVICE.get(stop_reason, "loosen tol, or raise max_cost or max_level")
     rmse, tol = np.atleast_1d(result.rmse), np.atleast_1d(tol)
@@ -514,7 +517,8 @@ def _screened_mc_plan(problem: ContactProblem, screening, statistics: LevelStati
     (:func:`~rough_uq.multilevel.drivers.planning_rates`), as ``roughuq mc`` does."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
-        rates = screening.rates if isinstance(screening, ScreeningResult) else fit_rates(statistics, names=problem.columns)
+        is_result = isinstance(screening, ScreeningResult)
+        rates = screening.rates if is_result else fit_rates(statistics, names=problem.columns)
         stalled = stalled_bias(problem.columns, rates)
         if stalled:
             raise EstimationError(f"the bias of {', '.join(stalled)} does not decrease from level to level on the "

@@ -471,6 +471,8 @@ def _stop_text(outcome: Any, method: str) -> str:
     reason = outcome.stop_reason
     if reason == "max_cost" and not outcome.is_bias_estimated and method != "mc":
         return "stopped at --max-cost before the levels its bias estimate needs were sampled"
+    if reason == "max_level" and any(d.kind == "bias_noise" for d in outcome.diagnostics):
+        return "the bias test failed on terms within their noise (see the warning)"
     return _STOP_REASONS.get(reason, reason)
 
 

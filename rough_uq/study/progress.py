@@ -24,7 +24,10 @@ import time
 from collections.abc import Sequence
 from typing import IO
 
-__all__ = ["ETA_MIN_SAMPLES", "ETA_MIN_SECONDS", "PlainProgress", "PrefixedProgress", "RichProgress", "format_duration", "make_progress"]
+__all__ = [
+    "ETA_MIN_SAMPLES", "ETA_MIN_SECONDS", "PlainProgress", "PrefixedProgress", "RichProgress", "format_duration",
+    "make_progress",
+]
 
 #: Samples completed after a level's first one before its ETA is shown.
 ETA_MIN_SAMPLES = 3

@@ -248,6 +248,7 @@ _KINDS = (  # (kind, text that identifies it), first match wins
     ("few_samples", "variance unknown"),
     ("few_samples", "single sample"),
     ("zero_cost", "zero cost"),
+    ("bias_noise", "rests on level terms within their noise"),
 )
 
 
@@ -269,7 +270,7 @@ class Diagnostic:
     @property
     def kind(self) -> str:
         """``consistency``, ``kurtosis``, ``coupling``, ``rare_differences``, ``few_samples``,
-        ``richardson``, ``prediction``, ``zero_cost`` or ``other``."""
+        ``richardson``, ``prediction``, ``zero_cost``, ``bias_noise`` or ``other``."""
         return next((kind for kind, text in _KINDS if text in self.message), "other")
 
     def to_json(self) -> str:
