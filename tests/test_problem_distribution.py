@@ -20,10 +20,12 @@ from rough_uq.problem.sampler import run_stage
 #: A random stage no run uses (runs have hashed stages), for the plain MC checks.
 CHECK_STAGE = 4242
 
-#: The runs on a problem of two levels end on max_level with their tolerance not met (a warning says so), where
-#: the test is about what they estimate, not whether they meet it.
+#: The runs on a problem of two levels end on max_level with their tolerance not met (a warning says so, and
+#: another where the bias estimate rests on the terms' noise), where the test is about what they estimate, not
+#: whether they meet it.
 NOT_MET_IS_BESIDE_THE_POINT = pytest.mark.filterwarnings(
-    r"ignore:.*tolerance not met \(max_level\):rough_uq.errors.EstimationWarning"
+    r"ignore:.*tolerance not met \(max_level\):rough_uq.errors.EstimationWarning",
+    r"ignore:the bias estimate .* rests on level terms within their noise:rough_uq.errors.EstimationWarning",
 )
 
 
@@ -113,7 +115,7 @@ def test_a_distribution_whose_thresholds_miss_the_contact_area_does_not_meet_its
     assert not law.tol_met and law.stop_reason == "thresholds_miss_samples"
     assert law.missed_levels.tolist() == law.levels.tolist() == list(range(problem.max_level + 1))
     message, not_met = [str(w.message) for w in caught]
-    assert not_met == ("distribution of contact_area: tolerance not met (thresholds_miss_samples): RMSE 0 against "
+    assert not_met == ("distribution of contact_area: tolerance not met (thresholds_miss_samples): RMSE not measured against "
                        "tol 0.1; the thresholds miss the samples of a level (see the warning): put thresholds among "
                        "the values or raise n_initial")
     stage = run_stage("mlmc", run_id("cdf", ["contact_area"], np.array([0.1]), 0.5))
