@@ -23,7 +23,8 @@ def test_a_cdf_run_whose_thresholds_miss_the_samples_is_not_met_and_says_why(tmp
                                        thresholds, "--workers", "1", "--json", "-q"])
     assert result.exit_code == 3, (result.output, result.exception)
     shown = json.loads(result.stdout)
-    assert not shown["tol_met"] and shown["stop_reason"] == "thresholds_miss_samples" and shown["rmse"] == [0.0]
+    # Its RMSE rests on variances of 0: not an error (was [0.0]).
+    assert not shown["tol_met"] and shown["stop_reason"] == "thresholds_miss_samples" and shown["rmse"] is None
     assert "tolerance not met (thresholds_miss_samples)" in result.stderr
     assert "put thresholds among the values" in result.stderr  # not "loosen --tol-cdf, raise --max-cost"
     # The stored warning names the thresholds and, per level, the range of the values the run used.
@@ -51,3 +52,20 @@ def test_the_report_of_such_a_run_shows_no_error_it_did_not_measure(tmp_path, mo
     assert "sup-norm RMSE not measured (the thresholds miss a level's samples), tol 0.1" in report.stdout
     assert "RMSE 0 <=" not in report.stdout
     assert "the thresholds miss the samples of a level, whose variance they do not measure" in report.stdout
+    # The Distribution table showed "sup RMSE 0", the figure a band of width 0 labelled "sup RMSE 0".
+    (row,) = [line.split() for line in report.stdout.splitlines() if line.split()[:3] == ["contact_area", "[%]", "0.5"]]
+    assert row[5:7] == ["-", "0.1"], row
+    assert json.loads(CliRunner().invoke(main, ["report", "results.h5", "--json"]).stdout)["runs"][0]["rmse"] is None
+    from rough_uq.report.figures import _cdf_figure
+    from rough_uq.study.pipeline import open_existing_study
+    from rough_uq.study.records import read_run_records
+
+    with open_existing_study(tmp_path / "results.h5", writable=False) as study:
+        (record,) = read_run_records(study.store)
+    captured = {}
+    monkeypatch.setattr("rough_uq.report.figures._save", lambda figure, path: captured.setdefault("figure", figure))
+    _cdf_figure([record], "contact_area", "%", tmp_path / "cdf.png")
+    (ax,) = captured["figure"].axes
+    assert [text.get_text() for text in ax.get_legend().get_texts()] == [
+        "MLMC, tol 0.1: RMSE not measured (thresholds miss samples)"]
+    assert not ax.collections  # no band

@@ -381,6 +381,8 @@ def warn_not_met(method: str, names: Sequence[str] | None, result, tol, *, advic
         errors, tolerances = ", ".join(f"{e:.3g}" for e in rmse), ", ".join(f"{e:g}" for e in tol)
     else:
         errors, tolerances = values_text(names, rmse), tol_text(names, tol)
+    if stop_reason == THRESHOLDS_MISS_SAMPLES:
+        errors = "not measured"  # from variances of 0 (rough_uq.multilevel.distribution)
     unestimated = "" if is_bias_estimated else " (bias not estimated)"
     warn_at_caller(
         f"{method}: tolerance not met ({stop_reason}): RMSE {errors}{unestimated} against tol {tolerances}; {advice}",

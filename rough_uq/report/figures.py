@@ -45,7 +45,7 @@ from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
 from rough_uq.problem.columns import split_column
-from rough_uq.report.summary import run_label, tol_text
+from rough_uq.report.summary import is_rmse_measured, run_label, tol_text
 from rough_uq.study.records import RunRecord, ScreeningRecord, is_bias_decaying
 
 __all__ = ["write_report_plots", "write_sample_figure"]
@@ -474,10 +474,13 @@ def _cdf_figure(runs: Sequence[RunRecord], column: str, unit: str | None, path: 
         distribution = run.outcome.distribution
         colour = f"C{k % 10}"
         s = np.asarray(distribution.thresholds, dtype=float)
-        ax.fill_between(s, distribution.cdf_lower, distribution.cdf_upper, color=colour, alpha=0.25, linewidth=0,
-                        step=None)
-        ax.plot(s, distribution.cdf, "-", color=colour,
-                label=f"MLMC, tol {run.tol[0]:g}: sup RMSE {run.outcome.rmse[0]:.2g} (band)")
+        if is_rmse_measured(run.outcome):
+            ax.fill_between(s, distribution.cdf_lower, distribution.cdf_upper, color=colour, alpha=0.25,
+                            linewidth=0, step=None)
+            label = f"MLMC, tol {run.tol[0]:g}: sup RMSE {run.outcome.rmse[0]:.2g} (band)"
+        else:  # no band: the thresholds miss a level's samples, whose variance they do not measure
+            label = f"MLMC, tol {run.tol[0]:g}: RMSE not measured (thresholds miss samples)"
+        ax.plot(s, distribution.cdf, "-", color=colour, label=label)
         for quantile in distribution.quantiles:
             if quantile.value is None:
                 continue

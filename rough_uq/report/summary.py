@@ -222,6 +222,8 @@ class ReportedRun:
         data = {"run_id": self.record.run_id, **self.record.to_json()}
         if self.record.is_finished:
             data["work_ratio"] = self.record.outcome.work_ratio
+            if not is_rmse_measured(self.record.outcome):
+                data["rmse"] = None  # the stored value rests on variances of 0: not an error
         if self.mc_cost_measured is not None:
             data["mc_seconds_measured"] = self.mc_seconds_measured
             data["mc_cost_measured"] = self.mc_cost_measured
@@ -512,6 +514,12 @@ def _quantile_text(quantile: Any, unit: str) -> str:
     return f"q({quantile.probability:g}) = {_g(quantile.value, 4)} [{lower}, {upper}]{_unit(unit)}"
 
 
+def is_rmse_measured(outcome: Any) -> bool:
+    """False for a cdf run whose thresholds miss a level's samples: its stored RMSE (from variances of 0) means
+    nothing (:mod:`rough_uq.multilevel.distribution`)."""
+    return outcome.stop_reason != THRESHOLDS_MISS_SAMPLES
+
+
 def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
     """The thresholds, the sup-norm error and the quantiles of a cdf run."""
     distribution = outcome.distribution
@@ -520,7 +528,7 @@ def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
     unit = _column_unit(units, distribution.column)
     s = distribution.thresholds
     error = _error_text(outcome, outcome.rmse[0], tol, "sup-norm ")
-    if outcome.stop_reason == THRESHOLDS_MISS_SAMPLES:
+    if not is_rmse_measured(outcome):
         # A zero variance estimate there says nothing (rough_uq.multilevel.distribution): no error to show.
         error = f"sup-norm RMSE not measured (the thresholds miss a level's samples), tol {_g(tol)}"
     elif outcome.is_bias_estimated:
@@ -679,7 +687,8 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
             table.add_row(
                 escape(_labelled(distribution.column, unit)),
                 "-" if quantile is None else _g(quantile.probability), value, bar,
-                _g(outcome.rmse[0], 2), _g(run.tol[0]), f"0..{outcome.levels[-1]}",
+                _g(outcome.rmse[0] if is_rmse_measured(outcome) else None, 2), _g(run.tol[0]),
+                f"0..{outcome.levels[-1]}",
                 " ".join(str(n) for n in outcome.n_samples), "yes" if outcome.tol_met else "no",
             )
     return table
