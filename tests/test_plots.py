@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import copy
+import io
+import re
 import sys
 
 import numpy as np
 import pytest
+from rich.console import Console
 
 from rough_uq.report import figures as plots
 from rough_uq.study.config import config_from_dict
@@ -15,7 +18,7 @@ from rough_uq.study.executors import SerialExecutor
 from rough_uq.study.pipeline import Study, build_model, run_estimation, run_screening
 from rough_uq.study.progress import Progress
 from rough_uq.physics.qoi import evaluate_qoi, label_clusters
-from rough_uq.report.summary import study_report
+from rough_uq.report.summary import render_load_curves, study_report
 from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage, solve_sample
 from rough_uq.study.store import MemoryStore
 from tests.study_configs import tiny_config
@@ -202,8 +205,13 @@ def test_load_curve_legend_names_method_level_and_grid(tmp_path, figures):
     plots.write_report_plots(study_report(study.store, study.config), tmp_path)
     (ax,) = figures["load_curve.png"].axes
     mlmc, *mc = _legend_texts(ax)
-    assert mc == ["MC, level 1 (16²) (± RMSE)", "MC, level 2 (32²) (± RMSE)"]
+    # MC on a given level estimates no bias: its band is the statistical error (it said "± RMSE").
+    assert mc == ["MC, level 1 (16²) (± stat. error)", "MC, level 2 (32²) (± stat. error)"]
     assert mlmc.startswith("MLMC, levels 0..") and mlmc.endswith("²) (± RMSE)")
+    text = io.StringIO()
+    render_load_curves(Console(file=text, width=300), study_report(study.store, study.config)["load_curves"])
+    titles = re.findall(r"\((estimate ± [a-zA-Z. ]+)\)", " ".join(text.getvalue().split()))
+    assert titles == ["estimate ± RMSE", "estimate ± stat. error", "estimate ± stat. error"], text.getvalue()
 
 
 
@@ -215,8 +223,8 @@ def test_load_curve_legend_tells_runs_of_one_name_apart_by_what_differs(tmp_path
         run_estimation(study, method="mc", tol=np.array(tol), level=1, executor=SerialExecutor(), progress=Progress())
     plots.write_report_plots(study_report(study.store, study.config), tmp_path)
     legends = [_legend_texts(ax) for ax in figures["load_curve.png"].axes]
-    assert legends[0] == legends[1] == ["MC, level 1 (16²)\ntol mean_gap@0.2=1 (± RMSE)",
-                                        "MC, level 1 (16²)\ntol mean_gap@0.2=0.5 (± RMSE)"]
+    assert legends[0] == legends[1] == ["MC, level 1 (16²)\ntol mean_gap@0.2=1 (± stat. error)",
+                                        "MC, level 1 (16²)\ntol mean_gap@0.2=0.5 (± stat. error)"]
 
 
 def test_load_curve_names_of_many_runs_stay_distinct_and_short():

@@ -433,7 +433,7 @@ def _load_curve_names(drawn: _Drawn) -> list[str]:
 
 
 def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
-    """Each QoI of a load-curve study against the relative load, one line with an RMSE band per finished run."""
+    """Each QoI of a load-curve study against the relative load, one line with an error band per finished run."""
     curves = drawn.load_curves
     if not curves:
         return None
@@ -449,7 +449,7 @@ def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
             error = np.asarray(entry["curves"][name]["rmse"], dtype=float)
             colour = f"C{k % 10}"
             ax.fill_between(load, value - error, value + error, color=colour, alpha=0.25, linewidth=0)
-            ax.plot(load, value, "o-", color=colour, label=f"{run_name} (± RMSE)")
+            ax.plot(load, value, "o-", color=colour, label=f"{run_name} (± {entry.get('error', 'RMSE')})")
             fit = entry.get("kappa")
             if name == "contact_area" and fit is not None:
                 scale = 100.0 if units.get(name) == "%" else 1.0

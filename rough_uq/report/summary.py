@@ -869,6 +869,11 @@ def _area_fraction_scale(config: Any) -> float:
     return 0.01 if settings is not None and settings.unit == "percent" else 1.0
 
 
+def error_name(outcome: Any) -> str:
+    """``RMSE``, or ``stat. error`` for a run whose bias is not estimated (``mc --level``: its RMSE is unknown)."""
+    return "RMSE" if outcome.is_bias_estimated else "stat. error"
+
+
 def load_curves(qoi_names: Sequence[str], runs: Sequence[RunRecord], config: Any) -> list[dict[str, Any]]:
     """Every finished run's estimates as curves over the increasing load (empty for a single-load study).
 
@@ -879,7 +884,8 @@ def load_curves(qoi_names: Sequence[str], runs: Sequence[RunRecord], config: Any
         table's heading), ``method``, ``loads`` (as given in the
         config, increasing), ``relative_loads`` (``p / (E* sqrt(m2))``),
         ``curves`` (QoI name -> ``{"estimate", "rmse", "stat_error"}``, lists
-        over the loads), and ``kappa`` (:class:`SlopeFit` as a dict, or None
+        over the loads; ``rmse`` is the statistical error where the bias is not
+        estimated), ``error`` (:func:`error_name`: what ``rmse`` is), and ``kappa`` (:class:`SlopeFit` as a dict, or None
         without ``contact_area`` or without a load of area below
         :data:`SLOPE_MAX_AREA`).
     """
@@ -907,7 +913,7 @@ def load_curves(qoi_names: Sequence[str], runs: Sequence[RunRecord], config: Any
                                  area_error=np.array(area["rmse"]) * scale)
             kappa = None if fit is None else dict(vars(fit))
         out.append({"run_id": run.run_id, "label": run_label(run, qoi_names), "method": run.method,
-                    "loads": loads.tolist(),
+                    "error": error_name(outcome), "loads": loads.tolist(),
                     "relative_loads": relative.tolist(), "curves": curves, "kappa": kappa})
     return out
 
@@ -920,7 +926,7 @@ def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: di
     """
     units = units or {}
     for entry in curves:
-        table = _table(escape(f"Load curve of {entry['label']} (estimate ± RMSE)"))
+        table = _table(escape(f"Load curve of {entry['label']} (estimate ± {entry['error']})"))
         table.add_column("load", justify="right")
         table.add_column("p/(E* sqrt(m2))", justify="right")
         names = list(entry["curves"])
