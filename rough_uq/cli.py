@@ -1436,6 +1436,9 @@ def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     render_report(data, _console())
     for path in written:
         click.echo(f"wrote {path}")
+    if plots_dir is not None and not written:
+        click.echo(f"wrote no figure to {plots_dir}: the figures draw a screening, finished mlmc or mc runs, load "
+                   "curves and cdf runs, and this study has none of them yet")
 
 
 def _writing(target: str, write: Callable[[], Any]) -> Any:

@@ -489,3 +489,16 @@ def test_the_variance_table_shows_no_bias_or_rmse_for_a_run_that_did_not_estimat
     assert estimated[3] != "-" and estimated[5] != "-" and stopped[3] == stopped[5] == "-"
     assert [cell for k, cell in enumerate(stopped) if k not in (3, 5)] == \
         [cell for k, cell in enumerate(estimated) if k not in (3, 5)]
+
+
+def test_the_report_of_a_variance_study_says_which_runs_lack_a_screening_and_that_no_figure_was_written(tiny):
+    # It said "no screening yet: run `roughuq screen ...`" (the variance run needed none), and `--plots` left an
+    # empty folder without a word.
+    run("mlmc", "--config", str(tiny), "--tol-var", "60", "--workers", "1", "-q", expect=(0, 3))
+    result = run("report", "results.h5", "--plots", "figures")
+    text = " ".join(result.stdout.split())
+    assert ("no screening yet (mlmc and mc --tol need one: run `roughuq screen CONFIG --out results.h5`; --tol-var, "
+            "--tol-cdf and mc --level do not)") in text
+    assert text.endswith("wrote no figure to figures: the figures draw a screening, finished mlmc or mc runs, load "
+                         "curves and cdf runs, and this study has none of them yet")
+    assert not list(Path("figures").iterdir())

@@ -764,7 +764,9 @@ def render_report(report: dict[str, Any], console: Any) -> None:
         console.print(f"screening not finished (stopped or refused before its record): run `roughuq screen CONFIG"
                       f"{_out_option(report['path'])}` to complete it (its stored samples are kept)")
     else:
-        console.print(f"no screening yet: run `roughuq screen CONFIG{_out_option(report['path'])}`")
+        # Runs of variance, cdf and mc --level need none: say for which runs it is missing.
+        console.print(f"no screening yet (mlmc and mc --tol need one: run `roughuq screen CONFIG"
+                      f"{_out_option(report['path'])}`; --tol-var, --tol-cdf and mc --level do not)")
     if report["runs"]:
         reported = [ReportedRun.from_json(run) for run in report["runs"]]
         render_runs(console, reported, report["qoi_names"], units)
