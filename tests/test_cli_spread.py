@@ -328,8 +328,19 @@ def test_a_cdf_of_a_study_of_several_columns_without_qoi_names_the_columns(tmp_p
     config = write_config(tmp_path / "two.yaml", tiny_config(qoi=qoi))
     result = run("mlmc", "--config", str(config), "--tol-cdf", "0.2", "--thresholds", TINY_THRESHOLDS,
                  "--workers", "1", expect=2)
-    assert result.stderr.strip() == ("error: --qoi: got 'nothing (the study has several result columns)'; allowed: "
-                                     "one result column of this study: contact_area, mean_gap")
+    assert result.stderr.strip() == "error: --qoi: this study has several result columns; name one of contact_area, " \
+                                    "mean_gap"
+
+
+def test_a_variance_run_missing_tolerances_names_every_one_at_once(tmp_path, monkeypatch):
+    # A study of three QoIs named one missing tolerance per attempt ("got 'clusters'", then "got 'mean_gap'").
+    monkeypatch.chdir(tmp_path)
+    qoi = {"contact_area": {"unit": "percent"}, "clusters": {}, "mean_gap": {}}
+    config = write_config(tmp_path / "three.yaml", tiny_config(qoi=qoi))
+    result = run("mlmc", "--config", str(config), "--tol-var", "contact_area=60", "--workers", "1", expect=2)
+    assert result.stderr.strip() == ("error: --tol-var: got 'no tolerance for clusters, mean_gap'; allowed: a "
+                                     "tolerance for every QoI: give --tol-var clusters=EPS --tol-var mean_gap=EPS")
+    assert not (tmp_path / "results.h5").exists()
 
 
 def test_a_run_refused_on_the_way_is_recorded_as_refused_with_the_reason(tiny):

@@ -860,14 +860,18 @@ def parse_tolerances(
     empty: no tolerance given, every one from the config.
     """
     given = _given_tolerances(values, config, option=option)
-    tol = []
+    tol, missing = [], []
     for column, name, settings in config.qoi_columns:
         configured = getattr(settings, "tol", None) if use_config else None
         eps = given.get(column, given.get(name, configured))
-        if eps is None:
-            where = f" or set qoi.{name}.tol" if use_config else ""
-            raise InvalidParameterError(option, name, f"a tolerance for every QoI: give {option} {name}=EPS{where}")
+        if eps is None and name not in missing:
+            missing.append(name)
         tol.append(eps)
+    if missing:  # every one at once: a study of three QoIs named one per attempt
+        where = " (or set qoi.NAME.tol in the config)" if use_config else ""
+        wanted = " ".join(f"{option} {name}=EPS" for name in missing)
+        raise InvalidParameterError(option, f"no tolerance for {', '.join(missing)}",
+                                    f"a tolerance for every QoI: give {wanted}{where}")
     return np.array(tol, dtype=float)
 
 
@@ -1582,8 +1586,7 @@ def cdf_request(
     if column is None and len(names) == 1:
         column = names[0]
     if column is None:  # it read "--qoi: got None"
-        raise InvalidParameterError("--qoi", "nothing (the study has several result columns)",
-                                    f"one result column of this study: {', '.join(names)}")
+        raise RoughUQError(f"--qoi: this study has several result columns; name one of {', '.join(names)}")
     if column not in names:
         raise InvalidParameterError("--qoi", column, f"one result column of this study: {', '.join(names)}")
     settings = config.estimation.distribution.get(_qoi_of(config, column))
