@@ -258,10 +258,12 @@ def test_report_shows_variance_and_distribution_tables_json_and_the_cdf_figure(t
     cdf = next(r for r in runs.values() if r.method == "cdf")
     text = run("report", "results.h5").output
     assert "Variance" in text and "Distribution" in text
-    # One convention for the unit of a table row (report.summary's docstring): `name [unit]`.
+    # The unit of a table row in brackets (report.summary's docstring).
     variance_rows = text.split("Variance")[1].split("Distribution")[0]
     distribution_rows = text.split("Distribution")[1]
-    assert " contact_area [%^2] " in variance_rows and " contact_area [%] " in distribution_rows
+    # The unit under the QoI's name (a narrow column keeps both; a load curve's load gets a line between them).
+    assert "\n [%^2] " in variance_rows and "\n [%] " in distribution_rows
+    assert re.search(r"^ contact_area ", variance_rows, re.M) and re.search(r"^ contact_area ", distribution_rows, re.M)
     q05 = cdf.outcome.distribution.quantiles[0]
     assert f"q(0.05) = {q05.value:.4g}" in text
     report = json.loads(run("report", "results.h5", "--json").stdout)
@@ -492,11 +494,11 @@ def test_the_variance_table_shows_no_bias_or_rmse_for_a_run_that_did_not_estimat
         console.print(_variance_table([record], units))
         return next(line for line in console.export_text().splitlines() if "contact_area" in line)
 
-    # Columns: QoI, Var(Q) ± stat., sd(Q), RMSE, tol, bias, levels, N_l, met (at least two spaces apart).
+    # Columns: QoI, Var(Q) ± stat., sd(Q), RMSE, tol, bias, N_l (from level 0), met (at least two spaces apart).
     estimated = re.split(r"\s{2,}", row(variance).strip())
     stopped = re.split(r"\s{2,}", row(replace(variance, outcome=replace(variance.outcome,
                                                                          is_bias_estimated=False))).strip())
-    assert variance.outcome.is_bias_estimated and len(estimated) == len(stopped) == 9
+    assert variance.outcome.is_bias_estimated and len(estimated) == len(stopped) == 8
     assert estimated[3] != "-" and estimated[5] != "-" and stopped[3] == stopped[5] == "-"
     assert [cell for k, cell in enumerate(stopped) if k not in (3, 5)] == \
         [cell for k, cell in enumerate(estimated) if k not in (3, 5)]
@@ -513,3 +515,26 @@ def test_the_report_of_a_variance_study_says_which_runs_lack_a_screening_and_tha
     assert text.endswith("wrote no figure to figures: the figures draw a screening, finished mlmc or mc runs, load "
                          "curves and cdf runs, and this study has none of them yet")
     assert not list(Path("figures").iterdir())
+
+
+def test_a_load_curve_variance_table_at_80_columns_keeps_the_loads_apart(tmp_path, monkeypatch):
+    # Both rows of a QoI read "clusters…" (the load, which tells them apart, was cut) and "met" fell off the edge.
+    from rich.console import Console
+
+    from rough_uq.report.summary import _variance_table
+
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "lc.yaml", tiny_config(load={"relative": [0.1, 0.02]},
+                                                            qoi={"contact_area": {"unit": "percent"}, "clusters": {}}))
+    run("mlmc", "--config", str(config), "--tol-var", "contact_area=60", "--tol-var", "clusters=1e4", "--workers",
+        "1", "-q", expect=(0, 3))
+    (variance,) = stored_runs(tmp_path / "results.h5").values()
+    console = Console(width=80, record=True, file=io.StringIO())
+    console.print(_variance_table([variance], {"contact_area": "%", "clusters": "clusters per unit area"}))
+    text = console.export_text()
+    assert all(len(line) <= 80 for line in text.splitlines())
+    lines = [line.split() for line in text.splitlines()]
+    assert [cells[0] for cells in lines if cells and cells[0].startswith("@")] == ["@0.1", "@0.02"] * 2, text
+    met = [cells[-1] for cells in lines if cells and cells[0] in ("clusters", "contact_area")]
+    assert len(met) == 4 and set(met) <= {"yes", "no"}, text  # the last column, whole
+    assert "…" not in text

@@ -23,7 +23,10 @@ unit of its row's estimate in brackets, the one convention of every table:
 ``contact_area [%]`` (screening, distribution quantiles, load curves),
 ``contact_area [%^2]`` (the variance table, whose ``Var(Q)``, ``RMSE``,
 ``tol`` and ``bias`` are in the QoI's unit squared; ``sd(Q)`` is in its
-unit), ``clusters [(clusters per unit area)^2]``. A dimensionless fraction
+unit), ``clusters [(clusters per unit area)^2]``. The variance and
+distribution tables, whose rows are result columns, put the unit (and a
+load-curve column's ``@load``) on lines of their own under the QoI, so that
+a narrow terminal folds none of them away. A dimensionless fraction
 has no unit, in lines and tables alike; the report's ``QoIs:`` line names
 every QoI's unit, ``fraction`` included.
 
@@ -645,10 +648,29 @@ def render_runs(console: Any, runs: Sequence[ReportedRun], qoi_names: Sequence[s
             console.print(escape(line), highlight=False)
 
 
+def _add_qoi_column(table: Any) -> None:
+    """The QoI column of a table of result columns (cells of :func:`_qoi_cell`), folded rather than cut.
+
+    At 80 columns rich cut ``clusters@0.1 [...]`` and ``clusters@0.02 [...]`` alike to ``clusters…``: the load,
+    which tells the rows apart, was lost.
+    """
+    table.add_column("QoI", justify="left", overflow="fold")
+    table.caption, table.caption_justify = "N_l: samples per level, from level 0", "left"
+
+
+def _qoi_cell(name: str, unit: str, power: int = 1) -> str:
+    """A QoI cell on lines of their own: the QoI, a load-curve column's load, the unit (``contact_area`` /
+    ``@0.02`` / ``[%^2]``), so that a narrow column keeps them all."""
+    text = _power(unit, power)
+    lines = [*name.replace("@", "\n@").splitlines(), *([f"[{text}]"] if text else [])]
+    return escape("\n".join(lines))
+
+
 def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
     """Every finished variance run, one row per QoI column."""
     table = _table("Variance (MLMC, RMSE on Var(Q))")
-    for column in ("QoI", "Var(Q) ± stat.", "sd(Q)", "RMSE", "tol", "bias", "levels", "N_l", "met"):
+    _add_qoi_column(table)
+    for column in ("Var(Q) ± stat.", "sd(Q)", "RMSE", "tol", "bias", "N_l", "met"):
         table.add_column(column, justify="right")
     for run in runs:
         outcome = run.outcome
@@ -658,12 +680,12 @@ def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
             # "bias not estimated"): "-" rather than a bias of 0 and an RMSE equal to the statistical error.
             is_estimated = outcome.is_bias_estimated
             table.add_row(
-                escape(_labelled(name, _column_unit(units, name), 2)),
+                _qoi_cell(name, _column_unit(units, name), 2),
                 _value_error(variance, outcome.stat_error[q]),
-                _g(math.sqrt(variance), 4) if variance >= 0 else "-",
+                _g(math.sqrt(variance)) if variance >= 0 else "-",
                 _g(outcome.rmse[q], 2) if is_estimated else "-", _g(run.tol[q]),
                 _g(outcome.bias_estimate[q], 2) if is_estimated else "-",
-                f"0..{outcome.levels[-1]}", " ".join(str(n) for n in outcome.n_samples),
+                " ".join(str(n) for n in outcome.n_samples),
                 "yes" if outcome.tol_met else "no",
             )
     return table
@@ -672,7 +694,8 @@ def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
 def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
     """Every finished cdf run, one row per quantile (its error bar from the sup-norm RMSE band)."""
     table = _table("Distribution (MLMC CDF, quantiles with error bars)")
-    for column in ("QoI", "p", "q_p", "error bar", "sup RMSE", "tol", "levels", "N_l", "met"):
+    _add_qoi_column(table)
+    for column in ("p", "q_p", "error bar", "sup RMSE", "tol", "N_l", "met"):
         table.add_column(column, justify="right")
     for run in runs:
         outcome, distribution = run.outcome, run.outcome.distribution
@@ -685,10 +708,9 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
                 upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
                 bar = f"[{lower}, {upper}]"
             table.add_row(
-                escape(_labelled(distribution.column, unit)),
+                _qoi_cell(distribution.column, unit),
                 "-" if quantile is None else _g(quantile.probability), value, bar,
                 _g(outcome.rmse[0] if is_rmse_measured(outcome) else None, 2), _g(run.tol[0]),
-                f"0..{outcome.levels[-1]}",
                 " ".join(str(n) for n in outcome.n_samples), "yes" if outcome.tol_met else "no",
             )
     return table
