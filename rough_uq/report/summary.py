@@ -909,8 +909,9 @@ def load_curves(qoi_names: Sequence[str], runs: Sequence[RunRecord], config: Any
         config, increasing), ``relative_loads`` (``p / (E* sqrt(m2))``),
         ``curves`` (QoI name -> ``{"estimate", "rmse", "stat_error"}``, lists
         over the loads; ``rmse`` is the statistical error where the bias is not
-        estimated), ``error`` (:func:`error_name`: what ``rmse`` is), and ``kappa`` (:class:`SlopeFit` as a dict, or None
-        without ``contact_area`` or without a load of area below
+        estimated), ``error`` (:func:`error_name`: what ``rmse`` is), and
+        ``kappa`` (:class:`SlopeFit` as a dict, or None without
+        ``contact_area`` or without a load of area below
         :data:`SLOPE_MAX_AREA`).
     """
     if not any(split_column(name)[1] is not None for name in qoi_names):
