@@ -208,6 +208,8 @@ def test_load_curve_legend_names_method_level_and_grid(tmp_path, figures):
     # MC on a given level estimates no bias: its band is the statistical error (it said "± RMSE").
     assert mc == ["MC, level 1 (16²) (± stat. error)", "MC, level 2 (32²) (± stat. error)"]
     assert mlmc.startswith("MLMC, levels 0..") and mlmc.endswith("²) (± RMSE)")
+    # The samples' panel names its tolerance by QoI (it read "tol 4, 4", one number per load column).
+    assert [ax.get_title() for ax in figures["samples_per_level.png"].axes] == ["tol contact_area=4"]
     text = io.StringIO()
     render_load_curves(Console(file=text, width=300), study_report(study.store, study.config)["load_curves"])
     titles = re.findall(r"\((estimate ± [a-zA-Z. ]+)\)", " ".join(text.getvalue().split()))

@@ -346,7 +346,8 @@ def _samples_figure(drawn: _Drawn, path: Path) -> Path | None:
         ax.set_xlabel("level $l$")
         all_levels = sorted(set(run.outcome.levels) | set(mc.levels if mc is not None else []))
         _label_grids(ax, all_levels, drawn.grids)
-        ax.set_title("tol " + ", ".join(f"{t:g}" for t in run.tol))
+        # By name, grouped by QoI as --tol takes them (a load curve's read "tol 1, 4, 1, 20, 20, ...").
+        ax.set_title("\n".join(textwrap.wrap("tol " + tol_text(drawn.qoi_names, run.tol), 60)), fontsize="medium")
         ax.grid(True, axis="y", which="both", alpha=0.3)
         ax.legend(fontsize="small")
     axes[0].set_ylabel("samples per level")
