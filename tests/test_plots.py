@@ -171,6 +171,20 @@ def test_cost_against_tolerance_leaves_out_mc_on_a_chosen_level(tmp_path, report
     assert _legend_texts(loosest) == ["MLMC $N_l$", "MC $N$"] and _legend_texts(tightest) == ["MLMC $N_l$"]
 
 
+def test_cost_against_tolerance_sets_the_refused_tolerances_apart(tmp_path, report, figures):
+    # The predicted lines ran through tolerances the screening marks "*" (mlmc refuses them).
+    changed = copy.deepcopy(report)
+    predictions = sorted(changed["screening"]["predictions"], key=lambda p: p["tol"][0])
+    predictions[0]["is_bias_met"] = False  # the tightest
+    changed["screening"]["predictions"] = predictions
+    plots.write_report_plots(changed, tmp_path)
+    lines = _lines(figures["cost_vs_tol.png"].axes[0])
+    tols = [p["tol"][0] for p in predictions]
+    assert list(lines["MLMC predicted at tol whose bias grid.max_level cannot reach"].get_xdata()) == tols[:1]
+    (mlmc,) = [line for label, line in lines.items() if label.startswith("MLMC predicted CPU-s")]
+    assert list(mlmc.get_xdata()) == tols[1:]
+
+
 @pytest.fixture(scope="module")
 def two_qoi_report() -> dict:
     """Two QoIs screened with tolerances 2 % and 0.05 (ratio 0.025); MLMC at that ratio and at another."""

@@ -280,11 +280,17 @@ def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
     predictions = sorted(screening.predictions if screening else (), key=lambda p: p.tol[0])
     complexities = screening.complexity if screening is not None else ()
     ratio = _tol_ratio(predictions[0].tol) if predictions else None
+    # Tolerances whose bias the finest allowed grid cannot reach (the table's "*": mlmc refuses them) get
+    # markers of their own, off the lines of what a run can do.
+    reachable = [p for p in predictions if p.is_bias_met]
+    refused = [p for p in predictions if not p.is_bias_met]
     series = [  # (points, format, keywords of Axes.plot)
-        ([(p.tol[0], p.mlmc_seconds) for p in predictions if _positive(p.mlmc_seconds)], "-",
+        ([(p.tol[0], p.mlmc_seconds) for p in reachable if _positive(p.mlmc_seconds)], "-",
          {"color": "C0", "label": "MLMC predicted CPU-s" + _exponent_note(drawn, complexities, is_mc=False)}),
-        ([(p.tol[0], p.mc_seconds) for p in predictions if _positive(p.mc_seconds)], "--",
+        ([(p.tol[0], p.mc_seconds) for p in reachable if _positive(p.mc_seconds)], "--",
          {"color": "C3", "label": "MC predicted CPU-s" + _exponent_note(drawn, complexities, is_mc=True)}),
+        ([(p.tol[0], p.mlmc_seconds) for p in refused if _positive(p.mlmc_seconds)], "x",
+         {"color": "0.5", "label": "MLMC predicted at tol whose bias grid.max_level cannot reach"}),
     ]
     measured = {"mlmc": drawn.finished("mlmc"),
                 "mc": [run for run in drawn.finished("mc") if run.measures_plain_mc]}
@@ -538,7 +544,8 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             Log-log cost in seconds against the first QoI's tolerance: the
             screening's predicted MLMC and MC costs as lines (with each QoI's
             exponent; the other QoIs' tolerances as multiples of the first's
-            in the axis label), the measured wall time of finished MLMC and
+            in the axis label; a tolerance whose bias ``grid.max_level``
+            cannot reach as a grey cross, off the lines), the measured wall time of finished MLMC and
             ``mc --tol`` runs as points, hollow for a run at another ratio of
             tolerances. Needs a screening or a finished run.
         ``samples_per_level.png``
