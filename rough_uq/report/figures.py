@@ -541,13 +541,14 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             sample (modelled ``C_l`` and measured wall seconds) with the
             ``gamma`` line. Needs a screening.
         ``cost_vs_tol.png``
-            Log-log cost in seconds against the first QoI's tolerance: the
-            screening's predicted MLMC and MC costs as lines (with each QoI's
-            exponent; the other QoIs' tolerances as multiples of the first's
-            in the axis label; a tolerance whose bias ``grid.max_level``
-            cannot reach as a grey cross, off the lines), the measured wall time of finished MLMC and
-            ``mc --tol`` runs as points, hollow for a run at another ratio of
-            tolerances. Needs a screening or a finished run.
+            Log-log CPU-seconds of the samples against the first QoI's
+            tolerance: the screening's predicted MLMC and MC costs as lines
+            (with each QoI's exponent; the other QoIs' tolerances as
+            multiples of the first's in the axis label; a tolerance whose
+            bias ``grid.max_level`` cannot reach as a grey cross, off the
+            lines), the measured CPU time of finished MLMC and ``mc --tol``
+            runs as points, hollow for a run at another ratio of tolerances.
+            Needs a screening or a finished run.
         ``samples_per_level.png``
             ``N_l`` per level (log scale) of the loosest and the tightest
             finished MLMC run, beside the sample count of a finished MC run
