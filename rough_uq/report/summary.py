@@ -974,6 +974,6 @@ def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: di
 def _slope_source(fit: dict[str, Any]) -> str:
     """Where ``kappa`` comes from: a fit through 0 on several small loads, or the ratio at the only one."""
     if fit["n_points"] == 1:
-        return (f"from the only load with A/A0 < {fit['max_area']:g}\n  (no fit: the line through 0 and that load; "
-                "smaller loads in the curve make it one)")
+        return (f"the slope of the line through 0 and the only load with A/A0 < {fit['max_area']:g}\n  (more loads "
+                "below that area in the curve give a least-squares fit)")
     return f"fitted through 0\n  on the {fit['n_points']} loads with A/A0 < {fit['max_area']:g}"
