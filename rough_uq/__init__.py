@@ -47,6 +47,7 @@ _EXPORTS = {
     "ContactProblem": "rough_uq.problem.contact",
     "RelativeLoad": "rough_uq.problem.loads",
     "AbsoluteLoad": "rough_uq.problem.loads",
+    "RunForecast": "rough_uq.problem.runs",
     "ScreeningResult": "rough_uq.problem.runs",
     "mlmc": "rough_uq.problem.runs",
     "mc": "rough_uq.problem.runs",
@@ -90,6 +91,7 @@ __all__ = [
     "ContactProblem",
     "RelativeLoad",
     "AbsoluteLoad",
+    "RunForecast",
     "ScreeningResult",
     "mlmc",
     "mc",
@@ -155,7 +157,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time names load on first
     from rough_uq.problem.contact import ContactProblem
     from rough_uq.problem.distribution import DistributionResult, distribution, variance
     from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
-    from rough_uq.problem.runs import ScreeningResult, mc, mlmc, screen
+    from rough_uq.problem.runs import RunForecast, ScreeningResult, mc, mlmc, screen
 
 
 def __getattr__(name: str) -> object:

@@ -38,6 +38,7 @@ PUBLIC = [
     "ContactProblem",
     "RelativeLoad",
     "AbsoluteLoad",
+    "RunForecast",
     "ScreeningResult",
     "mlmc",
     "mc",
@@ -615,6 +616,32 @@ def test_readme_pool_example_runs_as_a_script(tmp_path):
     assert result.returncode == 0, result.stderr
     estimate, rmse = (float(text.strip("[]")) for text in result.stdout.split())
     assert 0 < estimate < 100 and 0 < rmse <= 0.5
+
+
+def test_a_screening_forecasts_what_mlmc_draws_first_and_what_it_costs():
+    """Python runs started without a word of what they would take (a variance run took 11 minutes)."""
+    from rough_uq.multilevel.drivers import PlanUpdated, iter_mlmc
+
+    problem = _problem(max_level=3)
+    screening = rough_uq.screen(problem, levels=3, samples=10)
+    assert screening.seconds_per_cost > 0
+    forecast = screening.forecast(tol=1.0)
+    assert forecast.is_bias_met and forecast.levels.tolist() == list(range(len(forecast.n_samples)))
+    assert forecast.cpu_seconds == pytest.approx(forecast.cost * screening.seconds_per_cost)
+    assert forecast.mc_cost > 0 and forecast.mc_cpu_seconds == pytest.approx(forecast.mc_cost *
+                                                                             screening.seconds_per_cost)
+    # The plan the run starts from (its first PlanUpdated), and the costs of those samples.
+    events = iter_mlmc(problem.sampler(1), tol=np.array([1.0]), screening=screening.statistics, max_level=3,
+                       coarsest_level=None)
+    first = next(event for event in events if isinstance(event, PlanUpdated))
+    events.close()
+    assert first.n_planned.tolist() == forecast.n_samples.tolist()
+    levels = np.arange(len(forecast.n_samples))
+    model = np.where(levels < 3, 0.0, screening.rates.cost_model(3))
+    costs = np.where(levels < 3, screening.statistics.mean_cost[np.minimum(levels, 2)], model)
+    assert forecast.cost == pytest.approx(float(np.dot(forecast.n_samples, costs)))
+    with pytest.raises(rough_uq.InvalidParameterError, match="^theta: "):
+        screening.forecast(tol=1.0, theta=1.5)
 
 
 def test_mc_from_a_screening_with_a_flat_bias_plans_with_the_rate_mlmc_runs_use():

@@ -213,6 +213,7 @@ __all__ = [
     "planning_rates",
     "refuse_large_plan",
     "refuse_large_start",
+    "starting_forecast",
     "starting_plan",
     "starting_samples",
 ]
@@ -1227,6 +1228,20 @@ def starting_samples(initial: Plan, *, min_finest_level: int = 2) -> tuple[int, 
     targets = [max(int(n), MIN_LEVEL_SAMPLES) if level >= base else 0 for level, n in enumerate(initial.n_samples)]
     n_levels = max(min_finest_level + 1, base + 3, len(targets))
     return tuple(targets + [MIN_LEVEL_SAMPLES] * (n_levels - len(targets)))
+
+
+def starting_forecast(
+    initial: Plan, rates: Rates, *, min_finest_level: int = 2
+) -> tuple[tuple[int, ...], tuple[float, ...]]:
+    """What an MLMC run started from the screening plan ``initial`` asks for first, and what one sample costs.
+
+    The samples per level (:func:`starting_samples`) and the modelled cost of one sample of each level: the
+    plan's where it has the level, else ``rates``' cost model (the levels the run adds for its rates).
+    """
+    counts = starting_samples(initial, min_finest_level=min_finest_level)
+    costs = tuple(float(initial.costs[level]) if level < len(initial.costs) else float(rates.cost_model(level))
+                  for level in range(len(counts)))
+    return counts, costs
 
 
 def starting_plan(

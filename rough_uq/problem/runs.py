@@ -48,9 +48,9 @@ from rough_uq.multilevel.statistics import (
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter
 from rough_uq.problem.columns import split_column, tol_text, values_text
-from rough_uq.problem.sampler import modelled_cost, run_stage
+from rough_uq.problem.sampler import measured_seconds_per_cost, modelled_cost, run_stage
 
-__all__ = ["MIN_SCREENED_LEVELS", "ScreeningResult", "mc", "mlmc", "run_id", "screen"]
+__all__ = ["MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "mc", "mlmc", "run_id", "screen"]
 
 #: Fewest levels a screening covers, ``0..2``: the rates are fitted on levels >= 1 (level 0's ``Y_0 = Q_0``
 #: follows none of their models) and a line needs two of them. The config's ``screening.levels`` says the same.
@@ -104,6 +104,9 @@ class ScreeningResult:
         The problem screened; :func:`mlmc` and :func:`mc` refuse the
         screening for a problem that differs in more than
         :data:`SCREENING_FREE_FIELDS`.
+    seconds_per_cost : float or None
+        Measured CPU-seconds per reference second of modelled cost, the median over the samples (as ``roughuq
+        screen`` measures it); None where not measured. :meth:`forecast` converts with it.
     """
 
     statistics: LevelStatistics
@@ -111,6 +114,38 @@ class ScreeningResult:
     n_not_converged: int
     diagnostics: tuple[str, ...]
     problem: ContactProblem | None = None
+    seconds_per_cost: float | None = None
+
+    def forecast(self, tol: object, *, theta: float = 0.5, richardson: bool = False) -> RunForecast:
+        """What :func:`mlmc` with this screening will draw first and cost, before any sample (as ``roughuq mlmc``
+        forecasts).
+
+        ``tol``, ``theta`` and ``richardson`` as in :func:`mlmc`. The plan is the one the run starts from (the
+        rates floored as it floors them, :func:`~rough_uq.multilevel.drivers.planning_rates`); the run then
+        adapts it to its own samples. Raises :class:`~rough_uq.errors.EstimationError` where the screening's
+        bias does not decay (:func:`mlmc` cannot choose a finest level then).
+        """
+        problem = self.problem
+        if problem is None:
+            raise InvalidParameterError("problem", None, "the screening's ContactProblem (a result of screen())")
+        tol = _tolerances(tol, problem.n_qoi, problem.columns)
+        theta = _check_fraction("theta", theta)
+        stalled = stalled_bias(problem.columns, self.rates)
+        if stalled:
+            raise EstimationError(f"the bias of {', '.join(stalled)} does not decrease from level to level on the "
+                                  "screened grids, so no finest level can be chosen for a tolerance")
+        planned = drivers.planning_rates(self.statistics)
+        initial = drivers.starting_plan(tol=tol, rates=planned, statistics=self.statistics, theta=theta,
+                                        max_level=problem.max_level, richardson=bool(richardson))
+        counts, costs = drivers.starting_forecast(initial, planned)
+        cost = float(np.dot(counts, costs))
+        mc_cost = mc_run_cost(_screened_mc_plan(problem, self, self.statistics, tol, theta))
+        per_cost = self.seconds_per_cost
+        return RunForecast(
+            n_samples=np.array(counts), cost=cost, mc_cost=mc_cost, is_bias_met=bool(initial.is_bias_met),
+            cpu_seconds=None if per_cost is None else cost * per_cost,
+            mc_cpu_seconds=None if per_cost is None else mc_cost * per_cost,
+        )
 
     @property
     def levels(self) -> np.ndarray:
@@ -130,6 +165,38 @@ class ScreeningResult:
             f"alpha={_rounded(rates.alpha)}, beta={_rounded(rates.beta)}, gamma={rates.gamma:.3g}, "
             f"n_not_converged={self.n_not_converged}, diagnostics={self.diagnostics!r})"
         )
+
+
+@dataclass(frozen=True, eq=False)
+class RunForecast:
+    """What an MLMC run from a screening will draw first and cost (:meth:`ScreeningResult.forecast`).
+
+    Attributes
+    ----------
+    n_samples : ndarray of int, shape (n_levels,)
+        Samples per level ``0..L`` the run asks for first: 0 on the coarse levels the screening drops, 2 on the
+        levels it adds to fit its rates.
+    cost, mc_cost : float
+        Modelled cost of those samples, and of plain MC to the same tolerance (reference seconds).
+    cpu_seconds, mc_cpu_seconds : float or None
+        The same in CPU-seconds at the screening's measured CPU-seconds per reference second (None for a
+        screening that did not measure them).
+    is_bias_met : bool
+        False where the screening predicts a bias above ``sqrt(theta) tol`` on the problem's ``max_level``: the
+        run will then stop there with its tolerance not met (``roughuq mlmc`` refuses such a tolerance).
+    """
+
+    n_samples: np.ndarray
+    cost: float
+    mc_cost: float
+    cpu_seconds: float | None
+    mc_cpu_seconds: float | None
+    is_bias_met: bool
+
+    @property
+    def levels(self) -> np.ndarray:
+        """Levels ``0..L`` of :attr:`n_samples`."""
+        return np.arange(len(self.n_samples))
 
 
 def _rounded(values: np.ndarray) -> list[float]:
@@ -215,6 +282,7 @@ def screen(
         n_not_converged=sampler.n_not_converged,
         diagnostics=(*diagnose(statistics, names=problem.columns), *_stalled_bias(problem.columns, rates)),
         problem=problem,
+        seconds_per_cost=measured_seconds_per_cost(batches, problem.model),
     )
 
 

@@ -58,6 +58,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -78,6 +79,7 @@ __all__ = [
     "RETRY_FACTOR",
     "sample_rng",
     "modelled_cost",
+    "measured_seconds_per_cost",
     "compute_batch",
     "warm_up",
     "SampleSolution",
@@ -236,6 +238,19 @@ def modelled_cost(model: ContactModel, level: int, n_iter: np.ndarray, *, is_cou
     if is_coupled and level > 0:
         cost = cost + _solve_cost(model.grid(level - 1), n_iter[:, 1])
     return cost
+
+
+def measured_seconds_per_cost(batches: Sequence[LevelBatch], model: ContactModel) -> float:
+    """Measured CPU-seconds per modelled reference second over coupled (screening) batches (1 without any).
+
+    The median of the per-sample ratios: the first samples of every worker
+    also pay its start-up (loading the compiled kernels, FFT plans), which
+    would otherwise inflate every prediction of a cheap study many times.
+    """
+    seconds = np.concatenate([np.asarray(b.cost, dtype=float) for b in batches])
+    modelled = np.concatenate([np.asarray(modelled_cost(model, b.level, b.n_iter), dtype=float) for b in batches])
+    usable = modelled > 0
+    return float(np.median(seconds[usable] / modelled[usable])) if np.any(usable) else 1.0
 
 
 def _solve(model: ContactModel, heights: np.ndarray, initial: LoadCurveSolution | None) -> LoadCurveSolution:

@@ -66,8 +66,8 @@ from rough_uq.multilevel.drivers import (
     iter_mlmc,
     planning_rates,
     refuse_large_plan,
+    starting_forecast,
     starting_plan,
-    starting_samples,
 )
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.fft_wisdom import prepare_wisdom
@@ -101,6 +101,7 @@ from rough_uq.problem.sampler import (
     ContactModel,
     LevelBatch,
     is_coupled_stage,
+    measured_seconds_per_cost,
     modelled_cost,
     run_stage,
 )
@@ -657,19 +658,6 @@ class ScreeningOutcome:
     record: ScreeningRecord
 
 
-def _seconds_per_cost(batches: Sequence[LevelBatch], model: ContactModel) -> float:
-    """Measured CPU-seconds per modelled reference second over coupled (screening) batches.
-
-    The median of the per-sample ratios: the first samples of every worker
-    also pay its start-up (loading the compiled kernels, FFT plans), which
-    would otherwise inflate every prediction of a cheap study many times.
-    """
-    seconds = np.concatenate([np.asarray(b.cost, dtype=float) for b in batches])
-    modelled = np.concatenate([np.asarray(modelled_cost(model, b.level, b.n_iter), dtype=float) for b in batches])
-    usable = modelled > 0
-    return float(np.median(seconds[usable] / modelled[usable])) if np.any(usable) else 1.0
-
-
 def screening_statistics(study: Study, sampler: StudySampler | None = None) -> tuple[LevelStatistics, list[LevelBatch]]:
     """Level statistics of the screening samples (computing missing ones if ``sampler`` is given).
 
@@ -755,7 +743,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
         progress.stop(is_complete=False)
         raise
     progress.stop()
-    seconds_per_cost = _seconds_per_cost(batches, study.model)
+    seconds_per_cost = measured_seconds_per_cost(batches, study.model)
     predictions, problems = _predictions(config, statistics, rates, seconds_per_cost)
     checks = [Diagnostic(text) for text in (*diagnose(statistics, names=config.qoi_names), *problems)]
     coarsest = choose_coarsest_level(statistics)
@@ -1080,9 +1068,7 @@ def _planned_samples(
             fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
         return finest, counts, (float(fine_cost),)
     # What the run asks for first: nothing below the plan's coarsest level, two levels above it at least.
-    counts = starting_samples(prediction)
-    costs = tuple(float(prediction.costs[level]) if level < len(prediction.costs) else float(rates.cost_model(level))
-                  for level in range(len(counts)))
+    counts, costs = starting_forecast(prediction, rates)
     return len(counts) - 1, counts, costs
 
 
