@@ -115,9 +115,9 @@ def test_a_distribution_whose_thresholds_miss_the_contact_area_does_not_meet_its
     assert not law.tol_met and law.stop_reason == "thresholds_miss_samples"
     assert law.missed_levels.tolist() == law.levels.tolist() == list(range(problem.max_level + 1))
     message, not_met = [str(w.message) for w in caught]
-    assert not_met == ("distribution of contact_area: tolerance not met (thresholds_miss_samples): RMSE not measured against "
-                       "tol 0.1; the thresholds miss the samples of a level (see the warning): put thresholds among "
-                       "the values or raise n_initial")
+    assert not_met == ("distribution of contact_area: tolerance not met (thresholds_miss_samples): RMSE not measured "
+                       "against tol 0.1; the thresholds miss the samples of a level (see the warning): put thresholds "
+                       "among the values or raise n_initial")
     stage = run_stage("mlmc", run_id("cdf", ["contact_area"], np.array([0.1]), 0.5))
     for level, n in zip(law.levels, law.n_samples):
         fine, coarse, _ = problem.sampler(stage)(int(level), np.arange(n, dtype=np.int64))
