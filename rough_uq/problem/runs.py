@@ -130,10 +130,7 @@ class ScreeningResult:
             raise InvalidParameterError("problem", None, "the screening's ContactProblem (a result of screen())")
         tol = _tolerances(tol, problem.n_qoi, problem.columns)
         theta = _check_fraction("theta", theta)
-        stalled = stalled_bias(problem.columns, self.rates)
-        if stalled:
-            raise EstimationError(f"the bias of {', '.join(stalled)} does not decrease from level to level on the "
-                                  "screened grids, so no finest level can be chosen for a tolerance")
+        _refuse_stalled_bias(problem.columns, self.rates)
         planned = drivers.planning_rates(self.statistics)
         initial = drivers.starting_plan(tol=tol, rates=planned, statistics=self.statistics, theta=theta,
                                         max_level=problem.max_level, richardson=bool(richardson))
@@ -284,6 +281,14 @@ def screen(
         problem=problem,
         seconds_per_cost=measured_seconds_per_cost(batches, problem.model),
     )
+
+
+def _refuse_stalled_bias(columns: Sequence[str], rates: Rates) -> None:
+    """Raise :class:`~rough_uq.errors.EstimationError` if the screening's bias of a column does not decay."""
+    stalled = stalled_bias(columns, rates)
+    if stalled:
+        raise EstimationError(f"the bias of {', '.join(stalled)} does not decrease from level to level on the "
+                              "screened grids, so no level can be chosen for a tolerance")
 
 
 def _stalled_bias(columns: Sequence[str], rates: Rates) -> tuple[str, ...]:
@@ -589,10 +594,7 @@ def _screened_mc_plan(problem: ContactProblem, screening, statistics: LevelStati
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
         is_result = isinstance(screening, ScreeningResult)
         rates = screening.rates if is_result else fit_rates(statistics, names=problem.columns)
-        stalled = stalled_bias(problem.columns, rates)
-        if stalled:
-            raise EstimationError(f"the bias of {', '.join(stalled)} does not decrease from level to level on the "
-                                  "screened grids, so no level can be chosen for a tolerance")
+        _refuse_stalled_bias(problem.columns, rates)
         planned = drivers.planning_rates(statistics)
     return plan(tol=tol, rates=planned, statistics=statistics, theta=theta, max_level=problem.max_level,
                 coarsest_level=None)
