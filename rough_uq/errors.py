@@ -68,13 +68,16 @@ class InvalidParameterError(RoughUQError, ValueError):
         The value that was given.
     allowed : str
         What would have been accepted.
+    text : str, optional
+        The message, where ``NAME: got VALUE; allowed: ...`` reads badly (a value that is missing); it starts
+        with ``name``.
     """
 
-    def __init__(self, name: str, value: object, allowed: str) -> None:
+    def __init__(self, name: str, value: object, allowed: str, *, text: str | None = None) -> None:
         self.name = name
         self.value = value
         self.allowed = allowed
-        super().__init__(f"{name}: got {value!r}; allowed: {allowed}")
+        super().__init__(f"{name}: got {value!r}; allowed: {allowed}" if text is None else text)
 
 
 def checked_integer(name: str, value: object, minimum: int) -> int:

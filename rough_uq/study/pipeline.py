@@ -858,8 +858,8 @@ def parse_tolerances(
     if missing:  # every one at once: a study of three QoIs named one per attempt
         where = " (or set qoi.NAME.tol in the config)" if use_config else ""
         wanted = " ".join(f"{option} {name}=EPS" for name in missing)
-        raise InvalidParameterError(option, f"no tolerance for {', '.join(missing)}",
-                                    f"a tolerance for every QoI: give {wanted}{where}")
+        raise InvalidParameterError(option, None, f"a tolerance for every QoI: give {wanted}{where}",
+                                    text=f"{option}: no tolerance for {', '.join(missing)}; give {wanted}{where}")
     return np.array(tol, dtype=float)
 
 
@@ -1572,7 +1572,9 @@ def cdf_request(
     if column is None and len(names) == 1:
         column = names[0]
     if column is None:  # it read "--qoi: got None"
-        raise RoughUQError(f"--qoi: this study has several result columns; name one of {', '.join(names)}")
+        columns = ", ".join(names)
+        raise InvalidParameterError("--qoi", None, f"one result column of this study: {columns}",
+                                    text=f"--qoi: this study has several result columns; name one of {columns}")
     if column not in names:
         raise InvalidParameterError("--qoi", column, f"one result column of this study: {', '.join(names)}")
     settings = config.estimation.distribution.get(_qoi_of(config, column))
