@@ -377,7 +377,7 @@ def test_a_target_run_refused_on_the_way_names_the_option_the_user_gave():
     assert isinstance(info.value, PlanTooLargeError) and info.value.tol == (1e-6, 1e-3)
     # Levels planned at the planners' cap (2^52): the need is larger, and the counts are written compactly.
     assert max(info.value.n_planned) == 2**52
-    counts = " ".join(f"{n:.3g}" for n in info.value.n_planned)
+    counts = " ".join(str(n) if n < 10**7 else f"{n:.3g}" for n in info.value.n_planned)
     assert f"more than {info.value.total:.3g} samples (N_l {counts})" in text
     request = cdf_request(study.config, column="contact_area", thresholds=np.linspace(10.0, 40.0, 31))
     with pytest.raises(EstimationError) as info:
