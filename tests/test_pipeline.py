@@ -57,6 +57,18 @@ def _screened(**overrides: object) -> Study:
 
 
 
+@pytest.mark.filterwarnings("ignore::rough_uq.multilevel.statistics.EstimationWarning")
+def test_a_run_from_a_screening_whose_bias_grows_is_refused_without_a_forecast():
+    # Only the CLI's forecast refused it; run_estimation planned with the floor rate 0.5 and ran.
+    surface = {"system_size": 1.0, "wavenumbers": {"k_l": 1, "k_r": 2, "k_s": 32}, "hurst": 0.8, "rms_height": 1.0}
+    study = _screened(qoi={"clusters": {"tol": 1.0}}, surface=surface)
+    assert not read_screening_record(study.store).rates.alpha[0] > 0
+    for method in ("mlmc", "mc"):
+        with pytest.raises(EstimationError, match=r"^the bias of clusters \(alpha = .*\) does not decrease"):
+            run_estimation(study, method=method, tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
+    assert not read_run_records(study.store)
+
+
 def test_a_qoi_that_never_changes_says_so_instead_of_asking_for_more_samples():
     # Far past full contact the area is 100 % in every sample: more levels or samples would not help.
     study = _study(load={"relative": 1.0e6})

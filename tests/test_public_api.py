@@ -688,6 +688,9 @@ def test_mc_from_a_screening_whose_bias_grows_says_to_pass_a_level():
     statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0**level) for level in range(3)])
     with pytest.raises(rough_uq.EstimationError, match=r"alpha = -[0-9.]+\) does not decrease .*; pass level="):
         rough_uq.mc(_problem(), tol=0.5, screening=statistics)
+    # MLMC too, as roughuq mlmc (it ran at the floor rate 0.5 and reported its tolerance met).
+    with pytest.raises(rough_uq.EstimationError, match=r"alpha = -[0-9.]+\) does not decrease .*mc\(level=\.\.\.\)"):
+        rough_uq.mlmc(_problem(), tol=0.5, screening=statistics)
 
 
 def test_a_tolerance_out_of_reach_is_refused_before_its_samples_are_drawn():

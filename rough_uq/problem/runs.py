@@ -283,12 +283,25 @@ def screen(
     )
 
 
-def _refuse_stalled_bias(columns: Sequence[str], rates: Rates) -> None:
-    """Raise :class:`~rough_uq.errors.EstimationError` if the screening's bias of a column does not decay."""
+def _refuse_stalled_bias(columns: Sequence[str], rates: Rates, advice: str = "") -> None:
+    """Raise :class:`~rough_uq.errors.EstimationError` if the screening's bias of a column does not decay.
+
+    ``advice`` ends the message (``"; ..."``).
+    """
     stalled = stalled_bias(columns, rates)
     if stalled:
         raise EstimationError(f"the bias of {', '.join(stalled)} does not decrease from level to level on the "
-                              "screened grids, so no level can be chosen for a tolerance")
+                              f"screened grids, so no level can be chosen for a tolerance{advice}")
+
+
+def _fitted_rates(problem: ContactProblem, screening, statistics: LevelStatistics) -> Rates:
+    """The screening's fitted rates: a :class:`ScreeningResult`'s, or fitted on ``statistics`` (warnings hushed:
+    the screening reported them)."""
+    if isinstance(screening, ScreeningResult):
+        return screening.rates
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", EstimationWarning)
+        return fit_rates(statistics, names=problem.columns)
 
 
 def _stalled_bias(columns: Sequence[str], rates: Rates) -> tuple[str, ...]:
@@ -545,6 +558,9 @@ def mlmc(
     statistics = _screening_of(problem, screening)
     if isinstance(rates, Rates):
         _check_qoi_count(problem, "rates", rates.n_qoi)
+    elif statistics is not None:  # as roughuq mlmc: no finest level can be planned from a bias that grows
+        _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics),
+                             "; screen finer grids (a larger coarsest), or use mc(level=...) (bias not estimated)")
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor, progress=progress)
     events = drivers.iter_mlmc(
@@ -590,11 +606,9 @@ def _screened_mc_plan(problem: ContactProblem, screening, statistics: LevelStati
     """The plain MC run the screening plans for ``tol``: its level, bias and cost (``EstimationError`` where the
     screening's bias does not decay). Planned with the rates floored as MLMC runs plan
     (:func:`~rough_uq.multilevel.drivers.planning_rates`), as ``roughuq mc`` does."""
+    _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
-        is_result = isinstance(screening, ScreeningResult)
-        rates = screening.rates if is_result else fit_rates(statistics, names=problem.columns)
-        _refuse_stalled_bias(problem.columns, rates)
         planned = drivers.planning_rates(statistics)
     return plan(tol=tol, rates=planned, statistics=statistics, theta=theta, max_level=problem.max_level,
                 coarsest_level=None)

@@ -895,6 +895,22 @@ def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, opti
     return given
 
 
+def _refuse_stalled_bias(config: StudyConfig, statistics: LevelStatistics, rates: Rates) -> None:
+    """Refuse a run planned from a screening whose fitted bias of a QoI does not decay (``alpha <= 0``).
+
+    The planning rates are floored (:func:`~rough_uq.multilevel.drivers.planning_rates`) and would plan one all
+    the same, on a bias model the screening contradicts.
+    """
+    stalled = stalled_bias(config.qoi_names, rates)
+    if stalled:
+        finer = _finer_screening(config, len(statistics.levels))
+        raise EstimationError(
+            f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, "
+            f"so no finest grid can be chosen for a tolerance: screen finer grids ({finer}), "
+            "or use `roughuq mc --level L` (bias not estimated)"
+        )
+
+
 def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[LevelStatistics, Rates, Plan]:
     """The screening's statistics and fitted rates, and the plan the run of ``method`` starts from.
 
@@ -905,6 +921,7 @@ def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[Lev
         warnings.simplefilter("ignore", EstimationWarning)
         rates = fit_rates(statistics, names=study.config.qoi_names)
         planned = planning_rates(statistics)
+    _refuse_stalled_bias(study.config, statistics, rates)
     return statistics, rates, _run_plan(study.config, tol, planned, statistics, method=method)
 
 
@@ -972,16 +989,9 @@ def forecast_run(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", EstimationWarning)
             rates = fit_rates(statistics, names=config.qoi_names)
-        stalled = stalled_bias(config.qoi_names, rates)
-        if stalled and is_given_level:
+        if is_given_level and stalled_bias(config.qoi_names, rates):
             return None  # MC on a given level needs no bias model, and there is none to predict from
-        if stalled:
-            finer = _finer_screening(config, len(statistics.levels))
-            raise EstimationError(
-                f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, "
-                f"so no finest grid can be chosen for a tolerance: screen finer grids ({finer}), "
-                "or use `roughuq mc --level L` (bias not estimated)"
-            )
+        _refuse_stalled_bias(config, statistics, rates)
         rates = planning_rates(statistics)  # floored, as the run plans
         prediction = _run_plan(config, tol, rates, statistics, method=method, richardson=richardson)
         if not prediction.is_bias_met and not is_given_level:
