@@ -27,6 +27,8 @@ def test_a_cdf_run_whose_thresholds_miss_the_samples_is_not_met_and_says_why(tmp
     assert not shown["tol_met"] and shown["stop_reason"] == "thresholds_miss_samples" and shown["rmse"] is None
     assert "tolerance not met (thresholds_miss_samples)" in result.stderr
     assert "put thresholds among the values" in result.stderr  # not "loosen --tol-cdf, raise --max-cost"
+    # Terms of exactly 0 with no spread are not noise: no advice to draw more samples for the bias.
+    assert not any("within their noise" in text for text in shown["warnings"])
     # The stored warning names the thresholds and, per level, the range of the values the run used.
     start, stop, _ = (float(text) for text in thresholds.split(":"))
     (message,) = [text for text in shown["warnings"] if text.startswith("cdf: ")]

@@ -265,7 +265,7 @@ def test_a_max_level_stop_on_terms_within_their_noise_says_so():
     # Var(Q_2) - Var(Q) = 0.09 / 16 is far below the bias share of 0.035, but the level-2 term is noise and the
     # bias estimate (0.086) the level-1 term at the floor rate: the run said only that the bias needs a finer grid.
     with pytest.warns(EstimationWarning, match=r"the bias estimate 0.0855 \(the tolerance's share 0.0354\) rests on "
-                      r"level terms within their noise .* more samples per level \(n_initial\) may measure it"):
+                      r"level terms within their noise .* more initial samples per level may measure it"):
         noisy = mlmc_variance(PerturbedLimit(scale=0.3), tol=0.05, max_level=2, n_initial=8)
     assert noisy.stop_reason == "max_level" and not noisy.tol_met and noisy.noisy_bias_groups == (0,)
     # A bias the finest level measures (1/16 against the share 0.035) is not put down to noise.
@@ -273,6 +273,19 @@ def test_a_max_level_stop_on_terms_within_their_noise_says_so():
         warnings.simplefilter("error", EstimationWarning)
         real = mlmc_variance(PerturbedLimit(scale=1.0), tol=0.05, max_level=2, n_initial=8)
     assert real.stop_reason == "max_level" and real.noisy_bias_groups == ()
+
+
+def test_terms_of_exactly_zero_on_the_finest_level_are_measured_not_noise():
+    # A CDF away from every sample has terms of exactly 0 with no spread: its bias is not the terms' noise.
+    groups = np.array([0])
+
+    def term(mean, variance):
+        return LevelTerm(mean=np.array([mean]), variance=np.array([variance]), n_samples=10, groups=groups)
+
+    exact = telescope([term(1.0, 0.01), term(0.5, 1e-4), term(0.0, 0.0)], tol=0.05)
+    noisy = telescope([term(1.0, 0.01), term(0.5, 1e-4), term(1e-3, 1e-2)], tol=0.05)
+    assert exact.bias[0] > 0.05 and noisy.bias[0] > 0.05  # both fail the bias test (the level-1 term, floor rate)
+    assert exact.noisy_bias_groups == () and noisy.noisy_bias_groups == (0,)
 
 
 @pytest.mark.parametrize(("tol", "max_cost", "levels"), [(60.0, 1e-9, [0]), (0.5, 40.0, [0]), (3.0, 100.0, [0, 1])])

@@ -91,13 +91,12 @@ one that stops with ``"tol_met"`` does.
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, checked_integer
+from rough_uq.errors import EstimationError, checked_integer, warn_at_caller
 from rough_uq.multilevel.allocation import _check_fraction, _check_tol, optimal_samples
 from rough_uq.multilevel.drivers import (
     RATE_FLOOR,
@@ -255,11 +254,14 @@ class TargetEstimate:
         with a rate the undetected levels could not help fit (the floor where fewer than two are detected): more
         samples per level may measure it smaller, as may a finer level.
         """
-        if not self.is_bias_estimated or len(self.levels) < 2:
+        if not self.is_bias_estimated or not self.is_variance_measured or len(self.levels) < 2:
             return ()
         detected = _is_detected(*_signal(self.term_means, self.term_variances, self.groups))[-1]
+        # Terms that are exactly 0 with no spread (a CDF away from every sample) are measured, not noise.
+        exact = (self.term_means[-1] == 0) & (self.term_variances[-1] == 0)
+        is_exact = np.array([np.all(exact[self.groups == g]) for g in range(len(detected))])
         share = math.sqrt(self.theta) * self.tol
-        return tuple(int(g) for g in np.flatnonzero((self.bias > share) & ~detected))
+        return tuple(int(g) for g in np.flatnonzero((self.bias > share) & ~detected & ~is_exact))
 
     def __repr__(self) -> str:
         # One line for notebooks and print(): the per-level term arrays (a CDF's have a column per threshold)
@@ -700,13 +702,12 @@ def _warn_noisy_bias(estimate: TargetEstimate) -> None:
     share = math.sqrt(estimate.theta) * estimate.tol[noisy]
     biases = ", ".join(f"{b:.3g}" for b in estimate.bias[noisy])
     shares = ", ".join(f"{b:.3g}" for b in share)
-    warnings.warn(
+    warn_at_caller(
         f"the bias estimate {biases} (the tolerance's share {shares}) rests on level terms within their noise "
         f"(the finest level's do not differ from 0 beyond it, with N_l {estimate.n_samples.tolist()}): it bounds "
         "the bias by that noise or by a coarser level's term extrapolated at the fitted or floor rate, and more "
-        "samples per level (n_initial) may measure it smaller, as may a finer max_level",
+        "initial samples per level may measure it smaller, as may a finer finest level",
         EstimationWarning,
-        stacklevel=3,
     )
 
 
