@@ -71,3 +71,23 @@ def test_the_report_of_such_a_run_shows_no_error_it_did_not_measure(tmp_path, mo
     assert [text.get_text() for text in ax.get_legend().get_texts()] == [
         "MLMC, tol 0.1: RMSE not measured (thresholds miss samples)"]
     assert not ax.collections  # no band
+    # A quantile such a run brackets got the error bar of the band of its unmeasured RMSE ([v, v]).
+    from dataclasses import replace
+
+    from rich.console import Console
+
+    from rough_uq.report.summary import _cdf_lines, _distribution_table
+    from rough_uq.study.records import QuantileRecord
+
+    bracketed = QuantileRecord(probability=0.5, value=5.0, lower=5.0, upper=5.0)
+    distribution = replace(record.outcome.distribution, quantiles=(bracketed,))
+    shown = replace(record, outcome=replace(record.outcome, distribution=distribution))
+    assert "  q(0.5) = 5 % (error not measured)" in _cdf_lines(shown.outcome, 0.1, {"contact_area": "%"})
+    console = Console(width=120, record=True)
+    console.print(_distribution_table([shown], {"contact_area": "%"}))
+    (row,) = [line.split() for line in console.export_text().splitlines() if line.split()[:2] == ["contact_area", "0.5"]]
+    assert row[2:5] == ["5", "-", "-"], row
+    captured.clear()
+    _cdf_figure([shown], "contact_area", "%", tmp_path / "cdf.png")
+    (ax,) = captured["figure"].axes
+    assert not ax.containers  # the quantile as a point, without an error bar

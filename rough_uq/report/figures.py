@@ -491,6 +491,9 @@ def _cdf_figure(runs: Sequence[RunRecord], column: str, unit: str | None, path: 
         for quantile in distribution.quantiles:
             if quantile.value is None:
                 continue
+            if not is_rmse_measured(run.outcome):  # no error bar: it would be the band of an unmeasured RMSE
+                ax.plot([quantile.value], [quantile.probability], "o", color=colour)
+                continue
             # The error bar reaches the grid's end where the band does not cross p inside it.
             low = s[0] if quantile.lower is None else quantile.lower
             high = s[-1] if quantile.upper is None else quantile.upper

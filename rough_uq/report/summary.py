@@ -508,10 +508,15 @@ def _variance_line(outcome: Any, q: int, name: str, tol: float, units: dict[str,
     return _estimate_line(outcome, q, f"Var({name})", _unit(_column_unit(units, name), 2), tol)
 
 
-def _quantile_text(quantile: Any, unit: str) -> str:
-    """``q(0.05) = 17.9 [17.5, 18.3] %``; an open end of the error bar is ``-inf`` / ``inf``."""
+def _quantile_text(quantile: Any, unit: str, *, is_measured: bool = True) -> str:
+    """``q(0.05) = 17.9 [17.5, 18.3] %``; an open end of the error bar is ``-inf`` / ``inf``.
+
+    ``is_measured`` False (:func:`is_rmse_measured`): no error bar, it would be the band of an unmeasured RMSE.
+    """
     if quantile.value is None:
         return f"q({quantile.probability:g}) not bracketed by the thresholds"
+    if not is_measured:
+        return f"q({quantile.probability:g}) = {_g(quantile.value, 4)}{_unit(unit)} (error not measured)"
     lower = "-inf" if quantile.lower is None else _g(quantile.lower, 4)
     upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
     return f"q({quantile.probability:g}) = {_g(quantile.value, 4)} [{lower}, {upper}]{_unit(unit)}"
@@ -542,7 +547,8 @@ def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
         f"  F(s) = P({distribution.column} <= s) at {len(s)} thresholds {_g(s[0], 4)} .. {_g(s[-1], 4)}{_unit(unit)}",
         f"  {error}",
     ]
-    return lines + [f"  {_quantile_text(q, unit)}" for q in distribution.quantiles]
+    measured = is_rmse_measured(outcome)
+    return lines + [f"  {_quantile_text(q, unit, is_measured=measured)}" for q in distribution.quantiles]
 
 
 def _table(title: str) -> Any:
@@ -704,6 +710,7 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
             value, bar = "-", "-"
             if quantile is not None and quantile.value is not None:
                 value = _g(quantile.value, 4)
+            if value != "-" and is_rmse_measured(outcome):  # else the band of an unmeasured RMSE
                 lower = "-inf" if quantile.lower is None else _g(quantile.lower, 4)
                 upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
                 bar = f"[{lower}, {upper}]"
