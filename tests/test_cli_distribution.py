@@ -85,7 +85,8 @@ def test_the_report_of_such_a_run_shows_no_error_it_did_not_measure(tmp_path, mo
     assert "  q(0.5) = 5 % (error not measured)" in _cdf_lines(shown.outcome, 0.1, {"contact_area": "%"})
     console = Console(width=120, record=True)
     console.print(_distribution_table([shown], {"contact_area": "%"}))
-    (row,) = [line.split() for line in console.export_text().splitlines() if line.split()[:2] == ["contact_area", "0.5"]]
+    lines = console.export_text().splitlines()
+    (row,) = [line.split() for line in lines if line.split()[:2] == ["contact_area", "0.5"]]
     assert row[2:5] == ["5", "-", "-"], row
     captured.clear()
     _cdf_figure([shown], "contact_area", "%", tmp_path / "cdf.png")

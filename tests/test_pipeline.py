@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -67,6 +68,20 @@ def test_a_run_from_a_screening_whose_bias_grows_is_refused_without_a_forecast()
         with pytest.raises(EstimationError, match=r"^the bias of clusters \(alpha = .*\) does not decrease"):
             run_estimation(study, method=method, tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
     assert not read_run_records(study.store)
+
+
+def test_a_forecast_capped_at_the_largest_count_is_refused_as_needing_more():
+    # "needs about 4.5e+15 samples": the planners' cap, not the need (PlanTooLargeError says "more than").
+    from rough_uq.study.pipeline import _check_budget
+    from rough_uq.study.records import Forecast
+
+    def forecast(counts):
+        return Forecast(finest_level=1, grid=64, n_samples=counts, modelled_cost=1e20, cpu_seconds=1e20,
+                        wall_seconds=1e20, memory_bytes=1)
+
+    for counts, amount in (((2**52, 3), "more than 4.5e+15"), ((2 * 10**7, 3), "about 2e+07")):
+        with pytest.raises(EstimationError, match=rf"^--tol contact_area=1e-09 needs {re.escape(amount)} samples \("):
+            _check_budget(("contact_area",), np.array([1e-9]), forecast(counts), None)
 
 
 def test_a_qoi_that_never_changes_says_so_instead_of_asking_for_more_samples():

@@ -48,6 +48,7 @@ from rough_uq.study.config import (
     StudyConfig, SurfaceConfig, config_differences, config_from_stored_text, config_hash, resolved_yaml,
 )
 from rough_uq.errors import (
+    PLANNED_COUNT_CAP,
     ConfigError,
     EstimationError,
     InvalidParameterError,
@@ -1123,8 +1124,10 @@ def _check_budget(names: Sequence[str], tol: np.ndarray, forecast: Forecast, max
     total, modelled, cpu_seconds = sum(forecast.n_samples), forecast.modelled_cost, forecast.cpu_seconds
     asked = tol_text(names, tol, digits=3)
     if total > MAX_PLANNED_SAMPLES or not math.isfinite(modelled):
+        # A level planned at the planners' cap needs more than the count says (as PlanTooLargeError words it).
+        amount = "more than" if max(forecast.n_samples) >= PLANNED_COUNT_CAP else "about"
         raise EstimationError(
-            f"--tol {asked} needs about {total:.3g} samples ({format_duration(cpu_seconds)} "
+            f"--tol {asked} needs {amount} {total:.3g} samples ({format_duration(cpu_seconds)} "
             "CPU); that is beyond any budget: loosen --tol"
         )
     if max_cost is not None and modelled > max_cost:

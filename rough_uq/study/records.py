@@ -950,7 +950,8 @@ class RunRecord:
     level : int or None
         MC only: the level sampled.
     screening_rates : RatesRecord or None
-        The screening's rates the run planned with (None for MC on a given level).
+        The screening's fitted rates (None for MC on a given level); the run planned with them floored at 0.5
+        (:func:`~rough_uq.multilevel.drivers.planning_rates`).
     predicted : PlanRecord or None
         The screening's plan for ``tol`` (seconds are modelled cost: ``seconds_per_cost = 1``).
     forecast : Forecast or None
