@@ -328,12 +328,26 @@ def _fit_gamma(statistics: LevelStatistics, min_level: int) -> tuple[_Line | Non
     return line, f"levels with zero cost (unusable): {zero}" if zero else ""
 
 
-def stalled_bias(names: Sequence[str], rates: Rates) -> list[str]:
+#: A level mean ``|E[Y_L]|`` counts as measured (not noise) beyond this many standard errors (:func:`stalled_bias`).
+STALL_SIGNIFICANCE = 2.0
+
+
+def stalled_bias(names: Sequence[str], rates: Rates, statistics: LevelStatistics | None = None) -> list[str]:
     """The QoIs whose fitted bias does not decay (``alpha`` not above 0), in words: ``clusters (alpha = -0.3)``.
 
-    No finest level can be chosen for them from these rates. (A fitted -0.0 reads ``alpha = 0``.)
+    No finest level can be chosen for them from these rates. With the ``statistics`` the rates were fitted
+    on, only those whose means ``Y_l`` on the two finest levels (both ``>= 1``) are measured, beyond
+    :data:`STALL_SIGNIFICANCE` standard errors from 0: a level mean within its noise gives a fitted
+    ``alpha`` of either sign, which says nothing of the decay, and the runs plan such a QoI at the floor
+    rate and estimate its bias from their own samples. (A fitted -0.0 reads ``alpha = 0``.)
     """
-    return [f"{name} (alpha = {a + 0.0:.2g})" for name, a in zip(names, np.atleast_1d(rates.alpha)) if not a > 0]
+    alpha = np.atleast_1d(rates.alpha)
+    measured = np.ones(alpha.size, dtype=bool)
+    if statistics is not None:
+        for row in np.flatnonzero(statistics.levels >= 1)[-2:]:
+            se = np.sqrt(np.maximum(statistics.var_diff[row], 0.0) / max(int(statistics.n_samples[row]), 1))
+            measured &= np.abs(statistics.mean_diff[row]) > STALL_SIGNIFICANCE * se
+    return [f"{name} (alpha = {a + 0.0:.2g})" for name, a, m in zip(names, alpha, measured) if not a > 0 and m]
 
 
 def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequence[str] | None = None) -> Rates:

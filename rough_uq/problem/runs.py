@@ -130,7 +130,7 @@ class ScreeningResult:
             raise InvalidParameterError("problem", None, "the screening's ContactProblem (a result of screen())")
         tol = _tolerances(tol, problem.n_qoi, problem.columns)
         theta = _check_fraction("theta", theta)
-        _refuse_stalled_bias(problem.columns, self.rates)
+        _refuse_stalled_bias(problem.columns, self.rates, self.statistics)
         planned = drivers.planning_rates(self.statistics)
         initial = drivers.starting_plan(tol=tol, rates=planned, statistics=self.statistics, theta=theta,
                                         max_level=problem.max_level, richardson=bool(richardson))
@@ -277,18 +277,20 @@ def screen(
         statistics=statistics,
         rates=rates,
         n_not_converged=sampler.n_not_converged,
-        diagnostics=(*diagnose(statistics, names=problem.columns), *_stalled_bias(problem.columns, rates)),
+        diagnostics=(
+            *diagnose(statistics, names=problem.columns), *_stalled_bias(problem.columns, rates, statistics)
+        ),
         problem=problem,
         seconds_per_cost=measured_seconds_per_cost(batches, problem.model),
     )
 
 
-def _refuse_stalled_bias(columns: Sequence[str], rates: Rates, advice: str = "") -> None:
+def _refuse_stalled_bias(columns: Sequence[str], rates: Rates, statistics: LevelStatistics, advice: str = "") -> None:
     """Raise :class:`~rough_uq.errors.EstimationError` if the screening's bias of a column does not decay.
 
     ``advice`` ends the message (``"; ..."``).
     """
-    stalled = stalled_bias(columns, rates)
+    stalled = stalled_bias(columns, rates, statistics)
     if stalled:
         raise EstimationError(f"the bias of {', '.join(stalled)} does not decrease from level to level on the "
                               f"screened grids, so no level can be chosen for a tolerance{advice}")
@@ -304,9 +306,9 @@ def _fitted_rates(problem: ContactProblem, screening, statistics: LevelStatistic
         return fit_rates(statistics, names=problem.columns)
 
 
-def _stalled_bias(columns: Sequence[str], rates: Rates) -> tuple[str, ...]:
+def _stalled_bias(columns: Sequence[str], rates: Rates, statistics: LevelStatistics) -> tuple[str, ...]:
     """The screening's diagnostic for QoIs whose bias does not decay (``roughuq screen`` warns, ``mlmc`` refuses)."""
-    stalled = stalled_bias(columns, rates)
+    stalled = stalled_bias(columns, rates, statistics)
     if not stalled:
         return ()
     return (f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, so "
@@ -559,7 +561,7 @@ def mlmc(
     if isinstance(rates, Rates):
         _check_qoi_count(problem, "rates", rates.n_qoi)
     elif statistics is not None:  # as roughuq mlmc: no finest level can be planned from a bias that grows
-        _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics),
+        _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics), statistics,
                              "; screen finer grids (a larger coarsest), or use mc(level=...) (bias not estimated)")
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor, progress=progress)
@@ -606,7 +608,7 @@ def _screened_mc_plan(problem: ContactProblem, screening, statistics: LevelStati
     """The plain MC run the screening plans for ``tol``: its level, bias and cost (``EstimationError`` where the
     screening's bias does not decay). Planned with the rates floored as MLMC runs plan
     (:func:`~rough_uq.multilevel.drivers.planning_rates`), as ``roughuq mc`` does."""
-    _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics))
+    _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics), statistics)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
         planned = drivers.planning_rates(statistics)

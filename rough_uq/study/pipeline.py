@@ -709,9 +709,9 @@ def _base_tolerance(config: StudyConfig, statistics: LevelStatistics) -> np.ndar
     return np.array(base)
 
 
-def _no_prediction(names: Sequence[str], rates: Rates, exc: Exception | None) -> str:
+def _no_prediction(names: Sequence[str], rates: Rates, statistics: LevelStatistics, exc: Exception | None) -> str:
     """Why the screening predicts no cost, in words (the QoIs whose bias does not decay, by name)."""
-    stalled = stalled_bias(names, rates)
+    stalled = stalled_bias(names, rates, statistics)
     if stalled:
         return (f"no cost prediction: the bias of {', '.join(stalled)} does not decrease from level to level "
                 "on the screened grids, so no finest grid can be chosen; screen finer grids (screening.levels, "
@@ -802,8 +802,8 @@ def _predictions(
     """Plans for the multiples :data:`PREDICTION_FACTORS` of the base tolerance, and why any is missing."""
     base = _base_tolerance(config, statistics)
     predictions = []
-    if stalled_bias(config.qoi_names, rates):
-        return (), [_no_prediction(config.qoi_names, rates, None)]
+    if stalled_bias(config.qoi_names, rates, statistics):
+        return (), [_no_prediction(config.qoi_names, rates, statistics, None)]
     planned = planning_rates(statistics)  # floored, as the runs plan (the record keeps the fitted rates)
     for factor in PREDICTION_FACTORS:
         try:
@@ -818,7 +818,7 @@ def _predictions(
         except RoughUQError as exc:
             # E.g. a bias that does not decay yet (alpha <= 0 on pre-asymptotic
             # levels): keep the table and rates, say why nothing can be predicted.
-            return tuple(predictions), [_no_prediction(config.qoi_names, rates, exc)]
+            return tuple(predictions), [_no_prediction(config.qoi_names, rates, statistics, exc)]
         predictions.append(PlanRecord.from_plan(prediction, seconds_per_cost))
     return tuple(predictions), []
 
@@ -902,7 +902,7 @@ def _refuse_stalled_bias(config: StudyConfig, statistics: LevelStatistics, rates
     The planning rates are floored (:func:`~rough_uq.multilevel.drivers.planning_rates`) and would plan one all
     the same, on a bias model the screening contradicts.
     """
-    stalled = stalled_bias(config.qoi_names, rates)
+    stalled = stalled_bias(config.qoi_names, rates, statistics)
     if stalled:
         finer = _finer_screening(config, len(statistics.levels))
         raise EstimationError(
@@ -990,7 +990,7 @@ def forecast_run(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", EstimationWarning)
             rates = fit_rates(statistics, names=config.qoi_names)
-        if is_given_level and stalled_bias(config.qoi_names, rates):
+        if is_given_level and stalled_bias(config.qoi_names, rates, statistics):
             return None  # MC on a given level needs no bias model, and there is none to predict from
         _refuse_stalled_bias(config, statistics, rates)
         rates = planning_rates(statistics)  # floored, as the run plans
