@@ -364,7 +364,7 @@ class CdfEstimate:
 
     @property
     def noisy_bias_groups(self) -> tuple[int, ...]:
-        """``(0,)`` where the bias exceeds its share while no level's terms rise above their noise
+        """``(0,)`` where the bias exceeds its share while the finest level's terms are within their noise
         (:attr:`~rough_uq.multilevel.targets.TargetEstimate.noisy_bias_groups`), else ``()``."""
         return self.target.noisy_bias_groups
 
