@@ -708,9 +708,10 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
         unit = _column_unit(units, distribution.column)
         for quantile in distribution.quantiles or (None,):
             value, bar = "-", "-"
-            if quantile is not None and quantile.value is not None:
+            is_bracketed = quantile is not None and quantile.value is not None
+            if is_bracketed:
                 value = _g(quantile.value, 4)
-            if value != "-" and is_rmse_measured(outcome):  # else the band of an unmeasured RMSE
+            if is_bracketed and is_rmse_measured(outcome):  # else the band of an unmeasured RMSE
                 lower = "-inf" if quantile.lower is None else _g(quantile.lower, 4)
                 upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
                 bar = f"[{lower}, {upper}]"
