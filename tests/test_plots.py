@@ -171,6 +171,15 @@ def test_cost_against_tolerance_leaves_out_mc_on_a_chosen_level(tmp_path, report
     assert _legend_texts(loosest) == ["MLMC $N_l$", "MC $N$"] and _legend_texts(tightest) == ["MLMC $N_l$"]
 
 
+def test_cost_against_tolerance_states_the_slope_of_the_lines_it_draws(tmp_path, report, figures):
+    # A fitted alpha of 0.3 and gamma 2: the legend said MC eps^-8.67 beside a line planned at alpha 0.5 (eps^-6).
+    changed = copy.deepcopy(report)
+    changed["screening"]["rates"].update(alpha=[0.3], gamma=2.0)
+    plots.write_report_plots(changed, tmp_path)
+    (mc_label,) = [label for label in _lines(figures["cost_vs_tol.png"].axes[0]) if label.startswith("MC predicted")]
+    assert mc_label == "MC predicted CPU-s (eps^-6.00)"
+
+
 def test_cost_against_tolerance_sets_the_refused_tolerances_apart(tmp_path, report, figures):
     # The predicted lines ran through tolerances the screening marks "*" (mlmc refuses them).
     changed = copy.deepcopy(report)

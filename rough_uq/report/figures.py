@@ -278,7 +278,8 @@ def _positive(value: object) -> bool:
 def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
     screening = drawn.screening
     predictions = sorted(screening.predictions if screening else (), key=lambda p: p.tol[0])
-    complexities = screening.complexity if screening is not None else ()
+    # The slopes of the lines drawn: the rates as the plans floor them (the report lists the fitted ones).
+    complexities = screening.rates.planned_complexity if screening is not None else ()
     ratio = _tol_ratio(predictions[0].tol) if predictions else None
     # Tolerances whose bias the finest allowed grid cannot reach (the table's "*": mlmc refuses them) get
     # markers of their own, off the lines of what a run can do.

@@ -49,6 +49,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError
+from rough_uq.multilevel.drivers import RATE_FLOOR
 from rough_uq.problem.batch import LevelBatch
 
 __all__ = [
@@ -420,6 +421,15 @@ class RatesRecord:
     def complexity(self) -> tuple[Complexity, ...]:
         """Per QoI, the cost exponents these rates imply (:func:`complexity`)."""
         return tuple(complexity(a, b, self.gamma) for a, b in zip(self.alpha, self.beta))
+
+    @property
+    def planned_complexity(self) -> tuple[Complexity, ...]:
+        """Per QoI, the cost exponents of these rates raised to the floor the plans use (``RATE_FLOOR``,
+        :func:`~rough_uq.multilevel.drivers.planning_rates`): the slopes of the predicted costs."""
+        def floored(rate: Number | None) -> Number | None:
+            return None if rate is None or not math.isfinite(rate) else max(rate, RATE_FLOOR)
+
+        return tuple(complexity(floored(a), floored(b), floored(self.gamma)) for a, b in zip(self.alpha, self.beta))
 
     def to_json(self) -> dict[str, Any]:
         return {key: _lists(getattr(self, key)) for key in _RATES_KEYS}
