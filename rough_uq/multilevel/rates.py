@@ -350,6 +350,12 @@ def stalled_bias(names: Sequence[str], rates: Rates, statistics: LevelStatistics
     return [f"{name} (alpha = {a + 0.0:.2g})" for name, a, m in zip(names, alpha, measured) if not a > 0 and m]
 
 
+def stalled_text(stalled: Sequence[str]) -> str:
+    """The words every layer uses for :func:`stalled_bias`'s QoIs: ``the bias of clusters (alpha = -2.7) does
+    not decrease from level to level on the screened grids``."""
+    return f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids"
+
+
 def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequence[str] | None = None) -> Rates:
     """Fit ``alpha``, ``beta``, ``gamma`` and their constants by least squares.
 

@@ -37,7 +37,7 @@ from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
-from rough_uq.multilevel.rates import Rates, fit_rates, stalled_bias
+from rough_uq.multilevel.rates import Rates, fit_rates, stalled_bias, stalled_text
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
@@ -292,8 +292,7 @@ def _refuse_stalled_bias(columns: Sequence[str], rates: Rates, statistics: Level
     """
     stalled = stalled_bias(columns, rates, statistics)
     if stalled:
-        raise EstimationError(f"the bias of {', '.join(stalled)} does not decrease from level to level on the "
-                              f"screened grids, so no level can be chosen for a tolerance{advice}")
+        raise EstimationError(f"{stalled_text(stalled)}, so no level can be chosen for a tolerance{advice}")
 
 
 def _fitted_rates(problem: ContactProblem, screening, statistics: LevelStatistics) -> Rates:
@@ -311,7 +310,7 @@ def _stalled_bias(columns: Sequence[str], rates: Rates, statistics: LevelStatist
     stalled = stalled_bias(columns, rates, statistics)
     if not stalled:
         return ()
-    return (f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, so "
+    return (f"{stalled_text(stalled)}, so "
             "no finest level can be chosen from this screening (roughuq mlmc refuses it); screen finer grids "
             "(a larger coarsest), or use mc(level=...) (bias not estimated)",)
 

@@ -107,7 +107,7 @@ from rough_uq.problem.sampler import (
     run_stage,
 )
 from rough_uq.multilevel.allocation import Plan, plan
-from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates, stalled_bias
+from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates, stalled_bias, stalled_text
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
 from rough_uq.study.store import StudyStore, open_study, open_study_readonly, remove_abandoned, shard_refusal
 from rough_uq.physics.surface import SurfaceSpectrum
@@ -713,9 +713,8 @@ def _no_prediction(names: Sequence[str], rates: Rates, statistics: LevelStatisti
     """Why the screening predicts no cost, in words (the QoIs whose bias does not decay, by name)."""
     stalled = stalled_bias(names, rates, statistics)
     if stalled:
-        return (f"no cost prediction: the bias of {', '.join(stalled)} does not decrease from level to level "
-                "on the screened grids, so no finest grid can be chosen; screen finer grids (screening.levels, "
-                "grid.coarsest)")
+        return (f"no cost prediction: {stalled_text(stalled)}, so no finest grid can be chosen; screen finer "
+                "grids (screening.levels, grid.coarsest)")
     return f"no cost prediction: {exc}; screen more levels (screening.levels)"
 
 
@@ -906,8 +905,7 @@ def _refuse_stalled_bias(config: StudyConfig, statistics: LevelStatistics, rates
     if stalled:
         finer = _finer_screening(config, len(statistics.levels))
         raise EstimationError(
-            f"the bias of {', '.join(stalled)} does not decrease from level to level on the screened grids, "
-            f"so no finest grid can be chosen for a tolerance: screen finer grids ({finer}), "
+            f"{stalled_text(stalled)}, so no finest grid can be chosen for a tolerance: screen finer grids ({finer}), "
             "or use `roughuq mc --level L` (bias not estimated)"
         )
 
