@@ -1093,6 +1093,7 @@ def _show_finished_run(study_path: str, run_id: str, outcome: Any, *, as_json: b
 def _what_to_change(outcome: Any, option: str = "--tol") -> str:
     """What to change so that a run whose ``outcome`` missed its tolerance meets it (``option`` is its tolerance's)."""
     from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
+    from rough_uq.report.summary import is_bias_in_noise
 
     reason = outcome.stop_reason
     if reason == "max_cost" and not outcome.is_bias_estimated and option != "--tol":
@@ -1108,7 +1109,7 @@ def _what_to_change(outcome: Any, option: str = "--tol") -> str:
     if reason == THRESHOLDS_MISS_SAMPLES:
         return ("the thresholds miss the samples of a level (see the warning); put thresholds among the values "
                 "(extend --thresholds or the config's thresholds) or raise estimation.initial_samples")
-    if reason == "max_level" and any(d.kind == "bias_noise" for d in outcome.diagnostics):
+    if reason == "max_level" and is_bias_in_noise(outcome):
         return ("the bias estimate rests on level terms within their noise (see the warning); raise "
                 f"estimation.initial_samples to measure it, loosen {option}, or use a study with a larger "
                 "grid.max_level")

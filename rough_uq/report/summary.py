@@ -476,7 +476,7 @@ def _stop_text(outcome: Any, method: str) -> str:
     reason = outcome.stop_reason
     if reason == "max_cost" and not outcome.is_bias_estimated and method != "mc":
         return "stopped at --max-cost before the levels its bias estimate needs were sampled"
-    if reason == "max_level" and any(d.kind == "bias_noise" for d in outcome.diagnostics):
+    if reason == "max_level" and is_bias_in_noise(outcome):
         return "the bias test failed on terms within their noise (see the warning)"
     return _STOP_REASONS.get(reason, reason)
 
@@ -520,6 +520,11 @@ def _quantile_text(quantile: Any, unit: str, *, is_measured: bool = True) -> str
     lower = "-inf" if quantile.lower is None else _g(quantile.lower, 4)
     upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
     return f"q({quantile.probability:g}) = {_g(quantile.value, 4)} [{lower}, {upper}]{_unit(unit)}"
+
+
+def is_bias_in_noise(outcome: Any) -> bool:
+    """Whether a run's bias estimate rests on level terms within their noise (its ``bias_noise`` warning)."""
+    return any(d.kind == "bias_noise" for d in outcome.diagnostics)
 
 
 def is_rmse_measured(outcome: Any) -> bool:
