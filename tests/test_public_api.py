@@ -710,6 +710,28 @@ def test_a_tolerance_out_of_reach_is_refused_before_its_samples_are_drawn():
     assert result.stop_reason == "max_cost"
 
 
+def test_a_bias_the_screening_predicts_beyond_max_level_is_refused_as_roughuq_refuses_it():
+    # Level means 0.4, 0.2 (alpha 1): the bias on level 2 is 0.2, out of reach of tol 0.1 (share 0.071). MLMC
+    # and MC from such a screening planned millions of samples for the statistical error, and ran for hours.
+    rng = np.random.default_rng(5)
+    fine, coarse = [], []
+    for level, shift in enumerate((0.0, 0.4, 0.2)):
+        q = 20 + rng.normal(size=20)
+        fine.append(q)
+        coarse.append(q - shift + 0.01 * rng.normal(size=20) if level else np.zeros(20))
+    statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0**level) for level in range(3)])
+    refusal = (r"^tol contact_area=0.1 cannot be reached: on the finest grid allowed \(max_level = 2, 64\^2\) the "
+               r"screening predicts a bias of contact_area=(0.2\d*); the smallest reachable tolerance is about "
+               r"contact_area=([0-9.]+), a prediction from 20 screened samples per level .*raise the problem's max_level")
+    for run in (rough_uq.mlmc, rough_uq.mc):
+        with pytest.raises(rough_uq.EstimationError, match=refusal) as caught:
+            run(_problem(), tol=0.1, screening=statistics)
+        bias, reachable = map(float, re.match(refusal, str(caught.value)).groups())
+        assert bias / math.sqrt(0.5) <= reachable <= 1.05 * bias / math.sqrt(0.5)  # rounded up to 2 digits
+    result = rough_uq.mc(_problem(), tol=0.1, screening=statistics, level=2)  # a level of one's choice: no bias model
+    assert not result.is_bias_estimated
+
+
 def test_a_printed_result_shows_the_estimate_not_the_statistics_arrays():
     result = rough_uq.mlmc(_problem(), tol=2.0)
     text = repr(result)

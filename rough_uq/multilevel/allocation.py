@@ -69,6 +69,7 @@ __all__ = [
     "mc_run_cost",
     "optimal_samples",
     "plan",
+    "reachable_tolerance",
 ]
 
 _MAX_COUNT = float(PLANNED_COUNT_CAP)
@@ -185,6 +186,24 @@ def mc_run_cost(prediction: Plan) -> float:
     ``mc_cost`` compares with.
     """
     return max(prediction.mc_n_samples, 2) * prediction.mc_cost / max(prediction.mc_n_samples, 1)
+
+
+def reachable_tolerance(prediction: Plan) -> np.ndarray:
+    """The smallest tolerance per QoI whose bias share ``sqrt(theta) eps`` the plan's predicted bias meets, rounded
+    up to two significant digits (a tolerance the refusals of an unreachable one can propose).
+
+    Shape ``(n_qoi,)``; a bias of 0 gives 0.
+    """
+    bias = np.asarray(prediction.bias, dtype=float) / math.sqrt(prediction.theta)
+    return np.array([_round_up(float(value)) for value in bias])
+
+
+def _round_up(value: float) -> float:
+    """``value`` rounded up to two significant digits."""
+    if not (math.isfinite(value) and value > 0):
+        return value
+    scale = 10.0 ** (math.floor(math.log10(value)) - 1)
+    return math.ceil(value / scale * (1 - 1e-12)) * scale
 
 
 def _check_fraction(name: str, value: object) -> float:

@@ -34,7 +34,7 @@ from rough_uq.errors import (
     EstimationError, InvalidParameterError, checked_integer, is_integer, is_real_number, warn_at_caller,
 )
 from rough_uq.multilevel import drivers
-from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan
+from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan, reachable_tolerance
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
 from rough_uq.multilevel.rates import Rates, fit_rates, stalled_bias, stalled_text
@@ -179,8 +179,8 @@ class RunForecast:
         The same in CPU-seconds at the screening's measured CPU-seconds per reference second (None for a
         screening that did not measure them).
     is_bias_met : bool
-        False where the screening predicts a bias above ``sqrt(theta) tol`` on the problem's ``max_level``: the
-        run will then stop there with its tolerance not met (``roughuq mlmc`` refuses such a tolerance).
+        False where the screening predicts a bias above ``sqrt(theta) tol`` on the problem's ``max_level``:
+        :func:`mlmc` refuses such a tolerance (as ``roughuq mlmc`` does), with the smallest reachable one.
     """
 
     n_samples: np.ndarray
@@ -546,7 +546,9 @@ def mlmc(
     Raises
     ------
     EstimationError
-        A plan of more than ``max_samples`` samples (see above).
+        A plan of more than ``max_samples`` samples (see above); with a ``screening``, a tolerance whose bias it
+        predicts above ``sqrt(theta) tol`` on ``max_level`` (the message gives the smallest reachable one), or a
+        bias that does not decay, before any sample (as ``roughuq mlmc`` refuses them).
 
     Warns
     -----
@@ -562,6 +564,11 @@ def mlmc(
     elif statistics is not None:  # as roughuq mlmc: no finest level can be planned from a bias that grows
         _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics), statistics,
                              "; screen finer grids (a larger coarsest), or use mc(level=...) (bias not estimated)")
+    if statistics is not None:  # as roughuq mlmc: a bias the screening predicts beyond max_level is refused
+        starting_rates = rates if isinstance(rates, Rates) else drivers.planning_rates(statistics)
+        _refuse_unreachable(problem, tol, drivers.starting_plan(
+            tol=tol, rates=starting_rates, statistics=statistics, theta=theta, max_level=problem.max_level,
+            richardson=bool(richardson)), statistics)
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor, progress=progress)
     events = drivers.iter_mlmc(
@@ -587,6 +594,24 @@ def mlmc(
     warn_not_met("mlmc", problem.columns, result, tol)
     screened = None if statistics is None else _screened_mc_cost(problem, screening, statistics, tol, theta)
     return result if screened is None else dataclasses.replace(result, mc_cost=screened)
+
+
+def _refuse_unreachable(problem: ContactProblem, tol: np.ndarray, prediction: Plan,
+                        statistics: LevelStatistics) -> None:
+    """Raise :class:`~rough_uq.errors.EstimationError` where the screening predicts a bias above the tolerance's
+    share on ``max_level`` (``prediction``: the run's first plan), before any sample, as ``roughuq mlmc`` / ``mc``
+    refuse: such a run planned millions of samples to bring its statistical error within a tolerance its bias
+    already missed."""
+    if prediction.is_bias_met:
+        return
+    names, finest = problem.columns, problem.max_level
+    raise EstimationError(
+        f"tol {tol_text(names, tol, digits=3)} cannot be reached: on the finest grid allowed (max_level = {finest}, "
+        f"{problem.grid(finest)}^2) the screening predicts a bias of {values_text(names, prediction.bias)}; the "
+        f"smallest reachable tolerance is about {tol_text(names, reachable_tolerance(prediction), digits=3)}, a "
+        f"prediction from {int(np.min(statistics.n_samples))} screened samples per level (a run estimates the bias "
+        "from its own samples and may find it larger); or raise the problem's max_level (the same screening serves it)"
+    )
 
 
 def _screened_mc_cost(problem: ContactProblem, screening, statistics: LevelStatistics, tol: np.ndarray,
@@ -629,7 +654,10 @@ def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, scr
         prediction = _screened_mc_plan(problem, screening, statistics, tol, theta)
     except EstimationError as error:
         raise EstimationError(f"{error}; pass level= to sample a level of your choice") from error
-    return prediction.finest_level, prediction.bias if bias is None else bias
+    if bias is None:
+        _refuse_unreachable(problem, tol, prediction, statistics)
+        return prediction.finest_level, prediction.bias
+    return prediction.finest_level, bias
 
 
 def _mc_advice(result: EstimationResult, n_initial: int) -> str | None:
@@ -697,6 +725,12 @@ def mc(
     -------
     EstimationResult
         As :func:`mlmc`'s, with ``levels == [level]``.
+
+    Raises
+    ------
+    EstimationError
+        A plan of more than ``max_samples`` samples; without ``level``, a tolerance whose bias the screening
+        predicts above ``sqrt(theta) tol`` on ``max_level``, or a bias that does not decay (as ``roughuq mc``).
     """
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi, problem.columns)

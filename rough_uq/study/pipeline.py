@@ -106,7 +106,7 @@ from rough_uq.problem.sampler import (
     modelled_cost,
     run_stage,
 )
-from rough_uq.multilevel.allocation import Plan, plan
+from rough_uq.multilevel.allocation import Plan, plan, reachable_tolerance
 from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates, stalled_bias, stalled_text
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
 from rough_uq.study.store import StudyStore, open_study, open_study_readonly, remove_abandoned, shard_refusal
@@ -1054,7 +1054,7 @@ def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_sc
     """
     names = config.qoi_names
     bias = np.asarray(prediction.bias, dtype=float)
-    reachable = [_round_up(x) for x in bias / math.sqrt(config.estimation.theta)]
+    reachable = reachable_tolerance(prediction)
     return EstimationError(
         f"--tol {tol_text(names, tol, digits=3)} cannot be reached: on the finest grid allowed "
         f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
@@ -1193,14 +1193,6 @@ def choose_method(study: Study, *, tol: np.ndarray, max_cost: float | None = Non
     if notes:
         reason += "; " + "; ".join(notes)
     return MethodChoice(method=method, richardson=richardson, reason=reason)
-
-
-def _round_up(value: float) -> float:
-    """``value`` rounded up to two significant digits (a tolerance that is surely reachable)."""
-    if not (math.isfinite(value) and value > 0):
-        return value
-    scale = 10.0 ** (math.floor(math.log10(value)) - 1)
-    return math.ceil(value / scale * (1 - 1e-12)) * scale
 
 
 class _SamplesMissing(Exception):
