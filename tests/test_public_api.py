@@ -83,6 +83,13 @@ def _problem(**overrides: object) -> rough_uq.ContactProblem:
     return rough_uq.ContactProblem(spectrum, **(options | overrides))
 
 
+def _quickstart_problem(**overrides: object) -> rough_uq.ContactProblem:
+    """The quickstart's surface and load in a box of 2 (k = 2/2/16), coarsest grid 32."""
+    spectrum = rough_uq.SurfaceSpectrum(system_size=2, k_l=2, k_r=2, k_s=16, hurst=0.8, rms_height=1)
+    options = dict(load=rough_uq.RelativeLoad(0.1), qoi=["contact_area"], coarsest=32, max_level=3, seed=1)
+    return rough_uq.ContactProblem(spectrum, **(options | overrides))
+
+
 def _tiny_problem(config: dict) -> rough_uq.ContactProblem:
     """The ContactProblem of ``tests.study_configs.tiny_config()`` (relative load, contact area in percent)."""
     surface = config["surface"]
@@ -730,6 +737,25 @@ def test_a_bias_the_screening_predicts_beyond_max_level_is_refused_as_roughuq_re
         assert bias / math.sqrt(0.5) <= reachable <= 1.05 * bias / math.sqrt(0.5)  # rounded up to 2 digits
     result = rough_uq.mc(_problem(), tol=0.1, screening=statistics, level=2)  # a level of one's choice: no bias model
     assert not result.is_bias_estimated
+
+
+def test_a_run_without_a_screening_warns_of_a_bias_out_of_reach_before_drawing_its_plan():
+    # tol 0.001 on max_level 2: the first samples put the bias far above its share, and the plan that follows
+    # asked for millions of samples for the statistical error, in silence (a notebook cell just hung).
+    class StopAtSecondPlan(Progress):
+        def plan(self, levels, n_planned, n_done):
+            if sum(n_done):
+                raise KeyboardInterrupt
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", rough_uq.EstimationWarning)
+        with pytest.raises(KeyboardInterrupt):
+            rough_uq.mlmc(_quickstart_problem(max_level=2), tol=0.001, progress=StopAtSecondPlan())
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 1 and re.match(
+        r"mlmc: from the samples so far the bias on max_level = 2 is about contact_area=[0-9.]+, above its share "
+        r"sqrt\(theta\) tol = contact_area=0.000707: the run will likely stop at max_level with its tolerance not "
+        r"met, after the \d{5,} samples it now plans", messages[0]), messages
 
 
 def test_a_printed_result_shows_the_estimate_not_the_statistics_arrays():

@@ -169,6 +169,7 @@ from rough_uq.multilevel.rates import (
     _fit_beta,
     _fit_gamma,
     _Line,
+    STALL_SIGNIFICANCE,
     estimated_bias,
     fit_rates,
     remaining_bias,
@@ -906,6 +907,9 @@ class _Run:
         """Events right after the initial plan."""
         return iter(())
 
+    def check_reach(self) -> None:
+        """Warn of a tolerance the run cannot meet, before the new plan's samples are drawn (MLMC only)."""
+
     def replan(self) -> None:
         raise NotImplementedError
 
@@ -998,11 +1002,17 @@ def _drive(
             before = list(hierarchy.targets)
             run.replan()
             if hierarchy.targets != before:
+                run.check_reach()
                 yield hierarchy.plan_event("variance")
             if not hierarchy.is_nearly_complete():
                 continue
         yield from run.after_round()
     yield from run.finish()
+
+
+def _per_qoi(names: Sequence[str], values: np.ndarray, columns: np.ndarray) -> str:
+    """``values`` of ``columns`` in a message, ``name=value`` with three significant digits."""
+    return ", ".join(f"{names[column]}={float(values[column]):.3g}" for column in columns)
 
 
 def _check_qoi_names(qoi_names: object, n_qoi: int | None) -> tuple[str, ...] | None:
@@ -1285,6 +1295,7 @@ class _MlmcRun(_Run):
         self.extrapolation, self.refusal = start.extrapolation, start.refusal
         # The fewest levels the bias test uses: min_finest_level, and two levels above the base for the rates.
         self.bias_levels = max(options.min_finest_level, start.base + 2)
+        self.is_reach_warned = False
 
     @property
     def cost_rate(self) -> float:
@@ -1299,6 +1310,37 @@ class _MlmcRun(_Run):
     def start(self) -> Iterator[Event]:
         if self.extrapolation == "refused":
             yield RichardsonRefused(levels=self.hierarchy.levels(), reason=self.refusal)
+
+    def check_reach(self) -> None:
+        """Warn once where the samples so far put the bias on ``max_level`` above its share ``sqrt(theta) tol``.
+
+        Giles' algorithm tests the bias only once a round's samples are drawn: a run without a screening at a
+        tolerance out of reach planned some 8 million samples for its statistical error, silently, and would
+        then stop at ``max_level`` with the tolerance not met. Only QoIs whose finest level mean is measured
+        (beyond :data:`~rough_uq.multilevel.rates.STALL_SIGNIFICANCE` standard errors from 0) count, and the
+        bias on ``max_level`` is the estimate's, decaying by ``2^-alpha`` per level; not for an extrapolated
+        estimate, whose bias decays faster.
+        """
+        if self.is_reach_warned or self.extrapolation not in ("off", "refused") or not self.is_bias_estimated():
+            return
+        finest, max_level = self.finest_sampled(), self.options.max_level
+        means, errors = self.hierarchy.bias_means(self.n_qoi)
+        reach = self.bias() * 2.0 ** (-self.driver.alpha * (max_level - finest))
+        share = math.sqrt(self.options.theta) * self.tol
+        out = np.flatnonzero((reach > share) & (np.abs(means[finest]) > STALL_SIGNIFICANCE * errors[finest]))
+        if not out.size:
+            return
+        self.is_reach_warned = True
+        names = self.options.qoi_names or [f"QoI [{column}]" for column in range(self.n_qoi)]
+        planned = sum(self.hierarchy.targets) - sum(s.n for s in self.hierarchy.samples)
+        warn_at_caller(
+            f"mlmc: from the samples so far the bias on max_level = {max_level} is about "
+            f"{_per_qoi(names, reach, out)}, above its share sqrt(theta) tol = {_per_qoi(names, share, out)}: "
+            "the run will likely stop at max_level with its "
+            f"tolerance not met, after the {planned} samples it now plans for its statistical error; loosen tol or "
+            "raise max_level (a screening first forecasts this), or set max_cost",
+            EstimationWarning,
+        )
 
     def replan(self) -> None:
         """Refit the rates (unless given) and set ``N_l`` from the pooled ``V_l`` (module docstring, step 2)."""
