@@ -89,6 +89,9 @@ def test_a_load_curve_run_is_titled_by_qoi_not_by_column():
     assert progress.calls[0] == ("start", "mc contact_area=2, mean_gap=0.5, mean_gap@0.5=0.25")
 
 
+# Whether tol is met is not the point here: seed 0's level means -0.70, +0.43 (6 + 4 samples) confirm no decay,
+# and its bias is summed at the floor rate (rough_uq.multilevel.rates, "Remaining bias").
+@pytest.mark.filterwarnings(r"ignore:.*tolerance not met \(max_level\):rough_uq.errors.EstimationWarning")
 @pytest.mark.parametrize("seed", range(3))
 def test_mlmc_and_mc_report_the_estimators_plans_and_their_samples(seed):
     problem = _problem(seed)

@@ -169,7 +169,7 @@ def test_slurm_study_gives_up_after_failed_rounds(serial, tmp_path):
     config, serial_study = serial
     shutil.copy(serial_study, tmp_path / "study.h5")   # screened (and estimated at TOL: plan another tol)
     env = environment(tmp_path, FAKE_SLURM_CPUS="1", FAKE_SLURM_KILL=",".join(str(n) for n in range(1, 40)))
-    bash("slurm_study.sh", "--retries", "2", str(config), "1.0", "study.h5", "1000", cwd=tmp_path, env=env)
+    bash("slurm_study.sh", "--retries", "2", str(config), "1.5", "study.h5", "1000", cwd=tmp_path, env=env)
     run_queue(env, tmp_path)
     texts = [p.read_text() for p in sorted((tmp_path / "logs").glob("next-*.out"))]
     assert len(texts) == 2
@@ -204,7 +204,8 @@ def test_plan_resources_columns(serial, tmp_path):
     config, serial_study = serial
     study = tmp_path / "study.h5"
     shutil.copy(serial_study, study)
-    lines = run_cli("mlmc", "--study", str(study), "--tol", "0.5", "--plan", "--shards", "50", "--resources")
+    # 1.5: the smallest tolerance the screening reaches on these grids is about 1.2
+    lines = run_cli("mlmc", "--study", str(study), "--tol", "1.5", "--plan", "--shards", "50", "--resources")
     rows = [line.split() for line in lines.splitlines()]
     assert rows and all(len(row) == 5 for row in rows)
     seconds = {int(row[1]): int(row[3]) for row in rows}
@@ -212,7 +213,7 @@ def test_plan_resources_columns(serial, tmp_path):
     assert all(s >= STARTUP_SECONDS for s in seconds.values())
     assert sorted(memory) == [0, 1, 2] and memory[0] <= memory[1] <= memory[2]
     assert memory[0] * 2**20 > BASE_BYTES
-    result = CliRunner().invoke(main, ["mlmc", "--study", str(study), "--tol", "0.5", "--plan", "--resources"])
+    result = CliRunner().invoke(main, ["mlmc", "--study", str(study), "--tol", "1.5", "--plan", "--resources"])
     assert result.exit_code == 2 and "--resources" in result.output
 
 

@@ -53,6 +53,7 @@ from rough_uq.multilevel.rates import (
     choose_coarsest_level,
     estimated_bias,
     remaining_bias,
+    tail_rate,
 )
 from rough_uq.multilevel.richardson import (
     RICHARDSON_MIN_LEVELS,
@@ -375,11 +376,16 @@ class _BiasModel:
         """Remaining bias, shape (n_qoi,), of an estimator whose finest level is ``level``."""
         row = _screened_row(self.statistics, level) if level >= 1 else None
         if self.bias_from == "data" and row is not None:
-            return remaining_bias(self.statistics.mean_diff[row], self.rates.alpha)
+            return remaining_bias(self.statistics.mean_diff[row], tail_rate(self.rates.alpha))
         if self.bias_from != "both":
             return estimated_bias(rates=self.rates, level=level)
-        measured = None if row is None else self.statistics.mean_diff[row]
-        return estimated_bias(rates=self.rates, level=level, mean_diff=measured, coarser=self._coarser(level))
+        measured = error = None
+        if row is not None:
+            statistics = self.statistics
+            measured = statistics.mean_diff[row]
+            error = np.sqrt(np.maximum(statistics.var_diff[row], 0.0) / max(int(statistics.n_samples[row]), 1))
+        return estimated_bias(rates=self.rates, level=level, mean_diff=measured, coarser=self._coarser(level),
+                              mean_error=error)
 
     def _coarser(self, level: int) -> np.ndarray | None:
         """Screened means of the (up to) two levels ``>= 1`` below ``level``, NaN where not screened."""

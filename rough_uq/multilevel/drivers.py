@@ -169,6 +169,7 @@ from rough_uq.multilevel.rates import (
     _fit_beta,
     _fit_gamma,
     _Line,
+    RATE_FLOOR,
     STALL_SIGNIFICANCE,
     estimated_bias,
     fit_rates,
@@ -220,9 +221,6 @@ __all__ = [
 ]
 
 Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
-
-#: Lower bound of fitted rates and fallback when a rate cannot be fitted (Giles' ``mlmc``).
-RATE_FLOOR = 0.5
 
 _MAX_COUNT = float(PLANNED_COUNT_CAP)
 #: Plans with more samples than this are beyond any budget: the Python runs
@@ -1002,8 +1000,8 @@ def _drive(
             before = list(hierarchy.targets)
             run.replan()
             if hierarchy.targets != before:
-                run.check_reach()
                 yield hierarchy.plan_event("variance")
+                run.check_reach()  # after the plan's event: a consumer that refuses the plan never draws it
             if not hierarchy.is_nearly_complete():
                 continue
         yield from run.after_round()
@@ -1312,7 +1310,7 @@ class _MlmcRun(_Run):
             yield RichardsonRefused(levels=self.hierarchy.levels(), reason=self.refusal)
 
     def check_reach(self) -> None:
-        """Warn once where the samples so far put the bias on ``max_level`` above its share ``sqrt(theta) tol``.
+        """Warn once where the samples so far put the bias on ``max_level`` above twice its share ``sqrt(theta) tol``.
 
         Giles' algorithm tests the bias only once a round's samples are drawn: a run without a screening at a
         tolerance out of reach planned some 8 million samples for its statistical error, silently, and would
@@ -1327,7 +1325,8 @@ class _MlmcRun(_Run):
         means, errors = self.hierarchy.bias_means(self.n_qoi)
         reach = self.bias() * 2.0 ** (-self.driver.alpha * (max_level - finest))
         share = math.sqrt(self.options.theta) * self.tol
-        out = np.flatnonzero((reach > share) & (np.abs(means[finest]) > STALL_SIGNIFICANCE * errors[finest]))
+        # Twice the share: a bias near it may still meet it once more samples firm up the means.
+        out = np.flatnonzero((reach > 2 * share) & (np.abs(means[finest]) > STALL_SIGNIFICANCE * errors[finest]))
         if not out.size:
             return
         self.is_reach_warned = True
@@ -1378,13 +1377,14 @@ class _MlmcRun(_Run):
         if not self.is_bias_estimated():
             return np.zeros(self.n_qoi)
         finest = self.finest_sampled()
-        means, _ = self.hierarchy.bias_means(self.n_qoi)
-        means = means[self.hierarchy.base : finest + 1]  # row 0 is the base level, whose Y is Q
+        all_means, errors = self.hierarchy.bias_means(self.n_qoi)
+        means = all_means[self.hierarchy.base : finest + 1]  # row 0 is the base level, whose Y is Q
         if self.extrapolation == "active":
             return richardson_bias(means[1:], self.driver.alpha)
         # The two levels below the finest, as far as they are differences (above the base level).
         coarser = means[1:-1][-2:]
-        return estimated_bias(rates=self.driver, level=finest, mean_diff=means[-1], coarser=coarser)
+        return estimated_bias(rates=self.driver, level=finest, mean_diff=means[-1], coarser=coarser,
+                              mean_error=errors[finest])
 
     def after_round(self) -> Iterator[Event]:
         """Check the extrapolation, then the bias: stop, or add a level (module docstring, steps 3 and 4)."""

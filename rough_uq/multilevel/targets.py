@@ -110,7 +110,7 @@ from rough_uq.multilevel.drivers import (
     refuse_large_plan,
     refuse_large_start,
 )
-from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias
+from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias, tail_rate
 from rough_uq.multilevel.statistics import EstimationWarning, _readonly
 
 __all__ = [
@@ -400,7 +400,9 @@ def _tail_bias(magnitudes: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     finest = len(magnitudes) - 1
     if finest < 1:
         return np.zeros(magnitudes.shape[1])
-    # Each of the three finest levels predicts |E[T_L]|; the largest prediction is the safe one.
+    # Each of the three finest levels predicts |E[T_L]|; the largest prediction is the safe one. The tail is
+    # summed with alpha at most BIAS_RATE_CAP, as the mean's (rough_uq.multilevel.rates, "Remaining bias").
+    alpha = tail_rate(alpha)
     return remaining_bias(giles_prediction(magnitudes[max(finest - 2, 1) :], alpha), alpha)
 
 

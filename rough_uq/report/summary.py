@@ -71,7 +71,7 @@ import numpy as np
 from rich.markup import escape
 
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
-from rough_uq.multilevel.drivers import RATE_FLOOR
+from rough_uq.multilevel.rates import RATE_FLOOR
 from rough_uq.multilevel.statistics import KURTOSIS_LIMIT
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.columns import split_column, tol_text
