@@ -318,7 +318,8 @@ def curve_study(tmp_path_factory):
     from tests.study_configs import tiny_config, write_config
 
     directory = tmp_path_factory.mktemp("curve")
-    qoi = {"contact_area": {"tol": 2.0}, "mean_gap": {"tol": 0.05}}
+    # contact_area 3: the screening of grids 8^2-32^2 reaches about 2.2 at load 0.1
+    qoi = {"contact_area": {"tol": 3.0}, "mean_gap": {"tol": 0.05}}
     config = tiny_config(load={"relative": CURVE}, qoi=qoi, output={"path": str(directory / "curve.h5")})
     path = write_config(directory / "curve.yaml", config)
     previous = os.getcwd()
@@ -367,7 +368,7 @@ def test_report_shows_the_load_curve_table_and_kappa(curve_study, tmp_path):
         # The smallest load has less than 10 % contact: kappa is fitted on it.
         assert entry["kappa"]["n_points"] >= 1 and entry["kappa"]["kappa"] > 0 and entry["kappa"]["error"] > 0
     mlmc = report["runs"][0]
-    assert mlmc["tol"] == [2.0] * 3 + [0.05, 0.1, 0.05]  # per QoI, one column apart
+    assert mlmc["tol"] == [3.0] * 3 + [0.05, 0.1, 0.05]  # per QoI, one column apart
 
     output = CliRunner().invoke(main, ["report", str(curve_study), "--plots", str(tmp_path)]).output
     assert "Load curve of" in output and "kappa =" in output and "contact_area@0.02" in output
@@ -392,4 +393,4 @@ def test_cli_progress_names_a_curve_runs_tolerances_by_qoi(curve_study, tmp_path
     study = shutil.copy(curve_study, tmp_path / "curve.h5")
     result = CliRunner().invoke(main, ["mlmc", "--study", str(study), "--tol", "mean_gap@0.02=0.1", "--workers", "1"])
     assert result.exit_code == 0, result.output
-    assert "[mlmc contact_area=2, mean_gap=0.05, mean_gap@0.02=0.1] done in " in result.stderr
+    assert "[mlmc contact_area=3, mean_gap=0.05, mean_gap@0.02=0.1] done in " in result.stderr
