@@ -57,7 +57,7 @@ def main() -> None:
     parser.add_argument("--max-level", type=int, default=3)
     parser.add_argument("--tol", type=float, default=0.2)
     parser.add_argument("--runs", type=int, default=8)
-    parser.add_argument("--reference-samples", default="4000,2000,2000,1000,200,50",
+    parser.add_argument("--reference-samples", default="40000,20000,4000,1000,200,50",
                         help="coupled samples per reference level from 16^2 (default up to 512^2)")
     args = parser.parse_args()
     values, errors = reference([int(n) for n in args.reference_samples.split(",")])

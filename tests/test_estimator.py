@@ -298,15 +298,19 @@ def test_the_tail_is_summed_at_most_at_second_order():
     assert bias[0] == pytest.approx(5.5 / 4 / 3, rel=1e-12)  # Giles' term of level 1 at alpha 2
 
 
-@pytest.mark.parametrize(("levels_alpha", "expected"), [
-    (((1, 2),), max(0.115, 0.23 * 2**-0.5) / (2**0.5 - 1)),  # a line through two means: held to what they show
-    (((1, 2, 3),), max(0.115, 0.23 * 2**-1.5) / (2**1.5 - 1)),  # fitted on three levels: its rate stands
+@pytest.mark.parametrize(("levels_alpha", "coarser", "expected"), [
+    # A line through two means, or means that change sign: held to the decay they confirm. Means -0.23, +0.115
+    # (0.03 standard error) fit alpha 1.5 and gave a bias of 0.06 on 128^2 against 0.18 on finer grids:
+    # log2(0.23 / (0.115 + 2 x 0.03)) = 0.39 confirms no decay, and the floor 0.5 is used.
+    (((1, 2),), -0.23, max(0.115, 0.23 * 2**-0.5) / (2**0.5 - 1)),
+    (((1, 2, 3),), -0.23, max(0.115, 0.23 * 2**-0.5) / (2**0.5 - 1)),
+    (((1, 2),), 0.23, max(0.115, 0.23 * 2**-0.5) / (2**0.5 - 1)),
+    # Fitted on three levels with one sign: its rate stands, and the mean of level 1 counts, scaled by 2^-2alpha.
+    (((1, 2, 3),), 0.23, max(0.115, 0.23 * 2**-1.5, 5.5 * 2**-3) / (2**1.5 - 1)),
 ])
-def test_a_rate_fitted_on_two_means_is_held_to_the_decay_they_confirm(levels_alpha, expected):
-    # Means -0.23, +0.115 (sign change, 0.03 standard error) fit alpha 1.5 and gave a bias of 0.06 on 128^2
-    # against 0.18 on finer grids: log2(0.23 / (0.115 + 2 x 0.03)) = 0.39 confirms no decay, the floor 0.5 is used.
+def test_a_rate_the_finest_means_do_not_confirm_is_held_to_the_decay_they_show(levels_alpha, coarser, expected):
     rates = Rates(alpha=1.5, beta=2.0, gamma=1.0, c_alpha=1e-9, c_beta=1.0, c_gamma=1.0, levels_alpha=levels_alpha)
-    bias = estimated_bias(rates=rates, level=2, mean_diff=np.array([0.115]), coarser=np.array([[-0.23]]),
+    bias = estimated_bias(rates=rates, level=3, mean_diff=np.array([0.115]), coarser=np.array([[-5.5], [coarser]]),
                           mean_error=np.array([0.03]))
     assert bias[0] == pytest.approx(expected, rel=1e-12)
 

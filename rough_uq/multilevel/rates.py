@@ -76,8 +76,10 @@ fitted on it is no rate of the discretisation (quickstart surface, coarsest
 grid 16: means -5.5, -0.23 on levels 1, 2 fit ``alpha = 4.6`` and put the
 bias of 64^2 at 0.01 where finer grids (means +0.115, +0.080, +0.045) show
 0.29). And where ``alpha`` is a line through two level means (the fit's
-window, above, has two levels: nothing confirms it), the rate is at most the
-decay those two means confirm, ``log2(|E[Y_{L-1}]| / (|E[Y_L]| + 2 se_L))``
+window, above, has two levels: nothing confirms it) or the two finest means
+differ in sign (no window is anchored, every level is fitted), the rate is
+at most the decay those two means confirm,
+``log2(|E[Y_{L-1}]| / (|E[Y_L]| + 2 se_L))``
 (floored at :data:`RATE_FLOOR`): a finest mean that happens to lie near 0, or
 one whose sign differs from the level below, no longer makes a fast decay
 (coarsest 32: means -0.23 and +0.115 with 10 samples on level 2 fitted
@@ -518,8 +520,9 @@ def estimated_bias(
         ``Y_l`` is a difference); NaN where a level was not sampled.
     mean_error : ndarray, shape (n_qoi,), optional
         Standard error of ``mean_diff``: where ``alpha`` was fitted on two
-        levels only (``rates.levels_alpha``), the tail rate is then at most
-        the decay the two finest means confirm (:func:`tail_rate`).
+        levels only (``rates.levels_alpha``) or the two finest means differ
+        in sign, the tail rate is then at most the decay those means confirm
+        (:func:`tail_rate`).
 
     Returns
     -------
@@ -542,9 +545,16 @@ def estimated_bias(
         finest = unknown if mean_diff is None else np.asarray(mean_diff, dtype=float)
         below = np.empty((0, rates.n_qoi)) if coarser is None else np.asarray(coarser, dtype=float)[-2:]
         if mean_error is not None and len(below):
-            # A line through two level means is confirmed by nothing: its rate is held to what they confirm.
+            # A line through two level means is confirmed by nothing, nor a fit whose finest means change sign
+            # (no window is anchored there): their rate is held to the decay the two finest means confirm.
             two_point = np.array([len(levels) <= 2 for levels in rates.levels_alpha] or [False] * rates.n_qoi)
-            alpha = np.where(two_point, tail_rate(rates.alpha, below[-1], finest, mean_error), alpha)
+            unconfirmed = two_point | (np.sign(below[-1]) * np.sign(finest) < 0)
+            bounded = tail_rate(rates.alpha, below[-1], finest, mean_error)
+            binding = unconfirmed & (bounded < alpha)
+            alpha = np.where(binding, bounded, alpha)
+            # ... and from those two means only: a level further down may be far from any decay (a mean of -5.5
+            # two levels below, scaled at the floor rate, put the bias at 6.6 where it is 0.2).
+            below = np.where(binding, np.vstack([np.full((len(below) - 1, rates.n_qoi), np.nan), below[-1:]]), below)
         expected = np.fmax(expected, giles_prediction(np.vstack([below, finest]), alpha))
     return remaining_bias(expected, alpha)
 
