@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import signal
 import subprocess
 import sys
 import textwrap
 import threading
+import types
 from pathlib import Path
 
 import numpy as np
@@ -189,16 +191,19 @@ UNGUARDED_SCRIPT = textwrap.dedent("""
     spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
     problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.2), qoi=["contact_area"],
                                       coarsest=16, max_level=2, seed=7)
-    with PoolExecutor(2) as pool:
+    with PoolExecutor(N_WORKERS) as pool:
         rough_uq.mlmc(problem, tol=2.0, executor=pool)
 """)
 
 
-def test_a_script_that_starts_a_pool_unguarded_is_told_to_add_the_main_guard(tmp_path):
+# One worker: the broken pool had emptied its list of workers before their status was read, in most runs, and
+# the message said "an error in the worker, printed above" (nothing was printed).
+@pytest.mark.parametrize("n_workers", [1, 2])
+def test_a_script_that_starts_a_pool_unguarded_is_told_to_add_the_main_guard(tmp_path, n_workers):
     # Each spawned worker re-ran the script, failed with multiprocessing's RuntimeError, and the script ended
     # in "a worker process died while computing samples ...: run the command again" (there was no command).
     script = tmp_path / "unguarded.py"
-    script.write_text(UNGUARDED_SCRIPT)
+    script.write_text(UNGUARDED_SCRIPT.replace("N_WORKERS", str(n_workers)))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     result = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True,
                             timeout=300, env=env)
@@ -207,6 +212,27 @@ def test_a_script_that_starts_a_pool_unguarded_is_told_to_add_the_main_guard(tmp
     assert last.startswith("rough_uq.errors.ExecutorError: a worker process failed while starting: "), last
     assert "`if __name__ == '__main__':`" in last and "run the command again" not in last
     assert "freeze_support" not in result.stderr  # the workers ended before multiprocessing's RuntimeError
+
+
+def _exit_86() -> None:
+    raise SystemExit(executors.UNGUARDED_MAIN_STATUS)
+
+
+def test_a_broken_pool_reads_the_statuses_of_the_workers_it_started_with():
+    # A broken pool empties its own list of workers, with one worker often before their status was read:
+    # the statuses come from the processes listed when the workers started.
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    worker = multiprocessing.get_context("spawn").Process(target=_exit_86)
+    worker.start()
+    worker.join(60)
+    pool = executors.PoolExecutor(1)
+    pool._pool, pool._workers = types.SimpleNamespace(_processes={}), [worker]
+    broken = Future()
+    broken.set_exception(BrokenProcessPool("a child process terminated abruptly"))
+    with pytest.raises(executors.ExecutorError, match=r"`if __name__ == '__main__':`"):
+        pool._wait_for_start([broken])
 
 
 def test_a_broken_pool_is_explained_by_when_it_broke():

@@ -301,15 +301,22 @@ def _is_being_spawned() -> bool:
     return bool(getattr(multiprocessing.current_process(), "_inheriting", False))
 
 
-def _exit_statuses(pool: ProcessPoolExecutor, timeout: float = 2.0) -> list[int]:
-    """Exit statuses of the workers of a broken pool (none where the pool does not list its workers).
+def _pool_processes(pool: ProcessPoolExecutor) -> list[multiprocessing.Process]:
+    """The worker processes of ``pool`` (none where it does not list them)."""
+    # ProcessPoolExecutor keeps its workers in the private _processes (as close() uses it too).
+    return list((getattr(pool, "_processes", None) or {}).values())
+
+
+def _exit_statuses(processes: Sequence[multiprocessing.Process], timeout: float = 2.0) -> list[int]:
+    """Exit statuses of the worker ``processes`` of a broken pool.
 
     The pool is broken as soon as a worker's end is seen, a moment before its
     status can be read, and it terminates the other workers: each is given
-    until ``timeout`` seconds in all to end.
+    until ``timeout`` seconds in all to end. The processes are those listed
+    when the workers started: a broken pool empties its own list, and with one
+    worker that was often done before the status was read (the advice for a
+    script without ``if __name__ == '__main__':`` was then lost).
     """
-    # ProcessPoolExecutor keeps its workers in the private _processes (as close() uses it too).
-    processes = list((getattr(pool, "_processes", None) or {}).values())
     deadline = time.monotonic() + timeout
     for process in processes:
         process.join(max(0.0, deadline - time.monotonic()))
@@ -349,6 +356,7 @@ class PoolExecutor(Executor):
         self.n_workers = check_workers(n_workers)
         self.threads = int(threads)
         self._pool: ProcessPoolExecutor | None = None
+        self._workers: list[multiprocessing.Process] = []
 
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:
@@ -373,6 +381,7 @@ class PoolExecutor(Executor):
             try:
                 with _sigint_held_back():
                     started = [self._pool.submit(int, index) for index in range(self.n_workers)]
+                self._workers = _pool_processes(self._pool)
             finally:
                 os.environ.clear()
                 os.environ.update(saved)
@@ -385,7 +394,7 @@ class PoolExecutor(Executor):
             for future in started:
                 future.result()
         except BrokenProcessPool as exc:
-            statuses = _exit_statuses(self._pool)
+            statuses = _exit_statuses(self._workers)
             self._pool = None
             raise ExecutorError(_broken_pool_message(statuses, is_starting=True)) from exc
 
@@ -405,7 +414,7 @@ class PoolExecutor(Executor):
                     yield future.result()
             is_done = True
         except BrokenProcessPool as exc:
-            statuses = [] if self._pool is None else _exit_statuses(self._pool)
+            statuses = [] if self._pool is None else _exit_statuses(self._workers)
             self._pool = None
             raise ExecutorError(_broken_pool_message(statuses, is_starting=False)) from exc
         finally:
