@@ -773,6 +773,20 @@ def test_a_finest_mean_that_changes_sign_does_not_make_a_fast_decay():
     assert result.bias_estimate[0] > 0.125 and not result.tol_met
 
 
+def test_printed_solutions_summarise_instead_of_dumping_their_fields():
+    # repr(ContactSolution) printed its three (n, n) arrays: some 30 lines of numbers in a notebook.
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    heights = rough_uq.sample_surface(spectrum, 32, np.random.default_rng(1))
+    solution = rough_uq.solve_contact(heights, system_size=1.0, mean_pressure=0.1 * spectrum.rms_slope)
+    text = repr(solution)
+    assert re.fullmatch(r"ContactSolution\(grid=32\^2, converged=True, n_iter=\d+, error=[0-9.e-]+, "
+                        r"path='preconditioned', contact_fraction=0\.\d+, approach=[0-9.e-]+\)", text), text
+    assert f"contact_fraction={np.mean(solution.pressure > 0):.4g}" in text
+    curve = rough_uq.solve_load_curve(heights, system_size=1.0, mean_pressures=[0.05, 0.1])
+    assert repr(curve) == (f"LoadCurveSolution(mean_pressures=[0.05, 0.1], n_iter={curve.n_iter.tolist()}, "
+                           "converged=[True, True])")
+
+
 def test_a_printed_result_shows_the_estimate_not_the_statistics_arrays():
     result = rough_uq.mlmc(_problem(), tol=2.0)
     text = repr(result)

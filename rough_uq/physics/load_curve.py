@@ -83,6 +83,11 @@ class LoadCurveSolution:
         """Iterations of the whole curve."""
         return int(np.sum(self.n_iter))
 
+    def __repr__(self) -> str:
+        # A summary for notebooks and print(), without the solutions' fields (three (n, n) arrays per load).
+        return (f"LoadCurveSolution(mean_pressures={self.mean_pressures.tolist()}, n_iter={self.n_iter.tolist()}, "
+                f"converged={self.converged.tolist()})")
+
 
 def check_mean_pressures(mean_pressures: object) -> np.ndarray:
     """``mean_pressures`` as a 1-D float64 array, or :class:`InvalidParameterError` naming ``mean_pressures``.

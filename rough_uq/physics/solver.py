@@ -256,6 +256,12 @@ class ContactSolution:
         """Boolean contact map ``pressure > 0``, shape (n, n)."""
         return self.pressure > 0
 
+    def __repr__(self) -> str:
+        # A summary for notebooks and print(): the three (n, n) fields printed some 30 lines of numbers.
+        return (f"ContactSolution(grid={self.pressure.shape[0]}^2, converged={self.converged}, n_iter={self.n_iter}, "
+                f"error={self.error:.3g}, path={self.path!r}, contact_fraction={np.mean(self.contact):.4g}, "
+                f"approach={self.approach:.6g})")
+
 
 # --------------------------------------------------------------------------
 # Fused passes. Each loops once over the grid; ``p > 0`` defines the active
