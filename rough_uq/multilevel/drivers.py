@@ -307,7 +307,8 @@ class EstimationResult:
     """Outcome of an MC or MLMC run.
 
     Per-QoI fields are floats when the sampler returned 1-d arrays (one QoI)
-    and arrays of shape (n_qoi,) otherwise.
+    and arrays of shape (n_qoi,) otherwise (``rough_uq.mlmc`` / ``rough_uq.mc``
+    on a contact problem always give arrays).
 
     Attributes
     ----------

@@ -516,7 +516,8 @@ def mlmc(
     theta : float
         Bias share of ``eps^2``, in (0, 1).
     screening : ScreeningResult or LevelStatistics, optional
-        A screening of the same problem (:func:`screen`).
+        A screening of the same problem (:func:`screen`); a ScreeningResult of another problem is refused, a
+        LevelStatistics (no problem to compare) is taken on the caller's word.
     richardson : bool
         Richardson-extrapolate the finest level where the level means allow
         it (refused with a reason in the result otherwise).
@@ -709,7 +710,8 @@ def mc(
     theta : float
         Bias share of ``eps^2``, in (0, 1).
     screening : ScreeningResult or LevelStatistics, optional
-        A screening of the same problem (:func:`screen`).
+        A screening of the same problem (:func:`screen`); a ScreeningResult of another problem is refused, a
+        LevelStatistics (no problem to compare) is taken on the caller's word.
     bias : float or sequence of float, optional
         Known bias of ``level`` (overrides the plan's).
     n_initial, max_cost, batch_size, kurtosis_limit
