@@ -303,7 +303,7 @@ def _is_being_spawned() -> bool:
 
 def _pool_processes(pool: ProcessPoolExecutor) -> list[multiprocessing.Process]:
     """The worker processes of ``pool`` (none where it does not list them)."""
-    # ProcessPoolExecutor keeps its workers in the private _processes (as close() uses it too).
+    # ProcessPoolExecutor keeps its workers in the private _processes.
     return list((getattr(pool, "_processes", None) or {}).values())
 
 
@@ -313,13 +313,17 @@ def _exit_statuses(processes: Sequence[multiprocessing.Process], timeout: float 
     The pool is broken as soon as a worker's end is seen, a moment before its
     status can be read, and it terminates the other workers: each is given
     until ``timeout`` seconds in all to end. The processes are those listed
-    when the workers started: a broken pool empties its own list, and with one
-    worker that was often done before the status was read (the advice for a
-    script without ``if __name__ == '__main__':`` was then lost).
+    when the workers started: a broken pool empties its own list. The pool's
+    own thread reaps the workers too, and a join that loses that race returns
+    before the status is recorded: the status is polled until it is (with one
+    worker, half the runs lost the advice for a script without ``if __name__ ==
+    '__main__':`` to one or the other).
     """
     deadline = time.monotonic() + timeout
     for process in processes:
         process.join(max(0.0, deadline - time.monotonic()))
+        while process.exitcode is None and time.monotonic() < deadline:
+            time.sleep(0.01)
     return [process.exitcode for process in processes if process.exitcode is not None]
 
 
@@ -395,7 +399,7 @@ class PoolExecutor(Executor):
                 future.result()
         except BrokenProcessPool as exc:
             statuses = _exit_statuses(self._workers)
-            self._pool = None
+            self._pool, self._workers = None, []
             raise ExecutorError(_broken_pool_message(statuses, is_starting=True)) from exc
 
     def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
@@ -415,7 +419,7 @@ class PoolExecutor(Executor):
             is_done = True
         except BrokenProcessPool as exc:
             statuses = [] if self._pool is None else _exit_statuses(self._workers)
-            self._pool = None
+            self._pool, self._workers = None, []
             raise ExecutorError(_broken_pool_message(statuses, is_starting=False)) from exc
         finally:
             if not is_done:
@@ -430,10 +434,10 @@ class PoolExecutor(Executor):
             # A running sample may take a minute on a fine grid; its result is not
             # wanted any more. ProcessPoolExecutor has no public way to stop a
             # running task before Python 3.14 (terminate_workers), hence _processes.
-            for process in list((getattr(self._pool, "_processes", None) or {}).values()):
+            for process in _pool_processes(self._pool):
                 process.terminate()
         self._pool.shutdown(wait=True, cancel_futures=True)
-        self._pool = None
+        self._pool, self._workers = None, []
 
     def __exit__(self, exc_type: object, *exc_info: object) -> None:
         self.close(is_abort=exc_type is not None)
