@@ -33,7 +33,7 @@ from rough_uq.multilevel.drivers import (
     refuse_large_plan,
 )
 from rough_uq.multilevel.allocation import optimal_samples
-from rough_uq.multilevel.rates import estimated_bias
+from rough_uq.multilevel.rates import confirmed_tail, estimated_bias
 from rough_uq.multilevel.richardson import ratio_instability, richardson_bias, richardson_weight
 
 N_REPEATS = 200
@@ -315,6 +315,37 @@ def test_a_rate_the_finest_means_do_not_confirm_is_held_to_the_decay_they_show(l
     assert bias[0] == pytest.approx(expected, rel=1e-12)
 
 
+def test_the_decay_bound_holds_each_qoi_apart_and_keeps_giles_terms_where_it_does_not_bind():
+    # QoI 0: means 0.23, 0.0575 (0.001 standard error) confirm log2(0.23 / 0.0595) = 1.95 >= alpha 1.5: the
+    # fitted rate and the term of level 1 stand. QoI 1: means -0.23, +0.115 (0.03) confirm no decay: the floor.
+    rates = Rates(alpha=[1.5, 1.5], beta=[2.0, 2.0], gamma=1.0, c_alpha=[1e-9, 1e-9], c_beta=[1.0, 1.0],
+                  c_gamma=1.0, levels_alpha=((1, 2), (1, 2)))
+    bias = estimated_bias(rates=rates, level=3, mean_diff=np.array([0.0575, 0.115]),
+                          coarser=np.array([[5.5, -5.5], [0.23, -0.23]]), mean_error=np.array([0.001, 0.03]))
+    assert bias[0] == pytest.approx(max(0.0575, 0.23 * 2**-1.5, 5.5 * 2**-3) / (2**1.5 - 1), rel=1e-12)
+    assert bias[1] == pytest.approx(max(0.115, 0.23 * 2**-0.5) / (2**0.5 - 1), rel=1e-12)
+
+
+def test_a_plan_beyond_the_screened_levels_sums_the_tail_as_the_run_will():
+    # Screened means -0.23, +0.115 on levels 1, 2 (sign change): the bias of level 2 is summed at the floor rate,
+    # and the plan predicted level 3 at 0.06 with the fitted alpha: it accepted tolerances the run then missed.
+    rng = np.random.default_rng(4)
+    fine, coarse = [], []
+    for level, shift in enumerate((0.0, -0.23, 0.115)):
+        q = 20 + rng.normal(size=40)
+        fine.append(q)
+        coarse.append(q - shift + 0.1 * rng.normal(size=40) if level else np.zeros(40))
+    table = level_statistics(fine=fine, coarse=coarse, cost=[np.full(40, 2.0**level) for level in range(3)])
+    rates = fit_rates(table)
+    se = np.sqrt(table.var_diff[2] / 40)
+    alpha, binding = confirmed_tail(rates, table.mean_diff[1], table.mean_diff[2], se)
+    assert binding[0] and alpha[0] < 0.8 < rates.alpha[0]
+    on_two = plan(tol=0.1, rates=rates, statistics=table, max_level=2).bias
+    on_three = plan(tol=0.1, rates=rates, statistics=table, max_level=3)
+    assert on_three.finest_level == 3 and not on_three.is_bias_met
+    assert on_three.bias[0] >= on_two[0] * 2 ** -alpha[0] * (1 - 1e-12)
+
+
 def test_mlmc_pools_the_screening_means_into_its_bias_estimate():
     table, result = noisy_run(0)
     finest = result.finest_level
@@ -396,7 +427,7 @@ def test_several_qois_take_the_maximum_sample_numbers():
 def test_max_level_stops_honestly():
     # and says so before drawing the samples of its statistical error, once its first samples show the bias
     with pytest.warns(EstimationWarning, match=r"^mlmc: from the samples so far the bias on max_level = 3 is about "
-                      r"QoI \[0\]=[0-9.]+, above its share sqrt\(theta\) tol = QoI \[0\]=0.0141: the run will likely"):
+                      r"QoI 0=[0-9.]+, above its share sqrt\(theta\) tol = QoI 0=0.0141: the run will likely"):
         result = mlmc(Synthetic(seed=2), tol=0.02, max_level=3)
     assert result.stop_reason == "max_level" and not result.tol_met
     assert result.finest_level == 3

@@ -730,11 +730,12 @@ def test_a_bias_the_screening_predicts_beyond_max_level_is_refused_as_roughuq_re
     statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0**level) for level in range(3)])
     refusal = (r"^tol contact_area=0.1 cannot be reached: on the finest grid allowed \(max_level = 2, 64\^2\) the "
                r"screening predicts a bias of contact_area=(0.2\d*); the smallest reachable tolerance is about "
-               r"contact_area=([0-9.]+), a prediction from 20 screened samples per level .*raise the problem's max_level")
+               r"contact_area=([0-9.]+), a prediction from 20 screened samples per level.*raise the problem's max_level")
     for run in (rough_uq.mlmc, rough_uq.mc):
         with pytest.raises(rough_uq.EstimationError, match=refusal) as caught:
             run(_problem(), tol=0.1, screening=statistics)
         bias, reachable = map(float, re.match(refusal, str(caught.value)).groups())
+        assert ("plain MC takes as its bias" in str(caught.value)) == (run is rough_uq.mc)
         assert bias / math.sqrt(0.5) <= reachable <= 1.05 * bias / math.sqrt(0.5)  # rounded up to 2 digits
     result = rough_uq.mc(_problem(), tol=0.1, screening=statistics, level=2)  # a level of one's choice: no bias model
     assert not result.is_bias_estimated
@@ -782,6 +783,8 @@ def test_printed_solutions_summarise_instead_of_dumping_their_fields():
     assert re.fullmatch(r"ContactSolution\(grid=32\^2, converged=True, n_iter=\d+, error=[0-9.e-]+, "
                         r"path='preconditioned', contact_fraction=0\.\d+, approach=[0-9.e-]+\)", text), text
     assert f"contact_fraction={np.mean(solution.pressure > 0):.4g}" in text
+    stopped = rough_uq.solve_contact(heights, system_size=1.0, mean_pressure=0.1 * spectrum.rms_slope, max_iter=2)
+    assert repr(stopped).endswith(f", n_restarts={stopped.n_restarts}, message={stopped.message!r})")
     curve = rough_uq.solve_load_curve(heights, system_size=1.0, mean_pressures=[0.05, 0.1])
     assert repr(curve) == (f"LoadCurveSolution(mean_pressures=[0.05, 0.1], n_iter={curve.n_iter.tolist()}, "
                            "converged=[True, True])")

@@ -51,6 +51,7 @@ from rough_uq.multilevel.rates import (
     DroppedLevel,
     Rates,
     choose_coarsest_level,
+    confirmed_tail,
     estimated_bias,
     remaining_bias,
     tail_rate,
@@ -381,11 +382,33 @@ class _BiasModel:
             return estimated_bias(rates=self.rates, level=level)
         measured = error = None
         if row is not None:
-            statistics = self.statistics
-            measured = statistics.mean_diff[row]
-            error = np.sqrt(np.maximum(statistics.var_diff[row], 0.0) / max(int(statistics.n_samples[row]), 1))
-        return estimated_bias(rates=self.rates, level=level, mean_diff=measured, coarser=self._coarser(level),
+            measured, error = self.statistics.mean_diff[row], self._error(row)
+        bias = estimated_bias(rates=self.rates, level=level, mean_diff=measured, coarser=self._coarser(level),
                               mean_error=error)
+        finest = self._finest_pair()
+        if row is not None or finest is None or level <= finest:
+            return bias
+        # Beyond the screened levels, as the run will sum it: from the finest screened level at the tail rate its
+        # two finest means confirm, where that bound binds (the fitted alpha promised tolerances the runs missed).
+        alpha, binding = confirmed_tail(self.rates, *self._pair_inputs(finest))
+        return np.where(binding, np.fmax(bias, self.at(finest) * 2.0 ** (-alpha * (level - finest))), bias)
+
+    def _error(self, row: int) -> np.ndarray:
+        statistics = self.statistics
+        return np.sqrt(np.maximum(statistics.var_diff[row], 0.0) / max(int(statistics.n_samples[row]), 1))
+
+    def _finest_pair(self) -> int | None:
+        """The finest screened level whose level below is screened too, both differences (None if none is)."""
+        if self.statistics is None or self.bias_from != "both":
+            return None
+        levels = [int(level) for level in self.statistics.levels if level >= 2]
+        pairs = [level for level in levels if _screened_row(self.statistics, level - 1) is not None]
+        return pairs[-1] if pairs else None
+
+    def _pair_inputs(self, level: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Means of levels ``level - 1`` and ``level`` and the standard error of the second (screened rows)."""
+        row, below = _screened_row(self.statistics, level), _screened_row(self.statistics, level - 1)
+        return self.statistics.mean_diff[below], self.statistics.mean_diff[row], self._error(row)
 
     def _coarser(self, level: int) -> np.ndarray | None:
         """Screened means of the (up to) two levels ``>= 1`` below ``level``, NaN where not screened."""

@@ -171,9 +171,11 @@ from rough_uq.multilevel.rates import (
     _Line,
     RATE_FLOOR,
     STALL_SIGNIFICANCE,
+    confirmed_tail,
     estimated_bias,
     fit_rates,
     remaining_bias,
+    tail_rate,
 )
 from rough_uq.multilevel.richardson import RICHARDSON_MIN_LEVELS, ratio_instability, richardson_bias, richardson_weight
 from rough_uq.multilevel.statistics import (
@@ -1317,21 +1319,24 @@ class _MlmcRun(_Run):
         tolerance out of reach planned some 8 million samples for its statistical error, silently, and would
         then stop at ``max_level`` with the tolerance not met. Only QoIs whose finest level mean is measured
         (beyond :data:`~rough_uq.multilevel.rates.STALL_SIGNIFICANCE` standard errors from 0) count, and the
-        bias on ``max_level`` is the estimate's, decaying by ``2^-alpha`` per level; not for an extrapolated
-        estimate, whose bias decays faster.
+        bias on ``max_level`` is the estimate's, decaying by ``2^-a`` per level at the rate ``a`` its tail is
+        summed with (:func:`~rough_uq.multilevel.rates.confirmed_tail`); not for an extrapolated estimate.
         """
         if self.is_reach_warned or self.extrapolation not in ("off", "refused") or not self.is_bias_estimated():
             return
         finest, max_level = self.finest_sampled(), self.options.max_level
         means, errors = self.hierarchy.bias_means(self.n_qoi)
-        reach = self.bias() * 2.0 ** (-self.driver.alpha * (max_level - finest))
+        alpha = tail_rate(self.driver.alpha)
+        if finest - 2 >= self.hierarchy.base:  # as bias() sums the tail
+            alpha, _ = confirmed_tail(self.driver, means[finest - 1], means[finest], errors[finest])
+        reach = self.bias() * 2.0 ** (-alpha * (max_level - finest))
         share = math.sqrt(self.options.theta) * self.tol
         # Twice the share: a bias near it may still meet it once more samples firm up the means.
         out = np.flatnonzero((reach > 2 * share) & (np.abs(means[finest]) > STALL_SIGNIFICANCE * errors[finest]))
         if not out.size:
             return
         self.is_reach_warned = True
-        names = self.options.qoi_names or [f"QoI [{column}]" for column in range(self.n_qoi)]
+        names = self.options.qoi_names or [f"QoI {column}" for column in range(self.n_qoi)]
         planned = sum(self.hierarchy.targets) - sum(s.n for s in self.hierarchy.samples)
         warn_at_caller(
             f"mlmc: from the samples so far the bias on max_level = {max_level} is about "

@@ -123,11 +123,13 @@ __all__ = [
     "DroppedLevel",
     "Rates",
     "choose_coarsest_level",
+    "confirmed_tail",
     "estimated_bias",
     "fit_rates",
     "giles_prediction",
     "remaining_bias",
     "stalled_bias",
+    "tail_rate",
 ]
 
 #: Smallest predicted saving (fraction of the MLMC cost) for which coarse levels are dropped.
@@ -545,18 +547,31 @@ def estimated_bias(
         finest = unknown if mean_diff is None else np.asarray(mean_diff, dtype=float)
         below = np.empty((0, rates.n_qoi)) if coarser is None else np.asarray(coarser, dtype=float)[-2:]
         if mean_error is not None and len(below):
-            # A line through two level means is confirmed by nothing, nor a fit whose finest means change sign
-            # (no window is anchored there): their rate is held to the decay the two finest means confirm.
-            two_point = np.array([len(levels) <= 2 for levels in rates.levels_alpha] or [False] * rates.n_qoi)
-            unconfirmed = two_point | (np.sign(below[-1]) * np.sign(finest) < 0)
-            bounded = tail_rate(rates.alpha, below[-1], finest, mean_error)
-            binding = unconfirmed & (bounded < alpha)
-            alpha = np.where(binding, bounded, alpha)
-            # ... and from those two means only: a level further down may be far from any decay (a mean of -5.5
-            # two levels below, scaled at the floor rate, put the bias at 6.6 where it is 0.2).
+            alpha, binding = confirmed_tail(rates, below[-1], finest, mean_error)
+            # Where the bound binds, from those two means only: a level further down may be far from any decay
+            # (a mean of -5.5 two levels below, scaled at the floor rate, put the bias at 6.6 where it is 0.2).
             below = np.where(binding, np.vstack([np.full((len(below) - 1, rates.n_qoi), np.nan), below[-1:]]), below)
         expected = np.fmax(expected, giles_prediction(np.vstack([below, finest]), alpha))
     return remaining_bias(expected, alpha)
+
+
+def confirmed_tail(
+    rates: Rates, coarser_mean: np.ndarray, finest_mean: np.ndarray, finest_error: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The rate the remaining bias sums its tail with, from the two finest level means ``E[Y_{L-1}]``,
+    ``E[Y_L]`` (levels ``>= 1``) and the standard error of the finest, and where the bound on it binds.
+
+    A line through two level means (``rates.levels_alpha``) is confirmed by nothing, nor a fit whose finest
+    means change sign (no window is anchored there): their rate is held to the decay the two means confirm
+    (:func:`tail_rate`). Both arrays have shape (n_qoi,).
+    """
+    alpha = tail_rate(rates.alpha)
+    levels = rates.levels_alpha
+    two_point = np.array([len(fitted) == 2 for fitted in levels]) if len(levels) == rates.n_qoi else False
+    unconfirmed = two_point | (np.sign(coarser_mean) * np.sign(finest_mean) < 0)
+    bounded = tail_rate(rates.alpha, coarser_mean, finest_mean, finest_error)
+    binding = unconfirmed & (bounded < alpha)
+    return np.where(binding, bounded, alpha), binding
 
 
 def tail_rate(
@@ -567,7 +582,8 @@ def tail_rate(
 
     ``alpha`` at most :data:`BIAS_RATE_CAP`; given the two finest level means ``E[Y_{L-1}]``, ``E[Y_L]`` and the
     standard error of the finest, also at most the decay they confirm, ``log2(|E[Y_{L-1}]| / (|E[Y_L]| +
-    STALL_SIGNIFICANCE se_L))``, and not below :data:`RATE_FLOOR` (NaN means leave ``alpha`` as it is).
+    STALL_SIGNIFICANCE se_L))``, and not below :data:`RATE_FLOOR`. A level mean not measured (NaN) leaves ``alpha``
+    as it is; an infinite standard error (a level of one sample) confirms no decay: the floor.
     """
     rate = np.minimum(np.asarray(alpha, dtype=float), BIAS_RATE_CAP)
     if coarser_mean is None:

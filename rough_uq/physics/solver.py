@@ -258,9 +258,10 @@ class ContactSolution:
 
     def __repr__(self) -> str:
         # A summary for notebooks and print(): the three (n, n) fields printed some 30 lines of numbers.
+        why = "" if self.converged else f", n_restarts={self.n_restarts}, message={self.message!r}"
         return (f"ContactSolution(grid={self.pressure.shape[0]}^2, converged={self.converged}, n_iter={self.n_iter}, "
                 f"error={self.error:.3g}, path={self.path!r}, contact_fraction={np.mean(self.contact):.4g}, "
-                f"approach={self.approach:.6g})")
+                f"approach={self.approach:.6g}{why})")
 
 
 # --------------------------------------------------------------------------

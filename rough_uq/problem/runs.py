@@ -569,7 +569,7 @@ def mlmc(
         starting_rates = rates if isinstance(rates, Rates) else drivers.planning_rates(statistics)
         _refuse_unreachable(problem, tol, drivers.starting_plan(
             tol=tol, rates=starting_rates, statistics=statistics, theta=theta, max_level=problem.max_level,
-            richardson=bool(richardson)), statistics)
+            richardson=bool(richardson)), statistics, method="mlmc")
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor, progress=progress)
     events = drivers.iter_mlmc(
@@ -598,7 +598,7 @@ def mlmc(
 
 
 def _refuse_unreachable(problem: ContactProblem, tol: np.ndarray, prediction: Plan,
-                        statistics: LevelStatistics) -> None:
+                        statistics: LevelStatistics, *, method: str) -> None:
     """Raise :class:`~rough_uq.errors.EstimationError` where the screening predicts a bias above the tolerance's
     share on ``max_level`` (``prediction``: the run's first plan), before any sample, as ``roughuq mlmc`` / ``mc``
     refuse: such a run planned millions of samples to bring its statistical error within a tolerance its bias
@@ -610,9 +610,16 @@ def _refuse_unreachable(problem: ContactProblem, tol: np.ndarray, prediction: Pl
         f"tol {tol_text(names, tol, digits=3)} cannot be reached: on the finest grid allowed (max_level = {finest}, "
         f"{problem.grid(finest)}^2) the screening predicts a bias of {values_text(names, prediction.bias)}; the "
         f"smallest reachable tolerance is about {tol_text(names, reachable_tolerance(prediction), digits=3)}, a "
-        f"prediction from {int(np.min(statistics.n_samples))} screened samples per level (a run estimates the bias "
-        "from its own samples and may find it larger); or raise the problem's max_level (the same screening serves it)"
+        f"prediction from {int(np.min(statistics.n_samples))} screened samples per level"
+        f"{_UNREACHABLE_ADVICE[method]}; or raise the problem's max_level (the same screening serves it)"
     )
+
+
+#: How :func:`_refuse_unreachable` goes on, by method.
+_UNREACHABLE_ADVICE = {
+    "mlmc": " (a run estimates the bias from its own samples and may find it larger)",
+    "mc": ", which plain MC takes as its bias; or sample a level of your choice with level= (and bias=)",
+}
 
 
 def _screened_mc_cost(problem: ContactProblem, screening, statistics: LevelStatistics, tol: np.ndarray,
@@ -656,7 +663,7 @@ def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, scr
     except EstimationError as error:
         raise EstimationError(f"{error}; pass level= to sample a level of your choice") from error
     if bias is None:
-        _refuse_unreachable(problem, tol, prediction, statistics)
+        _refuse_unreachable(problem, tol, prediction, statistics, method="mc")
         return prediction.finest_level, prediction.bias
     return prediction.finest_level, bias
 
@@ -731,8 +738,9 @@ def mc(
     Raises
     ------
     EstimationError
-        A plan of more than ``max_samples`` samples; without ``level``, a tolerance whose bias the screening
-        predicts above ``sqrt(theta) tol`` on ``max_level``, or a bias that does not decay (as ``roughuq mc``).
+        A plan of more than ``max_samples`` samples; without ``level`` and ``bias``, a tolerance whose bias the
+        screening predicts above ``sqrt(theta) tol`` on ``max_level``, or a bias that does not decay (as ``roughuq
+        mc``).
     """
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
