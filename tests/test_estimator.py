@@ -292,7 +292,7 @@ def test_mlmc_bias_test_takes_giles_terms_from_the_two_levels_below_the_finest()
 
 def test_the_tail_is_summed_at_most_at_second_order():
     # Means -5.5, -0.23 on levels 1, 2 (from a coarsest grid that truncates the surface's spectrum) fit alpha
-    # 4.6 and put the remaining bias at 0.003, where finer grids showed 0.29.
+    # 4.6 and put the remaining bias at 0.01, where finer grids showed 0.29.
     rates = Rates(alpha=4.6, beta=2.0, gamma=1.0, c_alpha=1e-9, c_beta=1.0, c_gamma=1.0)
     bias = estimated_bias(rates=rates, level=2, mean_diff=np.array([-0.23]), coarser=np.array([[-5.5]]))
     assert bias[0] == pytest.approx(5.5 / 4 / 3, rel=1e-12)  # Giles' term of level 1 at alpha 2

@@ -78,10 +78,17 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    (:func:`~rough_uq.multilevel.rates.estimated_bias`: the tail sum of
    the ``alpha`` model, whose least-squares line through all levels above the
    base is robust against a finest mean that happens to be near 0, and never
-   below what the three finest difference levels predict; the rule
-   :func:`plan` uses too, so a run and the screening's prediction agree). If
-   it exceeds ``sqrt(theta) eps`` for some QoI, add level ``L+1`` with
-   ``V_{L+1} = V_L 2^-beta``, ``C_{L+1} = C_L 2^gamma`` and go to 2.
+   below what the three finest difference levels predict; the tail is summed
+   at ``alpha`` at most 2, and where ``alpha`` is a line through two means or
+   the two finest means differ in sign, at most at the decay they confirm,
+   from those two means only: module docstring of
+   :mod:`~rough_uq.multilevel.rates`; the rule :func:`plan` uses too, beyond
+   the screened levels at the rate of the finest screened pair, so a run and
+   the screening's prediction agree). If it exceeds ``sqrt(theta) eps`` for
+   some QoI, add level ``L+1`` with ``V_{L+1} = V_L 2^-beta``, ``C_{L+1} =
+   C_L 2^gamma`` and go to 2. Each time the plan changes, a run whose bias so
+   far, carried to ``max_level`` at that rate, is above twice its share warns
+   before drawing the plan's samples (:meth:`_MlmcRun.check_reach`).
 4. Stop when all planned samples are drawn and the bias test passes
    (``stop_reason = "tol_met"``), when the bias test fails on ``max_level``
    (``"max_level"``), or before a batch would exceed ``max_cost``
@@ -1098,7 +1105,8 @@ def iter_mlmc(
     rates : Rates, optional
         Fixed ``alpha``, ``beta``, ``gamma``; by default they are refitted from
         the run's samples after every round (falling back to the screening
-        rates, then to 0.5).
+        rates, then to 0.5). The bias tail is still summed at ``alpha`` at most
+        2, and at most the decay of two finest means that differ in sign (step 3).
     kurtosis_limit : float
         Kurtosis of ``Y_l`` above which a warning is issued (> 0; ``math.inf``: never).
     richardson : bool

@@ -83,8 +83,9 @@ at most the decay those two means confirm,
 (floored at :data:`RATE_FLOOR`): a finest mean that happens to lie near 0, or
 one whose sign differs from the level below, no longer makes a fast decay
 (coarsest 32: means -0.23 and +0.115 with 10 samples on level 2 fitted
-``alpha`` 1.2-2.3 and gave biases of 0.01-0.08 on 128^2 against 0.18; 4 of
-10 runs at tol 0.2 stopped there with errors of 2-2.6 times their RMSE).
+``alpha`` 1.2-2.3 and gave biases of 0.01-0.08 on 128^2 against about 0.19;
+4 of 10 runs at tol 0.2 stopped there with errors of 2-2.6 times their RMSE;
+``scripts/bias_coverage.py``).
 
 Coarsest useful level
 ---------------------
