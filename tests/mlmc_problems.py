@@ -48,6 +48,21 @@ def sample_levels(sampler, levels, n: int) -> dict[str, list]:
     }
 
 
+def shifted_screening(shifts, *, seed: int, n: int = 20, noise: float = 0.01):
+    """A screening table of ``n`` samples per level whose level means ``E[Y_l]`` are ``shifts[l]`` (``l >= 1``).
+
+    ``Q ~ 20 + N(0, 1)``; a difference ``Y_l`` is ``shifts[l] + noise N(0, 1)``; the cost of level ``l`` is
+    ``2^l``. Keyword arguments of ``level_statistics``.
+    """
+    rng = np.random.default_rng(seed)
+    fine, coarse = [], []
+    for level, shift in enumerate(shifts):
+        q = 20 + rng.normal(size=n)
+        fine.append(q)
+        coarse.append(q - shift + noise * rng.normal(size=n) if level else np.zeros(n))
+    return {"fine": fine, "coarse": coarse, "cost": [np.full(n, 2.0**level) for level in range(len(shifts))]}
+
+
 @dataclass(frozen=True)
 class Synthetic:
     """Hierarchy with prescribed rates: ``Y_l = a 2^(-alpha l) + b 2^(-alpha2 l) + sqrt(v1 2^(-beta l)) Z_l``.

@@ -12,7 +12,7 @@ import warnings
 
 import numpy as np
 import pytest
-from mlmc_problems import GbmEuler, Synthetic, indexed_normals, sample_levels
+from mlmc_problems import GbmEuler, Synthetic, indexed_normals, sample_levels, shifted_screening
 
 from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError
 from rough_uq.multilevel.drivers import (
@@ -329,13 +329,7 @@ def test_the_decay_bound_holds_each_qoi_apart_and_keeps_giles_terms_where_it_doe
 def test_a_plan_beyond_the_screened_levels_sums_the_tail_as_the_run_will():
     # Screened means -0.23, +0.115 on levels 1, 2 (sign change): the bias of level 2 is summed at the floor rate,
     # and the plan predicted level 3 at 0.06 with the fitted alpha: it accepted tolerances the run then missed.
-    rng = np.random.default_rng(4)
-    fine, coarse = [], []
-    for level, shift in enumerate((0.0, -0.23, 0.115)):
-        q = 20 + rng.normal(size=40)
-        fine.append(q)
-        coarse.append(q - shift + 0.1 * rng.normal(size=40) if level else np.zeros(40))
-    table = level_statistics(fine=fine, coarse=coarse, cost=[np.full(40, 2.0**level) for level in range(3)])
+    table = level_statistics(**shifted_screening((0.0, -0.23, 0.115), seed=4, n=40, noise=0.1))
     rates = fit_rates(table)
     se = np.sqrt(table.var_diff[2] / 40)
     alpha, binding = confirmed_tail(rates, table.mean_diff[1], table.mean_diff[2], se)

@@ -21,6 +21,7 @@ import pytest
 import rough_uq
 from rough_uq.multilevel.rates import fit_rates
 from rough_uq.multilevel.statistics import level_statistics
+from tests.mlmc_problems import shifted_screening
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.runs import run_id
 from rough_uq.problem.sampler import run_stage
@@ -654,13 +655,7 @@ def test_a_screening_forecasts_what_mlmc_draws_first_and_what_it_costs():
 def test_mc_from_a_screening_with_a_flat_bias_plans_with_the_rate_mlmc_runs_use():
     # Level means -0.09, +0.084 (alpha 0.1): the bias |E[Y_2]| / (2^0.1 - 1) = 1.2 sent MC to max_level with a
     # bias too large for tol 1 ("bias" stop); MLMC runs floor alpha at 0.5 (bias 0.2) and so does MC's plan now.
-    rng = np.random.default_rng(3)
-    fine, coarse = [], []
-    for level, shift in enumerate((0.0, -0.09, 0.085)):
-        q = 20 + rng.normal(size=20)
-        fine.append(q)
-        coarse.append(q - shift + 0.01 * rng.normal(size=20) if level else np.zeros(20))
-    statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0**level) for level in range(3)])
+    statistics = level_statistics(**shifted_screening((0.0, -0.09, 0.085), seed=3))
     assert 0 < fit_rates(statistics).alpha[0] < 0.5
     result = rough_uq.mc(_problem(), tol=1.0, screening=statistics)
     assert 0.084 / (2**0.5 - 1) <= result.bias_estimate[0] < 0.3  # at least the data's tail sum with alpha 0.5
@@ -686,13 +681,7 @@ def test_a_distribution_stopped_on_terms_within_their_noise_advises_more_samples
 
 def test_mc_from_a_screening_whose_bias_grows_says_to_pass_a_level():
     # |E[Y_l]| grows with l (alpha < 0): no level meets a bias tolerance, so MC cannot choose one.
-    rng = np.random.default_rng(3)
-    fine, coarse = [], []
-    for level, shift in enumerate((0.0, 0.1, 0.4)):
-        q = 20 + rng.normal(size=20)
-        fine.append(q)
-        coarse.append(q - shift + 0.01 * rng.normal(size=20) if level else np.zeros(20))
-    statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0**level) for level in range(3)])
+    statistics = level_statistics(**shifted_screening((0.0, 0.1, 0.4), seed=3))
     with pytest.raises(rough_uq.EstimationError, match=r"alpha = -[0-9.]+\) does not decrease .*; pass level="):
         rough_uq.mc(_problem(), tol=0.5, screening=statistics)
     # MLMC too, as roughuq mlmc (it ran at the floor rate 0.5 and reported its tolerance met).
@@ -721,13 +710,7 @@ def test_a_tolerance_out_of_reach_is_refused_before_its_samples_are_drawn():
 def test_a_bias_the_screening_predicts_beyond_max_level_is_refused_as_roughuq_refuses_it():
     # Level means 0.4, 0.2 (alpha 1): the bias on level 2 is 0.2, out of reach of tol 0.1 (share 0.071). MLMC
     # and MC from such a screening planned millions of samples for the statistical error, and ran for hours.
-    rng = np.random.default_rng(5)
-    fine, coarse = [], []
-    for level, shift in enumerate((0.0, 0.4, 0.2)):
-        q = 20 + rng.normal(size=20)
-        fine.append(q)
-        coarse.append(q - shift + 0.01 * rng.normal(size=20) if level else np.zeros(20))
-    statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0**level) for level in range(3)])
+    statistics = level_statistics(**shifted_screening((0.0, 0.4, 0.2), seed=5))
     refusal = (r"^tol contact_area=0.1 cannot be reached: on the finest grid allowed \(max_level = 2, 64\^2\) the "
                r"screening predicts a bias of contact_area=(0.2\d*); the smallest reachable tolerance is about "
                r"contact_area=([0-9.]+), a prediction from 20 screened samples per level.*raise the problem's max_level")
