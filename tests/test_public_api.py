@@ -713,7 +713,8 @@ def test_a_bias_the_screening_predicts_beyond_max_level_is_refused_as_roughuq_re
     statistics = level_statistics(**shifted_screening((0.0, 0.4, 0.2), seed=5))
     refusal = (r"^tol contact_area=0.1 cannot be reached: on the finest grid allowed \(max_level = 2, 64\^2\) the "
                r"screening predicts a bias of contact_area=(0.2\d*); the smallest reachable tolerance is about "
-               r"contact_area=([0-9.]+), a prediction from 20 screened samples per level.*raise the problem's max_level")
+               r"contact_area=([0-9.]+), a prediction from 20 screened samples per level"
+               r".*raise the problem's max_level")
     for run in (rough_uq.mlmc, rough_uq.mc):
         with pytest.raises(rough_uq.EstimationError, match=refusal) as caught:
             run(_problem(), tol=0.1, screening=statistics)
