@@ -170,14 +170,14 @@ from rough_uq.multilevel.allocation import (
     plan,
 )
 from rough_uq.multilevel.rates import (
+    RATE_FLOOR,
+    STALL_SIGNIFICANCE,
     DroppedLevel,
     Rates,
     _fit_alpha,
     _fit_beta,
     _fit_gamma,
     _Line,
-    RATE_FLOOR,
-    STALL_SIGNIFICANCE,
     confirmed_tail,
     estimated_bias,
     fit_rates,

@@ -738,9 +738,9 @@ def mc(
     Raises
     ------
     EstimationError
-        A plan of more than ``max_samples`` samples; without ``level`` and ``bias``, a tolerance whose bias the
-        screening predicts above ``sqrt(theta) tol`` on ``max_level``, or a bias that does not decay (as ``roughuq
-        mc``).
+        A plan of more than ``max_samples`` samples; without ``level``, a screening whose bias does not decay,
+        and without ``bias`` too, a tolerance whose bias the screening predicts above ``sqrt(theta) tol`` on
+        ``max_level`` (as ``roughuq mc`` refuses them).
     """
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
