@@ -861,7 +861,7 @@ def test_the_forecast_plans_the_samples_the_run_starts_with():
     study = Study(config, MemoryStore(qoi_names=config.qoi_names))
     run_screening(study, executor=SerialExecutor(), progress=Progress())
     dropped = 0
-    for eps in (0.1, 0.3, 0.5):
+    for eps in (0.25, 0.3, 0.5):  # 0.1: refused (the screening predicts a bias of 0.16 on 512^2)
         tol = np.array([eps])
         forecast = forecast_run(study, method="mlmc", tol=tol)
         key = run_id("mlmc", config.qoi_names, tol, config.estimation.theta, None,
