@@ -382,7 +382,7 @@ class _BiasModel:
             return estimated_bias(rates=self.rates, level=level)
         measured = error = None
         if row is not None:
-            measured, error = self.statistics.mean_diff[row], self._error(row)
+            measured, error = self.statistics.mean_diff[row], self.statistics.mean_diff_error[row]
         bias = estimated_bias(rates=self.rates, level=level, mean_diff=measured, coarser=self._coarser(level),
                               mean_error=error)
         finest = self._finest_pair()
@@ -392,10 +392,6 @@ class _BiasModel:
         # two finest means confirm, where that bound binds (the fitted alpha promised tolerances the runs missed).
         alpha, binding = confirmed_tail(self.rates, *self._pair_inputs(finest))
         return np.where(binding, np.fmax(bias, self.at(finest) * 2.0 ** (-alpha * (level - finest))), bias)
-
-    def _error(self, row: int) -> np.ndarray:
-        statistics = self.statistics
-        return np.sqrt(np.maximum(statistics.var_diff[row], 0.0) / max(int(statistics.n_samples[row]), 1))
 
     def _finest_pair(self) -> int | None:
         """The finest screened level whose level below is screened too, both differences (None if none is)."""
@@ -408,7 +404,7 @@ class _BiasModel:
     def _pair_inputs(self, level: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Means of levels ``level - 1`` and ``level`` and the standard error of the second (screened rows)."""
         row, below = _screened_row(self.statistics, level), _screened_row(self.statistics, level - 1)
-        return self.statistics.mean_diff[below], self.statistics.mean_diff[row], self._error(row)
+        return self.statistics.mean_diff[below], self.statistics.mean_diff[row], self.statistics.mean_diff_error[row]
 
     def _coarser(self, level: int) -> np.ndarray | None:
         """Screened means of the (up to) two levels ``>= 1`` below ``level``, NaN where not screened."""

@@ -377,8 +377,7 @@ def stalled_bias(names: Sequence[str], rates: Rates, statistics: LevelStatistics
     measured = np.ones(alpha.size, dtype=bool)
     if statistics is not None:
         for row in np.flatnonzero(statistics.levels >= 1)[-2:]:
-            se = np.sqrt(np.maximum(statistics.var_diff[row], 0.0) / max(int(statistics.n_samples[row]), 1))
-            measured &= np.abs(statistics.mean_diff[row]) > STALL_SIGNIFICANCE * se
+            measured &= np.abs(statistics.mean_diff[row]) > STALL_SIGNIFICANCE * statistics.mean_diff_error[row]
     return [f"{name} (alpha = {a + 0.0:.2g})" for name, a, m in zip(names, alpha, measured) if not a > 0 and m]
 
 

@@ -152,6 +152,11 @@ class LevelStatistics:
         return int(self.mean_fine.shape[1])
 
     @property
+    def mean_diff_error(self) -> np.ndarray:
+        """Standard error of ``mean_diff``, ``sqrt(var_diff / n_samples)``, shape (n_levels, n_qoi)."""
+        return np.sqrt(np.maximum(self.var_diff, 0.0) / np.maximum(self.n_samples, 1)[:, None])
+
+    @property
     def is_consistent(self) -> np.ndarray:
         """Boolean, shape (n_levels, n_qoi): the consistency check passes."""
         return self.consistency <= 1.0
