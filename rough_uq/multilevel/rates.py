@@ -139,8 +139,8 @@ DROP_MARGIN = 0.1
 #: Largest ``|log2 r_l - log2 r_{l-1}|`` of successive mean ratios, beyond two standard errors, still "stable".
 RATIO_LOG2_TOLERANCE = 0.5
 
-#: Lower bound of fitted rates and fallback when a rate cannot be fitted (Giles' ``mlmc``); the rate the
-#: remaining bias sums its tail with where the finest level means change sign (module docstring).
+#: Lower bound of fitted rates and fallback when a rate cannot be fitted (Giles' ``mlmc``); the floor of the
+#: decay two finest level means confirm (:func:`tail_rate`).
 RATE_FLOOR = 0.5
 
 #: Largest ``alpha`` the remaining bias is extrapolated with (module docstring, "Remaining bias"): a faster
