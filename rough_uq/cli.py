@@ -1420,12 +1420,10 @@ def _sweep_assignment(assignments: Sequence[str]) -> tuple[str, list[str]]:
 def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     """Show what a study file holds: config, screening, rates, every run, warnings."""
     _check_not_empty("FILE", study_path)
-    from rough_uq.study.pipeline import open_existing_study
-    from rough_uq.report.summary import render_report, study_report
+    from rough_uq.report.summary import read_report, render_report
 
     _check_not_empty("--plots", plots_dir)
-    with open_existing_study(study_path, writable=False) as study:
-        data = study_report(study.store, study.config)
+    data = read_report(study_path)
     written = []
     if plots_dir is not None:
         from rough_uq.report.figures import write_report_plots

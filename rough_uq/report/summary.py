@@ -306,6 +306,21 @@ def screening_json(screening: ScreeningRecord | None) -> dict[str, Any] | None:
     return {**screening.to_json(), "complexity": [c.to_json() for c in screening.complexity]}
 
 
+def read_report(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """What ``roughuq report --json`` prints for the study file ``path``, as a dict (for notebooks and scripts).
+
+    ``runs`` lists every run with its stored record (``estimate``, ``rmse``,
+    ``levels``, ``n_samples``, ... per QoI in ``qoi_names`` order) and
+    ``screening`` the screening's per-level table and rates; see
+    :func:`study_report`. Raises :class:`~rough_uq.errors.StudyFileError` for
+    a file that is not a readable study file.
+    """
+    from rough_uq.study.pipeline import open_existing_study
+
+    with open_existing_study(path, writable=False) as study:
+        return study_report(study.store, study.config)
+
+
 def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
     """Everything ``roughuq report`` shows, as a JSON-able dict (see :func:`derive_runs` for the ratios).
 

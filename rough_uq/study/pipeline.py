@@ -45,7 +45,7 @@ import yaml
 
 from rough_uq import __version__
 from rough_uq.study.config import (
-    StudyConfig, SurfaceConfig, config_differences, config_from_stored_text, config_hash, resolved_yaml,
+    StudyConfig, SurfaceConfig, config_differences, config_from_stored_text, config_hash, load_config, resolved_yaml,
 )
 from rough_uq.errors import (
     PLANNED_COUNT_CAP,
@@ -91,7 +91,7 @@ from rough_uq.study.records import (
     utc_timestamp,
 )
 from rough_uq.problem.columns import tol_text, values_text
-from rough_uq.problem.contact import checked_mean_pressures
+from rough_uq.problem.contact import ContactProblem, checked_mean_pressures
 from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
@@ -109,7 +109,9 @@ from rough_uq.problem.sampler import (
 from rough_uq.multilevel.allocation import Plan, plan, reachable_tolerance
 from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates, stalled_bias, stalled_text
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
-from rough_uq.study.store import StudyStore, open_study, open_study_readonly, remove_abandoned, shard_refusal
+from rough_uq.study.store import (
+    StudyStore, is_hdf5_file, open_study, open_study_readonly, remove_abandoned, shard_refusal,
+)
 from rough_uq.physics.surface import SurfaceSpectrum
 
 __all__ = [
@@ -118,6 +120,8 @@ __all__ = [
     "Study",
     "StudySampler",
     "build_model",
+    "problem_of_config",
+    "load_problem",
     "create_study",
     "removed_if_left_unused",
     "open_existing_study",
@@ -272,6 +276,67 @@ def _model(config: StudyConfig) -> ContactModel:
         critical_pressure=critical_pressure,
         area_estimator=area_estimator,
     )
+
+
+def problem_of_config(config: StudyConfig) -> ContactProblem:
+    """The :class:`~rough_uq.problem.contact.ContactProblem` of a study config: the same samples from Python.
+
+    Every field that decides a sample is taken over (surface, load or load
+    curve, grids up to ``grid.max_level``, QoIs with their units and
+    settings, solver, seed), so that ``problem.model`` equals
+    :func:`build_model`'s (FFT wisdom aside). The estimation settings
+    (tolerances, ``theta``, the screening's size) are arguments of the run
+    functions instead (``rough_uq.mlmc(problem, tol=...)``).
+    """
+    kind = RelativeLoad if config.load.kind == "relative" else AbsoluteLoad
+    loads = tuple(kind(value) for value in config.load.values)
+    settings = dict(config.qoi)
+    clusters, above, area = settings.get("clusters"), settings.get("area_above"), settings.get("contact_area")
+    return ContactProblem(
+        _spectrum(config.surface),
+        load=loads[0] if len(loads) == 1 else loads,
+        qoi=list(settings),
+        coarsest=config.grid.coarsest,
+        units={name: qoi.unit for name, qoi in settings.items() if hasattr(qoi, "unit")},
+        e_star=config.material.e_star,
+        max_level=config.grid.max_level,
+        projection=config.grid.projection,
+        connectivity=4 if clusters is None else clusters.connectivity,
+        area_estimator="corrected" if area is None else area.estimator,
+        critical_pressure=None if above is None else above.critical_pressure,
+        seed=config.seed,
+        solver_tol=config.solver.tol,
+        max_iter=config.solver.max_iter,
+        warm_start=config.solver.warm_start,
+        threads=config.solver.threads,
+    )
+
+
+def load_problem(path: str | os.PathLike[str]) -> ContactProblem:
+    """The contact problem of a config file or of a study file (its stored config), for the Python API.
+
+    ``path`` names a YAML config (as ``roughuq screen`` takes it) or a study
+    file (as ``roughuq screen`` writes it); :func:`problem_of_config` says
+    what is taken over. ``rough_uq.mlmc(load_problem("config.yaml"),
+    tol=0.5)`` then draws the samples the CLI draws for that config (the same
+    numbers where FFTs are planned alike, ``ROUGHUQ_FFTW_WISDOM=estimate``);
+    ``dataclasses.replace(problem, max_level=5)`` changes a field.
+
+    Raises
+    ------
+    ConfigError
+        For a config file that cannot be read or is invalid (one line per problem, naming the file).
+    StudyFileError
+        For a study file that cannot be read.
+    """
+    name = os.fspath(path)
+    if not name:
+        raise InvalidParameterError("path", name, "a config file (YAML) or a study file (HDF5)")
+    if not is_hdf5_file(name):
+        return problem_of_config(load_config(name))
+    with open_study_readonly(name) as store:
+        config = _stored_config(store)
+    return problem_of_config(config)
 
 
 @dataclass

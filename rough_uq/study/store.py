@@ -156,6 +156,7 @@ __all__ = [
     "MemoryStore",
     "open_study",
     "open_study_readonly",
+    "is_hdf5_file",
     "remove_abandoned",
     "shard_refusal",
 ]
@@ -810,6 +811,14 @@ def _is_marked_open(path: Path) -> bool:
     return len(head) == 12 and head[:8] == _HDF5_SIGNATURE and head[8] >= 2 and head[11] != 0
 
 
+def is_hdf5_file(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is an existing, readable HDF5 file (a study file or another); False for anything else."""
+    try:
+        return Path(path).is_file() and h5py.is_hdf5(path)
+    except OSError:
+        return False
+
+
 def _read_header(path: Path) -> dict[str, Any]:
     """Check that ``path`` is a readable study file of this format; return its header."""
     if not path.exists():
@@ -1378,6 +1387,9 @@ def open_study_readonly(path: str | os.PathLike[str]) -> StudyFile:
     :meth:`StudyFile.close`. Raises :class:`StudyFileError` like
     :func:`open_study`.
     """
+    if not os.fspath(path):
+        raise StudyFileError("no study file named (got an empty path; allowed: the HDF5 file `roughuq screen` wrote)",
+                             Path())
     path = Path(os.fspath(path))
     header = _read_header(path)
     return StudyFile(path, header, lock_fd=None)

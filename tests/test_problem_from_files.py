@@ -1,0 +1,125 @@
+"""The Python API on the CLI's files: ``load_problem`` (config or study file) and ``read_report`` (study file)."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import rough_uq
+from rough_uq.cli import main
+from rough_uq.errors import ConfigError, InvalidParameterError, StudyFileError
+from rough_uq.report.summary import read_report
+from rough_uq.study.config import load_config
+from rough_uq.study.pipeline import build_model, load_problem, problem_of_config
+from rough_uq.study.store import open_study_readonly
+from tests.study_configs import tiny_config, write_config
+
+
+def _random_config(rng: np.random.Generator) -> dict:
+    """A valid config with every sample-deciding field drawn: QoIs, units, loads, grids, solver, seed."""
+    pick = lambda options: options[int(rng.integers(len(options)))]  # noqa: E731 - plain Python values for YAML
+    k_l = int(rng.integers(1, 3))
+    k_r = k_l + int(rng.integers(0, 2))
+    surface = {"system_size": float(pick([0.5, 1.0, 2.0])), "hurst": float(rng.uniform(0.1, 1.0)),
+               "rms_height": float(rng.uniform(0.5, 2.0)),
+               "wavenumbers": {"k_l": k_l, "k_r": k_r, "k_s": int(rng.integers(k_r + 2, 12))}}
+    choices = {
+        "contact_area": {"unit": pick(["percent", "fraction"]), "estimator": pick(["corrected", "nodes"])},
+        "clusters": {"unit": pick(["absolute", "per_area"]), "connectivity": pick([4, 8, "mean"])},
+        "mean_gap": {},
+        "max_pressure": {},
+        "area_above": {"critical_pressure": float(rng.uniform(0.1, 1.0)), "unit": pick(["fraction", "percent"])},
+    }
+    names = [str(name) for name in rng.permutation(list(choices))[: int(rng.integers(1, 6))]]
+    qoi = {name: choices[name] for name in names}
+    kind = pick(["relative", "absolute"])
+    values = sorted(float(v) for v in rng.uniform(0.02, 0.5, size=int(rng.integers(1, 4))))
+    coarsest = pick([16, 32])
+    return tiny_config(
+        seed=int(rng.integers(0, 2**31)),
+        surface=surface,
+        material={"e_star": float(rng.uniform(0.5, 3.0))},
+        load={kind: values[0] if len(values) == 1 else values},
+        solver={"tol": float(10.0 ** rng.uniform(-10, -5)), "max_iter": int(rng.integers(50, 5000)),
+                "warm_start": bool(rng.integers(2)), "threads": int(rng.integers(1, 3))},
+        qoi=qoi,
+        grid={"coarsest": coarsest, "max_level": int(rng.integers(0, 4)),
+              "projection": "injection" if surface["wavenumbers"]["k_s"] < coarsest / 2 and pick([True, False])
+              else "truncation"},
+    )
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_problem_of_a_random_config_computes_the_samples_the_cli_computes(tmp_path, seed):
+    config = _random_config(np.random.default_rng([2026, 11, 27, seed]))
+    path = write_config(tmp_path / "config.yaml", config)
+    problem = load_problem(path)
+    assert problem.model == build_model(load_config(path))  # every field of a sample, FFT wisdom aside
+    assert problem.max_level == config["grid"]["max_level"] and problem.seed == config["seed"]
+    assert problem.columns == load_config(path).qoi_names  # the study file's result columns
+
+
+def test_the_problem_of_a_study_file_is_its_stored_configs(tmp_path):
+    config = write_config(tmp_path / "config.yaml", tiny_config(grid={"coarsest": 16, "max_level": 2}))
+    study = tmp_path / "study.h5"
+    result = CliRunner().invoke(main, ["screen", str(config), "--out", str(study)])
+    assert result.exit_code == 0, result.output
+    assert load_problem(study) == load_problem(config) == problem_of_config(load_config(config))
+    # A field changed with dataclasses.replace (max_level decides which levels, not what a sample is).
+    finer = dataclasses.replace(load_problem(study), max_level=3)
+    assert finer.max_level == 3 and finer != load_problem(study) and finer.model == load_problem(study).model
+
+
+def test_mlmc_on_the_problem_of_a_config_estimates_what_roughuq_mlmc_estimates(tmp_path, monkeypatch):
+    monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", "estimate")  # both plan FFTs alike
+    config = tiny_config(grid={"coarsest": 16, "max_level": 2}, qoi={"contact_area": {"unit": "percent", "tol": 3}})
+    path = write_config(tmp_path / "config.yaml", config)
+    study = tmp_path / "study.h5"
+    runner = CliRunner()
+    assert runner.invoke(main, ["screen", str(path), "--out", str(study)]).exit_code == 0
+    result = runner.invoke(main, ["mc", "--study", str(study), "--level", "1", "--json"])
+    assert result.exit_code in (0, 3), result.output
+    record = read_report(study)["runs"][-1]
+    options = dict(n_initial=config["estimation"]["initial_samples"], batch_size=config["estimation"]["batch_size"])
+    with pytest.warns(rough_uq.EstimationWarning) if record["status"] != "finished" else contextlib.nullcontext():
+        estimate = rough_uq.mc(load_problem(path), tol=3, level=1, **options)
+    assert estimate.estimate.tolist() == record["estimate"]
+    assert estimate.n_samples.tolist() == record["n_samples"]
+
+
+def test_read_report_is_what_report_json_prints(tmp_path):
+    config = write_config(tmp_path / "config.yaml", tiny_config(grid={"coarsest": 16, "max_level": 2}))
+    study = tmp_path / "study.h5"
+    runner = CliRunner()
+    assert runner.invoke(main, ["screen", str(config), "--out", str(study)]).exit_code == 0
+    printed = runner.invoke(main, ["report", str(study), "--json"])
+    assert printed.exit_code == 0, printed.output
+    read = read_report(study)
+    assert json.loads(json.dumps(read, default=str)) == json.loads(printed.output)
+    assert read["screening"]["statistics"]["levels"] == [0, 1, 2]
+
+
+def test_files_that_hold_no_problem_are_refused_by_name(tmp_path):
+    with pytest.raises(InvalidParameterError, match="path"):
+        load_problem("")
+    with pytest.raises(ConfigError, match="missing.yaml: config file not found"):
+        load_problem(tmp_path / "missing.yaml")
+    bad = write_config(tmp_path / "bad.yaml", tiny_config(grid={"coarsest": 15, "max_level": 2}))
+    with pytest.raises(ConfigError, match="bad.yaml: grid.coarsest"):
+        load_problem(bad)
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f.attrs["format"] = "something else"
+    with pytest.raises(StudyFileError, match="not a roughuq study file"):
+        load_problem(other)
+    with pytest.raises(StudyFileError, match="not a roughuq study file"):
+        read_report(other)
+    with pytest.raises(StudyFileError, match="empty path"):
+        open_study_readonly("")
+
