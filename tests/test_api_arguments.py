@@ -137,6 +137,17 @@ def test_a_bias_of_numbers_is_taken_as_before():
         assert result.is_bias_estimated and float(np.ravel(result.bias_estimate)[0]) == 0.5
 
 
+@pytest.mark.parametrize(("bias", "theta", "remedy"), [(0.6, 0.5, "no theta does"), (0.4, 0.5, "at least 0.64"),
+                                                       ([0.1, 0.45], 0.5, "at least 0.81")])
+def test_a_given_bias_above_its_share_of_tol_is_refused_before_any_sample(bias, theta, remedy):
+    # mc(bias=0.6, tol=0.5) drew its samples and then stopped "bias", not met.
+    problem = _problem(qoi=("contact_area", "mean_gap")) if np.size(bias) == 2 else _problem()
+    with pytest.raises(rough_uq.EstimationError, match=f"sqrt\\(theta\\) tol = .*; .*{remedy}"):
+        rough_uq.mc(problem, tol=0.5, level=1, bias=bias, theta=theta, executor=_NoSampling())
+    result = rough_uq.mc(_problem(), tol=20.0, level=0, bias=0.5, theta=0.5, n_initial=2)
+    assert result.stop_reason == "tol_met"  # a bias within its share runs as before
+
+
 @pytest.mark.parametrize("bandwidth", ["abc", "2", [1.0], True, np.array([1.0]), np.nan, -1.0])
 def test_a_bandwidth_that_is_not_a_positive_number_is_refused_by_name(bandwidth):
     # "abc" was a bare ValueError, [1.0] and "2" a TypeError, and True was taken as 1.

@@ -668,6 +668,29 @@ def _mc_level(problem: ContactProblem, tol: np.ndarray, theta: float, level, scr
     return prediction.finest_level, bias
 
 
+def _refuse_given_bias(columns: tuple[str, ...], tol: np.ndarray, theta: float, bias: np.ndarray) -> None:
+    """Raise :class:`~rough_uq.errors.EstimationError` for a given bias above its share ``sqrt(theta) tol``.
+
+    MC draws samples for the statistical share ``(1 - theta) tol^2`` of the tolerance and leaves ``theta tol^2``
+    to the bias: with a larger bias the run ended ``"bias"``, not met, after drawing all of them in vain.
+    """
+    if bias.size not in (1, tol.size):
+        return  # the driver refuses it by name
+    bias = np.broadcast_to(bias.reshape(-1), tol.shape)
+    over = bias**2 > theta * tol**2 * (1 + 1e-12)
+    if not np.any(over):
+        return
+    names = columns
+    needed = float(np.max(bias[over] ** 2 / tol[over] ** 2))
+    remedy = (f"raise theta (the bias's share of tol^2) to at least {needed:.3g}, or loosen tol" if needed < 1
+              else "no theta does: loosen tol above the bias, or sample a finer level")
+    raise EstimationError(
+        f"mc: the given bias {values_text(names, bias)} is above its share of the tolerance, sqrt(theta) tol = "
+        f"{values_text(names, np.sqrt(theta) * tol)} (theta = {theta:g}): the run would draw its samples and end "
+        f"with tol {tol_text(names, tol, digits=3)} not met; {remedy}"
+    )
+
+
 def _mc_advice(result: EstimationResult, n_initial: int) -> str | None:
     """What to change for an MC run that ``max_cost`` stopped (None otherwise: the advice of its stop reason).
 
@@ -720,7 +743,9 @@ def mc(
         A screening of the same problem (:func:`screen`); a ScreeningResult of another problem is refused, a
         LevelStatistics (no problem to compare) is taken on the caller's word.
     bias : float or sequence of float, optional
-        Known bias of ``level`` (overrides the plan's).
+        Known bias of ``level`` (overrides the plan's), at most ``sqrt(theta) tol`` per column: the run draws
+        samples for the statistical share ``(1 - theta) tol^2``, so a larger bias is refused before any sample
+        (:class:`~rough_uq.errors.EstimationError`, with the ``theta`` that would take it).
     n_initial, max_cost, batch_size, kurtosis_limit
         As in :func:`rough_uq.multilevel.drivers.iter_mc`. Defaults are the config's.
     max_samples : int or None
@@ -746,6 +771,7 @@ def mc(
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
     max_samples = _max_samples(max_samples)
     statistics = _screening_of(problem, screening)
+    given_bias = bias
     mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
     stage = run_stage("mc", run_id("mc", problem.columns, tol, theta, level))
     sampler = problem.sampler(stage, executor=executor, progress=progress)
@@ -762,6 +788,8 @@ def mc(
         kurtosis_limit=kurtosis_limit,
         qoi_names=problem.columns,
     )
+    if given_bias is not None:  # checked by iter_mc: finite numbers, one or one per column
+        _refuse_given_bias(problem.columns, tol, float(theta), np.abs(np.asarray(given_bias, dtype=float)))
     with _reporting(sampler.progress, f"mc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
