@@ -680,14 +680,13 @@ def _refuse_given_bias(columns: tuple[str, ...], tol: np.ndarray, theta: float, 
     over = bias**2 > theta * tol**2 * (1 + 1e-12)
     if not np.any(over):
         return
-    names = columns
     needed = float(np.max(bias[over] ** 2 / tol[over] ** 2))
     remedy = (f"raise theta (the bias's share of tol^2) to at least {needed:.3g}, or loosen tol" if needed < 1
               else "no theta does: loosen tol above the bias, or sample a finer level")
     raise EstimationError(
-        f"mc: the given bias {values_text(names, bias)} is above its share of the tolerance, sqrt(theta) tol = "
-        f"{values_text(names, np.sqrt(theta) * tol)} (theta = {theta:g}): the run would draw its samples and end "
-        f"with tol {tol_text(names, tol, digits=3)} not met; {remedy}"
+        f"mc: the given bias {values_text(columns, bias)} is above its share of the tolerance, sqrt(theta) tol = "
+        f"{values_text(columns, np.sqrt(theta) * tol)} (theta = {theta:g}): the run would draw its samples and end "
+        f"with tol {tol_text(columns, tol, digits=3)} not met; {remedy}"
     )
 
 
