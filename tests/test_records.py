@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from rough_uq.errors import InvalidParameterError, RoughUQError
+from rough_uq.multilevel.rates import BIAS_RATE_CAP, RATE_FLOOR
 from rough_uq.problem.batch import LevelBatch
 from rough_uq.report.summary import ReportedRun, derive_runs
 from rough_uq.study.records import (
@@ -313,6 +314,16 @@ def test_screening_complexity_is_that_of_its_rates():
     screening = _screening()
     rates = screening.rates
     assert screening.complexity == tuple(complexity(a, b, rates.gamma) for a, b in zip(rates.alpha, rates.beta))
+
+
+def test_planned_complexity_takes_the_rates_as_plans_take_them():
+    # Floored at RATE_FLOOR, and alpha capped at BIAS_RATE_CAP as the bias's tail is summed: a fitted alpha of
+    # 4.6 (a coarsest grid that truncates the spectrum) gave the predicted costs a slope of 2 + 1/4.6.
+    rates = replace(_screening().rates, alpha=(4.6, 0.2), beta=(2.0, 0.1), gamma=1.0)
+    planned = rates.planned_complexity
+    assert planned[0] == complexity(BIAS_RATE_CAP, 2.0, 1.0) and planned[0].mc_exponent == 2.5
+    assert planned[1] == complexity(RATE_FLOOR, RATE_FLOOR, 1.0)
+    assert rates.complexity[0] == complexity(4.6, 2.0, 1.0)  # the report lists the fitted rates
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -50,6 +50,7 @@ import numpy as np
 
 from rough_uq.errors import InvalidParameterError
 from rough_uq.multilevel.drivers import RATE_FLOOR
+from rough_uq.multilevel.rates import BIAS_RATE_CAP
 from rough_uq.problem.batch import LevelBatch
 
 __all__ = [
@@ -425,11 +426,17 @@ class RatesRecord:
     @property
     def planned_complexity(self) -> tuple[Complexity, ...]:
         """Per QoI, the cost exponents of these rates raised to the floor the plans use (``RATE_FLOOR``,
-        :func:`~rough_uq.multilevel.drivers.planning_rates`): the slopes of the predicted costs."""
+        :func:`~rough_uq.multilevel.drivers.planning_rates`), ``alpha`` also capped where the plans cap the
+        bias's tail (``BIAS_RATE_CAP``, :func:`~rough_uq.multilevel.rates.tail_rate`): the slopes of the
+        predicted costs."""
         def floored(rate: Number | None) -> Number | None:
             return None if rate is None or not math.isfinite(rate) else max(rate, RATE_FLOOR)
 
-        return tuple(complexity(floored(a), floored(b), floored(self.gamma)) for a, b in zip(self.alpha, self.beta))
+        def capped(rate: Number | None) -> Number | None:
+            return None if rate is None or not math.isfinite(rate) else min(rate, BIAS_RATE_CAP)
+
+        return tuple(complexity(capped(floored(a)), floored(b), floored(self.gamma))
+                     for a, b in zip(self.alpha, self.beta))
 
     def to_json(self) -> dict[str, Any]:
         return {key: _lists(getattr(self, key)) for key in _RATES_KEYS}
