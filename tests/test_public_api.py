@@ -650,6 +650,10 @@ def test_a_screening_forecasts_what_mlmc_draws_first_and_what_it_costs():
     assert forecast.cost == pytest.approx(float(np.dot(forecast.n_samples, costs)))
     with pytest.raises(rough_uq.InvalidParameterError, match="^theta: "):
         screening.forecast(tol=1.0, theta=1.5)
+    # Printed, it names the levels with their counts (the repr showed n_samples=array([...]) and 16-digit costs).
+    assert repr(forecast).startswith(f"RunForecast(levels={forecast.levels.tolist()}, "
+                                     f"n_samples={forecast.n_samples.tolist()}, cost={forecast.cost:.3g}, ")
+    assert repr(forecast).endswith(f"is_bias_met={forecast.is_bias_met})") and "array(" not in repr(forecast)
 
 
 def test_mc_from_a_screening_with_a_flat_bias_plans_with_the_rate_mlmc_runs_use():

@@ -195,6 +195,17 @@ class RunForecast:
         """Levels ``0..L`` of :attr:`n_samples`."""
         return np.arange(len(self.n_samples))
 
+    def __repr__(self) -> str:
+        # The levels with their counts, and the costs to three digits, as `roughuq mlmc --plan` prints a plan.
+        def seconds(value: float | None) -> str:
+            return "None" if value is None else f"{value:.3g}"
+
+        return (
+            f"RunForecast(levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()}, "
+            f"cost={self.cost:.3g}, mc_cost={self.mc_cost:.3g}, cpu_seconds={seconds(self.cpu_seconds)}, "
+            f"mc_cpu_seconds={seconds(self.mc_cpu_seconds)}, is_bias_met={self.is_bias_met})"
+        )
+
 
 def _rounded(values: np.ndarray) -> list[float]:
     """Three significant digits of each value, for a summary."""
