@@ -16,7 +16,7 @@ from rough_uq.cli import main
 from rough_uq.errors import ConfigError, InvalidParameterError, StudyFileError
 from rough_uq.report.summary import read_report
 from rough_uq.study.config import load_config
-from rough_uq.study.pipeline import build_model, load_problem, problem_of_config
+from rough_uq.study.pipeline import build_model, load_problem, load_screening, problem_of_config
 from rough_uq.study.store import open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
@@ -76,21 +76,50 @@ def test_the_problem_of_a_study_file_is_its_stored_configs(tmp_path):
     assert finer.max_level == 3 and finer != load_problem(study) and finer.model == load_problem(study).model
 
 
-def test_mlmc_on_the_problem_of_a_config_estimates_what_roughuq_mlmc_estimates(tmp_path, monkeypatch):
+@pytest.mark.parametrize("method", ["mlmc", "mc"])
+def test_a_run_on_the_files_problem_and_screening_estimates_what_roughuq_estimates(tmp_path, monkeypatch, method):
     monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", "estimate")  # both plan FFTs alike
-    config = tiny_config(grid={"coarsest": 16, "max_level": 2}, qoi={"contact_area": {"unit": "percent", "tol": 3}})
+    config = tiny_config(grid={"coarsest": 16, "max_level": 3}, qoi={"contact_area": {"unit": "percent", "tol": 3}})
     path = write_config(tmp_path / "config.yaml", config)
     study = tmp_path / "study.h5"
     runner = CliRunner()
     assert runner.invoke(main, ["screen", str(path), "--out", str(study)]).exit_code == 0
-    result = runner.invoke(main, ["mc", "--study", str(study), "--level", "1", "--json"])
+    level = ["--level", "1"] if method == "mc" else []
+    result = runner.invoke(main, [method, "--study", str(study), "--tol", "3", *level])
     assert result.exit_code in (0, 3), result.output
     record = read_report(study)["runs"][-1]
     options = dict(n_initial=config["estimation"]["initial_samples"], batch_size=config["estimation"]["batch_size"])
-    with pytest.warns(rough_uq.EstimationWarning) if record["status"] != "finished" else contextlib.nullcontext():
-        estimate = rough_uq.mc(load_problem(path), tol=3, level=1, **options)
+    problem = load_problem(study)
+    expect_warning = pytest.warns(rough_uq.EstimationWarning) if not record["tol_met"] else contextlib.nullcontext()
+    with expect_warning:
+        if method == "mc":
+            estimate = rough_uq.mc(problem, tol=3, level=1, **options)
+        else:
+            estimate = rough_uq.mlmc(problem, tol=3, screening=load_screening(study), **options)
     assert estimate.estimate.tolist() == record["estimate"]
-    assert estimate.n_samples.tolist() == record["n_samples"]
+    assert estimate.levels.tolist() == record["levels"] and estimate.n_samples.tolist() == record["n_samples"]
+
+
+def test_the_screening_of_a_study_file_is_the_screening_of_its_samples(tmp_path, monkeypatch):
+    monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", "estimate")
+    config = tiny_config(grid={"coarsest": 16, "max_level": 3})
+    path = write_config(tmp_path / "config.yaml", config)
+    study = tmp_path / "study.h5"
+    assert CliRunner().invoke(main, ["screen", str(path), "--out", str(study)]).exit_code == 0
+    read = load_screening(study)
+    drawn = rough_uq.screen(load_problem(path), levels=config["screening"]["levels"],
+                            samples=config["screening"]["samples"])
+    np.testing.assert_array_equal(read.statistics.mean_diff, drawn.statistics.mean_diff)
+    np.testing.assert_array_equal(read.statistics.var_fine, drawn.statistics.var_fine)
+    np.testing.assert_array_equal(read.rates.alpha, drawn.rates.alpha)
+    assert read.problem == drawn.problem and read.diagnostics == drawn.diagnostics
+    stored = read_report(study)["screening"]["statistics"]
+    assert read.statistics.mean_diff.tolist() == stored["mean_diff"]
+    unscreened = tmp_path / "unscreened.h5"
+    assert CliRunner().invoke(main, ["mc", "--config", str(path), "--study", str(unscreened), "--level", "0",
+                                     "--tol", "50"]).exit_code in (0, 3)
+    with pytest.raises(StudyFileError, match="no complete screening yet"):
+        load_screening(unscreened)
 
 
 def test_read_report_is_what_report_json_prints(tmp_path):
@@ -106,13 +135,20 @@ def test_read_report_is_what_report_json_prints(tmp_path):
 
 
 def test_files_that_hold_no_problem_are_refused_by_name(tmp_path):
-    with pytest.raises(InvalidParameterError, match="path"):
-        load_problem("")
-    with pytest.raises(ConfigError, match="missing.yaml: config file not found"):
-        load_problem(tmp_path / "missing.yaml")
+    for missing in ("", tmp_path / "missing.yaml", tmp_path / "missing.h5"):
+        with pytest.raises(InvalidParameterError, match="^path: .*an existing config file .* or study file"):
+            load_problem(missing)
     bad = write_config(tmp_path / "bad.yaml", tiny_config(grid={"coarsest": 15, "max_level": 2}))
     with pytest.raises(ConfigError, match="bad.yaml: grid.coarsest"):
         load_problem(bad)
+    # A setting that the config's schema takes and the problem refuses: named with the file, a ConfigError too.
+    heavy = write_config(tmp_path / "heavy.yaml", tiny_config(load={"relative": 1e30}))
+    with pytest.raises(ConfigError, match="heavy.yaml: load.relative: got 1e[+]30"):
+        load_problem(heavy)
+    not_hdf5 = tmp_path / "junk.h5"
+    not_hdf5.write_text("not hdf5 at all")
+    with pytest.raises(StudyFileError, match="junk.h5 is not an HDF5 file"):
+        load_problem(not_hdf5)
     other = tmp_path / "other.h5"
     with h5py.File(other, "w") as f:
         f.attrs["format"] = "something else"

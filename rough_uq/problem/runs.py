@@ -45,12 +45,14 @@ from rough_uq.multilevel.statistics import (
     diagnose,
     level_statistics,
 )
-from rough_uq.problem.batch import STAGE_SCREENING
+from rough_uq.problem.batch import STAGE_SCREENING, LevelBatch
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter
 from rough_uq.problem.columns import split_column, tol_text, values_text
 from rough_uq.problem.sampler import measured_seconds_per_cost, modelled_cost, run_stage
 
-__all__ = ["MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "mc", "mlmc", "run_id", "screen"]
+__all__ = [
+    "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "mc", "mlmc", "run_id", "screen", "screening_of_batches",
+]
 
 #: Fewest levels a screening covers, ``0..2``: the rates are fitted on levels >= 1 (level 0's ``Y_0 = Q_0``
 #: follows none of their models) and a line needs two of them. The config's ``screening.levels`` says the same.
@@ -277,17 +279,28 @@ def screen(
         if sampler.progress is not None:
             sampler.progress.plan(list(range(levels)), [samples] * levels, [0] * levels)
         batches = [sampler.batch(level, indices) for level in range(levels)]
+    return screening_of_batches(problem, batches, n_not_converged=sampler.n_not_converged)
+
+
+def screening_of_batches(
+    problem: ContactProblem, batches: Sequence[LevelBatch], *, n_not_converged: int
+) -> ScreeningResult:
+    """The :class:`ScreeningResult` of screening samples: one batch per level ``0, 1, ...``, the same indices.
+
+    What :func:`screen` returns for the samples it drew; also how a study file's screening is read
+    (:func:`rough_uq.study.pipeline.load_screening`).
+    """
     statistics = level_statistics(
         fine=[b.fine for b in batches],
         coarse=[b.coarse for b in batches],
         cost=[modelled_cost(problem.model, b.level, b.n_iter) for b in batches],
-        levels=list(range(levels)),
+        levels=[b.level for b in batches],
     )
     rates = fit_rates(statistics, names=problem.columns)
     return ScreeningResult(
         statistics=statistics,
         rates=rates,
-        n_not_converged=sampler.n_not_converged,
+        n_not_converged=n_not_converged,
         diagnostics=(
             *diagnose(statistics, names=problem.columns), *_stalled_bias(problem.columns, rates, statistics)
         ),

@@ -96,7 +96,7 @@ from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_sc
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
 from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target, initial_finest_level
-from rough_uq.problem.runs import MIN_SCREENED_LEVELS, run_id
+from rough_uq.problem.runs import MIN_SCREENED_LEVELS, ScreeningResult, run_id, screening_of_batches
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
     ContactModel,
@@ -122,6 +122,7 @@ __all__ = [
     "build_model",
     "problem_of_config",
     "load_problem",
+    "load_screening",
     "create_study",
     "removed_if_left_unused",
     "open_existing_study",
@@ -316,27 +317,54 @@ def load_problem(path: str | os.PathLike[str]) -> ContactProblem:
     """The contact problem of a config file or of a study file (its stored config), for the Python API.
 
     ``path`` names a YAML config (as ``roughuq screen`` takes it) or a study
-    file (as ``roughuq screen`` writes it); :func:`problem_of_config` says
-    what is taken over. ``rough_uq.mlmc(load_problem("config.yaml"),
-    tol=0.5)`` then draws the samples the CLI draws for that config (the same
+    file (HDF5, as ``roughuq screen`` writes it); :func:`problem_of_config`
+    says what is taken over: the samples, not the estimation settings. A run
+    on it draws the samples ``roughuq`` draws for that config (the same
     numbers where FFTs are planned alike, ``ROUGHUQ_FFTW_WISDOM=estimate``);
-    ``dataclasses.replace(problem, max_level=5)`` changes a field.
+    it makes the same choices from the same screening (:func:`load_screening`)
+    and settings (``n_initial=`` the config's ``estimation.initial_samples``,
+    ``theta``, ...). ``dataclasses.replace(problem, max_level=5)`` changes a
+    field.
 
     Raises
     ------
     ConfigError
-        For a config file that cannot be read or is invalid (one line per problem, naming the file).
+        For a config file that cannot be read or is invalid, and a setting the problem refuses (e.g. a load no
+        solve takes): one line per problem, ``<file>: <field>: ...``.
     StudyFileError
-        For a study file that cannot be read.
+        For a study file that cannot be read (a path ending in ``.h5`` / ``.hdf5`` is read as a study file).
+    InvalidParameterError
+        For an empty path or one that does not exist.
     """
     name = os.fspath(path)
-    if not name:
-        raise InvalidParameterError("path", name, "a config file (YAML) or a study file (HDF5)")
-    if not is_hdf5_file(name):
-        return problem_of_config(load_config(name))
+    if not name or not Path(name).exists():
+        raise InvalidParameterError("path", name, "an existing config file (YAML) or study file (HDF5)")
+    if not (is_hdf5_file(name) or Path(name).suffix.lower() in (".h5", ".hdf5")):
+        config = load_config(name)
+        with naming_source(name):
+            return problem_of_config(config)
     with open_study_readonly(name) as store:
         config = _stored_config(store)
-    return problem_of_config(config)
+    with naming_source(f"{name} (stored config)"):
+        return problem_of_config(config)
+
+
+def load_screening(path: str | os.PathLike[str]) -> ScreeningResult:
+    """The screening a study file holds, as :func:`rough_uq.screen` returns it, for the Python API.
+
+    Recomputed from the stored screening samples, as ``roughuq mlmc`` recomputes it, with the problem of
+    :func:`load_problem`: ``rough_uq.mlmc(load_problem(path), tol=..., screening=load_screening(path))`` plans
+    as ``roughuq mlmc --study path --tol ...`` does, without solving the screening again.
+
+    Raises
+    ------
+    StudyFileError
+        For a file that is not a readable study file, or a study without a complete screening.
+    """
+    problem = load_problem(path)
+    with open_existing_study(path, writable=False) as study:
+        _, batches = screening_statistics(study)  # its table is computed again with the problem's model
+    return screening_of_batches(problem, batches, n_not_converged=count_not_converged(batches))
 
 
 @dataclass
