@@ -198,6 +198,18 @@ def test_missing_file_is_a_config_error(tmp_path: Path) -> None:
         load_config(tmp_path / "nope.yaml")
 
 
+def test_a_study_file_given_as_config_is_named_as_one(tmp_path: Path) -> None:
+    # It said "cannot be read: 'utf-8' codec can't decode byte 0x89 in position 0" (roughuq screen s.h5).
+    study = tmp_path / "s.h5"
+    study.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(range(256)) * 4)
+    with pytest.raises(ConfigError, match=r"s\.h5: is an HDF5 file \(a study file\?\), not a YAML config .*--study"):
+        load_config(study)
+    binary = tmp_path / "b.yaml"
+    binary.write_bytes(b"\xff\xfe not text")
+    with pytest.raises(ConfigError, match="b.yaml: cannot be read: 'utf-8' codec"):
+        load_config(binary)
+
+
 def test_one_line_per_problem() -> None:
     data = _base()
     data["surface"]["hurst"] = -1

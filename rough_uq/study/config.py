@@ -68,7 +68,6 @@ import math
 import os
 import re
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 import typing
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal, Union
@@ -1235,6 +1234,10 @@ def _yaml_error_line(path: str, error: yaml.YAMLError) -> str:
     return f"{path}: not valid YAML{where}: {problem} (got a malformed file; allowed: a YAML mapping of sections)"
 
 
+#: The first bytes of an HDF5 file (a study file given where a config is expected).
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
 def load_config(path: str | os.PathLike[str]) -> StudyConfig:
     """Read and validate a study config file.
 
@@ -1256,7 +1259,13 @@ def load_config(path: str | os.PathLike[str]) -> StudyConfig:
     """
     name = os.fspath(path)
     try:
-        text = Path(name).read_text(encoding="utf-8")
+        with open(name, "rb") as stream:
+            head = stream.read(len(_HDF5_SIGNATURE))  # not the whole of a study file of gigabytes
+            if head == _HDF5_SIGNATURE:
+                raise _config_error([f"{name}: is an HDF5 file (a study file?), not a YAML config (got {name!r}; "
+                                     "allowed: a YAML config file; a study file goes to --study, or to `roughuq "
+                                     "report`)"])
+            text = (head + stream.read()).decode("utf-8")
     except FileNotFoundError:
         raise _config_error([f"{name}: config file not found (got {name!r}; allowed: an existing YAML file)"]) from None
     except IsADirectoryError:
