@@ -456,6 +456,20 @@ def test_bad_files_are_refused_and_unchanged(tmp_path: Path, make, message: str,
     assert sorted(os.listdir(tmp_path)) == ["study.h5"]
 
 
+@pytest.mark.parametrize("mode", ["r", "a"])
+def test_a_file_the_caller_holds_open_is_not_called_damaged(tmp_path: Path, mode: str) -> None:
+    # An h5py.File of the user's own (HDF5's default locking) made a sound study "truncated or damaged", with the
+    # advice to restore it from a copy or start a new one.
+    path = tmp_path / "study.h5"
+    path.write_bytes(_valid_bytes(tmp_path))
+    with h5py.File(path, mode):
+        with pytest.raises(StudyFileError, match="already open in this process .* close it and read again") as info:
+            open_study_readonly(path).read_samples(level=0)
+        assert "damaged" not in str(info.value)
+    with open_study_readonly(path) as study:
+        assert study.read_samples(level=0).indices.size == 50  # closed, it reads
+
+
 def _replace_record(path: Path, name: str, value: object) -> None:
     with h5py.File(path, "r+") as f:
         del f[name]

@@ -741,8 +741,17 @@ _HDF5_READ_ERRORS = (OSError, RuntimeError, KeyError)
 def _unreadable(path: Path, exc: BaseException) -> StudyFileError:
     """The error for a study file HDF5 cannot read: names the file, says it is damaged, says what to do."""
     reason = exc.args[0] if len(exc.args) == 1 and isinstance(exc.args[0], str) else str(exc)
+    if any(clash in reason for clash in _OPEN_IN_THIS_PROCESS):
+        return StudyFileError(
+            f"{path} is already open in this process with other settings (an h5py.File of your own?), which HDF5 "
+            f"refuses ({reason}): close it and read again; roughuq opens study files itself, read-only with HDF5 "
+            "file locking off", path)
     return StudyFileError(f"{path} cannot be read: truncated or damaged study file ({reason}); {_UNREADABLE_REMEDY}",
                           path)
+
+
+#: HDF5's refusals to open a file that this process holds open with other flags: the file is sound.
+_OPEN_IN_THIS_PROCESS = ("file locking flag values don't match", "not the same for file that is already open")
 
 
 def _read_text(dataset: Any) -> str:
