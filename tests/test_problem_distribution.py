@@ -195,6 +195,7 @@ def test_printed_results_are_one_line_summaries_with_tol_met():
     assert text.startswith("DistributionResult(column='contact_area', cdf=CdfEstimate(thresholds=<121 from 10 to 60>, "
                            f"rmse={law.cdf.rmse:.3g}, tol=0.2, tol_met={law.cdf.tol_met}, "
                            f"stop_reason='{law.cdf.stop_reason}', levels=")
+    assert law.cdf.tol == 0.2  # printed, and so an attribute (it was only law.cdf.target.tol)
     spread = rough_uq.variance(problem, tol=20.0, n_initial=8)
     text = repr(spread)
     assert "\n" not in text and len(text) < 300 and str(spread) == text

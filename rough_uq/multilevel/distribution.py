@@ -378,12 +378,17 @@ class CdfEstimate:
         """``rmse <= tol`` with an estimated bias; False without a tolerance or that estimate, or with missed levels."""
         return self.target.tol_met
 
+    @property
+    def tol(self) -> float:
+        """The tolerance on the sup-norm RMS error (every threshold is in the one group of ``target.tol``)."""
+        return float(self.target.tol[0])
+
     def __repr__(self) -> str:
         # One line: the arrays over the thresholds (some 25 000 characters for 121 of them) stay in the attributes.
         s = self.thresholds
         return (
             f"CdfEstimate(thresholds=<{s.size} from {s[0]:g} to {s[-1]:g}>, rmse={self.rmse:.3g}, "
-            f"tol={float(self.target.tol[0]):g}, tol_met={self.tol_met}, stop_reason={self.stop_reason!r}, "
+            f"tol={self.tol:g}, tol_met={self.tol_met}, stop_reason={self.stop_reason!r}, "
             f"levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()})"
         )
 
