@@ -5,14 +5,17 @@ from __future__ import annotations
 import io
 import math
 
+import numpy as np
 import pytest
 
 import rough_uq.study.progress as progress_module
+from rough_uq.errors import InvalidParameterError
 from rough_uq.study.progress import (
     ETA_MIN_SAMPLES,
     ETA_MIN_SECONDS,
     PlainProgress,
     Progress,
+    RichProgress,
     format_duration,
     make_progress,
 )
@@ -142,3 +145,27 @@ def test_rich_eta_column_waits_for_a_steady_rate(monkeypatch):
 ])
 def test_one_duration_format_for_every_printed_time(seconds, options, text):
     assert format_duration(seconds, **options) == text
+
+
+@pytest.mark.parametrize(
+    ("make", "field"),
+    [
+        (lambda: PlainProgress("log.txt"), "stream"),  # a file name: AttributeError at the run's first line
+        (lambda: PlainProgress(interval="5"), "interval"),  # TypeError in the middle of a run
+        (lambda: PlainProgress(interval=-1), "interval"),
+        (lambda: PlainProgress(interval=math.nan), "interval"),
+        (lambda: PlainProgress(interval=True), "interval"),
+        (lambda: RichProgress(console=io.StringIO()), "console"),
+    ],
+)
+def test_progress_settings_are_checked_when_made(make, field):
+    with pytest.raises(InvalidParameterError) as caught:
+        make()
+    assert caught.value.name == field
+
+
+def test_a_progress_of_a_stream_and_interval_prints_there():
+    stream = io.StringIO()
+    progress = PlainProgress(stream, interval=np.float64(0.5))
+    progress.start("run")
+    assert stream.getvalue() == "[run] started\n"

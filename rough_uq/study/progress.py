@@ -24,6 +24,8 @@ import time
 from collections.abc import Sequence
 from typing import IO
 
+from rough_uq.errors import InvalidParameterError, is_real_number
+
 __all__ = [
     "ETA_MIN_SAMPLES", "ETA_MIN_SECONDS", "PlainProgress", "PrefixedProgress", "RichProgress", "format_duration",
     "make_progress",
@@ -126,8 +128,15 @@ class PlainProgress(Progress):
     """
 
     def __init__(self, stream: IO[str] | None = None, *, interval: float = 10.0) -> None:
+        # Checked here: a file name or a string interval failed at the first line, in the middle of a run.
+        if stream is not None and not (callable(getattr(stream, "write", None))
+                                       and callable(getattr(stream, "flush", None))):
+            raise InvalidParameterError("stream", stream, "a text stream open for writing (e.g. sys.stderr or "
+                                        "open(path, 'w')), or None for sys.stderr")
+        if not (is_real_number(interval) and 0 <= interval < math.inf):
+            raise InvalidParameterError("interval", interval, "a finite number of seconds >= 0 (0: every sample)")
         self._stream = stream if stream is not None else sys.stderr
-        self._interval = interval
+        self._interval = float(interval)
         self._title = ""
         self._planned: dict[int, int] = {}
         self._done: dict[int, int] = {}
@@ -244,6 +253,8 @@ class RichProgress(Progress):
     def __init__(self, console: object | None = None) -> None:
         from rich.console import Console
 
+        if console is not None and not isinstance(console, Console):
+            raise InvalidParameterError("console", console, "a rich.console.Console, or None for one on stderr")
         self._console = console if console is not None else Console(stderr=True)
         self._bars: object | None = None
         self._tasks: dict[int, int] = {}
