@@ -222,6 +222,29 @@ def test_a_tolerance_sequence_must_have_one_value_per_column():
                                     "contact_area), or a mapping of every QoI column to one")
 
 
+@pytest.mark.parametrize("tol", [["0.5"], [True], np.array(["0.5"]), [0.5, "1"], [10**400]])
+def test_a_tolerance_sequence_of_other_than_numbers_is_refused_not_converted(tol):
+    # ["0.5"] and [True] were taken as 0.5 and 1.0 while "0.5" and True were refused; 10**400 overflowed.
+    problem = _problem(qoi=("contact_area",)) if np.size(tol) == 1 else _problem(qoi=("contact_area", "mean_gap"))
+    for refusal in _tol_refusals(problem, tol):
+        assert refusal.name == "tol" and refusal.value is tol
+
+
+@pytest.mark.parametrize("thresholds", [["10", "20", "30"], [True, 2.0, 3.0], np.array(["10", "20"])])
+def test_thresholds_of_other_than_numbers_are_refused_not_converted(thresholds):
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.distribution(_problem(), tol=0.2, thresholds=thresholds, executor=_NoSampling())
+    assert caught.value.name == "thresholds" and caught.value.value is thresholds
+
+
+@pytest.mark.parametrize("tol", [[0.2, 0.2], [0.2], 1.5, "0.2"])
+def test_a_distribution_tolerance_is_one_number_in_0_1_and_says_so(tol):
+    # [0.2, 0.2] was told "a number > 0 (for every QoI), a sequence of one (one per QoI)", neither of which it takes.
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.distribution(_problem(), tol=tol, thresholds=[10.0, 20.0], executor=_NoSampling())
+    assert caught.value.name == "tol" and caught.value.allowed.startswith("one number in (0, 1)")
+
+
 def test_a_screening_of_another_problem_is_refused_naming_what_differs():
     """A screening of another load and grid planned (and pooled its variances into) the run without a word."""
     problem = dataclasses.replace(_problem(), max_level=3)

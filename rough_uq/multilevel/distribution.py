@@ -98,6 +98,7 @@ from rough_uq.errors import (
     EstimationWarning,
     InvalidParameterError,
     checked_real_array,
+    is_real_array,
     is_real_number,
     warn_at_caller,
 )
@@ -107,6 +108,7 @@ from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc
 
 __all__ = [
     "CdfEstimate",
+    "check_cdf_tol",
     "Quantiles",
     "THRESHOLDS_MISS_SAMPLES",
     "cdf_from_samples",
@@ -138,10 +140,18 @@ def level_bandwidth(level: int, *, bandwidth: float, bandwidth_rate: float = 1.0
     return float(bandwidth * 2.0 ** (-bandwidth_rate * level))
 
 
+def check_cdf_tol(tol: object) -> float:
+    """The tolerance of a CDF estimate, one number in (0, 1), or :class:`InvalidParameterError` naming ``tol``."""
+    if np.ndim(tol) != 0 or not (is_real_number(tol) and 0 < tol < 1):
+        # F is a probability: an RMS error of 1 or more is met by any estimate.
+        raise InvalidParameterError("tol", tol, "one number in (0, 1) (the RMS error of F on the sup norm)")
+    return float(tol)
+
+
 def _check_thresholds(thresholds: object) -> np.ndarray:
-    try:
-        array = np.asarray(thresholds, dtype=float)
-    except (TypeError, ValueError):  # e.g. "abc", or a ragged list
+    try:  # numbers only: strings ("10") were converted
+        array = np.asarray(thresholds, dtype=float) if is_real_array(thresholds) else np.full(1, np.nan)
+    except (TypeError, ValueError):  # a ragged list
         array = np.full(1, np.nan)
     if array.ndim != 1 or array.size < 2 or not np.all(np.isfinite(array)) or np.any(np.diff(array) <= 0):
         raise InvalidParameterError(
@@ -516,9 +526,7 @@ def mlmc_cdf(
     """
     s = _check_thresholds(thresholds)
     _check_bandwidth(bandwidth, bandwidth_rate)
-    if np.ndim(tol) != 0 or not (is_real_number(tol) and 0 < tol < 1):
-        # F is a probability: an RMS error of 1 or more is met by any estimate.
-        raise InvalidParameterError("tol", tol, "one number in (0, 1) (the RMS error of F on the sup norm)")
+    check_cdf_tol(tol)
 
     settings = {"thresholds": s, "bandwidth": bandwidth, "bandwidth_rate": bandwidth_rate, "qoi": qoi}
     # Per level, from the samples of its latest term: the driver's final estimate uses that term.

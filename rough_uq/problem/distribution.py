@@ -24,7 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import EstimationWarning, InvalidParameterError, warn_at_caller
-from rough_uq.multilevel.distribution import CdfEstimate, Quantiles, _check_thresholds, mlmc_cdf, quantiles
+from rough_uq.multilevel.distribution import (
+    CdfEstimate, Quantiles, _check_thresholds, check_cdf_tol, mlmc_cdf, quantiles,
+)
 from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
 from rough_uq.multilevel.statistics import _checked_names, _qoi_text
@@ -308,7 +310,7 @@ def distribution(
     """
     problem = _problem(problem)
     index = _column_index(problem, column)
-    tol_array = _tolerances(tol, 1)
+    tol_array = np.array([check_cdf_tol(tol)])
     name = problem.columns[index]
     stage = run_stage("mlmc", run_id("cdf", [name], tol_array, theta))
     sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import (
-    EstimationError, InvalidParameterError, checked_integer, is_integer, is_real_number, warn_at_caller,
+    EstimationError, InvalidParameterError, checked_integer, is_integer, is_real_array, is_real_number, warn_at_caller,
 )
 from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan, reachable_tolerance
@@ -348,9 +348,9 @@ def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -
     """
     if columns is not None and isinstance(tol, Mapping):
         tol = _tolerances_by_name(tol, columns)
-    try:
-        values = None if isinstance(tol, (str, bytes, bool)) else np.asarray(tol, dtype=float)
-    except (TypeError, ValueError):
+    try:  # numbers only: ["0.5"] and [True] were converted
+        values = np.asarray(tol, dtype=float) if is_real_array(tol) else None
+    except (TypeError, ValueError, OverflowError):  # a ragged sequence, an integer beyond the float range
         values = None
     if values is not None and (values.ndim == 0 or values.shape == (n_qoi,)):
         values = np.broadcast_to(values.reshape(-1), (n_qoi,)).copy()
