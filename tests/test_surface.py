@@ -16,6 +16,7 @@ from scipy import stats
 
 from rough_uq.errors import InvalidParameterError
 from rough_uq.physics.surface import (
+    MAX_K_S,
     SurfaceSpectrum,
     project_surface,
     sample_coupled,
@@ -247,10 +248,12 @@ def test_same_seed_same_surface_and_zero_mean() -> None:
 
 def test_invalid_sampling_arguments() -> None:
     rng = np.random.default_rng(0)
-    for n in (0, 7, 16.0, True):
+    for n in (0, 7, 16.0, True, 2 * MAX_K_S + 2, 10**6):  # 10**6: a MemoryError of 7 TiB
         with pytest.raises(InvalidParameterError) as info:
             sample_surface(SPECTRUM, n, rng)
         assert info.value.name == "n"
+    with pytest.raises(InvalidParameterError, match=r"<= 65536 \(the largest grid\)"):
+        sample_coupled(SPECTRUM, 2**17, rng)
     with pytest.raises(InvalidParameterError) as info:
         sample_coupled(SPECTRUM, 18, rng)  # coarse grid 9 is odd
     assert info.value.name == "n"

@@ -379,12 +379,13 @@ class SurfaceSpectrum:
 
 
 def _check_grid_size(name: str, n: object, *, multiple: int = 2) -> int:
-    """``n`` as an int, or :class:`InvalidParameterError` unless it is a positive multiple of ``multiple``."""
-    allowed = f"an integer multiple of {multiple}, >= {multiple}"
+    """``n`` as an int, or :class:`InvalidParameterError` unless a multiple of ``multiple`` in ``[multiple,
+    2 MAX_K_S]`` (the largest grid of ``rough_uq.problem.contact.MAX_GRID``: 10^6 was a MemoryError of 7 TiB)."""
+    allowed = f"an integer multiple of {multiple}, >= {multiple} and <= {2 * MAX_K_S} (the largest grid)"
     if not is_integer(n):
         raise InvalidParameterError(name, n, allowed)
     n = int(n)
-    if n < multiple or n % multiple:
+    if n < multiple or n % multiple or n > 2 * MAX_K_S:
         raise InvalidParameterError(name, n, allowed)
     return n
 
