@@ -394,3 +394,21 @@ def test_cli_progress_names_a_curve_runs_tolerances_by_qoi(curve_study, tmp_path
     result = CliRunner().invoke(main, ["mlmc", "--study", str(study), "--tol", "mean_gap@0.02=0.1", "--workers", "1"])
     assert result.exit_code == 0, result.output
     assert "[mlmc contact_area=3, mean_gap=0.05, mean_gap@0.02=0.1] done in " in result.stderr
+
+
+def test_a_load_curve_through_full_contact_is_screened_and_estimated():
+    # At full contact the area is 100 % and there is one cluster in every sample: the screening refused the
+    # whole curve ("cannot fit alpha for clusters@3.0"), though its other loads have everything to estimate.
+    import rough_uq
+    from rough_uq.multilevel.rates import EXACT_RATE
+
+    loads = [rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(3.0)]
+    problem = _curve_problem(load=loads, qoi=["clusters"], solver_tol=1e-8)
+    screening = rough_uq.screen(problem, levels=3, samples=6)
+    exact = problem.columns.index("clusters@3.0")
+    assert screening.statistics.var_fine[:, exact].tolist() == [0.0, 0.0, 0.0]  # one cluster: full contact
+    assert screening.rates.alpha[exact] == screening.rates.beta[exact] == EXACT_RATE
+    assert screening.rates.alpha[1 - exact] < EXACT_RATE  # the partial contact of 0.1 is fitted
+    result = rough_uq.mlmc(problem, tol={"clusters": 20.0}, screening=screening)
+    assert result.estimate[exact] == 1.0 and result.rmse[exact] == 0.0  # per unit area of a box of 1
+    assert np.isfinite(result.rmse).all() and result.tol_met

@@ -20,6 +20,7 @@ from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.multilevel.allocation import plan
 from rough_uq.multilevel.rates import (
     DROP_MARGIN,
+    EXACT_RATE,
     Rates,
     choose_coarsest_level,
     estimated_bias,
@@ -174,12 +175,34 @@ def test_fit_rates_refuses_too_few_usable_levels():
     table = level_statistics(**sample_levels(problem, range(2), 100))
     with pytest.raises(EstimationError, match="cannot fit alpha .*at least two usable levels"):
         fit_rates(table)
-    # Zero means and variances on levels >= 1 (Q_l independent of l): unusable, never log(0).
+    # Level means exactly 0 while the differences vary (+-0.5 in turn): unusable for alpha, never log(0).
     rng = np.random.default_rng(0)
     q = rng.normal(size=100)
-    flat = level_statistics(fine=[q, q, q], coarse=[0 * q, q, q], cost=[np.ones(100)] * 3)
-    with pytest.raises(EstimationError, match=r"unusable\): \[1, 2\]"):
+    step = np.where(np.arange(100) % 2, 0.5, -0.5)
+    flat = level_statistics(fine=[q, q + step, q], coarse=[0 * q, q, q + step], cost=[np.ones(100)] * 3)
+    with pytest.raises(EstimationError, match=r"E\[Q_l - Q_l-1\] = 0 \(unusable\): \[1, 2\]"):
         fit_rates(flat)
+
+
+def test_a_column_exact_on_the_fitted_levels_gets_the_exact_rate_and_no_bias():
+    # A load curve through full contact (contact area 100 %, one cluster in every sample) made the whole
+    # screening fail: "cannot fit alpha for clusters@2.0". Such a column has no bias and no level variance.
+    rng = np.random.default_rng(2)
+    q = rng.normal(size=(100, 2))
+    only_1 = np.array([[0.0, 1.0]])  # column 0: Q_l = Q_l-1 in every sample of levels 1 and 2; column 1 decays
+    fine = [q, q + (0.5 + 0.2 * rng.normal(size=(100, 1))) * only_1]
+    fine.append(fine[1] + (0.25 + 0.05 * rng.normal(size=(100, 1))) * only_1)
+    coarse = [0 * q, q, fine[1]]
+    table = level_statistics(fine=fine, coarse=coarse, cost=[np.ones(100), 2 * np.ones(100), 4 * np.ones(100)])
+    rates = fit_rates(table, names=("clusters@2.0", "contact_area"))
+    assert rates.alpha[0] == rates.beta[0] == EXACT_RATE and rates.c_alpha[0] == rates.c_beta[0] == 0.0
+    assert rates.levels_alpha[0] == rates.levels_beta[0] == (1, 2)
+    assert 0 < rates.alpha[1] < 10 and 0 < rates.beta[1] < 10  # the other column is fitted as before
+    assert rates.bias_model(2)[0] == 0.0 and rates.variance_model(0)[0] == 0.0  # no NaN from inf * 0
+    assert remaining_bias(table.mean_diff[-1], rates.alpha)[0] == 0.0
+    one_level = level_statistics(fine=fine[:2], coarse=coarse[:2], cost=[np.ones(100)] * 2)
+    with pytest.raises(EstimationError, match="cannot fit alpha for QoI 0"):
+        fit_rates(one_level)  # one level shows nothing: not called exact
 
 
 def test_a_level_mean_zero_to_rounding_is_unusable_for_alpha():
@@ -203,9 +226,10 @@ def test_fit_rates_names_the_qoi_it_cannot_fit():
     # "cannot fit alpha for QoI 1" named a column index; with the names the error names the QoI.
     rng = np.random.default_rng(1)
     q = rng.normal(size=(100, 2))
-    # Column 0 never changes with the level (E[Y_l] = 0: unusable for alpha); column 1 does.
-    fine = [q, q + [[0.0, 0.5]], q + [[0.0, 0.75]]]
-    coarse = [0 * q, q, q + [[0.0, 0.5]]]
+    # Column 0's level differences average to 0 exactly (+-0.5 in turn: unusable for alpha); column 1's do not.
+    step = np.where(np.arange(100) % 2, 0.5, -0.5)[:, None] * [[1.0, 0.0]]
+    fine = [q, q + [[0.0, 0.5]] + step, q + [[0.0, 0.75]]]
+    coarse = [0 * q, q, q + [[0.0, 0.5]] - step]
     table = level_statistics(fine=fine, coarse=coarse, cost=[np.ones(100)] * 3)
     with pytest.raises(EstimationError, match=r"^cannot fit alpha for QoI 0: needs"):
         fit_rates(table)

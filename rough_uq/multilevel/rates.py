@@ -117,6 +117,7 @@ from rough_uq.multilevel.statistics import LevelStatistics, _checked_names, _rea
 
 __all__ = [
     "BIAS_RATE_CAP",
+    "EXACT_RATE",
     "DROP_MARGIN",
     "RATE_FLOOR",
     "RATIO_LOG2_TOLERANCE",
@@ -147,6 +148,11 @@ RATE_FLOOR = 0.5
 #: fitted decay comes from pre-asymptotic levels, and the discretisation errors of these QoIs decay no
 #: faster than second order.
 BIAS_RATE_CAP = 2.0
+
+#: The rates ``alpha`` and ``beta`` of a column that is exact on the screened levels (every level difference 0
+#: in every sample: :func:`fit_rates`), with constants 0: its models are 0 on every grid. A finite stand-in for
+#: an infinite rate (``inf * 0`` on level 0 would be NaN); no fitted rate comes near it.
+EXACT_RATE = 64.0
 
 
 def _as_qoi_array(value: object) -> np.ndarray:
@@ -350,6 +356,22 @@ def _fit_beta(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Lin
     return line, f"levels with Var(Q_l - Q_l-1) = 0 (unusable): {zero}" if zero else ""
 
 
+def _exact_line(statistics: LevelStatistics, q: int, min_level: int) -> _Line | None:
+    """Rate :data:`EXACT_RATE` with constant 0 for a column whose differences are 0 in every sample of every
+    fitted level.
+
+    Such a column (a contact area of 100 % at full contact, one cluster, a mean gap of 0) has no bias and no
+    variance to fit: its models are 0 on every grid, so it asks for no level and no sample of its own. Two
+    levels at least, each of two samples or more, must show it. None for any other column.
+    """
+    use = (statistics.levels >= min_level) & (statistics.n_samples >= 2)
+    if np.count_nonzero(use) < 2:
+        return None
+    if np.any(statistics.mean_diff[use, q] != 0) or np.any(statistics.var_diff[use, q] != 0):
+        return None
+    return _Line(rate=EXACT_RATE, constant=0.0, se=0.0, levels=tuple(statistics.levels[use].tolist()))
+
+
 def _fit_gamma(statistics: LevelStatistics, min_level: int) -> tuple[_Line | None, str]:
     use = statistics.levels >= min_level
     cost = statistics.mean_cost
@@ -421,7 +443,10 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequenc
         If any rate has fewer than two usable levels. A level is unusable
         for ``alpha`` if ``E[Y_l] = 0``, for ``beta`` if ``V_l = 0``, for
         both if it has fewer than two samples, and for ``gamma`` if its mean
-        cost is 0 (a logarithm of 0 is never taken).
+        cost is 0 (a logarithm of 0 is never taken). A column with
+        ``Y_l = 0`` in every sample of two or more levels is no such
+        failure: it is exact there, and gets ``alpha = beta =``
+        :data:`EXACT_RATE` with constants 0.
 
     Notes
     -----
@@ -435,6 +460,11 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequenc
     alpha, beta = [], []
     for q in range(statistics.n_qoi):
         qoi = names[q] if names is not None else f"QoI {q}"
+        exact = _exact_line(statistics, q, min_level)
+        if exact is not None:
+            alpha.append(exact)
+            beta.append(exact)
+            continue
         for name, fit, out in (("alpha", _fit_alpha, alpha), ("beta", _fit_beta, beta)):
             line, note = fit(statistics, q, min_level)
             if line is None:

@@ -51,7 +51,8 @@ from rough_uq.problem.columns import split_column, tol_text, values_text
 from rough_uq.problem.sampler import measured_seconds_per_cost, modelled_cost, run_stage
 
 __all__ = [
-    "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "mc", "mlmc", "run_id", "screen", "screening_of_batches",
+    "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "mc", "mlmc", "refuse_constant_columns", "run_id", "screen",
+    "screening_of_batches",
 ]
 
 #: Fewest levels a screening covers, ``0..2``: the rates are fitted on levels >= 1 (level 0's ``Y_0 = Q_0``
@@ -282,6 +283,27 @@ def screen(
     return screening_of_batches(problem, batches, n_not_converged=sampler.n_not_converged)
 
 
+def refuse_constant_columns(statistics: LevelStatistics, names: Sequence[str]) -> None:
+    """Raise :class:`~rough_uq.errors.EstimationError` where every column took one value in every screened sample.
+
+    Far past full contact (or before any) the area is 100 % (0 %) in every sample: there is nothing to estimate,
+    and more levels or samples would not change that. A column constant beside others that vary (a load curve
+    through full contact) is screened: its rates are :data:`~rough_uq.multilevel.rates.EXACT_RATE`.
+    """
+    constant = [name for q, name in enumerate(names) if _is_constant(statistics, q)]
+    if constant and len(constant) == len(names):
+        raise EstimationError(
+            f"{', '.join(constant)} took one value in every sample of every level (at this load, e.g. full contact "
+            "or none): there is nothing to estimate; change the load or the QoIs"
+        )
+
+
+def _is_constant(statistics: LevelStatistics, q: int) -> bool:
+    """Whether column ``q`` had the same value in every screening sample (no variance, no level differences)."""
+    values = np.concatenate([statistics.mean_fine[:, q], statistics.mean_coarse[statistics.levels > 0, q]])
+    return bool(np.all(statistics.var_fine[:, q] == 0) and np.all(values == values[0]))
+
+
 def screening_of_batches(
     problem: ContactProblem, batches: Sequence[LevelBatch], *, n_not_converged: int
 ) -> ScreeningResult:
@@ -296,6 +318,7 @@ def screening_of_batches(
         cost=[modelled_cost(problem.model, b.level, b.n_iter) for b in batches],
         levels=[b.level for b in batches],
     )
+    refuse_constant_columns(statistics, problem.columns)
     rates = fit_rates(statistics, names=problem.columns)
     return ScreeningResult(
         statistics=statistics,

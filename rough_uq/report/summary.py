@@ -71,7 +71,7 @@ import numpy as np
 from rich.markup import escape
 
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
-from rough_uq.multilevel.rates import RATE_FLOOR
+from rough_uq.multilevel.rates import EXACT_RATE, RATE_FLOOR
 from rough_uq.multilevel.statistics import KURTOSIS_LIMIT
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.columns import split_column, tol_text
@@ -630,7 +630,10 @@ def _print_rates(console: Any, screening: ScreeningRecord, qoi_names: Sequence[s
         c = screening.complexity[q]
         alpha, beta = rates.alpha[q], rates.beta[q]
         alpha_text = _pm(alpha, rates.alpha_se[q]) if is_bias_decaying(alpha) else f"{_g(alpha, 2)} (no decay)"
-        console.print(f"  {name}: alpha = {alpha_text}, beta = {_pm(beta, rates.beta_se[q])}")
+        if alpha >= EXACT_RATE:  # a stand-in, not a fit: the column is exact on the screened levels
+            console.print(f"  {name}: alpha, beta: none (every level difference is 0)")
+        else:
+            console.print(f"  {name}: alpha = {alpha_text}, beta = {_pm(beta, rates.beta_se[q])}")
         if c.mc_exponent is None:
             console.print(f"    {c.mlmc_regime}")
         else:

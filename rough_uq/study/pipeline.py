@@ -96,7 +96,9 @@ from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_sc
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
 from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target, initial_finest_level
-from rough_uq.problem.runs import MIN_SCREENED_LEVELS, ScreeningResult, run_id, screening_of_batches
+from rough_uq.problem.runs import (
+    MIN_SCREENED_LEVELS, ScreeningResult, refuse_constant_columns, run_id, screening_of_batches,
+)
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
     ContactModel,
@@ -870,22 +872,12 @@ def _check_screenable(config: StudyConfig) -> None:
 
 
 def _screening_rates(statistics: LevelStatistics, qoi_names: Sequence[str]) -> Rates:
+    refuse_constant_columns(statistics, qoi_names)
     try:
         return fit_rates(statistics, names=qoi_names)
     except EstimationError as exc:
-        constant = [name for q, name in enumerate(qoi_names) if _is_constant(statistics, q)]
-        advice = (
-            f"{', '.join(constant)} took one value in every sample of every level (at this load, e.g. "
-            "full contact or none): there is nothing to estimate; change the load or the QoIs"
-            if constant else "screen more levels (screening.levels) or more samples (screening.samples)"
-        )
+        advice = "screen more levels (screening.levels) or more samples (screening.samples)"
         raise EstimationError(f"screening cannot fit the rates: {exc}; {advice}") from None
-
-
-def _is_constant(statistics: LevelStatistics, q: int) -> bool:
-    """Whether QoI ``q`` had the same value in every screening sample (no variance, no level differences)."""
-    values = np.concatenate([statistics.mean_fine[:, q], statistics.mean_coarse[statistics.levels > 0, q]])
-    return bool(np.all(statistics.var_fine[:, q] == 0) and np.all(values == values[0]))
 
 
 def _predictions(

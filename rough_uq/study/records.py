@@ -50,7 +50,7 @@ import numpy as np
 
 from rough_uq.errors import InvalidParameterError
 from rough_uq.multilevel.drivers import RATE_FLOOR
-from rough_uq.multilevel.rates import BIAS_RATE_CAP
+from rough_uq.multilevel.rates import BIAS_RATE_CAP, EXACT_RATE
 from rough_uq.problem.batch import LevelBatch
 
 __all__ = [
@@ -142,6 +142,8 @@ def complexity(alpha: float | None, beta: float | None, gamma: float | None) -> 
     ``eps^-(2 + (gamma - beta)/alpha)``. A bias rate at most :data:`MIN_ALPHA`
     (no measurable decay) gives no exponent.
     """
+    if alpha is not None and alpha >= EXACT_RATE:
+        return Complexity(None, None, "exact: the same value on every screened grid (no bias, no level variance)")
     if not is_bias_decaying(alpha):
         return Complexity(None, None, "not fitted: the bias does not decay over the screened levels")
     if gamma is None or not math.isfinite(gamma):
