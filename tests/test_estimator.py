@@ -656,6 +656,7 @@ def test_unstable_ratios_are_refused_and_the_run_is_plain_mlmc():
         ([0.5, 0.25, 0.02], [0.001] * 3, "not stable"),
         ([0.5, 0.25, 0.02], [0.015] * 3, "within two standard errors"),
         ([0.5, 0.25, 0.05], [0.04, 0.04, 0.02], ""),  # the ratios differ, but within their noise
+        ([0.0, 0.0, 0.0], [0.0] * 3, ""),  # exact (a column past full contact): no 0/0 ratio, nothing unstable
     ],
 )
 def test_ratio_instability_names_the_failed_check(means, errors, expected):

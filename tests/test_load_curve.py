@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -401,6 +403,7 @@ def test_a_load_curve_through_full_contact_is_screened_and_estimated():
     # whole curve ("cannot fit alpha for clusters@3.0"), though its other loads have everything to estimate.
     import rough_uq
     from rough_uq.multilevel.rates import EXACT_RATE
+    from rough_uq.problem.runs import exact_column_caveats
 
     loads = [rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(3.0)]
     problem = _curve_problem(load=loads, qoi=["clusters"], solver_tol=1e-8)
@@ -412,3 +415,10 @@ def test_a_load_curve_through_full_contact_is_screened_and_estimated():
     result = rough_uq.mlmc(problem, tol={"clusters": 20.0}, screening=screening)
     assert result.estimate[exact] == 1.0 and result.rmse[exact] == 0.0  # per unit area of a box of 1
     assert np.isfinite(result.rmse).all() and result.tol_met
+    # Grids 16-64 resolve k_s = 8: no caveat. Grids that truncate the spectrum see a smoother surface, which
+    # reaches full contact sooner: the screening says that a finer grid may differ.
+    assert not [d for d in screening.diagnostics if "do not resolve the surface" in d]
+    coarse = dataclasses.replace(problem.model, coarsest=4)  # screened grids 4, 8, 16: 16 <= 2 k_s
+    (caveat,) = exact_column_caveats(coarse, problem.columns, screening.rates, screening.statistics)
+    assert caveat.startswith("clusters@3.0: every level difference is 0 on the screened grids up to 16^2")
+    assert "k_s = 8 needs a grid above 16" in caveat

@@ -14,6 +14,7 @@ from rough_uq.study.config import config_from_dict, load_config
 from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError, StudyFileError
 from rough_uq.study.executors import Executor, PoolExecutor, SerialExecutor
 from rough_uq.multilevel.drivers import PlanUpdated
+from rough_uq.multilevel.rates import EXACT_RATE
 from rough_uq.study.pipeline import (
     Study,
     StudySampler,
@@ -90,6 +91,22 @@ def test_a_qoi_that_never_changes_says_so_instead_of_asking_for_more_samples():
     with pytest.raises(EstimationError, match="contact_area took one value in every sample of every level") as info:
         run_screening(study, executor=SerialExecutor(), progress=QUIET)
     assert "screen more levels" not in str(info.value)
+    # The refused screening's samples are stored: a run from them is refused too (it "met" 100 % +- 0 while
+    # a column exact beside others was made screenable).
+    with pytest.raises(EstimationError, match="contact_area took one value in every sample of every level"):
+        run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
+
+def test_a_column_exact_on_grids_that_truncate_the_spectrum_gets_a_caveat():
+    # Full contact at the second load on grids 6, 12, 24 (k_s = 12 needs a grid above 24): planned as exact,
+    # with the caveat that a finer grid may differ.
+    surface = {"system_size": 1.0, "wavenumbers": {"k_l": 1, "k_r": 2, "k_s": 12}, "hurst": 0.8, "rms_height": 1.0}
+    study = _study(surface=surface, grid={"coarsest": 6, "max_level": 2}, load={"relative": [0.2, 1.0e6]})
+    outcome = run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    exact = study.config.qoi_names.index("contact_area@1000000.0")
+    assert outcome.rates.alpha[exact] == EXACT_RATE
+    (caveat,) = [d.message for d in outcome.record.diagnostics if "do not resolve the surface" in d.message]
+    assert caveat.startswith("contact_area@1000000.0: every level difference is 0 on the screened grids up to 24^2")
+
 
 def test_model_units_and_load():
     config = config_from_dict(

@@ -17,6 +17,7 @@ from rough_uq.errors import RoughUQError
 from rough_uq.study.executors import SerialExecutor
 from rough_uq.study.pipeline import Study, build_model, run_estimation, run_screening
 from rough_uq.study.progress import Progress
+from rough_uq.multilevel.rates import EXACT_RATE
 from rough_uq.physics.qoi import evaluate_qoi, label_clusters
 from rough_uq.report.summary import render_load_curves, study_report
 from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, run_stage, solve_sample
@@ -292,6 +293,21 @@ def test_rates_draw_no_bias_line_where_the_text_says_not_fitted(tmp_path, report
     assert bias.get_title().endswith(": bias")
     assert [len(line.get_xdata()) > 0 for line in bias.get_lines()] == [True, False]  # data; a legend entry only
     assert _legend_texts(bias)[1] == r"$\alpha$ = 0.04: not fitted, the bias does not decay"
+
+
+def test_an_exact_column_is_said_so_in_the_rates_and_cost_figures(tmp_path, two_qoi_report, figures):
+    # A column past full contact (rates EXACT_RATE, constants 0) left its rate panels blank and its cost slope
+    # read "eps^-2.25" (the stand-in rate capped like a fit).
+    screening = copy.deepcopy(two_qoi_report["screening"])
+    rates = screening["rates"]
+    for key, value in (("alpha", EXACT_RATE), ("beta", EXACT_RATE), ("c_alpha", 0.0), ("c_beta", 0.0)):
+        rates[key] = [rates[key][0], value]
+    plots.write_report_plots(dict(two_qoi_report, screening=screening), tmp_path)
+    rates_axes = figures["rates.png"].axes
+    assert "exact: every level difference is 0 (no bias)" in _legend_texts(rates_axes[3])
+    assert "exact: every level difference is 0 (no level variance)" in _legend_texts(rates_axes[4])
+    labels = [label for label in _lines(figures["cost_vs_tol.png"].axes[0]) if "predicted CPU-s" in label]
+    assert labels and all("mean_gap exact" in label for label in labels), labels
 
 
 def test_sample_figure_titles_fit_and_name_the_load_drawn(tmp_path, figures):

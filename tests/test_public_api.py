@@ -464,11 +464,18 @@ def test_the_warnings_of_runs_name_the_problems_columns():
     assert not any("QoI [" in m for m in messages), messages
 
 
-def test_a_screening_whose_rates_cannot_be_fitted_names_the_column():
-    # "cannot fit alpha for QoI 1": far past full contact the area is 100 % on every level, the gap is not.
+def test_a_column_past_full_contact_is_exact_and_the_others_are_screened():
+    # Far past full contact the area is 100 % on every level, the gap is not: the screening failed with "cannot
+    # fit alpha for contact_area"; the area is exact (no bias, no level variance) and the gap is fitted.
+    from rough_uq.multilevel.rates import EXACT_RATE
+
     problem = _problem(qoi=["mean_gap", "contact_area"], coarsest=8, load=rough_uq.RelativeLoad(1e6))
-    with pytest.raises(rough_uq.EstimationError, match="^cannot fit alpha for contact_area: needs at least two"):
-        rough_uq.screen(problem, levels=3, samples=3)
+    screening = rough_uq.screen(problem, levels=3, samples=3)
+    assert screening.rates.alpha[1] == screening.rates.beta[1] == EXACT_RATE
+    assert screening.rates.alpha[0] < EXACT_RATE
+    alone = _problem(qoi=["contact_area"], coarsest=8, load=rough_uq.RelativeLoad(1e6))
+    with pytest.raises(rough_uq.EstimationError, match="^contact_area took one value in every sample"):
+        rough_uq.screen(alone, levels=3, samples=3)  # nothing at all to estimate
 
 
 def test_same_seed_same_estimate_other_seed_other_estimate():

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from rough_uq.errors import InvalidParameterError, RoughUQError
-from rough_uq.multilevel.rates import BIAS_RATE_CAP, RATE_FLOOR
+from rough_uq.multilevel.rates import BIAS_RATE_CAP, EXACT_RATE, RATE_FLOOR
 from rough_uq.problem.batch import LevelBatch
 from rough_uq.report.summary import ReportedRun, derive_runs
 from rough_uq.study.records import (
@@ -324,6 +324,9 @@ def test_planned_complexity_takes_the_rates_as_plans_take_them():
     assert planned[0] == complexity(BIAS_RATE_CAP, 2.0, 1.0) and planned[0].mc_exponent == 2.5
     assert planned[1] == complexity(RATE_FLOOR, RATE_FLOOR, 1.0)
     assert rates.complexity[0] == complexity(4.6, 2.0, 1.0)  # the report lists the fitted rates
+    # A column exact on the screened levels keeps its regime: capped to 2, EXACT_RATE read as a fit of eps^-2.25.
+    exact = replace(rates, alpha=(EXACT_RATE, 0.2), beta=(EXACT_RATE, 0.1)).planned_complexity[0]
+    assert exact.mc_exponent is None and exact.mlmc_regime.startswith("exact")
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -118,6 +118,7 @@ from rough_uq.multilevel.statistics import LevelStatistics, _checked_names, _rea
 __all__ = [
     "BIAS_RATE_CAP",
     "EXACT_RATE",
+    "refuse_constant_columns",
     "DROP_MARGIN",
     "RATE_FLOOR",
     "RATIO_LOG2_TOLERANCE",
@@ -356,6 +357,29 @@ def _fit_beta(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Lin
     return line, f"levels with Var(Q_l - Q_l-1) = 0 (unusable): {zero}" if zero else ""
 
 
+def refuse_constant_columns(statistics: LevelStatistics, names: Sequence[str] | None) -> None:
+    """Raise :class:`~rough_uq.errors.EstimationError` where every column took one value in every sample.
+
+    Far past full contact (or before any) the area is 100 % (0 %) in every sample: there is nothing to
+    estimate, and more levels or samples would not change that. A constant column beside others that vary (a
+    load curve through full contact) is fitted as exact (:func:`_exact_line`).
+    """
+    constant = [q for q in range(statistics.n_qoi) if _is_constant(statistics, q)]
+    if not constant or len(constant) < statistics.n_qoi:
+        return
+    which = ", ".join(names[q] if names is not None else f"QoI {q}" for q in constant)
+    raise EstimationError(
+        f"{which} took one value in every sample of every level (at this load, e.g. full contact or none): there "
+        "is nothing to estimate; change the load or the QoIs"
+    )
+
+
+def _is_constant(statistics: LevelStatistics, q: int) -> bool:
+    """Whether column ``q`` had the same value in every sample (no variance, no level differences)."""
+    values = np.concatenate([statistics.mean_fine[:, q], statistics.mean_coarse[statistics.levels > 0, q]])
+    return bool(np.all(statistics.var_fine[:, q] == 0) and np.all(values == values[0]))
+
+
 def _exact_line(statistics: LevelStatistics, q: int, min_level: int) -> _Line | None:
     """Rate :data:`EXACT_RATE` with constant 0 for a column whose differences are 0 in every sample of every
     fitted level.
@@ -444,9 +468,10 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequenc
         for ``alpha`` if ``E[Y_l] = 0``, for ``beta`` if ``V_l = 0``, for
         both if it has fewer than two samples, and for ``gamma`` if its mean
         cost is 0 (a logarithm of 0 is never taken). A column with
-        ``Y_l = 0`` in every sample of two or more levels is no such
-        failure: it is exact there, and gets ``alpha = beta =``
-        :data:`EXACT_RATE` with constants 0.
+        ``Y_l = 0`` in every sample of every fitted level (two at least) is
+        no such failure: it is exact there, and gets ``alpha = beta =``
+        :data:`EXACT_RATE` with constants 0. Also raised where every column
+        took one value in every sample: nothing to estimate.
 
     Notes
     -----
@@ -457,6 +482,7 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequenc
     and ``se(C_l) = sd(cost)/sqrt(N_l)``.
     """
     names = _checked_names(names, statistics.n_qoi)
+    refuse_constant_columns(statistics, names)
     alpha, beta = [], []
     for q in range(statistics.n_qoi):
         qoi = names[q] if names is not None else f"QoI {q}"

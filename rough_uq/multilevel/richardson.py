@@ -193,6 +193,8 @@ def ratio_instability(
     names = _checked_names(names, means.shape[1])
     for q in range(means.shape[1]):
         m, se = means[:, q], errors[:, q]
+        if not np.any(m) and not np.any(se):
+            continue  # exact on these levels (every difference 0): nothing to extrapolate, no ratio to take
         tag = f" ({names[q]})" if names is not None else (f" (QoI {q})" if means.shape[1] > 1 else "")
         weak = np.flatnonzero(np.abs(m) < 2.0 * se)
         if weak.size:

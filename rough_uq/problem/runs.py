@@ -37,7 +37,7 @@ from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan, reachable_tolerance
 from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
-from rough_uq.multilevel.rates import Rates, fit_rates, stalled_bias, stalled_text
+from rough_uq.multilevel.rates import EXACT_RATE, Rates, fit_rates, stalled_bias, stalled_text
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
@@ -48,10 +48,10 @@ from rough_uq.multilevel.statistics import (
 from rough_uq.problem.batch import STAGE_SCREENING, LevelBatch
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter
 from rough_uq.problem.columns import split_column, tol_text, values_text
-from rough_uq.problem.sampler import measured_seconds_per_cost, modelled_cost, run_stage
+from rough_uq.problem.sampler import ContactModel, measured_seconds_per_cost, modelled_cost, run_stage
 
 __all__ = [
-    "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "mc", "mlmc", "refuse_constant_columns", "run_id", "screen",
+    "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "exact_column_caveats", "mc", "mlmc", "run_id", "screen",
     "screening_of_batches",
 ]
 
@@ -283,27 +283,6 @@ def screen(
     return screening_of_batches(problem, batches, n_not_converged=sampler.n_not_converged)
 
 
-def refuse_constant_columns(statistics: LevelStatistics, names: Sequence[str]) -> None:
-    """Raise :class:`~rough_uq.errors.EstimationError` where every column took one value in every screened sample.
-
-    Far past full contact (or before any) the area is 100 % (0 %) in every sample: there is nothing to estimate,
-    and more levels or samples would not change that. A column constant beside others that vary (a load curve
-    through full contact) is screened: its rates are :data:`~rough_uq.multilevel.rates.EXACT_RATE`.
-    """
-    constant = [name for q, name in enumerate(names) if _is_constant(statistics, q)]
-    if constant and len(constant) == len(names):
-        raise EstimationError(
-            f"{', '.join(constant)} took one value in every sample of every level (at this load, e.g. full contact "
-            "or none): there is nothing to estimate; change the load or the QoIs"
-        )
-
-
-def _is_constant(statistics: LevelStatistics, q: int) -> bool:
-    """Whether column ``q`` had the same value in every screening sample (no variance, no level differences)."""
-    values = np.concatenate([statistics.mean_fine[:, q], statistics.mean_coarse[statistics.levels > 0, q]])
-    return bool(np.all(statistics.var_fine[:, q] == 0) and np.all(values == values[0]))
-
-
 def screening_of_batches(
     problem: ContactProblem, batches: Sequence[LevelBatch], *, n_not_converged: int
 ) -> ScreeningResult:
@@ -318,18 +297,36 @@ def screening_of_batches(
         cost=[modelled_cost(problem.model, b.level, b.n_iter) for b in batches],
         levels=[b.level for b in batches],
     )
-    refuse_constant_columns(statistics, problem.columns)
     rates = fit_rates(statistics, names=problem.columns)
     return ScreeningResult(
         statistics=statistics,
         rates=rates,
         n_not_converged=n_not_converged,
         diagnostics=(
-            *diagnose(statistics, names=problem.columns), *_stalled_bias(problem.columns, rates, statistics)
+            *diagnose(statistics, names=problem.columns), *_stalled_bias(problem.columns, rates, statistics),
+            *exact_column_caveats(problem.model, problem.columns, rates, statistics),
         ),
         problem=problem,
         seconds_per_cost=measured_seconds_per_cost(batches, problem.model),
     )
+
+
+def exact_column_caveats(
+    model: ContactModel, names: Sequence[str], rates: Rates, statistics: LevelStatistics
+) -> list[str]:
+    """The caveat of columns exact on the screened levels (rates :data:`~rough_uq.multilevel.rates.EXACT_RATE`)
+    whose grids do not resolve the surface: a grid that truncates the spectrum sees a smoother surface, which
+    reaches full contact at a lower load, so a finer grid may differ where these did not ([] otherwise)."""
+    exact = [name for name, alpha in zip(names, rates.alpha) if alpha == EXACT_RATE]
+    n = model.grid(int(statistics.levels[-1]))
+    k_s = model.spectrum.k_s
+    if not exact or n > 2 * k_s:
+        return []
+    return [
+        f"{', '.join(exact)}: every level difference is 0 on the screened grids up to {n}^2, so they are planned "
+        f"with no bias and no level variance; these grids do not resolve the surface (k_s = {k_s:g} needs a grid "
+        f"above {2 * k_s:g}), and a finer grid may differ: screen finer levels to check"
+    ]
 
 
 def _refuse_stalled_bias(columns: Sequence[str], rates: Rates, statistics: LevelStatistics, advice: str = "") -> None:

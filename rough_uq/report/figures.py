@@ -46,6 +46,7 @@ from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
 from rough_uq.problem.columns import split_column
 from rough_uq.report.summary import is_rmse_measured, run_label, tol_text
+from rough_uq.multilevel.rates import EXACT_RATE
 from rough_uq.study.records import RunRecord, ScreeningRecord, is_bias_decaying
 
 __all__ = ["write_report_plots", "write_sample_figure"]
@@ -176,7 +177,9 @@ def _bias_panel(ax: Any, stats: Any, rates: Any, q: int, span: Sequence[int], up
     x, y = _log2_points(levels[upper], np.abs(np.asarray(stats.mean_diff, float))[upper, q])
     ax.plot(x, y, "o-", color="C0", label="$|E[Y_l]|$")
     alpha = rates.alpha[q]
-    if is_bias_decaying(alpha):
+    if alpha == EXACT_RATE:  # nothing to draw on a log axis: say why the panel is empty
+        ax.plot([], [], " ", label="exact: every level difference is 0 (no bias)")
+    elif is_bias_decaying(alpha):
         _fit_line(ax, span, rates.c_alpha[q], -alpha,
                   rf"$c_\alpha 2^{{-\alpha l}}$, $\alpha$ = {alpha:.2f} ± {rates.alpha_se[q]:.2f}", "C0")
     else:  # as the text report: a legend entry without a line
@@ -193,8 +196,11 @@ def _variance_panel(ax: Any, stats: Any, rates: Any, q: int, span: Sequence[int]
     x, y = _log2_points(levels, np.asarray(stats.var_fine, float)[:, q])
     ax.plot(x, y, "s:", color="C2", label=r"$\mathrm{Var}(Q_l)$")
     beta = rates.beta[q]
-    _fit_line(ax, span, rates.c_beta[q], -beta,
-              rf"$c_\beta 2^{{-\beta l}}$, $\beta$ = {beta:.2f} ± {rates.beta_se[q]:.2f}", "C1")
+    if beta == EXACT_RATE:
+        ax.plot([], [], " ", label="exact: every level difference is 0 (no level variance)")
+    else:
+        _fit_line(ax, span, rates.c_beta[q], -beta,
+                  rf"$c_\beta 2^{{-\beta l}}$, $\beta$ = {beta:.2f} ± {rates.beta_se[q]:.2f}", "C1")
     ax.set_title(f"{title}: variance")
     ax.set_ylabel(r"$\log_2$ variance")
 
@@ -262,7 +268,9 @@ def _exponent_note(drawn: _Drawn, complexities: Sequence[Any], *, is_mc: bool) -
         return f" ({c.mlmc_regime})"
     notes = []
     for name, c in zip(drawn.qoi_names, complexities):
-        if is_mc:
+        if c.mlmc_regime.startswith("exact"):  # no rates to speak of (records.complexity)
+            note = "exact"
+        elif is_mc:
             note = f"eps^-{c.mc_exponent:.2f}" if _positive(c.mc_exponent) else "not fitted"
         else:
             note = c.mlmc_regime.split(" (")[0] if c.mlmc_exponent is not None else "not fitted"

@@ -630,7 +630,7 @@ def _print_rates(console: Any, screening: ScreeningRecord, qoi_names: Sequence[s
         c = screening.complexity[q]
         alpha, beta = rates.alpha[q], rates.beta[q]
         alpha_text = _pm(alpha, rates.alpha_se[q]) if is_bias_decaying(alpha) else f"{_g(alpha, 2)} (no decay)"
-        if alpha >= EXACT_RATE:  # a stand-in, not a fit: the column is exact on the screened levels
+        if alpha == EXACT_RATE:  # a stand-in, not a fit: the column is exact on the screened levels
             console.print(f"  {name}: alpha, beta: none (every level difference is 0)")
         else:
             console.print(f"  {name}: alpha = {alpha_text}, beta = {_pm(beta, rates.beta_se[q])}")

@@ -97,7 +97,7 @@ from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
 from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target, initial_finest_level
 from rough_uq.problem.runs import (
-    MIN_SCREENED_LEVELS, ScreeningResult, refuse_constant_columns, run_id, screening_of_batches,
+    MIN_SCREENED_LEVELS, ScreeningResult, exact_column_caveats, run_id, screening_of_batches,
 )
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
@@ -109,7 +109,9 @@ from rough_uq.problem.sampler import (
     run_stage,
 )
 from rough_uq.multilevel.allocation import Plan, plan, reachable_tolerance
-from rough_uq.multilevel.rates import Rates, choose_coarsest_level, fit_rates, stalled_bias, stalled_text
+from rough_uq.multilevel.rates import (
+    Rates, choose_coarsest_level, fit_rates, refuse_constant_columns, stalled_bias, stalled_text,
+)
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
 from rough_uq.study.store import (
     StudyStore, is_hdf5_file, open_study, open_study_readonly, remove_abandoned, shard_refusal,
@@ -840,7 +842,8 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
     progress.stop()
     seconds_per_cost = measured_seconds_per_cost(batches, study.model)
     predictions, problems = _predictions(config, statistics, rates, seconds_per_cost)
-    checks = [Diagnostic(text) for text in (*diagnose(statistics, names=config.qoi_names), *problems)]
+    caveats = exact_column_caveats(study.model, config.qoi_names, rates, statistics)
+    checks = [Diagnostic(text) for text in (*diagnose(statistics, names=config.qoi_names), *problems, *caveats)]
     coarsest = choose_coarsest_level(statistics)
     record = ScreeningRecord(
         created=utc_timestamp(),
@@ -872,7 +875,7 @@ def _check_screenable(config: StudyConfig) -> None:
 
 
 def _screening_rates(statistics: LevelStatistics, qoi_names: Sequence[str]) -> Rates:
-    refuse_constant_columns(statistics, qoi_names)
+    refuse_constant_columns(statistics, qoi_names)  # nothing to estimate: more levels or samples would not help
     try:
         return fit_rates(statistics, names=qoi_names)
     except EstimationError as exc:

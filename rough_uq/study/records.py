@@ -137,12 +137,14 @@ def is_bias_decaying(alpha: float | None) -> bool:
 def complexity(alpha: float | None, beta: float | None, gamma: float | None) -> Complexity:
     """Cost exponents of MC and MLMC in ``1/eps`` from the rates of one QoI.
 
-    MC costs ``eps^-(2 + gamma/alpha)``; MLMC ``eps^-2`` if ``beta > gamma``,
+    A column exact on the screened levels (``alpha`` :data:`~rough_uq.multilevel.rates.EXACT_RATE`) has no
+    exponents: its regime says "exact". Otherwise MC costs ``eps^-(2 + gamma/alpha)``; MLMC ``eps^-2`` if
+    ``beta > gamma``,
     ``eps^-2 log(eps)^2`` if ``|beta - gamma| <`` :data:`RATE_TIE`, else
     ``eps^-(2 + (gamma - beta)/alpha)``. A bias rate at most :data:`MIN_ALPHA`
     (no measurable decay) gives no exponent.
     """
-    if alpha is not None and alpha >= EXACT_RATE:
+    if alpha == EXACT_RATE:  # the stand-in of rates.fit_rates for a column exact on every fitted level
         return Complexity(None, None, "exact: the same value on every screened grid (no bias, no level variance)")
     if not is_bias_decaying(alpha):
         return Complexity(None, None, "not fitted: the bias does not decay over the screened levels")
@@ -437,7 +439,8 @@ class RatesRecord:
         def capped(rate: Number | None) -> Number | None:
             return None if rate is None or not math.isfinite(rate) else min(rate, BIAS_RATE_CAP)
 
-        return tuple(complexity(capped(floored(a)), floored(b), floored(self.gamma))
+        return tuple(complexity(a, b, self.gamma) if a == EXACT_RATE  # exact: no rate to floor or cap
+                     else complexity(capped(floored(a)), floored(b), floored(self.gamma))
                      for a, b in zip(self.alpha, self.beta))
 
     def to_json(self) -> dict[str, Any]:
