@@ -148,6 +148,24 @@ def test_a_given_bias_above_its_share_of_tol_is_refused_before_any_sample(bias, 
     assert result.stop_reason == "tol_met"  # a bias within its share runs as before
 
 
+def test_a_bias_of_another_length_is_refused_before_any_sample():
+    # Two values for one column were refused only once the first batch had been drawn.
+    with pytest.raises(rough_uq.InvalidParameterError, match="^bias: .*a scalar or 1 values") as caught:
+        rough_uq.mc(_problem(), tol=0.5, level=1, bias=[0.1, 0.2], executor=_NoSampling())
+    assert caught.value.value == [0.1, 0.2]
+
+
+@pytest.mark.parametrize("call", ["thresholds", "tol by name"])
+def test_an_integer_beyond_the_float_range_is_refused_by_name(call):
+    # 10**400 escaped as an OverflowError from numpy / math.isfinite.
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        if call == "thresholds":
+            rough_uq.distribution(_problem(), tol=0.2, thresholds=[1.0, 10**400], executor=_NoSampling())
+        else:
+            rough_uq.mc(_problem(), tol={"contact_area": 10**400}, level=1, executor=_NoSampling())
+    assert caught.value.name == ("thresholds" if call == "thresholds" else "tol")
+
+
 @pytest.mark.parametrize("bandwidth", ["abc", "2", [1.0], True, np.array([1.0]), np.nan, -1.0])
 def test_a_bandwidth_that_is_not_a_positive_number_is_refused_by_name(bandwidth):
     # "abc" was a bare ValueError, [1.0] and "2" a TypeError, and True was taken as 1.

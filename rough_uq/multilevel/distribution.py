@@ -151,7 +151,7 @@ def check_cdf_tol(tol: object) -> float:
 def _check_thresholds(thresholds: object) -> np.ndarray:
     try:  # numbers only: strings ("10") were converted
         array = np.asarray(thresholds, dtype=float) if is_real_array(thresholds) else np.full(1, np.nan)
-    except (TypeError, ValueError):  # a ragged list
+    except (TypeError, ValueError, OverflowError):  # a ragged list, an integer beyond the float range
         array = np.full(1, np.nan)
     if array.ndim != 1 or array.size < 2 or not np.all(np.isfinite(array)) or np.any(np.diff(array) <= 0):
         raise InvalidParameterError(

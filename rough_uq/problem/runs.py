@@ -382,6 +382,14 @@ def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -
     raise InvalidParameterError("tol", tol, f"a number > 0 (for every QoI), {sequence}{by_name}")
 
 
+def _is_finite(value: float) -> bool:
+    """``math.isfinite`` that calls an integer beyond the float range (``10**400``) infinite, not an error."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
     """The values of ``tol`` in column order, by column or by QoI (as ``--tol NAME=EPS``).
 
@@ -400,7 +408,7 @@ def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
         every = f"one tolerance for every QoI column ({', '.join(columns)})"
         raise InvalidParameterError("tol", f"no tolerance for {', '.join(missing)}", every)
     for key in keys:
-        if not (is_real_number(tol[key]) and math.isfinite(tol[key]) and tol[key] > 0):
+        if not (is_real_number(tol[key]) and _is_finite(tol[key]) and tol[key] > 0):
             raise InvalidParameterError("tol", f"{key}: {tol[key]!r}", "a finite number > 0 for every key")
     return [tol[key] for key in keys]
 
@@ -718,8 +726,6 @@ def _refuse_given_bias(columns: tuple[str, ...], tol: np.ndarray, theta: float, 
     MC draws samples for the statistical share ``(1 - theta) tol^2`` of the tolerance and leaves ``theta tol^2``
     to the bias: with a larger bias the run ended ``"bias"``, not met, after drawing all of them in vain.
     """
-    if bias.size not in (1, tol.size):
-        return  # the driver refuses it by name
     bias = np.broadcast_to(bias.reshape(-1), tol.shape)
     over = bias**2 > theta * tol**2 * (1 + 1e-12)
     if not np.any(over):
@@ -831,8 +837,11 @@ def mc(
         kurtosis_limit=kurtosis_limit,
         qoi_names=problem.columns,
     )
-    if given_bias is not None:  # checked by iter_mc: finite numbers, one or one per column
-        _refuse_given_bias(problem.columns, tol, float(theta), np.abs(np.asarray(given_bias, dtype=float)))
+    if given_bias is not None:  # checked by iter_mc: finite numbers
+        values = np.abs(np.asarray(given_bias, dtype=float))
+        if values.size not in (1, problem.n_qoi):  # iter_mc would refuse it only after its first batch
+            raise InvalidParameterError("bias", given_bias, f"a scalar or {problem.n_qoi} values (one per QoI column)")
+        _refuse_given_bias(problem.columns, tol, float(theta), values)
     with _reporting(sampler.progress, f"mc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
