@@ -156,6 +156,19 @@ def test_files_that_hold_no_problem_are_refused_by_name(tmp_path):
         load_problem(other)
     with pytest.raises(StudyFileError, match="not a roughuq study file"):
         read_report(other)
-    with pytest.raises(StudyFileError, match="empty path"):
-        open_study_readonly("")
+    for read in (open_study_readonly, read_report, load_screening):
+        with pytest.raises(StudyFileError, match="empty path"):  # read_report("") said ". is not a file"
+            read("")
+    with pytest.raises(StudyFileError, match="is not a file"):
+        load_screening(tmp_path)  # a directory: it said "is a directory ... allowed: a YAML file"
 
+
+
+def test_a_screening_the_cli_refused_is_refused_naming_the_file(tmp_path):
+    config = write_config(tmp_path / "full.yaml", tiny_config(load={"relative": 1e6}))  # 100 % in every sample
+    study = tmp_path / "full.h5"
+    result = CliRunner().invoke(main, ["screen", str(config), "--out", str(study)])
+    assert result.exit_code == 2 and "took one value in every sample" in result.output
+    with pytest.raises(rough_uq.EstimationError, match=r"full\.h5: the stored screening gives no rates: contact_area "
+                                                       "took one value in every sample"):
+        load_screening(study)

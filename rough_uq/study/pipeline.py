@@ -363,12 +363,18 @@ def load_screening(path: str | os.PathLike[str]) -> ScreeningResult:
     Raises
     ------
     StudyFileError
-        For a file that is not a readable study file, or a study without a complete screening.
+        For an empty path and a file that is not a readable study file, or a study without a complete screening.
+    EstimationError
+        Where the rates cannot be fitted on the stored samples (``roughuq screen`` refused them), naming the file.
     """
-    problem = load_problem(path)
     with open_existing_study(path, writable=False) as study:
+        with naming_source(f"{os.fspath(path)} (stored config)"):
+            problem = problem_of_config(study.config)
         _, batches = screening_statistics(study)  # its table is computed again with the problem's model
-    return screening_of_batches(problem, batches, n_not_converged=count_not_converged(batches))
+    try:
+        return screening_of_batches(problem, batches, n_not_converged=count_not_converged(batches))
+    except EstimationError as error:
+        raise EstimationError(f"{os.fspath(path)}: the stored screening gives no rates: {error}") from None
 
 
 @dataclass
@@ -554,6 +560,9 @@ def open_existing_study(
     file whose stored ``qoi_names`` are not the result columns of its stored
     config is refused as damaged (:class:`StudyFileError`).
     """
+    if not os.fspath(path):  # Path("") is the working directory
+        raise StudyFileError("no study file named (got an empty path; allowed: the HDF5 file `roughuq screen` "
+                             "wrote)", Path())
     path = Path(path)
     if not path.exists():
         raise StudyFileError(
