@@ -117,9 +117,8 @@ from rough_uq.multilevel.statistics import LevelStatistics, _checked_names, _rea
 
 __all__ = [
     "BIAS_RATE_CAP",
-    "EXACT_RATE",
-    "refuse_constant_columns",
     "DROP_MARGIN",
+    "EXACT_RATE",
     "RATE_FLOOR",
     "RATIO_LOG2_TOLERANCE",
     "CoarsestLevel",
@@ -130,6 +129,7 @@ __all__ = [
     "estimated_bias",
     "fit_rates",
     "giles_prediction",
+    "refuse_constant_columns",
     "remaining_bias",
     "stalled_bias",
     "tail_rate",
