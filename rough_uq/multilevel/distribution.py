@@ -98,7 +98,6 @@ from rough_uq.errors import (
     EstimationWarning,
     InvalidParameterError,
     checked_real_array,
-    is_real_array,
     is_real_number,
     warn_at_caller,
 )
@@ -149,14 +148,10 @@ def check_cdf_tol(tol: object) -> float:
 
 
 def _check_thresholds(thresholds: object) -> np.ndarray:
-    try:  # numbers only: strings ("10") were converted
-        array = np.asarray(thresholds, dtype=float) if is_real_array(thresholds) else np.full(1, np.nan)
-    except (TypeError, ValueError, OverflowError):  # a ragged list, an integer beyond the float range
-        array = np.full(1, np.nan)
+    allowed = "a 1-d array of at least two finite, strictly increasing values"
+    array = checked_real_array("thresholds", thresholds, allowed)  # numbers only: strings ("10") were converted
     if array.ndim != 1 or array.size < 2 or not np.all(np.isfinite(array)) or np.any(np.diff(array) <= 0):
-        raise InvalidParameterError(
-            "thresholds", thresholds, "a 1-d array of at least two finite, strictly increasing values"
-        )
+        raise InvalidParameterError("thresholds", thresholds, allowed)
     return array
 
 

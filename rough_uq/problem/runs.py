@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import (
-    EstimationError, InvalidParameterError, checked_integer, is_integer, is_real_array, is_real_number, warn_at_caller,
+    EstimationError, InvalidParameterError, checked_integer, checked_real_array, is_integer, is_real_number,
+    warn_at_caller,
 )
 from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan, reachable_tolerance
@@ -368,18 +369,16 @@ def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -
     """
     if columns is not None and isinstance(tol, Mapping):
         tol = _tolerances_by_name(tol, columns)
-    try:  # numbers only: ["0.5"] and [True] were converted
-        values = np.asarray(tol, dtype=float) if is_real_array(tol) else None
-    except (TypeError, ValueError, OverflowError):  # a ragged sequence, an integer beyond the float range
-        values = None
-    if values is not None and (values.ndim == 0 or values.shape == (n_qoi,)):
-        values = np.broadcast_to(values.reshape(-1), (n_qoi,)).copy()
-        if np.all(np.isfinite(values)) and np.all(values > 0):
-            return values
     per_qoi = "one per QoI" if columns is None else f"one per QoI column: {', '.join(columns)}"
     sequence = f"a sequence of {n_qoi} ({per_qoi}, in its unit)" if n_qoi > 1 else f"a sequence of one ({per_qoi})"
     by_name = "" if columns is None else ", or a mapping of every QoI column to one"
-    raise InvalidParameterError("tol", tol, f"a number > 0 (for every QoI), {sequence}{by_name}")
+    allowed = f"a number > 0 (for every QoI), {sequence}{by_name}"
+    values = checked_real_array("tol", tol, allowed)  # numbers only: ["0.5"] and [True] were converted
+    if values.ndim == 0 or values.shape == (n_qoi,):
+        values = np.broadcast_to(values.reshape(-1), (n_qoi,)).copy()
+        if np.all(np.isfinite(values)) and np.all(values > 0):
+            return values
+    raise InvalidParameterError("tol", tol, allowed)
 
 
 def _is_finite(value: float) -> bool:
