@@ -114,7 +114,7 @@ from rough_uq.multilevel.rates import (
 )
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
 from rough_uq.study.store import (
-    StudyStore, is_hdf5_file, open_study, open_study_readonly, remove_abandoned, shard_refusal,
+    StudyStore, checked_study_path, is_hdf5_file, open_study, open_study_readonly, remove_abandoned, shard_refusal,
 )
 from rough_uq.physics.surface import SurfaceSpectrum
 
@@ -560,10 +560,7 @@ def open_existing_study(
     file whose stored ``qoi_names`` are not the result columns of its stored
     config is refused as damaged (:class:`StudyFileError`).
     """
-    if not os.fspath(path):  # Path("") is the working directory
-        raise StudyFileError("no study file named (got an empty path; allowed: the HDF5 file `roughuq screen` "
-                             "wrote)", Path())
-    path = Path(path)
+    path = checked_study_path(path)
     if not path.exists():
         raise StudyFileError(
             f"study file {str(path)!r} does not exist; create it with `roughuq screen CONFIG --out {path}`, or "

@@ -157,6 +157,7 @@ __all__ = [
     "open_study",
     "open_study_readonly",
     "is_hdf5_file",
+    "checked_study_path",
     "remove_abandoned",
     "shard_refusal",
 ]
@@ -820,6 +821,14 @@ def _is_marked_open(path: Path) -> bool:
     return len(head) == 12 and head[:8] == _HDF5_SIGNATURE and head[8] >= 2 and head[11] != 0
 
 
+def checked_study_path(path: str | os.PathLike[str]) -> Path:
+    """``path`` as a :class:`~pathlib.Path`, refusing an empty one (``Path("")`` is the working directory)."""
+    if not os.fspath(path):
+        raise StudyFileError("no study file named (got an empty path; allowed: the HDF5 file `roughuq screen` wrote)",
+                             Path())
+    return Path(os.fspath(path))
+
+
 def is_hdf5_file(path: str | os.PathLike[str]) -> bool:
     """Whether ``path`` is an existing, readable HDF5 file (a study file or another); False for anything else."""
     try:
@@ -1396,9 +1405,6 @@ def open_study_readonly(path: str | os.PathLike[str]) -> StudyFile:
     :meth:`StudyFile.close`. Raises :class:`StudyFileError` like
     :func:`open_study`.
     """
-    if not os.fspath(path):
-        raise StudyFileError("no study file named (got an empty path; allowed: the HDF5 file `roughuq screen` wrote)",
-                             Path())
-    path = Path(os.fspath(path))
+    path = checked_study_path(path)
     header = _read_header(path)
     return StudyFile(path, header, lock_fd=None)
