@@ -91,8 +91,8 @@ from rough_uq.study.records import (
     utc_timestamp,
 )
 from rough_uq.problem.columns import tol_text, values_text
-from rough_uq.problem.contact import ContactProblem, checked_mean_pressures
-from rough_uq.problem.loads import QOI_UNITS, AbsoluteLoad, RelativeLoad, qoi_scale
+from rough_uq.problem.contact import ContactProblem
+from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
 from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target, initial_finest_level
@@ -244,43 +244,12 @@ def naming_source(source: str | None) -> Iterator[None]:
 
 
 def _model(config: StudyConfig) -> ContactModel:
-    """:func:`build_model` without a source: its refusals name only the config field."""
-    surface = config.surface
-    spectrum = _spectrum(surface)
-    e_star = config.material.e_star
-    kind = RelativeLoad if config.load.kind == "relative" else AbsoluteLoad
-    loads = tuple(kind(value) for value in config.load.values)
-    finest = config.grid.n_at(config.grid.max_level)
-    pressures = checked_mean_pressures(loads, spectrum=spectrum, e_star=e_star, finest=finest)
-    scales = []
-    connectivity, critical_pressure, area_estimator = 4, None, "corrected"
-    for name, settings in config.qoi.items():
-        scale = qoi_scale(name, getattr(settings, "unit", QOI_UNITS[name][0]), system_size=surface.system_size)
-        if name == "clusters":
-            connectivity = settings.connectivity
-        if name == "area_above":
-            critical_pressure = settings.critical_pressure
-        if name == "contact_area":
-            area_estimator = settings.estimator
-        scales.append(scale)
-    return ContactModel(
-        spectrum=spectrum,
-        coarsest=config.grid.coarsest,
-        projection=config.grid.projection,
-        e_star=e_star,
-        mean_pressure=pressures[0],
-        mean_pressures=pressures if len(pressures) > 1 else (),
-        qoi_names=tuple(config.qoi),
-        qoi_scales=tuple(scales),
-        seed=config.seed,
-        tol=config.solver.tol,
-        max_iter=config.solver.max_iter,
-        warm_start=config.solver.warm_start,
-        threads=config.solver.threads,
-        connectivity=connectivity,
-        critical_pressure=critical_pressure,
-        area_estimator=area_estimator,
-    )
+    """:func:`build_model` without a source: its refusals name only the config field.
+
+    The model of :func:`problem_of_config`'s problem: the CLI's samples and the Python API's are built by one
+    mapping of the config.
+    """
+    return problem_of_config(config).model
 
 
 def problem_of_config(config: StudyConfig) -> ContactProblem:
