@@ -326,12 +326,15 @@ class EstimationResult:
     estimate : float or ndarray
         Estimate of ``E[Q]``.
     stat_error : float or ndarray
-        Statistical (standard) error, ``sqrt(sum_l V_l / N_l)``.
+        Statistical (standard) error, ``sqrt(sum_l V_l / N_l)``, with ``V_l`` pooled from the run's samples and
+        the screening's where the screening sampled level ``l`` (so for MC not always ``sqrt(variance / N)``).
     bias_estimate : float or ndarray
         Estimated bias: the remaining bias of the finest level (MLMC), the
         ``bias`` given to :func:`mc`, or 0 if unknown (``is_bias_estimated``).
     variance : float or ndarray
-        Estimate of ``Var(Q)`` from the same samples.
+        Estimate of ``Var(Q)`` from the run's own samples: for MLMC the telescoped sum of the levels' terms
+        (unbiased, but not bounded below: with few samples per level it can be negative), for MC the sample
+        variance. :func:`rough_uq.variance` estimates ``Var(Q)`` to a tolerance.
     variance_error : float or ndarray
         Standard error of ``variance``.
     n_samples : ndarray of int, shape (n_levels,)
