@@ -1156,6 +1156,7 @@ def test_report_of_an_interrupted_screening_says_it_is_not_finished(tmp_path, mo
     assert "samples stored: screening: L0 8" in report
     assert "screening not finished (stopped or refused before its record): run `roughuq screen CONFIG --out " \
            "results.h5` to complete it" in report
+    assert "one it refused, e.g. with nothing to estimate, says why again" in report  # not an endless loop of advice
     assert "no screening yet" not in report
     run("screen", str(config), "--workers", "1", "--quiet")
     assert "screened levels 0..2, 8 samples each" in run("report", "results.h5").stdout

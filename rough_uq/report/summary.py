@@ -815,7 +815,8 @@ def render_report(report: dict[str, Any], console: Any) -> None:
         console.print("screening in progress (another process holds the study)")
     elif "screening" in report["samples"]:  # samples but no record: stopped, or refused, before it finished
         console.print(f"screening not finished (stopped or refused before its record): run `roughuq screen CONFIG"
-                      f"{_out_option(report['path'])}` to complete it (its stored samples are kept)")
+                      f"{_out_option(report['path'])}` to complete it (its stored samples are kept; one it "
+                      "refused, e.g. with nothing to estimate, says why again)")
     else:
         # Runs of variance, cdf and mc --level need none: say for which runs it is missing.
         console.print(f"no screening yet (mlmc and mc --tol need one: run `roughuq screen CONFIG"
