@@ -176,8 +176,40 @@ def test_load_curve_warm_starts_that_are_not_one_field_per_load_are_refused_by_n
 @pytest.mark.parametrize("names", [None, 5, 0.5])
 def test_qoi_names_that_are_not_names_are_refused_by_name(names) -> None:
     # A bare TypeError: 'NoneType' object is not iterable.
-    with pytest.raises(InvalidParameterError, match=r"^names: got .*allowed: a name or an iterable of names"):
+    with pytest.raises(InvalidParameterError, match=r"^names: got .*allowed: a name or a list of names"):
         rough_uq.evaluate_qoi(names, pressure=np.ones((4, 4)))
+
+
+@pytest.mark.parametrize("kind", [set, frozenset])
+def test_qoi_names_in_a_set_are_refused_since_their_order_changes_between_processes(kind) -> None:
+    # A set's order follows string hashing, randomised per process: the columns (and a list of tolerances meant for
+    # them, and the samples' random stage) changed from one process to the next.
+    names = kind(["contact_area", "clusters", "max_pressure"])
+    with pytest.raises(InvalidParameterError, match=r"^qoi: got .*in a list or tuple \(a set has no fixed order\)"):
+        _problem(qoi=names)
+    with pytest.raises(InvalidParameterError, match=r"^names: got .*a set has no fixed order"):
+        rough_uq.evaluate_qoi(names, pressure=np.ones((4, 4)))
+
+
+def test_qoi_names_from_a_numpy_array_are_plain_strings() -> None:
+    # np.str_ names ended up in the columns (and their repr in messages) as np.str_('contact_area').
+    problem = _problem(qoi=np.array(["contact_area", "clusters"]))
+    assert problem.qoi == ("contact_area", "clusters") and all(type(name) is str for name in problem.qoi)
+
+
+@pytest.mark.parametrize("connectivity", [8.0, 4.0, np.float64(8.0)])
+def test_a_connectivity_given_as_a_float_is_refused_like_other_integer_settings(connectivity) -> None:
+    # 8.0 == 8 passed the membership test, where max_iter=2.0 and the grids refuse floats.
+    with pytest.raises(InvalidParameterError) as caught:
+        _problem(qoi=["clusters"], connectivity=connectivity)
+    assert caught.value.name == "connectivity"
+    contact = np.eye(4, dtype=bool)
+    for call in (lambda: rough_uq.count_clusters(contact, connectivity=connectivity),
+                 lambda: rough_uq.evaluate_qoi(["clusters"], pressure=np.ones((4, 4)), connectivity=connectivity)):
+        with pytest.raises(InvalidParameterError) as caught:
+            call()
+        assert caught.value.name == "connectivity"
+    assert _problem(qoi=["clusters"], connectivity=np.int64(8)).connectivity == 8
 
 
 def test_a_gap_of_another_shape_than_the_pressure_is_refused_by_name() -> None:

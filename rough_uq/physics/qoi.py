@@ -53,7 +53,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from rough_uq.errors import InvalidParameterError, is_real_number
+from rough_uq.errors import InvalidParameterError, is_integer, is_real_number
 
 __all__ = [
     "QOI_NAMES",
@@ -140,8 +140,13 @@ def _contact_map(name: str, contact: object) -> np.ndarray:
     return _grid_shaped(name, array)
 
 
+def _is_setting(value: object, allowed: tuple) -> bool:
+    """``value`` is one of ``allowed``: a string, or an integer (not a bool, not a float equal to one, like 8.0)."""
+    return (isinstance(value, str) or is_integer(value)) and value in allowed
+
+
 def _check_cluster_count(connectivity: object) -> object:
-    if isinstance(connectivity, bool) or connectivity not in CLUSTER_COUNTS:
+    if not _is_setting(connectivity, CLUSTER_COUNTS):
         raise InvalidParameterError("connectivity", connectivity, "4, 8 or 'mean'")
     return connectivity
 
@@ -154,7 +159,7 @@ def cluster_count(contact: np.ndarray, connectivity: int | str) -> float:
 
 
 def _structure(connectivity: object) -> np.ndarray:
-    if isinstance(connectivity, bool) or connectivity not in CONNECTIVITIES:
+    if not _is_setting(connectivity, CONNECTIVITIES):
         raise InvalidParameterError("connectivity", connectivity, "4 or 8")
     if connectivity == 4:
         return ndimage.generate_binary_structure(2, 1)
@@ -383,15 +388,30 @@ def count_clusters(contact: np.ndarray, *, connectivity: int = 4) -> int:
     return _periodic_components(contact, connectivity)[2]
 
 
-def _names(names: object) -> tuple[str, ...]:
-    """``names`` of :func:`evaluate_qoi` as a tuple, or :class:`InvalidParameterError` naming ``names``."""
+def ordered_names(label: str, names: object, allowed: str) -> tuple[str, ...]:
+    """A name or an ordered collection of names as a tuple of plain ``str``; refused naming ``label``.
+
+    A set is refused: its order changes from one process to the next (string
+    hashing is randomised), and the order of the names is the order of the
+    values, of the result's columns and of a list of tolerances. Whether each
+    name is allowed is the caller's check.
+    """
     if isinstance(names, str):
-        return (names,)
+        return (str(names),)
+    if isinstance(names, (set, frozenset)):
+        raise InvalidParameterError(label, names, allowed + " in a list or tuple (a set has no fixed order)")
     try:
         names = tuple(names)  # type: ignore[arg-type]
     except TypeError:
-        allowed = "a name or an iterable of names from " + ", ".join(QOI_NAMES)
-        raise InvalidParameterError("names", names, allowed) from None
+        raise InvalidParameterError(label, names, allowed) from None
+    if not all(isinstance(name, str) for name in names):
+        raise InvalidParameterError(label, names, allowed)
+    return tuple(str(name) for name in names)
+
+
+def _names(names: object) -> tuple[str, ...]:
+    """``names`` of :func:`evaluate_qoi` as a tuple, or :class:`InvalidParameterError` naming ``names``."""
+    names = ordered_names("names", names, "a name or a list of names from " + ", ".join(QOI_NAMES))
     for name in names:
         if name not in QOI_NAMES:
             raise InvalidParameterError("names", name, "one of " + ", ".join(QOI_NAMES))
@@ -428,7 +448,7 @@ def evaluate_qoi(
 
     Parameters
     ----------
-    names : iterable of str, or str
+    names : str or ordered iterable of str (a list, a tuple; not a set)
         Names from :data:`QOI_NAMES`: ``"contact_area"`` (fraction, by
         ``area_estimator``),
         ``"clusters"`` (absolute count), ``"mean_gap"`` (unit of ``L``),
@@ -454,8 +474,8 @@ def evaluate_qoi(
     Raises
     ------
     InvalidParameterError
-        An unknown name or ``names`` that are not an iterable (``name="names"``,
-        listing the allowed ones), a missing ``gap`` / ``critical_pressure``, a
+        An unknown name, or ``names`` that are not an ordered iterable of
+        strings (``name="names"``, listing the allowed ones), a missing ``gap`` / ``critical_pressure``, a
         ``gap`` of another shape than ``pressure``, a bad ``connectivity`` or
         ``area_estimator`` (``name="estimator"``), a field that is not a
         non-empty 2-d array, a non-finite field, or a negative pressure.

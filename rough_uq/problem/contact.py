@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_number
-from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES
+from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES, ordered_names
 from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
 from rough_uq.problem.batch import LevelBatch
@@ -200,12 +200,8 @@ def _power_of_ten(exponent: float) -> str:
 
 
 def _qoi_names(qoi: object) -> tuple[str, ...]:
-    names = (qoi,) if isinstance(qoi, str) else qoi
     allowed = "a name or a list of distinct names from " + ", ".join(QOI_NAMES)
-    try:
-        names = tuple(names)
-    except TypeError:
-        raise InvalidParameterError("qoi", qoi, allowed) from None
+    names = ordered_names("qoi", qoi, allowed)
     if not names or any(name not in QOI_NAMES for name in names) or len(set(names)) != len(names):
         raise InvalidParameterError("qoi", qoi, allowed)
     return names
@@ -228,7 +224,8 @@ def _units(units: object, names: tuple[str, ...]) -> tuple[tuple[str, str], ...]
 
 
 def _choice(name: str, value: object, allowed: tuple) -> object:
-    if isinstance(value, bool) or value not in allowed:
+    # 8.0 == 8: a number must be an integer to stand for one of the allowed integers.
+    if isinstance(value, bool) or (is_real_number(value) and not is_integer(value)) or value not in allowed:
         raise InvalidParameterError(name, value, " or ".join(repr(a) for a in allowed))
     return value
 
@@ -253,7 +250,9 @@ class ContactProblem:
         ``p_mean L / (E* rms_height)`` in about ``[2e-298, 1e15]``).
     qoi : str or sequence of str
         Quantities of interest, in column order of every result (names of
-        :data:`~rough_uq.physics.qoi.QOI_NAMES`). Stored as a tuple.
+        :data:`~rough_uq.physics.qoi.QOI_NAMES`). Stored as a tuple. A set
+        is refused: its order, and so the columns', would change from one
+        process to the next.
     coarsest : int
         Nodes per side ``n_0`` of level 0, even, ``> 2 k_r`` (the coarsest
         grid resolves the roll-off). Level ``l`` has ``n_0 2^l`` nodes per side.
