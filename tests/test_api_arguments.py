@@ -88,6 +88,19 @@ def test_a_screening_or_rates_of_other_qois_are_refused_by_name_before_sampling(
         assert caught.value.name == name and str(caught.value).endswith("it has 2 QoIs, the problem 1")
 
 
+@pytest.mark.parametrize("richardson", ["no", 0, None, "False"])
+def test_a_richardson_flag_that_is_not_a_bool_is_refused_by_name_also_by_the_forecast(two_qoi_screening, richardson):
+    # forecast(richardson="no") read the flag as True (bool("no")), where mlmc refused it.
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        two_qoi_screening.forecast(2.0, richardson=richardson)
+    assert caught.value.name == "richardson"
+    problem = _problem(qoi=("contact_area", "mean_gap"))
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.mlmc(problem, tol=2.0, screening=two_qoi_screening, richardson=richardson, executor=_NoSampling())
+    assert caught.value.name == "richardson"
+    assert repr(two_qoi_screening.forecast(2.0, richardson=np.bool_(False))) == repr(two_qoi_screening.forecast(2.0))
+
+
 def test_a_min_finest_level_above_max_level_is_refused_naming_min_finest_level():
     # Said "max_level: got 2; allowed: an integer >= 3": the problem's max_level, not an argument of the call.
     problem, none = _problem(), _NoSampling()

@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import (
-    EstimationError, InvalidParameterError, checked_integer, checked_real_array, is_integer, is_real_number,
-    warn_at_caller,
+    EstimationError, InvalidParameterError, checked_bool, checked_integer, checked_real_array, is_integer,
+    is_real_number, warn_at_caller,
 )
 from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan, reachable_tolerance
@@ -134,10 +134,11 @@ class ScreeningResult:
             raise InvalidParameterError("problem", None, "the screening's ContactProblem (a result of screen())")
         tol = _tolerances(tol, problem.n_qoi, problem.columns)
         theta = _check_fraction("theta", theta)
+        richardson = checked_bool("richardson", richardson)  # bool("no") is True
         _refuse_stalled_bias(problem.columns, self.rates, self.statistics)
         planned = drivers.planning_rates(self.statistics)
         initial = drivers.starting_plan(tol=tol, rates=planned, statistics=self.statistics, theta=theta,
-                                        max_level=problem.max_level, richardson=bool(richardson))
+                                        max_level=problem.max_level, richardson=richardson)
         counts, costs = drivers.starting_forecast(initial, planned)
         cost = float(np.dot(counts, costs))
         mc_cost = mc_run_cost(_screened_mc_plan(problem, self, self.statistics, tol, theta))
@@ -609,6 +610,7 @@ def mlmc(
     """
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
+    richardson = checked_bool("richardson", richardson)
     max_samples = _max_samples(max_samples)
     statistics = _screening_of(problem, screening)
     if isinstance(rates, Rates):
@@ -620,7 +622,7 @@ def mlmc(
         starting_rates = rates if isinstance(rates, Rates) else drivers.planning_rates(statistics)
         _refuse_unreachable(problem, tol, drivers.starting_plan(
             tol=tol, rates=starting_rates, statistics=statistics, theta=theta, max_level=problem.max_level,
-            richardson=bool(richardson)), statistics, method="mlmc")
+            richardson=richardson), statistics, method="mlmc")
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor, progress=progress)
     events = drivers.iter_mlmc(
