@@ -47,9 +47,18 @@ def is_real_number(value: object) -> bool:
     """A real number (numpy's too), not a boolean (``True`` would pass for 1) nor a string (``"0.5"``).
 
     The one test of "is this a number" behind the :class:`InvalidParameterError`
-    checks of every layer: strings and booleans are refused, never converted.
+    checks of every layer: strings and booleans are refused, never converted. So
+    is an integer beyond the range of a float (``10**400``): every check and
+    computation after this test works in floats.
     """
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):
+        return False
+    if isinstance(value, numbers.Integral):
+        try:
+            float(value)
+        except OverflowError:
+            return False
+    return True
 
 
 def is_integer(value: object) -> bool:
@@ -77,7 +86,16 @@ class InvalidParameterError(RoughUQError, ValueError):
         self.name = name
         self.value = value
         self.allowed = allowed
-        super().__init__(f"{name}: got {value!r}; allowed: {allowed}" if text is None else text)
+        super().__init__(f"{name}: got {_shown(value)}; allowed: {allowed}" if text is None else text)
+
+
+def _shown(value: object) -> str:
+    """``repr(value)``, but an integer of hundreds of digits as its size (``10**400`` was printed whole)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        digits = len(str(abs(value)))
+        if digits > 30:
+            return f"{'a negative' if value < 0 else 'an'} integer of {digits} digits"
+    return repr(value)
 
 
 def checked_integer(name: str, value: object, minimum: int) -> int:

@@ -219,3 +219,40 @@ def test_a_gap_of_another_shape_than_the_pressure_is_refused_by_name() -> None:
     with pytest.raises(InvalidParameterError, match=r"^gap: got 'an array of shape \(3, 4\)'; allowed: .*\(4, 4\)"):
         rough_uq.evaluate_qoi(["mean_gap"], pressure=pressure, gap=gap[:3])
     assert rough_uq.evaluate_qoi(("mean_gap",), pressure=pressure, gap=gap)[0] == np.mean(gap)
+
+
+_HUGE = 10**400  # an integer no float holds: float(_HUGE) raises OverflowError
+_SPECTRUM = dict(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+
+
+@pytest.mark.parametrize(
+    ("name", "call"),
+    [
+        *[(field, lambda field=field: rough_uq.SurfaceSpectrum(**{**_SPECTRUM, field: _HUGE})) for field in _SPECTRUM],
+        ("load.relative", lambda: rough_uq.RelativeLoad(_HUGE)),
+        ("load.absolute", lambda: rough_uq.AbsoluteLoad(-_HUGE)),
+        ("mean_pressure", lambda: rough_uq.solve_contact(np.eye(8), system_size=1.0, mean_pressure=_HUGE)),
+        ("e_star", lambda: rough_uq.solve_contact(np.eye(8), system_size=1.0, mean_pressure=0.1, e_star=_HUGE)),
+        ("mean_pressures", lambda: rough_uq.solve_load_curve(np.eye(8), system_size=1.0, mean_pressures=[0.1, _HUGE])),
+        ("critical_pressure", lambda: rough_uq.evaluate_qoi(["area_above"], pressure=np.ones((4, 4)),
+                                                             critical_pressure=_HUGE)),
+        ("e_star", lambda: _problem(e_star=_HUGE)),
+        ("critical_pressure", lambda: _problem(qoi=["area_above"], critical_pressure=_HUGE)),
+        ("coarsest", lambda: _problem(coarsest=_HUGE)),
+    ],
+)
+def test_an_integer_beyond_the_float_range_is_refused_by_name_not_with_an_overflow(name, call) -> None:
+    # A bare OverflowError ("int too large to convert to float") came out of each of these.
+    with pytest.raises(InvalidParameterError) as caught:
+        call()
+    assert caught.value.name == name
+    assert "integer of 401 digits" in str(caught.value) or name == "mean_pressures"
+    assert len(str(caught.value)) < 400 or name == "mean_pressures"
+
+
+def test_a_two_dimensional_array_of_loads_is_refused_not_flattened() -> None:
+    # np.array([[0.1, 0.2], [0.3, 0.4]]) was solved as four loads.
+    with pytest.raises(InvalidParameterError) as caught:
+        rough_uq.solve_load_curve(np.eye(8), system_size=1.0, mean_pressures=np.array([[0.1, 0.2], [0.3, 0.4]]))
+    assert caught.value.name == "mean_pressures"
+    assert rough_uq.solve_load_curve(np.eye(8), system_size=1.0, mean_pressures=np.array([0.1, 0.2])).n_loads == 2

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, checked_integer
+from rough_uq.errors import InvalidParameterError, checked_integer, is_real_number
 from rough_uq.physics.solver import ContactSolution, solve_contact
 
 __all__ = ["LoadCurveSolution", "solve_load_curve", "check_mean_pressures"]
@@ -92,17 +92,17 @@ class LoadCurveSolution:
 def check_mean_pressures(mean_pressures: object) -> np.ndarray:
     """``mean_pressures`` as a 1-D float64 array, or :class:`InvalidParameterError` naming ``mean_pressures``.
 
-    Accepted: a number or a non-empty sequence of finite numbers > 0
-    (duplicates allowed).
+    Accepted: a number or a non-empty sequence (or 1-D array) of finite
+    numbers > 0 (duplicates allowed). A 2-D array is refused, not flattened
+    into one longer list of loads.
     """
     allowed = "a non-empty sequence of finite numbers > 0 (unit of E*)"
     values = (mean_pressures,) if isinstance(mean_pressures, numbers.Real) else mean_pressures
-    if isinstance(values, (str, bytes)) or not isinstance(values, (Sequence, np.ndarray)):
+    if isinstance(values, (str, bytes)) or not isinstance(values, (Sequence, np.ndarray)) or (isinstance(values, np.ndarray) and values.ndim > 1):
         raise InvalidParameterError("mean_pressures", mean_pressures, allowed)
     values = list(values.reshape(-1)) if isinstance(values, np.ndarray) else list(values)
     is_bad = [
-        isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) or not (math.isfinite(v) and v > 0)
-        for v in values
+        isinstance(v, np.bool_) or not is_real_number(v) or not (math.isfinite(v) and v > 0) for v in values
     ]
     if not values or any(is_bad):
         raise InvalidParameterError("mean_pressures", mean_pressures, allowed)

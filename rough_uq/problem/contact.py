@@ -341,9 +341,10 @@ class ContactProblem:
         set_ = object.__setattr__
         k_r, k_s = self.spectrum.k_r, self.spectrum.k_s
         n_0 = checked_integer("coarsest", self.coarsest, 4)
-        if n_0 % 2 or not k_r < n_0 / 2:
+        if n_0 % 2 or not 2 * k_r < n_0 <= MAX_GRID:  # not n_0 / 2: an integer such as 10**400 has no float
             raise InvalidParameterError(
-                "coarsest", self.coarsest, f"an even integer >= 4 and > 2 k_r = {2 * k_r:g} (Nyquist)"
+                "coarsest", self.coarsest,
+                f"an even integer >= 4, > 2 k_r = {2 * k_r:g} (Nyquist) and <= {MAX_GRID} (MAX_GRID)",
             )
         set_(self, "coarsest", n_0)
         max_level = checked_integer("max_level", self.max_level, 0)

@@ -34,10 +34,9 @@ same units. :func:`qoi_scale` is the factor from the raw value of
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass
 
-from rough_uq.errors import InvalidParameterError
+from rough_uq.errors import InvalidParameterError, is_real_number
 from rough_uq.physics.surface import SurfaceSpectrum
 from rough_uq.problem.columns import LOAD_SEPARATOR, column_name, load_label
 
@@ -94,7 +93,7 @@ def qoi_scale(name: str, unit: str, *, system_size: float) -> float:
 
 def positive(name: str, value: object) -> float:
     """``value`` as a float, or :class:`InvalidParameterError` naming ``name`` unless finite and > 0."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value) and value > 0):
+    if not is_real_number(value) or not (math.isfinite(value) and value > 0):
         raise InvalidParameterError(name, value, "a finite number > 0")
     return float(value)
 
