@@ -1092,7 +1092,7 @@ def _show_finished_run(study_path: str, run_id: str, outcome: Any, *, as_json: b
 
 def _what_to_change(outcome: Any, option: str = "--tol") -> str:
     """What to change so that a run whose ``outcome`` missed its tolerance meets it (``option`` is its tolerance's)."""
-    from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
+    from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
     from rough_uq.report.summary import is_bias_in_noise
 
     reason = outcome.stop_reason
@@ -1109,6 +1109,9 @@ def _what_to_change(outcome: Any, option: str = "--tol") -> str:
     if reason == THRESHOLDS_MISS_SAMPLES:
         return ("the thresholds miss the samples of a level (see the warning); put thresholds among the values "
                 "(extend --thresholds or the config's thresholds) or raise estimation.initial_samples")
+    if reason == BANDWIDTH_TOO_WIDE:
+        return ("the smoothing bandwidth, twice the thresholds' spacing, exceeds the spread of the values (see the "
+                "warning); give finer thresholds (--thresholds or the config's thresholds)")
     if reason == "max_level" and is_bias_in_noise(outcome):
         return ("the bias estimate rests on level terms within their noise (see the warning); raise "
                 f"estimation.initial_samples to measure it, loosen {option}, or use a study with a larger "

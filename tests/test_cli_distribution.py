@@ -92,3 +92,21 @@ def test_the_report_of_such_a_run_shows_no_error_it_did_not_measure(tmp_path, mo
     _cdf_figure([shown], "contact_area", "%", tmp_path / "cdf.png")
     (ax,) = captured["figure"].axes
     assert not ax.containers  # the quantile as a point, without an error bar
+
+
+def test_a_cdf_run_on_thresholds_far_coarser_than_the_spread_is_not_met_and_says_to_refine_them(tmp_path, monkeypatch):
+    # --thresholds 0:100:3 (spacing 50, the default bandwidth 100, 25 on level 2) against contact areas within a
+    # few percent of each other: the smoothed CDF was about 1/2 everywhere and the run exited 0, "tolerance met".
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    result = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.1", "--thresholds", "0:100:3",
+                                       "--workers", "1", "--json", "-q"])
+    assert result.exit_code == 3, (result.output, result.exception)
+    shown = json.loads(result.stdout)
+    assert not shown["tol_met"] and shown["stop_reason"] == "bandwidth_too_wide"
+    assert "give finer thresholds (--thresholds or the config's thresholds)" in result.stderr
+    (message,) = [text for text in shown["warnings"] if text.startswith("cdf: ")]
+    assert message.startswith(f"cdf: the smoothing bandwidth on the finest level {shown['levels'][-1]}, ")
+    report = CliRunner().invoke(main, ["report", str(tmp_path / "results.h5")], terminal_width=200)
+    assert report.exit_code == 0, (report.output, report.exception)
+    assert "the smoothing bandwidth exceeds the spread of the values; the bias is not estimated" in report.stdout

@@ -254,6 +254,43 @@ def test_a_level_is_missed_where_its_values_lie_beyond_the_bandwidth_on_one_side
     assert not result.tol_met and result.stop_reason == "thresholds_miss_samples"
 
 
+@pytest.mark.parametrize("bandwidth", [1e3, 1e4])
+def test_a_bandwidth_far_wider_than_the_values_does_not_claim_the_tolerance(bandwidth):
+    # Every value in the linear part of the smoothed step: the smoothed CDF was about 1/2 at every threshold and
+    # changed little between levels, so the decay of the level terms put the bias near 0 and the run reported
+    # its tolerance met for a CDF some 0.45 off the truth.
+    problem = PerturbedLimit(seed=1)
+    s = grid(problem, 21)
+    with pytest.warns(EstimationWarning) as caught:
+        result = mlmc_cdf(problem, thresholds=s, tol=0.05, bandwidth=bandwidth)
+    assert np.max(np.abs(result.cdf - problem.limit.cdf(s))) > 0.3  # what was reported as within 0.05
+    assert result.stop_reason == result.target.stop_reason == "bandwidth_too_wide"
+    assert not result.tol_met and not result.is_bias_estimated and result.bias == 0.0
+    finest = level_bandwidth(int(result.levels[-1]), bandwidth=bandwidth)
+    (message,) = [str(w.message) for w in caught]
+    assert message.startswith(f"cdf: the smoothing bandwidth on the finest level {result.levels[-1]}, {finest:.4g}, "
+                              "exceeds the standard deviation of its values, ")
+    assert "give a bandwidth below the spread of the values" in message
+    # Some 30 times the standard deviation is fine: the run refines until its bias estimate is within its share.
+    wide = mlmc_cdf(problem, thresholds=s, tol=0.05, bandwidth=30.0)  # warnings are errors
+    assert wide.tol_met and wide.bandwidths[-1] < 1.0 and np.max(np.abs(wide.cdf - problem.limit.cdf(s))) < 0.05
+
+
+@pytest.mark.parametrize(("bandwidth", "is_too_wide"), [(2.5, False), (2.6, True)])
+def test_the_finest_bandwidth_is_compared_with_the_standard_deviation_of_the_finest_values(bandwidth, is_too_wide):
+    # Level 1's values 0, 1, 2, 3: standard deviation sqrt(5/3) = 1.291; delta_1 = bandwidth / 2.
+    fine, coarse = [np.array([0.5, 1.5, 2.5]), np.array([0.0, 1.0, 2.0, 3.0])], [np.zeros(3), np.full(4, 1.5)]
+    options = {"thresholds": [0.0, 1.0, 2.0, 3.0], "bandwidth": bandwidth, "tol": 0.9}
+    if not is_too_wide:
+        result = cdf_from_samples(fine=fine, coarse=coarse, **options)  # warnings are errors
+        assert result.stop_reason == "given" and result.is_bias_estimated
+        return
+    with pytest.warns(EstimationWarning, match=r"^cdf: the smoothing bandwidth on the finest level 1, 1\.3, exceeds "
+                                                r"the standard deviation of its values, 1\.291: "):
+        result = cdf_from_samples(fine=fine, coarse=coarse, **options)
+    assert result.stop_reason == "bandwidth_too_wide" and not result.tol_met
+
+
 # --------------------------------------------------------------------------
 # Bad input
 # --------------------------------------------------------------------------

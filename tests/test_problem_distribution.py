@@ -129,6 +129,22 @@ def test_a_distribution_whose_thresholds_miss_the_contact_area_does_not_meet_its
     assert partial.missed_levels.size == 0 and partial.stop_reason != "thresholds_miss_samples"
 
 
+def test_a_distribution_with_a_bandwidth_far_wider_than_the_contact_areas_does_not_meet_its_tolerance():
+    # bandwidth=1e4 on a contact area in percent (a unit mix-up): the CDF was 0.497-0.504 over 12-30 %, reported
+    # with an RMSE of 0.004 and tol_met=True, where the areas run from some 25 to 45 %.
+    with pytest.warns(rough_uq.EstimationWarning) as caught:
+        result = rough_uq.distribution(_problem(), tol=0.1, thresholds=np.linspace(20, 50, 16), bandwidth=1e4,
+                                       n_initial=8)
+    law = result.cdf
+    assert np.ptp(law.cdf) < 0.05 and not law.tol_met and law.stop_reason == "bandwidth_too_wide"
+    message, not_met = [str(w.message) for w in caught]
+    assert message.startswith("cdf: the smoothing bandwidth on the finest level 1, 5000, exceeds ")
+    assert not_met.startswith("distribution of contact_area: tolerance not met (bandwidth_too_wide): RMSE ")
+    assert not_met.endswith("(bias not estimated) against tol 0.1; the smoothing bandwidth exceeds the spread of the "
+                            "values (see the warning): give a smaller bandwidth, or finer thresholds (the default "
+                            "bandwidth is twice their spacing)")
+
+
 @pytest.mark.parametrize("probabilities", ["0.5", "abc", ["0.05", 0.95], [0.5, None], 1.5])
 def test_quantiles_of_a_result_refuse_probabilities_that_are_not_numbers_in_0_1_by_name(probabilities):
     # "abc" gave a bare ValueError; "0.5" and ["0.05", 0.95] were converted to numbers.

@@ -36,7 +36,7 @@ from rough_uq.errors import (
 )
 from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan, reachable_tolerance
-from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
+from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
 from rough_uq.multilevel.rates import EXACT_RATE, Rates, fit_rates, stalled_bias, stalled_text
 from rough_uq.multilevel.statistics import (
@@ -493,6 +493,8 @@ _NOT_MET_ADVICE = {
     "bias": "the bias on this level exceeds the tolerance's share: loosen tol, sample a finer level or use mlmc",
     THRESHOLDS_MISS_SAMPLES: ("the thresholds miss the samples of a level (see the warning): put thresholds "
                                 "among the values or raise n_initial"),
+    BANDWIDTH_TOO_WIDE: ("the smoothing bandwidth exceeds the spread of the values (see the warning): give a "
+                         "smaller bandwidth, or finer thresholds (the default bandwidth is twice their spacing)"),
 }
 
 

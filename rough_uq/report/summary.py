@@ -70,7 +70,7 @@ from typing import Any
 import numpy as np
 from rich.markup import escape
 
-from rough_uq.multilevel.distribution import THRESHOLDS_MISS_SAMPLES
+from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.rates import EXACT_RATE, RATE_FLOOR
 from rough_uq.multilevel.statistics import KURTOSIS_LIMIT
 from rough_uq.problem.batch import STAGE_SCREENING
@@ -123,6 +123,7 @@ _STOP_REASONS = {
     "max_cost": "stopped at --max-cost",
     "bias": "the bias of this level is larger than the tolerance allows",
     THRESHOLDS_MISS_SAMPLES: "the thresholds miss the samples of a level, whose variance they do not measure",
+    BANDWIDTH_TOO_WIDE: "the smoothing bandwidth exceeds the spread of the values; the bias is not estimated",
 }
 
 
