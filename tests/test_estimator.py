@@ -896,3 +896,13 @@ def test_plain_mc_is_priced_on_the_level_the_tolerance_needs_not_the_runs_finest
         assert result.mc_cost == mc_run_cost(needed)
         finest = result.statistics.var_fine[-1, 0] / (0.5 * 0.2**2) * problem.cost(result.finest_level)
         assert result.mc_cost < finest / 2
+
+
+def test_a_run_the_budget_stops_has_drawn_its_levels_in_about_the_planned_ratio():
+    # Rounds of equal batches (20 on every level) gave 2302 / 2290 / 1400 samples to a run stopped by a quarter of
+    # the cost its plan needed, where the plan's first levels are in the ratio 15793 / 5552 / 1962.
+    free = mlmc(Synthetic(seed=3), tol=0.02, batch_size=20)
+    paid = mlmc(Synthetic(seed=3), tol=0.02, batch_size=20, max_cost=free.cost / 4)
+    assert paid.stop_reason == "max_cost" and len(paid.levels) >= 3
+    planned, drawn = free.n_samples[:3].astype(float), paid.n_samples[:3].astype(float)
+    np.testing.assert_allclose(drawn[:2] / drawn[1:], planned[:2] / planned[1:], rtol=0.35)
