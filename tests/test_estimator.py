@@ -452,8 +452,10 @@ def test_a_budget_below_the_first_batch_stops_after_a_probe_and_claims_nothing(d
     assert result.cost == pytest.approx(n_drawn * unit, rel=1e-12)
 
 
-@pytest.mark.parametrize(("driver", "options"), [(mc, {"level": 2}), (mlmc, {})])
+@pytest.mark.parametrize(("driver", "options"), [(mc, {"level": 2}), (mlmc, {}), (mlmc, {"batch_size": 20})])
 def test_a_budget_that_pays_the_run_changes_nothing(driver, options):
+    # batch_size 20: several rounds, each followed by a new plan. Rounds in proportion to the missing samples
+    # under any budget gave another plan, other samples and another estimate than the run without one.
     free = driver(Synthetic(seed=5), tol=0.1, **options)
     paid = driver(Synthetic(seed=5), tol=0.1, max_cost=1.01 * free.cost, **options)
     assert paid.tol_met and free.tol_met

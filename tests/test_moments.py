@@ -412,3 +412,10 @@ def test_a_variance_run_the_budget_stops_has_drawn_its_levels_in_about_the_plann
     assert paid.stop_reason == "max_cost" and len(paid.levels) >= 3
     planned, drawn = free.n_samples[:3].astype(float), paid.n_samples[:3].astype(float)
     np.testing.assert_allclose(drawn[:2] / drawn[1:], planned[:2] / planned[1:], rtol=0.35)
+
+
+def test_a_budget_that_pays_a_variance_run_changes_nothing():
+    free = mlmc_variance(PerturbedLimit(seed=3), tol=0.05, batch_size=20)
+    paid = mlmc_variance(PerturbedLimit(seed=3), tol=0.05, batch_size=20, max_cost=1.01 * free.cost)
+    assert paid.tol_met and paid.n_samples.tolist() == free.n_samples.tolist()
+    np.testing.assert_array_equal(paid.estimate, free.estimate)

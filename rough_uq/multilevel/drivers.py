@@ -67,13 +67,14 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    estimate itself uses the run's samples only. Without a screening, every
    level keeps at least ``n_initial`` samples.
 2. Draw the missing samples level by level in batches of at most
-   ``batch_size`` (with ``max_cost``, a round draws on each level in
-   proportion to what it still misses, the level missing most a full batch,
-   so that a run the budget stops has its samples in about the planned
-   ratio: with equal batches, one stopped by ``max_cost = 2`` had 351 / 350 /
-   342 samples where its plan asked for 15008 / 2237 / 616, and a
-   statistical error of 0.19 where the same cost in the plan's ratio gives
-   about 0.11); after each round re-estimate ``V_l``, ``C_l`` and refit the
+   ``batch_size`` (where ``max_cost`` cannot pay what the plan still
+   misses, a round draws on each level in proportion to what it misses, the
+   level missing most a full batch, so that a run the budget stops has its
+   samples in about the planned ratio: with equal batches, one stopped by
+   ``max_cost = 2`` had 351 / 350 / 342 samples where its plan asked for
+   15008 / 2237 / 616, and a statistical error of 0.19 where the same cost
+   in the plan's ratio gives about 0.11; a budget that pays the plan changes
+   nothing); after each round re-estimate ``V_l``, ``C_l`` and refit the
    rates (unless given), and update ``N_l = ceil((1-theta)^-1 eps^-2
    sqrt(V_l/C_l) sum_k sqrt(V_k C_k))`` (maximum over QoIs; never below the
    samples already drawn). For ``l >= 2``, ``V_l`` is floored at
@@ -937,17 +938,31 @@ class _Run:
         raise NotImplementedError
 
 
-def round_caps(missing: Sequence[int], batch_cap: float, *, is_budgeted: bool) -> list[float]:
-    """Per level, the most samples one round draws, for levels still ``missing`` that many samples.
+def round_caps(missing: Sequence[int], batch_cap: float, *, proportional: bool) -> list[float]:
+    """Per level, the most samples one pass draws, for levels still ``missing`` that many samples.
 
-    ``batch_cap`` each; with a budget (and a finite cap) in proportion to ``missing``, the level missing most
-    ``batch_cap``, every level at least 2 (a level needs two samples for a variance), so that a run the budget
-    stops has drawn its levels in about the ratio of its plan instead of about equal counts.
+    ``batch_cap`` each, or (``proportional``, a finite cap) in proportion to ``missing``: the level missing
+    most ``batch_cap``, every level at least 2 (a level needs two samples for a variance), so that a run a
+    budget stops has drawn its levels in about the ratio of its plan instead of about equal counts.
     """
     largest = max(missing, default=0)
-    if not is_budgeted or math.isinf(batch_cap) or largest <= 0:
+    if not proportional or math.isinf(batch_cap) or largest <= 0:
         return [batch_cap] * len(missing)
     return [max(2, math.ceil(batch_cap * count / largest)) for count in missing]
+
+
+def _budget_binds(run: _Run, pending: Sequence[_LevelSamples], max_cost: float | None) -> bool:
+    """Whether ``max_cost`` cannot pay the samples the plan still misses (at the predicted costs per sample).
+
+    Then the run draws in proportion to what each level misses (:func:`round_caps`); otherwise in equal
+    batches, as without a budget, so that a budget the run does not reach changes none of its numbers.
+    """
+    if max_cost is None:
+        return False
+    hierarchy = run.hierarchy
+    missing = sum((hierarchy.targets[s.level] - s.n) * _per_sample_cost(hierarchy, s.level, run.cost_rate)
+                  for s in pending)
+    return hierarchy.spent + missing > max_cost
 
 
 def _draw(
@@ -1020,7 +1035,7 @@ def _drive(
     while not run.stop_reason:
         pending = hierarchy.pending()
         missing = [hierarchy.targets[samples.level] - samples.n for samples in pending]
-        caps = round_caps(missing, batch_cap, is_budgeted=max_cost is not None)
+        caps = round_caps(missing, batch_cap, proportional=_budget_binds(run, pending, max_cost))
         for samples, cap in zip(pending, caps):
             batches, is_over_budget = _draw(run, sampler, samples, cap, max_cost)
             for batch in batches:

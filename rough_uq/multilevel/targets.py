@@ -69,13 +69,14 @@ batches of at most ``batch_size``) the terms are recomputed, the rates refitted 
 (maximum over the components; never fewer than drawn or than ``n_initial``);
 once every level has (within 1 %) its samples, the bias test adds level
 ``L+1`` or stops (``"tol_met"``, ``"max_level"``); ``"max_cost"`` stops
-before a batch would exceed ``max_cost``. Without ``max_cost`` a round
-draws level after level; with it, in rounds that draw on each level in
-proportion to what it still misses (the mean driver's rule,
-:func:`~rough_uq.multilevel.drivers.round_caps`), so that a run the budget
-stops has its levels in about the planned ratio (level by level, a variance
-run stopped by ``max_cost = 1`` had 953 / 32 / 32 samples where its plan
-asked for some 4150 / 970 / 280).
+before a batch would exceed ``max_cost``. The samples a round misses are
+drawn in passes over the levels, each drawing on every level in proportion
+to what it still misses (:func:`~rough_uq.multilevel.drivers.round_caps`),
+so that a run the budget stops has its levels in about the planned ratio
+(level by level, a variance run stopped by ``max_cost = 1`` had 953 / 32 /
+32 samples where its plan asked for some 4150 / 970 / 280). The terms are
+recomputed only once the round is drawn, so the order changes no result of
+a run the budget does not stop.
 
 The ``n_initial`` samples of a level are one unit, which a batch cap only
 splits: a level is started only if ``max_cost`` pays for all of them (level
@@ -559,14 +560,8 @@ def _draw(
     n_initial: int,
 ) -> bool:
     """Draw the missing samples; False if ``max_cost`` stopped it (module docstring, "Adaptive driver")."""
-    if max_cost is None:
-        for s in levels:
-            while s.n < planned[s.level]:
-                batch = _call_sampler(sampler, s.level, s.n, int(min(planned[s.level] - s.n, batch_cap)))
-                s.add(batch.fine, batch.coarse, batch.cost)
-        return True
     while pending := [s for s in levels if s.n < planned[s.level]]:
-        caps = round_caps([planned[s.level] - s.n for s in pending], batch_cap, is_budgeted=True)
+        caps = round_caps([planned[s.level] - s.n for s in pending], batch_cap, proportional=True)
         for s, cap in zip(pending, caps):
             # A level's initial samples are one unit (module docstring): a round completes them.
             goal = max(s.n + min(planned[s.level] - s.n, cap), min(planned[s.level], n_initial))
