@@ -435,6 +435,16 @@ def test_sweep_refuses_a_level_beyond_grid_max_level_before_creating_any_study(t
     assert sorted(path.name for path in tmp_path.iterdir()) == ["tiny.yaml"]  # was a folder with a study
 
 
+def test_a_sweep_folder_that_cannot_be_made_is_one_error_line(tmp_path, monkeypatch):
+    # --dir below a file gave a NotADirectoryError traceback (exit 1), where the other outputs say "cannot write".
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    (tmp_path / "afile").write_text("")
+    result = run("sweep", str(config), "--set", "seed=1,2", "--tol", "5", "--workers", "1", "--dir", "afile/sub",
+                 expect=2)
+    assert result.stderr.strip() == "error: cannot write afile/sub: Not a directory; choose another place"
+
+
 def test_mc_on_a_given_level_needs_no_screening(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     config = write_config(tmp_path / "tiny.yaml", tiny_config())
