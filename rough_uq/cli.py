@@ -124,6 +124,20 @@ _STOPPED_TEXT = {
     "sample": "nothing was written (a shard is written whole or not at all); run the same command to compute it",
 }
 
+#: Key of ``click.Context.meta`` under which the group keeps the arguments it was given.
+_ARGUMENTS = "roughuq.arguments"
+
+
+def _stopped_text(name: str) -> str:
+    """What a stopped command leaves, and the command to run again, spelled out (another config, theta or
+    tolerance starts another run: "the same command" left that to memory)."""
+    import shlex
+
+    text = _STOPPED_TEXT.get(name, _STOPPED_TEXT[""])
+    context = click.get_current_context(silent=True)
+    arguments = None if context is None else context.meta.get(_ARGUMENTS)
+    return text if not arguments else f"{text}: roughuq {shlex.join(arguments)}"
+
 
 def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
     """Turn a RoughUQError into one line on stderr and exit status 2; Ctrl-C and SIGTERM into a clean stop."""
@@ -150,7 +164,7 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             sys.exit(2)
         except KeyboardInterrupt as exc:
             what, status = ("terminated", 143) if isinstance(exc, _Terminated) else ("interrupted", 130)
-            click.echo(f"{what}: {_STOPPED_TEXT.get(command.__name__, _STOPPED_TEXT[''])}", err=True)
+            click.echo(f"{what}: {_stopped_text(command.__name__)}", err=True)
             sys.exit(status)
         except BrokenPipeError:
             # The reader of the output has gone (`roughuq report FILE | head`): stop quietly, as a program that
@@ -416,6 +430,10 @@ class _Group(_OneLineUsage, click.Group):
     """
 
     command_class = _Command
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        ctx.meta[_ARGUMENTS] = list(args)  # for the message of a stopped command (_continue_text)
+        return super().parse_args(ctx, args)
 
     def invoke(self, ctx: click.Context) -> Any:
         try:

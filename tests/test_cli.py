@@ -219,8 +219,19 @@ def test_a_stopped_shard_says_that_nothing_was_written(screened, ctrl_c_after_on
     result = _sample("--quiet", expect=130)
     last = result.stderr.strip().splitlines()[-1]
     assert last == ("interrupted: nothing was written (a shard is written whole or not at all); run the same "
-                    "command to compute it")
+                    "command to compute it: roughuq sample --study results.h5 --stage screening --level 0 --indices "
+                    "100:103 --out shard.h5 --workers 1 --quiet")
     assert not list(screened.glob("shard.h5*"))
+
+
+def test_a_stopped_run_spells_the_command_that_continues_it(screened, ctrl_c_after_one_sample):
+    # "run the same command to continue" left the command to memory: the same command without its --config (another
+    # theta) started another run, and the stopped run's samples went unused.
+    (screened / "my config.yaml").write_text((screened / "tiny.yaml").read_text())
+    result = run("mlmc", "--config", "my config.yaml", "--tol", "5", "--study", "results.h5", "-q", expect=130)
+    assert result.stderr.strip().splitlines()[-1] == ("interrupted: every completed sample is saved; run the same "
+                                                      "command to continue: roughuq mlmc --config 'my config.yaml' "
+                                                      "--tol 5 --study results.h5 -q")
 
 
 def test_sample_refuses_to_write_into_the_study_itself(screened):
