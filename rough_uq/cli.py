@@ -1459,8 +1459,9 @@ def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     for path in written:
         click.echo(f"wrote {path}")
     if plots_dir is not None and not written:
-        click.echo(f"wrote no figure to {plots_dir}: the figures draw a screening, finished mlmc or mc runs, load "
-                   "curves and cdf runs, and this study has none of them yet")
+        click.echo(f"wrote no figure (and made no folder {plots_dir}): the figures draw a screening, finished mlmc "
+                   "and mc --tol runs, load curves and cdf runs, and this study has none of them yet (an mc --level "
+                   "run has no figure of its own: its estimate is in the report above)")
 
 
 def _writing(target: str, write: Callable[[], Any]) -> Any:

@@ -512,9 +512,12 @@ def test_the_report_of_a_variance_study_says_which_runs_lack_a_screening_and_tha
     text = " ".join(result.stdout.split())
     assert ("no screening yet (mlmc and mc --tol need one: run `roughuq screen CONFIG --out results.h5`; --tol-var, "
             "--tol-cdf and mc --level do not)") in text
-    assert text.endswith("wrote no figure to figures: the figures draw a screening, finished mlmc or mc runs, load "
-                         "curves and cdf runs, and this study has none of them yet")
-    assert not list(Path("figures").iterdir())
+    assert text.endswith("wrote no figure (and made no folder figures): the figures draw a screening, finished mlmc "
+                         "and mc --tol runs, load curves and cdf runs, and this study has none of them yet (an mc "
+                         "--level run has no figure of its own: its estimate is in the report above)")
+    assert not Path("figures").exists()  # was an empty folder
+    Path("mine").mkdir()  # a folder of the user's stays
+    assert run("report", "results.h5", "--plots", "mine").exit_code == 0 and Path("mine").is_dir()
 
 
 def test_a_load_curve_variance_table_at_80_columns_keeps_the_loads_apart(tmp_path, monkeypatch):

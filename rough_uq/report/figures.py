@@ -580,7 +580,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             with its band ``cdf +- sup-norm RMSE``, and the quantiles with
             their error bars (cut at the grid where the band leaves it).
 
-        A figure without its data is skipped.
+        A figure without its data is skipped; a folder this call made is removed again if it got no figure.
 
     Raises
     ------
@@ -590,6 +590,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
     _matplotlib()
     drawn = _Drawn.of(report)
     directory = Path(directory)
+    is_new = not directory.exists()
     directory.mkdir(parents=True, exist_ok=True)
     written = []
     for name, draw in (
@@ -601,7 +602,10 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
         path = draw(drawn, directory / name)
         if path is not None:
             written.append(path)
-    return written + _cdf_figures(drawn, directory)
+    written += _cdf_figures(drawn, directory)
+    if is_new and not written:
+        directory.rmdir()  # no empty folder for a study without figures
+    return written
 
 
 # ---------------------------------------------------------------------------
