@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import re
 import time
 from pathlib import Path
@@ -232,6 +233,21 @@ def test_a_stopped_run_spells_the_command_that_continues_it(screened, ctrl_c_aft
     assert result.stderr.strip().splitlines()[-1] == ("interrupted: every completed sample is saved; run the same "
                                                       "command to continue: roughuq mlmc --config 'my config.yaml' "
                                                       "--tol 5 --study results.h5 -q")
+
+
+def test_an_existing_out_file_is_refused_with_advice_that_fits_what_it_is(screened):
+    # Every existing --out read "shard ... already exists; merge or remove it first": for a study with a screening
+    # or runs, that advised deleting its results.
+    shutil.copy("results.h5", "other study.h5")
+    Path("junk.h5").write_text("not a study")
+    _sample(out="shard.h5")
+    lines = {out: _sample(out=out, expect=2).stderr.strip() for out in ("other study.h5", "junk.h5", "shard.h5")}
+    assert lines["other study.h5"] == ("error: --out 'other study.h5' is a study file with results (a screening or "
+                                       "runs), not a shard; choose another --out")
+    assert lines["junk.h5"] == ("error: --out 'junk.h5' exists and is not a shard (not a study file); choose another "
+                                "--out")
+    assert lines["shard.h5"] == ("error: shard 'shard.h5' already exists; merge it (roughuq merge shard.h5 --into "
+                                 "STUDY) or remove it first")
 
 
 def test_sample_refuses_to_write_into_the_study_itself(screened):

@@ -32,6 +32,7 @@ import hashlib
 import json
 import math
 import os
+import shlex
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -2066,6 +2067,24 @@ def _distribution_record(cdf: Any, request: CdfRequest, diagnostics: list[Diagno
 # ---------------------------------------------------------------------------
 
 
+def _refuse_existing_shard(out: Path) -> None:
+    """The refusal of an ``--out`` that exists: a shard to merge or remove, or a study with results to keep.
+
+    "merge or remove it first" of a study with a screening or runs advised deleting its results.
+    """
+    try:
+        with open_study_readonly(out) as stored:
+            has_results = read_screening_record(stored) is not None or bool(read_run_records(stored))
+    except (RoughUQError, OSError):
+        raise StudyFileError(f"--out {str(out)!r} exists and is not a shard (not a study file); choose another "
+                             "--out", out) from None
+    if has_results:
+        raise StudyFileError(f"--out {str(out)!r} is a study file with results (a screening or runs), not a shard; "
+                             "choose another --out", out)
+    raise StudyFileError(f"shard {str(out)!r} already exists; merge it (roughuq merge {shlex.quote(str(out))} --into "
+                         "STUDY) or remove it first", out)
+
+
 def compute_shard(
     study: Study,
     *,
@@ -2088,7 +2107,7 @@ def compute_shard(
     _refuse_writing_the_study(study, out)
     out = Path(out)
     if out.exists():
-        raise StudyFileError(f"shard {str(out)!r} already exists; merge or remove it first", out)
+        _refuse_existing_shard(out)
     if not 0 <= level <= study.config.grid.max_level:
         allowed = f"an integer in 0..{study.config.grid.max_level} (grid.max_level)"
         raise InvalidParameterError("--level", level, allowed)
