@@ -310,6 +310,18 @@ def test_a_shard_says_it_is_one_and_is_refused_as_a_study(screened):
     assert merged == {**stored, "0": stored["0"] + 3}
 
 
+def test_a_screening_extension_stopped_before_its_record_is_reported(screened, ctrl_c_after_one_sample):
+    # The report showed the old screening (8 samples per level) next to "samples stored: screening: L0 9 ..." and
+    # no warning; mlmc --plan planned from the old screening without a word.
+    write_config(screened / "more.yaml", tiny_config(screening={"levels": 3, "samples": 16}))
+    run("screen", "more.yaml", "--out", "results.h5", "--workers", "1", "-q", expect=130)
+    shown = json.loads(run("report", "results.h5", "--json").output)
+    (warning,) = [text for text in shown["warnings"] if "screening record does not use" in text]
+    assert warning.startswith("the study holds screening samples its screening record does not use: L0 9 (recorded "
+                              "8); a `roughuq screen` was stopped before its record")
+    assert "`roughuq screen CONFIG --out results.h5` with that config" in warning
+
+
 def test_report_on_a_config_says_it_is_one(screened):
     """`roughuq report tiny.yaml` said only "not an HDF5 file"."""
     line = run("report", "tiny.yaml", expect=2).stderr.strip()

@@ -300,6 +300,26 @@ def _report_warnings(screening: ScreeningRecord | None, run_warnings: Sequence[d
     return warnings
 
 
+def _unrecorded_screening(screening: ScreeningRecord | None, samples: dict[str, dict[str, int]], is_running: bool,
+                          path: str) -> list[str]:
+    """A warning where the study holds screening samples beyond its screening record (else none).
+
+    A ``roughuq screen`` that extends a screening (more levels or samples) and is stopped before its record leaves
+    them so: the report showed the old screening's table next to the larger sample counts without a word.
+    """
+    stored = samples.get("screening", {})
+    if screening is None or is_running:
+        return []
+    recorded = dict(zip(screening.statistics.levels, screening.statistics.n_samples))
+    extra = [(int(level), n) for level, n in stored.items() if n > recorded.get(int(level), 0)]
+    if not extra:
+        return []
+    counts = ", ".join(f"L{level} {n} (recorded {recorded.get(level, 0)})" for level, n in sorted(extra))
+    return [f"the study holds screening samples its screening record does not use: {counts}; a `roughuq screen` "
+            f"was stopped before its record (or samples were merged): rerun it (`roughuq screen CONFIG"
+            f"{_out_option(path)}` with that config) to take them in; the rates shown are the recorded screening's"]
+
+
 def screening_json(screening: ScreeningRecord | None) -> dict[str, Any] | None:
     """The screening as ``roughuq screen --json`` and ``report --json`` show it: the record and its complexity."""
     if screening is None:
@@ -335,6 +355,7 @@ def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
     runs = [_seen_status(run, is_running) for run in derive_runs(stored_runs)]
     n_not_converged = _not_converged(store)
     run_warnings = _run_warnings(runs, store.qoi_names)
+    samples = _sample_counts(store, stored_runs)
     return {
         "path": str(path),
         "format_version": FORMAT_VERSION,
@@ -344,13 +365,14 @@ def study_report(store: StudyStore, config: Any) -> dict[str, Any]:
         "config_hash": store.config_hash,
         "config": _config_summary(config),
         "qoi_names": list(store.qoi_names),
-        "samples": _sample_counts(store, stored_runs),
+        "samples": samples,
         "screening": screening_json(screening),
         "runs": [run.to_json() for run in runs],
         "dropped_runs": [run.run_id for run in stored_runs if run.status == "dropped"],
         "is_running": is_running,
         "n_not_converged": n_not_converged,
-        "warnings": _report_warnings(screening, run_warnings, n_not_converged),
+        "warnings": _report_warnings(screening, run_warnings, n_not_converged)
+        + _unrecorded_screening(screening, samples, is_running, str(path)),
         "run_warnings": run_warnings,
         "load_curves": load_curves(list(store.qoi_names), [run.record for run in runs], config),
     }
