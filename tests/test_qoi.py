@@ -449,3 +449,9 @@ def test_corrected_area_converges_faster_on_a_hertz_contact() -> None:
     # on these grids (fitted rate 1.3 against 0.95).
     assert np.all(corrected_ < nodes / 2.5)
     assert rate_corrected > rate_nodes + 0.15
+
+
+def test_the_largest_pressure_of_a_field_of_negative_zeros_is_zero_not_minus_zero() -> None:
+    # -0.0 passes as a non-negative pressure; its maximum printed as "-0".
+    value = max_pressure(np.full((4, 4), -0.0))
+    assert value == 0.0 and math.copysign(1.0, value) == 1.0

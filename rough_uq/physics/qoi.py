@@ -287,7 +287,7 @@ def max_pressure(pressure: np.ndarray) -> float:
     InvalidParameterError
         If ``pressure`` is not a non-empty 2-d array ``(n0, n1)`` of finite, non-negative numbers.
     """
-    return float(np.max(_pressure(pressure)))
+    return float(np.max(_pressure(pressure))) + 0.0  # + 0.0: a field of -0.0 (no contact) has maximum 0, not -0
 
 
 def _periodic_components(contact: np.ndarray, connectivity: int) -> tuple[np.ndarray, np.ndarray, int]:
