@@ -87,7 +87,10 @@ def test_report_figures_are_written(tmp_path, report):
 def test_nothing_to_draw_writes_nothing(tmp_path, report):
     empty = _study()
     assert plots.write_report_plots(study_report(empty.store, empty.config), tmp_path / "empty") == []
-    assert (tmp_path / "empty").is_dir()
+    assert not (tmp_path / "empty").exists()  # no empty folder made
+    (tmp_path / "mine").mkdir()
+    assert plots.write_report_plots(study_report(empty.store, empty.config), tmp_path / "mine") == []
+    assert (tmp_path / "mine").is_dir()  # the caller's folder stays
     # Interrupted runs and no screening: nothing either.
     interrupted = dict(report, screening=None, runs=[dict(run, status="running") for run in report["runs"]])
     assert plots.write_report_plots(interrupted, tmp_path / "interrupted") == []
