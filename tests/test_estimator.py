@@ -900,11 +900,20 @@ def test_plain_mc_is_priced_on_the_level_the_tolerance_needs_not_the_runs_finest
         assert result.mc_cost < finest / 2
 
 
-def test_a_run_the_budget_stops_has_drawn_its_levels_in_about_the_planned_ratio():
+@pytest.mark.parametrize("batch_size", [20, 1000, None])
+def test_a_run_the_budget_stops_has_drawn_its_levels_in_about_the_planned_ratio(batch_size):
     # Rounds of equal batches (20 on every level) gave 2302 / 2290 / 1400 samples to a run stopped by a quarter of
-    # the cost its plan needed, where the plan's first levels are in the ratio 15793 / 5552 / 1962.
-    free = mlmc(Synthetic(seed=3), tol=0.02, batch_size=20)
-    paid = mlmc(Synthetic(seed=3), tol=0.02, batch_size=20, max_cost=free.cost / 4)
+    # the cost its plan needed, where the plan's first levels are in the ratio 15793 / 5552 / 1962; batches
+    # larger than the budget drew level after level.
+    free = mlmc(Synthetic(seed=3), tol=0.02, batch_size=batch_size)
+    paid = mlmc(Synthetic(seed=3), tol=0.02, batch_size=batch_size, max_cost=free.cost / 4)
     assert paid.stop_reason == "max_cost" and len(paid.levels) >= 3
     planned, drawn = free.n_samples[:3].astype(float), paid.n_samples[:3].astype(float)
     np.testing.assert_allclose(drawn[:2] / drawn[1:], planned[:2] / planned[1:], rtol=0.35)
+
+
+def test_a_batch_size_beyond_the_float_range_is_no_batch_cap():
+    # round_caps' math.isinf(10**400) raised OverflowError (a traceback from `roughuq mlmc` with such a config).
+    huge = mlmc(Synthetic(seed=4), tol=0.1, batch_size=10**400, max_cost=50.0)
+    none = mlmc(Synthetic(seed=4), tol=0.1, batch_size=None, max_cost=50.0)
+    assert huge.n_samples.tolist() == none.n_samples.tolist() and huge.estimate == none.estimate

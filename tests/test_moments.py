@@ -404,11 +404,12 @@ def test_a_batch_cap_below_n_initial_only_splits_the_initial_samples():
     np.testing.assert_array_equal(capped.estimate, uncapped.estimate)
 
 
-def test_a_variance_run_the_budget_stops_has_drawn_its_levels_in_about_the_planned_ratio():
+@pytest.mark.parametrize("batch_size", [20, None, 10**400], ids=["20", "None", "10**400"])
+def test_a_variance_run_the_budget_stops_has_drawn_its_levels_in_about_the_planned_ratio(batch_size):
     # Level after level, a run stopped by a quarter of the cost its plan needed had 65662 / 32 / 32 samples
     # (the rest of level 0 first), where the plan's first levels are in the ratio 103273 / 37600 / 10046.
-    free = mlmc_variance(PerturbedLimit(seed=3), tol=0.02, batch_size=20)
-    paid = mlmc_variance(PerturbedLimit(seed=3), tol=0.02, batch_size=20, max_cost=free.cost / 4)
+    free = mlmc_variance(PerturbedLimit(seed=3), tol=0.02, batch_size=batch_size)
+    paid = mlmc_variance(PerturbedLimit(seed=3), tol=0.02, batch_size=batch_size, max_cost=free.cost / 4)
     assert paid.stop_reason == "max_cost" and len(paid.levels) >= 3
     planned, drawn = free.n_samples[:3].astype(float), paid.n_samples[:3].astype(float)
     np.testing.assert_allclose(drawn[:2] / drawn[1:], planned[:2] / planned[1:], rtol=0.35)
@@ -419,3 +420,16 @@ def test_a_budget_that_pays_a_variance_run_changes_nothing():
     paid = mlmc_variance(PerturbedLimit(seed=3), tol=0.05, batch_size=20, max_cost=1.01 * free.cost)
     assert paid.tol_met and paid.n_samples.tolist() == free.n_samples.tolist()
     np.testing.assert_array_equal(paid.estimate, free.estimate)
+
+
+def test_a_variance_run_without_a_budget_draws_whole_batches():
+    # Passes in proportion to the missing samples (also without a budget) cut the batches of the finer levels to
+    # 2-4 samples: some 1.8 times the sampler calls, each an executor round trip and a store append in a study.
+    sizes = []
+
+    def recorded(level, indices):
+        sizes.append(len(indices))
+        return PerturbedLimit(seed=3)(level, indices)
+
+    mlmc_variance(recorded, tol=0.05, batch_size=10)
+    assert np.median(sizes) == 10 and max(sizes) == 10

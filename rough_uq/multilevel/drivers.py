@@ -67,14 +67,17 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    estimate itself uses the run's samples only. Without a screening, every
    level keeps at least ``n_initial`` samples.
 2. Draw the missing samples level by level in batches of at most
-   ``batch_size`` (where ``max_cost`` cannot pay what the plan still
-   misses, a round draws on each level in proportion to what it misses, the
-   level missing most a full batch, so that a run the budget stops has its
-   samples in about the planned ratio: with equal batches, one stopped by
-   ``max_cost = 2`` had 351 / 350 / 342 samples where its plan asked for
-   15008 / 2237 / 616, and a statistical error of 0.19 where the same cost
-   in the plan's ratio gives about 0.11; a budget that pays the plan changes
-   nothing); after each round re-estimate ``V_l``, ``C_l`` and refit the
+   ``batch_size`` (where ``max_cost`` cannot pay what the current plan
+   still misses, at the costs per sample measured so far, a round draws on
+   each level the share of its missing samples that the budget left pays,
+   so that a run the budget stops has its samples in about the planned
+   ratio: with equal batches, one stopped by ``max_cost = 2`` had 351 / 350
+   / 342 samples where its plan asked for 15008 / 2237 / 616, and a
+   statistical error of 0.19 where the same cost in the plan's ratio gives
+   about 0.11. A budget that pays every plan of the run changes nothing; one
+   that an early plan overshoots draws that round differently, and so may
+   end with other counts than the run without a budget); after each round
+   re-estimate ``V_l``, ``C_l`` and refit the
    rates (unless given), and update ``N_l = ceil((1-theta)^-1 eps^-2
    sqrt(V_l/C_l) sum_k sqrt(V_k C_k))`` (maximum over QoIs; never below the
    samples already drawn). For ``l >= 2``, ``V_l`` is floored at
@@ -938,31 +941,45 @@ class _Run:
         raise NotImplementedError
 
 
-def round_caps(missing: Sequence[int], batch_cap: float, *, proportional: bool) -> list[float]:
+def checked_batch_cap(batch_size: int | None) -> float:
+    """The most samples one sampler call draws: ``batch_size`` (checked by the caller), ``inf`` for None or for a
+    size beyond any plan (``10**400`` has no float, and no plan asks for more than :data:`PLANNED_COUNT_CAP`)."""
+    return math.inf if batch_size is None or batch_size > _MAX_COUNT else float(batch_size)
+
+
+def round_counts(missing: Sequence[int], batch_cap: float, share: float | None) -> list[float]:
     """Per level, the most samples one pass draws, for levels still ``missing`` that many samples.
 
-    ``batch_cap`` each, or (``proportional``, a finite cap) in proportion to ``missing``: the level missing
-    most ``batch_cap``, every level at least 2 (a level needs two samples for a variance), so that a run a
-    budget stops has drawn its levels in about the ratio of its plan instead of about equal counts.
+    ``share`` None (no budget, or one that pays what the plan misses): ``batch_cap`` each. Otherwise ``share``
+    is the fraction of the missing samples' predicted cost that the budget left pays, and every level draws that
+    fraction of its missing samples (at least one), scaled down together where the level missing most would
+    draw more than ``batch_cap``: a run the budget stops has then drawn its levels in about the ratio of its
+    plan, not in equal batches (or level after level) that leave the finer levels short.
     """
     largest = max(missing, default=0)
-    if not proportional or math.isinf(batch_cap) or largest <= 0:
+    if share is None or largest <= 0:
         return [batch_cap] * len(missing)
-    return [max(2, math.ceil(batch_cap * count / largest)) for count in missing]
+    scale = min(share, batch_cap / largest)
+    return [max(1, math.ceil(scale * count)) for count in missing]
 
 
-def _budget_binds(run: _Run, pending: Sequence[_LevelSamples], max_cost: float | None) -> bool:
-    """Whether ``max_cost`` cannot pay the samples the plan still misses (at the predicted costs per sample).
+def budget_share(missing: Sequence[int], unit_costs: Sequence[float], budget_left: float) -> float | None:
+    """The fraction of the missing samples' predicted cost that ``budget_left`` pays, or None where it pays all
+    of it, or where some level's cost is not known yet (then a run draws as without a budget)."""
+    if any(not unit > 0 for unit in unit_costs):
+        return None
+    needed = sum(count * unit for count, unit in zip(missing, unit_costs))
+    return None if needed <= budget_left else max(budget_left, 0.0) / needed
 
-    Then the run draws in proportion to what each level misses (:func:`round_caps`); otherwise in equal
-    batches, as without a budget, so that a budget the run does not reach changes none of its numbers.
-    """
+
+def _round_share(run: _Run, pending: Sequence[_LevelSamples], missing: Sequence[int],
+                 max_cost: float | None) -> float | None:
+    """:func:`budget_share` of a round of the mean driver (None without ``max_cost``)."""
     if max_cost is None:
-        return False
+        return None
     hierarchy = run.hierarchy
-    missing = sum((hierarchy.targets[s.level] - s.n) * _per_sample_cost(hierarchy, s.level, run.cost_rate)
-                  for s in pending)
-    return hierarchy.spent + missing > max_cost
+    units = [_per_sample_cost(hierarchy, s.level, run.cost_rate) for s in pending]
+    return budget_share(missing, units, max_cost - hierarchy.spent)
 
 
 def _draw(
@@ -1035,9 +1052,10 @@ def _drive(
     while not run.stop_reason:
         pending = hierarchy.pending()
         missing = [hierarchy.targets[samples.level] - samples.n for samples in pending]
-        caps = round_caps(missing, batch_cap, proportional=_budget_binds(run, pending, max_cost))
-        for samples, cap in zip(pending, caps):
-            batches, is_over_budget = _draw(run, sampler, samples, cap, max_cost)
+        counts = round_counts(missing, batch_cap, _round_share(run, pending, missing, max_cost))
+        for samples, count in zip(pending, counts):
+            # A level needs two samples for a variance (_batch_size refuses to start it with fewer).
+            batches, is_over_budget = _draw(run, sampler, samples, max(count, 2 - samples.n), max_cost)
             for batch in batches:
                 yield _batch_event(hierarchy, samples.level, batch)
             if is_over_budget:
@@ -1202,7 +1220,7 @@ def iter_mlmc(
         richardson=checked_bool("richardson", richardson),
         coarsest_level=None if coarsest_level is None else checked_integer("coarsest_level", coarsest_level, 0),
     )
-    batch_cap = batch_size if batch_size is not None else math.inf
+    batch_cap = checked_batch_cap(batch_size)
     return _drive(functools.partial(_MlmcRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
 
 
@@ -1737,7 +1755,7 @@ def iter_mc(
         screening=screening,
         kurtosis_limit=_check_positive("kurtosis_limit", kurtosis_limit),
     )
-    batch_cap = batch_size if batch_size is not None else math.inf
+    batch_cap = checked_batch_cap(batch_size)
     return _drive(functools.partial(_McRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
 
 

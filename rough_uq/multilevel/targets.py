@@ -69,14 +69,16 @@ batches of at most ``batch_size``) the terms are recomputed, the rates refitted 
 (maximum over the components; never fewer than drawn or than ``n_initial``);
 once every level has (within 1 %) its samples, the bias test adds level
 ``L+1`` or stops (``"tol_met"``, ``"max_level"``); ``"max_cost"`` stops
-before a batch would exceed ``max_cost``. The samples a round misses are
-drawn in passes over the levels, each drawing on every level in proportion
-to what it still misses (:func:`~rough_uq.multilevel.drivers.round_caps`),
-so that a run the budget stops has its levels in about the planned ratio
-(level by level, a variance run stopped by ``max_cost = 1`` had 953 / 32 /
-32 samples where its plan asked for some 4150 / 970 / 280). The terms are
-recomputed only once the round is drawn, so the order changes no result of
-a run the budget does not stop.
+before a batch would exceed ``max_cost``. A round draws level after level;
+where ``max_cost`` cannot pay what the round misses (at the costs per
+sample measured so far), it draws on each level the share of its missing
+samples that the budget left pays
+(:func:`~rough_uq.multilevel.drivers.round_counts`), so that a run the
+budget stops has its levels in about the planned ratio (level by level, a
+variance run stopped by ``max_cost = 1`` had 953 / 32 / 32 samples where its
+plan asked for some 4150 / 970 / 280). The terms are recomputed only once a
+round is drawn, so the order changes no result of a run the budget does not
+stop.
 
 The ``n_initial`` samples of a level are one unit, which a batch cap only
 splits: a level is started only if ``max_cost`` pays for all of them (level
@@ -116,7 +118,9 @@ from rough_uq.multilevel.drivers import (
     check_finest_levels,
     refuse_large_plan,
     refuse_large_start,
-    round_caps,
+    budget_share,
+    checked_batch_cap,
+    round_counts,
 )
 from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias, tail_rate
 from rough_uq.multilevel.statistics import EstimationWarning, _readonly
@@ -526,15 +530,21 @@ class _Level:
         return self.spent / self.n if self.n else 0.0
 
 
+def _unit_cost(levels: list[_Level], level: int, gamma: float) -> float:
+    """Predicted cost of one sample of ``level``, from the nearest level with samples (0 where none has any)."""
+    known = [s for s in levels if s.n > 0 and s.mean_cost > 0]
+    if not known:
+        return 0.0
+    nearest = min(known, key=lambda s: abs(s.level - level))
+    return nearest.mean_cost * 2.0 ** (gamma * (level - nearest.level))
+
+
 def _affordable(levels: list[_Level], level: int, wanted: int, max_cost: float | None, gamma: float) -> int:
     """Samples to draw now on ``level``: ``wanted`` unless ``max_cost`` forbids it (then possibly 0)."""
-    known = [s for s in levels if s.n > 0 and s.mean_cost > 0]
-    if max_cost is None or not known:
+    unit = _unit_cost(levels, level, gamma)
+    if max_cost is None or not unit > 0:
         return wanted
-    nearest = min(known, key=lambda s: abs(s.level - level))
-    unit = nearest.mean_cost * 2.0 ** (gamma * (level - nearest.level))
-    spent = sum(s.spent for s in levels)
-    return affordable_count(max_cost - spent, unit, wanted)
+    return affordable_count(max_cost - sum(s.spent for s in levels), unit, wanted)
 
 
 def _batch_count(levels: list[_Level], s: _Level, wanted: int, max_cost: float | None, gamma: float,
@@ -561,10 +571,13 @@ def _draw(
 ) -> bool:
     """Draw the missing samples; False if ``max_cost`` stopped it (module docstring, "Adaptive driver")."""
     while pending := [s for s in levels if s.n < planned[s.level]]:
-        caps = round_caps([planned[s.level] - s.n for s in pending], batch_cap, proportional=True)
-        for s, cap in zip(pending, caps):
-            # A level's initial samples are one unit (module docstring): a round completes them.
-            goal = max(s.n + min(planned[s.level] - s.n, cap), min(planned[s.level], n_initial))
+        missing = [planned[s.level] - s.n for s in pending]
+        share = None if max_cost is None else budget_share(
+            missing, [_unit_cost(levels, s.level, gamma) for s in pending], max_cost - sum(s.spent for s in levels))
+        # Level after level (whole levels, in batches of batch_cap), or each level its share of what the budget pays.
+        for s, count in zip(pending, round_counts(missing, math.inf, share)):
+            # A level's initial samples are one unit (module docstring): a pass completes them.
+            goal = max(s.n + min(planned[s.level] - s.n, count), min(planned[s.level], n_initial))
             while s.n < goal:
                 n = _batch_count(levels, s, int(min(goal - s.n, batch_cap)), max_cost, gamma, n_initial)
                 if n == 0:
@@ -690,7 +703,7 @@ def adaptive_mlmc(
     theta = _check_fraction("theta", theta)
     n_initial = checked_integer("n_initial", n_initial, 4)
     min_finest_level, max_level = check_finest_levels(min_finest_level, max_level, least_max_level=1)
-    batch_cap = math.inf if batch_size is None else checked_integer("batch_size", batch_size, 1)
+    batch_cap = checked_batch_cap(None if batch_size is None else checked_integer("batch_size", batch_size, 1))
     max_cost = _check_optional_positive("max_cost", max_cost)
     max_samples = None if max_samples is None else checked_integer("max_samples", max_samples, 1)
     _check_tol(tol, None)  # fails early; the number of groups is known after the first batch
