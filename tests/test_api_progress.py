@@ -123,11 +123,8 @@ def test_variance_and_distribution_report_the_samples_asked_for_as_their_plan():
     for _, _, planned, done in plans:  # each plan counts the samples done before it
         assert all(0 <= d <= p for p, d in zip(planned, done))
     progress = _Recorded()
-    # Thresholds 5 % apart, areas of standard deviation about 1 %: the run ends NOT MET (bandwidth_too_wide), beside the
-    # point here, which is what its progress counts.
-    with pytest.warns(rough_uq.EstimationWarning, match="smoothing bandwidth"):
-        law = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(20, 60, 9), n_initial=8,
-                                    executor=_Pieces(), progress=progress)
+    law = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(20, 60, 9), n_initial=8,
+                                executor=_Pieces(), progress=progress)
     progress.check_framed("cdf contact_area=0.2")
     assert progress.done_per_level() == _counts(law.cdf.levels, law.cdf.n_samples)
 

@@ -72,15 +72,22 @@ and the decay estimate misses most of the bias (with ``bandwidth = 1e4`` on a
 contact area in percent a run reported an RMSE of 0.004 for a CDF that was
 0.5 at every threshold, 0.5 off). For a normal ``Q`` of standard deviation
 ``sigma``, the estimate from the last term at the decay ``4^-1`` per level
-is 0.94 / 0.83 / 0.57 / 0.33 of the largest smoothing bias over the
-thresholds at ``delta_L = 0.5 / 1 / 2 / 4 sigma`` (numerical integration). An estimate
-whose finest bandwidth ``delta_L`` exceeds the standard deviation of the
-finest level's values therefore warns
-(:class:`~rough_uq.errors.EstimationWarning`), reports ``stop_reason =
-"bandwidth_too_wide"`` with its bias not estimated, and does not meet its
-tolerance: give a narrower ``bandwidth`` (the default is twice the spacing
-of the thresholds: give finer thresholds). A run stopped before it
-estimated its bias (``max_cost``) claims none and is left as it is.
+is 0.94 / 0.83 / 0.57 / 0.33 / 0.20 of the largest smoothing bias over the
+thresholds at ``delta_L = 0.5 / 1 / 2 / 4 / 8 sigma``, and misses 0.0003 /
+0.003 / 0.025 / 0.10 / 0.21 of it (numerical integration). An estimate whose
+finest bandwidth ``delta_L`` exceeds :data:`BANDWIDTH_SPREAD_LIMIT` (2) times
+the standard deviation of the values (pooled over the levels' ``Q_l``)
+therefore warns (:class:`~rough_uq.errors.EstimationWarning`), reports
+``stop_reason = "bandwidth_too_wide"`` with its bias not estimated, and does
+not meet its tolerance: give a narrower ``bandwidth`` (the default is twice
+the spacing of the thresholds: give finer thresholds). Below that limit a
+tolerance whose bias share is under the bias estimate at ``2 sigma`` (0.03
+for a normal ``Q``) makes the run refine further anyway. Left as they are:
+a run stopped before it estimated its bias (``max_cost``) claims none; with
+``bandwidth_rate = 0`` the target is the smoothed CDF itself; and where
+every value of the finest level lies a bandwidth or more from every
+threshold (e.g. a discrete ``Q`` with thresholds between its values) the
+smoothed indicators are exact there.
 
 Monotone output
 ---------------
@@ -131,6 +138,7 @@ __all__ = [
     "Quantiles",
     "THRESHOLDS_MISS_SAMPLES",
     "BANDWIDTH_TOO_WIDE",
+    "BANDWIDTH_SPREAD_LIMIT",
     "cdf_from_samples",
     "cdf_level_term",
     "isotonic",
@@ -146,6 +154,10 @@ THRESHOLDS_MISS_SAMPLES = "thresholds_miss_samples"
 #: ``stop_reason`` of a CDF estimate whose finest bandwidth exceeds the spread of the values there (module
 #: docstring, "A bandwidth wider than the distribution"): its smoothing bias is not estimated.
 BANDWIDTH_TOO_WIDE = "bandwidth_too_wide"
+
+#: Largest finest bandwidth, in standard deviations of the values, whose smoothing bias the decay of the level
+#: terms is taken to measure (module docstring, "A bandwidth wider than the distribution").
+BANDWIDTH_SPREAD_LIMIT = 2.0
 
 #: Rows of samples per block when evaluating the smoothed indicators (bounds memory to block x thresholds).
 _BLOCK = 4096
@@ -444,18 +456,37 @@ def _warn_bandwidth_too_wide(finest: float, spread: float, level: int) -> None:
     """The :class:`~rough_uq.errors.EstimationWarning` of an estimate whose finest bandwidth exceeds the spread."""
     warn_at_caller(
         EstimationWarning(
-            f"cdf: the smoothing bandwidth on the finest level {level}, {finest:.4g}, exceeds the standard deviation "
-            f"of its values, {spread:.4g}: the smoothing bias is then beyond what the decay of the level terms "
-            "measures (the smoothed CDF flattens towards 1/2), so the bias is not estimated and the tolerance is not "
-            "met; give a bandwidth below the spread of the values (by default twice the thresholds' spacing: give "
-            "finer thresholds)"
+            f"cdf: the smoothing bandwidth on the finest level {level}, {finest:.4g}, exceeds "
+            f"{BANDWIDTH_SPREAD_LIMIT:g} standard deviations of the values ({spread:.4g} each): the smoothing bias is "
+            "then beyond what the decay of the level terms measures (the smoothed CDF flattens towards 1/2), so the "
+            "bias is not estimated and the tolerance is not met; give a bandwidth below the spread of the values (by "
+            "default twice the thresholds' spacing: give finer thresholds)"
         ),
     )
 
 
-def _spread(fine: np.ndarray, qoi: int) -> float:
-    """The sample standard deviation of a level's values ``Q_l`` (the unit of ``Q``)."""
-    return float(np.std(_column(fine, qoi, "fine"), ddof=1))
+class _Spread:
+    """The values' pooled standard deviation over the levels' ``Q_l`` (each level's latest samples)."""
+
+    def __init__(self) -> None:
+        self.levels: dict[int, tuple[int, float]] = {}
+
+    def add(self, level: int, fine: np.ndarray, qoi: int) -> None:
+        values = _column(fine, qoi, "fine")
+        self.levels[level] = (values.size, float(np.var(values, ddof=1)))
+
+    def value(self, levels: np.ndarray) -> float:
+        pairs = [self.levels[int(level)] for level in levels]
+        return float(np.sqrt(sum((n - 1) * var for n, var in pairs) / sum(n - 1 for n, _ in pairs)))
+
+
+def _is_exact(fine: np.ndarray, qoi: int, thresholds: np.ndarray, delta: float) -> bool:
+    """Whether every value lies ``delta`` or more from every threshold (``g`` is then 0 or 1 on each)."""
+    values = _column(fine, qoi, "fine")
+    right = np.clip(np.searchsorted(thresholds, values), 0, thresholds.size - 1)
+    left = np.clip(right - 1, 0, thresholds.size - 1)
+    nearest = np.minimum(np.abs(values - thresholds[left]), np.abs(values - thresholds[right]))
+    return bool(np.all(nearest >= delta))
 
 
 def _cdf_estimate(
@@ -465,15 +496,19 @@ def _cdf_estimate(
     bandwidth_rate: float,
     missed: dict[int, tuple[float, float]],
     spread: float,
+    is_exact: bool = False,
 ) -> CdfEstimate:
     """The CDF estimate of ``target``; ``missed``: the value range per level whose samples the thresholds miss;
-    ``spread``: the standard deviation of the finest level's values."""
+    ``spread``: the pooled standard deviation of the values; ``is_exact``: every finest value lies a finest
+    bandwidth or more from every threshold."""
     finest_level = int(target.levels[-1])
     finest = level_bandwidth(finest_level, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
+    # A run stopped before it estimated its bias claims none; with bandwidth_rate 0 the target is the smoothed CDF.
+    is_checked = target.is_bias_estimated and bandwidth_rate > 0 and not is_exact
     if missed:
         _warn_thresholds_miss(thresholds, missed)
         target = replace(target, stop_reason=THRESHOLDS_MISS_SAMPLES, is_variance_measured=False)
-    elif target.is_bias_estimated and not finest <= spread:  # a run stopped before it estimated a bias claims none
+    elif is_checked and not finest <= BANDWIDTH_SPREAD_LIMIT * spread:
         _warn_bandwidth_too_wide(finest, spread, finest_level)
         target = replace(target, stop_reason=BANDWIDTH_TOO_WIDE, is_bias_estimated=False,
                          bias=np.zeros_like(target.bias))
@@ -522,7 +557,9 @@ def cdf_from_samples(
     -----
     EstimationWarning
         Where the thresholds miss the samples of a level (module docstring):
-        ``tol_met`` is then False, ``stop_reason`` ``"thresholds_miss_samples"``.
+        ``tol_met`` is then False, ``stop_reason`` ``"thresholds_miss_samples"``;
+        where the finest bandwidth exceeds twice the spread of the values:
+        ``stop_reason`` ``"bandwidth_too_wide"``, the bias not estimated.
     """
     s = _check_thresholds(thresholds)
     if len(fine) != len(coarse) or len(fine) == 0:
@@ -532,8 +569,12 @@ def cdf_from_samples(
     terms = [cdf_level_term(f, c, level, **options) for level, (f, c) in enumerate(pairs)]
     ranges = {level: _missed_range(f, c, level, **options) for level, (f, c) in enumerate(pairs)}
     missed = {level: values for level, values in ranges.items() if values is not None}
-    spread = _spread(fine[-1], qoi)
-    return _cdf_estimate(telescope(terms, tol=tol), s, bandwidth, bandwidth_rate, missed, spread)
+    spread = _Spread()
+    for level, values in enumerate(fine):
+        spread.add(level, values, qoi)
+    finest = level_bandwidth(len(fine) - 1, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
+    return _cdf_estimate(telescope(terms, tol=tol), s, bandwidth, bandwidth_rate, missed,
+                         spread.value(np.arange(len(fine))), _is_exact(fine[-1], qoi, s, finest))
 
 
 def mlmc_cdf(
@@ -571,7 +612,9 @@ def mlmc_cdf(
     EstimationWarning
         Where the thresholds miss the samples of a level (module docstring):
         the run does not meet ``tol``, its ``stop_reason`` is
-        ``"thresholds_miss_samples"``, whatever the driver stopped for.
+        ``"thresholds_miss_samples"``, whatever the driver stopped for; and
+        where the finest bandwidth exceeds twice the spread of the values
+        (module docstring): ``"bandwidth_too_wide"``, the bias not estimated.
     """
     s = _check_thresholds(thresholds)
     _check_bandwidth(bandwidth, bandwidth_rate)
@@ -580,16 +623,19 @@ def mlmc_cdf(
     settings = {"thresholds": s, "bandwidth": bandwidth, "bandwidth_rate": bandwidth_rate, "qoi": qoi}
     # Per level, from the samples of its latest term: the driver's final estimate uses that term.
     ranges: dict[int, tuple[float, float] | None] = {}
-    spreads: dict[int, float] = {}
+    spread, exact = _Spread(), {}
 
     def term(fine: np.ndarray, coarse: np.ndarray | None, level: int) -> LevelTerm:
         ranges[level] = _missed_range(fine, coarse, level, **settings)
-        spreads[level] = _spread(fine, qoi)
+        spread.add(level, fine, qoi)
+        exact[level] = _is_exact(fine, qoi, s, level_bandwidth(level, bandwidth=bandwidth,
+                                                               bandwidth_rate=bandwidth_rate))
         return cdf_level_term(fine, coarse, level, **settings)
 
     target = adaptive_mlmc(sampler, term=term, tol=tol, **options)
     missed = {int(level): ranges[int(level)] for level in target.levels if ranges[int(level)] is not None}
-    return _cdf_estimate(target, s, bandwidth, bandwidth_rate, missed, spreads[int(target.levels[-1])])
+    return _cdf_estimate(target, s, bandwidth, bandwidth_rate, missed, spread.value(target.levels),
+                         exact[int(target.levels[-1])])
 
 
 @dataclass(frozen=True, eq=False)

@@ -306,7 +306,11 @@ def distribution(
         Where the thresholds miss the samples of a level, naming the
         thresholds and the range of the level's values; ``cdf.tol_met`` is
         then False, ``cdf.stop_reason`` ``"thresholds_miss_samples"`` and
-        ``cdf.missed_levels`` lists the levels.
+        ``cdf.missed_levels`` lists the levels. Where the finest bandwidth
+        exceeds twice the spread of the values (a bandwidth, or thresholds,
+        far coarser than the values vary): ``cdf.stop_reason``
+        ``"bandwidth_too_wide"``, the bias not estimated, ``tol_met`` False
+        (:mod:`rough_uq.multilevel.distribution`).
     """
     problem = _problem(problem)
     index = _column_index(problem, column)
