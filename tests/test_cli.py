@@ -241,13 +241,23 @@ def test_an_existing_out_file_is_refused_with_advice_that_fits_what_it_is(screen
     shutil.copy("results.h5", "other study.h5")
     Path("junk.h5").write_text("not a study")
     _sample(out="shard.h5")
-    lines = {out: _sample(out=out, expect=2).stderr.strip() for out in ("other study.h5", "junk.h5", "shard.h5")}
+    outs = ("other study.h5", "junk.h5", "shard.h5")
+    lines = {out: _sample(out=out, expect=2).stderr.strip() for out in outs}
     assert lines["other study.h5"] == ("error: --out 'other study.h5' is a study file with results (a screening or "
                                        "runs), not a shard; choose another --out")
     assert lines["junk.h5"] == ("error: --out 'junk.h5' exists and is not a shard (not a study file); choose another "
                                 "--out")
     assert lines["shard.h5"] == ("error: shard 'shard.h5' already exists; merge it (roughuq merge shard.h5 --into "
                                  "STUDY) or remove it first")
+
+
+def test_an_existing_out_study_without_records_is_not_called_a_shard(screened, ctrl_c_after_one_sample):
+    # A study whose first screening was stopped has samples but no record: it read "shard 'stopped.h5' already
+    # exists; merge it ... or remove it first".
+    write_config(screened / "stopped.yaml", tiny_config(output={"path": "stopped.h5"}))
+    run("screen", "stopped.yaml", "--workers", "1", "-q", expect=130)
+    assert _sample(out="stopped.h5", expect=2).stderr.strip() == (
+        "error: --out 'stopped.h5' is a study file, not a shard; choose another --out")
 
 
 def test_sample_refuses_to_write_into_the_study_itself(screened):

@@ -2068,21 +2068,22 @@ def _distribution_record(cdf: Any, request: CdfRequest, diagnostics: list[Diagno
 
 
 def _refuse_existing_shard(out: Path) -> None:
-    """The refusal of an ``--out`` that exists: a shard to merge or remove, or a study with results to keep.
+    """The refusal of an ``--out`` that exists: a shard to merge or remove, a study to keep, or another file.
 
     "merge or remove it first" of a study with a screening or runs advised deleting its results.
     """
     try:
         with open_study_readonly(out) as stored:
+            role = stored.role
             has_results = read_screening_record(stored) is not None or bool(read_run_records(stored))
     except (RoughUQError, OSError):
         raise StudyFileError(f"--out {str(out)!r} exists and is not a shard (not a study file); choose another "
                              "--out", out) from None
-    if has_results:
-        raise StudyFileError(f"--out {str(out)!r} is a study file with results (a screening or runs), not a shard; "
-                             "choose another --out", out)
-    raise StudyFileError(f"shard {str(out)!r} already exists; merge it (roughuq merge {shlex.quote(str(out))} --into "
-                         "STUDY) or remove it first", out)
+    if role == "shard":
+        raise StudyFileError(f"shard {str(out)!r} already exists; merge it (roughuq merge {shlex.quote(str(out))} "
+                             "--into STUDY) or remove it first", out)
+    what = " with results (a screening or runs)" if has_results else ""
+    raise StudyFileError(f"--out {str(out)!r} is a study file{what}, not a shard; choose another --out", out)
 
 
 def compute_shard(
