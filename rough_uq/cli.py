@@ -136,7 +136,10 @@ def _stopped_text(name: str) -> str:
     text = _STOPPED_TEXT.get(name, _STOPPED_TEXT[""])
     context = click.get_current_context(silent=True)
     arguments = None if context is None else context.meta.get(_ARGUMENTS)
-    return text if not arguments else f"{text}: roughuq {shlex.join(arguments)}"
+    if not arguments:
+        return text
+    # The program as it was called: "roughuq", or "python -m rough_uq.cli" (the cluster scripts' ROUGHUQ).
+    return f"{text}: {context.find_root().info_name or 'roughuq'} {shlex.join(arguments)}"
 
 
 def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:

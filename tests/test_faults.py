@@ -138,6 +138,8 @@ def test_killed_runs_lose_nothing_and_resume_to_the_same_estimate(tmp_path, refe
         if sig != signal.SIGKILL:  # a clean stop, with its message
             word = "interrupted" if sig == signal.SIGINT else "terminated"
             assert word in stderr and "Traceback" not in stderr, stderr
+            # The command that continues, as it was called (`roughuq` may not be on PATH).
+            assert f"run the same command to continue: python -m rough_uq.cli mlmc --tol {TOL} -q --workers 1" in stderr
         stored = _stored(directory)  # the file opens after every interruption
         for level, indices in stored.items():
             assert np.unique(indices).size == indices.size, "a sample was stored twice"
