@@ -1401,10 +1401,8 @@ def sweep(config_path: str, assignments: Sequence[str], fixed_spacing: bool, tol
     with _executor(config, workers, "local", None) as pool:
         largest = max((swept for _, swept in configs), key=lambda swept: swept.grid.n_at(level))
         _warn_memory(largest, level, pool, lower_with="a smaller --level")
-        folder = directory or f"sweep-{key}"
-        rows = _writing(folder, lambda: run_sweep(configs, key=key, directory=folder, tol=tol, level=level,
-                                                  executor=pool, progress=_progress(quiet or as_json),
-                                                  source=config_path))
+        rows = run_sweep(configs, key=key, directory=directory or f"sweep-{key}", tol=tol, level=level, executor=pool,
+                         progress=_progress(quiet or as_json), source=config_path)
     if as_json:
         _dump([row.to_json() for row in rows])
         return

@@ -491,7 +491,7 @@ def test_a_sweep_folder_that_cannot_be_made_is_one_error_line(tmp_path, monkeypa
     (tmp_path / "afile").write_text("")
     result = run("sweep", str(config), "--set", "seed=1,2", "--tol", "5", "--workers", "1", "--dir", "afile/sub",
                  expect=2)
-    assert result.stderr.strip() == "error: cannot write afile/sub: Not a directory; choose another place"
+    assert result.stderr.strip() == "error: cannot write afile/sub: Not a directory; choose another --dir"
 
 
 def test_mc_on_a_given_level_needs_no_screening(tmp_path, monkeypatch):

@@ -2292,7 +2292,11 @@ def run_sweep(
         check_initial_samples(config, n_levels=1, run=f"a sweep (mc on level {level})", source=where)
     for study_path, (_, config) in zip(paths, configs):
         _refuse_other_config(study_path, config, remedy)
-    directory.mkdir(parents=True, exist_ok=True)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # below a file, no permission: one line, not a traceback
+        reason = exc.strerror or str(exc)
+        raise StudyFileError(f"cannot write {directory}: {reason}; choose another --dir", directory) from None
     rows = []
     for study_path, tolerance, (value, config) in zip(paths, tolerances, configs):
         config_path = study_path.with_suffix(".yaml")
