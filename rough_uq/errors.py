@@ -90,12 +90,25 @@ class InvalidParameterError(RoughUQError, ValueError):
 
 
 def _shown(value: object) -> str:
-    """``repr(value)``, but an integer of hundreds of digits as its size (``10**400`` was printed whole)."""
+    """``repr(value)``, but an integer of hundreds of digits as its size (``10**400`` was printed whole), also
+    inside a list or tuple."""
     if isinstance(value, int) and not isinstance(value, bool):
-        digits = len(str(abs(value)))
+        digits = _digits(value)
         if digits > 30:
             return f"{'a negative' if value < 0 else 'an'} integer of {digits} digits"
+    if isinstance(value, (list, tuple)) and any(isinstance(v, int) and _digits(v) > 30 for v in value):
+        inner = ", ".join(_shown(v) for v in value)
+        return f"[{inner}]" if isinstance(value, list) else f"({inner})"
     return repr(value)
+
+
+def _digits(value: int) -> int:
+    """Decimal digits of ``abs(value)``, without ``str()`` (refused beyond 4300 digits)."""
+    magnitude = abs(value)
+    digits = max(1, int(magnitude.bit_length() * 0.30102999566398120))  # log10(2): at most the true count
+    while magnitude >= 10**digits:
+        digits += 1
+    return digits
 
 
 def checked_integer(name: str, value: object, minimum: int) -> int:
