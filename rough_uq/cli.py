@@ -1449,6 +1449,7 @@ def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     _check_not_empty("--plots", plots_dir)
     data = read_report(study_path)
     written = []
+    is_new_folder = plots_dir is not None and not Path(plots_dir).exists()
     if plots_dir is not None:
         from rough_uq.report.figures import write_report_plots
 
@@ -1460,9 +1461,10 @@ def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     for path in written:
         click.echo(f"wrote {path}")
     if plots_dir is not None and not written:
-        click.echo(f"wrote no figure (and made no folder {plots_dir}): the figures draw a screening, finished mlmc "
-                   "and mc --tol runs, load curves and cdf runs, and this study has none of them yet (an mc --level "
-                   "run has no figure of its own: its estimate is in the report above)")
+        where = f"(and made no folder {plots_dir})" if is_new_folder else f"to {plots_dir}"
+        click.echo(f"wrote no figure {where}: the figures draw a screening, finished mlmc and mc --tol runs, load "
+                   "curves and cdf runs, and this study has none of them yet (an mc --level run has no figure of its "
+                   "own: its estimate is in the report above)")
 
 
 def _writing(target: str, write: Callable[[], Any]) -> Any:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
 import re
+import shutil
 import time
 from pathlib import Path
 

@@ -517,7 +517,10 @@ def test_the_report_of_a_variance_study_says_which_runs_lack_a_screening_and_tha
                          "--level run has no figure of its own: its estimate is in the report above)")
     assert not Path("figures").exists()  # was an empty folder
     Path("mine").mkdir()  # a folder of the user's stays
-    assert run("report", "results.h5", "--plots", "mine").exit_code == 0 and Path("mine").is_dir()
+    mine = " ".join(run("report", "results.h5", "--plots", "mine").stdout.split())
+    assert "wrote no figure to mine: the figures draw" in mine and Path("mine").is_dir()
+    run("report", "results.h5", "--plots", "a/b/c")
+    assert not Path("a").exists()  # nor the folders made on the way
 
 
 def test_a_load_curve_variance_table_at_80_columns_keeps_the_loads_apart(tmp_path, monkeypatch):

@@ -98,7 +98,8 @@ def check_mean_pressures(mean_pressures: object) -> np.ndarray:
     """
     allowed = "a non-empty sequence of finite numbers > 0 (unit of E*)"
     values = (mean_pressures,) if isinstance(mean_pressures, numbers.Real) else mean_pressures
-    if isinstance(values, (str, bytes)) or not isinstance(values, (Sequence, np.ndarray)) or (isinstance(values, np.ndarray) and values.ndim > 1):
+    is_sequence = isinstance(values, Sequence) and not isinstance(values, (str, bytes))
+    if not (is_sequence or (isinstance(values, np.ndarray) and values.ndim <= 1)):
         raise InvalidParameterError("mean_pressures", mean_pressures, allowed)
     values = list(values.reshape(-1)) if isinstance(values, np.ndarray) else list(values)
     is_bad = [

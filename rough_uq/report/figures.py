@@ -580,7 +580,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
             with its band ``cdf +- sup-norm RMSE``, and the quantiles with
             their error bars (cut at the grid where the band leaves it).
 
-        A figure without its data is skipped; a folder this call made is removed again if it got no figure.
+        A figure without its data is skipped; the folders this call made are removed again if no figure was drawn.
 
     Raises
     ------
@@ -590,7 +590,7 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
     _matplotlib()
     drawn = _Drawn.of(report)
     directory = Path(directory)
-    is_new = not directory.exists()
+    made = [folder for folder in (directory, *directory.parents) if not folder.exists()]  # deepest first
     directory.mkdir(parents=True, exist_ok=True)
     written = []
     for name, draw in (
@@ -603,8 +603,9 @@ def write_report_plots(report: dict[str, Any], directory: str | Path) -> list[Pa
         if path is not None:
             written.append(path)
     written += _cdf_figures(drawn, directory)
-    if is_new and not written:
-        directory.rmdir()  # no empty folder for a study without figures
+    if not written:
+        for folder in made:  # no empty folders for a study without figures
+            folder.rmdir()
     return written
 
 
