@@ -608,7 +608,9 @@ def mlmc(
     Warns
     -----
     EstimationWarning
-        For failed diagnostics of the run and for samples whose solve did not converge.
+        For failed diagnostics of the run, for samples whose solve did not converge, for a tolerance not met
+        (its RMSE, the stop reason and what to change, as ``roughuq`` exits 3) and for a Richardson
+        extrapolation refused (the run is then plain MLMC; ``richardson_reason`` says why).
     """
     problem = _problem(problem)
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
