@@ -122,6 +122,8 @@ def _check_stop() -> None:
 _STOPPED_TEXT = {
     "": "every completed sample is saved; run the same command to continue",
     "sample": "nothing was written (a shard is written whole or not at all); run the same command to compute it",
+    # Commands that read, or compute without storing: nothing to continue.
+    **dict.fromkeys(("report", "solve", "validate", "show"), "nothing was stored"),
 }
 
 #: Key of ``click.Context.meta`` under which the group keeps the arguments it was given.
@@ -136,7 +138,7 @@ def _stopped_text(name: str) -> str:
     text = _STOPPED_TEXT.get(name, _STOPPED_TEXT[""])
     context = click.get_current_context(silent=True)
     arguments = None if context is None else context.meta.get(_ARGUMENTS)
-    if not arguments:
+    if not arguments or "run the same command" not in text:
         return text
     # The program as it was called: "roughuq", or "python -m rough_uq.cli" (the cluster scripts' ROUGHUQ).
     return f"{text}: {context.find_root().info_name or 'roughuq'} {shlex.join(arguments)}"

@@ -328,8 +328,8 @@ def test_a_screening_extension_stopped_before_its_record_is_reported(screened, c
     shown = json.loads(run("report", "results.h5", "--json").output)
     (warning,) = [text for text in shown["warnings"] if "screening record does not use" in text]
     assert warning.startswith("the study holds screening samples its screening record does not use: L0 9 (recorded "
-                              "8); a `roughuq screen` was stopped before its record")
-    assert "`roughuq screen CONFIG --out results.h5` with that config" in warning
+                              "8); a `roughuq screen` stopped before its record leaves them")
+    assert "(rerun it, `roughuq screen CONFIG --out results.h5` with its config, to take them in)" in warning
 
 
 def test_report_on_a_config_says_it_is_one(screened):
@@ -637,3 +637,12 @@ def test_unwritable_output_is_refused_before_any_work(tmp_path, monkeypatch, kin
         parent.write_text("")
     result = run("screen", str(config), "--out", str(parent / "study.h5"), expect=2)
     assert "study.h5" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_a_stopped_report_says_that_it_stored_nothing(screened, monkeypatch):
+    # It said "every completed sample is saved; run the same command to continue" of a report.
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("rough_uq.report.summary.read_report", interrupted)
+    assert run("report", "results.h5", expect=130).stderr.strip() == "interrupted: nothing was stored"

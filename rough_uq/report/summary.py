@@ -316,8 +316,9 @@ def _unrecorded_screening(screening: ScreeningRecord | None, samples: dict[str, 
         return []
     counts = ", ".join(f"L{level} {n} (recorded {recorded.get(level, 0)})" for level, n in sorted(extra))
     return [f"the study holds screening samples its screening record does not use: {counts}; a `roughuq screen` "
-            f"was stopped before its record (or samples were merged): rerun it (`roughuq screen CONFIG"
-            f"{_out_option(path)}` with that config) to take them in; the rates shown are the recorded screening's"]
+            f"stopped before its record leaves them (rerun it, `roughuq screen CONFIG{_out_option(path)}` with its "
+            "config, to take them in), and so do screening shards merged beyond screening.samples (a screening with "
+            "that many samples takes them in); the rates shown are the recorded screening's"]
 
 
 def screening_json(screening: ScreeningRecord | None) -> dict[str, Any] | None:
