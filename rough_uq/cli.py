@@ -437,7 +437,7 @@ class _Group(_OneLineUsage, click.Group):
     command_class = _Command
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
-        ctx.meta[_ARGUMENTS] = list(args)  # for the message of a stopped command (_continue_text)
+        ctx.meta[_ARGUMENTS] = list(args)  # for the message of a stopped command (_stopped_text)
         return super().parse_args(ctx, args)
 
     def invoke(self, ctx: click.Context) -> Any:
@@ -1133,8 +1133,8 @@ def _what_to_change(outcome: Any, option: str = "--tol") -> str:
         return ("the thresholds miss the samples of a level (see the warning); put thresholds among the values "
                 "(extend --thresholds or the config's thresholds) or raise estimation.initial_samples")
     if reason == BANDWIDTH_TOO_WIDE:
-        return ("the smoothing bandwidth, twice the thresholds' spacing, exceeds the spread of the values (see the "
-                "warning); give finer thresholds (--thresholds or the config's thresholds)")
+        return ("the smoothing bandwidth, twice the thresholds' spacing, exceeds twice the spread of the values (see "
+                "the warning); give finer thresholds (--thresholds or the config's thresholds)")
     if reason == "max_level" and is_bias_in_noise(outcome):
         return ("the bias estimate rests on level terms within their noise (see the warning); raise "
                 f"estimation.initial_samples to measure it, loosen {option}, or use a study with a larger "

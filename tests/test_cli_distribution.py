@@ -109,4 +109,4 @@ def test_a_cdf_run_on_thresholds_far_coarser_than_the_spread_is_not_met_and_says
     assert message.startswith(f"cdf: the smoothing bandwidth on the finest level {shown['levels'][-1]}, ")
     report = CliRunner().invoke(main, ["report", str(tmp_path / "results.h5")], terminal_width=200)
     assert report.exit_code == 0, (report.output, report.exception)
-    assert "the smoothing bandwidth exceeds the spread of the values; the bias is not estimated" in report.stdout
+    assert "the smoothing bandwidth exceeds twice the spread of the values; the bias is not estimated" in report.stdout

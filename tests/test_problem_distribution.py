@@ -140,9 +140,9 @@ def test_a_distribution_with_a_bandwidth_far_wider_than_the_contact_areas_does_n
     message, not_met = [str(w.message) for w in caught]
     assert message.startswith("cdf: the smoothing bandwidth on the finest level 1, 5000, exceeds ")
     assert not_met.startswith("distribution of contact_area: tolerance not met (bandwidth_too_wide): RMSE ")
-    assert not_met.endswith("(bias not estimated) against tol 0.1; the smoothing bandwidth exceeds the spread of the "
-                            "values (see the warning): give a smaller bandwidth, or finer thresholds (the default "
-                            "bandwidth is twice their spacing)")
+    assert not_met.endswith("(bias not estimated) against tol 0.1; the smoothing bandwidth exceeds twice the spread "
+                            "of the values (see the warning): give a smaller bandwidth, or finer thresholds (the "
+                            "default bandwidth is twice their spacing)")
 
 
 @pytest.mark.parametrize("probabilities", ["0.5", "abc", ["0.05", 0.95], [0.5, None], 1.5])

@@ -80,9 +80,10 @@ the standard deviation of the values (pooled over the levels' ``Q_l``)
 therefore warns (:class:`~rough_uq.errors.EstimationWarning`), reports
 ``stop_reason = "bandwidth_too_wide"`` with its bias not estimated, and does
 not meet its tolerance: give a narrower ``bandwidth`` (the default is twice
-the spacing of the thresholds: give finer thresholds). Below that limit a
-tolerance whose bias share is under the bias estimate at ``2 sigma`` (0.03
-for a normal ``Q``) makes the run refine further anyway. Left as they are:
+the spacing of the thresholds: give finer thresholds). Below the limit, a
+run whose bias share ``sqrt(theta) tol`` is below the estimate at ``2
+sigma`` (0.03 for a normal ``Q``) refines further anyway, towards bandwidths
+whose bias the estimate measures. Left as they are:
 a run stopped before it estimated its bias (``max_cost``) claims none; with
 ``bandwidth_rate = 0`` the target is the smoothed CDF itself; and where
 every value of the finest level lies a bandwidth or more from every
@@ -401,7 +402,7 @@ class CdfEstimate:
 
         ``"thresholds_miss_samples"`` (:data:`THRESHOLDS_MISS_SAMPLES`) where the thresholds miss the samples of
         a level (``missed_levels``), and ``"bandwidth_too_wide"`` (:data:`BANDWIDTH_TOO_WIDE`) where the finest
-        bandwidth exceeds the spread of the values (module docstring), whatever the driver's reason: the
+        bandwidth exceeds twice the spread of the values (module docstring), whatever the driver's reason: the
         tolerance is not met.
         """
         return self.target.stop_reason
@@ -496,7 +497,7 @@ def _cdf_estimate(
     bandwidth_rate: float,
     missed: dict[int, tuple[float, float]],
     spread: float,
-    is_exact: bool = False,
+    is_exact: bool,
 ) -> CdfEstimate:
     """The CDF estimate of ``target``; ``missed``: the value range per level whose samples the thresholds miss;
     ``spread``: the pooled standard deviation of the values; ``is_exact``: every finest value lies a finest

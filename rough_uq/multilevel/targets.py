@@ -115,11 +115,11 @@ from rough_uq.multilevel.drivers import (
     _fill_costs,
     _planning_variances,
     affordable_count,
+    budget_share,
     check_finest_levels,
+    checked_batch_cap,
     refuse_large_plan,
     refuse_large_start,
-    budget_share,
-    checked_batch_cap,
     round_counts,
 )
 from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias, tail_rate

@@ -493,7 +493,7 @@ _NOT_MET_ADVICE = {
     "bias": "the bias on this level exceeds the tolerance's share: loosen tol, sample a finer level or use mlmc",
     THRESHOLDS_MISS_SAMPLES: ("the thresholds miss the samples of a level (see the warning): put thresholds "
                                 "among the values or raise n_initial"),
-    BANDWIDTH_TOO_WIDE: ("the smoothing bandwidth exceeds the spread of the values (see the warning): give a "
+    BANDWIDTH_TOO_WIDE: ("the smoothing bandwidth exceeds twice the spread of the values (see the warning): give a "
                          "smaller bandwidth, or finer thresholds (the default bandwidth is twice their spacing)"),
 }
 

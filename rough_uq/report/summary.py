@@ -123,7 +123,7 @@ _STOP_REASONS = {
     "max_cost": "stopped at --max-cost",
     "bias": "the bias of this level is larger than the tolerance allows",
     THRESHOLDS_MISS_SAMPLES: "the thresholds miss the samples of a level, whose variance they do not measure",
-    BANDWIDTH_TOO_WIDE: "the smoothing bandwidth exceeds the spread of the values; the bias is not estimated",
+    BANDWIDTH_TOO_WIDE: "the smoothing bandwidth exceeds twice the spread of the values; the bias is not estimated",
 }
 
 
