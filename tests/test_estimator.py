@@ -13,6 +13,7 @@ import warnings
 import numpy as np
 import pytest
 from mlmc_problems import GbmEuler, Synthetic, indexed_normals, sample_levels, shifted_screening
+from moment_problems import PerturbedLimit
 
 from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError
 from rough_uq.multilevel.drivers import (
@@ -33,6 +34,7 @@ from rough_uq.multilevel.drivers import (
     refuse_large_plan,
 )
 from rough_uq.multilevel.allocation import optimal_samples
+from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.rates import confirmed_tail, estimated_bias
 from rough_uq.multilevel.richardson import ratio_instability, richardson_bias, richardson_weight
 
@@ -900,13 +902,20 @@ def test_plain_mc_is_priced_on_the_level_the_tolerance_needs_not_the_runs_finest
         assert result.mc_cost < finest / 2
 
 
-@pytest.mark.parametrize("batch_size", [20, 1000, None])
-def test_a_run_the_budget_stops_has_drawn_its_levels_in_about_the_planned_ratio(batch_size):
-    # Rounds of equal batches (20 on every level) gave 2302 / 2290 / 1400 samples to a run stopped by a quarter of
-    # the cost its plan needed, where the plan's first levels are in the ratio 15793 / 5552 / 1962; batches
-    # larger than the budget drew level after level.
-    free = mlmc(Synthetic(seed=3), tol=0.02, batch_size=batch_size)
-    paid = mlmc(Synthetic(seed=3), tol=0.02, batch_size=batch_size, max_cost=free.cost / 4)
+def _variance_run(**options):
+    return mlmc_variance(PerturbedLimit(seed=3), **options)
+
+
+@pytest.mark.parametrize("batch_size", [20, 1000, None, 10**400], ids=["20", "1000", "None", "10**400"])
+@pytest.mark.parametrize("run", [lambda **options: mlmc(Synthetic(seed=3), **options), _variance_run],
+                         ids=["mean", "variance"])
+def test_a_run_the_budget_stops_has_drawn_its_levels_in_about_the_planned_ratio(run, batch_size):
+    # A mean run: rounds of equal batches (20 on every level) gave 2302 / 2290 / 1400 samples to a run stopped by
+    # a quarter of the cost its plan needed, where the plan's first levels are in the ratio 15793 / 5552 / 1962;
+    # batches larger than the budget drew level after level. A variance run (level after level) had 65662 / 32 /
+    # 32 where its plan's are in the ratio 103273 / 37600 / 10046.
+    free = run(tol=0.02, batch_size=batch_size)
+    paid = run(tol=0.02, batch_size=batch_size, max_cost=free.cost / 4)
     assert paid.stop_reason == "max_cost" and len(paid.levels) >= 3
     planned, drawn = free.n_samples[:3].astype(float), paid.n_samples[:3].astype(float)
     np.testing.assert_allclose(drawn[:2] / drawn[1:], planned[:2] / planned[1:], rtol=0.35)
