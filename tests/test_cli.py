@@ -646,3 +646,24 @@ def test_a_stopped_report_says_that_it_stored_nothing(screened, monkeypatch):
 
     monkeypatch.setattr("rough_uq.report.summary.read_report", interrupted)
     assert run("report", "results.h5", expect=130).stderr.strip() == "interrupted: nothing was stored"
+
+
+def test_a_resumed_run_counts_the_wall_time_of_its_stopped_commands(screened, ctrl_c_after_one_sample, monkeypatch):
+    # `elapsed` of a run stopped and resumed was the last command's alone (3.6 s of a run that took 7.6 s), beside
+    # the CPU seconds of all its samples.
+    import dataclasses
+
+    from rough_uq.study.pipeline import open_existing_study
+    from rough_uq.study.records import read_run_records
+
+    study_path = screened / "results.h5"
+    run("mlmc", "--tol", "5", "--study", str(study_path), "-q", expect=130)
+    with open_existing_study(study_path) as study:
+        (stopped,) = read_run_records(study.store)
+        assert stopped.status == "interrupted" and 0 < stopped.stopped_elapsed < 60
+        # As if the stopped command had run for 1000 s.
+        study.store.write_run(stopped.run_id, dataclasses.replace(stopped, stopped_elapsed=1000.0).to_json())
+    monkeypatch.undo()  # the executor computes whole batches again
+    finished = json.loads(run("mlmc", "--tol", "5", "--study", str(study_path), "--workers", "1", "--json",
+                              "-q").output)
+    assert 1000.0 < finished["elapsed"] < 1060.0

@@ -1373,26 +1373,35 @@ def _earlier_run(study: Study, key: str) -> RunRecord | None:
 
 @dataclass(frozen=True)
 class _RunClock:
-    """When this command started a run, and the wall seconds of the run's earlier finish, if any."""
+    """When this command started a run, the wall seconds of the run's earlier finish, if any, and of its
+    commands stopped before it finished (:attr:`~rough_uq.study.records.RunRecord.stopped_elapsed`)."""
 
     started: float
     earlier_elapsed: float | None
+    stopped: float = 0.0
 
     @classmethod
     def start(cls, earlier: RunRecord | None) -> _RunClock:
         """Start now; ``earlier`` is the run's stored record (:func:`_earlier_run`), if any.
 
-        Only a finished record counts: a dropped one keeps the outcome it had, which is not this run's.
+        Only a finished record counts: a dropped one keeps the outcome it had, which is not this run's; the
+        stopped commands count of a record that is not finished (a dropped one's too are not this run's).
         """
         outcome = earlier.outcome if earlier is not None and earlier.is_finished else None
         elapsed = None if outcome is None or outcome.elapsed is None else float(outcome.elapsed)
-        return cls(started=time.monotonic(), earlier_elapsed=elapsed)
+        is_resumed = earlier is not None and not earlier.is_finished and earlier.status != "dropped"
+        stopped = float(earlier.stopped_elapsed or 0.0) if is_resumed else 0.0
+        return cls(started=time.monotonic(), earlier_elapsed=elapsed, stopped=stopped)
+
+    def so_far(self) -> float:
+        """Wall seconds of the run's stopped commands and of this one so far."""
+        return self.stopped + time.monotonic() - self.started
 
     def elapsed(self, sampler: StudySampler) -> float:
-        """Wall seconds of the run: this command's, or the earlier finish's when this rerun computed nothing."""
+        """Wall seconds of the run: its commands', or the earlier finish's when this rerun computed nothing."""
         if sampler.n_computed == 0 and self.earlier_elapsed is not None:
             return self.earlier_elapsed
-        return time.monotonic() - self.started
+        return self.so_far()
 
 
 def _screened_mc_cost(study: Study, tol: np.ndarray) -> float:
@@ -1458,7 +1467,8 @@ def run_estimation(
     record = _started_record(study, key=key, method=method, tol=tol, stage=sampler.stage, max_cost=max_cost,
                              context=context, forecast=forecast)
     title = f"{method} {tol_text(study.config.qoi_names, tol)}"
-    with _run_recorded(study, record, earlier):
+    record = replace(record, stopped_elapsed=clock.stopped or None)  # kept if this command is killed outright
+    with _run_recorded(study, record, earlier, clock):
         result, diagnostics = _follow(events, progress, title)
     outcome = _outcome(study, method=method, sampler=sampler, result=result, diagnostics=diagnostics, clock=clock)
     record = replace(record, status="finished", outcome=outcome)
@@ -1467,7 +1477,7 @@ def run_estimation(
 
 
 @contextmanager
-def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None) -> Iterator[None]:
+def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None, clock: _RunClock) -> Iterator[None]:
     """Store ``record`` as ``running`` for the block, then ``refused`` (EstimationError) or ``interrupted`` (else).
 
     ``refused`` comes with the error's message; ``interrupted`` follows
@@ -1497,7 +1507,8 @@ def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None) ->
         # the error or the interrupt that stopped the run.
         if not is_kept:
             with suppress(Exception):
-                study.store.write_run(record.run_id, replace(record, status="interrupted").to_json())
+                stopped = replace(record, status="interrupted", stopped_elapsed=clock.so_far())
+                study.store.write_run(record.run_id, stopped.to_json())
         raise
 
 
@@ -1815,7 +1826,8 @@ def run_target(
     title = f"{target} {tol_text(names, tol)}"
     option = _TARGET_OPTIONS[target]
     given = tol_text(names, tol) if target == "variance" else f"{tol[0]:g}"
-    with _run_recorded(study, record, earlier), _naming_options(f"{option} {given}", option):
+    record = replace(record, stopped_elapsed=clock.stopped or None)  # kept if this command is killed outright
+    with _run_recorded(study, record, earlier, clock), _naming_options(f"{option} {given}", option):
         result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
     outcome = _target_outcome(study, target=target, sampler=sampler, result=result, request=request,
                               diagnostics=diagnostics, clock=clock)

@@ -803,7 +803,9 @@ class RunOutcome:
     seconds : float
         CPU-seconds of the samples.
     elapsed : float or None
-        Wall seconds of the command (None in files before it was recorded).
+        Wall seconds of the commands that computed the run: the one that finished it, plus those stopped before
+        it (Ctrl-C, SIGTERM, a failure; :attr:`RunRecord.stopped_elapsed`) (None in files before it was
+        recorded).
     mc_cost, mc_seconds_predicted : float
         Predicted plain MC to the same tolerance: modelled cost, CPU-seconds.
     n_computed, n_not_converged : int
@@ -981,6 +983,9 @@ class RunRecord:
         None until the run finished.
     reason : str or None
         Why the run was refused (the error's message; status ``refused`` only).
+    stopped_elapsed : float or None
+        Wall seconds of the commands of this run that were stopped before it finished (None where none was): a
+        resumed run's ``elapsed`` adds them, as it took them (a process killed outright records none).
     """
 
     run_id: str
@@ -1000,6 +1005,7 @@ class RunRecord:
     forecast: Forecast | None = None
     outcome: RunOutcome | None = field(default=None)
     reason: str | None = None
+    stopped_elapsed: Number | None = None
 
     @property
     def is_finished(self) -> bool:
@@ -1033,7 +1039,7 @@ class RunRecord:
             ("method", self.method), ("stage", self.stage), ("status", self.status), ("reason", self.reason),
             ("started", self.started), ("code_version", self.code_version), ("qoi_names", self.qoi_names),
             ("tol", self.tol), ("theta", self.theta), ("initial_samples", self.initial_samples),
-            ("max_cost", self.max_cost),
+            ("max_cost", self.max_cost), ("stopped_elapsed", self.stopped_elapsed),
         ]
         context = [
             ("screening_rates", None if self.screening_rates is None else self.screening_rates.to_json()),
@@ -1070,6 +1076,7 @@ class RunRecord:
             forecast=fields.optional("forecast", Forecast.from_json),
             outcome=RunOutcome.from_json(fields.data, where) if has_outcome else None,
             reason=fields.optional("reason", _text),
+            stopped_elapsed=fields.optional("stopped_elapsed", _number),
         )
 
 
