@@ -220,7 +220,7 @@ def _interrupt_after(monkeypatch, n_batches: int) -> None:
     monkeypatch.setattr(pipeline.StudySampler, "compute", compute)
 
 
-_VOLATILE = ("finished", "started", "elapsed", "seconds", "mc_seconds_predicted", "n_computed")
+_VOLATILE = ("finished", "started", "elapsed", "stopped_elapsed", "seconds", "mc_seconds_predicted", "n_computed")
 
 
 @pytest.mark.parametrize("target", [("--tol-var", "60"), ("--tol-cdf", "0.3", "--thresholds", TINY_THRESHOLDS)],
@@ -239,6 +239,7 @@ def test_an_interrupted_run_resumes_to_the_record_of_an_uninterrupted_one(tiny, 
                   expect=whole.exit_code)
     first, second = json.loads(whole.stdout), json.loads(resumed.stdout)
     assert 0 < second["n_computed"] < first["n_computed"]
+    assert second["stopped_elapsed"] > 0 and "stopped_elapsed" not in first  # the stopped command's wall time
     assert {k: v for k, v in first.items() if k not in _VOLATILE} == {
         k: v for k, v in second.items() if k not in _VOLATILE}
 

@@ -33,7 +33,8 @@ FAKE_SLURM = ROOT / "tests" / "fake_slurm"
 TOL = "2.5"   # two rounds of three shards without faults (2.0 needs five rounds, each a few processes more)
 CHUNK = "50"   # one shard per level in the first round: few processes, the test stays short
 #: Run-record fields that are wall-clock times or dates (everything else must match bit for bit).
-TIMING = {"started", "finished", "seconds", "elapsed", "forecast", "mc_seconds_predicted", "n_computed"}
+TIMING = {"started", "finished", "seconds", "elapsed", "stopped_elapsed", "forecast", "mc_seconds_predicted",
+          "n_computed"}
 
 pytestmark = pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
 
