@@ -1384,8 +1384,9 @@ class _RunClock:
     def start(cls, earlier: RunRecord | None) -> _RunClock:
         """Start now; ``earlier`` is the run's stored record (:func:`_earlier_run`), if any.
 
-        Only a finished record counts: a dropped one keeps the outcome it had, which is not this run's; the
-        stopped commands count of a record that is not finished (a dropped one's too are not this run's).
+        Only a finished record's outcome counts: a dropped one keeps the outcome it had, which is not this
+        run's. The stopped commands of a record that is not finished count too (not a dropped one's, for the
+        same reason).
         """
         outcome = earlier.outcome if earlier is not None and earlier.is_finished else None
         elapsed = None if outcome is None or outcome.elapsed is None else float(outcome.elapsed)
