@@ -270,25 +270,38 @@ def test_a_bandwidth_far_wider_than_the_values_does_not_claim_the_tolerance(band
     (message,) = [str(w.message) for w in caught]
     assert message.startswith(f"cdf: the smoothing bandwidth on the finest level {result.levels[-1]}, {finest:.4g}, "
                               "exceeds 2 standard deviations of the values (")
-    assert "give a bandwidth below the spread of the values" in message
+    assert "give a bandwidth below twice the spread of the values" in message
     # Some 30 times the standard deviation is fine: the run refines until its bias estimate is within its share.
     wide = mlmc_cdf(problem, thresholds=s, tol=0.05, bandwidth=30.0)  # warnings are errors
     assert wide.tol_met and wide.bandwidths[-1] < 1.0 and np.max(np.abs(wide.cdf - problem.limit.cdf(s))) < 0.05
 
 
-@pytest.mark.parametrize(("bandwidth", "is_too_wide"), [(5.1, False), (5.2, True)])
-def test_the_finest_bandwidth_is_compared_with_twice_the_pooled_standard_deviation(bandwidth, is_too_wide):
-    # Both levels' values 0, 1, 2, 3: standard deviation sqrt(5/3) = 1.291, the limit 2.582; delta_1 = bandwidth / 2.
+@pytest.mark.parametrize(("bandwidth", "is_too_wide"), [(6.3, False), (6.4, True)])
+def test_the_finest_bandwidth_is_compared_with_twice_the_telescoped_standard_deviation(bandwidth, is_too_wide):
+    # E[Q_1] = 1.5 + 0, E[Q_1^2] = 3.5 + (3.5 - 2.25): Var(Q_1) = 2.5, sd 1.581, limit 3.162; delta_1 = bandwidth / 2.
     fine, coarse = [np.arange(4.0), np.arange(4.0)], [np.zeros(4), np.full(4, 1.5)]
     options = {"thresholds": [0.0, 1.0, 2.0, 3.0], "bandwidth": bandwidth, "tol": 0.9}
     if not is_too_wide:
         result = cdf_from_samples(fine=fine, coarse=coarse, **options)  # warnings are errors
         assert result.stop_reason == "given" and result.is_bias_estimated
         return
-    with pytest.warns(EstimationWarning, match=r"^cdf: the smoothing bandwidth on the finest level 1, 2\.6, exceeds "
-                                                r"2 standard deviations of the values \(1\.291 each\): "):
+    with pytest.warns(EstimationWarning, match=r"^cdf: the smoothing bandwidth on the finest level 1, 3\.2, exceeds "
+                                                r"2 standard deviations of the values \(1\.581 each\): "):
         result = cdf_from_samples(fine=fine, coarse=coarse, **options)
     assert result.stop_reason == "bandwidth_too_wide" and not result.tol_met
+
+
+def test_the_spread_is_the_finest_levels_not_the_coarsest_ones():
+    # Spreads 6.8 / 1.67 on levels 0 / 1 (as a stored contact area had): pooled by sample count, the spread was
+    # about level 0's, and a finest bandwidth of 4 finest standard deviations passed the check.
+    rng = np.random.default_rng(11)
+    coarse_values = 6.8 * rng.standard_normal(400)
+    fine = [6.8 * rng.standard_normal(4000), 1.67 * rng.standard_normal(400)]
+    thresholds = np.linspace(-5.0, 5.0, 21)
+    with pytest.warns(EstimationWarning, match="exceeds 2 standard deviations of the values"):
+        result = cdf_from_samples(fine=fine, coarse=[np.zeros(4000), coarse_values], thresholds=thresholds,
+                                  bandwidth=2 * 4 * 1.67, tol=0.9)
+    assert result.stop_reason == "bandwidth_too_wide"
 
 
 def test_a_wide_bandwidth_is_left_alone_where_it_is_the_target_or_exact():
@@ -303,7 +316,8 @@ def test_a_wide_bandwidth_is_left_alone_where_it_is_the_target_or_exact():
                                bandwidth=1.0, tol=0.9)  # delta_1 = 0.5: every value 0.5 from its thresholds
     assert between.stop_reason == "given" and between.is_bias_estimated
     constant = [np.full(4, 2.0), np.full(4, 2.0)]
-    with pytest.warns(EstimationWarning, match=r"standard deviations of the values \(0 each\)"):
+    with pytest.warns(EstimationWarning, match=r"^cdf: the values of the finest level 1 do not vary, and lie within "
+                                                r"its smoothing bandwidth, 0\.5, of a threshold: "):
         on_step = cdf_from_samples(fine=constant, coarse=[np.zeros(4), constant[1]], thresholds=[1.0, 2.0, 3.0],
                                    bandwidth=1.0, tol=0.9)
     assert on_step.stop_reason == "bandwidth_too_wide"

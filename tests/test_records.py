@@ -107,7 +107,7 @@ def test_the_store_gives_typed_records():
 
 #: Keys the first study files (commit 2261a0b) did not have yet.
 NEWER_RUN_KEYS = ("stage", "initial_samples", "elapsed", "forecast", "richardson", "richardson_reason",
-                  "dropped_levels")
+                  "dropped_levels", "stopped_elapsed")
 NEWER_SCREENING_KEYS = ("coarsest_level", "dropped_levels")
 
 

@@ -76,8 +76,8 @@ is 0.94 / 0.83 / 0.57 / 0.33 / 0.20 of the largest smoothing bias over the
 thresholds at ``delta_L = 0.5 / 1 / 2 / 4 / 8 sigma``, and misses 0.0003 /
 0.003 / 0.025 / 0.10 / 0.21 of it (numerical integration). An estimate whose
 finest bandwidth ``delta_L`` exceeds :data:`BANDWIDTH_SPREAD_LIMIT` (2) times
-the standard deviation of the values (pooled over the levels' ``Q_l``)
-therefore warns (:class:`~rough_uq.errors.EstimationWarning`), reports
+the standard deviation of ``Q_L`` (its first two moments telescoped over the
+levels, as the estimate is) therefore warns (:class:`~rough_uq.errors.EstimationWarning`), reports
 ``stop_reason = "bandwidth_too_wide"`` with its bias not estimated, and does
 not meet its tolerance: give a narrower ``bandwidth`` (the default is twice
 the spacing of the thresholds: give finer thresholds). Below the limit, a
@@ -455,30 +455,46 @@ def _warn_thresholds_miss(thresholds: np.ndarray, missed: dict[int, tuple[float,
 
 def _warn_bandwidth_too_wide(finest: float, spread: float, level: int) -> None:
     """The :class:`~rough_uq.errors.EstimationWarning` of an estimate whose finest bandwidth exceeds the spread."""
+    if not spread > 0:  # a constant Q within a bandwidth of a threshold: its step is smoothed away
+        warn_at_caller(EstimationWarning(
+            f"cdf: the values of the finest level {level} do not vary, and lie within its smoothing bandwidth, "
+            f"{finest:.4g}, of a threshold: the smoothed CDF spreads their step there, which the bias estimate does "
+            "not measure; the tolerance is not met; give a bandwidth below the distance from the values to the "
+            "nearest threshold (by default twice the thresholds' spacing: give finer thresholds)"))
+        return
     warn_at_caller(
         EstimationWarning(
             f"cdf: the smoothing bandwidth on the finest level {level}, {finest:.4g}, exceeds "
             f"{BANDWIDTH_SPREAD_LIMIT:g} standard deviations of the values ({spread:.4g} each): the smoothing bias is "
             "then beyond what the decay of the level terms measures (the smoothed CDF flattens towards 1/2), so the "
-            "bias is not estimated and the tolerance is not met; give a bandwidth below the spread of the values (by "
-            "default twice the thresholds' spacing: give finer thresholds)"
+            "bias is not estimated and the tolerance is not met; give a bandwidth below twice the spread of the "
+            "values (by default twice the thresholds' spacing: give finer thresholds)"
         ),
     )
 
 
 class _Spread:
-    """The values' pooled standard deviation over the levels' ``Q_l`` (each level's latest samples)."""
+    """The standard deviation of the finest level's ``Q_L``, telescoped over the levels' latest samples.
+
+    ``E[Q_L^k] = sum_l E[Q_l^k - Q_{l-1}^k]`` (k = 1, 2) uses every level's samples, as the estimate does: the
+    finest level's own few samples gave a noisy spread, and pooling the levels' spreads measured mostly the
+    coarsest one, whose spread can differ from the finest level's by a factor of 2-6 (contact areas, clusters).
+    Where noise makes the telescoped variance not positive, the finest level's sample variance stands in.
+    """
 
     def __init__(self) -> None:
-        self.levels: dict[int, tuple[int, float]] = {}
+        self.levels: dict[int, tuple[float, float, float]] = {}
 
-    def add(self, level: int, fine: np.ndarray, qoi: int) -> None:
-        values = _column(fine, qoi, "fine")
-        self.levels[level] = (values.size, float(np.var(values, ddof=1)))
+    def add(self, level: int, fine: np.ndarray, coarse: np.ndarray | None, qoi: int) -> None:
+        x = _column(fine, qoi, "fine")
+        y = np.zeros_like(x) if coarse is None or level == 0 else _column(coarse, qoi, "coarse")
+        self.levels[level] = (float(np.mean(x - y)), float(np.mean(x * x - y * y)), float(np.var(x, ddof=1)))
 
     def value(self, levels: np.ndarray) -> float:
-        pairs = [self.levels[int(level)] for level in levels]
-        return float(np.sqrt(sum((n - 1) * var for n, var in pairs) / sum(n - 1 for n, _ in pairs)))
+        first = sum(self.levels[int(level)][0] for level in levels)
+        second = sum(self.levels[int(level)][1] for level in levels)
+        variance = second - first * first
+        return float(np.sqrt(variance if variance > 0 else self.levels[int(levels[-1])][2]))
 
 
 def _is_exact(fine: np.ndarray, qoi: int, thresholds: np.ndarray, delta: float) -> bool:
@@ -571,8 +587,8 @@ def cdf_from_samples(
     ranges = {level: _missed_range(f, c, level, **options) for level, (f, c) in enumerate(pairs)}
     missed = {level: values for level, values in ranges.items() if values is not None}
     spread = _Spread()
-    for level, values in enumerate(fine):
-        spread.add(level, values, qoi)
+    for level, (values, below) in enumerate(zip(fine, coarse)):
+        spread.add(level, values, below, qoi)
     finest = level_bandwidth(len(fine) - 1, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
     return _cdf_estimate(telescope(terms, tol=tol), s, bandwidth, bandwidth_rate, missed,
                          spread.value(np.arange(len(fine))), _is_exact(fine[-1], qoi, s, finest))
@@ -628,7 +644,7 @@ def mlmc_cdf(
 
     def term(fine: np.ndarray, coarse: np.ndarray | None, level: int) -> LevelTerm:
         ranges[level] = _missed_range(fine, coarse, level, **settings)
-        spread.add(level, fine, qoi)
+        spread.add(level, fine, coarse, qoi)
         exact[level] = _is_exact(fine, qoi, s, level_bandwidth(level, bandwidth=bandwidth,
                                                                bandwidth_rate=bandwidth_rate))
         return cdf_level_term(fine, coarse, level, **settings)

@@ -1499,7 +1499,8 @@ def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None, cl
         yield
     except EstimationError as exc:
         if not is_kept:
-            study.store.write_run(record.run_id, replace(record, status="refused", reason=str(exc)).to_json())
+            refused = replace(record, status="refused", reason=str(exc), stopped_elapsed=clock.so_far())
+            study.store.write_run(record.run_id, refused.to_json())
         raise
     except BaseException:
         # Ctrl-C, SIGTERM, a worker or the disk failing: the run stopped, and the same command resumes it. Recorded

@@ -11,7 +11,7 @@ Older layouts
 -------------
 Keys added since the first study files are optional when read: a run's
 ``stage``, ``initial_samples``, ``elapsed``, ``forecast``, ``richardson``,
-``richardson_reason`` and ``dropped_levels``, the screening's
+``richardson_reason``, ``dropped_levels`` and ``stopped_elapsed``, the screening's
 ``coarsest_level`` and ``dropped_levels``. Runs of the targets beyond the
 mean (``method`` ``variance`` or ``cdf``, :class:`RunOutcome`) add optional
 keys and leave out the mean run's ``variance``, ``variance_error`` and
