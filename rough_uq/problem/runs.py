@@ -382,14 +382,6 @@ def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -
     raise InvalidParameterError("tol", tol, allowed)
 
 
-def _is_finite(value: float) -> bool:
-    """``math.isfinite`` that calls an integer beyond the float range (``10**400``) infinite, not an error."""
-    try:
-        return math.isfinite(value)
-    except OverflowError:
-        return False
-
-
 def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
     """The values of ``tol`` in column order, by column or by QoI (as ``--tol NAME=EPS``).
 
@@ -408,7 +400,7 @@ def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
         every = f"one tolerance for every QoI column ({', '.join(columns)})"
         raise InvalidParameterError("tol", f"no tolerance for {', '.join(missing)}", every)
     for key in keys:
-        if not (is_real_number(tol[key]) and _is_finite(tol[key]) and tol[key] > 0):
+        if not (is_real_number(tol[key]) and math.isfinite(tol[key]) and tol[key] > 0):
             raise InvalidParameterError("tol", f"{key}: {tol[key]!r}", "a finite number > 0 for every key")
     return [tol[key] for key in keys]
 
