@@ -1468,8 +1468,7 @@ def run_estimation(
     record = _started_record(study, key=key, method=method, tol=tol, stage=sampler.stage, max_cost=max_cost,
                              context=context, forecast=forecast)
     title = f"{method} {tol_text(study.config.qoi_names, tol)}"
-    record = replace(record, stopped_elapsed=clock.stopped or None)  # kept if this command is killed outright
-    with _run_recorded(study, record, earlier, clock):
+    with _run_recorded(study, record, earlier, clock) as record:
         result, diagnostics = _follow(events, progress, title)
     outcome = _outcome(study, method=method, sampler=sampler, result=result, diagnostics=diagnostics, clock=clock)
     record = replace(record, status="finished", outcome=outcome)
@@ -1478,8 +1477,13 @@ def run_estimation(
 
 
 @contextmanager
-def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None, clock: _RunClock) -> Iterator[None]:
+def _run_recorded(
+    study: Study, record: RunRecord, earlier: RunRecord | None, clock: _RunClock
+) -> Iterator[RunRecord]:
     """Store ``record`` as ``running`` for the block, then ``refused`` (EstimationError) or ``interrupted`` (else).
+
+    Yields ``record`` with the wall time of the run's stopped commands (``clock``), which the stored records
+    keep: the running one too, for a command killed outright.
 
     ``refused`` comes with the error's message; ``interrupted`` follows
     anything else that stops the block: Ctrl-C, SIGTERM (which raises
@@ -1492,11 +1496,12 @@ def _run_recorded(study: Study, record: RunRecord, earlier: RunRecord | None, cl
     as it is until the caller stores the new outcome: a rerun that is
     refused, interrupted or fails never downgrades a finished result.
     """
+    record = replace(record, stopped_elapsed=clock.stopped or None)
     is_kept = earlier is not None and earlier.is_finished
     if not is_kept:
         study.store.write_run(record.run_id, record.to_json())
     try:
-        yield
+        yield record
     except EstimationError as exc:
         if not is_kept:
             refused = replace(record, status="refused", reason=str(exc), stopped_elapsed=clock.so_far())
@@ -1828,8 +1833,7 @@ def run_target(
     title = f"{target} {tol_text(names, tol)}"
     option = _TARGET_OPTIONS[target]
     given = tol_text(names, tol) if target == "variance" else f"{tol[0]:g}"
-    record = replace(record, stopped_elapsed=clock.stopped or None)  # kept if this command is killed outright
-    with _run_recorded(study, record, earlier, clock), _naming_options(f"{option} {given}", option):
+    with _run_recorded(study, record, earlier, clock) as record, _naming_options(f"{option} {given}", option):
         result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
     outcome = _target_outcome(study, target=target, sampler=sampler, result=result, request=request,
                               diagnostics=diagnostics, clock=clock)
