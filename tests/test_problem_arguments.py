@@ -263,3 +263,10 @@ def test_a_two_dimensional_array_of_loads_is_refused_not_flattened() -> None:
         rough_uq.solve_load_curve(np.eye(8), system_size=1.0, mean_pressures=np.array([[0.1, 0.2], [0.3, 0.4]]))
     assert caught.value.name == "mean_pressures"
     assert rough_uq.solve_load_curve(np.eye(8), system_size=1.0, mean_pressures=np.array([0.1, 0.2])).n_loads == 2
+
+
+@pytest.mark.parametrize("flag", [True, np.bool_(True)])
+def test_a_boolean_load_is_refused_not_read_as_1(flag) -> None:
+    with pytest.raises(InvalidParameterError) as caught:
+        rough_uq.solve_load_curve(np.eye(8), system_size=1.0, mean_pressures=[0.1, flag])
+    assert caught.value.name == "mean_pressures"

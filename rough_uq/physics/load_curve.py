@@ -103,7 +103,7 @@ def check_mean_pressures(mean_pressures: object) -> np.ndarray:
         raise InvalidParameterError("mean_pressures", mean_pressures, allowed)
     values = list(values.reshape(-1)) if isinstance(values, np.ndarray) else list(values)
     is_bad = [
-        isinstance(v, np.bool_) or not is_real_number(v) or not (math.isfinite(v) and v > 0) for v in values
+        not is_real_number(v) or not (math.isfinite(v) and v > 0) for v in values  # refuses numpy's bools too
     ]
     if not values or any(is_bad):
         raise InvalidParameterError("mean_pressures", mean_pressures, allowed)
