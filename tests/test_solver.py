@@ -364,6 +364,41 @@ def test_invalid_input_names_the_parameter(kwargs, name):
         solve_contact(heights, **arguments)
 
 
+@pytest.mark.parametrize("name", ["heights", "initial_pressure"])
+@pytest.mark.parametrize(
+    "values, held",
+    [
+        ("abc", "text"),
+        (np.full((8, 8), "1.0"), "text"),
+        (np.ones((8, 8), dtype=complex), "complex numbers"),
+        (np.ones((8, 8), dtype=bool), "booleans"),
+        (np.full((8, 8), None), "Python objects"),
+    ],
+)
+def test_arrays_that_are_not_real_numbers_are_refused_by_name(name, values, held):
+    # The initial pressure was converted to float first: a string gave numpy's own ValueError, a complex
+    # guess only a ComplexWarning (its imaginary part dropped), booleans ran as 0/1.
+    arguments = {"heights": random_surface(8, k_s=3), "initial_pressure": None, name: values}
+    expected = rf"^{name}: got 'an array of {held}'; allowed: real numbers \(float or integer\)$"
+    with pytest.raises(InvalidParameterError, match=expected):
+        solve_contact(arguments.pop("heights"), system_size=1.0, mean_pressure=0.1, **arguments)
+
+
+def test_approach_is_the_highest_height_at_first_contact_and_falls_with_the_load():
+    heights = random_surface(64, k_s=8)
+    approaches = [solve_contact(heights, system_size=1.0, mean_pressure=load).approach
+                  for load in (1e-7, 1e-3, 1e-1, 1.0)]
+    assert approaches[0] == pytest.approx(heights.max(), rel=1e-3)
+    assert np.all(np.diff(approaches) < 0)
+
+
+def test_integer_initial_pressure_is_a_guess():
+    heights = random_surface(8, k_s=3)
+    guess = np.ones((8, 8), dtype=np.int64)
+    solution = solve_contact(heights, system_size=1.0, mean_pressure=0.1, initial_pressure=guess)
+    assert solution.converged
+
+
 @pytest.mark.parametrize("flag", ["no", "False", 0, 1, None, [False]])
 def test_precondition_that_is_not_a_bool_is_refused_by_name(flag):
     # "no" (any non-empty string) ran preconditioned, 0 and None ran plain: read by their truth value.

@@ -218,7 +218,8 @@ class ContactSolution:
         ``displacement - heights + approach``: zero (to ``tol``) in contact,
         positive elsewhere (unit of ``L``).
     approach : float
-        Rigid-body approach ``d`` (unit of ``L``).
+        Rigid-body term ``d`` of the gap ``displacement - heights + d`` (unit of ``L``). With this sign
+        (SPEC's) it is the largest height at first contact and decreases as the load grows.
     n_iter : int
         Conjugate-gradient iterations taken.
     error : float
@@ -537,13 +538,12 @@ def _differ_by_power_of_two(m: int, n: int) -> bool:
 
 def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, threads) -> np.ndarray:
     s = np.asarray(heights)
+    _refuse_non_real("heights", s)
     if s.ndim != 2 or s.shape[0] != s.shape[1]:
         raise InvalidParameterError("heights", f"array of shape {s.shape}", "a square n x n array")
     n = s.shape[0]
     if n < 2 or n % 2:
         raise InvalidParameterError("heights", f"{n} x {n} grid", "an even grid size n >= 2")
-    if not np.issubdtype(s.dtype, np.floating) and not np.issubdtype(s.dtype, np.integer):
-        raise InvalidParameterError("heights", f"dtype {s.dtype}", "real numbers")
     s = np.ascontiguousarray(s, dtype=np.float64)
     if not np.all(np.isfinite(s)):
         raise InvalidParameterError("heights", "non-finite values", "finite numbers")
@@ -557,10 +557,23 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, th
     return s
 
 
+#: What an array of a numpy dtype kind other than real numbers holds, for messages.
+_NON_REAL_KINDS = {"b": "booleans", "c": "complex numbers", "U": "text", "S": "bytes", "O": "Python objects"}
+
+
+def _refuse_non_real(name: str, values: np.ndarray) -> None:
+    """Refuse an array of text, objects, booleans or complex numbers by name."""
+    if not np.issubdtype(values.dtype, np.floating) and not np.issubdtype(values.dtype, np.integer):
+        held = _NON_REAL_KINDS.get(values.dtype.kind, f"values of dtype {values.dtype}")
+        raise InvalidParameterError(name, f"an array of {held}", "real numbers (float or integer)")
+
+
 def _initial_guess(initial_pressure, n: int) -> np.ndarray | None:
     if initial_pressure is None:
         return None
-    p0 = np.asarray(initial_pressure, dtype=np.float64)
+    p0 = np.asarray(initial_pressure)
+    _refuse_non_real("initial_pressure", p0)
+    p0 = p0.astype(np.float64)
     if p0.ndim != 2:
         # Checked here, before resample_pressure indexes p0.shape[0] of a scalar.
         raise InvalidParameterError("initial_pressure", f"array of shape {p0.shape}", "a square 2-D array")
