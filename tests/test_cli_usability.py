@@ -1273,3 +1273,12 @@ def test_method_mc_from_the_mlmc_command_runs_plain_mc(screened):
     run("mlmc", "--tol", "6", "--method", "mc", "--workers", "1", expect=None)
     record = json.loads(run("report", "results.h5", "--json").output)["runs"][0]
     assert record["method"] == "mc"
+
+
+@pytest.mark.parametrize(
+    "options", [["mlmc", "--tol", "1e6"], ["mc", "--tol", "1e6"], ["mc", "--level", "0", "--tol", "2e7"]]
+)
+def test_a_tolerance_of_a_million_or_more_names_its_run(screened, options):
+    # %g wrote 1e+06 into the run's name, which the store refused: a traceback, status 1.
+    record = json.loads(run(*options, "--workers", "1", "--json").output)
+    assert "+" not in record["run_id"] and re.search(r"-[12]e0[67]_", record["run_id"])

@@ -80,12 +80,20 @@ def run_id(
     theta = _check_fraction("theta", theta)  # the first use of a caller's theta: refuse a bad one by name
     # A load-curve column "contact_area@0.05" appears as "contact_area-at-0.05": run names are file-safe.
     names = [name.replace("@", "-at-") for name in names]
-    parts = [method] + [f"{name}-{eps:.6g}" for name, eps in zip(names, tol)] + [f"theta-{theta:.6g}"]
+    parts = [method] + [f"{name}-{_tag(eps)}" for name, eps in zip(names, tol)] + [f"theta-{_tag(theta)}"]
     if level is not None:
         parts.append(f"level-{level}")
     if richardson and method == "mlmc":
         parts.append("richardson")
     return "_".join(parts)
+
+
+def _tag(value: float) -> str:
+    """``value`` in a run name: ``%.6g`` without the ``+`` of a large exponent (``1e+06`` -> ``1e06``).
+
+    Every name that had no ``+`` stays as it was, and with it its random stage.
+    """
+    return f"{value:.6g}".replace("+", "")
 
 
 @dataclass(frozen=True, eq=False)
