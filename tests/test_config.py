@@ -635,3 +635,41 @@ def test_the_fewest_screened_levels_are_the_problem_layers() -> None:
     from rough_uq.problem.runs import MIN_SCREENED_LEVELS
 
     assert config_module.MIN_SCREENED_LEVELS == MIN_SCREENED_LEVELS == 3
+
+
+def test_a_config_larger_than_the_cap_is_refused_before_it_is_read_whole(tmp_path, monkeypatch):
+    # /dev/zero was read until the kernel killed the process (23 GB in 4 s).
+    monkeypatch.setattr(config_module, "MAX_CONFIG_BYTES", 4096)
+    path = tmp_path / "big.yaml"
+    path.write_text(yaml.safe_dump(_base()) + "#" * 5000 + "\n")
+    with pytest.raises(ConfigError, match=r"big\.yaml: larger than .*at most 4096 bytes"):
+        load_config(path)
+    path.write_text(yaml.safe_dump(_base()))
+    assert load_config(path).seed == 7
+
+
+@pytest.mark.skipif(not Path("/dev/zero").exists(), reason="no /dev/zero")
+def test_dev_zero_is_refused_by_its_size():
+    with pytest.raises(ConfigError, match=r"^/dev/zero: larger than 1 MiB"):
+        load_config("/dev/zero")
+
+
+@pytest.mark.parametrize("depth", [1000, 5000])
+def test_yaml_nested_too_deeply_is_a_config_error(tmp_path, depth):
+    # PyYAML recurses per level: a RecursionError traceback.
+    path = tmp_path / "deep.yaml"
+    path.write_text("a: " + "[" * depth + "]" * depth + "\n")
+    with pytest.raises(ConfigError, match=r"deep\.yaml: not valid YAML: nested too deeply"):
+        load_config(path)
+    with pytest.raises(ConfigError, match=r"nested too deeply"):
+        config_from_stored_text(path.read_text())
+
+
+def test_schema_version_true_is_not_version_1():
+    assert "schema_version: must be a number, not a boolean" in _message({**_base(), "schema_version": True})
+
+
+@pytest.mark.parametrize("path", [".", "..", "runs/", "a/..", "study/."])
+def test_an_output_path_that_names_a_directory_is_refused(path):
+    text = _message({**_base(), "output": {"path": path}})
+    assert f"output.path: names a directory, not a file (got {path!r}" in text

@@ -868,6 +868,14 @@ class OutputConfig(_Section):
         min_length=1,
     )
 
+    @field_validator("path")
+    @classmethod
+    def _names_a_file(cls, value: str) -> str:
+        # '.', 'runs/' or 'a/..' name a directory whatever the disk holds: `screen` said only ". is not a file".
+        if value.endswith(("/", os.sep)) or os.path.basename(value) in (".", ".."):
+            raise PydanticCustomError("not_a_file_name", "names a directory, not a file")
+        return value
+
 
 # ---------------------------------------------------------------------------
 # The study
@@ -927,7 +935,7 @@ def memory_warning(
 class StudyConfig(_Section):
     """A complete study. Frozen; build it with :func:`load_config` or :func:`config_from_dict`."""
 
-    schema_version: Literal[1] = _field(
+    schema_version: Annotated[Literal[1], BeforeValidator(_reject_non_number)] = _field(
         description="Version of this config schema", allowed="1"
     )
     seed: Int = _field(
@@ -1234,6 +1242,10 @@ def _yaml_error_line(path: str, error: yaml.YAMLError) -> str:
     return f"{path}: not valid YAML{where}: {problem} (got a malformed file; allowed: a YAML mapping of sections)"
 
 
+#: The largest config file read (a shipped config has some 3 kB; the cap keeps ``/dev/zero`` from
+#: filling the memory).
+MAX_CONFIG_BYTES = 2**20
+
 #: The first bytes of an HDF5 file (a study file given where a config is expected).
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -1265,7 +1277,11 @@ def load_config(path: str | os.PathLike[str]) -> StudyConfig:
                 raise _config_error([f"{name}: is an HDF5 file (a study file?), not a YAML config (got {name!r}; "
                                      "allowed: a YAML config file; a study file goes to --study, or to `roughuq "
                                      "report`)"])
-            text = (head + stream.read()).decode("utf-8")
+            rest = stream.read(MAX_CONFIG_BYTES + 1 - len(head))  # not all of /dev/zero either
+            if len(head) + len(rest) > MAX_CONFIG_BYTES:
+                raise _config_error([f"{name}: larger than {MAX_CONFIG_BYTES // 2**20} MiB (got {name!r}; allowed: a "
+                                     f"YAML config file of at most {MAX_CONFIG_BYTES} bytes)"])
+            text = (head + rest).decode("utf-8")
     except FileNotFoundError:
         raise _config_error([f"{name}: config file not found (got {name!r}; allowed: an existing YAML file)"]) from None
     except IsADirectoryError:
@@ -1292,10 +1308,7 @@ def config_from_stored_text(text: str, *, source: str = "config") -> StudyConfig
     screening never finished (the rates cannot be fitted on one level >= 1),
     and the screening section is not in the config hash.
     """
-    try:
-        data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
-    except yaml.YAMLError as exc:
-        raise _config_error([_yaml_error_line(source, exc)]) from None
+    data = _parsed_yaml(text, source)
     if isinstance(data, dict) and isinstance(data.get("qoi"), dict):
         area = data["qoi"].get("contact_area")
         if isinstance(area, dict) and "estimator" not in area:
@@ -1314,13 +1327,22 @@ def config_from_yaml_text(text: str, *, source: str = "config") -> StudyConfig:
     ``source`` names the input in messages. Raises :class:`ConfigError` like
     :func:`load_config`.
     """
-    try:
-        data = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
-    except yaml.YAMLError as exc:
-        raise _config_error([_yaml_error_line(source, exc)]) from None
+    data = _parsed_yaml(text, source)
     if data is None:
         raise _config_error([f"{source}: the file is empty (got no content; allowed: a YAML mapping of sections)"])
     return config_from_dict(data, source=source)
+
+
+def _parsed_yaml(text: str, source: str) -> object:
+    """The data of YAML ``text``; a malformed or too deeply nested text is a :class:`ConfigError`."""
+    try:
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
+    except yaml.YAMLError as exc:
+        raise _config_error([_yaml_error_line(source, exc)]) from None
+    except RecursionError:
+        # PyYAML's parser recurses once per level of nesting: '[' * 5000 was a traceback.
+        raise _config_error([f"{source}: not valid YAML: nested too deeply for the parser (got a malformed file; "
+                             "allowed: a YAML mapping of sections)"]) from None
 
 
 def _config_error(lines: list[str]) -> ConfigError:
@@ -1455,7 +1477,10 @@ def _flattened(data: dict[str, Any], prefix: str = "") -> dict[str, object]:
 
 def _parse_scalar(text: str) -> object:
     # The config file's reading of a value, so that 1e-8 is a number here too.
-    value = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
+    try:
+        value = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
+    except RecursionError:
+        return text
     return value if isinstance(value, (int, float, str, bool)) else text
 
 
