@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -159,8 +160,11 @@ def test_files_that_hold_no_problem_are_refused_by_name(tmp_path):
     for read in (open_study_readonly, read_report, load_screening):
         with pytest.raises(StudyFileError, match="empty path"):  # read_report("") said ". is not a file"
             read("")
-    with pytest.raises(StudyFileError, match="is not a file"):
+    with pytest.raises(StudyFileError, match=r"is a directory \(got .*; allowed: a study file\)"):
         load_screening(tmp_path)  # a directory: it said "is a directory ... allowed: a YAML file"
+    if Path("/dev/null").exists():  # it said "/dev/null is not a file"
+        with pytest.raises(StudyFileError, match=r"^/dev/null is not a regular file \(a device or a pipe\?\)"):
+            load_screening("/dev/null")
 
 
 

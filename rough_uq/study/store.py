@@ -842,7 +842,8 @@ def _read_header(path: Path) -> dict[str, Any]:
     if not path.exists():
         raise StudyFileError(f"{path}: no such study file", path)
     if not path.is_file():
-        raise StudyFileError(f"{path} is not a file", path)
+        kind = "a directory" if path.is_dir() else "not a regular file (a device or a pipe?)"
+        raise StudyFileError(f"{path} is {kind} (got {os.fspath(path)!r}; allowed: a study file)", path)
     if path.stat().st_size == 0:
         raise StudyFileError(f"{path} is empty, not a study file", path)
     try:
