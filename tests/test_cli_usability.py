@@ -1282,3 +1282,15 @@ def test_a_tolerance_of_a_million_or_more_names_its_run(screened, options):
     # %g wrote 1e+06 into the run's name, which the store refused: a traceback, status 1.
     record = json.loads(run(*options, "--workers", "1", "--json").output)
     assert "+" not in record["run_id"] and re.search(r"-[12]e0[67]_", record["run_id"])
+
+
+def test_a_prediction_at_the_plan_cap_shows_the_cap_not_sixteen_digits(tmp_path, monkeypatch):
+    # At tol 1e-9 the plan's counts reached the cap: "4503599627370496 1972859289853235 ..." read as counts,
+    # and its times as "1530000000 h".
+    monkeypatch.chdir(tmp_path)
+    config = tiny_config(qoi={"contact_area": {"unit": "percent", "tol": 1e-9}})
+    write_config(tmp_path / "tiny.yaml", config)
+    output = run("screen", "tiny.yaml", "--workers", "1").output
+    counts = re.findall(r"\b\d{8,}\b", output)
+    assert not counts, counts
+    assert ">=4.5e+15" in output and re.search(r"e\+\d\d h", output)

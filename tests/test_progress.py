@@ -136,6 +136,8 @@ def test_rich_eta_column_waits_for_a_steady_rate(monkeypatch):
     (150.0, {}, "2.5 min"),
     (6600.0, {"digits": 2}, "110 min"),
     (7 * 24 * 3600.0, {}, "168 h"),
+    (3600 * 123456.0, {"digits": 2}, "120000 h"),
+    (3600 * 1.53e9, {}, "1.53e+09 h"),  # not 1530000000 h (a plan at its cap)
     (math.inf, {}, "forever"),
     (None, {}, "-"),
     (math.nan, {}, "-"),

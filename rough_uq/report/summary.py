@@ -72,6 +72,7 @@ from typing import Any
 import numpy as np
 from rich.markup import escape
 
+from rough_uq.errors import PLANNED_COUNT_CAP
 from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.rates import EXACT_RATE, RATE_FLOOR
 from rough_uq.multilevel.statistics import KURTOSIS_LIMIT
@@ -394,6 +395,17 @@ def _g(value: float | None, digits: int = 3) -> str:
     return f"{value + 0.0:.{digits}g}"  # + 0.0: a fitted -0.0 reads "0", not "-0"
 
 
+#: Planned counts from here on are shown in three digits (``2.0e+15``; sixteen digits said nothing more).
+_COUNT_DIGITS_LIMIT = 10**7
+
+
+def _planned_count(n: int) -> str:
+    """A level's planned sample count; a count at the plan's cap as ``>=`` the cap (the plan needs more)."""
+    if n >= PLANNED_COUNT_CAP:
+        return f">={PLANNED_COUNT_CAP:.2g}"
+    return str(n) if n < _COUNT_DIGITS_LIMIT else f"{n:.3g}"
+
+
 def _pm(value: float, error: float) -> str:
     return f"{_g(value, 3)} ± {_g(error, 2)}"
 
@@ -686,7 +698,7 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
         table.add_row(
             tol_text(screening.qoi_names, p.tol) + ("" if p.is_bias_met else " *"),
             f"0..{p.finest_level}",
-            " ".join(str(n) for n in p.n_samples),
+            " ".join(_planned_count(n) for n in p.n_samples),
             format_duration(p.mlmc_seconds),
             format_duration(p.mc_seconds),
             _g(p.work_ratio),

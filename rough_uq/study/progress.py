@@ -109,7 +109,8 @@ def format_duration(seconds: float | None, *, digits: int = 3, clock: bool = Fal
         return _clock(int(round(seconds)))
     value, unit = next((seconds / size, unit) for limit, size, unit in _DURATION_UNITS if seconds < limit)
     text = f"{value:.{digits}g}"
-    return f"{float(text):.0f} {unit}" if "e+" in text else f"{text} {unit}"  # 1e+02 s reads as 100 s
+    # 1e+02 s reads as 100 s; from a million hours on (114 years, a plan out of reach) the exponent stays.
+    return f"{float(text):.0f} {unit}" if "e+" in text and float(text) < 1e6 else f"{text} {unit}"
 
 
 def _clock(seconds: int) -> str:
