@@ -673,3 +673,9 @@ def test_schema_version_true_is_not_version_1():
 def test_an_output_path_that_names_a_directory_is_refused(path):
     text = _message({**_base(), "output": {"path": path}})
     assert f"output.path: names a directory, not a file (got {path!r}" in text
+
+
+def test_an_empty_config_path_is_named_as_such():
+    # It said ": config file not found (got '' ...)", a file name missing in front of the colon.
+    with pytest.raises(ConfigError, match=r"^config file: got ''; allowed: a non-empty path of a YAML file$"):
+        load_config("")

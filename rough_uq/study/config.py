@@ -1270,6 +1270,8 @@ def load_config(path: str | os.PathLike[str]) -> StudyConfig:
         ``<file>: <field.path>: <what is wrong> (got <value>; allowed: <what>)``.
     """
     name = os.fspath(path)
+    if not name:  # it said ": config file not found"
+        raise _config_error(["config file: got ''; allowed: a non-empty path of a YAML file"])
     try:
         with open(name, "rb") as stream:
             head = stream.read(len(_HDF5_SIGNATURE))  # not the whole of a study file of gigabytes
