@@ -614,10 +614,10 @@ def test_richardson_meets_the_tolerance_with_fewer_levels_and_less_cost(richards
     assert all(r.tol_met and r.bias_estimate <= math.sqrt(0.5) * EPS for r in applied)
     plain_levels = np.mean([p.finest_level for _, p, _ in richardson_repeats])
     richardson_levels = np.mean([r.finest_level for _, _, r in richardson_repeats])
-    assert richardson_levels <= plain_levels - 1.0  # measured: 3.9 against 5.4
+    assert richardson_levels <= plain_levels - 1.0  # measured: 3.9 against 5.8
     plain_cost = sum(p.cost for _, p, _ in richardson_repeats)
     richardson_cost = sum(r.cost for _, _, r in richardson_repeats)
-    assert richardson_cost <= 0.8 * plain_cost  # measured: 0.61
+    assert richardson_cost <= 0.8 * plain_cost  # measured: 0.36
 
 
 def test_richardson_meets_the_tolerance_on_levels_before_the_asymptotic_rate():
@@ -631,7 +631,39 @@ def test_richardson_meets_the_tolerance_on_levels_before_the_asymptotic_rate():
         result, _ = run_quietly(mlmc, problem, tol=tol, richardson=True)
         assert result.richardson == "applied" and result.tol_met
         errors.append(result.estimate - problem.mean())
-    assert math.sqrt(np.mean(np.square(errors))) <= tol * rms_slack(n_repeats)  # measured 0.015
+    assert math.sqrt(np.mean(np.square(errors))) <= tol * rms_slack(n_repeats)  # measured 0.016
+
+
+def test_richardson_is_not_made_costlier_by_a_drift_within_the_noise():
+    # At its rate (b = 0) the ratios of the level means differ by noise alone. Counted whole, that noise
+    # made one of these 40 runs 3.4 times the cost of plain MLMC (seed 31: ratios 0.50 -> 0.66, a bias
+    # estimate of 6.6 tol); counted beyond half a standard error, the costliest run is 1.05 times plain.
+    ratios = []
+    for seed in range(40):
+        problem = Synthetic(seed=seed, a=1.0, b=0.0, alpha=1.0, alpha2=2.0, v1=0.25, beta=2.0, gamma=2.0, mu0=3.0)
+        plain, _ = run_quietly(mlmc, problem, tol=0.02)
+        extrapolated, _ = run_quietly(mlmc, problem, tol=0.02, richardson=True)
+        ratios.append(extrapolated.cost / plain.cost)
+    assert max(ratios) <= 1.5 and np.median(ratios) <= 0.4  # measured 1.05 and 0.22
+
+
+def test_a_ratio_drifting_towards_zero_keeps_its_drift_term():
+    # r_{L-1} = 0.6, r_L = 0.305 gave 0.181 but r_L = 0.300 (limit clipped to exactly 0) 0.103: the
+    # term vanished where the drift was largest.
+    estimates = [richardson_bias(np.array([[1.0], [0.6], [0.6 * r]]), np.array([1.0]))[0] for r in (0.305, 0.3)]
+    assert estimates[1] == pytest.approx(estimates[0], rel=0.02)  # 0.1800 and 0.1812
+
+
+@pytest.mark.parametrize("second, screened", [(1.0, 3), (1.0, 4), (6.0, 3), (6.0, 4)])
+def test_a_plan_projects_richardson_bias_as_the_run_will_estimate_it(second, screened):
+    # The projection to finer levels scaled the whole estimate by 2^-alpha2 per level, but its rate part
+    # is proportional to E[Y_L] and shrinks like 2^-alpha: 0.06-0.42 of what the run then estimates.
+    levels = np.arange(1, 9)
+    means = (2.0**-levels + second * 4.0**-levels)[:, None]
+    alpha = np.array([-np.polyfit(levels[:screened], np.log2(means[:screened, 0]), 1)[0]])
+    for beyond in (1, 2):
+        projected = richardson_bias(means[:screened], alpha, beyond=beyond)[0]
+        assert projected >= 0.2 * richardson_bias(means[: screened + beyond], alpha)[0]  # measured 0.23-0.84
 
 
 def test_richardson_estimate_is_the_weighted_sum(richardson_repeats):

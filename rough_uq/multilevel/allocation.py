@@ -61,7 +61,6 @@ from rough_uq.multilevel.richardson import (
     ratio_instability,
     richardson_bias,
     richardson_weight,
-    second_order_rate,
 )
 from rough_uq.multilevel.statistics import LevelStatistics, _checked_names, _readonly
 
@@ -628,15 +627,14 @@ def _richardson_level(
     if np.any(alpha <= 0):
         return f"Richardson extrapolation refused: the bias does not decay (alpha = {alpha.tolist()})"
     top = levels[-1]
-    alpha2 = second_order_rate(alpha)
     # Worth it only with fewer levels than plain MLMC, or on the same levels if plain MLMC
     # cannot meet the bias there (capped by max_level).
     cap = plain_level + 1 if not is_plain_met else plain_level
     for level in range(RICHARDSON_MIN_LEVELS, cap):
         if level <= top:
-            bias = richardson_bias(means[:level], alpha)
+            bias = richardson_bias(means[:level], alpha, errors[:level])
         else:
-            bias = richardson_bias(means, alpha) * 2.0 ** (-alpha2 * (level - top))
+            bias = richardson_bias(means, alpha, errors, beyond=level - top)
         if np.all(bias <= bias_limit):
             return level, bias
     return f"Richardson extrapolation needs as many levels as plain MLMC here (L = {plain_level})"

@@ -1451,7 +1451,7 @@ class _MlmcRun(_Run):
         all_means, errors = self.hierarchy.bias_means(self.n_qoi)
         means = all_means[self.hierarchy.base : finest + 1]  # row 0 is the base level, whose Y is Q
         if self.extrapolation == "active":
-            return richardson_bias(means[1:], self.driver.alpha)
+            return richardson_bias(means[1:], self.driver.alpha, errors[self.hierarchy.base + 1 : finest + 1])
         # The two levels below the finest, as far as they are differences (above the base level).
         coarser = means[1:-1][-2:]
         return estimated_bias(rates=self.driver, level=finest, mean_diff=means[-1], coarser=coarser,
