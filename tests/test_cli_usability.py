@@ -1294,3 +1294,13 @@ def test_a_prediction_at_the_plan_cap_shows_the_cap_not_sixteen_digits(tmp_path,
     counts = re.findall(r"\b\d{8,}\b", output)
     assert not counts, counts
     assert ">=4.5e+15" in output and re.search(r"e\+\d\d h", output)
+
+
+def test_a_load_curve_column_of_a_large_load_names_its_run(tmp_path, monkeypatch):
+    # The column contact_area@1e+16 kept its + in the run's name, which the store refused: a traceback.
+    monkeypatch.chdir(tmp_path)
+    config = tiny_config(load={"absolute": [1e16, 2e16]}, material={"e_star": 1e17})
+    write_config(tmp_path / "big.yaml", config)
+    run("screen", "big.yaml", "--workers", "1", "--quiet")
+    record = json.loads(run("mc", "--level", "1", "--tol", "50", "--workers", "1", "--json").output)
+    assert "contact_area-at-1e16" in record["run_id"] and "+" not in record["run_id"]

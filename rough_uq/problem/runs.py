@@ -78,8 +78,9 @@ def run_id(
     CLI draws. A Richardson-extrapolated MLMC run ends in ``_richardson``.
     """
     theta = _check_fraction("theta", theta)  # the first use of a caller's theta: refuse a bad one by name
-    # A load-curve column "contact_area@0.05" appears as "contact_area-at-0.05": run names are file-safe.
-    names = [name.replace("@", "-at-") for name in names]
+    # A load-curve column "contact_area@0.05" appears as "contact_area-at-0.05" (and "@1e+16" as "-at-1e16"):
+    # run names are file-safe.
+    names = [name.replace("@", "-at-").replace("+", "") for name in names]
     parts = [method] + [f"{name}-{_tag(eps)}" for name, eps in zip(names, tol)] + [f"theta-{_tag(theta)}"]
     if level is not None:
         parts.append(f"level-{level}")
