@@ -373,6 +373,7 @@ def test_invalid_input_names_the_parameter(kwargs, name):
         (np.ones((8, 8), dtype=complex), "complex numbers"),
         (np.ones((8, 8), dtype=bool), "booleans"),
         (np.full((8, 8), None), "Python objects"),
+        (np.ones((8, 8), dtype="timedelta64[s]"), "time differences"),  # a subtype of np.integer
     ],
 )
 def test_arrays_that_are_not_real_numbers_are_refused_by_name(name, values, held):

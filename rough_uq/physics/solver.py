@@ -558,12 +558,15 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, th
 
 
 #: What an array of a numpy dtype kind other than real numbers holds, for messages.
-_NON_REAL_KINDS = {"b": "booleans", "c": "complex numbers", "U": "text", "S": "bytes", "O": "Python objects"}
+_NON_REAL_KINDS = {
+    "b": "booleans", "c": "complex numbers", "U": "text", "S": "bytes", "O": "Python objects",
+    "m": "time differences", "M": "dates",
+}
 
 
 def _refuse_non_real(name: str, values: np.ndarray) -> None:
     """Refuse an array of text, objects, booleans or complex numbers by name."""
-    if not np.issubdtype(values.dtype, np.floating) and not np.issubdtype(values.dtype, np.integer):
+    if values.dtype.kind not in "iuf":  # np.timedelta64 is a subtype of np.integer: not a number here
         held = _NON_REAL_KINDS.get(values.dtype.kind, f"values of dtype {values.dtype}")
         raise InvalidParameterError(name, f"an array of {held}", "real numbers (float or integer)")
 
@@ -573,7 +576,7 @@ def _initial_guess(initial_pressure, n: int) -> np.ndarray | None:
         return None
     p0 = np.asarray(initial_pressure)
     _refuse_non_real("initial_pressure", p0)
-    p0 = p0.astype(np.float64)
+    p0 = np.asarray(p0, dtype=np.float64)
     if p0.ndim != 2:
         # Checked here, before resample_pressure indexes p0.shape[0] of a scalar.
         raise InvalidParameterError("initial_pressure", f"array of shape {p0.shape}", "a square 2-D array")
