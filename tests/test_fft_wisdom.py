@@ -80,6 +80,7 @@ def test_a_screening_says_when_it_measures_plans_and_not_when_they_are_known(fre
         b"{\"format\": \"roughuq-fftw-wisdom\", \"version\": 1, \"wisdom\": [1, 2]}",
         b"[]",
         b"\xff\xfe",
+        pytest.param(b"[" * 100000 + b"]" * 100000, id="deep"),  # json recursed per level: a RecursionError
     ],
 )
 def test_a_file_that_is_not_wisdom_of_this_version_is_ignored_and_replaced(fresh_wisdom, content):

@@ -481,10 +481,12 @@ DAMAGED_RECORDS = [
     ("screening/record", np.frombuffer(b"{not json", dtype=np.uint8), "not JSON text"),
     ("screening/record", np.array(b'{"a": 1}', dtype=h5py.string_dtype()), "a string dataset"),
     ("runs/r1/record", np.frombuffer(b"[1, 2]", dtype=np.uint8), "JSON list, not an object"),
+    # json recursed per level: a RecursionError traceback.
+    ("runs/r1/record", np.frombuffer(b"[" * 100000 + b"]" * 100000, dtype=np.uint8), "JSON nested too deeply"),
 ]
 
 
-@pytest.mark.parametrize(("name", "value", "message"), DAMAGED_RECORDS, ids=["utf8", "json", "string", "list"])
+@pytest.mark.parametrize(("name", "value", "message"), DAMAGED_RECORDS, ids=["utf8", "json", "string", "list", "deep"])
 @pytest.mark.parametrize("opener", ["readonly", "writable"])
 def test_a_damaged_record_is_a_study_file_error_naming_file_and_record(
     tmp_path: Path, name: str, value: object, message: str, opener: str

@@ -1479,10 +1479,7 @@ def _flattened(data: dict[str, Any], prefix: str = "") -> dict[str, object]:
 
 def _parse_scalar(text: str) -> object:
     # The config file's reading of a value, so that 1e-8 is a number here too.
-    try:
-        value = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
-    except RecursionError:
-        return text
+    value = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
     return value if isinstance(value, (int, float, str, bool)) else text
 
 

@@ -56,7 +56,7 @@ def load_wisdom(path: Path) -> tuple[bytes, ...] | None:
     """The wisdom stored at ``path``; ``None`` if missing, unreadable or not a wisdom file of this version."""
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, ValueError):  # JSON and Unicode errors are ValueErrors
+    except (OSError, ValueError, RecursionError):  # JSON and Unicode errors are ValueErrors; deep nesting recurses
         return None
     if not (isinstance(data, dict) and data.get("format") == _FORMAT and data.get("version") == _VERSION):
         return None

@@ -508,6 +508,8 @@ class StudyStore(ABC):
             data = json.loads(text)
         except ValueError as exc:  # json.JSONDecodeError
             raise self._damaged(_record_name(key), f"not JSON text ({exc})") from None
+        except RecursionError:
+            raise self._damaged(_record_name(key), "JSON nested too deeply") from None
         if not isinstance(data, dict):
             raise self._damaged(_record_name(key), f"JSON {type(data).__name__}, not an object")
         return data
