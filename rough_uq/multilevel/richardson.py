@@ -136,8 +136,8 @@ def richardson_bias(
         Bias rate of the extrapolation.
     mean_se : ndarray, shape (n, n_qoi), optional
         Standard errors of ``mean_diff``: the drift of the local ratio counts
-        only beyond one standard error of its own (module docstring). Without
-        them the means are taken as exact.
+        only beyond :data:`DRIFT_NOISE_GATE` standard errors of its own (module
+        docstring). Without them the means are taken as exact.
     beyond : int
         Levels past the finest of ``mean_diff`` whose bias is wanted (a plan's
         projection): the next-order tail shrinks by ``2^-alpha2`` per level,

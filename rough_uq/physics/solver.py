@@ -565,7 +565,7 @@ _NON_REAL_KINDS = {
 
 
 def _refuse_non_real(name: str, values: np.ndarray) -> None:
-    """Refuse an array of text, objects, booleans or complex numbers by name."""
+    """Refuse an array of anything but real numbers (text, booleans, complex numbers, times...) by name."""
     if values.dtype.kind not in "iuf":  # np.timedelta64 is a subtype of np.integer: not a number here
         held = _NON_REAL_KINDS.get(values.dtype.kind, f"values of dtype {values.dtype}")
         raise InvalidParameterError(name, f"an array of {held}", "real numbers (float or integer)")
