@@ -395,7 +395,7 @@ def _g(value: float | None, digits: int = 3) -> str:
     return f"{value + 0.0:.{digits}g}"  # + 0.0: a fitted -0.0 reads "0", not "-0"
 
 
-#: Planned counts from here on are shown in three digits (``2.0e+15``; sixteen digits said nothing more).
+#: Planned counts from here on are shown in three digits (``1.97e+15``; sixteen digits said nothing more).
 _COUNT_DIGITS_LIMIT = 10**7
 
 
