@@ -216,7 +216,7 @@ def _ratios(means: np.ndarray) -> np.ndarray:
 
 
 def _log_ratio_noise(mean_diff: np.ndarray, mean_se: np.ndarray) -> np.ndarray:
-    """Standard error of ``log2 r_L - log2 r_{L-1}`` from the three finest means (first order)."""
+    """Standard error of ``log2 r_L - log2 r_{L-1}`` from the three finest means (first order; rows are levels)."""
     means, errors = np.abs(mean_diff[-3:]), np.asarray(mean_se, dtype=float)[-3:]
     relative = np.divide(errors, means, out=np.full_like(means, np.inf), where=means > 0)
     return np.sqrt(relative[2] ** 2 + 4.0 * relative[1] ** 2 + relative[0] ** 2) / math.log(2.0)
@@ -315,11 +315,10 @@ def ratio_instability(
                     f"the level means do not decay between levels {shown[k]} and {shown[k + 1]} "
                     f"({m[k]:.3g}, {m[k + 1]:.3g}){tag}"
                 )
-        rel = se / np.abs(m)
         log_ratios = np.log2(ratios)
         for k in range(1, len(ratios)):
             spread = abs(log_ratios[k] - log_ratios[k - 1])
-            noise = math.sqrt(rel[k + 1] ** 2 + 4.0 * rel[k] ** 2 + rel[k - 1] ** 2) / math.log(2.0)
+            noise = _log_ratio_noise(m[k - 1 : k + 2], se[k - 1 : k + 2])
             if spread > RATIO_LOG2_TOLERANCE + 2.0 * noise:
                 return (
                     f"the ratios of successive level means are not stable: E[Y_l] / E[Y_l-1] = "
