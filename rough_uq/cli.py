@@ -616,8 +616,9 @@ def _shipped_config_text(name: str) -> str:
               help="File to write (default: NAME.yaml in the working directory).")
 @click.option("--force", is_flag=True, help="Overwrite an existing file.")
 @click.option("--list", "show_list", is_flag=True, help="List the shipped configs and exit.")
+@_quiet_option
 @_user_errors
-def init(name: str | None, out: str | None, force: bool, show_list: bool) -> None:
+def init(name: str | None, out: str | None, force: bool, show_list: bool, quiet: bool) -> None:
     """Write a shipped study config to the working directory, to edit and run.
 
     NAME is one of: quickstart (a small study, about a minute), classic-area,
@@ -641,14 +642,16 @@ def init(name: str | None, out: str | None, force: bool, show_list: bool) -> Non
     if target.exists() and not force:
         if _has_text(target, text):
             # The README's quick start runs `roughuq init quickstart && roughuq screen ...`: a second time, go on.
-            click.echo(f"{target} is already the shipped {name} config, unchanged; next: roughuq screen {target}")
+            if not quiet:
+                click.echo(f"{target} is already the shipped {name} config, unchanged; next: roughuq screen {target}")
             return
         raise RoughUQError(f"{target} already exists; add --force to overwrite it, or --out FILE to write elsewhere")
     try:
         target.write_text(text, encoding="utf-8")
     except OSError as exc:
         raise InvalidParameterError("--out", str(target), f"a writable file path ({exc.strerror})") from exc
-    click.echo(f"wrote {target}; next: roughuq screen {target}")
+    if not quiet:
+        click.echo(f"wrote {target}; next: roughuq screen {target}")
 
 
 @main.command()

@@ -57,6 +57,16 @@ def test_init_refuses_to_overwrite_unless_forced(tmp_path, monkeypatch):
     assert not (tmp_path / "quickstart.yaml").exists()  # --out, not the default name
 
 
+def test_init_takes_quiet_like_the_other_commands(tmp_path, monkeypatch):
+    # `roughuq init -q` was "No such option: -q" in scripts that pass -q to every command.
+    monkeypatch.chdir(tmp_path)
+    for args in (("init", "quickstart", "-q"), ("init", "quickstart", "--quiet")):  # written, then unchanged
+        result = run(*args)
+        assert result.stdout == "" and (tmp_path / "quickstart.yaml").exists()
+    assert "quickstart" in run("init", "--list", "-q").stdout  # the list is the result
+    assert "already exists" in run("init", "classic-area", "--out", "quickstart.yaml", "-q", expect=2).stderr
+
+
 def test_init_again_on_the_unchanged_config_goes_on(tmp_path, monkeypatch):
     # The README's quick start, `roughuq init quickstart && roughuq screen ...`, run twice in one directory.
     monkeypatch.chdir(tmp_path)
