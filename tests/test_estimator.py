@@ -798,6 +798,42 @@ def test_richardson_bias_sees_a_local_ratio_still_drifting(second, finest):
     assert 0.6 * remaining <= estimated <= (2.0 if finest > 3 else 2.5) * remaining
 
 
+@pytest.mark.parametrize("seed", [1, 3, 5])
+def test_a_runs_richardson_bias_uses_the_standard_errors_of_its_levels(seed):
+    # Seeds whose drift is gated in part: the errors of the wrong levels (one level coarser) or none at
+    # all give another bias.
+    problem = Synthetic(seed=seed, a=1.0, b=6.0, alpha=1.0, alpha2=2.0, v1=0.25, beta=2.0, gamma=2.0, mu0=3.0)
+    result, _ = run_quietly(mlmc, problem, tol=0.02, richardson=True)
+    assert result.richardson == "applied"
+    statistics, alpha = result.statistics, result.rates.alpha
+    means, errors = statistics.mean_diff[1:], statistics.mean_diff_error[1:]
+    bias = float(np.ravel(result.bias_estimate)[0])  # a float for one QoI
+    assert bias == pytest.approx(richardson_bias(means, alpha, errors)[0], rel=1e-12)
+    assert bias != pytest.approx(richardson_bias(means, alpha, statistics.mean_diff_error[:-1])[0])
+    assert bias < 0.9 * richardson_bias(means, alpha)[0]
+
+
+@pytest.mark.parametrize("tol", [0.02, 0.005])
+def test_a_plans_richardson_bias_uses_the_screened_standard_errors(tol):
+    # On screened levels before the rate (b = 6, 4000 samples a level) the ratios' drift exceeds its noise
+    # in part: with the errors the plan's bias is 2.2 times what it is without the drift (errors inf), and
+    # 0.97 of the ungated one (errors dropped). On the screened levels (tol 0.02) and beyond them (0.005).
+    problem = Synthetic(seed=11, a=1.0, b=6.0, alpha=1.0, alpha2=2.0, v1=0.25, beta=2.0, gamma=2.0, mu0=3.0)
+    statistics = level_statistics(**sample_levels(problem, range(5), 4000))
+    rates = fit_rates(statistics)
+    extrapolated = plan(tol=tol, rates=rates, statistics=statistics, richardson=True)
+    assert extrapolated.is_richardson
+    means, errors = statistics.mean_diff[1:], np.sqrt(statistics.var_diff[1:] / statistics.n_samples[1:, None])
+    finest, top = extrapolated.finest_level, len(means)
+    options = {"beyond": max(finest - top, 0)}
+    rows = slice(0, min(finest, top))
+    expected = richardson_bias(means[rows], rates.alpha, errors[rows], **options)
+    np.testing.assert_allclose(extrapolated.bias, expected, rtol=1e-12)
+    without_drift = richardson_bias(means[rows], rates.alpha, np.full_like(errors[rows], np.inf), **options)
+    assert expected[0] > 1.5 * without_drift[0]
+    assert expected[0] < richardson_bias(means[rows], rates.alpha, **options)[0]
+
+
 def test_plan_extrapolates_only_with_fewer_levels():
     problem = Synthetic(seed=11, **RICHARDSON_PROBLEM)
     statistics = level_statistics(**sample_levels(problem, range(4), 200))
