@@ -176,7 +176,7 @@ import numpy as np
 
 from rough_uq.physics.elastic import HalfSpace, multiply_spectrum
 from rough_uq.errors import (
-    ConvergenceError, InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_number,
+    ConvergenceError, InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_array, is_real_number,
 )
 from rough_uq.physics.fft import RealFFT, get_fft
 
@@ -566,7 +566,7 @@ _NON_REAL_KINDS = {
 
 def _refuse_non_real(name: str, values: np.ndarray) -> None:
     """Refuse an array of anything but real numbers (text, booleans, complex numbers, times...) by name."""
-    if values.dtype.kind not in "iuf":  # np.timedelta64 is a subtype of np.integer: not a number here
+    if not is_real_array(values):  # by dtype kind: np.timedelta64, a subtype of np.integer, is refused too
         held = _NON_REAL_KINDS.get(values.dtype.kind, f"values of dtype {values.dtype}")
         raise InvalidParameterError(name, f"an array of {held}", "real numbers (float or integer)")
 
