@@ -385,6 +385,16 @@ def test_arrays_that_are_not_real_numbers_are_refused_by_name(name, values, held
         solve_contact(arguments.pop("heights"), system_size=1.0, mean_pressure=0.1, **arguments)
 
 
+@pytest.mark.parametrize("name", ["heights", "initial_pressure"])
+def test_a_ragged_list_is_refused_by_name(name):
+    # numpy's own ValueError ("inhomogeneous shape") came through before.
+    ragged = [[0.0] * 8 for _ in range(7)] + [[0.0] * 7]
+    arguments = {"heights": random_surface(8, k_s=3), "initial_pressure": None, name: ragged}
+    expected = rf"^{name}: got 'a ragged sequence \(rows of different lengths\)'; allowed: a square 2-D array$"
+    with pytest.raises(InvalidParameterError, match=expected):
+        solve_contact(arguments.pop("heights"), system_size=1.0, mean_pressure=0.1, **arguments)
+
+
 def test_approach_is_the_highest_height_at_first_contact_and_falls_with_the_load():
     heights = random_surface(64, k_s=8)
     approaches = [solve_contact(heights, system_size=1.0, mean_pressure=load).approach

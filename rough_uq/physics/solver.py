@@ -537,8 +537,7 @@ def _differ_by_power_of_two(m: int, n: int) -> bool:
 
 
 def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, threads) -> np.ndarray:
-    s = np.asarray(heights)
-    _refuse_non_real("heights", s)
+    s = _real_array("heights", heights)
     if s.ndim != 2 or s.shape[0] != s.shape[1]:
         raise InvalidParameterError("heights", f"array of shape {s.shape}", "a square n x n array")
     n = s.shape[0]
@@ -564,6 +563,18 @@ _NON_REAL_KINDS = {
 }
 
 
+def _real_array(name: str, values: object) -> np.ndarray:
+    """``values`` as an array of real numbers, or :class:`InvalidParameterError` naming ``name`` (see below)."""
+    try:
+        array = np.asarray(values)
+    except ValueError:  # numpy refuses a ragged sequence (rows of different lengths)
+        raise InvalidParameterError(
+            name, "a ragged sequence (rows of different lengths)", "a square 2-D array"
+        ) from None
+    _refuse_non_real(name, array)
+    return array
+
+
 def _refuse_non_real(name: str, values: np.ndarray) -> None:
     """Refuse an array of anything but real numbers (text, booleans, complex numbers, times...) by name."""
     if not is_real_array(values):  # by dtype kind: np.timedelta64, a subtype of np.integer, is refused too
@@ -574,9 +585,7 @@ def _refuse_non_real(name: str, values: np.ndarray) -> None:
 def _initial_guess(initial_pressure, n: int) -> np.ndarray | None:
     if initial_pressure is None:
         return None
-    p0 = np.asarray(initial_pressure)
-    _refuse_non_real("initial_pressure", p0)
-    p0 = np.asarray(p0, dtype=np.float64)
+    p0 = np.asarray(_real_array("initial_pressure", initial_pressure), dtype=np.float64)
     if p0.ndim != 2:
         # Checked here, before resample_pressure indexes p0.shape[0] of a scalar.
         raise InvalidParameterError("initial_pressure", f"array of shape {p0.shape}", "a square 2-D array")
