@@ -260,7 +260,9 @@ class ContactProblem:
         Unit per QoI where not the default (:data:`~rough_uq.problem.loads.QOI_UNITS`),
         e.g. ``{"contact_area": "fraction"}``. Stored as a tuple of pairs.
     e_star : float
-        Effective modulus ``E*`` (defines the pressure unit), > 0. Default 1.
+        Effective modulus ``E*``, > 0, in the pressure unit of the problem: absolute loads,
+        ``critical_pressure`` and ``max_pressure`` are in the unit ``e_star`` is given in, not divided
+        by it (:mod:`~rough_uq.problem.loads`). Default 1.
     max_level : int
         Finest level MLMC may add, >= 0, with ``coarsest * 2**max_level <=``
         :data:`MAX_GRID`. Default 4.

@@ -7,6 +7,13 @@ A :class:`RelativeLoad` ``r`` is the mean pressure ``p = r * E* * sqrt(m2)``
 (:attr:`~rough_uq.physics.surface.SurfaceSpectrum.rms_slope` is ``sqrt(m2)``);
 an :class:`AbsoluteLoad` is ``p`` itself, in the unit of ``E*``.
 
+"The unit of ``E*``" (here and throughout, SPEC section 7) is the pressure
+unit in which ``e_star`` is given, as "the unit of ``L``" is the length unit
+of ``system_size``: pressures are not divided by ``E*``. With ``e_star=210``
+(GPa, say) an :class:`AbsoluteLoad` of 0.5 is 0.5 GPa, and ``max_pressure``
+and ``critical_pressure`` are in GPa too; a relative load and the contact
+area do not change with the unit.
+
 Load curves
 -----------
 A problem may carry several loads of one kind (:func:`load_sequence`): each
