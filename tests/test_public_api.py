@@ -736,6 +736,21 @@ def test_a_bias_the_screening_predicts_beyond_max_level_is_refused_as_roughuq_re
     assert not result.is_bias_estimated
 
 
+def test_the_reachable_tolerance_of_a_column_without_bias_is_the_one_asked():
+    # A load curve's full-contact column has no bias (100 % on every level): the refusal proposed
+    # "contact_area@5.0=0", a tolerance no run takes. It now keeps the tolerance asked there.
+    biased = shifted_screening((0.0, 0.4, 0.2), seed=5)
+    unbiased = shifted_screening((0.0, 0.0, 0.0), seed=6, noise=0.0)
+    columns = {key: [np.column_stack(pair) for pair in zip(biased[key], unbiased[key])] for key in ("fine", "coarse")}
+    statistics = level_statistics(**columns, cost=biased["cost"])
+    problem = _problem(load=[rough_uq.RelativeLoad(0.2), rough_uq.RelativeLoad(5.0)])
+    with pytest.raises(rough_uq.EstimationError) as caught:
+        rough_uq.mlmc(problem, tol=0.1, screening=statistics)
+    proposed = re.search(r"the smallest reachable tolerance is about (.*), a prediction", str(caught.value)).group(1)
+    # (grouped as --tol takes it: the QoI's first value, then the column set apart)
+    assert re.fullmatch(r"contact_area=0\.[0-9]+, contact_area@5\.0=0\.1", proposed), proposed
+
+
 def test_a_run_without_a_screening_warns_of_a_bias_out_of_reach_before_drawing_its_plan():
     # tol 0.001 on max_level 2: the first samples put the bias far above its share, and the plan that follows
     # asked for millions of samples for the statistical error, in silence (a notebook cell just hung).

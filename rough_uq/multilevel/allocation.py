@@ -189,14 +189,17 @@ def mc_run_cost(prediction: Plan) -> float:
     return max(prediction.mc_n_samples, 2) * prediction.mc_cost / max(prediction.mc_n_samples, 1)
 
 
-def reachable_tolerance(prediction: Plan) -> np.ndarray:
+def reachable_tolerance(prediction: Plan, tol: np.ndarray) -> np.ndarray:
     """The smallest tolerance per QoI whose bias share ``sqrt(theta) eps`` the plan's predicted bias meets, rounded
     up to two significant digits (a tolerance the refusals of an unreachable one can propose).
 
-    Shape ``(n_qoi,)``; a bias of 0 gives 0.
+    Shape ``(n_qoi,)``. Where the predicted bias is 0 (e.g. the contact area of a load curve's full-contact
+    column) every tolerance is reachable and there is no smallest: the requested ``tol`` stands there (0 read
+    as a tolerance to give, which no run takes).
     """
     bias = np.asarray(prediction.bias, dtype=float) / math.sqrt(prediction.theta)
-    return np.array([_round_up(float(value)) for value in bias])
+    tol = np.broadcast_to(np.asarray(tol, dtype=float), bias.shape)
+    return np.array([_round_up(float(value)) if value != 0 else float(asked) for value, asked in zip(bias, tol)])
 
 
 def _round_up(value: float) -> float:

@@ -667,7 +667,7 @@ def _refuse_unreachable(problem: ContactProblem, tol: np.ndarray, prediction: Pl
     raise EstimationError(
         f"tol {tol_text(names, tol, digits=3)} cannot be reached: on the finest grid allowed (max_level = {finest}, "
         f"{problem.grid(finest)}^2) the screening predicts a bias of {values_text(names, prediction.bias)}; the "
-        f"smallest reachable tolerance is about {tol_text(names, reachable_tolerance(prediction), digits=3)}, a "
+        f"smallest reachable tolerance is about {tol_text(names, reachable_tolerance(prediction, tol), digits=3)}, a "
         f"prediction from {int(np.min(statistics.n_samples))} screened samples per level"
         f"{_UNREACHABLE_ADVICE[method]}; or raise the problem's max_level (the same screening serves it)"
     )

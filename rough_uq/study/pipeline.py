@@ -1118,7 +1118,7 @@ def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_sc
     """
     names = config.qoi_names
     bias = np.asarray(prediction.bias, dtype=float)
-    reachable = reachable_tolerance(prediction)
+    reachable = reachable_tolerance(prediction, tol)
     return EstimationError(
         f"--tol {tol_text(names, tol, digits=3)} cannot be reached: on the finest grid allowed "
         f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
