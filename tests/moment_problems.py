@@ -10,6 +10,7 @@ randomness of sample ``i`` on level ``l`` is a pure function of
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,3 +52,54 @@ class PerturbedLimit:
         fine = z + self.scale * 2.0**-level * w
         coarse = np.zeros_like(fine) if level == 0 else z + self.scale * 2.0 ** (1 - level) * w
         return fine, coarse, np.full(len(fine), 2.0 ** (self.gamma * level))
+
+
+@dataclass(frozen=True)
+class RoundedLimit:
+    """A discrete QoI: ``Q_l = round(sigma X + 2^(-l/2) W)``, ``X``, ``W`` standard normal; cost ``2^l``.
+
+    Few pairs of a level differ, and often in opposite directions: the
+    unbiased variance of a level's ``h2`` difference comes out negative.
+    """
+
+    sigma: float = 2.0
+    seed: int = 0
+
+    def variance(self) -> float:
+        """``Var(round(sigma X))``, the limit's variance (summed over the integers)."""
+        k = np.arange(-60, 61)
+        p = ndtr((k + 0.5) / self.sigma) - ndtr((k - 0.5) / self.sigma)
+        return float(np.sum(k**2 * p) - np.sum(k * p) ** 2)
+
+    def __call__(self, level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        normals = indexed_normals(self.seed, level, indices, 2)
+        x, w = self.sigma * normals[:, 0], normals[:, 1]
+        fine = np.round(x + 2.0 ** (-level / 2) * w)
+        coarse = np.zeros_like(fine) if level == 0 else np.round(x + 2.0 ** (-(level - 1) / 2) * w)
+        return fine, coarse, np.full(len(fine), 2.0**level)
+
+
+@dataclass(frozen=True)
+class RareJumps:
+    """``Q_l = Z + sum_{k=1..l} J (B_k - p_k)``: level ``k`` adds a jump ``J`` with probability ``p_k = p0 2^-k``.
+
+    ``Var(Q_l) = 1 + sum_k J^2 p_k (1 - p_k)``, ``J^2 = 1 / p0``; a level's
+    differences are 0 but for a rare jump, which a level's first samples may
+    all miss. Cost ``2^l``.
+    """
+
+    p0: float = 0.2
+    seed: int = 0
+
+    def variance(self, levels: int = 60) -> float:
+        """``Var(Q_levels)`` (the limit by default, to rounding)."""
+        p = self.p0 * 2.0 ** -np.arange(1, levels + 1)
+        return float(1.0 + np.sum(p * (1.0 - p)) / self.p0)
+
+    def __call__(self, level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        normals = indexed_normals(self.seed, level, indices, level + 1)
+        p = self.p0 * 2.0 ** -np.arange(1, level + 1)
+        jumps = ((ndtr(normals[:, 1:]) < p) - p) / math.sqrt(self.p0)
+        fine = normals[:, 0] + np.sum(jumps, axis=1)
+        coarse = np.zeros_like(fine) if level == 0 else fine - jumps[:, -1]
+        return fine, coarse, np.full(len(fine), 2.0**level)

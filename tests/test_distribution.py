@@ -10,7 +10,7 @@ import re
 
 import numpy as np
 import pytest
-from moment_problems import PerturbedLimit
+from moment_problems import PerturbedLimit, RareJumps
 from scipy import integrate, stats
 from scipy.optimize import isotonic_regression
 
@@ -407,3 +407,21 @@ def test_a_fixed_bandwidth_converges_to_the_smoothed_cdf():
     assert np.all(np.abs(result.cdf_raw - smoothed) < 4.0 * result.stat_error)
     # ... which differs from F itself by about delta^2 f'(s) / 14 = 0.017, beyond the statistical error.
     assert np.max(np.abs(smoothed - stats.norm.cdf(s, scale=spread))) > 4 * np.max(result.stat_error)
+
+
+def test_a_cdf_run_reports_the_checks_of_its_qoi_column_by_name():
+    # SPEC section 5 asks every multilevel run for the consistency and kurtosis checks; the variance and CDF
+    # runs reported none. Column "b" has rare jumps between levels (kurtosis 213 on level 1, none drawn on
+    # level 2); column "a" (constant) is not the CDF's and is not checked.
+    jumps = RareJumps(p0=0.01, seed=0)
+
+    def two_columns(level, indices):
+        fine, coarse, cost = jumps(level, indices)
+        return np.column_stack([np.zeros_like(fine), fine]), np.column_stack([np.zeros_like(coarse), coarse]), cost
+
+    with pytest.warns(EstimationWarning) as caught:
+        mlmc_cdf(two_columns, thresholds=np.linspace(-2, 2, 9), tol=0.02, bandwidth=0.5, qoi=1, qoi_names=("a", "b"))
+    messages = [str(warning.message) for warning in caught]
+    assert any(re.match(r"^cdf: level 1: kurtosis \d+ of Q_l - Q_l-1 for b exceeds 100", m) for m in messages)
+    assert any(re.match(r"^cdf: level 2: Q_l - Q_l-1 is the same in all \d+ samples for b", m) for m in messages)
+    assert not any(" for a " in m for m in messages)

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 import pytest
-from moment_problems import PerturbedLimit
+from moment_problems import PerturbedLimit, RareJumps, RoundedLimit
 
 from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.multilevel.statistics import EstimationWarning
@@ -102,10 +102,49 @@ def test_the_variance_level_term_is_the_h2_difference():
     coarse = fine + 0.1 * rng.normal(size=(30, 2))
     term = variance_level_term(fine, coarse, 3)
     np.testing.assert_allclose(term.mean, h2(fine) - h2(coarse), rtol=1e-12)
-    np.testing.assert_allclose(term.variance, np.maximum(h2_difference_variance(fine, coarse), 0), rtol=1e-12)
+    plug_in = plug_in_variance(fine - coarse, fine + coarse)
+    np.testing.assert_allclose(term.variance, np.maximum(h2_difference_variance(fine, coarse), plug_in), rtol=1e-12)
     assert term.n_samples == 30 and term.groups.tolist() == [0, 1]
     base = variance_level_term(fine, None)
     np.testing.assert_allclose(base.mean, h2(fine), rtol=1e-12)
+
+
+def plug_in_variance(d: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """The sample variance of ``(d - mean d)(s - mean s)`` over ``n``, per column."""
+    products = (d - d.mean(axis=0)) * (s - s.mean(axis=0))
+    return products.var(axis=0, ddof=1) / len(d)
+
+
+def test_a_level_whose_unbiased_variance_is_negative_gets_the_plug_in_one():
+    # The first 32 pairs of level 1 of a discrete QoI: two differ, (0, 1) and (1, 0), so T = 0 and T^2 - U4 is
+    # negative. Clipped at 0, the level looked exact (no samples beyond its first, nothing added to the error).
+    fine, coarse, _ = RoundedLimit(seed=36)(1, np.arange(32))
+    fine, coarse = fine[:, None], coarse[:, None]
+    assert np.count_nonzero(fine != coarse) == 2
+    assert h2_difference_variance(fine, coarse) < 0
+    term = variance_level_term(fine, coarse, 1)
+    plug_in = plug_in_variance(fine - coarse, fine + coarse)
+    assert plug_in > 0 and term.variance == pytest.approx(plug_in, rel=1e-12)
+
+
+def test_a_discrete_qoi_whose_level_terms_come_out_negative_keeps_an_honest_error():
+    # Seed 36 of this hierarchy gave level 1 a clipped variance of 0 at its 32 samples: the run claimed
+    # tol 0.05 with an RMSE of 0.041 at an error of 0.52 (12.7 RMSE).
+    problem = RoundedLimit(seed=36)
+    result = mlmc_variance(problem, tol=0.05)
+    assert result.tol_met and result.n_samples[1] > 1000
+    assert abs(result.estimate[0] - problem.variance()) < 3 * result.rmse[0]
+
+
+def test_a_level_that_missed_its_rare_jumps_is_floored_by_the_level_above():
+    # Level 1's 32 samples of seed 5 saw none of its jumps (probability 0.1 each): V_1 = 0 kept them at 32,
+    # and the run claimed tol 0.05 with an RMSE of 0.034 at an error of 0.46. Half the V of level 2 as its
+    # planning floor draws the jumps; the kurtosis check of the final levels now warns (SPEC section 5).
+    problem = RareJumps(seed=5)
+    with pytest.warns(EstimationWarning, match=r"^variance: level \d: kurtosis \d+ of Q_l - Q_l-1 for QoI \[0\]"):
+        result = mlmc_variance(problem, tol=0.05)
+    assert result.n_samples[1] > 1000
+    assert abs(result.estimate[0] - problem.variance()) < 3 * result.rmse[0]
 
 
 # --------------------------------------------------------------------------

@@ -649,7 +649,7 @@ def mlmc_cdf(
                                                                bandwidth_rate=bandwidth_rate))
         return cdf_level_term(fine, coarse, level, **settings)
 
-    target = adaptive_mlmc(sampler, term=term, tol=tol, **options)
+    target = adaptive_mlmc(sampler, term=term, tol=tol, **({"label": "cdf"} | options | {"qoi": qoi}))
     missed = {int(level): ranges[int(level)] for level in target.levels if ranges[int(level)] is not None}
     return _cdf_estimate(target, s, bandwidth, bandwidth_rate, missed, spread.value(target.levels),
                          exact[int(target.levels[-1])])

@@ -668,14 +668,27 @@ def _fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np
     return costs
 
 
+#: ``V_l`` decreases with the level (``2^(-beta l)``, ``beta > 0``): a level whose sampled ``V_l`` is below this
+#: share of the sampled ``V_{l+1}`` has most likely not yet seen a rare event of its differences (a jump of
+#: ``Q_l - Q_{l-1}`` in a tenth of the samples was absent from the 32 of level 1 of a variance run, which then
+#: kept its 32 samples and reported an RMSE of 0.034 at an error of 0.46). The allocation takes that share as
+#: the level's ``V``: a few more samples on a cheaper level, and the event shows up if it is there.
+_FLOOR_FROM_ABOVE = 0.5
+
+
 def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.ndarray, base: int = 0) -> np.ndarray:
     """``V_l`` for the allocation: sample values, extrapolated where missing, floored from level ``base + 2`` on.
 
     Levels below ``base`` get 0; the base level's ``V`` is ``Var(Q_base)``, so
     it is neither extrapolated from nor used as a floor of the level above.
+    A sampled level ``>= base + 1`` is also floored at half the sampled ``V``
+    of the level above it (:data:`_FLOOR_FROM_ABOVE`).
     """
     variances = np.array(var_diff, dtype=float)
     variances[:base] = 0.0
+    for level in range(len(variances) - 2, base, -1):
+        if has_data[level] and has_data[level + 1]:
+            variances[level] = np.maximum(variances[level], _FLOOR_FROM_ABOVE * variances[level + 1])
     for level in range(base, len(variances)):
         extrapolated = variances[level - 1] * 2.0 ** (-beta) if level >= base + 1 else None
         if not has_data[level]:

@@ -123,7 +123,7 @@ from rough_uq.multilevel.drivers import (
     round_counts,
 )
 from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias, tail_rate
-from rough_uq.multilevel.statistics import EstimationWarning, _readonly
+from rough_uq.multilevel.statistics import KURTOSIS_LIMIT, EstimationWarning, _readonly, diagnose, level_statistics
 
 __all__ = [
     "LevelTerm",
@@ -664,6 +664,9 @@ def adaptive_mlmc(
     max_cost: float | None = None,
     batch_size: int | None = 10000,
     max_samples: int | None = None,
+    label: str = "mlmc",
+    qoi_names: Sequence[str] | None = None,
+    qoi: int | None = None,
 ) -> TargetEstimate:
     """Adaptive MLMC estimate of a target to an RMS tolerance per group (module docstring).
 
@@ -695,6 +698,11 @@ def adaptive_mlmc(
     max_samples : int, optional
         A plan of more samples in all raises :class:`~rough_uq.errors.EstimationError`
         before they are drawn (the tolerance is out of reach).
+    label, qoi_names, qoi
+        The checks of SPEC section 5 on the final samples (consistency, kurtosis of ``Q_l - Q_{l-1}``,
+        differences that never varied: :func:`~rough_uq.multilevel.statistics.diagnose`), of the QoI
+        column ``qoi`` (all if None), named by ``qoi_names`` (one per column), each failed one an
+        :class:`~rough_uq.errors.EstimationWarning` that starts with ``label``.
 
     Returns
     -------
@@ -717,7 +725,20 @@ def adaptive_mlmc(
     )
     if stop_reason == "max_level" and not estimate.tol_met and estimate.noisy_bias_groups:
         _warn_noisy_bias(estimate)
+    names = qoi_names if qoi_names is None or qoi is None else [qoi_names[qoi]]
+    for message in diagnose(_statistics(levels, qoi), kurtosis_limit=KURTOSIS_LIMIT, names=names):
+        warn_at_caller(f"{label}: {message}", EstimationWarning)
     return estimate
+
+
+def _statistics(levels: Sequence[_Level], qoi: int | None):
+    """The mean driver's statistics of the sampled levels' pairs (column ``qoi``, all if None), for the checks."""
+    columns = slice(None) if qoi is None else [qoi]
+    sampled = [s for s in levels if s.n]
+    fine = [np.concatenate(s.fine)[:, columns] for s in sampled]
+    coarse = [np.zeros_like(f) if s.level == 0 else np.concatenate(s.coarse)[:, columns] for s, f in zip(sampled, fine)]
+    return level_statistics(fine=fine, coarse=coarse, cost=[np.full(s.n, s.mean_cost) for s in sampled],
+                            levels=[s.level for s in sampled])
 
 
 def _warn_noisy_bias(estimate: TargetEstimate) -> None:

@@ -96,9 +96,10 @@ def estimate_target(
     theta, n_initial, min_finest_level, max_cost, batch_size, max_samples
         As for :func:`variance` (``min_finest_level`` default ``min(2, max_level)``).
     qoi_names : sequence of str, optional
-        For ``"variance"``: names of the columns, one per QoI, for the warning
-        about a negative estimate (``variance of contact_area``); without them
-        it gives the column index (``variance of QoI [0]``).
+        Names of the columns, one per QoI, for the warnings: about a negative
+        variance (``variance of contact_area``) and those of the checks of the
+        final samples (SPEC section 5; ``for contact_area``); without them
+        they give the column index (``QoI [0]``).
     """
     if max_level < 1:
         # The driver would name its min_finest_level (min(2, 0) = 0), which the caller never gave.
@@ -113,6 +114,7 @@ def estimate_target(
         max_cost=max_cost,
         batch_size=batch_size,
         max_samples=max_samples,
+        qoi_names=qoi_names,
     )
     if target == "variance":
         result = mlmc_variance(sampler, tol=tol, **options)
@@ -322,7 +324,7 @@ def distribution(
         estimate = estimate_target(
             sampler, target="cdf", tol=tol_array, max_level=problem.max_level, thresholds=thresholds, qoi=index,
             bandwidth=bandwidth, theta=theta, n_initial=n_initial, min_finest_level=min_finest_level,
-            max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
+            max_cost=max_cost, batch_size=batch_size, max_samples=max_samples, qoi_names=problem.columns,
         )
     _warn_not_converged(sampler, "distribution")
     warn_not_met(f"distribution of {name}", None, estimate, tol_array)

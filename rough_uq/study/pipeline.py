@@ -1975,7 +1975,7 @@ def _follow_target(
     """Run the targets' adaptive driver with progress; its estimate and the diagnostics it raised."""
     config = study.config
     per_target = dict(qoi_names=config.qoi_names) if target == "variance" else dict(
-        thresholds=request.thresholds, qoi=config.qoi_names.index(request.column)
+        thresholds=request.thresholds, qoi=config.qoi_names.index(request.column), qoi_names=config.qoi_names
     )
     planned = _PlannedSampler(sampler, progress)
     progress.start(title)
