@@ -56,13 +56,14 @@ class PerturbedLimit:
 
 @dataclass(frozen=True)
 class RoundedLimit:
-    """A discrete QoI: ``Q_l = round(sigma X + 2^(-l/2) W)``, ``X``, ``W`` standard normal; cost ``2^l``.
+    """A discrete QoI: ``Q_l = round(sigma X + 2^(-rate l) W)``, ``X``, ``W`` standard normal; cost ``2^l``.
 
     Few pairs of a level differ, and often in opposite directions: the
     unbiased variance of a level's ``h2`` difference comes out negative.
     """
 
     sigma: float = 2.0
+    rate: float = 0.5
     seed: int = 0
 
     def variance(self) -> float:
@@ -74,8 +75,8 @@ class RoundedLimit:
     def __call__(self, level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         normals = indexed_normals(self.seed, level, indices, 2)
         x, w = self.sigma * normals[:, 0], normals[:, 1]
-        fine = np.round(x + 2.0 ** (-level / 2) * w)
-        coarse = np.zeros_like(fine) if level == 0 else np.round(x + 2.0 ** (-(level - 1) / 2) * w)
+        fine = np.round(x + 2.0 ** (-self.rate * level) * w)
+        coarse = np.zeros_like(fine) if level == 0 else np.round(x + 2.0 ** (-self.rate * (level - 1)) * w)
         return fine, coarse, np.full(len(fine), 2.0**level)
 
 

@@ -148,7 +148,7 @@ def test_a_distribution_with_a_bandwidth_far_wider_than_the_contact_areas_does_n
 @pytest.mark.parametrize("probabilities", ["0.5", "abc", ["0.05", 0.95], [0.5, None], 1.5])
 def test_quantiles_of_a_result_refuse_probabilities_that_are_not_numbers_in_0_1_by_name(probabilities):
     # "abc" gave a bare ValueError; "0.5" and ["0.05", 0.95] were converted to numbers.
-    fine = np.linspace(10.0, 30.0, 101)
+    fine = np.linspace(10.1, 29.9, 100)  # symmetric about 20, none on a threshold: F(20) = 1/2
     law = cdf_from_samples(fine=[fine], coarse=[fine], thresholds=np.linspace(0.0, 40.0, 41), bandwidth=0.5)
     result = rough_uq.DistributionResult(column="contact_area", cdf=law)
     with pytest.raises(rough_uq.InvalidParameterError, match=r"^probabilities: got .*strictly between 0 and 1$"):
