@@ -316,12 +316,18 @@ def test_a_wide_bandwidth_is_left_alone_where_it_is_the_target_or_exact():
     between = cdf_from_samples(fine=atoms, coarse=[np.zeros(5), atoms[1]], thresholds=[0.5, 1.5, 2.5, 3.5],
                                bandwidth=1.0, tol=0.9)  # delta_1 = 0.5: every value 0.5 from its thresholds
     assert between.stop_reason == "given" and between.is_bias_estimated
-    constant = [np.full(4, 2.0), np.full(4, 2.0)]
+    constant = [np.full(4, 2.2), np.full(4, 2.2)]
     with pytest.warns(EstimationWarning, match=r"^cdf: the values of the finest level 1 do not vary, and lie within "
                                                 r"its smoothing bandwidth, 0\.5, of a threshold: "):
-        on_step = cdf_from_samples(fine=constant, coarse=[np.zeros(4), constant[1]], thresholds=[1.0, 2.0, 3.0],
-                                   bandwidth=1.0, tol=0.9)
-    assert on_step.stop_reason == "bandwidth_too_wide"
+        near_step = cdf_from_samples(fine=constant, coarse=[np.zeros(4), constant[1]], thresholds=[1.0, 2.0, 3.0],
+                                     bandwidth=1.0, tol=0.9)
+    assert near_step.stop_reason == "bandwidth_too_wide"
+    # On the threshold the constant's step is exact (a tie counts whole), but its samples bound nothing else.
+    on_step = [np.full(4, 2.0), np.full(4, 2.0)]
+    with pytest.warns(EstimationWarning, match=r"^cdf: the thresholds \[1, 3\] miss the samples of level 0 "):
+        exact = cdf_from_samples(fine=on_step, coarse=[np.zeros(4), on_step[1]], thresholds=[1.0, 2.0, 3.0],
+                                 bandwidth=1.0, tol=0.9)
+    assert exact.cdf.tolist() == [0.0, 1.0, 1.0] and exact.stop_reason == "thresholds_miss_samples"
 
 
 # --------------------------------------------------------------------------
@@ -465,3 +471,12 @@ def test_unchanged_pairs_bound_the_variance_of_their_level_by_the_rule_of_three(
     term = cdf_level_term(moved, values, 1, thresholds=far, bandwidth=0.5)
     assert term.variance[0] == pytest.approx(np.var(np.r_[-1.0, np.zeros(39)], ddof=1) / 40)
     assert term.variance[1] == 0  # a level that changed an indicator is measured, at every threshold
+
+
+def test_a_value_within_rounding_of_a_threshold_counts_as_on_it():
+    # 3 clusters in a box of 0.1 are 299.99999999999994 per unit area, not 300: halved as g(0) = 1/2 they kept
+    # the bias of an atom on the threshold (an RMS error of 0.09 against tol 0.02 on such a grid).
+    density = np.full(8, 3 / 0.1**2)
+    term = cdf_level_term(density, None, 0, thresholds=np.array([300.0, 400.0]), bandwidth=50.0)
+    assert term.mean.tolist() == [1.0, 1.0]
+    assert cdf_level_term(density + 1e-6, None, 0, thresholds=np.array([300.0, 400.0]), bandwidth=50.0).mean[0] < 1

@@ -7,6 +7,7 @@ number of standard errors.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import warnings
@@ -129,7 +130,8 @@ def test_a_level_whose_unbiased_variance_is_negative_gets_the_plug_in_one():
 
 def test_a_discrete_qoi_whose_level_terms_come_out_negative_keeps_an_honest_error():
     # Seed 36 of this hierarchy gave level 1 a clipped variance of 0 at its 32 samples: the run claimed
-    # tol 0.05 with an RMSE of 0.041 at an error of 0.52 (12.7 RMSE).
+    # tol 0.05 with an RMSE of 0.041 at an error of 0.52 (12.7 RMSE). (The plug-in variance or the floor from
+    # the level above each mends it alone; the unit test above pins the plug-in.)
     problem = RoundedLimit(seed=36)
     result = mlmc_variance(problem, tol=0.05)
     assert result.tol_met and result.n_samples[1] > 1000
@@ -461,3 +463,34 @@ def test_a_variance_run_without_a_budget_draws_whole_batches():
 
     mlmc_variance(recorded, tol=0.05, batch_size=10)
     assert np.median(sizes) == 10 and max(sizes) == 10
+
+
+def test_qoi_names_that_do_not_match_the_columns_are_refused_after_the_first_round():
+    # They were checked only after the whole run (22 000 samples), under the name "names".
+    drawn = []
+
+    def sampler(level, indices):
+        drawn.append(len(indices))
+        return PerturbedLimit(seed=1)(level, indices)
+
+    with pytest.raises(InvalidParameterError, match="^qoi_names: "):
+        mlmc_variance(sampler, tol=0.05, qoi_names=("a", "b"))
+    assert sum(drawn) == 3 * 32  # the first round: the initial samples of levels 0..2
+    with pytest.raises(InvalidParameterError, match="^qoi_names: "):
+        mlmc_variance(sampler, tol=0.05, qoi_names="a")
+
+
+def test_a_level_whose_variance_is_a_bound_at_most_doubles_its_samples_per_round():
+    # A bound 3 / N^2 (a CDF level whose pairs changed no indicator) planned as a measured W = 3 / N asked for
+    # far more samples than the bound needs; the round doubles them at most and looks again.
+    from rough_uq.multilevel.targets import _Level, _targets
+
+    levels = [_Level(0), _Level(1)]
+    for s in levels:
+        s.add(np.zeros((32, 1)), np.zeros((32, 1)), np.full(32, 2.0**s.level))
+    measured = LevelTerm(mean=np.array([0.5]), variance=np.array([1e-3]), n_samples=32, groups=np.array([0]))
+    bounded = {"mean": np.array([0.0]), "variance": np.array([3 / 32**2]), "n_samples": 32, "groups": np.array([0])}
+    plan = functools.partial(_targets, levels, n_initial=32, tol=np.array([0.001]), theta=0.5,
+                             beta=np.array([1.0]), gamma=1.0)
+    assert plan([measured, LevelTerm(**bounded)])[1] > 1000
+    assert plan([measured, LevelTerm(**bounded, is_bound=True)])[1] == 64

@@ -189,16 +189,16 @@ def mc_run_cost(prediction: Plan) -> float:
     return max(prediction.mc_n_samples, 2) * prediction.mc_cost / max(prediction.mc_n_samples, 1)
 
 
-def reachable_tolerance(prediction: Plan, tol: np.ndarray) -> np.ndarray:
+def reachable_tolerance(prediction: Plan, tol: np.ndarray | None = None) -> np.ndarray:
     """The smallest tolerance per QoI whose bias share ``sqrt(theta) eps`` the plan's predicted bias meets, rounded
     up to two significant digits (a tolerance the refusals of an unreachable one can propose).
 
     Shape ``(n_qoi,)``. Where the predicted bias is 0 (e.g. the contact area of a load curve's full-contact
     column) every tolerance is reachable and there is no smallest: the requested ``tol`` stands there (0 read
-    as a tolerance to give, which no run takes).
+    as a tolerance to give, which no run takes); 0 without ``tol``.
     """
     bias = np.asarray(prediction.bias, dtype=float) / math.sqrt(prediction.theta)
-    tol = np.broadcast_to(np.asarray(tol, dtype=float), bias.shape)
+    tol = np.broadcast_to(np.asarray(0.0 if tol is None else tol, dtype=float), bias.shape)
     return np.array([_round_up(float(value)) if value != 0 else float(asked) for value, asked in zip(bias, tol)])
 
 

@@ -16,7 +16,9 @@ bias is of second order, ``E[g((s - Q)/delta)] - F(s) = delta^2 f'(s) / 14 +
 O(delta^4)`` (``1/7`` the second moment of ``K``, ``f`` the density of
 ``Q``).
 
-A value equal to a threshold counts whole, ``1`` instead of ``g(0) = 1/2``:
+A value equal to a threshold (within :data:`TIE_TOLERANCE` bandwidths,
+which absorbs the rounding of thresholds typed in decimal) counts whole,
+``1`` instead of ``g(0) = 1/2``:
 for a ``Q`` with atoms (a count of clusters, a rounded value) the smoothed
 indicator otherwise tends to ``F(s-) + P(Q = s) / 2`` on every level, a bias
 no level term shows (integer thresholds under an integer ``Q`` with an atom
@@ -35,12 +37,14 @@ on both sides of the grid (the check of missed thresholds below then passes).
 Such a level's change of ``F`` was not measured: ``N`` unchanged pairs bound
 the probability of a change by about ``3/N`` (95 %, the rule of three), and a
 difference lies in ``[-1, 1]``, so its variance is taken as
-``UNSEEN_CHANGE / N^2`` at every threshold, unless the thresholds miss the
-level's values altogether (below: the run then says so and claims no
-tolerance) (a tail grid's level of 32 pairs
+``UNSEEN_CHANGE / N^2`` at every threshold (``LevelTerm.is_bound``), unless
+the thresholds miss the level's values altogether (below: the run then says
+so and claims no tolerance) (a tail grid's level of 32 pairs
 had reported a variance of 0, was never sampled again, and its run claimed
-tol 0.01 at an error of 0.058). The allocation then draws more pairs there
-until they show a change or bound it.
+tol 0.01 at an error of 0.058). The allocation then at most doubles the
+pairs of such a level per round, until they show a change or the bound,
+which falls like ``1 / N^2``, fits the tolerance
+(:mod:`rough_uq.multilevel.targets`).
 
 Bandwidth per level
 -------------------
@@ -174,6 +178,7 @@ __all__ = [
     "quantiles",
     "smoothed_step",
     "UNSEEN_CHANGE",
+    "TIE_TOLERANCE",
 ]
 
 #: ``stop_reason`` of an estimate whose thresholds miss the samples of a level (module docstring).
@@ -186,6 +191,10 @@ BANDWIDTH_TOO_WIDE = "bandwidth_too_wide"
 #: A level ``>= 1`` of ``n`` pairs none of which changes a smoothed indicator has ``Var(T_c) = UNSEEN_CHANGE / n^2``
 #: (module docstring: the rule of three).
 UNSEEN_CHANGE = 3.0
+
+#: A value within this many bandwidths of a threshold is on it (module docstring): the rounding of a threshold
+#: typed in decimal (300 against 3 clusters in a box of 0.1, 3 / 0.1**2 = 299.99999999999994) must not halve an atom.
+TIE_TOLERANCE = 1e-9
 
 #: Largest finest bandwidth, in standard deviations of the values, whose smoothing bias the decay of the level
 #: terms is taken to measure (module docstring, "A bandwidth wider than the distribution").
@@ -245,10 +254,10 @@ def _column(values: np.ndarray, qoi: int, name: str) -> np.ndarray:
 
 
 def _indicator(s: np.ndarray, values: np.ndarray, delta: float) -> np.ndarray:
-    """The smoothed indicators ``g((s - Q) / delta)``, 1 where ``Q`` equals ``s`` (module docstring), shape
-    ``(n_values, n_thresholds)`` for ``values`` of shape ``(n_values, 1)``."""
-    distance = s - values
-    return np.where(distance == 0.0, 1.0, smoothed_step(distance / delta))
+    """The smoothed indicators ``g((s - Q) / delta)``, 1 where ``Q`` equals ``s`` to :data:`TIE_TOLERANCE` (module
+    docstring), shape ``(n_values, n_thresholds)`` for ``values`` of shape ``(n_values, 1)``."""
+    x = (s - values) / delta
+    return np.where(np.abs(x) <= TIE_TOLERANCE, 1.0, smoothed_step(x))
 
 
 def _indicator_differences(x: np.ndarray, y: np.ndarray | None, s: np.ndarray, delta_x: float, delta_y: float):
@@ -316,7 +325,8 @@ def cdf_level_term(
         mean += shift * size / (count + size)
         count += size
     variance = square / (n - 1) / n
-    if y is not None and not np.any(square) and not np.any(mean) and not _is_missed(x, y, s, delta_x, delta_y):
+    is_bound = y is not None and not np.any(square) and not np.any(mean) and not _is_missed(x, y, s, delta_x, delta_y)
+    if is_bound:
         # No pair changed any indicator: the level's variance is unmeasured, not 0 (module docstring).
         variance = np.full(len(s), UNSEEN_CHANGE / n**2)
     return LevelTerm(
@@ -324,6 +334,7 @@ def cdf_level_term(
         variance=_readonly(variance),
         n_samples=n,
         groups=_readonly(np.zeros(len(s), dtype=np.int64)),
+        is_bound=is_bound,
     )
 
 
@@ -333,13 +344,14 @@ def _is_missed(x: np.ndarray, y: np.ndarray, s: np.ndarray, delta_x: float, delt
 
 
 def _is_one_sided(values: np.ndarray, s: np.ndarray, delta: float) -> bool:
-    """Whether every value lies ``delta`` or more on one side of each threshold (``g`` 0 on all, or 1 on all).
-
-    ``g`` is monotone: the smallest and the largest value decide.
-    """
-    low = smoothed_step((s - np.max(values)) / delta)
-    high = smoothed_step((s - np.min(values)) / delta)
-    return bool(np.all((low == high) & ((low == 0.0) | (low == 1.0))))
+    """Whether every value's indicator is 0 at a threshold, or every value's 1 (``delta`` or more on one side of it,
+    or on it: a tie counts 1), at each threshold."""
+    all_zero, all_one = np.ones(len(s), dtype=bool), np.ones(len(s), dtype=bool)
+    for start in range(0, len(values), _BLOCK):
+        block = _indicator(s, values[start : start + _BLOCK, None], delta)
+        all_zero &= np.all(block == 0.0, axis=0)
+        all_one &= np.all(block == 1.0, axis=0)
+    return bool(np.all(all_zero | all_one))
 
 
 def _missed_range(
@@ -493,9 +505,9 @@ def _warn_thresholds_miss(thresholds: np.ndarray, missed: dict[int, tuple[float,
     warn_at_caller(
         EstimationWarning(
             f"cdf: the thresholds [{thresholds[0]:.6g}, {thresholds[-1]:.6g}] miss the samples of {ranges}: every "
-            "value lies beyond the smoothing bandwidth on one side of each threshold, so the variance estimate "
-            "there is 0 whatever F is, and the tolerance is not met; put thresholds among the values (extend the "
-            "grid) or draw more initial samples"
+            "value lies beyond the smoothing bandwidth on one side of each threshold (or on it), so the variance "
+            "estimate there is 0 whatever F is, and the tolerance is not met; put thresholds among the values (extend "
+            "the grid) or draw more initial samples"
         ),
     )
 
@@ -696,7 +708,7 @@ def mlmc_cdf(
                                                                bandwidth_rate=bandwidth_rate))
         return cdf_level_term(fine, coarse, level, **settings)
 
-    target = adaptive_mlmc(sampler, term=term, tol=tol, **({"label": "cdf"} | options | {"qoi": qoi}))
+    target = adaptive_mlmc(sampler, term=term, tol=tol, **({"label": "cdf"} | options | {"checked_column": qoi}))
     missed = {int(level): ranges[int(level)] for level in target.levels if ranges[int(level)] is not None}
     return _cdf_estimate(target, s, bandwidth, bandwidth_rate, missed, spread.value(target.levels),
                          exact[int(target.levels[-1])])

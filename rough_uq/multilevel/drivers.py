@@ -81,7 +81,10 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    rates (unless given), and update ``N_l = ceil((1-theta)^-1 eps^-2
    sqrt(V_l/C_l) sum_k sqrt(V_k C_k))`` (maximum over QoIs; never below the
    samples already drawn). For ``l >= 2``, ``V_l`` is floored at
-   ``V_{l-1} 2^-beta / 2`` so that a few lucky samples cannot starve a level.
+   ``V_{l-1} 2^-beta / 2`` so that a few lucky samples cannot starve a level,
+   and a sampled ``V_l`` (``l >= 1``) at half the sampled ``V_{l+1}``, so
+   that a level whose samples all missed a rare difference is not starved
+   either (:data:`_FLOOR_FROM_ABOVE`).
 3. Once every level has (nearly, within 1%) its planned samples, estimate
    the remaining bias ``max(c_alpha 2^(-alpha L), |E[Y_L]|, |E[Y_{L-1}]|
    2^-alpha, |E[Y_{L-2}]| 2^(-2 alpha)) / (2^alpha - 1)``
@@ -677,7 +680,7 @@ _FLOOR_FROM_ABOVE = 0.5
 
 
 def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.ndarray, base: int = 0) -> np.ndarray:
-    """``V_l`` for the allocation: sample values, extrapolated where missing, floored from level ``base + 2`` on.
+    """``V_l`` for the allocation: sample values, extrapolated where missing, floored from below and above.
 
     Levels below ``base`` get 0; the base level's ``V`` is ``Var(Q_base)``, so
     it is neither extrapolated from nor used as a floor of the level above.

@@ -179,15 +179,6 @@ def _h2_difference(x: np.ndarray, y: np.ndarray | None) -> tuple[np.ndarray, np.
     return term, term**2 - u4
 
 
-def _plug_in_variance(x: np.ndarray, y: np.ndarray | None) -> np.ndarray:
-    """The leading-order variance of ``T = h2(x) - h2(y)``: the sample variance of ``(D_i - Dbar)(S_i - Sbar)`` over
-    ``n`` (module docstring), never negative."""
-    d = x if y is None else x - y
-    s = x if y is None else x + y
-    products = (d - np.mean(d, axis=0)) * (s - np.mean(s, axis=0))
-    return np.var(products, axis=0, ddof=1) / x.shape[0]
-
-
 def h2_difference_variance(fine: np.ndarray, coarse: np.ndarray | None = None) -> float | np.ndarray:
     """Unbiased estimate of ``Var(h2(fine) - h2(coarse))`` from the pairs themselves.
 
@@ -227,7 +218,7 @@ def variance_level_term(fine: np.ndarray, coarse: np.ndarray | None, level: int 
     term, variance = _h2_difference(x, y)
     return LevelTerm(
         mean=_readonly(term),
-        variance=_readonly(np.maximum(variance, _plug_in_variance(x, y))),
+        variance=_readonly(np.maximum(variance, _influence_variance(x, y, 2))),
         n_samples=x.shape[0],
         groups=_readonly(np.arange(x.shape[1])),
     )
@@ -240,12 +231,21 @@ def _influence(x: np.ndarray, order: int) -> np.ndarray:
     return centred**order - order * below * centred
 
 
+def _influence_variance(x: np.ndarray, y: np.ndarray | None, order: int) -> np.ndarray:
+    """The leading-order variance of ``h_k(x) - h_k(y)``: the sample variance of ``psi_k(x) - psi_k(y)`` over ``n``.
+
+    Never negative; for ``order=2`` the summands are ``(D_i - Dbar)(S_i - Sbar)`` (module docstring).
+    """
+    psi = _influence(x, order) - (0.0 if y is None else _influence(y, order))
+    return np.var(psi, axis=0, ddof=1) / x.shape[0]
+
+
 def central_moment_level_term(fine: np.ndarray, coarse: np.ndarray | None, level: int = 0, *, order: int) -> LevelTerm:
     """Level term ``h_k(Q_l) - h_k(Q_{l-1})`` of the central moment ``mu_k``, ``k`` in 2, 3, 4.
 
     The variance is the leading-order (influence-function) estimate of the
     module docstring; for ``order=2`` prefer :func:`variance_level_term`,
-    whose variance is unbiased.
+    whose variance is the larger of the unbiased and this plug-in estimate.
 
     Parameters
     ----------
@@ -265,10 +265,9 @@ def central_moment_level_term(fine: np.ndarray, coarse: np.ndarray | None, level
     x, y = _pair(fine, coarse, max(_MIN_SAMPLES[order], 2))
     n = x.shape[0]
     mean = _h(x, order) - (0.0 if y is None else _h(y, order))
-    psi = _influence(x, order) - (0.0 if y is None else _influence(y, order))
     return LevelTerm(
         mean=_readonly(mean),
-        variance=_readonly(np.var(psi, axis=0, ddof=1) / n),
+        variance=_readonly(_influence_variance(x, y, order)),
         n_samples=n,
         groups=_readonly(np.arange(x.shape[1])),
     )

@@ -105,7 +105,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, checked_integer, warn_at_caller
+from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer, warn_at_caller
 from rough_uq.multilevel.allocation import _check_fraction, _check_tol, optimal_samples
 from rough_uq.multilevel.drivers import (
     RATE_FLOOR,
@@ -123,7 +123,14 @@ from rough_uq.multilevel.drivers import (
     round_counts,
 )
 from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias, tail_rate
-from rough_uq.multilevel.statistics import KURTOSIS_LIMIT, EstimationWarning, _readonly, diagnose, level_statistics
+from rough_uq.multilevel.statistics import (
+    KURTOSIS_LIMIT,
+    EstimationWarning,
+    _checked_names,
+    _readonly,
+    diagnose,
+    level_statistics,
+)
 
 __all__ = [
     "LevelTerm",
@@ -150,12 +157,18 @@ class LevelTerm:
         ``N_l``, the number of pairs the term was computed from.
     groups : ndarray of int, shape (n_components,)
         Tolerance group of each component (``0..n_groups-1``).
+    is_bound : bool
+        ``variance`` is an upper bound that falls like ``1 / N_l^2``, not a
+        measurement (a CDF level whose pairs changed no indicator,
+        :mod:`rough_uq.multilevel.distribution`): the allocation at most
+        doubles such a level's samples per round (:func:`_targets`).
     """
 
     mean: np.ndarray
     variance: np.ndarray
     n_samples: int
     groups: np.ndarray
+    is_bound: bool = False
 
     @property
     def per_sample_variance(self) -> np.ndarray:
@@ -607,6 +620,8 @@ def _targets(
     variances = _planning_variances(per_sample, has_data, beta[groups])
     costs = _fill_costs(np.array([s.mean_cost for s in levels]), has_data, gamma)
     wanted = _allocate(variances, costs, groups, tol, theta)
+    # A bound's W = N Var falls like 1 / N: planned as fixed, it asked for far more samples than the bound needs.
+    wanted = [min(n, 2 * s.n) if term is not None and term.is_bound else n for s, term, n in zip(levels, terms, wanted)]
     return [max(s.n, int(n), n_initial) for s, n in zip(levels, wanted)]
 
 
@@ -666,7 +681,7 @@ def adaptive_mlmc(
     max_samples: int | None = None,
     label: str = "mlmc",
     qoi_names: Sequence[str] | None = None,
-    qoi: int | None = None,
+    checked_column: int | None = None,
 ) -> TargetEstimate:
     """Adaptive MLMC estimate of a target to an RMS tolerance per group (module docstring).
 
@@ -698,11 +713,13 @@ def adaptive_mlmc(
     max_samples : int, optional
         A plan of more samples in all raises :class:`~rough_uq.errors.EstimationError`
         before they are drawn (the tolerance is out of reach).
-    label, qoi_names, qoi
-        The checks of SPEC section 5 on the final samples (consistency, kurtosis of ``Q_l - Q_{l-1}``,
-        differences that never varied: :func:`~rough_uq.multilevel.statistics.diagnose`), of the QoI
-        column ``qoi`` (all if None), named by ``qoi_names`` (one per column), each failed one an
-        :class:`~rough_uq.errors.EstimationWarning` that starts with ``label``.
+    label, qoi_names, checked_column
+        The checks of SPEC section 5 on the final samples (those of
+        :func:`~rough_uq.multilevel.statistics.diagnose`: consistency, kurtosis of ``Q_l - Q_{l-1}``,
+        coupling, differences that never varied, levels of fewer than two samples), of the QoI column
+        ``checked_column`` (every column if None), named by ``qoi_names`` (one per column of the samples,
+        checked against the first batch), each failed one an :class:`~rough_uq.errors.EstimationWarning`
+        that starts with ``label``.
 
     Returns
     -------
@@ -715,25 +732,41 @@ def adaptive_mlmc(
     max_cost = _check_optional_positive("max_cost", max_cost)
     max_samples = None if max_samples is None else checked_integer("max_samples", max_samples, 1)
     _check_tol(tol, None)  # fails early; the number of groups is known after the first batch
+    _checked_names(qoi_names, None, argument="qoi_names")  # and their number against the first batch's columns
     refuse_large_start(n_initial, range(min_finest_level + 1), max_samples=max_samples)
     levels, stop_reason = _sample_to_tolerance(
-        sampler, term, tol, theta=theta, n_initial=n_initial, n_start_levels=min_finest_level + 1,
-        max_level=max_level, batch_cap=batch_cap, max_cost=max_cost, max_samples=max_samples,
+        sampler, _checking_columns(term, qoi_names, checked_column), tol, theta=theta, n_initial=n_initial,
+        n_start_levels=min_finest_level + 1, max_level=max_level, batch_cap=batch_cap, max_cost=max_cost,
+        max_samples=max_samples,
     )
     estimate = _final_estimate(
         levels, term, tol, theta=theta, stop_reason=stop_reason, min_finest_level=min_finest_level
     )
     if stop_reason == "max_level" and not estimate.tol_met and estimate.noisy_bias_groups:
         _warn_noisy_bias(estimate)
-    names = qoi_names if qoi_names is None or qoi is None else [qoi_names[qoi]]
-    for message in diagnose(_statistics(levels, qoi), kurtosis_limit=KURTOSIS_LIMIT, names=names):
+    names = qoi_names if qoi_names is None or checked_column is None else [qoi_names[checked_column]]
+    for message in diagnose(_statistics(levels, checked_column), kurtosis_limit=KURTOSIS_LIMIT, names=names):
         warn_at_caller(f"{label}: {message}", EstimationWarning)
     return estimate
 
 
-def _statistics(levels: Sequence[_Level], qoi: int | None):
-    """The mean driver's statistics of the sampled levels' pairs (column ``qoi``, all if None), for the checks."""
-    columns = slice(None) if qoi is None else [qoi]
+def _checking_columns(term: TermFunction, qoi_names: Sequence[str] | None, column: int | None) -> TermFunction:
+    """``term``, which first checks the number of ``qoi_names`` and ``column`` against the samples' columns."""
+
+    def checked(fine: np.ndarray, coarse: np.ndarray | None, level: int) -> LevelTerm:
+        result = term(fine, coarse, level)  # checks the samples (and a CDF's column, by its own name) first
+        n_qoi = np.shape(fine)[1] if np.ndim(fine) == 2 else 1
+        _checked_names(qoi_names, n_qoi, argument="qoi_names")
+        if column is not None and not 0 <= column < n_qoi:
+            raise InvalidParameterError("checked_column", column, f"a column of the samples, 0..{n_qoi - 1}")
+        return result
+
+    return checked
+
+
+def _statistics(levels: Sequence[_Level], column: int | None):
+    """The mean driver's statistics of the sampled levels' pairs (``column``, every one if None), for the checks."""
+    columns = slice(None) if column is None else [column]
     sampled = [s for s in levels if s.n]
     fine = [np.concatenate(s.fine)[:, columns] for s in sampled]
     coarse = [np.zeros_like(f) if s.level == 0 else np.concatenate(s.coarse)[:, columns] for s, f in zip(sampled, fine)]
