@@ -338,9 +338,10 @@ def cdf_level_term(
     )
 
 
-def _is_missed(x: np.ndarray, y: np.ndarray, s: np.ndarray, delta_x: float, delta_y: float) -> bool:
-    """Whether the thresholds miss a level's fine values ``x`` and coarse values ``y`` alike (module docstring)."""
-    return _is_one_sided(x, s, delta_x) and _is_one_sided(y, s, delta_y)
+def _is_missed(x: np.ndarray, y: np.ndarray | None, s: np.ndarray, delta_x: float, delta_y: float) -> bool:
+    """Whether the thresholds miss a level's fine values ``x`` and coarse values ``y`` (None on level 0) alike
+    (module docstring)."""
+    return _is_one_sided(x, s, delta_x) and (y is None or _is_one_sided(y, s, delta_y))
 
 
 def _is_one_sided(values: np.ndarray, s: np.ndarray, delta: float) -> bool:
@@ -368,14 +369,14 @@ def _missed_range(
 
     Arguments as in :func:`cdf_level_term`, ``thresholds`` already checked.
     """
-    sides = [(_column(fine, qoi, "fine"), level)]
-    if coarse is not None:
-        sides.append((_column(coarse, qoi, "coarse"), level - 1))
-    for values, bandwidth_level in sides:
-        delta = level_bandwidth(bandwidth_level, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
-        if not _is_one_sided(values, thresholds, delta):
-            return None
-    values = np.concatenate([values for values, _ in sides])
+    x = _column(fine, qoi, "fine")
+    y = None if coarse is None else _column(coarse, qoi, "coarse")
+    delta_x, delta_y = (
+        level_bandwidth(at, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate) for at in (level, level - 1)
+    )
+    if not _is_missed(x, y, thresholds, delta_x, delta_y):
+        return None
+    values = x if y is None else np.concatenate([x, y])
     return float(np.min(values)), float(np.max(values))
 
 
