@@ -229,6 +229,26 @@ def test_problem_columns_and_model_match_the_pipeline():
         _curve_problem(load=[rough_uq.RelativeLoad(0.1), rough_uq.AbsoluteLoad(0.2)])
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float16])
+def test_single_precision_loads_are_taken_at_their_shortest_decimal(dtype):
+    import rough_uq
+    from rough_uq.problem.runs import _tolerances
+
+    values = np.array(CURVE, dtype=dtype)
+    for kind in (rough_uq.RelativeLoad, rough_uq.AbsoluteLoad):
+        problem = _curve_problem(load=[kind(v) for v in values])
+        assert problem.columns == _curve_problem(load=[kind(v) for v in CURVE]).columns
+        assert "contact_area@0.02" in problem.columns
+        tol = _tolerances({"contact_area@0.02": 3.0, "contact_area": 1.0, "clusters": 50.0}, problem.n_qoi,
+                          problem.columns)
+        np.testing.assert_array_equal(tol, [1.0, 3.0, 1.0, 50.0, 50.0, 50.0])
+    assert rough_uq.RelativeLoad(np.float64(0.05000000074505806)).value == 0.05000000074505806
+    with pytest.raises(InvalidParameterError, match="load.relative"):
+        rough_uq.RelativeLoad(dtype(-0.1))
+    with pytest.raises(InvalidParameterError, match="load.absolute"):
+        rough_uq.AbsoluteLoad(dtype("nan"))
+
+
 @pytest.mark.parametrize("stage_kind", ["mlmc", "mc"])
 def test_curve_columns_equal_single_load_samples(stage_kind):
     # Each load column of a curve sample is the sample of a single-load problem at that load

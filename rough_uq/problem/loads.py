@@ -43,6 +43,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from rough_uq.errors import InvalidParameterError, is_real_number
 from rough_uq.physics.surface import SurfaceSpectrum
 from rough_uq.problem.columns import LOAD_SEPARATOR, column_name, load_label
@@ -105,6 +107,19 @@ def positive(name: str, value: object) -> float:
     return float(value)
 
 
+def load_value(name: str, value: object) -> float:
+    """A load as a float > 0 (:func:`positive`); a single- or half-precision number at its shortest decimal.
+
+    ``numpy.float32(0.05)`` is 0.05000000074505806 as a double; taken as it is, it named its load-curve column
+    ``contact_area@0.05000000074505806``, which no tolerance mapping written ``contact_area@0.05`` matched. Its
+    shortest decimal (numpy's ``str``) is what the user wrote, and differs from it by at most half a unit in the
+    last place of that precision (3e-8 of the load for float32).
+    """
+    if isinstance(value, np.floating) and value.dtype.itemsize < 8 and np.isfinite(value):
+        value = float(str(value))
+    return positive(name, value)
+
+
 @dataclass(frozen=True)
 class RelativeLoad:
     """Mean pressure relative to ``E* sqrt(m2)`` (SPEC section 6).
@@ -118,7 +133,7 @@ class RelativeLoad:
     value: float
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "value", positive("load.relative", self.value))
+        object.__setattr__(self, "value", load_value("load.relative", self.value))
 
     def mean_pressure(self, *, spectrum: SurfaceSpectrum, e_star: float) -> float:
         """The mean pressure ``value * e_star * sqrt(m2)`` (unit of ``E*``)."""
@@ -138,7 +153,7 @@ class AbsoluteLoad:
     value: float
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "value", positive("load.absolute", self.value))
+        object.__setattr__(self, "value", load_value("load.absolute", self.value))
 
     def mean_pressure(self, *, spectrum: SurfaceSpectrum, e_star: float) -> float:
         """The mean pressure ``value`` (unit of ``E*``); ``spectrum`` and ``e_star`` are not used."""
