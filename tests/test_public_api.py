@@ -201,6 +201,15 @@ def test_units_scale_the_quantities():
     assert clusters.model.qoi_scales == (1.0 / spectrum.system_size**2,)
 
 
+def test_max_pressure_is_in_the_unit_e_star_is_given_in_and_not_labelled_as_a_multiple_of_e_star():
+    problem = _problem(qoi=["max_pressure"], e_star=210.0)
+    assert problem.qoi_units == ("pressure",) and problem.model.qoi_scales == (1.0,)
+    config = config_from_dict(tiny_config(qoi={"max_pressure": {}}, material={"e_star": 210.0}))
+    assert config.qoi["max_pressure"].unit_label == "pressure"
+    with pytest.raises(rough_uq.InvalidParameterError, match="pressure"):
+        _problem(qoi=["max_pressure"], units={"max_pressure": "E*"})
+
+
 @pytest.mark.parametrize(
     ("overrides", "field"),
     [

@@ -33,7 +33,8 @@ Units of the quantities of interest
 default first (the config's defaults): ``contact_area`` and ``area_above`` in
 ``"percent"`` (or ``"fraction"``), ``clusters`` in ``"per_area"`` (count per
 unit area, ``1 / L^2``; or ``"absolute"``, count per box), ``mean_gap`` in the
-length unit, ``max_pressure`` in the unit of ``E*``. Tolerances are in the
+length unit (``"length"``), ``max_pressure`` in ``"pressure"``, the unit ``E*`` is given in (not a multiple
+of ``E*``: with ``e_star=210`` in GPa a maximum pressure of 35.8 is 35.8 GPa). Tolerances are in the
 same units. :func:`qoi_scale` is the factor from the raw value of
 :func:`~rough_uq.physics.qoi.evaluate_qoi` to the unit.
 """
@@ -65,7 +66,7 @@ QOI_UNITS: dict[str, tuple[str, ...]] = {
     "contact_area": ("percent", "fraction"),
     "clusters": ("per_area", "absolute"),
     "mean_gap": ("length",),
-    "max_pressure": ("E*",),
+    "max_pressure": ("pressure",),
     "area_above": ("percent", "fraction"),
 }
 

@@ -643,7 +643,8 @@ class MaxPressureQoi(_QoiSection):
 
     @property
     def unit_label(self) -> str:
-        return "E*"
+        # The unit e_star is given in: "E*" read as a multiple of E* (35.8 E* for 35.8 GPa at e_star 210 GPa).
+        return "pressure"
 
 
 class AreaAboveQoi(_QoiSection):
