@@ -257,6 +257,21 @@ def test_load_curve_legend_tells_runs_of_one_name_apart_by_what_differs(tmp_path
                                         "MC, level 1 (16²)\ntol mean_gap@0.2=0.5 (± stat. error)"]
 
 
+def test_load_curve_kappa_line_stops_where_its_fit_stops(tmp_path, figures):
+    # Drawn over every load, the small-load line rose to 1100 % at a relative load of 5 and squashed the curve.
+    loads = [0.01, 0.1, 0.5, 1.0, 5.0]
+    area = [2.0, 18.0, 60.0, 85.0, 100.0]
+    fit = {"kappa": 1.8, "error": 0.1, "max_area": 0.2, "n_points": 2}
+    entry = {"run_id": "r", "method": "mlmc", "label": "r", "relative_loads": loads, "kappa": fit,
+             "curves": {"contact_area": {"estimate": area, "rmse": [0.5] * 5}}}
+    plots._load_curve_figure(plots._Drawn(None, (), ("contact_area",), {"contact_area": "%"}, (), (entry,)),
+                             tmp_path / "load_curve.png")
+    (ax,) = figures["load_curve.png"].axes
+    (line,) = [line for label, line in _lines(ax).items() if label.startswith("kappa")]
+    np.testing.assert_allclose(line.get_xdata(), [0.0, 0.2 / 1.8])
+    assert max(line.get_ydata()) == pytest.approx(20.0) and ax.get_ylim()[1] < 110.0
+
+
 def test_load_curve_names_of_many_runs_stay_distinct_and_short():
     import itertools
 

@@ -469,7 +469,9 @@ def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
             fit = entry.get("kappa")
             if name == "contact_area" and fit is not None:
                 scale = 100.0 if units.get(name) == "%" else 1.0
-                span = np.array([0.0, load.max()])
+                # Up to the area the fit is valid for: drawn over every load it rose to 1100 % at a load of 5.
+                reach = fit["max_area"] / fit["kappa"] if fit["kappa"] > 0 else math.inf
+                span = np.array([0.0, min(load.max(), reach)])
                 source = "one load" if fit["n_points"] == 1 else f"fit on {fit['n_points']} loads"
                 label = f"kappa = {fit['kappa']:.3g} ± {fit['error']:.2g} ({source}, A/A0 < {fit['max_area']:g})"
                 ax.plot(span, fit["kappa"] * span * scale, ":", color=colour, label=label)
