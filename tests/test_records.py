@@ -434,6 +434,32 @@ def test_the_prediction_table_marks_tolerances_whose_bias_the_finest_grid_cannot
     assert "planned, as runs plan, with every rate raised to at least 0.5" in " ".join(console.export_text().split())
 
 
+def test_the_prediction_table_of_many_qois_shows_every_tolerance_whole_at_80_columns():
+    # Five QoIs at 80 columns: rich cut "mean_gap=4.93058e-05" to "mean_gap=4.93058e…" and "max_pressure=0.00…",
+    # and the tolerances of the QoIs without a configured tol came with no word of where they came from.
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    from rough_uq.report.summary import _predictions_table
+
+    names = ("contact_area", "clusters", "mean_gap", "max_pressure", "area_above")
+    base = (1.0, 0.43900001, 4.93058e-05, 0.00339897, 0.346711)
+    plans = tuple(PlanRecord(tol=tuple(v * f for v in base), finest_level=3, n_samples=(143353, 42231, 18533, 8133),
+                             mlmc_cost=1.0, mc_cost=1.0, mlmc_seconds=1140.0, mc_seconds=1524.0, work_ratio=1.33,
+                             is_bias_met=f > 0.3) for f in (2.0, 1.0, 0.5, 0.25, 0.125))
+    console = Console(width=80, record=True)
+    rates = SimpleNamespace(alpha=(1.0,) * 5, beta=(2.0,) * 5, gamma=1.5)
+    console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=plans, rates=rates)))
+    text = console.export_text()
+    assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80
+    lines = [line.strip() for line in text.splitlines()]
+    for plan in plans:
+        for name, value in zip(names, plan.tol):
+            assert any(line.startswith(f"{name}={value:.3g}") for line in lines), (name, value, text)
+    assert "1 % of the QoI's finest screened mean" in " ".join(text.split())
+
+
 def test_the_rates_say_no_decay_only_for_a_bias_that_does_not_decay():
     # Without a cost rate gamma there is no complexity exponent, and the alpha of a decaying bias was printed
     # "(no decay)" all the same.

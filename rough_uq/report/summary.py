@@ -683,7 +683,9 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
     # A tolerance whose bias the finest allowed grid cannot reach is planned on that grid all the same
     # (the rows stay comparable); the mark says that `mlmc` refuses it.
     unreachable = any(not p.is_bias_met for p in screening.predictions)
-    captions = ["levels, N_l: the optimal plan (0: a level it leaves out); a run takes at least two levels above the "
+    captions = ["tol: qoi.<name>.tol, or 1 % of the QoI's finest screened mean where the config sets none, times "
+                "2, 1, 1/2, 1/4 and 1/8",
+                "levels, N_l: the optimal plan (0: a level it leaves out); a run takes at least two levels above the "
                 "plan's coarsest for its bias test, so its own levels and N_l differ"]
     if unreachable:
         captions.append("* bias above sqrt(theta) tol on the finest allowed grid: mlmc refuses it")
@@ -692,11 +694,19 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
         captions.append(f"planned, as runs plan, with every rate raised to at least {RATE_FLOOR:g}")
     table = _table("Predicted from the screening (CPU time of the samples)")
     table.caption, table.caption_justify = "\n".join(captions), "left"
-    for column in ("tol", "levels", "N_l", "MLMC", "MC", "MC/MLMC"):
+    # One column's tolerance per line, folded rather than cut: at 80 columns rich cut "mean_gap=4.93058e-05"
+    # to "mean_gap=4.93058e…" and "max_pressure=0.00339897" to "max_pressure=0.00…".
+    cells = [tol_text(screening.qoi_names, p.tol, digits=3).replace(", ", "\n") + ("" if p.is_bias_met else " *")
+             for p in screening.predictions]
+    widest = max((len(line) for cell in cells for line in cell.splitlines()), default=3)
+    table.add_column("tol", justify="right", overflow="fold", min_width=min(widest, 24))
+    table.add_column("levels", justify="right")
+    table.add_column("N_l", justify="right", max_width=14)  # wraps between counts, leaving tol its width
+    for column in ("MLMC", "MC", "MC/MLMC"):
         table.add_column(column, justify="right")
-    for p in screening.predictions:
+    for p, cell in zip(screening.predictions, cells):
         table.add_row(
-            tol_text(screening.qoi_names, p.tol) + ("" if p.is_bias_met else " *"),
+            cell,
             f"0..{p.finest_level}",
             " ".join(_planned_count(n) for n in p.n_samples),
             format_duration(p.mlmc_seconds),
