@@ -66,6 +66,31 @@ def test_a_plan_that_grows_with_every_batch_is_not_a_line_per_batch():
     assert lines[-1].startswith("[mlmc] stopped after")
 
 
+def test_the_plan_a_run_ends_with_is_printed_if_a_change_went_unsaid():
+    # mc printed "plan: samples per level L3: 232", then "level 3: 225/225 samples": the plan had shrunk within
+    # the interval and no line said so.
+    stream = io.StringIO()
+    progress = PlainProgress(stream, interval=3600)
+    progress.start("mc")
+    progress.plan([3], [10], [0])
+    progress.advance(3, 10)
+    progress.plan([3], [232], [10])
+    progress.plan([3], [225], [10])
+    progress.advance(3, 215)
+    progress.stop()
+    lines = stream.getvalue().splitlines()
+    plans = [line for line in lines if "plan:" in line]
+    assert plans == ["[mc] plan: samples per level L3: 10", "[mc] plan: samples per level L3: 225"]
+    assert lines.index(plans[-1]) < lines.index(next(line for line in lines if "225/225" in line))
+    stream = io.StringIO()
+    progress = PlainProgress(stream, interval=3600)
+    progress.start("mc")
+    progress.plan([3], [10], [0])
+    progress.advance(3, 10)
+    progress.stop()
+    assert sum("plan:" in line for line in stream.getvalue().splitlines()) == 1  # nothing unsaid: no repeat
+
+
 def test_make_progress_picks_plain_for_pipes_and_nothing_when_quiet():
     assert isinstance(make_progress(stream=io.StringIO()), PlainProgress)
     assert type(make_progress(is_quiet=True)) is Progress

@@ -146,6 +146,7 @@ class PlainProgress(Progress):
         self._last_line: dict[int, float] = {}
         self._printed: dict[int, int] = {}  # the count of a level's last line
         self._last_plan = -math.inf
+        self._plan_text = ""  # the plan's last line
         self._t0 = time.monotonic()
 
     def _print(self, text: str) -> None:
@@ -161,6 +162,7 @@ class PlainProgress(Progress):
         self._last_line.clear()
         self._printed.clear()
         self._last_plan = -math.inf
+        self._plan_text = ""
         self._print(f"[{title}] started")
 
     def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
@@ -177,8 +179,11 @@ class PlainProgress(Progress):
         # added, otherwise at most once per interval.
         if is_new_level or (is_changed and now - self._last_plan >= self._interval):
             self._last_plan = now
-            text = ", ".join(f"L{level}: {n}" for level, n in sorted(self._planned.items()))
-            self._print(f"[{self._title}] plan: samples per level {text}")
+            self._print_plan()
+
+    def _print_plan(self) -> None:
+        self._plan_text = ", ".join(f"L{level}: {n}" for level, n in sorted(self._planned.items()))
+        self._print(f"[{self._title}] plan: samples per level {self._plan_text}")
 
     def advance(self, level: int, n: int) -> None:
         # At most one line per level and interval. A level that reaches its plan is not printed at once: the
@@ -210,6 +215,9 @@ class PlainProgress(Progress):
 
     def stop(self, *, is_complete: bool = True) -> None:
         now = time.monotonic()
+        # The last plan, where a change within the interval went unsaid ("plan: L3: 232" and then "225/225").
+        if self._planned and self._plan_text != ", ".join(f"L{lv}: {n}" for lv, n in sorted(self._planned.items())):
+            self._print_plan()
         for level in sorted(self._done):
             is_idle = self._done[level] == 0 and self._planned.get(level, 0) == 0  # a level the plan leaves out
             if self._printed.get(level) != self._done[level] and not is_idle:
