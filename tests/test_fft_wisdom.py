@@ -44,6 +44,29 @@ def test_plans_are_measured_once_per_grid_and_the_measuring_is_announced(fresh_w
     assert notes[1:] == [f"measuring FFT plans for 24x24 (once per machine, kept in {fresh_wisdom})"]
 
 
+def test_plans_measured_before_a_ctrl_c_are_kept_on_disk(fresh_wisdom, monkeypatch):
+    # Ctrl-C while "measuring FFT plans" threw every measured plan away: each rerun measured them all again.
+    measure = fft_module._plan_variant
+    grids: list[int] = []
+
+    def interrupted_at_24(n, variant, flags):
+        if "FFTW_WISDOM_ONLY" not in flags:  # measuring, not looking up
+            if n == 24:
+                raise KeyboardInterrupt
+            grids.append(n)
+        return measure(n, variant, flags)
+
+    monkeypatch.setattr(fft_module, "_plan_variant", interrupted_at_24)
+    with pytest.raises(KeyboardInterrupt):
+        prepare_wisdom([16, 24], threads=1)
+    assert set(grids) == {16}
+    monkeypatch.setattr(fft_module, "_plan_variant", measure)
+    pyfftw.forget_wisdom()  # the next process
+    notes: list[str] = []
+    prepare_wisdom([16, 24], threads=1, note=notes.append)
+    assert notes == [f"measuring FFT plans for 24x24 (once per machine, kept in {fresh_wisdom})"]
+
+
 def test_measure_plans_names_the_missing_grids_before_measuring(fresh_wisdom):
     calls: list[list[int]] = []
     wisdom = fft_module.measure_plans([24, 16], threads=1, before_measuring=calls.append)
