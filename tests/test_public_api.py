@@ -758,6 +758,8 @@ def test_the_reachable_tolerance_of_a_column_without_bias_is_the_one_asked():
     proposed = re.search(r"the smallest reachable tolerance is about (.*), a prediction", str(caught.value)).group(1)
     # (grouped as --tol takes it: the QoI's first value, then the column set apart)
     assert re.fullmatch(r"contact_area=0\.[0-9]+, contact_area@5\.0=0\.1", proposed), proposed
+    # The column that blocks is named: the proposal alone did not say which one it was.
+    assert "tol contact_area=0.1 cannot be reached for contact_area@0.2: on the finest grid" in str(caught.value)
 
 
 def test_a_run_without_a_screening_warns_of_a_bias_out_of_reach_before_drawing_its_plan():

@@ -202,6 +202,13 @@ def reachable_tolerance(prediction: Plan, tol: np.ndarray | None = None) -> np.n
     return np.array([_round_up(float(value)) if value != 0 else float(asked) for value, asked in zip(bias, tol)])
 
 
+def unreachable_columns(prediction: Plan, tol: np.ndarray) -> np.ndarray:
+    """Where the plan's predicted bias exceeds the bias share ``sqrt(theta) tol``: the columns that make ``tol``
+    unreachable (shape ``(n_qoi,)``, bool)."""
+    bias = np.asarray(prediction.bias, dtype=float)
+    return bias > math.sqrt(prediction.theta) * np.broadcast_to(np.asarray(tol, dtype=float), bias.shape)
+
+
 def _round_up(value: float) -> float:
     """``value`` rounded up to two significant digits."""
     if not (math.isfinite(value) and value > 0):

@@ -35,7 +35,9 @@ from rough_uq.errors import (
     is_real_number, warn_at_caller,
 )
 from rough_uq.multilevel import drivers
-from rough_uq.multilevel.allocation import Plan, _check_fraction, mc_run_cost, plan, reachable_tolerance
+from rough_uq.multilevel.allocation import (
+    Plan, _check_fraction, mc_run_cost, plan, reachable_tolerance, unreachable_columns,
+)
 from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
 from rough_uq.multilevel.rates import EXACT_RATE, Rates, fit_rates, stalled_bias, stalled_text
@@ -665,12 +667,20 @@ def _refuse_unreachable(problem: ContactProblem, tol: np.ndarray, prediction: Pl
         return
     names, finest = problem.columns, problem.max_level
     raise EstimationError(
-        f"tol {tol_text(names, tol, digits=3)} cannot be reached: on the finest grid allowed (max_level = {finest}, "
+        f"tol {tol_text(names, tol, digits=3)} cannot be reached{blocking_text(names, prediction, tol)}: on the "
+        f"finest grid allowed (max_level = {finest}, "
         f"{problem.grid(finest)}^2) the screening predicts a bias of {values_text(names, prediction.bias)}; the "
         f"smallest reachable tolerance is about {tol_text(names, reachable_tolerance(prediction, tol), digits=3)}, a "
         f"prediction from {int(np.min(statistics.n_samples))} screened samples per level"
         f"{_UNREACHABLE_ADVICE[method]}; or raise the problem's max_level (the same screening serves it)"
     )
+
+
+def blocking_text(names: Sequence[str], prediction: Plan, tol: np.ndarray) -> str:
+    """`` for clusters@0.1``: the columns whose predicted bias exceeds their share of ``tol``, where not all do
+    (a load curve's refusal listed a reachable tolerance for every column and did not say which one blocked)."""
+    blocked = unreachable_columns(prediction, tol)
+    return "" if np.all(blocked) else " for " + ", ".join(name for name, is_blocked in zip(names, blocked) if is_blocked)
 
 
 #: How :func:`_refuse_unreachable` goes on, by method.

@@ -98,7 +98,7 @@ from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
 from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target, initial_finest_level
 from rough_uq.problem.runs import (
-    MIN_SCREENED_LEVELS, ScreeningResult, exact_column_caveats, run_id, screening_of_batches,
+    MIN_SCREENED_LEVELS, ScreeningResult, blocking_text, exact_column_caveats, run_id, screening_of_batches,
 )
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
@@ -1120,7 +1120,8 @@ def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_sc
     bias = np.asarray(prediction.bias, dtype=float)
     reachable = reachable_tolerance(prediction, tol)
     return EstimationError(
-        f"--tol {tol_text(names, tol, digits=3)} cannot be reached: on the finest grid allowed "
+        f"--tol {tol_text(names, tol, digits=3)} cannot be reached{blocking_text(names, prediction, tol)}: on the "
+        "finest grid allowed "
         f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
         f"screening predicts a bias of {values_text(names, bias)}; the smallest reachable tolerance is about "
         f"{tol_text(names, reachable, digits=3)}, a prediction from {n_screened} screened samples "
