@@ -55,12 +55,13 @@ MAX_THRESHOLDS = 10_000
 MAX_INT64 = 2**63 - 1
 
 _EXIT_CODES = """\b
-Exit status: 0 done (mlmc/mc: tolerance met; mc --level: its statistical error within it); 2 an error in what was typed
-(config, options, files, a tolerance refused before starting: nothing
-computed; or refused on the way, e.g. a plan over 10^7 samples: the run is
-recorded as refused), one line 'error: ...'; 3 mlmc/mc finished without
-meeting the tolerance (result stored; the message says what to change);
-130 Ctrl-C, 143 SIGTERM (completed samples saved; a stopped `sample` writes no shard); 141 the output's reader
+Exit status: 0 done (mlmc/mc: tolerance met; mc --level: its statistical
+error within it); 2 an error in what was typed (config, options, files, a
+tolerance refused before starting: nothing computed; or refused on the way,
+e.g. a plan over 10^7 samples: the run is recorded as refused), one line
+'error: ...'; 3 mlmc/mc finished without meeting the tolerance (result
+stored; the message says what to change); 130 Ctrl-C, 143 SIGTERM (completed
+samples saved; a stopped `sample` writes no shard); 141 the output's reader
 went away (| head); 1 a bug (traceback)."""
 
 

@@ -1304,3 +1304,11 @@ def test_a_load_curve_column_of_a_large_load_names_its_run(tmp_path, monkeypatch
     run("screen", "big.yaml", "--workers", "1", "--quiet")
     record = json.loads(run("mc", "--level", "1", "--tol", "50", "--workers", "1", "--json").output)
     assert "contact_area-at-1e16" in record["run_id"] and "+" not in record["run_id"]
+
+
+def test_every_help_text_fits_80_columns():
+    # `roughuq --help` printed its exit statuses on lines of 121 and 112 characters (a \b block is not rewrapped).
+    for command in [None, *sorted(main.commands)]:
+        args = ["--help"] if command is None else [command, "--help"]
+        lines = run(*args, env=NARROW).output.splitlines()
+        assert max(len(line) for line in lines) <= 80, (command, [line for line in lines if len(line) > 80])
