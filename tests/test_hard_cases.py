@@ -116,6 +116,16 @@ def test_a_tall_spike_converges_at_the_loads_just_before_the_rest_touches(seed, 
     assert all(sol.contact[top] for top in tops)
 
 
+@pytest.mark.parametrize(("seed", "n"), [(1, 64), (3, 128)])
+def test_a_solve_stalled_at_the_rounding_floor_keeps_its_answer_through_the_hand_over(seed, n):
+    # tol 1e-17 is below what rounding allows: the preconditioned iteration stalls at an error of 1e-15. Handed
+    # over to a plain start from uniform pressure, the same 100 iterations ended at an error of 6.5e-6 or 4e-4.
+    s = sample_surface(SPECTRUM, n, np.random.default_rng(seed))
+    sol = solve_contact(s, system_size=L, mean_pressure=0.05 * SPECTRUM.rms_slope, tol=1e-17, max_iter=100)
+    assert sol.path == "preconditioned+plain" and not sol.converged
+    assert sol.error < 1e-13
+
+
 @pytest.mark.parametrize(("n", "relative_load"), [(8, 1.0), (32, 1.0), (64, 2.0), (128, 1.0)])
 def test_plain_polonsky_keer_converges_on_a_spike_in_a_sea_of_contact(n, relative_load):
     # Plain Polonsky-Keer never converged here (error about 5 after 10 000 iterations), or on 8^2 stopped at
@@ -129,6 +139,25 @@ def test_plain_polonsky_keer_converges_on_a_spike_in_a_sea_of_contact(n, relativ
     np.testing.assert_array_equal(plain.contact, preconditioned.contact)
     difference = np.linalg.norm(plain.pressure - preconditioned.pressure) / np.linalg.norm(plain.pressure)
     assert difference < 1e-6
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_shift_to_the_force_is_the_projection_on_pressures_of_that_force(seed):
+    from rough_uq.physics.solver import _shift_to_force
+
+    rng = np.random.default_rng([35, seed])
+    x = rng.exponential(size=(16, 16)) * (rng.random((16, 16)) < 0.7) * 10.0 ** rng.uniform(-200, 200)
+    force = float(x.sum()) * rng.uniform(1e-6, 0.999)
+    p = x.copy()
+    assert _shift_to_force(p, force) == pytest.approx(force, rel=1e-12)
+    # max(x - lam, 0) with one lam >= 0: every pressure kept drops by the same amount.
+    kept = p > 0
+    assert p.min() >= 0.0 and kept.any()
+    shifts = (x - p)[kept]
+    np.testing.assert_allclose(shifts, shifts[0], rtol=1e-9, atol=1e-12 * float(x.max()))
+    assert np.all(x[~kept] <= shifts[0] * (1 + 1e-9))
+    tiny = np.array([1e20, 1.0])  # a force below the rounding of the largest pressure
+    assert _shift_to_force(tiny, 1.0) == 1.0 and tiny.tolist() == [1.0, 0.0]
 
 
 @pytest.mark.parametrize("relative_load", [0.00537, 0.008])

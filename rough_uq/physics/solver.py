@@ -48,7 +48,9 @@ diagonal of ``M``, which made the iteration diverge on some problems).
 
 Safeguard: a preconditioned solve whose error has not halved within
 ``_STALL_WINDOW`` iterations hands over to plain Polonsky-Keer, which
-starts afresh from uniform pressure and finishes the solve
+starts afresh from uniform pressure (from the stalled pressure where its
+error is below ``_FRESH_START_ERROR``, 1e-3: a stall at a tolerance below
+what rounding allows, all but converged) and finishes the solve
 (``ContactSolution.path`` says so and ``n_iter_plain`` counts its
 iterations). Plain Polonsky-Keer is a projected conjugate gradient on a
 convex problem and converged on every spectral problem we tried. With the
@@ -1019,12 +1021,26 @@ class _State:
             ops.half_space.apply(scale)
 
     def switch_to_plain(self, ops: _Operators) -> None:
-        """Hand over to plain Polonsky-Keer, started afresh from uniform pressure (module docstring, "Safeguard")."""
+        """Hand over to plain Polonsky-Keer: from the current pressure where its error is below
+        :data:`_FRESH_START_ERROR`, else afresh from uniform pressure (module docstring, "Safeguard")."""
         self.t = ops.direction_fft.real
         self.active = None
         self.rho_old = 1.0
         self.is_plain = True
-        self.restart_uniform(ops)
+        if self.error < _FRESH_START_ERROR:
+            self.t.fill(0.0)
+            self.sum_t = 0.0
+            self.delta = 0.0
+            self.update_displacement(ops)
+        else:
+            self.restart_uniform(ops)
+
+
+#: A stalled preconditioned solve whose error is below this hands its pressure to plain Polonsky-Keer, which
+#: goes on from it; above, plain starts afresh from uniform pressure (module docstring, "Safeguard"). Stalls on
+#: tall spikes came at errors of 7-33; a solve asked for a tolerance below what rounding allows stalls at
+#: 1e-16-1e-15, where a fresh start lost the answer (error 0.44 after the same 100 iterations on 128^2).
+_FRESH_START_ERROR = 1e-3
 
 
 #: Between two exact displacements of the preconditioned iteration the error
@@ -1071,8 +1087,8 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
     it), ``"stalled"`` (preconditioned only: no halving of the error in
     :data:`_STALL_WINDOW` iterations; plain Polonsky-Keer then shifts instead,
     module docstring) or ``"no_descent"`` (even steepest descent finds no
-    decrease and no node interpenetrates: the residual is at the level of
-    rounding).
+    decrease, and in plain Polonsky-Keer no node interpenetrates either: the
+    residual is at the level of rounding).
     On return ``st.w`` holds ``u - s`` and ``st.gbar`` its mean on the active set.
     """
     checkpoint_error, checkpoint_iter = math.inf, st.n_iter
@@ -1088,12 +1104,12 @@ def _iterate(ops: _Operators, st: _State, *, precondition: bool, tol: float, max
             beta = _beta(st, rho)
             complementarity, overlap, s_gt = _plain_direction(st.w, st.p, st.gbar, beta, t_mean, st.t)
         _set_error(ops, st, complementarity, overlap)
-        stall = st.n_iter - checkpoint_iter >= (_STALL_WINDOW if precondition else _PLAIN_STALL_WINDOW)
-        if stall and not precondition and not st.shift_force and not st.error < 0.5 * checkpoint_error:
-            # Plain Polonsky-Keer stalled (a cycle of contact sets, e.g. on a tall spike): impose the mean
-            # pressure by a shift from now on, and give it another window (_shift_to_force).
-            st.shift_force, stall, checkpoint_iter = True, False, st.n_iter
-        stall = stall and precondition
+        window = st.n_iter - checkpoint_iter  # iterations since the error last halved
+        stall = precondition and window >= _STALL_WINDOW
+        if not precondition and window >= _PLAIN_STALL_WINDOW and not st.error < 0.5 * checkpoint_error:
+            # Plain Polonsky-Keer stalled (a cycle of contact sets, e.g. on a tall spike): it imposes the mean
+            # pressure by a shift from now on (_shift_to_force); it never stops as stalled.
+            st.shift_force = True
         status = _stop(st, tol=tol, max_iter=max_iter, stall=stall, checkpoint_error=checkpoint_error)
         if not st.exact and (status or st.error < _REFRESH_FACTOR * st.exact_error):
             # Every stop is decided on an exact displacement (_State.update_displacement).
@@ -1228,7 +1244,7 @@ def _update_displacement_after_step(ops: _Operators, st: _State, total: float) -
     """Impose the mean pressure and compute the displacement of the new pressure (exact or as an increment)."""
     if st.active is None and st.shift_force and total > ops.total_force:
         total = _shift_to_force(st.p, ops.total_force)
-        st.delta = 0.0  # the active set changed after the step: restart the conjugate directions
+        st.delta = 0.0  # the shift moves every pressure, not along the directions: restart them
     st.p_scale = ops.total_force / total
     if st.active is None:
         ops.half_space.apply(st.p_scale)
@@ -1252,8 +1268,13 @@ def _shift_to_force(p: np.ndarray, force: float) -> float:
     values = np.sort(p[p > 0.0])[::-1]
     counts = np.arange(1, values.size + 1)
     shifts = (np.cumsum(values) - force) / counts
-    last = int(np.flatnonzero(values > shifts)[-1])
-    np.subtract(p, max(shifts[last], 0.0), out=p)
+    kept = np.flatnonzero(values > shifts)
+    if kept.size == 0:  # a force below the rounding of the largest pressure, which then carries it alone
+        largest = int(np.argmax(p))
+        p.fill(0.0)
+        p.flat[largest] = force
+        return force
+    np.subtract(p, max(shifts[kept[-1]], 0.0), out=p)
     np.maximum(p, 0.0, out=p)
     return float(p.sum())
 
