@@ -762,6 +762,19 @@ def test_the_reachable_tolerance_of_a_column_without_bias_is_the_one_asked():
     assert "tol contact_area=0.1 cannot be reached for contact_area@0.2: on the finest grid" in str(caught.value)
 
 
+def test_the_blocking_columns_are_named_only_where_a_bias_exceeds_its_share():
+    from types import SimpleNamespace
+
+    from rough_uq.problem.runs import blocking_text
+
+    def text(bias, tol):
+        return blocking_text(["a", "b", "c"], SimpleNamespace(bias=np.array(bias), theta=0.5), np.array(tol))
+
+    assert text([1.0, 0.01, 0.5], [1.0, 1.0, 0.5]) == " for a, c"  # 1 > sqrt(0.5), 0.5 > sqrt(0.5) / 2
+    assert text([1.0, 1.0, 1.0], [1.0, 1.0, 1.0]) == ""  # every column: the tolerance as a whole
+    assert text([np.nan, 0.01, 0.01], [1.0, 1.0, 1.0]) == ""  # no column named: no dangling " for "
+
+
 def test_a_run_without_a_screening_warns_of_a_bias_out_of_reach_before_drawing_its_plan():
     # tol 0.001 on max_level 2: the first samples put the bias far above its share, and the plan that follows
     # asked for millions of samples for the statistical error, in silence (a notebook cell just hung).

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import re
 from dataclasses import replace
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -453,11 +454,21 @@ def test_the_prediction_table_of_many_qois_shows_every_tolerance_whole_at_80_col
     console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=plans, rates=rates)))
     text = console.export_text()
     assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80
-    lines = [line.strip() for line in text.splitlines()]
+    lines = [line.strip() for line in re.sub(r"=\s*\n\s*", "=", text).splitlines()]  # a long line breaks at "="
     for plan in plans:
         for name, value in zip(names, plan.tol):
             assert any(line.startswith(f"{name}={value:.3g}") for line in lines), (name, value, text)
     assert "1 % of the QoI's finest screened mean" in " ".join(text.split())
+    # A load curve's long column names: the table was 81 wide and rich cropped its last column ("1.3", "MC/MLM").
+    curve = tuple(f"{qoi}@{load}" for qoi in ("contact_area", "max_pressure") for load in (0.0123456, 0.05, 0.1))
+    console.print(_predictions_table(SimpleNamespace(
+        qoi_names=curve, rates=SimpleNamespace(alpha=(1.0,) * 6, beta=(2.0,) * 6, gamma=1.5),
+        predictions=tuple(replace(plan, tol=tuple(0.0123 * k * plan.tol[0] for k in range(1, 7)))
+                          for plan in plans))))
+    text = console.export_text()
+    assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80
+    assert "MC/MLMC" in text and text.count(" 1.33") == len(plans)
+    assert re.search(r"max_pressure@0\.05= *\n *0\.\d+", text), text  # broken after its "=", not mid-number
 
 
 def test_the_rates_say_no_decay_only_for_a_bias_that_does_not_decay():

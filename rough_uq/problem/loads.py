@@ -114,7 +114,7 @@ def load_value(name: str, value: object) -> float:
     ``numpy.float32(0.05)`` is 0.05000000074505806 as a double; taken as it is, it named its load-curve column
     ``contact_area@0.05000000074505806``, which no tolerance mapping written ``contact_area@0.05`` matched. Its
     shortest decimal (numpy's ``str``) is what the user wrote, and differs from it by at most half a unit in the
-    last place of that precision (3e-8 of the load for float32).
+    last place of that precision (up to 6e-8 of the load for float32).
     """
     if isinstance(value, np.floating) and value.dtype.itemsize < 8 and np.isfinite(value):
         value = float(str(value))

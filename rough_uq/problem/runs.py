@@ -680,7 +680,8 @@ def blocking_text(names: Sequence[str], prediction: Plan, tol: np.ndarray) -> st
     """`` for clusters@0.1``: the columns whose predicted bias exceeds their share of ``tol``, where not all do
     (a load curve's refusal listed a reachable tolerance for every column and did not say which one blocked)."""
     blocked = unreachable_columns(prediction, tol)
-    return "" if np.all(blocked) else " for " + ", ".join(name for name, is_blocked in zip(names, blocked) if is_blocked)
+    named = [name for name, is_blocked in zip(names, blocked) if is_blocked]
+    return "" if np.all(blocked) or not named else " for " + ", ".join(named)
 
 
 #: How :func:`_refuse_unreachable` goes on, by method.

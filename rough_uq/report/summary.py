@@ -696,12 +696,18 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
     table.caption, table.caption_justify = "\n".join(captions), "left"
     # One column's tolerance per line, folded rather than cut: at 80 columns rich cut "mean_gap=4.93058e-05"
     # to "mean_gap=4.93058e…" and "max_pressure=0.00339897" to "max_pressure=0.00…".
-    cells = [tol_text(screening.qoi_names, p.tol, digits=3).replace(", ", "\n") + ("" if p.is_bias_met else " *")
-             for p in screening.predictions]
-    widest = max((len(line) for cell in cells for line in cell.splitlines()), default=3)
-    table.add_column("tol", justify="right", overflow="fold", min_width=min(widest, 24))
-    table.add_column("levels", justify="right")
-    table.add_column("N_l", justify="right", max_width=14)  # wraps between counts, leaving tol its width
+    cells = [_tol_cell(screening.qoi_names, p.tol) + ("" if p.is_bias_met else " *") for p in screening.predictions]
+    if any("\n" in cell for cell in cells):
+        # Several columns: rich gave the tolerances 17 characters at 80 columns and folded "max_pressure=0.0034"
+        # mid-number; N_l, wrapping between its counts, leaves them their width.
+        widest = max(len(line) for cell in cells for line in cell.splitlines())
+        table.add_column("tol", justify="right", overflow="fold", min_width=min(widest, _TOL_LINE))
+        table.add_column("levels", justify="right")
+        table.add_column("N_l", justify="right", max_width=14)
+    else:
+        table.add_column("tol", justify="right", overflow="fold")
+        table.add_column("levels", justify="right")
+        table.add_column("N_l", justify="right")
     for column in ("MLMC", "MC", "MC/MLMC"):
         table.add_column(column, justify="right")
     for p, cell in zip(screening.predictions, cells):
@@ -714,6 +720,17 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
             _g(p.work_ratio),
         )
     return table
+
+
+#: Longest line of a tolerance cell of the prediction table: longer ones break after their "=".
+_TOL_LINE = 20
+
+
+def _tol_cell(names: Sequence[str], tol: Sequence[float]) -> str:
+    """The tolerances of a prediction, one column (or group of a load curve's) per line, a long line broken
+    after its ``=`` (``contact_area@0.01=`` / ``0.0492``) rather than folded mid-number."""
+    parts = tol_text(names, tol, digits=3).split(", ")
+    return "\n".join(part.replace("=", "=\n", 1) if len(part) > _TOL_LINE else part for part in parts)
 
 
 def render_runs(console: Any, runs: Sequence[ReportedRun], qoi_names: Sequence[str],

@@ -634,11 +634,12 @@ class MeanGapQoi(_QoiSection):
 
 
 class MaxPressureQoi(_QoiSection):
-    """Largest nodal contact pressure (unit of E*)."""
+    """Largest nodal contact pressure (in the pressure unit material.e_star is given in)."""
 
     kind: Literal["max_pressure"] = Field("max_pressure", exclude=True)
     tol: Float | None = _field(
-        None, description=_TOL_DESCRIPTION + " (unit of E*)", allowed="number > 0 or null", gt=0
+        None, description=_TOL_DESCRIPTION + " (the pressure unit of material.e_star)", allowed="number > 0 or null",
+        gt=0,
     )
 
     @property

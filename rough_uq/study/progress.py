@@ -181,8 +181,11 @@ class PlainProgress(Progress):
             self._last_plan = now
             self._print_plan()
 
+    def _plan_now(self) -> str:
+        return ", ".join(f"L{level}: {n}" for level, n in sorted(self._planned.items()))
+
     def _print_plan(self) -> None:
-        self._plan_text = ", ".join(f"L{level}: {n}" for level, n in sorted(self._planned.items()))
+        self._plan_text = self._plan_now()
         self._print(f"[{self._title}] plan: samples per level {self._plan_text}")
 
     def advance(self, level: int, n: int) -> None:
@@ -216,7 +219,7 @@ class PlainProgress(Progress):
     def stop(self, *, is_complete: bool = True) -> None:
         now = time.monotonic()
         # The last plan, where a change within the interval went unsaid ("plan: L3: 232" and then "225/225").
-        if self._planned and self._plan_text != ", ".join(f"L{lv}: {n}" for lv, n in sorted(self._planned.items())):
+        if self._planned and self._plan_text != self._plan_now():
             self._print_plan()
         for level in sorted(self._done):
             is_idle = self._done[level] == 0 and self._planned.get(level, 0) == 0  # a level the plan leaves out
