@@ -697,17 +697,13 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
     # One column's tolerance per line, folded rather than cut: at 80 columns rich cut "mean_gap=4.93058e-05"
     # to "mean_gap=4.93058e…" and "max_pressure=0.00339897" to "max_pressure=0.00…".
     cells = [_tol_cell(screening.qoi_names, p.tol) + ("" if p.is_bias_met else " *") for p in screening.predictions]
-    if any("\n" in cell for cell in cells):
-        # Several columns: rich gave the tolerances 17 characters at 80 columns and folded "max_pressure=0.0034"
-        # mid-number; N_l, wrapping between its counts, leaves them their width.
-        widest = max(len(line) for cell in cells for line in cell.splitlines())
-        table.add_column("tol", justify="right", overflow="fold", min_width=min(widest, _TOL_LINE))
-        table.add_column("levels", justify="right")
-        table.add_column("N_l", justify="right", max_width=14)
-    else:
-        table.add_column("tol", justify="right", overflow="fold")
-        table.add_column("levels", justify="right")
-        table.add_column("N_l", justify="right")
+    # Several columns: rich gave the tolerances 17 characters at 80 columns and folded "max_pressure=0.0034"
+    # mid-number; N_l, wrapping between its counts, leaves them their width.
+    several = any("\n" in cell for cell in cells)
+    widest = max((len(line) for cell in cells for line in cell.splitlines()), default=0)
+    table.add_column("tol", justify="right", overflow="fold", min_width=min(widest, _TOL_LINE) if several else None)
+    table.add_column("levels", justify="right")
+    table.add_column("N_l", justify="right", max_width=14 if several else None)
     for column in ("MLMC", "MC", "MC/MLMC"):
         table.add_column(column, justify="right")
     for p, cell in zip(screening.predictions, cells):
