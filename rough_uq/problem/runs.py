@@ -55,7 +55,7 @@ from rough_uq.problem.sampler import ContactModel, measured_seconds_per_cost, mo
 
 __all__ = [
     "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "exact_column_caveats", "mc", "mlmc", "run_id", "screen",
-    "screening_of_batches",
+    "screening_of_batches", "unreachable_text",
 ]
 
 #: Fewest levels a screening covers, ``0..2``: the rates are fitted on levels >= 1 (level 0's ``Y_0 = Q_0``
@@ -665,14 +665,24 @@ def _refuse_unreachable(problem: ContactProblem, tol: np.ndarray, prediction: Pl
     already missed."""
     if prediction.is_bias_met:
         return
-    names, finest = problem.columns, problem.max_level
-    raise EstimationError(
-        f"tol {tol_text(names, tol, digits=3)} cannot be reached{blocking_text(names, prediction, tol)}: on the "
-        f"finest grid allowed (max_level = {finest}, "
-        f"{problem.grid(finest)}^2) the screening predicts a bias of {values_text(names, prediction.bias)}; the "
-        f"smallest reachable tolerance is about {tol_text(names, reachable_tolerance(prediction, tol), digits=3)}, a "
-        f"prediction from {int(np.min(statistics.n_samples))} screened samples per level"
-        f"{_UNREACHABLE_ADVICE[method]}; or raise the problem's max_level (the same screening serves it)"
+    finest = problem.max_level
+    raise EstimationError(unreachable_text(
+        problem.columns, tol, prediction, tol_name="tol", level_name="max_level", max_level=finest,
+        grid=problem.grid(finest), n_screened=int(np.min(statistics.n_samples)),
+        advice=f"{_UNREACHABLE_ADVICE[method]}; or raise the problem's max_level (the same screening serves it)",
+    ))
+
+
+def unreachable_text(names: Sequence[str], tol: np.ndarray, prediction: Plan, *, tol_name: str, level_name: str,
+                     max_level: int, grid: int, n_screened: int, advice: str) -> str:
+    """The refusal of a tolerance whose bias the finest allowed grid cannot reach, with the smallest reachable one
+    (the Python API's and ``roughuq``'s, which name the tolerance and the finest level as each spells them)."""
+    reachable = reachable_tolerance(prediction, tol)
+    return (
+        f"{tol_name} {tol_text(names, tol, digits=3)} cannot be reached{blocking_text(names, prediction, tol)}: on "
+        f"the finest grid allowed ({level_name} = {max_level}, {grid}^2) the screening predicts a bias of "
+        f"{values_text(names, np.asarray(prediction.bias, dtype=float))}; the smallest reachable tolerance is about "
+        f"{tol_text(names, reachable, digits=3)}, a prediction from {n_screened} screened samples per level{advice}"
     )
 
 

@@ -91,14 +91,14 @@ from rough_uq.study.records import (
     read_screening_record,
     utc_timestamp,
 )
-from rough_uq.problem.columns import tol_text, values_text
+from rough_uq.problem.columns import tol_text
 from rough_uq.problem.contact import ContactProblem
 from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
 from rough_uq.multilevel.moments import variance_level_term
 from rough_uq.problem.distribution import DEFAULT_PROBABILITIES, TARGETS, estimate_target, initial_finest_level
 from rough_uq.problem.runs import (
-    MIN_SCREENED_LEVELS, ScreeningResult, blocking_text, exact_column_caveats, run_id, screening_of_batches,
+    MIN_SCREENED_LEVELS, ScreeningResult, exact_column_caveats, run_id, screening_of_batches, unreachable_text,
 )
 from rough_uq.problem.sampler import (
     STAGE_SCREENING,
@@ -109,7 +109,7 @@ from rough_uq.problem.sampler import (
     modelled_cost,
     run_stage,
 )
-from rough_uq.multilevel.allocation import Plan, plan, reachable_tolerance
+from rough_uq.multilevel.allocation import Plan, plan
 from rough_uq.multilevel.rates import (
     Rates, choose_coarsest_level, fit_rates, refuse_constant_columns, stalled_bias, stalled_text,
 )
@@ -1116,18 +1116,13 @@ def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_sc
     own samples and may find it larger, which the message says (on the quickstart study, 20 samples per level,
     runs at tol 0.03 and 0.04 found 0.06 and 0.08 where the screening predicted 0.012).
     """
-    names = config.qoi_names
-    bias = np.asarray(prediction.bias, dtype=float)
-    reachable = reachable_tolerance(prediction, tol)
-    return EstimationError(
-        f"--tol {tol_text(names, tol, digits=3)} cannot be reached{blocking_text(names, prediction, tol)}: on the "
-        "finest grid allowed "
-        f"(grid.max_level = {config.grid.max_level}, {config.grid.n_at(config.grid.max_level)}^2) the "
-        f"screening predicts a bias of {values_text(names, bias)}; the smallest reachable tolerance is about "
-        f"{tol_text(names, reachable, digits=3)}, a prediction from {n_screened} screened samples "
-        "per level (a run estimates the bias from its own samples and may find it larger: then it stops at "
-        "grid.max_level, tolerance not met); or screen a study with a larger grid.max_level"
-    )
+    max_level = config.grid.max_level
+    return EstimationError(unreachable_text(
+        config.qoi_names, tol, prediction, tol_name="--tol", level_name="grid.max_level", max_level=max_level,
+        grid=config.grid.n_at(max_level), n_screened=n_screened,
+        advice=" (a run estimates the bias from its own samples and may find it larger: then it stops at "
+        "grid.max_level, tolerance not met); or screen a study with a larger grid.max_level",
+    ))
 
 
 def _planned_samples(
