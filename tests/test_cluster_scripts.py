@@ -98,12 +98,16 @@ def environment(tmp_path: Path, **extra: str) -> dict[str, str]:
         'if [ "$1" = sample ] && [ -n "${KILL_SAMPLES:-}${INTERRUPT_SAMPLE:-}" ]; then\n'
         '    n=$(( $(cat "$SAMPLE_COUNT" 2> /dev/null || echo 0) + 1 )); echo "$n" > "$SAMPLE_COUNT"\n'
         '    if [ "${KILL_SAMPLES:-}" = all ] || [[ ",${KILL_SAMPLES:-}," == *",$n,"* ]]; then kill -9 $$; fi\n'
-        '    if [ "${INTERRUPT_SAMPLE:-}" = "$n" ]; then (sleep 1; kill -INT 0) & fi\n'
+        '    echo "sample $n started" >> "$SAMPLE_COUNT.log"\n'
+        '    if [ "${INTERRUPT_SAMPLE:-}" = "$n" ]; then\n'
+        '        (sleep 1; kill -INT 0; echo "SIGINT sent to the group, status $?" >> "$SAMPLE_COUNT.log") &\n'
+        '    fi\n'
         "fi\n"
         f'exec {sys.executable} -m rough_uq.cli "$@"\n'
     )
     shim.chmod(0o755)
-    env = dict(os.environ)
+    # The caller's settings of the cluster scripts (ROUGHUQ would bypass the shim) are not the tests'.
+    env = {name: value for name, value in os.environ.items() if name != "ROUGHUQ" and not name.startswith("RUQ_")}
     env.update(
         PATH=f"{FAKE_SLURM}{os.pathsep}{bin_dir}{os.pathsep}{env['PATH']}",
         PYTHONPATH=str(ROOT),
@@ -230,7 +234,8 @@ def test_ctrl_c_stops_loop_study(serial, tmp_path, jobs):
             "study.h5", CHUNK]
     # A session of its own: the group's SIGINT must not reach pytest.
     done = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, start_new_session=True)
-    assert done.returncode == 130, (done.stdout, done.stderr)
+    shim_log = (tmp_path / "sample-count.log").read_text()  # which samples ran, whether the SIGINT was sent
+    assert done.returncode == 130, (done.stdout, done.stderr, shim_log)
     assert "loop_study.sh: stopped; run the same command to continue" in done.stderr
     assert "planned again" not in done.stderr
     with open_study_readonly(tmp_path / "study.h5") as store:
