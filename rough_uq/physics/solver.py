@@ -1008,10 +1008,14 @@ class _State:
     def restart_uniform(self, ops: _Operators) -> None:
         """Back to uniform pressure, with no conjugate memory."""
         self.p.fill(ops.load)
+        self._forget_directions()
+        self.update_displacement(ops, uniform=True)
+
+    def _forget_directions(self) -> None:
+        """No conjugate memory: the next direction is (preconditioned) steepest descent."""
         self.t.fill(0.0)
         self.sum_t = 0.0
         self.delta = 0.0
-        self.update_displacement(ops, uniform=True)
 
     def _displace(self, ops: _Operators, scale: float, *, uniform: bool) -> None:
         """``w <- K (scale p)`` in double precision; zero without a transform if ``p`` is ``uniform``."""
@@ -1028,9 +1032,7 @@ class _State:
         self.rho_old = 1.0
         self.is_plain = True
         if self.error < _FRESH_START_ERROR:
-            self.t.fill(0.0)
-            self.sum_t = 0.0
-            self.delta = 0.0
+            self._forget_directions()
             self.update_displacement(ops)
         else:
             self.restart_uniform(ops)
