@@ -54,6 +54,24 @@ def _reachable_limit(stderr: str) -> float:
     return float(match.group(1))
 
 
+def test_a_cluster_screening_whose_level_mean_is_exactly_zero_is_not_refused(tmp_path):
+    """The quickstart at a light load, counting clusters: the level-2 mean came out exactly 0 (half-integer
+    differences that cancel) and the screening was refused after its 60 solves, "screening cannot fit the rates:
+    ... levels with E[Q_l - Q_l-1] = 0 (unusable): [2]" (exit 2). That mean is fitted at its bound now."""
+    from rough_uq.study.pipeline import load_screening
+
+    config = yaml.safe_load((ROOT / "rough_uq" / "study" / "configs" / "quickstart.yaml").read_text())
+    config.update(load={"relative": 0.02}, qoi={"clusters": {"unit": "per_area", "connectivity": "mean"}})
+    config["grid"]["max_level"] = 3
+    path = write_config(tmp_path / "clusters.yaml", config)
+    run("screen", str(path), "--out", str(tmp_path / "clusters.h5"), "--workers", "1", "--quiet")
+    screening = load_screening(tmp_path / "clusters.h5")
+    means, errors = screening.statistics.mean_diff[:, 0], screening.statistics.mean_diff_error[:, 0]
+    assert means[2] == 0.0 and errors[2] > 0  # the case itself: a mean of 0 that is not exact
+    assert screening.rates.levels_alpha == ((1, 2),)
+    assert screening.rates.bias_model(2)[0] == pytest.approx(2.0 * errors[2], rel=1e-9)
+
+
 # -- exit codes and refusals ---------------------------------------------------------------------
 
 

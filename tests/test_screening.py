@@ -175,13 +175,26 @@ def test_fit_rates_refuses_too_few_usable_levels():
     table = level_statistics(**sample_levels(problem, range(2), 100))
     with pytest.raises(EstimationError, match="cannot fit alpha .*at least two usable levels"):
         fit_rates(table)
-    # Level means exactly 0 while the differences vary (+-0.5 in turn): unusable for alpha, never log(0).
+    # A level whose differences are all 0 (mean and variance) shows nothing of the bias: left out, never log(0).
     rng = np.random.default_rng(0)
     q = rng.normal(size=100)
-    step = np.where(np.arange(100) % 2, 0.5, -0.5)
-    flat = level_statistics(fine=[q, q + step, q], coarse=[0 * q, q, q + step], cost=[np.ones(100)] * 3)
-    with pytest.raises(EstimationError, match=r"E\[Q_l - Q_l-1\] = 0 \(unusable\): \[1, 2\]"):
+    flat = level_statistics(fine=[q, q, q + rng.normal(size=100)], coarse=[0 * q, q, q], cost=[np.ones(100)] * 3)
+    with pytest.raises(EstimationError, match=r"E\[Q_l - Q_l-1\] = 0 and no variance \(unusable\): \[1\]"):
         fit_rates(flat)
+
+
+def test_level_means_exactly_zero_while_the_differences_vary_are_fitted_at_their_bound():
+    """A screening of cluster counts whose level-2 mean came out exactly 0 (half-integer differences that cancel)
+    was refused after all its samples: "cannot fit alpha ... levels with E[Q_l - Q_l-1] = 0 (unusable): [2]"."""
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=100)
+    step = np.where(np.arange(100) % 2, 0.5, -0.5)  # +-0.5 in turn: mean exactly 0, variance 0.25
+    flat = level_statistics(fine=[q, q + step, q], coarse=[0 * q, q, q + step], cost=[np.ones(100)] * 3)
+    assert np.all(flat.mean_diff[1:, 0] == 0.0)
+    rates = fit_rates(flat)
+    bound = 2.0 * flat.mean_diff_error[1:, 0]  # two standard errors: the largest mean not ruled out
+    assert rates.levels_alpha[0] == (1, 2) and np.all(bound > 0)
+    np.testing.assert_allclose([rates.bias_model(1)[0], rates.bias_model(2)[0]], bound, rtol=1e-9)
 
 
 def test_a_column_exact_on_the_fitted_levels_gets_the_exact_rate_and_no_bias():
@@ -205,7 +218,7 @@ def test_a_column_exact_on_the_fitted_levels_gets_the_exact_rate_and_no_bias():
         fit_rates(one_level)  # one level shows nothing: not called exact
 
 
-def test_a_level_mean_zero_to_rounding_is_unusable_for_alpha():
+def test_a_level_mean_zero_to_rounding_is_fitted_at_its_bound_not_at_its_rounding():
     # Cluster-count differences whose pooled mean is exactly 0 came out as 1.93e-17: log2(2.06 / 1.93e-17)
     # fitted alpha = 56.6 and every bias term rounded to 0 (a run certified "bias 1.8e-34").
     rng = np.random.default_rng(0)
@@ -216,8 +229,10 @@ def test_a_level_mean_zero_to_rounding_is_unusable_for_alpha():
                              coarse=[0 * start, coarse1, coarse2], cost=[np.ones(n)] * 3)
     means = np.array(table.mean_diff)
     means[2, 0] = 1.93e-17
-    with pytest.raises(EstimationError, match=r"E\[Q_l - Q_l-1\] = 0 \(unusable\): \[2\]"):
-        fit_rates(dataclasses.replace(table, mean_diff=means))
+    rounded = fit_rates(dataclasses.replace(table, mean_diff=means))
+    bound = 2.0 * table.mean_diff_error[2, 0]
+    assert rounded.bias_model(2)[0] == pytest.approx(bound, rel=1e-9)  # not 1.93e-17
+    assert rounded.alpha[0] == pytest.approx(math.log2(abs(means[1, 0]) / bound), rel=1e-9)
     means[2, 0] = 1e-6 * math.sqrt(table.var_diff[2, 0])  # small, but resolvable by enough samples: used
     assert fit_rates(dataclasses.replace(table, mean_diff=means)).alpha[0] > 10
 
@@ -226,10 +241,10 @@ def test_fit_rates_names_the_qoi_it_cannot_fit():
     # "cannot fit alpha for QoI 1" named a column index; with the names the error names the QoI.
     rng = np.random.default_rng(1)
     q = rng.normal(size=(100, 2))
-    # Column 0's level differences average to 0 exactly (+-0.5 in turn: unusable for alpha); column 1's do not.
+    # Column 0's level-1 differences are all 0 (unusable for alpha), its level-2 ones are not; column 1 decays.
     step = np.where(np.arange(100) % 2, 0.5, -0.5)[:, None] * [[1.0, 0.0]]
-    fine = [q, q + [[0.0, 0.5]] + step, q + [[0.0, 0.75]]]
-    coarse = [0 * q, q, q + [[0.0, 0.5]] - step]
+    fine = [q, q + [[0.0, 0.5]], q + [[0.0, 0.75]] + step + [[0.1, 0.0]]]
+    coarse = [0 * q, q, q + [[0.0, 0.5]]]
     table = level_statistics(fine=fine, coarse=coarse, cost=[np.ones(100)] * 3)
     with pytest.raises(EstimationError, match=r"^cannot fit alpha for QoI 0: needs"):
         fit_rates(table)

@@ -42,6 +42,13 @@ of the finest levels too optimistic).
 When the two finest means change sign or do not decay, no window can be
 anchored and every usable level is fitted, as a plain least-squares line
 (``Rates.levels_alpha`` says which levels were used).
+A level mean that is zero to rounding while ``Y_l`` varies (integer
+differences that cancel, e.g. cluster counts: with 20 samples on each of
+levels 0..2 the level-2 mean of a cluster count came out exactly 0) is below
+its noise: it is fitted at ``STALL_SIGNIFICANCE`` (2) standard errors
+``2 sqrt(V_l / N_l)``, the largest mean its samples do not rule out, and
+anchors no window. A mean of 0 with ``V_l = 0`` too is left out (a column 0
+in every sample of every level is exact, :func:`fit_rates`).
 
 Remaining bias
 --------------
@@ -333,16 +340,22 @@ ROUNDING_ZERO_MEAN = 1e-12
 def _fit_alpha(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Line | None, str]:
     use = (statistics.levels >= min_level) & (statistics.n_samples >= 2)
     mean = np.abs(statistics.mean_diff[:, q])
+    se = statistics.mean_diff_error[:, q]
     # Zero to rounding counts as zero: integer differences (cluster counts) whose pooled mean is exactly 0
     # came out as 1.9e-17, whose logarithm fitted alpha = 57 and certified a bias of 1.8e-34. No sample
-    # resolves a mean below 1e-12 of its standard deviation.
+    # resolves a mean below 1e-12 of its standard deviation. Such a mean with a positive variance is fitted
+    # at its bound (module docstring, "Fitting alpha"); left out, it left a screening of levels 0..2 one level
+    # to fit, and the screening was refused after all its samples.
     is_zero = mean <= ROUNDING_ZERO_MEAN * np.sqrt(statistics.var_diff[:, q])
-    usable = use & ~is_zero
-    rel_se = np.sqrt(statistics.var_diff[usable, q] / statistics.n_samples[usable]) / mean[usable]
-    window = _asymptotic_window(statistics.levels[usable], statistics.mean_diff[usable, q], rel_se)
-    line = _fit_line(statistics.levels[usable][window], mean[usable][window], rel_se[window], -1.0)
-    zero = statistics.levels[use & is_zero].tolist()
-    return line, f"levels with E[Q_l - Q_l-1] = 0 (unusable): {zero}" if zero else ""
+    magnitude = np.where(is_zero, STALL_SIGNIFICANCE * se, mean)  # the largest mean not ruled out
+    usable = use & (magnitude > 0)
+    rel_se = se[usable] / magnitude[usable]
+    # A bounded mean has no sign: no asymptotic window is anchored on it.
+    signed = np.where(is_zero, 0.0, statistics.mean_diff[:, q])[usable]
+    window = _asymptotic_window(statistics.levels[usable], signed, rel_se)
+    line = _fit_line(statistics.levels[usable][window], magnitude[usable][window], rel_se[window], -1.0)
+    zero = statistics.levels[use & ~(magnitude > 0)].tolist()
+    return line, f"levels with E[Q_l - Q_l-1] = 0 and no variance (unusable): {zero}" if zero else ""
 
 
 def _fit_beta(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Line | None, str]:
@@ -465,7 +478,9 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequenc
     ------
     EstimationError
         If any rate has fewer than two usable levels. A level is unusable
-        for ``alpha`` if ``E[Y_l] = 0``, for ``beta`` if ``V_l = 0``, for
+        for ``alpha`` if ``E[Y_l] = 0`` and ``V_l = 0`` (a zero mean of a
+        varying ``Y_l`` is fitted at its bound, module docstring, "Fitting
+        alpha"), for ``beta`` if ``V_l = 0``, for
         both if it has fewer than two samples, and for ``gamma`` if its mean
         cost is 0 (a logarithm of 0 is never taken). A column with
         ``Y_l = 0`` in every sample of every fitted level (two at least) is
