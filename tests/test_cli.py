@@ -505,6 +505,17 @@ def test_mc_on_a_given_level_needs_no_screening(tmp_path, monkeypatch):
     assert "--level" in result.stderr
 
 
+def test_mc_on_a_given_level_forecasts_the_initial_samples_it_draws(tmp_path, monkeypatch):
+    """On a screened study ``mc --level`` forecast the N the screening's variance implies (3) and drew
+    ``estimation.initial_samples`` (10): a ``--max-cost`` set on that forecast stopped the run short of them."""
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(estimation={"initial_samples": 10, "batch_size": 4}))
+    run("screen", str(config), "--workers", "1", "--quiet")
+    record = json.loads(run("mc", "--level", "2", "--tol", "5", "--workers", "1", "--json").output)
+    assert record["n_samples"] == [10]  # the tolerance is loose: the initial samples are the run
+    assert record["forecast"]["n_samples"] == [10]
+
+
 def test_mc_refuses_a_level_beyond_the_grids_before_forecasting_or_planning(screened):
     for extra in ([], ["--plan"]):
         result = run("mc", "--tol", "5", "--level", "99", *extra, expect=2)

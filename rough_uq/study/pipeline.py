@@ -1059,7 +1059,8 @@ def forecast_run(
         prediction = _run_plan(config, tol, rates, statistics, method=method, richardson=richardson)
         if not prediction.is_bias_met and not is_given_level:
             raise _unreachable(config, tol, prediction, n_screened=int(np.min(statistics.n_samples)))
-        finest, counts, costs = _planned_samples(method, level, prediction, rates)
+        finest, counts, costs = _planned_samples(method, level, prediction, rates,
+                                                 n_initial=config.estimation.initial_samples)
     seconds_per_cost = _screened_seconds_per_cost(screening)
     forecast = _forecast(config, finest=finest, counts=counts, modelled=float(np.dot(counts, costs)),
                          seconds_per_cost=seconds_per_cost, n_workers=n_workers,
@@ -1126,12 +1127,18 @@ def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_sc
 
 
 def _planned_samples(
-    method: str, level: int | None, prediction: Plan, rates: Rates
+    method: str, level: int | None, prediction: Plan, rates: Rates, *, n_initial: int = 2
 ) -> tuple[int, tuple[int, ...], tuple[float, ...]]:
-    """Finest level, samples per level (at least 2 each) and the modelled cost of one sample of each."""
+    """Finest level, samples per level (at least 2 each) and the modelled cost of one sample of each.
+
+    ``mc --level`` starts with ``n_initial`` samples (``estimation.initial_samples``) whatever the screening
+    predicts: its forecast counts them at least (it said N 3 for a run that drew 10, and a ``--max-cost`` set on
+    it stopped the run before its initial samples were drawn).
+    """
     if method == "mc":
         finest = prediction.finest_level if level is None else int(level)
-        counts = (max(int(prediction.mc_n_samples), 2),)
+        least = 2 if level is None else max(n_initial, 2)
+        counts = (max(int(prediction.mc_n_samples), least),)
         fine_cost = prediction.mc_cost / max(prediction.mc_n_samples, 1)
         if level is not None:
             fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
