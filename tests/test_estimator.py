@@ -749,13 +749,14 @@ def test_ratio_instability_names_the_failed_check(means, errors, expected):
 
 
 def test_ratio_instability_names_the_qoi_that_failed():
-    # "... within two standard errors (0.46) of 0 (QoI 1): ..." named a column index.
+    # "... within two standard errors (0.46) of 0 (QoI 1): ..." named a column index. (It also gave one standard
+    # error as the bound, "Y_1 = -0.154 is within two standard errors (0.11)", which read as a contradiction.)
     means = np.array([[0.5, 0.5], [0.25, 0.25], [0.125, 0.02]])
     errors = np.array([[0.01, 0.001], [0.01, 0.001], [0.01, 0.015]])
     indexed = ratio_instability(means, errors, [1, 2, 3])
     assert indexed == (
-        "the mean of Y_3 = 0.02 is within two standard errors (0.015) of 0 (QoI 1): its ratio to the next level "
-        "is noise"
+        "the mean of Y_3 = 0.02 is within two standard errors (2 x 0.015 = 0.03) of 0 (QoI 1): its ratio to the "
+        "next level is noise"
     )
     named = ratio_instability(means, errors, [1, 2, 3], names=("contact_area", "clusters"))
     assert named == indexed.replace("(QoI 1)", "(clusters)")

@@ -308,7 +308,8 @@ def ratio_instability(
         if weak.size:
             row = int(weak[0])
             return (
-                f"the mean of Y_{shown[row]} = {m[row]:.3g} is within two standard errors ({se[row]:.2g}) of 0"
+                f"the mean of Y_{shown[row]} = {m[row]:.3g} is within two standard errors "
+                f"(2 x {se[row]:.2g} = {2.0 * se[row]:.2g}) of 0"
                 f"{tag}: its ratio to the next level is noise"
             )
         with np.errstate(divide="ignore", invalid="ignore"):  # a mean of exactly 0 (se 0): inf or nan, refused below
