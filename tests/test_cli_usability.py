@@ -72,6 +72,18 @@ def test_a_cluster_screening_whose_level_mean_is_exactly_zero_is_not_refused(tmp
     assert screening.rates.bias_model(2)[0] == pytest.approx(2.0 * errors[2], rel=1e-9)
 
 
+def test_a_rerun_of_a_finished_run_ends_its_progress_at_the_plan(tmp_path, monkeypatch):
+    """A rerun draws every sample from the store; its progress ended at "level 1: 7/11 samples", then "done"."""
+    monkeypatch.chdir(tmp_path)
+    run("screen", str(write_config(tmp_path / "tiny.yaml", tiny_config())), "--workers", "1", "--quiet")
+    run("mlmc", "--tol", "1.5", "--workers", "1", expect=None)
+    stderr = run("mlmc", "--tol", "1.5", "--workers", "1", expect=None).stderr
+    last = {}
+    for level, done, planned in re.findall(r"level (\d+): (\d+)/(\d+) samples", stderr):
+        last[level] = (done, planned)
+    assert last and all(done == planned for done, planned in last.values()), stderr
+
+
 # -- exit codes and refusals ---------------------------------------------------------------------
 
 

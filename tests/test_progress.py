@@ -45,6 +45,27 @@ def test_plain_progress_lines_are_throttled_and_complete():
     assert "[mlmc] hello" in lines and lines[-1].startswith("[mlmc] done in")
 
 
+def test_samples_counted_by_a_plan_and_not_advanced_reach_both_progresses():
+    """A rerun's last round came from the store, which advances nothing: it ended at "level 1: 7/11 samples"."""
+    from rich.console import Console
+
+    stream = io.StringIO()
+    plain = PlainProgress(stream, interval=3600)
+    rich = RichProgress(console=Console(file=io.StringIO(), force_terminal=False))
+    for progress in (plain, rich):
+        progress.start("mlmc")
+        progress.plan([1], [7], [0])
+        progress.advance(1, 7)
+        progress.plan([1], [11], [7])  # the plan grows
+        progress.plan([1], [11], [11])  # the batch of the last round: its 4 samples came from the store
+        progress.plan([1], [11], [9])  # a count below what is done changes nothing
+        if progress is rich:
+            assert [(task.completed, task.total) for task in rich._bars.tasks] == [(11, 11)]
+        progress.stop()
+    level_lines = [line for line in stream.getvalue().splitlines() if "level 1:" in line]
+    assert level_lines[-1].startswith("[mlmc] level 1: 11/11 samples")
+
+
 def test_a_plan_that_grows_with_every_batch_is_not_a_line_per_batch():
     # Adaptive MLMC raises a level's plan after each batch, and each batch reaches it: the log said "18/18",
     # "21/21", ... one line per batch, each reading as done. Within an interval: the first line and the last.

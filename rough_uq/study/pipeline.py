@@ -1564,11 +1564,13 @@ def _follow(events: Iterator[object], progress: Progress, title: str) -> tuple[A
     try:
         with _collecting_diagnostics() as diagnostics:
             for event in events:
-                if isinstance(event, PlanUpdated):
+                if isinstance(event, (PlanUpdated, BatchDone)):
+                    # A batch's counts include samples served from the store (an earlier run's, merged shards'),
+                    # which no sample computed here advanced: a rerun's progress ended at "7/11 samples", "done".
                     progress.plan(event.levels, event.n_planned, event.n_done)
                 elif isinstance(event, Finished):
                     result = event.result
-                elif not isinstance(event, (BatchDone, RichardsonRefused)):  # pragma: no cover - the contract
+                elif not isinstance(event, RichardsonRefused):  # pragma: no cover - the contract
                     raise RoughUQError(f"unexpected estimator event {event!r}")
     except BaseException:
         progress.stop(is_complete=False)

@@ -304,8 +304,10 @@ class RichProgress(Progress):
                 self._tasks[level] = self._bars.add_task(
                     f"{self._title} level {level}", total=int(planned), completed=int(done), done_at_start=int(done)
                 )
-            else:
-                self._bars.update(self._tasks[level], total=int(planned))
+            else:  # done counts samples served from the store too, which advance() never saw
+                task = self._tasks[level]
+                completed = max(int(done), *(int(t.completed) for t in self._bars.tasks if t.id == task))
+                self._bars.update(task, total=int(planned), completed=completed)
 
     def advance(self, level: int, n: int) -> None:
         if self._bars is not None and level in self._tasks:
