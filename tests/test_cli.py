@@ -381,7 +381,10 @@ def test_merge_refuses_a_shard_of_another_config(screened):
 
 def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    # The spectrum in wavelengths, which stay fixed as the box grows (in wave numbers it would scale with it).
+    surface = {**tiny_config()["surface"], "wavelengths": {"lambda_l": 1.0, "lambda_r": 0.5, "lambda_s": 0.125}}
+    del surface["wavenumbers"]
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(surface=surface))
     rows = json.loads(run("sweep", str(config), "--set", "surface.system_size=1,2", "--fixed-spacing",
                           "--tol", "5", "--workers", "1", "--json").output)
     assert [row["value"] for row in rows] == ["1", "2"]
@@ -404,6 +407,18 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
         assert re.search(rf"contact_area \[%\]\s+{cell}\s", table), table
     result = run("sweep", str(config), "--set", "surface.system_size=1.1", "--fixed-spacing", expect=2)
     assert "even integer" in result.stderr
+
+
+def test_sweep_at_fixed_spacing_refuses_a_spectrum_that_grows_with_the_box(tmp_path, monkeypatch):
+    """In wave numbers (periods per box) every box was the same surface magnified and resolved more finely: the
+    quickstart's areas for boxes 1 and 2 (20.51, 20.34 %) differed by discretisation bias, not box size."""
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())  # k_l 1, k_r 2, k_s 8 at L = 1
+    result = run("sweep", str(config), "--set", "surface.system_size=1,2", "--fixed-spacing", "--tol", "5",
+                 expect=2)
+    assert result.stderr.startswith("error: --fixed-spacing: the spectrum is given as surface.wavenumbers")
+    assert "here lambda_l: 1, lambda_r: 0.5, lambda_s: 0.125)" in result.stderr
+    assert not list(tmp_path.glob("sweep-*/*.h5"))  # refused before any study
     result = run("sweep", str(config), "--set", "surface.colour=1", expect=2)
     assert "not a field" in result.stderr
 
