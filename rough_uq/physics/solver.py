@@ -1274,7 +1274,7 @@ def _shift_to_force(p: np.ndarray, force: float) -> float:
     the sorted pressures finish it.
     """
     grid = p if p.ndim == 2 else p.reshape(1, -1)  # the passes loop over rows (a view: they write into p)
-    lam, (total, count) = 0.0, _sum_above(grid, 0.0)
+    total, count = _sum_above(grid, 0.0)
     for _ in range(_MAX_SHIFT_ROUNDS):
         lam = max((total - force) / count, 0.0)
         total, new_count = _sum_above(grid, lam)
