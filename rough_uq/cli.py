@@ -40,6 +40,7 @@ from typing import Any
 import click
 
 from rough_uq import __version__
+from rough_uq.console import stop_loading
 from rough_uq.errors import InvalidParameterError, MisplacedOptionError, RoughUQError
 
 DEFAULT_STUDY = "results.h5"
@@ -160,8 +161,9 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
         sys.unraisablehook = _quiet_unraisable(previous_unraisable)
         if on_main_thread:
             previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, _raise_terminated)
-            # Ctrl-C is taken over only where Python's default handler has it (not where it is ignored).
-            if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            # Ctrl-C is taken over only where Python's default handler has it, or the console script's quiet stop
+            # while it loads (not where it is ignored).
+            if signal.getsignal(signal.SIGINT) in (signal.default_int_handler, stop_loading):
                 previous[signal.SIGINT] = signal.signal(signal.SIGINT, _raise_terminated)
         try:
             return command(*args, **kwargs)

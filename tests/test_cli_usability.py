@@ -84,6 +84,33 @@ def test_a_rerun_of_a_finished_run_ends_its_progress_at_the_plan(tmp_path, monke
     assert last and all(done == planned for done, planned in last.values()), stderr
 
 
+def test_ctrl_c_while_the_command_line_loads_exits_130_without_a_traceback():
+    """A Ctrl-C in the first 0.2-0.3 s of ``roughuq`` (click, numpy loading) printed a KeyboardInterrupt traceback
+    through the import machinery. The console script's loading is replaced by one that is interrupted."""
+    loading = ("import os, signal, time\n"
+               "import rough_uq.console as console\n"
+               "def interrupted():\n"
+               "    os.kill(os.getpid(), signal.SIGINT)\n"
+               "    time.sleep(5)\n"
+               "console._load = interrupted\n"
+               "console.run()\n")
+    done = subprocess.run([sys.executable, "-c", loading], capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stderr) == (130, "")
+    # A command takes Ctrl-C over from the quiet stop: a clean stop ("interrupted: ...", samples saved), and
+    # between loading and the command (click's parsing, which said "Aborted!" and status 1) the quiet stop.
+    command = ("import os, signal, time\n"
+               "import rough_uq.cli as cli, rough_uq.console as console\n"
+               "signal.signal(signal.SIGINT, console.stop_loading)\n"
+               "def screen():\n"
+               "    os.kill(os.getpid(), signal.SIGINT)\n"
+               "    time.sleep(5)\n"
+               "cli._user_errors(screen)()\n")
+    done = subprocess.run([sys.executable, "-c", command], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 130 and done.stderr.startswith("interrupted: "), done.stderr
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    assert 'roughuq = "rough_uq.console:run"' in pyproject
+
+
 # -- exit codes and refusals ---------------------------------------------------------------------
 
 

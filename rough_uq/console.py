@@ -1,0 +1,41 @@
+"""The ``roughuq`` console script: a Ctrl-C while Python loads the command line ends it quietly.
+
+Loading the command line (click, numpy, the study layer) takes some 0.3 s on first use, and Python's default
+handler turned a Ctrl-C in that time into a ``KeyboardInterrupt`` traceback through the import machinery.
+Until a command has started a Ctrl-C now exits with status 130 and nothing on stderr; the commands then
+handle Ctrl-C and SIGTERM themselves (exit 130 / 143, completed samples saved). A Ctrl-C that is ignored (a
+background job of a script) stays ignored.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from collections.abc import Callable
+
+__all__ = ["EXIT_INTERRUPTED", "run", "stop_loading"]
+
+#: The exit status of a program stopped by Ctrl-C (128 + SIGINT), as the commands' own.
+EXIT_INTERRUPTED = 130
+
+
+def run() -> None:
+    """Load the command line with Ctrl-C ending the program quietly, then run it (:func:`rough_uq.cli.run`).
+
+    The quiet stop stays until a command takes Ctrl-C over (it does where it finds Python's default handler or
+    this one): click, between loading and the command, turned a Ctrl-C into "Aborted!" and status 1.
+    """
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, stop_loading)
+    _load()()
+
+
+def _load() -> Callable[[], None]:
+    from rough_uq.cli import run as command
+
+    return command
+
+
+def stop_loading(signum: int, frame: object) -> None:
+    """Exit with status 130, quietly: a Ctrl-C before any command has started."""
+    sys.exit(EXIT_INTERRUPTED)
