@@ -5,6 +5,8 @@ Statistical assertions use fixed seeds; each states where its slack comes from.
 
 from __future__ import annotations
 
+import dataclasses
+
 import functools
 import math
 import re
@@ -326,6 +328,24 @@ def test_the_decay_bound_holds_each_qoi_apart_and_keeps_giles_terms_where_it_doe
                           coarser=np.array([[5.5, -5.5], [0.23, -0.23]]), mean_error=np.array([0.001, 0.03]))
     assert bias[0] == pytest.approx(max(0.0575, 0.23 * 2**-1.5, 5.5 * 2**-3) / (2**1.5 - 1), rel=1e-12)
     assert bias[1] == pytest.approx(max(0.115, 0.23 * 2**-0.5) / (2**0.5 - 1), rel=1e-12)
+
+
+def test_a_finest_mean_zero_to_rounding_holds_the_tail_as_one_of_either_sign_does():
+    """Means 4, 1, 0 on levels 1-3 (a cluster count whose differences cancel): the fit takes the 0 at its bound
+    and anchors no window on it, but the tail went unheld, a bias of 0.235 where a mean of 1e-9 gave 0.389."""
+    table = level_statistics(**shifted_screening((0.0, 4.0, 1.0, 0.0), seed=5, n=40, noise=1.0))
+    means, errors = table.mean_diff.copy(), table.mean_diff_error[:, 0]
+    means[1:, 0] = [4.0, 1.0, 0.0]
+
+    def bias(finest_mean):
+        means[3, 0] = finest_mean
+        rates = fit_rates(dataclasses.replace(table, mean_diff=means))
+        return estimated_bias(rates=rates, level=3, mean_diff=means[3], coarser=means[1:3],
+                              mean_error=errors[3:4])[0]
+
+    assert fit_rates(dataclasses.replace(table, mean_diff=means)).levels_alpha[0] == (1, 2, 3)
+    tiny = max(bias(1e-9), bias(-1e-9))  # held to the decay the two finest means confirm
+    assert bias(0.0) == pytest.approx(tiny, rel=1e-6) and bias(1.9e-17) == pytest.approx(tiny, rel=1e-6)
 
 
 def test_a_plan_beyond_the_screened_levels_sums_the_tail_as_the_run_will():

@@ -306,8 +306,9 @@ def _fit_line(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: 
 def _asymptotic_window(levels: np.ndarray, means: np.ndarray, rel_se: np.ndarray) -> np.ndarray:
     """Indices of the levels the bias rate is fitted on (module docstring, "Fitting alpha").
 
-    ``levels`` increasing, ``means`` the signed ``mean(Y_l)`` (nonzero),
-    ``rel_se`` their standard errors relative to ``|mean|``.
+    ``levels`` increasing, ``means`` the signed ``mean(Y_l)`` (0 for a mean zero to rounding, which no
+    decaying pair includes: ``abs(0) < abs(0)`` is false), ``rel_se`` their standard errors relative to the
+    magnitudes fitted.
     """
     rows = np.arange(len(levels))
 
@@ -333,20 +334,30 @@ def _asymptotic_window(levels: np.ndarray, means: np.ndarray, rel_se: np.ndarray
     return rows[start:]
 
 
-#: A level mean at most this times the standard deviation of ``Y_l`` is zero to rounding (:func:`_fit_alpha`).
+#: A level mean at most this times its standard error is zero to rounding (:func:`_is_rounding_zero`).
 ROUNDING_ZERO_MEAN = 1e-12
+
+
+def _is_rounding_zero(mean: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """Where a level mean is zero to rounding: at most :data:`ROUNDING_ZERO_MEAN` times its standard error.
+
+    Integer differences (cluster counts) whose pooled mean is exactly 0 came out as 1.9e-17, whose logarithm
+    fitted alpha = 57 and certified a bias of 1.8e-34; no sample resolves a mean that small. Such a mean has no
+    sign: the fit takes it at its bound and anchors no window on it (:func:`_fit_alpha`), and the tail is held
+    to the decay the two finest means confirm (:func:`confirmed_tail`). A mean of 0 with a standard error of 0
+    (every difference 0) is zero too.
+    """
+    return np.abs(mean) <= ROUNDING_ZERO_MEAN * np.asarray(error)
 
 
 def _fit_alpha(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Line | None, str]:
     use = (statistics.levels >= min_level) & (statistics.n_samples >= 2)
     mean = np.abs(statistics.mean_diff[:, q])
     se = statistics.mean_diff_error[:, q]
-    # Zero to rounding counts as zero: integer differences (cluster counts) whose pooled mean is exactly 0
-    # came out as 1.9e-17, whose logarithm fitted alpha = 57 and certified a bias of 1.8e-34. No sample
-    # resolves a mean below 1e-12 of its standard deviation. Such a mean with a positive variance is fitted
-    # at its bound (module docstring, "Fitting alpha"); left out, it left a screening of levels 0..2 one level
-    # to fit, and the screening was refused after all its samples.
-    is_zero = mean <= ROUNDING_ZERO_MEAN * np.sqrt(statistics.var_diff[:, q])
+    # A mean zero to rounding with a positive variance is fitted at its bound (module docstring, "Fitting
+    # alpha"); left out, it left a screening of levels 0..2 one level to fit, and the screening was refused
+    # after all its samples.
+    is_zero = _is_rounding_zero(mean, se)
     magnitude = np.where(is_zero, STALL_SIGNIFICANCE * se, mean)  # the largest mean not ruled out
     usable = use & (magnitude > 0)
     rel_se = se[usable] / magnitude[usable]
@@ -633,13 +644,16 @@ def confirmed_tail(
     ``E[Y_L]`` (levels ``>= 1``) and the standard error of the finest, and where the bound on it binds.
 
     A line through two level means (``rates.levels_alpha``) is confirmed by nothing, nor a fit whose finest
-    means change sign (no window is anchored there): their rate is held to the decay the two means confirm
-    (:func:`tail_rate`). Both arrays have shape (n_qoi,).
+    means change sign or have none (a mean zero to rounding, :func:`_is_rounding_zero`; no window is anchored
+    there): their rate is held to the decay the two means confirm (:func:`tail_rate`). A finest mean of
+    exactly 0 gave a bias of 0.235 where one of 1e-9 gave 0.389 (means 4, 1 and 0 on levels 1-3, standard
+    error 0.23). Both arrays have shape (n_qoi,).
     """
     alpha = tail_rate(rates.alpha)
     levels = rates.levels_alpha
     two_point = np.array([len(fitted) == 2 for fitted in levels]) if len(levels) == rates.n_qoi else False
-    unconfirmed = two_point | (np.sign(coarser_mean) * np.sign(finest_mean) < 0)
+    no_sign = (np.sign(coarser_mean) * np.sign(finest_mean) <= 0) | _is_rounding_zero(finest_mean, finest_error)
+    unconfirmed = two_point | no_sign
     bounded = tail_rate(rates.alpha, coarser_mean, finest_mean, finest_error)
     binding = unconfirmed & (bounded < alpha)
     return np.where(binding, bounded, alpha), binding
