@@ -40,7 +40,7 @@ from typing import Any
 import click
 
 from rough_uq import __version__
-from rough_uq.console import stop_loading
+from rough_uq.console import EXIT_INTERRUPTED, stop_loading
 from rough_uq.errors import InvalidParameterError, MisplacedOptionError, RoughUQError
 
 DEFAULT_STUDY = "results.h5"
@@ -171,7 +171,7 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
         except KeyboardInterrupt as exc:
-            what, status = ("terminated", 143) if isinstance(exc, _Terminated) else ("interrupted", 130)
+            what, status = ("terminated", 143) if isinstance(exc, _Terminated) else ("interrupted", EXIT_INTERRUPTED)
             click.echo(f"{what}: {_stopped_text(command.__name__)}", err=True)
             sys.exit(status)
         except BrokenPipeError:
@@ -1375,7 +1375,8 @@ def merge(shards: Sequence[str], study_path: str) -> None:
               help="Dotted config field and its distinct values, e.g. surface.system_size=1,2,3,4 (once; not "
                    "output.* or screening.*, which a sweep does not use).")
 @click.option("--fixed-spacing", is_flag=True,
-              help="With surface.system_size: scale grid.coarsest with the box (same grid spacing).")
+              help="With surface.system_size and a spectrum in surface.wavelengths: scale grid.coarsest with "
+              "the box (same grid spacing).")
 @click.option("--tol", "tol", multiple=True, metavar="EPS|NAME=EPS",
               help="MC tolerance (as for `roughuq mc`), in each study's unit of the QoI; not for a swept qoi.NAME.tol.")
 @click.option("--level", type=click.IntRange(min=0), default=0, show_default=True, help="Level sampled by MC.")

@@ -2,9 +2,11 @@
 
 Loading the command line (click, numpy, the study layer) takes some 0.3 s on first use, and Python's default
 handler turned a Ctrl-C in that time into a ``KeyboardInterrupt`` traceback through the import machinery.
-Until a command has started a Ctrl-C now exits with status 130 and nothing on stderr; the commands then
-handle Ctrl-C and SIGTERM themselves (exit 130 / 143, completed samples saved). A Ctrl-C that is ignored (a
-background job of a script) stays ignored.
+From the moment this module runs until a command takes Ctrl-C over, a Ctrl-C now exits with status 130 and
+nothing on stderr; the commands handle Ctrl-C and SIGTERM themselves (exit 130 / 143, completed samples
+saved). A Ctrl-C that is ignored (a background job of a script) stays ignored. Not covered: Python's own
+start-up and ``import rough_uq`` before this module runs (some 60 ms), and ``python -m rough_uq.cli``, which
+loads the command line before any of this.
 """
 
 from __future__ import annotations

@@ -407,6 +407,8 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
         assert re.search(rf"contact_area \[%\]\s+{cell}\s", table), table
     result = run("sweep", str(config), "--set", "surface.system_size=1.1", "--fixed-spacing", expect=2)
     assert "even integer" in result.stderr
+    result = run("sweep", str(config), "--set", "surface.colour=1", expect=2)
+    assert "not a field" in result.stderr
 
 
 def test_sweep_at_fixed_spacing_refuses_a_spectrum_that_grows_with_the_box(tmp_path, monkeypatch):
@@ -419,8 +421,6 @@ def test_sweep_at_fixed_spacing_refuses_a_spectrum_that_grows_with_the_box(tmp_p
     assert result.stderr.startswith("error: --fixed-spacing: the spectrum is given as surface.wavenumbers")
     assert "here lambda_l: 1, lambda_r: 0.5, lambda_s: 0.125)" in result.stderr
     assert not list(tmp_path.glob("sweep-*/*.h5"))  # refused before any study
-    result = run("sweep", str(config), "--set", "surface.colour=1", expect=2)
-    assert "not a field" in result.stderr
 
 
 def test_a_sweeps_progress_names_the_value_of_each_study(tmp_path, monkeypatch):

@@ -96,8 +96,8 @@ def test_ctrl_c_while_the_command_line_loads_exits_130_without_a_traceback():
                "console.run()\n")
     done = subprocess.run([sys.executable, "-c", loading], capture_output=True, text=True, timeout=60)
     assert (done.returncode, done.stderr) == (130, "")
-    # A command takes Ctrl-C over from the quiet stop: a clean stop ("interrupted: ...", samples saved), and
-    # between loading and the command (click's parsing, which said "Aborted!" and status 1) the quiet stop.
+    # A command takes Ctrl-C over from the quiet stop (which stays in place between loading and the command,
+    # where click said "Aborted!" and status 1): a clean stop, "interrupted: ...", samples saved.
     command = ("import os, signal, time\n"
                "import rough_uq.cli as cli, rough_uq.console as console\n"
                "signal.signal(signal.SIGINT, console.stop_loading)\n"

@@ -189,9 +189,20 @@ def test_the_shift_to_the_force_finishes_by_sorting_after_its_rounds(seed, monke
     force = float(x.sum()) * rng.uniform(1e-4, 0.99)
     michelot = x.copy()
     solver._shift_to_force(michelot, force)
+    sorted_shift = solver._sorted_shift
+    # The solver's pressure is the FFT plan's padded buffer, a strided view: the passes write into it.
+    padded = np.zeros((32, 34))
+    strided = padded[:, :32]
+    strided[...] = x
+    solver._shift_to_force(strided, force)
+    np.testing.assert_allclose(strided, michelot, rtol=0, atol=1e-12 * float(x.max()))  # sums in another order
+    assert not padded[:, 32:].any()
     monkeypatch.setattr(solver, "_MAX_SHIFT_ROUNDS", 1)
+    sorts = []
+    monkeypatch.setattr(solver, "_sorted_shift", lambda *args: sorts.append(1) or sorted_shift(*args))
     sorted_ = x.copy()
     assert solver._shift_to_force(sorted_, force) == pytest.approx(force, rel=1e-12)
+    assert sorts == [1]  # one round was not enough: the sort finished it
     np.testing.assert_allclose(sorted_, michelot, rtol=0, atol=1e-12 * float(x.max()))
     np.testing.assert_array_equal(sorted_ > 0, michelot > 0)
     tiny = np.array([1e20, 1.0])  # a force below the rounding of the largest pressure

@@ -1127,7 +1127,7 @@ def _unreachable(config: StudyConfig, tol: np.ndarray, prediction: Plan, *, n_sc
 
 
 def _planned_samples(
-    method: str, level: int | None, prediction: Plan, rates: Rates, *, n_initial: int = 2
+    method: str, level: int | None, prediction: Plan, rates: Rates, *, n_initial: int
 ) -> tuple[int, tuple[int, ...], tuple[float, ...]]:
     """Finest level, samples per level (at least 2 each) and the modelled cost of one sample of each.
 
@@ -1418,7 +1418,8 @@ def _screened_mc_cost(study: Study, tol: np.ndarray) -> float:
     than the MC run at the same tolerance.
     """
     _, rates, prediction = _estimation_plan(study, np.asarray(tol, dtype=float), method="mc")
-    _, counts, costs = _planned_samples("mc", None, prediction, rates)
+    _, counts, costs = _planned_samples("mc", None, prediction, rates,
+                                        n_initial=study.config.estimation.initial_samples)
     return counts[0] * costs[0]
 
 

@@ -306,8 +306,8 @@ class RichProgress(Progress):
                 )
             else:  # done counts samples served from the store too, which advance() never saw
                 task = self._tasks[level]
-                completed = max(int(done), *(int(t.completed) for t in self._bars.tasks if t.id == task))
-                self._bars.update(task, total=int(planned), completed=completed)
+                completed = next(int(t.completed) for t in self._bars.tasks if t.id == task)
+                self._bars.update(task, total=int(planned), completed=max(int(done), completed))
 
     def advance(self, level: int, n: int) -> None:
         if self._bars is not None and level in self._tasks:
