@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pyfftw
 import pytest
@@ -126,3 +127,47 @@ def test_a_failed_write_leaves_no_temporary_file(tmp_path):
     target.mkdir()  # os.replace cannot put a file there
     _save(target, (b"(fftw-3.3.10 fftw_wisdom)\n",))
     assert sorted(path.name for path in tmp_path.iterdir()) == ["wisdom.json"]
+
+
+def test_a_process_waits_for_another_measuring_and_plans_from_its_wisdom(tmp_path):
+    """Two processes measuring one grid at once (the shards of `loop_study.sh --jobs 2` on a machine without
+    wisdom) could choose different plans, which round differently. Process A holds the lock, measures and writes;
+    process B, started meanwhile, waits, says so, and measures nothing: it plans from A's wisdom."""
+    import subprocess
+    import sys
+    import time
+
+    path = tmp_path / "wisdom.json"
+    locked, go = tmp_path / "locked", tmp_path / "go"
+    holder = ("import fcntl, sys, time\n"
+              "from pathlib import Path\n"
+              "from rough_uq.physics.fft import measure_plans\n"
+              "from rough_uq.study.fft_wisdom import _save\n"
+              f"path, locked, go = Path({str(path)!r}), Path({str(locked)!r}), Path({str(go)!r})\n"
+              "with open(str(path) + '.lock', 'a') as handle:\n"
+              "    fcntl.flock(handle, fcntl.LOCK_EX)\n"
+              "    locked.touch()\n"
+              "    while not go.exists():\n"
+              "        time.sleep(0.02)\n"
+              "    _save(path, measure_plans([16], threads=1))\n")
+    waiter = ("import sys\n"
+              "from rough_uq.study.fft_wisdom import load_wisdom, prepare_wisdom, wisdom_entries\n"
+              "def note(text):\n"
+              "    print(text, flush=True)\n"
+              "wisdom = prepare_wisdom([16], threads=1, note=note)\n"
+              f"print(wisdom_entries(wisdom) == wisdom_entries(load_wisdom({str(path)!r})), flush=True)\n")
+    env = {**os.environ, "ROUGHUQ_FFTW_WISDOM": str(path)}
+    a = subprocess.Popen([sys.executable, "-c", holder], env=env)
+    try:
+        deadline = time.monotonic() + 60
+        while not locked.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        b = subprocess.Popen([sys.executable, "-c", waiter], env=env, stdout=subprocess.PIPE, text=True)
+        first = b.stdout.readline()
+        go.touch()
+        rest = b.communicate(timeout=120)[0]
+    finally:
+        a.wait(timeout=120)
+    assert first == f"waiting for another roughuq process measuring FFT plans (kept in {path})\n"
+    assert rest == "True\n"  # no "measuring FFT plans": A's plans, read under the lock
+    assert a.returncode == 0 and b.returncode == 0

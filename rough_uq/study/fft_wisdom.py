@@ -18,7 +18,9 @@ corrupt file is ignored and replaced. The file is written only when it
 gains plans, also when Ctrl-C or SIGTERM stops the measuring (the plans
 measured by then are kept, and a rerun measures only the rest), and the
 study's progress says when plans are being measured (seconds per grid the
-first time, about 20 s at 1024^2).
+first time, about 20 s at 1024^2). Processes of one machine read, measure
+and write the file one at a time (a lock file beside it), so that two that
+start at once do not measure the same grid twice and choose different plans.
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ import json
 import os
 import platform
 import tempfile
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from rough_uq.physics.fft import export_wisdom, measure_plans
@@ -100,22 +103,57 @@ def prepare_wisdom(
     path = wisdom_path()
     if path is None:
         return None
-    stored = load_wisdom(path)
 
     def announce(missing: list[int]) -> None:
         grids_text = ", ".join(f"{n}x{n}" for n in missing)
         note(f"measuring FFT plans for {grids_text} (once per machine, kept in {path})")
 
-    try:
-        wisdom = measure_plans(grids, threads=threads, wisdom=stored,
-                               before_measuring=None if note is None else announce)
-    except KeyboardInterrupt:
-        # Ctrl-C (or SIGTERM) lands between two plans: keep those measured, which a rerun would measure again
-        # (tens of seconds at 1024^2-4096^2).
-        _save_gained(path, stored, export_wisdom())
-        raise
-    _save_gained(path, stored, wisdom)
+    with _measuring_lock(path, note):
+        stored = load_wisdom(path)  # read under the lock: what another process measured meanwhile is used
+        try:
+            wisdom = measure_plans(grids, threads=threads, wisdom=stored,
+                                   before_measuring=None if note is None else announce)
+        except KeyboardInterrupt:
+            # Ctrl-C (or SIGTERM) lands between two plans: keep those measured, which a rerun would measure again
+            # (tens of seconds at 1024^2-4096^2).
+            _save_gained(path, stored, export_wisdom())
+            raise
+        _save_gained(path, stored, wisdom)
     return wisdom
+
+
+@contextmanager
+def _measuring_lock(path: Path, note: Callable[[str], None] | None) -> Iterator[None]:
+    """Hold an exclusive lock on ``<path>.lock`` while this process reads, measures and writes the wisdom.
+
+    Two processes that measured the same grid at once (the shards of ``loop_study.sh --jobs 2`` on a machine
+    without wisdom yet) could choose different plans, which round differently: the shards' samples were then not
+    bit-identical to a serial run's. With the lock the second process waits (and says so) and plans from the
+    first one's wisdom. Without ``fcntl`` (not POSIX) or where the lock file cannot be opened (a read-only
+    cache) nothing is locked.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - POSIX here
+        yield
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(path.with_name(path.name + ".lock"), "a")  # noqa: SIM115 - closed below
+    except OSError:
+        yield
+        return
+    with handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if note is not None:
+                note(f"waiting for another roughuq process measuring FFT plans (kept in {path})")
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def _save_gained(path: Path, stored: tuple[bytes, ...] | None, wisdom: tuple[bytes, ...]) -> None:
