@@ -48,6 +48,8 @@ DEFAULT_STUDY = "results.h5"
 EXIT_TOL_NOT_MET = 3
 #: Exit status when the reader of the output has gone (a closed pipe), 128 + SIGPIPE as for a program it ends.
 EXIT_BROKEN_PIPE = 141
+#: Exit status of a command stopped by SIGTERM (its completed samples are saved), 128 + SIGTERM.
+EXIT_TERMINATED = 143
 #: A kernel warm-up slower than this (seconds) is announced as compilation.
 COMPILE_NOTICE_SECONDS = 2.0
 #: Most thresholds ``--thresholds START:STOP:COUNT`` takes (COUNT); finer grids say nothing more.
@@ -171,7 +173,8 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
         except KeyboardInterrupt as exc:
-            what, status = ("terminated", 143) if isinstance(exc, _Terminated) else ("interrupted", EXIT_INTERRUPTED)
+            terminated = isinstance(exc, _Terminated)
+            what, status = ("terminated", EXIT_TERMINATED) if terminated else ("interrupted", EXIT_INTERRUPTED)
             click.echo(f"{what}: {_stopped_text(command.__name__)}", err=True)
             sys.exit(status)
         except BrokenPipeError:
