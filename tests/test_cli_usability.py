@@ -448,7 +448,8 @@ def test_report_says_what_check_and_the_planned_levels_mean(screened, monkeypatc
     report = run("report", "results.h5").stdout
     assert "check: |mean Y - (mean Q_l - mean Q_(l-1))| over 3 times the sum of the three means' standard " in report
     # the kurtosis column was not explained
-    assert "kurt: kurtosis of Y (3 for Gaussian Y; above 100 var Y rests on a few samples)" in report
+    assert ("kurt: kurtosis of Y (3 for Gaussian Y; var Y rests on about N / kurt samples: flagged above 100, "
+            "and from 20 samples above N / 2)") in report
     assert "levels, N_l: the optimal plan (0: a level it leaves out); a run takes at least two levels above" in report
 
 

@@ -861,6 +861,63 @@ def test_bernoulli_level_difference_has_the_exact_heavy_kurtosis():
     assert any("kurtosis" in m for m in diagnose(table))
 
 
+def test_a_screening_sized_level_whose_variance_rests_on_one_sample_is_flagged():
+    # The sample kurtosis of n values is at most n - 2 + 1 / (n - 1) (one value apart): with the limit of 100
+    # alone a default screening (20 samples per level) could never flag a level, however few samples its V_l
+    # rests on. A cluster-count difference of 1 in one sample of 20 now is.
+    n = 20
+    base = np.arange(n) % 7 + 20.0
+    jump = np.zeros(n)
+    jump[5] = 1.0
+    table = level_statistics(fine=[base, base + jump], coarse=[np.zeros(n), base], cost=[np.ones(n)] * 2)
+    assert table.kurtosis[1, 0] == pytest.approx(n - 2 + 1 / (n - 1), rel=1e-12)
+    (message,) = [m for m in diagnose(table, names=["clusters"]) if "kurtosis" in m]
+    assert message == ("level 1: kurtosis 18.1 of Q_l - Q_l-1 for clusters exceeds 10 (half its 20 samples: the "
+                       "variance rests on about 1.1 of them); its variance estimate is unreliable")
+    # Two jumps of 20: the variance rests on about 2.5 samples, not flagged; nor one jump in 19 samples.
+    jump[11] = 1.0
+    table = level_statistics(fine=[base, base + jump], coarse=[np.zeros(n), base], cost=[np.ones(n)] * 2)
+    assert not [m for m in diagnose(table) if "kurtosis" in m]
+    short = level_statistics(fine=[base[:19], base[:19] + np.eye(19)[3]], coarse=[np.zeros(19), base[:19]],
+                             cost=[np.ones(19)] * 2)
+    assert not [m for m in diagnose(short) if "kurtosis" in m]
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_gaussian_levels_of_screening_size_pass_the_kurtosis_check(seed):
+    # Randomised: Gaussian fine values and coupled coarse ones, 20-60 samples per level, four QoIs.
+    rng = np.random.default_rng([2026, 11, 27, seed])
+    n = int(rng.integers(20, 61))
+    coarse = [np.zeros((n, 4))] + [rng.standard_normal((n, 4)) for _ in range(3)]
+    fine = [c + rng.standard_normal((n, 4)) * 2.0 ** -level for level, c in enumerate(coarse)]
+    table = level_statistics(fine=fine, coarse=coarse, cost=[np.ones(n)] * 4)
+    assert not [m for m in diagnose(table) if "kurtosis" in m]
+
+
+class _FixedValues:
+    """A level sampler whose sample ``i`` is row ``i`` of ``values`` on every level (coarse values 0), cost 1."""
+
+    def __init__(self, values: np.ndarray) -> None:
+        self.values = values
+
+    def __call__(self, level: int, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        fine = self.values[np.asarray(indices) % len(self.values)]
+        return fine, np.zeros_like(fine), np.ones(len(fine))
+
+
+def test_mc_flags_a_qoi_whose_variance_rests_on_one_of_its_samples():
+    values = np.zeros((30, 2))
+    values[:, 0] = np.linspace(0.0, 1.0, 30)
+    values[7, 1] = 1.0  # a rare event: the only sample that differs
+    problem = _FixedValues(values)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mc(problem, tol=10.0, level=0, n_initial=30, qoi_names=["smooth", "rare"])
+    messages = [str(w.message) for w in caught if "kurtosis" in str(w.message)]
+    assert messages == ["mc: kurtosis 28 of Q on level 0 for rare exceeds 15 (half its 30 samples: the variance "
+                        "rests on about 1.1 of them); the variance and error estimates are unreliable"]
+
+
 def test_heavy_tailed_integer_levels_fit_rates_with_finite_errors():
     # Y_l = 1 in one sample of 250 * 2^l (l = 1, 2, 3): bias and variance rates 1.
     n = 4000

@@ -209,6 +209,8 @@ from rough_uq.multilevel.statistics import (
     _qoi_text,
     _readonly,
     diagnose,
+    kurtosis_text,
+    kurtosis_threshold,
     level_statistics,
 )
 
@@ -1872,12 +1874,13 @@ class _McRun(_Run):
         moments = self.samples.moments()
         result = _mc_result(self)
         limit, names = self.options.kurtosis_limit, self.options.qoi_names
-        heavy = np.flatnonzero(moments.kurtosis > limit)
+        heavy = np.flatnonzero(moments.kurtosis > kurtosis_threshold(moments.n, limit))
         if heavy.size:
             which = "" if names is None else f" for {_qoi_text(heavy, names)}"
+            worst = float(np.max(moments.kurtosis))
             warn_at_caller(
-                f"mc: kurtosis {float(np.max(moments.kurtosis)):.3g} of Q on level {self.level}{which} exceeds "
-                f"{limit:g}; the variance and error estimates are unreliable",
+                f"mc: kurtosis {worst:.3g} of Q on level {self.level}{which} {kurtosis_text(worst, moments.n, limit)}; "
+                "the variance and error estimates are unreliable",
                 EstimationWarning,
             )
         yield Finished(result=result)

@@ -75,7 +75,7 @@ from rich.markup import escape
 from rough_uq.errors import PLANNED_COUNT_CAP
 from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.rates import EXACT_RATE, RATE_FLOOR
-from rough_uq.multilevel.statistics import KURTOSIS_LIMIT
+from rough_uq.multilevel.statistics import FEWEST_VARIANCE_SAMPLES, KURTOSIS_LIMIT, SAMPLE_KURTOSIS_CHECK_SAMPLES
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.columns import split_column, tol_text
 from rough_uq.study.progress import format_duration
@@ -644,8 +644,10 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
 def _screening_table(stats: Any, q: int, name: str, unit: str | None) -> Any:
     table = _table(escape(f"Screening of {_labelled(name, unit or '')} per level"))
     # What a reader cannot guess from the header (the rest is the usual MLMC notation, README).
-    table.caption = ("Y = Q_l - Q_(l-1) on coupled grids; kurt: kurtosis of Y (3 for Gaussian Y; above "
-                     f"{KURTOSIS_LIMIT:g} var Y rests on a few samples); check: |mean Y - (mean Q_l - mean Q_(l-1))| "
+    table.caption = ("Y = Q_l - Q_(l-1) on coupled grids; kurt: kurtosis of Y (3 for Gaussian Y; var Y rests on "
+                     f"about N / kurt samples: flagged above {KURTOSIS_LIMIT:g}, and from "
+                     f"{SAMPLE_KURTOSIS_CHECK_SAMPLES} samples above N / {FEWEST_VARIANCE_SAMPLES:g}); "
+                     "check: |mean Y - (mean Q_l - mean Q_(l-1))| "
                      "over 3 times the sum of the three means' standard errors; above 1 the levels do not telescope")
     table.caption_justify = "left"
     for column in ("level", "N", "mean Q", "var Q", "mean Y", "var Y", "kurt", "check"):
