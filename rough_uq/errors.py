@@ -135,6 +135,19 @@ def checked_bool(name: str, value: object) -> bool:
     return bool(value)
 
 
+def checked_path(name: str, value: object) -> str:
+    """``value`` as a path string (a ``str`` or an ``os.PathLike`` of one), or :class:`InvalidParameterError`.
+
+    ``os.fspath`` raised a bare ``TypeError`` for ``None`` or a number.
+    """
+    import os
+
+    text = os.fspath(value) if isinstance(value, (str, os.PathLike)) else None
+    if not isinstance(text, str):
+        raise InvalidParameterError(name, value, "a file path (a str or pathlib.Path)")
+    return text
+
+
 def is_real_array(value: object) -> bool:
     """A real number (:func:`is_real_number`), or an array or (nested) sequence of them: nothing to convert.
 

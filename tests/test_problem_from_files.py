@@ -168,6 +168,14 @@ def test_files_that_hold_no_problem_are_refused_by_name(tmp_path):
 
 
 
+@pytest.mark.parametrize("path", [None, 5, b"results.h5"])
+def test_a_path_that_is_no_path_is_refused_by_name(path):
+    # os.fspath raised a bare TypeError ("expected str, bytes or os.PathLike object, not NoneType").
+    for read in (load_problem, load_screening, read_report, open_study_readonly):
+        with pytest.raises(InvalidParameterError, match=r"^path: got .*; allowed: a file path \(a str or pathlib"):
+            read(path)
+
+
 def test_a_screening_the_cli_refused_is_refused_naming_the_file(tmp_path):
     config = write_config(tmp_path / "full.yaml", tiny_config(load={"relative": 1e6}))  # 100 % in every sample
     study = tmp_path / "full.h5"

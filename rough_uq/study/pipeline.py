@@ -56,6 +56,7 @@ from rough_uq.errors import (
     PlanTooLargeError,
     RoughUQError,
     StudyFileError,
+    checked_path,
     is_real_number,
 )
 from rough_uq.multilevel.drivers import (
@@ -310,7 +311,7 @@ def load_problem(path: str | os.PathLike[str]) -> ContactProblem:
     InvalidParameterError
         For an empty path or one that does not exist.
     """
-    name = os.fspath(path)
+    name = checked_path("path", path)
     if not name or not Path(name).exists():
         raise InvalidParameterError("path", name, "an existing config file (YAML) or study file (HDF5)")
     if not (is_hdf5_file(name) or Path(name).suffix.lower() in (".h5", ".hdf5")):

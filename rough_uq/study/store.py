@@ -141,7 +141,7 @@ import h5py
 import numpy as np
 
 from rough_uq.problem.batch import LevelBatch
-from rough_uq.errors import DuplicateSampleWarning, StudyFileError, warn_at_caller
+from rough_uq.errors import DuplicateSampleWarning, StudyFileError, checked_path, warn_at_caller
 from rough_uq.study.records import utc_timestamp
 
 __all__ = [
@@ -824,11 +824,13 @@ def _is_marked_open(path: Path) -> bool:
 
 
 def checked_study_path(path: str | os.PathLike[str]) -> Path:
-    """``path`` as a :class:`~pathlib.Path`, refusing an empty one (``Path("")`` is the working directory)."""
-    if not os.fspath(path):
+    """``path`` as a :class:`~pathlib.Path`, refusing an empty one (``Path("")`` is the working directory) and one
+    that is no path (``None``, a number: :class:`~rough_uq.errors.InvalidParameterError`)."""
+    text = checked_path("path", path)
+    if not text:
         raise StudyFileError("no study file named (got an empty path; allowed: the HDF5 file `roughuq screen` wrote)",
                              Path())
-    return Path(os.fspath(path))
+    return Path(text)
 
 
 def is_hdf5_file(path: str | os.PathLike[str]) -> bool:
