@@ -598,8 +598,18 @@ def test_bad_samplers_and_arguments_are_refused():
             mlmc(Synthetic(), **options)
     with pytest.raises(EstimationError, match="does not decay"):
         mlmc(Synthetic(), tol=0.1, rates=Rates(alpha=0.0, beta=1.0, gamma=1.0, c_alpha=1.0, c_beta=1.0, c_gamma=1.0))
+    # A screening's rates are raw fits (the noisy alpha of a flat bias can be negative); the refusal said only
+    # "the bias does not decay with the level (alpha = -0.241)", as if the rates named by the type check were wrong.
+    raw = Rates(alpha=-0.241, beta=1.0, gamma=1.0, c_alpha=1.0, c_beta=1.0, c_gamma=1.0)
+    with pytest.raises(EstimationError, match=r"^rates: alpha = -0.241: the bias does not decay .* pass screening="):
+        mlmc(Synthetic(), tol=0.1, rates=raw)
     with pytest.raises(InvalidParameterError):
         mc(Synthetic(), tol=0.1, level=-1)
+    # "max_level: got 1; allowed: an integer >= 2" said neither why nor what to run instead.
+    for max_level in (0, 1):
+        with pytest.raises(InvalidParameterError, match=r"^max_level: got \d; allowed: an integer >= 2: an MLMC run "
+                           r"fits its rates on levels >= 1, two of them at least; on fewer levels use mc\(level="):
+            mlmc(Synthetic(), tol=0.1, max_level=max_level)
 
 
 # --------------------------------------------------------------------------

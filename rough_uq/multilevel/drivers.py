@@ -170,6 +170,7 @@ from rough_uq.errors import (
     checked_bool,
     checked_integer,
     checked_real_array,
+    is_integer,
     is_real_number,
     warn_at_caller,
 )
@@ -194,7 +195,6 @@ from rough_uq.multilevel.rates import (
     confirmed_tail,
     estimated_bias,
     fit_rates,
-    remaining_bias,
     tail_rate,
 )
 from rough_uq.multilevel.richardson import RICHARDSON_MIN_LEVELS, ratio_instability, richardson_bias, richardson_weight
@@ -1155,7 +1155,8 @@ def iter_mlmc(
         The run uses at least levels ``0..min_finest_level`` (>= 1; the default
         2 gives two levels ``>= 1`` to fit the rates from).
     max_level : int
-        Finest level allowed; if the bias needs more, the run stops with
+        Finest level allowed, at least 2 (two levels ``>= 1`` to fit the rates
+        from); if the bias needs more, the run stops with
         ``stop_reason = "max_level"``.
     max_cost : float, optional
         Budget in the sampler's cost unit. A batch is drawn (possibly
@@ -1222,7 +1223,7 @@ def iter_mlmc(
     n_qoi = screening.n_qoi if screening is not None else (rates.n_qoi if rates is not None else None)
     tol = _check_tol(tol, n_qoi)
     if rates is not None:
-        remaining_bias(np.zeros(rates.n_qoi), rates.alpha)  # alpha <= 0 cannot meet any tolerance
+        _refuse_growing_bias(rates)
         if screening is not None and rates.n_qoi != screening.n_qoi:
             raise EstimationError(f"rates have {rates.n_qoi} QoIs, the screening {screening.n_qoi}")
     options = _MlmcOptions(
@@ -1250,6 +1251,11 @@ def check_finest_levels(min_finest_level: object, max_level: object, *, least_ma
     caller of a run did not give as an argument.
     """
     min_finest_level = checked_integer("min_finest_level", min_finest_level, 1)
+    if least_max_level >= 2 and is_integer(max_level) and 0 <= max_level < least_max_level:
+        raise InvalidParameterError(
+            "max_level", max_level, f"an integer >= {least_max_level}: an MLMC run fits its rates on levels >= 1, "
+            "two of them at least; on fewer levels use mc(level=...) (bias not estimated), variance or distribution",
+        )
     max_level = checked_integer("max_level", max_level, least_max_level)
     if min_finest_level > max_level:
         raise InvalidParameterError("min_finest_level", min_finest_level, f"an integer in 1..max_level = {max_level}")
@@ -1283,6 +1289,19 @@ class _MlmcStart:
     fallback: Rates | None
     extrapolation: str
     refusal: str = ""
+
+
+def _refuse_growing_bias(rates: Rates) -> None:
+    """Fixed rates whose ``alpha`` is not positive meet no tolerance; a screening's raw fits can have such one."""
+    alpha = np.asarray(rates.alpha, dtype=float)
+    if np.all(alpha > 0):
+        return
+    values = ", ".join(f"{value:.3g}" for value in alpha.ravel())
+    raise EstimationError(
+        f"rates: alpha = {values}: the bias does not decay with the level, so no finest level meets a tolerance; "
+        "a screening's rates are its raw fits: pass screening=... instead, which plans with them raised to at "
+        "least 0.5"
+    )
 
 
 def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:

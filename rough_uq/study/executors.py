@@ -357,7 +357,7 @@ class PoolExecutor(Executor):
     """
 
     def __init__(self, n_workers: int, *, threads: int = 1) -> None:
-        self.n_workers = check_workers(n_workers)
+        self.n_workers = check_workers(n_workers, name="n_workers")
         self.threads = int(threads)
         self._pool: ProcessPoolExecutor | None = None
         self._workers: list[multiprocessing.Process] = []
