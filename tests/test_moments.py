@@ -394,6 +394,22 @@ def test_non_positive_tolerances_are_refused(tol):
         mlmc_variance(PerturbedLimit(), tol=tol)
 
 
+@pytest.mark.parametrize("scale", [1e-80, 1e-100])
+def test_a_tolerance_whose_squares_underflow_is_refused(scale):
+    # The variance of values of about 1e-80 at a relative tolerance of 5 %: the error of the variance (fourth
+    # powers) underflowed to 0 and the run reported its tolerance met with an RMS error of exactly 0; at 1e-100
+    # it failed with a bare ValueError (NaN sample counts).
+    def tiny(level, indices):
+        fine, coarse, cost = PerturbedLimit()(level, indices)
+        return fine * scale, coarse * scale, cost
+
+    with pytest.raises(InvalidParameterError, match=r"^tol: got .*; allowed: tolerances >= 1e-140 \(errors are"):
+        mlmc_variance(tiny, tol=0.05 * scale**2)
+    for order in (3, 4):
+        with pytest.raises(InvalidParameterError, match=r"allowed: tolerances >= 1e-140"):
+            mlmc_central_moment(tiny, order=order, tol=1e-200)
+
+
 def test_too_few_samples_and_bad_shapes_are_refused():
     with pytest.raises(InvalidParameterError, match="at least 4 samples"):
         h2_difference_variance(np.arange(3.0), np.arange(3.0))

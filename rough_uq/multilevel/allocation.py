@@ -223,11 +223,23 @@ def _check_fraction(name: str, value: object) -> float:
     return float(value)
 
 
+#: The smallest tolerance a run takes. Errors are compared with ``tol`` in squares, and the error of a variance
+#: (of a fourth moment) in squares of squared (fourth-power) values: with a variance of some 1e-160 a variance
+#: run reported an RMS error of exactly 0 and its tolerance met, with one of 1e-200 it failed with a bare
+#: ``ValueError`` (NaN sample counts). Down to this tolerance the squares are normal floats with a margin.
+MIN_TOL = 1e-140
+
+
 def _check_tol(tol: object, n_qoi: int | None) -> np.ndarray:
-    """Tolerance as a positive array of shape (n_qoi,) (a scalar is broadcast)."""
+    """Tolerance as a positive array of shape (n_qoi,) (a scalar is broadcast), each at least :data:`MIN_TOL`."""
     array = np.atleast_1d(np.asarray(tol, dtype=float))
     if array.ndim != 1 or not np.all(np.isfinite(array)) or np.any(array <= 0):
         raise InvalidParameterError("tol", tol, "a positive number or a 1-d array of positive numbers")
+    if np.any(array < MIN_TOL):
+        raise InvalidParameterError(
+            "tol", tol, f"tolerances >= {MIN_TOL:g} (errors are compared in squares, which underflow below; "
+            "express the QoI in a larger unit)",
+        )
     if n_qoi is not None:
         if array.size == 1:
             array = np.repeat(array, n_qoi)
