@@ -1172,7 +1172,10 @@ def iter_mlmc(
         ``math.inf``): no budget.
     batch_size : int or None
         Largest batch per sampler call (None: no cap). Smaller batches give
-        more frequent events and store writes.
+        more frequent events and store writes, and more frequent plans: the
+        run re-estimates ``V_l`` after every round of batches (step 2), so
+        another batch size can end with other ``N_l`` and another estimate
+        (sample ``i`` of level ``l`` is the same whatever the batch size).
     screening : LevelStatistics, optional
         Screening table (from independent samples); sets the initial finest
         level and ``N_l`` via :func:`~rough_uq.multilevel.allocation.plan`, and its ``V_l``
@@ -1762,7 +1765,8 @@ def iter_mc(
         stops before its first ``n_initial`` samples (2 from a screening) does
         not meet ``tol``.
     batch_size : int or None
-        Largest batch per sampler call.
+        Largest batch per sampler call; the run re-plans after each, so another
+        size can end with another ``N`` (as for :func:`iter_mlmc`).
     screening : LevelStatistics, optional
         Screening table (independent samples) of the same hierarchy.
     kurtosis_limit : float

@@ -843,7 +843,8 @@ class EstimationConfig(_Section):
     )
     batch_size: Int = _field(
         10,
-        description="Samples computed and stored together (count; does not change results)",
+        description="Samples computed and stored together (count); a run re-plans after each batch, so another size "
+        "can end with other sample counts (each sample is the same)",
         allowed="integer >= 1",
         ge=1,
     )
