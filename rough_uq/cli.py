@@ -900,15 +900,17 @@ def _refuse_misplaced_options(target: str | None, choice: str, show_plan: bool, 
 
 
 def _cdf_tolerance(text: str) -> Any:
-    """``--tol-cdf``: one number in (0, 1), as the array of one tolerance the pipeline takes."""
+    """``--tol-cdf``: one number in [MIN_TOL, 1), as the array of one tolerance the pipeline takes."""
     import numpy as np
+
+    from rough_uq.multilevel.allocation import MIN_TOL
 
     try:
         eps = float(text)
     except ValueError:
         eps = math.nan
-    if not 0 < eps < 1:
-        raise InvalidParameterError("--tol-cdf", text, "a number in (0, 1): the RMS error of F = P(Q <= s)")
+    if not MIN_TOL <= eps < 1:
+        raise InvalidParameterError("--tol-cdf", text, f"a number in [{MIN_TOL:g}, 1): the RMS error of F = P(Q <= s)")
     return np.array([eps])
 
 

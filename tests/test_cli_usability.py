@@ -14,7 +14,9 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
+from rough_uq.errors import ConfigError
 from rough_uq.cli import EXIT_TOL_NOT_MET, main
+from rough_uq.study.config import load_config
 from rough_uq.study.store import FORMAT_VERSION, open_study, open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
@@ -629,6 +631,23 @@ def test_an_output_path_naming_a_directory_is_refused(tmp_path, monkeypatch, out
     result = run("init", "classic-area", "--out", out, expect=2)
     assert one_error_line(result).startswith("error: ") and "director" in result.stderr
     assert sorted(path.name for path in tmp_path.iterdir()) == ["existing"]
+
+
+@pytest.mark.parametrize("args, option, value", [
+    (("mc", "--level", "0", "--tol", "1e300"), "--tol", "1e300"),  # numpy's "overflow encountered in square"
+    (("mc", "--level", "0", "--tol", "1e-200"), "--tol", "1e-200"),
+    (("mlmc", "--tol-var", "1e-200"), "--tol-var", "1e-200"),
+    (("mlmc", "--tol-cdf", "1e-200", "--thresholds", "0:40:5"), "--tol-cdf", "1e-200"),  # a ValueError traceback
+], ids=["huge", "tiny-mc", "tiny-var", "tiny-cdf"])
+def test_a_tolerance_whose_square_leaves_the_float_range_is_refused_before_any_record(tmp_path, monkeypatch, args,
+                                                                                      option, value):
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "tiny.yaml", tiny_config())
+    line = one_error_line(run(*args, "--config", "tiny.yaml", "--study", "new.h5", expect=2))
+    assert line.startswith(f"error: {option}: got '{value}'; allowed: a ") and "[1e-140, " in line
+    assert not (tmp_path / "new.h5").exists()  # a cdf run left an "interrupted" record that crashed again
+    with pytest.raises(ConfigError, match=r"qoi.contact_area.tol: .*allowed: number in \[1e-140, 1e\+140\] or null"):
+        load_config(write_config(tmp_path / "bad.yaml", tiny_config(qoi={"contact_area": {"tol": 1e-200}})))
 
 
 def test_a_cdf_run_without_thresholds_says_none_were_given(tmp_path, monkeypatch):

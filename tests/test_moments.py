@@ -403,10 +403,10 @@ def test_a_tolerance_whose_squares_underflow_is_refused(scale):
         fine, coarse, cost = PerturbedLimit()(level, indices)
         return fine * scale, coarse * scale, cost
 
-    with pytest.raises(InvalidParameterError, match=r"^tol: got .*; allowed: tolerances >= 1e-140 \(errors are"):
+    with pytest.raises(InvalidParameterError, match=r"^tol: got .*; allowed: tolerances in \[1e-140, 1e\+140\] "):
         mlmc_variance(tiny, tol=0.05 * scale**2)
     for order in (3, 4):
-        with pytest.raises(InvalidParameterError, match=r"allowed: tolerances >= 1e-140"):
+        with pytest.raises(InvalidParameterError, match=r"allowed: tolerances in \[1e-140, "):
             mlmc_central_moment(tiny, order=order, tol=1e-200)
 
 

@@ -229,17 +229,22 @@ def _check_fraction(name: str, value: object) -> float:
 #: ``ValueError`` (NaN sample counts). Down to this tolerance the squares are normal floats with a margin.
 MIN_TOL = 1e-140
 
+#: The largest tolerance a run takes: the squares of larger ones overflowed (``--tol 1e300`` printed numpy's
+#: "overflow encountered in square" and a plain MC cost of 0).
+MAX_TOL = 1e140
+
+#: What :func:`_check_tol` allows, in words (for the messages of the layers that check tolerances first).
+TOL_RANGE_TEXT = f"in [{MIN_TOL:g}, {MAX_TOL:g}] (errors are compared in squares, which underflow or overflow " \
+    "beyond; express the QoI in another unit)"
+
 
 def _check_tol(tol: object, n_qoi: int | None) -> np.ndarray:
-    """Tolerance as a positive array of shape (n_qoi,) (a scalar is broadcast), each at least :data:`MIN_TOL`."""
+    """Tolerance as a positive array of shape (n_qoi,) (a scalar is broadcast), each in [``MIN_TOL``, ``MAX_TOL``]."""
     array = np.atleast_1d(np.asarray(tol, dtype=float))
     if array.ndim != 1 or not np.all(np.isfinite(array)) or np.any(array <= 0):
         raise InvalidParameterError("tol", tol, "a positive number or a 1-d array of positive numbers")
-    if np.any(array < MIN_TOL):
-        raise InvalidParameterError(
-            "tol", tol, f"tolerances >= {MIN_TOL:g} (errors are compared in squares, which underflow below; "
-            "express the QoI in a larger unit)",
-        )
+    if np.any((array < MIN_TOL) | (array > MAX_TOL)):
+        raise InvalidParameterError("tol", tol, f"tolerances {TOL_RANGE_TEXT}")
     if n_qoi is not None:
         if array.size == 1:
             array = np.repeat(array, n_qoi)

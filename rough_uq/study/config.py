@@ -85,6 +85,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from rough_uq.errors import ConfigError
+from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL
 from rough_uq.problem.columns import column_name
 
 __all__ = [
@@ -551,6 +552,8 @@ class SolverConfig(_Section):
 # ---------------------------------------------------------------------------
 
 _TOL_DESCRIPTION = "Target root-mean-square error of the estimate, in the unit of this quantity"
+# The range every run takes (rough_uq.multilevel.allocation.MIN_TOL): errors are compared in squares.
+_TOL_ALLOWED = f"number in [{MIN_TOL:g}, {MAX_TOL:g}] or null"
 
 
 class _QoiSection(_Section):
@@ -585,7 +588,7 @@ class ContactAreaQoi(_QoiSection):
         allowed="'corrected' or 'nodes'",
     )
     tol: Float | None = _field(
-        None, description=_TOL_DESCRIPTION + " (fraction or percent)", allowed="number > 0 or null", gt=0
+        None, description=_TOL_DESCRIPTION + " (fraction or percent)", allowed=_TOL_ALLOWED, ge=MIN_TOL, le=MAX_TOL
     )
 
     @property
@@ -612,7 +615,7 @@ class ClustersQoi(_QoiSection):
         allowed="4, 8 or 'mean'",
     )
     tol: Float | None = _field(
-        None, description=_TOL_DESCRIPTION + " (count or 1 / length^2)", allowed="number > 0 or null", gt=0
+        None, description=_TOL_DESCRIPTION + " (count or 1 / length^2)", allowed=_TOL_ALLOWED, ge=MIN_TOL, le=MAX_TOL
     )
 
     @property
@@ -625,7 +628,7 @@ class MeanGapQoi(_QoiSection):
 
     kind: Literal["mean_gap"] = Field("mean_gap", exclude=True)
     tol: Float | None = _field(
-        None, description=_TOL_DESCRIPTION + " (length unit)", allowed="number > 0 or null", gt=0
+        None, description=_TOL_DESCRIPTION + " (length unit)", allowed=_TOL_ALLOWED, ge=MIN_TOL, le=MAX_TOL
     )
 
     @property
@@ -663,7 +666,7 @@ class AreaAboveQoi(_QoiSection):
         allowed="'fraction' or 'percent'",
     )
     tol: Float | None = _field(
-        None, description=_TOL_DESCRIPTION + " (fraction or percent)", allowed="number > 0 or null", gt=0
+        None, description=_TOL_DESCRIPTION + " (fraction or percent)", allowed=_TOL_ALLOWED, ge=MIN_TOL, le=MAX_TOL
     )
 
     @property

@@ -110,7 +110,7 @@ from rough_uq.problem.sampler import (
     modelled_cost,
     run_stage,
 )
-from rough_uq.multilevel.allocation import Plan, plan
+from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL, TOL_RANGE_TEXT, Plan, plan
 from rough_uq.multilevel.rates import (
     Rates, choose_coarsest_level, fit_rates, refuse_constant_columns, stalled_bias, stalled_text,
 )
@@ -953,6 +953,8 @@ def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, opti
                 raise InvalidParameterError(option, part, "a positive number, e.g. 0.2 or contact_area=0.2") from None
             if not (math.isfinite(eps) and eps > 0):
                 raise InvalidParameterError(option, part, "a positive, finite number")
+            if not MIN_TOL <= eps <= MAX_TOL:
+                raise InvalidParameterError(option, part, f"a tolerance {TOL_RANGE_TEXT}")
             if name in given:
                 raise InvalidParameterError(option, part, f"one tolerance per QoI; {name} was already given "
                                             f"{given[name]:g}")
