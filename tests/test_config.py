@@ -679,3 +679,16 @@ def test_an_empty_config_path_is_named_as_such():
     # It said ": config file not found (got '' ...)", a file name missing in front of the colon.
     with pytest.raises(ConfigError, match=r"^config file: got ''; allowed: a non-empty path of a YAML file$"):
         load_config("")
+
+
+@pytest.mark.parametrize("samples", [10**11, 4_000_000])
+def test_a_screening_over_the_planned_sample_cap_is_refused(tmp_path, samples):
+    # `validate` accepted samples: 100000000000 and `screen` then failed allocating 745 GiB for its progress.
+    from tests.study_configs import tiny_config, write_config
+
+    path = write_config(tmp_path / "huge.yaml", tiny_config(screening={"levels": 3, "samples": samples}))
+    with pytest.raises(ConfigError, match=rf"huge.yaml: screening.samples: a screening of {re.escape(f'{3 * samples:g}')} samples "
+                       r"\(3 levels\) exceeds the 1e\+07 samples any run may plan \(got \d+; allowed: integer in "
+                       r"2..3333333\)"):
+        load_config(path)
+    assert load_config(write_config(tmp_path / "fine.yaml", tiny_config(screening={"levels": 3, "samples": 3_333_333})))

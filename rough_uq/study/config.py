@@ -86,6 +86,7 @@ from pydantic_core import PydanticCustomError
 
 from rough_uq.errors import ConfigError
 from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL
+from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES
 from rough_uq.problem.columns import column_name
 
 __all__ = [
@@ -1028,6 +1029,18 @@ class StudyConfig(_Section):
                     f"cannot screen more levels than exist (levels 0..{self.grid.max_level})",
                     self.screening.levels,
                     f"integer >= {MIN_SCREENED_LEVELS} and <= grid.max_level + 1 = {self.grid.max_level + 1}",
+                )
+            )
+        n_screened = self.screening.samples * self.screening.levels
+        if is_screenable and n_screened > MAX_PLANNED_SAMPLES:
+            # `screen` accepted 10^11 and failed allocating its progress (745 GiB), or began 6e7 solves.
+            problems.append(
+                _problem(
+                    "screening.samples",
+                    f"a screening of {n_screened:g} samples ({self.screening.levels} levels) exceeds the "
+                    f"{MAX_PLANNED_SAMPLES:g} samples any run may plan",
+                    self.screening.samples,
+                    f"integer in 2..{MAX_PLANNED_SAMPLES // self.screening.levels}",
                 )
             )
         for name in self.estimation.distribution:
