@@ -277,19 +277,41 @@ def test_a_bandwidth_far_wider_than_the_values_does_not_claim_the_tolerance(band
     assert wide.tol_met and wide.bandwidths[-1] < 1.0 and np.max(np.abs(wide.cdf - problem.limit.cdf(s))) < 0.05
 
 
-@pytest.mark.parametrize(("bandwidth", "is_too_wide"), [(6.3, False), (6.4, True)])
+@pytest.mark.parametrize(("bandwidth", "is_too_wide"), [(7.3, False), (7.31, True)])
 def test_the_finest_bandwidth_is_compared_with_twice_the_telescoped_standard_deviation(bandwidth, is_too_wide):
-    # E[Q_1] = 1.5 + 0, E[Q_1^2] = 3.5 + (3.5 - 2.25): Var(Q_1) = 2.5, sd 1.581, limit 3.162; delta_1 = bandwidth / 2.
+    # Var(Q_1) = Var(Q_0) + (Var(Q_1) - Var(Q_0)) from each level's own pairs: 5/3 + (5/3 - 0) = 10/3, sd 1.826,
+    # limit 3.651; delta_1 = bandwidth / 2. (Raw moments telescoped, E[Q_1^2] - E[Q_1]^2, gave 2.5.)
     fine, coarse = [np.arange(4.0), np.arange(4.0)], [np.zeros(4), np.full(4, 1.5)]
     options = {"thresholds": [0.0, 1.0, 2.0, 3.0], "bandwidth": bandwidth, "tol": 0.9}
     if not is_too_wide:
         result = cdf_from_samples(fine=fine, coarse=coarse, **options)  # warnings are errors
         assert result.stop_reason == "given" and result.is_bias_estimated
         return
-    with pytest.warns(EstimationWarning, match=r"^cdf: the smoothing bandwidth on the finest level 1, 3\.2, exceeds "
-                                                r"2 standard deviations of the values \(1\.581 each\): "):
+    with pytest.warns(EstimationWarning, match=r"^cdf: the smoothing bandwidth on the finest level 1, 3\.655, "
+                                                r"exceeds 2 standard deviations of the values \(1\.826 each\): "):
         result = cdf_from_samples(fine=fine, coarse=coarse, **options)
     assert result.stop_reason == "bandwidth_too_wide" and not result.tol_met
+
+
+def test_the_spread_is_telescoped_on_each_levels_own_means():
+    # The quickstart's --tol-cdf run of an audit (contact areas in %, 10 samples per level, rounded here): raw
+    # moments telescoped gave a standard deviation of 0.16 where the finest values' is 1.08, and the run ended
+    # "bandwidth_too_wide" at a finest bandwidth of 0.5. The levels' means differ between their sample sets
+    # (20.9 / 20.3 / 20.0), and raw moments carried that into the spread.
+    fine = [np.array([21.8795, 21.8533, 20.0047, 21.2382, 21.6611, 20.8299, 19.9241, 21.2989, 20.4092, 20.1393]),
+            np.array([20.8299, 19.7052, 21.0792, 20.2713, 19.6138, 21.5885, 19.2055, 20.7753, 21.5775, 19.3095]),
+            np.array([21.8146, 20.0053, 20.5728, 19.0474, 20.2194, 19.9893, 19.6298, 19.6263, 18.1127, 21.4243])]
+    coarse = [np.zeros(10),
+              np.array([19.6026, 19.6987, 20.9882, 20.663, 18.9336, 21.3666, 18.8183, 21.1766, 22.0078, 20.097]),
+              np.array([21.5958, 19.7986, 20.6263, 19.054, 19.8824, 20.064, 19.6365, 19.5973, 17.9989, 21.327])]
+    raw = sum(np.mean(f * f - c * c) for f, c in zip(fine, coarse))
+    raw -= sum(np.mean(f - c) for f, c in zip(fine, coarse)) ** 2
+    assert raw < (0.5 / 2) ** 2  # the old spread failed the check
+    result = cdf_from_samples(fine=fine, coarse=coarse, thresholds=np.linspace(10.0, 30.0, 21), bandwidth=2.0,
+                              tol=0.9)  # warnings are errors: delta_2 = 0.5
+    assert result.stop_reason == "given" and result.is_bias_estimated
+    centred = np.var(fine[0], ddof=1) + sum(np.var(f, ddof=1) - np.var(c, ddof=1) for f, c in zip(fine[1:], coarse[1:]))
+    assert 0.55 < math.sqrt(centred) < 0.56
 
 
 def test_the_spread_is_the_finest_levels_not_the_coarsest_ones():
