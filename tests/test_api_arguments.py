@@ -114,7 +114,8 @@ def test_a_min_finest_level_above_max_level_is_refused_naming_min_finest_level()
         assert caught.value.name == "min_finest_level" and caught.value.value == 3
         assert caught.value.allowed == "an integer in 1..max_level = 2"
     # An MLMC run spans levels 0..2 at least; said "coarsest_level: got 0; allowed: at most max_level - 2 = -1".
-    with pytest.raises(rough_uq.InvalidParameterError, match=r"^max_level: got 1; allowed: an integer >= 2$"):
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^max_level: got 1; allowed: an integer >= 2: an MLMC "
+                       r"run fits its rates on levels >= 1, two of them at least; on fewer levels use mc\(level="):
         rough_uq.mlmc(_problem_of_levels(1), tol=2.0, min_finest_level=1, executor=none)
 
 
