@@ -33,7 +33,9 @@ from rough_uq.multilevel.drivers import (
     mc,
     mlmc,
     plan,
+    planning_rates,
     refuse_large_plan,
+    starting_plan,
 )
 from rough_uq.multilevel.allocation import optimal_samples
 from rough_uq.multilevel.moments import mlmc_variance
@@ -1102,3 +1104,27 @@ def test_a_sampled_v_below_half_the_v_above_it_is_floored_there(base, expected):
     has_data = np.array([True, True, True, True, False])
     variances = _planning_variances(np.array([9.0, 5.0, 0.0, 4.0, 0.0]), has_data, np.float64(1.0), base)
     assert variances.tolist() == expected
+
+
+def test_a_plan_below_the_runs_levels_is_unreachable_where_those_levels_miss_the_bias():
+    # Screened level means 0 / 0.05 / 0.2 (noise makes level 0's bias small): plans stopped on level 0 with the
+    # bias "met", the run sampled levels 0..2 as it must, found the bias of level 2 and ended NOT MET, and the
+    # refusal of a smaller tolerance quoted that bias, so it named a smallest tolerance above accepted ones.
+    statistics = level_statistics(**shifted_screening([0.0, 0.05, 0.2], seed=3, n=20))
+    rates = planning_rates(statistics)
+    deepest = plan(tol=np.array([1.0]), rates=rates, statistics=statistics, theta=0.5, max_level=2, finest_level=2,
+                   coarsest_level=0).bias
+    share = math.sqrt(0.5)
+    for tol in (0.1, 0.3, 0.6):
+        optimal = plan(tol=np.array([tol]), rates=rates, statistics=statistics, theta=0.5, max_level=2)
+        assert optimal.finest_level == 0 and optimal.is_bias_met  # what was accepted
+        start = starting_plan(tol=np.array([tol]), rates=rates, statistics=statistics, theta=0.5, max_level=2)
+        assert not start.is_bias_met and start.bias == deepest and deepest > share * tol
+        assert start.finest_level == optimal.finest_level  # the samples it starts with are unchanged
+    assert starting_plan(tol=np.array([deepest[0] / share * 1.01]), rates=rates, statistics=statistics, theta=0.5,
+                         max_level=2).is_bias_met
+    # With one more level allowed the run can add it; whether level 3 meets the bias decides.
+    extended = starting_plan(tol=np.array([0.6]), rates=rates, statistics=statistics, theta=0.5, max_level=3)
+    level_3 = plan(tol=np.array([0.6]), rates=rates, statistics=statistics, theta=0.5, max_level=3, finest_level=3,
+                   coarsest_level=0)
+    assert extended.is_bias_met == level_3.is_bias_met

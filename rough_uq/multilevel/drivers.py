@@ -1319,6 +1319,7 @@ def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
     initial = starting_plan(
         tol=options.tol, rates=screening_rates, statistics=screening, theta=options.theta,
         max_level=options.max_level, richardson=options.richardson, coarsest_level=options.coarsest_level,
+        min_finest_level=options.min_finest_level,
     )
     base = initial.coarsest_level
     targets = starting_samples(initial, min_finest_level=options.min_finest_level)
@@ -1362,20 +1363,45 @@ def starting_forecast(
 
 def starting_plan(
     *, tol: np.ndarray, rates: Rates, statistics: LevelStatistics, theta: float, max_level: int,
-    richardson: bool = False, coarsest_level: int | None = None,
+    richardson: bool = False, coarsest_level: int | None = None, min_finest_level: int = 2,
 ) -> Plan:
     """The plan an MLMC run started from a screening begins with (:func:`iter_mlmc`).
 
     :func:`~rough_uq.multilevel.allocation.plan` with the run's options; the
     coarsest level is chosen from the screening unless given, and is level 0
     when ``max_level`` leaves no two levels above the chosen one (the rates
-    need them). Forecasts use it to predict what the run will plan.
+    need them). Forecasts use it to predict what the run will plan. Its bias is the one the run's levels
+    predict (:func:`with_run_bias`).
     """
     options = dict(tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=max_level, richardson=richardson)
     initial = plan(**options, coarsest_level=coarsest_level)
     if coarsest_level is None and initial.coarsest_level + 2 > max_level:
         initial = plan(**options, coarsest_level=0)
-    return initial
+    return with_run_bias(initial, rates=rates, statistics=statistics, max_level=max_level,
+                         min_finest_level=min_finest_level)
+
+
+def with_run_bias(initial: Plan, *, rates: Rates, statistics: LevelStatistics, max_level: int,
+                  min_finest_level: int = 2) -> Plan:
+    """``initial``, or where the levels a run samples cannot meet the bias it plans for, the plan marked so.
+
+    A run samples at least levels ``0..max(min_finest_level, coarsest + 2)`` and tests the bias on its finest
+    sampled level. Where the screening's level means do not decay monotonically a plan can stop below those
+    levels with its bias met while the run's own levels predict more: the run then adds levels up to
+    ``max_level`` and ends NOT MET (on the quickstart with ``grid.max_level: 2``: a plan for tol 0.5 stopped on
+    level 1, bias 0.20, and the run on levels 0..2 found 0.42-0.45, where the screening predicted 0.37). Where
+    no level from the run's finest to ``max_level`` meets the bias, the plan returned has ``is_bias_met`` False
+    and the bias ``max_level`` predicts (the refusals then name the smallest tolerance that level reaches).
+    """
+    bias_level = min(max(min_finest_level, initial.coarsest_level + 2), max_level)
+    if not initial.is_bias_met or initial.is_richardson or initial.finest_level >= bias_level:
+        return initial
+    for level in range(bias_level, max_level + 1):
+        deeper = plan(tol=initial.tol, rates=rates, statistics=statistics, theta=initial.theta, max_level=max_level,
+                      coarsest_level=initial.coarsest_level, finest_level=level)
+        if deeper.is_bias_met:
+            return initial
+    return dataclasses.replace(initial, bias=deeper.bias, is_bias_met=False)
 
 
 class _MlmcRun(_Run):

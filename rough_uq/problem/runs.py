@@ -629,7 +629,7 @@ def mlmc(
         starting_rates = rates if isinstance(rates, Rates) else drivers.planning_rates(statistics)
         _refuse_unreachable(problem, tol, drivers.starting_plan(
             tol=tol, rates=starting_rates, statistics=statistics, theta=theta, max_level=problem.max_level,
-            richardson=richardson), statistics, method="mlmc")
+            richardson=richardson, min_finest_level=min_finest_level), statistics, method="mlmc")
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor, progress=progress)
     events = drivers.iter_mlmc(

@@ -71,6 +71,7 @@ from rough_uq.multilevel.drivers import (
     refuse_large_plan,
     starting_forecast,
     starting_plan,
+    with_run_bias,
 )
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.fft_wisdom import prepare_wisdom
@@ -883,6 +884,8 @@ def _predictions(
             # E.g. a bias that does not decay yet (alpha <= 0 on pre-asymptotic
             # levels): keep the table and rates, say why nothing can be predicted.
             return tuple(predictions), [_no_prediction(config.qoi_names, rates, statistics, exc)]
+        # Marked unreachable as `mlmc` refuses it: where the run's own levels cannot meet the bias either.
+        prediction = with_run_bias(prediction, rates=planned, statistics=statistics, max_level=config.grid.max_level)
         predictions.append(PlanRecord.from_plan(prediction, seconds_per_cost))
     return tuple(predictions), []
 
