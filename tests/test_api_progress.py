@@ -90,7 +90,9 @@ def test_a_load_curve_run_is_titled_by_qoi_not_by_column():
 
 
 # Whether tol is met is not the point here: seed 0's level means -0.70, +0.43 (6 + 4 samples) confirm no decay,
-# and its bias is summed at the floor rate (rough_uq.multilevel.rates, "Remaining bias").
+# and its bias is summed at the floor rate (rough_uq.multilevel.rates, "Remaining bias"). At 2.5 every seed's
+# screening predicts a bias its levels 0..2 meet (at 1.5 seeds 0 and 1 predicted 1.33 and 1.12 on level 2, above
+# the share 1.06: refused now, as roughuq mlmc refuses such a tolerance).
 @pytest.mark.filterwarnings(r"ignore:.*tolerance not met \(max_level\):rough_uq.errors.EstimationWarning")
 @pytest.mark.parametrize("seed", range(3))
 def test_mlmc_and_mc_report_the_estimators_plans_and_their_samples(seed):
@@ -99,14 +101,14 @@ def test_mlmc_and_mc_report_the_estimators_plans_and_their_samples(seed):
     for run, options in ((rough_uq.mlmc, dict(screening=screening)), (rough_uq.mlmc, {}),
                          (rough_uq.mc, dict(level=1))):
         progress = _Recorded()
-        result = run(problem, tol=1.5, progress=progress, **options)
-        progress.check_framed(f"{run.__name__} contact_area=1.5")
+        result = run(problem, tol=2.5, progress=progress, **options)
+        progress.check_framed(f"{run.__name__} contact_area=2.5")
         assert progress.done_per_level() == _counts(result.levels, result.n_samples)
         plans = [call for call in progress.calls if call[0] == "plan"]
         assert plans and all(levels == sorted(levels) for _, levels, _, _ in plans)
         final = plans[-1]
         assert _counts(final[1], final[2]) == _counts(result.levels, result.n_samples)
-        silent = run(problem, tol=1.5, **options)
+        silent = run(problem, tol=2.5, **options)
         np.testing.assert_array_equal(result.estimate, silent.estimate)
         np.testing.assert_array_equal(result.n_samples, silent.n_samples)
 
