@@ -525,7 +525,7 @@ def _screening_summary(config: Any) -> str:
 
     if config.grid.max_level + 1 < MIN_SCREENED_LEVELS:
         return (f"none: it needs levels 0..{MIN_SCREENED_LEVELS - 1} and grid.max_level is {config.grid.max_level}; "
-                "runs without a screening only (mlmc --tol-var / --tol-cdf, mc --level)")
+                "runs without a screening only (mc --level; mlmc --tol-var / --tol-cdf from grid.max_level 1)")
     return f"levels 0..{config.screening.levels - 1}, {config.screening.samples} samples each"
 
 

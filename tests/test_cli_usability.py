@@ -664,7 +664,12 @@ def test_validate_says_a_study_too_shallow_to_screen_has_no_screening(tmp_path):
     config = write_config(tmp_path / "shallow.yaml", tiny_config(grid={"coarsest": 8, "max_level": 1}))
     lines = run("validate", str(config)).output.splitlines()
     assert "  screening: none: it needs levels 0..2 and grid.max_level is 1; runs without a screening only " \
-           "(mlmc --tol-var / --tol-cdf, mc --level)" in lines
+           "(mc --level; mlmc --tol-var / --tol-cdf from grid.max_level 1)" in lines
+    # Those runs estimate level differences: with grid.max_level 0 `mlmc --tol-var` is refused, naming the field.
+    shallowest = write_config(tmp_path / "flat.yaml", tiny_config(grid={"coarsest": 8, "max_level": 0}))
+    line = one_error_line(run("mlmc", "--config", str(shallowest), "--study", str(tmp_path / "flat.h5"),
+                              "--tol-var", "1", expect=2))
+    assert "grid.max_level: got 0; allowed: an integer >= 1 for variance and cdf runs" in line
 
 
 def test_validate_says_when_the_finest_grid_does_not_resolve_the_spectrum(tmp_path):
