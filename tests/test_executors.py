@@ -78,6 +78,15 @@ def test_a_local_pool_has_at_most_four_workers_per_core(monkeypatch):
     pool = make_executor("local", workers=np.int64(3))
     assert pool.n_workers == 3
     pool.close()
+    # solver.threads: 10000 passed, and two workers died creating their OpenMP threads (a rerun did the same).
+    for threads in (13, 10_000, 0, 1.5):
+        with pytest.raises(InvalidParameterError) as info:
+            make_executor("local", workers=2, threads=threads)
+        assert info.value.name == "solver.threads" and info.value.value == threads
+        assert str(info.value).endswith("allowed: an integer in 1..12 (at most 4 per core; this process may use "
+                                        "3 cores)")
+        with pytest.raises(InvalidParameterError, match=rf"^threads: got {threads};"):
+            PoolExecutor(2, threads=threads)
 
 
 def test_dask_cluster_matches_serial(tmp_path, monkeypatch):

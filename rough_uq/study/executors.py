@@ -125,6 +125,17 @@ def check_workers(workers: object, name: str = "workers") -> int:
     return int(workers)
 
 
+def check_threads(threads: object, name: str = "threads") -> int:
+    """``threads`` per worker as an int, or :class:`InvalidParameterError` naming ``name`` unless in
+    ``1..max_workers()`` (at most 4 per core, as for workers): with ``solver.threads: 10000`` two workers
+    died creating their OpenMP threads, and a rerun failed the same way."""
+    if not (is_integer(threads) and 1 <= threads <= max_workers()):
+        cores = available_cores()
+        raise InvalidParameterError(name, threads, f"an integer in 1..{max_workers()} (at most {MAX_WORKERS_PER_CORE} "
+                                    f"per core; this process may use {cores} core{'s' if cores != 1 else ''})")
+    return int(threads)
+
+
 def thread_environment(threads: int) -> dict[str, str]:
     """Environment variables that pin a worker's native thread pools to ``threads``."""
     value = str(int(threads))
@@ -358,7 +369,7 @@ class PoolExecutor(Executor):
 
     def __init__(self, n_workers: int, *, threads: int = 1) -> None:
         self.n_workers = check_workers(n_workers, name="n_workers")
-        self.threads = int(threads)
+        self.threads = check_threads(threads)
         self._pool: ProcessPoolExecutor | None = None
         self._workers: list[multiprocessing.Process] = []
 
@@ -528,5 +539,6 @@ def make_executor(kind: str, *, workers: int | None = None, threads: int = 1, sc
         return DaskExecutor(scheduler)
     if kind != "local":
         raise InvalidParameterError("executor", kind, "'local' or 'dask'")
+    threads = check_threads(threads, name="solver.threads")
     n_workers = default_workers(threads) if workers is None else check_workers(workers)
     return SerialExecutor() if n_workers == 1 else PoolExecutor(n_workers, threads=threads)
