@@ -543,9 +543,20 @@ def test_a_process_pool_computes_the_same_estimate():
 
 
 def test_non_converged_samples_are_reported():
+    # In the results too: a notebook that filters warnings saw tol_met True and nothing of the unconverged solves.
     problem = _problem(max_iter=1, solver_tol=1e-12)
     with pytest.warns(rough_uq.EstimationWarning, match="did not converge"):
-        rough_uq.mc(problem, tol=100.0, level=0, n_initial=2)
+        result = rough_uq.mc(problem, tol=100.0, level=0, n_initial=2)
+    assert result.n_not_converged == int(result.n_samples.sum()) == 2
+    runs = [lambda: rough_uq.mlmc(problem, tol=100.0), lambda: rough_uq.variance(problem, tol=1e6, n_initial=4),
+            lambda: rough_uq.distribution(problem, tol=0.5, thresholds=[0.0, 50.0, 100.0], n_initial=4)]
+    for run in runs:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rough_uq.EstimationWarning)
+            estimate = run()
+        n_samples = getattr(estimate, "cdf", estimate).n_samples
+        assert 0 < estimate.n_not_converged <= int(np.sum(n_samples))
+    assert rough_uq.mc(_problem(), tol=100.0, level=0, n_initial=2).n_not_converged == 0
 
 
 # --------------------------------------------------------------------------

@@ -401,6 +401,10 @@ class EstimationResult:
     qoi_names : tuple of str or None
         Names of the QoI columns of the per-QoI fields, in order (the run's
         ``qoi_names``; a contact problem's columns), None if not given.
+    n_not_converged : int
+        Samples of the run with a solve that did not converge, kept with the
+        QoIs of their last iterate (:func:`rough_uq.mlmc` and :func:`rough_uq.mc`
+        count them and warn; 0 from a level sampler, which has no solves).
     """
 
     method: str
@@ -424,6 +428,7 @@ class EstimationResult:
     richardson_reason: str = ""
     dropped_levels: tuple[DroppedLevel, ...] = ()
     qoi_names: tuple[str, ...] | None = None
+    n_not_converged: int = 0
 
     @property
     def rmse(self) -> float | np.ndarray:

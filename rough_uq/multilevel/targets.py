@@ -232,6 +232,9 @@ class TargetEstimate:
         False where the samples cannot measure a term's variance (a CDF
         whose thresholds miss a level's samples,
         :mod:`rough_uq.multilevel.distribution`): ``tol_met`` is False then.
+    n_not_converged : int
+        Samples with a solve that did not converge, kept with the QoIs of their last iterate
+        (:func:`rough_uq.variance` and :func:`rough_uq.distribution` count them and warn; 0 from a level sampler).
     """
 
     estimate: np.ndarray
@@ -251,6 +254,7 @@ class TargetEstimate:
     stop_reason: str
     is_bias_estimated: bool
     is_variance_measured: bool = True
+    n_not_converged: int = 0
 
     @property
     def rmse(self) -> np.ndarray:

@@ -19,6 +19,7 @@ never share samples.
 from __future__ import annotations
 
 from collections.abc import Sequence
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -186,7 +187,7 @@ def variance(
             min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
             qoi_names=problem.columns,
         )
-    _warn_not_converged(sampler, "variance")
+    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "variance"))
     warn_not_met("variance", problem.columns, result, tol)
     return result
 
@@ -222,10 +223,13 @@ class DistributionResult:
     cdf : CdfEstimate
         ``thresholds`` and the monotone ``cdf`` (shape ``(n_thresholds,)``),
         its sup-norm ``rmse`` and the levels and samples used.
+    n_not_converged : int
+        Samples with a solve that did not converge, kept with the QoIs of their last iterate (also warned).
     """
 
     column: str
     cdf: CdfEstimate
+    n_not_converged: int = 0
 
     def quantiles(self, probabilities: Sequence[float] = DEFAULT_PROBABILITIES) -> Quantiles:
         """Quantiles at ``probabilities`` (default 5 %, 50 %, 95 %) with error bars, in the column's unit.
@@ -326,6 +330,6 @@ def distribution(
             bandwidth=bandwidth, theta=theta, n_initial=n_initial, min_finest_level=min_finest_level,
             max_cost=max_cost, batch_size=batch_size, max_samples=max_samples, qoi_names=problem.columns,
         )
-    _warn_not_converged(sampler, "distribution")
+    n_not_converged = _warn_not_converged(sampler, "distribution")
     warn_not_met(f"distribution of {name}", None, estimate, tol_array)
-    return DistributionResult(column=name, cdf=estimate)
+    return DistributionResult(column=name, cdf=estimate, n_not_converged=n_not_converged)

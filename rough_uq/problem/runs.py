@@ -479,13 +479,15 @@ def _check_qoi_count(problem: ContactProblem, name: str, n_qoi: int) -> None:
         )
 
 
-def _warn_not_converged(sampler: ContactSampler, method: str) -> None:
+def _warn_not_converged(sampler: ContactSampler, method: str) -> int:
+    """Warn of the run's samples whose solve did not converge; returns their number (for the result)."""
     if sampler.n_not_converged:
         warn_at_caller(
             f"{method}: {sampler.n_not_converged} of {sampler.n_samples} samples had a solve that did not converge "
             "(kept with the QoIs of the last iterate); raise max_iter or solver_tol",
             EstimationWarning,
         )
+    return int(sampler.n_not_converged)
 
 
 #: What to change when a run stops with this ``stop_reason`` and its tolerance not met (the CLI's advice, in
@@ -651,7 +653,7 @@ def mlmc(
     with _reporting(sampler.progress, f"mlmc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
-    _warn_not_converged(sampler, "mlmc")
+    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mlmc"))
     warn_not_met("mlmc", problem.columns, result, tol)
     screened = None if statistics is None else _screened_mc_cost(problem, screening, statistics, tol, theta)
     return result if screened is None else dataclasses.replace(result, mc_cost=screened)
@@ -872,7 +874,7 @@ def mc(
     with _reporting(sampler.progress, f"mc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
-    _warn_not_converged(sampler, "mc")
+    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mc"))
     warn_not_met("mc", problem.columns, result, tol, advice=_mc_advice(result, n_initial))
     return result
 
