@@ -170,3 +170,13 @@ def test_screening_predictions_name_the_tolerances_grouped_by_qoi(memory_curve):
         assert plan.tol == (contact,) * 3 + (gap,) * 3
         assert re.search(rf"contact_area={contact:.3g} .*\n *mean_gap={gap:.3g} ", table), table
     assert "@" not in table
+
+
+def test_a_run_heading_names_a_theta_other_than_the_default():
+    # Two runs that differ in theta alone were both headed "mlmc contact_area=0.7: ...".
+    from rough_uq.report.summary import format_run
+
+    usual, other = _record("mlmc", (1.0,) * 4, 0.5), _record("mlmc", (1.0,) * 4, 0.3)
+    assert format_run(usual, COLUMNS, {}) == ["mlmc contact_area=1, mean_gap=1: running (another process is "
+                                              "computing it)"]
+    assert format_run(other, COLUMNS, {})[0].startswith("mlmc contact_area=1, mean_gap=1, theta 0.3: running")

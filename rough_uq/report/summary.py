@@ -463,6 +463,10 @@ def run_label(run: RunRecord, qoi_names: Sequence[str]) -> str:
     return f"{_method_text(run)}{where}, tol {tol_text(run.qoi_names or qoi_names, run.tol)}{theta}"
 
 
+#: The default ``estimation.theta`` (and of the Python runs); a run's heading names any other.
+_USUAL_THETA = 0.5
+
+
 def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], *,
                measured_ratio: float | None = None) -> list[str]:
     """A run as a few lines of at most about 80 characters (one summary line per QoI).
@@ -471,7 +475,9 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     """
     if run.method in TARGET_METHODS and run.qoi_names:
         qoi_names = run.qoi_names  # a cdf run has one column, whatever the study's
-    head = f"{_method_text(run)} {tol_text(qoi_names, run.tol)}"
+    # theta is part of a run's identity: two runs that differ in it alone had the same heading.
+    theta = "" if run.theta is None or run.theta == _USUAL_THETA else f", theta {run.theta:g}"
+    head = f"{_method_text(run)} {tol_text(qoi_names, run.tol)}{theta}"
     outcome = run.outcome
     if run.status != "finished" or outcome is None:
         if run.status == "running":
