@@ -1394,3 +1394,15 @@ def test_every_help_text_fits_80_columns():
         args = ["--help"] if command is None else [command, "--help"]
         lines = run(*args, env=NARROW).output.splitlines()
         assert max(len(line) for line in lines) <= 80, (command, [line for line in lines if len(line) > 80])
+
+
+def test_a_screening_smaller_than_the_studys_last_says_so(tmp_path, monkeypatch):
+    # screening.samples 10 after 20 replaced the screening and its rates without a word.
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "full.yaml", tiny_config(screening={"levels": 3, "samples": 6}))
+    write_config(tmp_path / "fewer.yaml", tiny_config(screening={"levels": 3, "samples": 4}))
+    run("screen", "full.yaml", "--out", "s.h5", "--quiet", "--workers", "1")
+    notice = ("warning: this screening uses 4 samples on levels 0..2 (screening.samples, screening.levels) where the "
+              "study's last one used 6 on levels 0..2; its rates and plans replace that one's")
+    assert notice in run("screen", "fewer.yaml", "--out", "s.h5", "--quiet", "--workers", "1").stderr
+    assert notice not in run("screen", "full.yaml", "--out", "s.h5", "--quiet", "--workers", "1").stderr

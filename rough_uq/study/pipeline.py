@@ -807,6 +807,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
         _check_screenable(config)
     levels = list(range(config.screening.levels))
     n = config.screening.samples
+    smaller = _smaller_screening_text(read_screening_record(study.store), levels, n)
     sampler = StudySampler(study, stage=STAGE_SCREENING, executor=executor, progress=progress)
     progress.start("screening")
     try:
@@ -821,7 +822,8 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
     seconds_per_cost = measured_seconds_per_cost(batches, study.model)
     predictions, problems = _predictions(config, statistics, rates, seconds_per_cost)
     caveats = exact_column_caveats(study.model, config.qoi_names, rates, statistics)
-    checks = [Diagnostic(text) for text in (*diagnose(statistics, names=config.qoi_names), *problems, *caveats)]
+    texts = (*diagnose(statistics, names=config.qoi_names), *problems, *caveats, *smaller)
+    checks = [Diagnostic(text) for text in texts]
     coarsest = choose_coarsest_level(statistics)
     record = ScreeningRecord(
         created=utc_timestamp(),
@@ -841,6 +843,21 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
     return ScreeningOutcome(statistics, rates, record)
 
 
+def _smaller_screening_text(previous: ScreeningRecord | None, levels: Sequence[int], n: int) -> tuple[str, ...]:
+    """A notice where this screening uses fewer levels or samples than the study's last one (its samples stay).
+
+    A config with ``screening.samples: 10`` replaced a 20-sample screening and its rates without a word.
+    """
+    if previous is None:
+        return ()
+    n_before, levels_before = previous.n_screened, len(previous.statistics.levels)
+    if n >= n_before and len(levels) >= levels_before:
+        return ()
+    return (f"this screening uses {n} samples on levels 0..{len(levels) - 1} (screening.samples, screening.levels) "
+            f"where the study's last one used {n_before} on levels 0..{levels_before - 1}; its rates and plans "
+            "replace that one's (the samples stay in the file: the config's earlier values screen with them again)",)
+
+
 def _check_screenable(config: StudyConfig) -> None:
     """Refuse a config too shallow to screen (:func:`run_screening`), naming ``grid.max_level``."""
     if config.grid.max_level + 1 < MIN_SCREENED_LEVELS:
@@ -848,7 +865,7 @@ def _check_screenable(config: StudyConfig) -> None:
             "grid.max_level", config.grid.max_level,
             f"an integer >= {MIN_SCREENED_LEVELS - 1} to screen: a screening needs levels 0..{MIN_SCREENED_LEVELS - 1} "
             "(the rates are fitted on levels >= 1, two of them at least); runs without a screening need none "
-            "(mlmc --tol-var / --tol-cdf, mc --level)",
+            "(mc --level; mlmc --tol-var / --tol-cdf from grid.max_level 1)",
         )
 
 
