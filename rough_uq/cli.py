@@ -430,7 +430,41 @@ class _OneLineUsage:
 
 
 class _Command(_OneLineUsage, click.Command):
-    """A ``roughuq`` command (:class:`_OneLineUsage`)."""
+    """A ``roughuq`` command (:class:`_OneLineUsage`) whose single-value options may be given once.
+
+    click keeps the last of repeated values: ``mc --level 0 --level 1`` ran on level 1 and ``--tol-cdf 0.5
+    --tol-cdf 0.6`` at 0.6 without a word, where a repeated ``--tol`` NAME is refused.
+    """
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        try:
+            _refuse_repeated_options(self, args)
+        except click.UsageError as exc:
+            raise _one_line(exc, ctx) from None
+        return super().parse_args(ctx, args)
+
+
+def _refuse_repeated_options(command: click.Command, args: list[str]) -> None:
+    """A :class:`click.UsageError` for an option that takes one value and is given more than once."""
+    single = {opt: param for param in command.params if isinstance(param, click.Option)
+              and not (param.multiple or param.is_flag or param.count) for opt in param.opts}
+    values: dict[str, list[str]] = {}
+    tokens = iter(args)
+    for token in tokens:
+        if token == "--":
+            break
+        name, has_value, value = token.partition("=")
+        param = single.get(name) if name.startswith("--") else single.get(token)
+        if param is None:
+            continue
+        if not has_value:
+            value = next(tokens, "")
+        values.setdefault(param.opts[0], []).append(value)
+    for name, given in values.items():
+        if len(given) > 1:
+            shown = ", ".join(repr(value) for value in given)
+            times = "twice" if len(given) == 2 else f"{len(given)} times"
+            raise click.UsageError(f"Option '{name}' given {times} ({shown}); give it once")
 
 
 class _Group(_OneLineUsage, click.Group):

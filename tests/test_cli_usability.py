@@ -1406,3 +1406,21 @@ def test_a_screening_smaller_than_the_studys_last_says_so(tmp_path, monkeypatch)
               "study's last one used 6 on levels 0..2; its rates and plans replace that one's")
     assert notice in run("screen", "fewer.yaml", "--out", "s.h5", "--quiet", "--workers", "1").stderr
     assert notice not in run("screen", "full.yaml", "--out", "s.h5", "--quiet", "--workers", "1").stderr
+
+
+@pytest.mark.parametrize("args, option, shown", [
+    (("mc", "--level", "0", "--tol", "1", "--level", "1"), "--level", "('0', '1')"),
+    (("mlmc", "--tol-cdf", "0.5", "--thresholds", "0:40:5", "--tol-cdf=0.6"), "--tol-cdf", "('0.5', '0.6')"),
+    (("mlmc", "--tol", "5", "--study", "a.h5", "--study", "b.h5", "--max-cost", "1"), "--study", "('a.h5', 'b.h5')"),
+], ids=["level", "tol-cdf", "study"])
+def test_a_single_value_option_given_twice_is_refused(screened, args, option, shown):
+    # click kept the last value: `mc --level 0 --level 1` ran on level 1 without a word.
+    before = (screened / "results.h5").read_bytes()
+    line = one_error_line(run(*args, expect=2))
+    command = args[0]
+    assert line == (f"error: {command}: Option '{option}' given twice {shown}; give it once; "
+                    f"see `roughuq {command} --help`")
+    assert (screened / "results.h5").read_bytes() == before
+    # --tol takes several values (NAME=EPS each), and refuses a QoI given twice as before.
+    repeated = one_error_line(run("mlmc", "--tol", "5", "--tol", "5.5", "--plan", expect=2))
+    assert repeated.endswith("allowed: one tolerance per QoI; contact_area was already given 5")
