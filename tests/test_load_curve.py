@@ -293,6 +293,12 @@ def test_tolerances_apply_per_column_unless_a_column_is_named():
     np.testing.assert_array_equal(tol, [2.0] * 3 + [0.05] * 3)
     tol = parse_tolerances(["contact_area=1.5", "contact_area@0.02=3"], config)
     np.testing.assert_array_equal(tol, [1.5, 3.0, 1.5, 0.05, 0.05, 0.05])
+    # A load is a number, as show --load reads it: @0.020 and @2e-2 name the column @0.02 ("not a QoI" before).
+    for spelled in ("0.020", "2e-2", "2.0E-02"):
+        np.testing.assert_array_equal(parse_tolerances([f"contact_area@{spelled}=3"], config),
+                                      [2.0, 3.0, 2.0, 0.05, 0.05, 0.05])
+    with pytest.raises(InvalidParameterError, match="one tolerance per QoI; contact_area@0.02 was already given 3"):
+        parse_tolerances(["contact_area@0.02=3,contact_area@0.020=4"], config)
     with pytest.raises(InvalidParameterError, match="contact_area@0.3"):
         parse_tolerances(["contact_area@0.3=1"], config)
     with pytest.raises(InvalidParameterError, match="NAME=EPS"):

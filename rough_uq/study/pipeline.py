@@ -948,6 +948,25 @@ def parse_tolerances(
     return np.array(tol, dtype=float)
 
 
+def _column_of_load(name: str, names: Sequence[str]) -> str:
+    """``name``, or the column ``QOI@LOAD`` whose load equals ``name``'s as a number (``@0.050``, ``@5e-2``).
+
+    ``show --load`` compared loads as numbers, ``--tol QOI@LOAD=EPS`` as text: ``@0.050`` was "not a QoI".
+    """
+    qoi, at, load = name.partition("@")
+    if name in names or not at:
+        return name
+    try:
+        value = float(load)
+    except ValueError:
+        return name
+    for column in names:
+        column_qoi, _, column_load = column.partition("@")
+        if column_qoi == qoi and column_load and float(column_load) == value:
+            return column
+    return name
+
+
 def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, option: str) -> dict[str, float]:
     """The tolerances ``values`` give (:func:`parse_tolerances`), by QoI or column name (a bare EPS: the one QoI's)."""
     columns = config.qoi_columns
@@ -965,6 +984,7 @@ def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, opti
                         option, part, f"NAME=EPS pairs, one per QoI ({', '.join(config.qoi)}), with several QoIs"
                     )
                 name = next(iter(config.qoi))
+            name = _column_of_load(name, names)
             if name not in names:
                 raise InvalidParameterError(option, part, f"a QoI of this study: {', '.join(names)}")
             try:
