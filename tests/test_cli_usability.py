@@ -1424,3 +1424,15 @@ def test_a_single_value_option_given_twice_is_refused(screened, args, option, sh
     # --tol takes several values (NAME=EPS each), and refuses a QoI given twice as before.
     repeated = one_error_line(run("mlmc", "--tol", "5", "--tol", "5.5", "--plan", expect=2))
     assert repeated.endswith("allowed: one tolerance per QoI; contact_area was already given 5")
+
+
+def test_merge_calls_a_missing_or_damaged_shard_a_shard(screened):
+    # "nope.h5: no such study file" and "... or start a new study file" for the shards of a merge.
+    before = (screened / "results.h5").read_bytes()
+    line = one_error_line(run("merge", "nope.h5", "--into", "results.h5", expect=2))
+    assert line == "error: nope.h5: no such shard file (`roughuq sample --out` writes one)"
+    (screened / "cut.h5").write_bytes(before[:3000])
+    line = one_error_line(run("merge", "cut.h5", "--into", "results.h5", expect=2))
+    assert line.startswith("error: cut.h5 cannot be read: ")
+    assert line.endswith("otherwise restore the file from a copy or compute the shard again (`roughuq sample`)")
+    assert (screened / "results.h5").read_bytes() == before

@@ -117,7 +117,8 @@ from rough_uq.multilevel.rates import (
 )
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
 from rough_uq.study.store import (
-    StudyStore, checked_study_path, is_hdf5_file, open_study, open_study_readonly, remove_abandoned, shard_refusal,
+    StudyFile, StudyStore, checked_study_path, is_hdf5_file, open_study, open_study_readonly, remove_abandoned,
+    shard_refusal,
 )
 from rough_uq.physics.surface import SurfaceSpectrum
 
@@ -2226,7 +2227,7 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
     batches: list[LevelBatch] = []
     for path in shards:
         _refuse_the_study_itself(study, path)
-        with open_study_readonly(path) as shard:
+        with _open_shard(path) as shard:
             _check_shard(study, path, shard)
             for level in shard.levels():
                 for stage in shard.stages(level=level):
@@ -2239,6 +2240,18 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
         added += n
         duplicates += batch.n_samples - n
     return {"added": added, "duplicates": duplicates}
+
+
+def _open_shard(path: str | Path) -> StudyFile:
+    """A shard for reading; a missing or unreadable one refused as a shard (it was called a study file, whose
+    remedy, "start a new study file", is not a shard's)."""
+    if not Path(checked_path("shard", path)).exists():
+        raise StudyFileError(f"{path}: no such shard file (`roughuq sample --out` writes one)", Path(path))
+    try:
+        return open_study_readonly(path)
+    except StudyFileError as exc:
+        text = str(exc).replace("or start a new study file", "or compute the shard again (`roughuq sample`)")
+        raise StudyFileError(text, Path(path)) from None
 
 
 def _is_the_study_file(study: Study, path: str | Path) -> bool:
