@@ -937,15 +937,16 @@ def _cdf_tolerance(text: str) -> Any:
     """``--tol-cdf``: one number in [MIN_TOL, 1), as the array of one tolerance the pipeline takes."""
     import numpy as np
 
-    from rough_uq.multilevel.allocation import MIN_TOL
+    from rough_uq.multilevel.distribution import check_cdf_tol
 
     try:
         eps = float(text)
     except ValueError:
         eps = math.nan
-    if not MIN_TOL <= eps < 1:
-        raise InvalidParameterError("--tol-cdf", text, f"a number in [{MIN_TOL:g}, 1): the RMS error of F = P(Q <= s)")
-    return np.array([eps])
+    try:
+        return np.array([check_cdf_tol(eps, "--tol-cdf")])
+    except InvalidParameterError as exc:
+        raise InvalidParameterError("--tol-cdf", text, exc.allowed) from None
 
 
 def _thresholds(text: str | None) -> Any:

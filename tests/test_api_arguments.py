@@ -269,12 +269,12 @@ def test_thresholds_of_other_than_numbers_are_refused_not_converted(thresholds):
     assert caught.value.name == "thresholds" and caught.value.value is thresholds
 
 
-@pytest.mark.parametrize("tol", [[0.2, 0.2], [0.2], 1.5, "0.2"])
+@pytest.mark.parametrize("tol", [[0.2, 0.2], [0.2], 1.5, "0.2", 1e-200])
 def test_a_distribution_tolerance_is_one_number_in_0_1_and_says_so(tol):
     # [0.2, 0.2] was told "a number > 0 (for every QoI), a sequence of one (one per QoI)", neither of which it takes.
     with pytest.raises(rough_uq.InvalidParameterError) as caught:
         rough_uq.distribution(_problem(), tol=tol, thresholds=[10.0, 20.0], executor=_NoSampling())
-    assert caught.value.name == "tol" and caught.value.allowed.startswith("one number in (0, 1)")
+    assert caught.value.name == "tol" and caught.value.allowed.startswith("one number in [1e-140, 1)")
 
 
 def test_a_screening_of_another_problem_is_refused_naming_what_differs():
@@ -392,3 +392,21 @@ def test_a_run_stopped_by_its_budget_says_what_to_change():
     message = not_met(lambda: rough_uq.mc(problem, tol=1.0, level=1, n_initial=8, max_cost=1e-9))
     assert message.endswith("the run reached max_cost before its first n_initial samples: raise max_cost or lower "
                             "n_initial")
+
+
+@pytest.mark.parametrize("samples", [10**11, 3_333_334])
+def test_a_screening_over_the_planned_sample_cap_is_refused_before_sampling(samples):
+    # As the config's screening.samples: 10**11 allocated the indices of every sample before any check.
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.screen(_problem(), levels=3, samples=samples, executor=_NoSampling())
+    assert caught.value.name == "samples" and caught.value.value == samples
+    assert caught.value.allowed.startswith("an integer in 2..3333333 (a screening of 3 levels; at most 10,000,000 ")
+
+
+@pytest.mark.parametrize("value", [None, "3", 2.5, 0])
+def test_min_finest_level_is_checked_before_the_screenings_plan_reads_it(two_qoi_screening, value):
+    # With a screening, mlmc planned from it first: min_finest_level=None ended in a bare TypeError.
+    problem = _problem(qoi=("contact_area", "mean_gap"))
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        rough_uq.mlmc(problem, tol=50.0, screening=two_qoi_screening, min_finest_level=value, executor=_NoSampling())
+    assert caught.value.name == "min_finest_level"

@@ -301,7 +301,7 @@ BAD_OPTIONS = [
     (("--tol-cdf", "0.1", "--thresholds", "25:60"), "START:STOP:COUNT"),
     (("--tol-cdf", "0.1", "--thresholds", "a:b:c"), "START:STOP:COUNT"),
     (("--tol-cdf", "0.1", "--thresholds", "25:60:2.5"), "START:STOP:COUNT"),
-    (("--tol-cdf", "1.5", "--thresholds", TINY_THRESHOLDS), "a number in [1e-140, 1)"),
+    (("--tol-cdf", "1.5", "--thresholds", TINY_THRESHOLDS), "one number in [1e-140, 1)"),
     (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--qoi", "clusters"), "one result column"),
     (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--probabilities", "0.5,1"), "in (0, 1)"),
     (("--tol-cdf", "0.1", "--thresholds", TINY_THRESHOLDS, "--probabilities", "0.5,0.5"), "distinct numbers"),

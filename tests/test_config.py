@@ -687,8 +687,22 @@ def test_a_screening_over_the_planned_sample_cap_is_refused(tmp_path, samples):
     from tests.study_configs import tiny_config, write_config
 
     path = write_config(tmp_path / "huge.yaml", tiny_config(screening={"levels": 3, "samples": samples}))
-    with pytest.raises(ConfigError, match=rf"huge.yaml: screening.samples: a screening of {re.escape(f'{3 * samples:g}')} samples "
-                       r"\(3 levels\) exceeds the 1e\+07 samples any run may plan \(got \d+; allowed: integer in "
-                       r"2..3333333\)"):
+    expected = (f"huge.yaml: screening.samples: a screening of {3 * samples:,} samples (3 levels) exceeds the "
+                f"10,000,000 samples any run may plan (got {samples}; allowed: integer in 2..3333333)")
+    with pytest.raises(ConfigError, match=re.escape(expected)):
         load_config(path)
-    assert load_config(write_config(tmp_path / "fine.yaml", tiny_config(screening={"levels": 3, "samples": 3_333_333})))
+    fine = tiny_config(screening={"levels": 3, "samples": 3_333_333})
+    assert load_config(write_config(tmp_path / "fine.yaml", fine))
+
+
+@pytest.mark.parametrize("qoi", [{"contact_area": {}}, {"clusters": {}}, {"mean_gap": {}}, {"max_pressure": {}},
+                                 {"area_above": {"critical_pressure": 0.1}}], ids=lambda q: next(iter(q)))
+@pytest.mark.parametrize("tol", [1e-200, 1e200])
+def test_every_qoi_tolerance_lies_in_the_range_the_runs_take(tmp_path, qoi, tol):
+    # qoi.max_pressure.tol took 1e-200, which the run refused later naming neither the field nor the file.
+    from tests.study_configs import tiny_config, write_config
+
+    name = next(iter(qoi))
+    path = write_config(tmp_path / "q.yaml", tiny_config(qoi={name: {**qoi[name], "tol": tol}}))
+    with pytest.raises(ConfigError, match=rf"q.yaml: qoi.{name}.tol: .*allowed: number in \[1e-140, 1e\+140\]"):
+        load_config(path)

@@ -310,8 +310,12 @@ def test_the_spread_is_telescoped_on_each_levels_own_means():
     result = cdf_from_samples(fine=fine, coarse=coarse, thresholds=np.linspace(10.0, 30.0, 21), bandwidth=2.0,
                               tol=0.9)  # warnings are errors: delta_2 = 0.5
     assert result.stop_reason == "given" and result.is_bias_estimated
+    # The spread the check uses: sqrt(0.588 - 0.339 + 0.054), each level's sample variances on its own pairs.
     centred = np.var(fine[0], ddof=1) + sum(np.var(f, ddof=1) - np.var(c, ddof=1) for f, c in zip(fine[1:], coarse[1:]))
-    assert 0.55 < math.sqrt(centred) < 0.56
+    with pytest.warns(EstimationWarning, match=rf"values \({math.sqrt(centred):.4g} each\)"):
+        wide = cdf_from_samples(fine=fine, coarse=coarse, thresholds=np.linspace(10.0, 30.0, 21), bandwidth=4.5,
+                                tol=0.9)  # delta_2 = 1.125 > 2 x 0.5513
+    assert wide.stop_reason == "bandwidth_too_wide"
 
 
 def test_the_spread_is_the_finest_levels_not_the_coarsest_ones():

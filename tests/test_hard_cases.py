@@ -872,8 +872,8 @@ def test_a_screening_sized_level_whose_variance_rests_on_one_sample_is_flagged()
     table = level_statistics(fine=[base, base + jump], coarse=[np.zeros(n), base], cost=[np.ones(n)] * 2)
     assert table.kurtosis[1, 0] == pytest.approx(n - 2 + 1 / (n - 1), rel=1e-12)
     (message,) = [m for m in diagnose(table, names=["clusters"]) if "kurtosis" in m]
-    assert message == ("level 1: kurtosis 18.1 of Q_l - Q_l-1 for clusters exceeds 10 (half its 20 samples: the "
-                       "variance rests on about 1.1 of them); its variance estimate is unreliable")
+    assert message == ("level 1: kurtosis 18.1 of Q_l - Q_l-1 for clusters exceeds 10 = 20 samples / 2: the "
+                       "variance rests on 20 / 18.1 = 1.11 of them, fewer than 2; its variance estimate is unreliable")
     # Two jumps of 20: the variance rests on about 2.5 samples, not flagged; nor one jump in 19 samples.
     jump[11] = 1.0
     table = level_statistics(fine=[base, base + jump], coarse=[np.zeros(n), base], cost=[np.ones(n)] * 2)
@@ -914,8 +914,13 @@ def test_mc_flags_a_qoi_whose_variance_rests_on_one_of_its_samples():
         warnings.simplefilter("always")
         mc(problem, tol=10.0, level=0, n_initial=30, qoi_names=["smooth", "rare"])
     messages = [str(w.message) for w in caught if "kurtosis" in str(w.message)]
-    assert messages == ["mc: kurtosis 28 of Q on level 0 for rare exceeds 15 (half its 30 samples: the variance "
-                        "rests on about 1.1 of them); the variance and error estimates are unreliable"]
+    assert messages == ["mc: kurtosis 28 of Q on level 0 for rare exceeds 15 = 30 samples / 2: the variance rests "
+                        "on 30 / 28 = 1.07 of them, fewer than 2; the variance and error estimates are unreliable"]
+    # kurtosis_limit = inf turns the check off, as documented ("never").
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mc(problem, tol=10.0, level=0, n_initial=30, qoi_names=["smooth", "rare"], kurtosis_limit=math.inf)
+    assert not [w for w in caught if "kurtosis" in str(w.message)]
 
 
 def test_heavy_tailed_integer_levels_fit_rates_with_finite_errors():

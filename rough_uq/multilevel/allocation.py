@@ -124,10 +124,13 @@ class Plan:
     is_extrapolated : ndarray of bool, shape (L+1,)
         True where ``V_l`` or ``C_l`` came from the rate models.
     bias : ndarray, shape (n_qoi,)
-        Predicted remaining bias on level ``L``.
+        Predicted remaining bias on level ``L``; where the levels a run samples
+        beyond ``L`` miss the bias (:func:`~rough_uq.multilevel.drivers.with_run_bias`),
+        the bias ``max_level`` predicts.
     is_bias_met : bool
-        Whether ``bias <= sqrt(theta) eps`` for every QoI (False only when
-        ``max_level`` capped the finest level).
+        Whether ``bias <= sqrt(theta) eps`` for every QoI (False when
+        ``max_level`` capped the finest level, or where the levels a run
+        samples miss the bias: ``with_run_bias``).
     stat_variance : ndarray, shape (n_qoi,)
         Predicted estimator variance ``sum_l V_l / N_l``.
     cost : float

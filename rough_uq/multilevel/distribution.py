@@ -106,8 +106,9 @@ is 0.94 / 0.83 / 0.57 / 0.33 / 0.20 of the largest smoothing bias over the
 thresholds at ``delta_L = 0.5 / 1 / 2 / 4 / 8 sigma``, and misses 0.0003 /
 0.003 / 0.025 / 0.10 / 0.21 of it (numerical integration). An estimate whose
 finest bandwidth ``delta_L`` exceeds :data:`BANDWIDTH_SPREAD_LIMIT` (2) times
-the standard deviation of ``Q_L`` (its first two moments telescoped over the
-levels, as the estimate is) therefore warns (:class:`~rough_uq.errors.EstimationWarning`), reports
+the standard deviation of ``Q_L`` (its variance telescoped over the levels,
+``sum_l [Var(Q_l) - Var(Q_{l-1})]`` from each level's own pairs, as the
+estimate telescopes; :class:`_Spread`) therefore warns (:class:`~rough_uq.errors.EstimationWarning`), reports
 ``stop_reason = "bandwidth_too_wide"`` with its bias not estimated, and does
 not meet its tolerance: give a narrower ``bandwidth`` (the default is twice
 the spacing of the thresholds: give finer thresholds). Below the limit, a
@@ -159,6 +160,7 @@ from rough_uq.errors import (
     is_real_number,
     warn_at_caller,
 )
+from rough_uq.multilevel.allocation import MIN_TOL
 from rough_uq.multilevel.drivers import Sampler
 from rough_uq.multilevel.statistics import _readonly
 from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc, telescope
@@ -217,11 +219,13 @@ def level_bandwidth(level: int, *, bandwidth: float, bandwidth_rate: float = 1.0
     return float(bandwidth * 2.0 ** (-bandwidth_rate * level))
 
 
-def check_cdf_tol(tol: object) -> float:
-    """The tolerance of a CDF estimate, one number in (0, 1), or :class:`InvalidParameterError` naming ``tol``."""
-    if np.ndim(tol) != 0 or not (is_real_number(tol) and 0 < tol < 1):
+def check_cdf_tol(tol: object, name: str = "tol") -> float:
+    """The tolerance of a CDF estimate, one number in [MIN_TOL, 1), or :class:`InvalidParameterError` naming
+    ``name`` (errors are compared in squares, :data:`~rough_uq.multilevel.allocation.MIN_TOL`)."""
+    if np.ndim(tol) != 0 or not (is_real_number(tol) and MIN_TOL <= tol < 1):
         # F is a probability: an RMS error of 1 or more is met by any estimate.
-        raise InvalidParameterError("tol", tol, "one number in (0, 1) (the RMS error of F on the sup norm)")
+        raise InvalidParameterError(name, tol, f"one number in [{MIN_TOL:g}, 1): the RMS error of F = P(Q <= s) "
+                                    "on the sup norm")
     return float(tol)
 
 
@@ -585,8 +589,8 @@ def _cdf_estimate(
     is_exact: bool,
 ) -> CdfEstimate:
     """The CDF estimate of ``target``; ``missed``: the value range per level whose samples the thresholds miss;
-    ``spread``: the pooled standard deviation of the values; ``is_exact``: every finest value lies a finest
-    bandwidth or more from every threshold."""
+    ``spread``: the telescoped standard deviation of ``Q_L`` (:class:`_Spread`); ``is_exact``: every finest
+    value lies a finest bandwidth or more from every threshold."""
     finest_level = int(target.levels[-1])
     finest = level_bandwidth(finest_level, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
     # A run stopped before it estimated its bias claims none; with bandwidth_rate 0 the target is the smoothed CDF.

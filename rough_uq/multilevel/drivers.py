@@ -1192,7 +1192,9 @@ def iter_mlmc(
         rates, then to 0.5). The bias tail is still summed at ``alpha`` at most
         2, and at most the decay of two finest means that differ in sign (step 3).
     kurtosis_limit : float
-        Kurtosis of ``Y_l`` above which a warning is issued (> 0; ``math.inf``: never).
+        Kurtosis of ``Y_l`` above which a warning is issued (> 0; ``math.inf``: never); from 20 samples a
+        level is also flagged above half its samples
+        (:func:`~rough_uq.multilevel.statistics.kurtosis_threshold`).
     richardson : bool
         Richardson-extrapolate the finest level where the ratios of successive
         level means are stable, else fall back to plain MLMC (module docstring).
@@ -1801,7 +1803,7 @@ def iter_mc(
     screening : LevelStatistics, optional
         Screening table (independent samples) of the same hierarchy.
     kurtosis_limit : float
-        Kurtosis of ``Q`` above which a warning is issued.
+        Kurtosis of ``Q`` above which a warning is issued, as for :func:`iter_mlmc`.
     qoi_names : sequence of str, optional
         Names of the QoI columns, one per QoI: the kurtosis warning names the
         QoIs it concerns (``for clusters``); without them it names none.

@@ -28,6 +28,7 @@ Symbols (SPEC section 5):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -40,6 +41,8 @@ __all__ = [
     "KURTOSIS_LIMIT",
     "FEWEST_VARIANCE_SAMPLES",
     "SAMPLE_KURTOSIS_CHECK_SAMPLES",
+    "kurtosis_text",
+    "kurtosis_threshold",
     "EstimationWarning",
     "LevelStatistics",
     "diagnose",
@@ -67,9 +70,10 @@ def kurtosis_threshold(n_samples: int, limit: float = KURTOSIS_LIMIT) -> float:
     """The kurtosis above which the variance of ``n_samples`` values is flagged as unreliable.
 
     ``limit``, and from :data:`SAMPLE_KURTOSIS_CHECK_SAMPLES` samples on at most
-    ``n_samples / FEWEST_VARIANCE_SAMPLES``: the variance then rests on fewer than two of the samples.
+    ``n_samples / FEWEST_VARIANCE_SAMPLES`` (the variance then rests on fewer than that many of the samples);
+    ``limit = inf`` turns the check off altogether.
     """
-    if n_samples < SAMPLE_KURTOSIS_CHECK_SAMPLES:
+    if n_samples < SAMPLE_KURTOSIS_CHECK_SAMPLES or not math.isfinite(limit):
         return limit
     return min(limit, n_samples / FEWEST_VARIANCE_SAMPLES)
 
@@ -79,8 +83,10 @@ def kurtosis_text(kurtosis: float, n_samples: int, limit: float) -> str:
     threshold = kurtosis_threshold(n_samples, limit)
     if threshold == limit:
         return f"exceeds {limit:g}"
-    return (f"exceeds {threshold:.3g} (half its {n_samples} samples: the variance rests on about "
-            f"{n_samples / kurtosis:.2g} of them)")
+    return (f"exceeds {threshold:.3g} = {n_samples} samples / {FEWEST_VARIANCE_SAMPLES:g}: the variance rests on "
+            f"{n_samples} / {kurtosis:.3g} = {n_samples / kurtosis:.3g} of them, fewer than "
+            f"{FEWEST_VARIANCE_SAMPLES:g}")
+
 
 #: Fewest samples on both levels for the statistical consistency check
 #: (:attr:`LevelStatistics.consistency`). Its bound, three times the sum of
@@ -568,7 +574,8 @@ def diagnose(
     statistics : LevelStatistics
         The table to check.
     kurtosis_limit : float
-        Largest acceptable kurtosis (default 100, as in ``mlmc_test``).
+        Largest acceptable kurtosis (default 100, as in ``mlmc_test``; ``math.inf``: no kurtosis check), and
+        from 20 samples on at most half the level's samples (:func:`kurtosis_threshold`).
     names : sequence of str, optional
         Names of the QoI columns, length ``n_qoi``: messages name the QoIs
         (``for area_above``); without them they give column indices

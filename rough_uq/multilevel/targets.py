@@ -234,7 +234,8 @@ class TargetEstimate:
         :mod:`rough_uq.multilevel.distribution`): ``tol_met`` is False then.
     n_not_converged : int
         Samples with a solve that did not converge, kept with the QoIs of their last iterate
-        (:func:`rough_uq.variance` and :func:`rough_uq.distribution` count them and warn; 0 from a level sampler).
+        (:func:`rough_uq.variance` counts them and warns, :func:`rough_uq.distribution` in its result's
+        ``n_not_converged``; 0 from a level sampler).
     """
 
     estimate: np.ndarray

@@ -287,6 +287,11 @@ def screen(
             "levels", levels, f"at most max_level + 1 = {problem.max_level + 1} (levels 0..{problem.max_level} exist)"
         )
     samples = checked_integer("samples", samples, 2)
+    if samples * levels > drivers.MAX_PLANNED_SAMPLES:  # samples=10**11 allocated their indices first
+        raise InvalidParameterError(
+            "samples", samples, f"an integer in 2..{drivers.MAX_PLANNED_SAMPLES // levels} (a screening of {levels} "
+            f"levels; at most {drivers.MAX_PLANNED_SAMPLES:,} samples in all, as any run plans)",
+        )
     sampler = problem.sampler(STAGE_SCREENING, executor=executor, progress=progress)
     indices = np.arange(samples, dtype=np.int64)
     with _reporting(sampler.progress, "screening"):
@@ -621,6 +626,8 @@ def mlmc(
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
     richardson = checked_bool("richardson", richardson)
     max_samples = _max_samples(max_samples)
+    # Before the screening's plan, which reads them (iter_mlmc checks them again).
+    drivers.check_finest_levels(min_finest_level, problem.max_level, least_max_level=2)
     statistics = _screening_of(problem, screening)
     if isinstance(rates, Rates):
         _check_qoi_count(problem, "rates", rates.n_qoi)

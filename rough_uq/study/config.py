@@ -642,8 +642,8 @@ class MaxPressureQoi(_QoiSection):
 
     kind: Literal["max_pressure"] = Field("max_pressure", exclude=True)
     tol: Float | None = _field(
-        None, description=_TOL_DESCRIPTION + " (the pressure unit of material.e_star)", allowed="number > 0 or null",
-        gt=0,
+        None, description=_TOL_DESCRIPTION + " (the pressure unit of material.e_star)", allowed=_TOL_ALLOWED,
+        ge=MIN_TOL, le=MAX_TOL,
     )
 
     @property
@@ -1037,8 +1037,8 @@ class StudyConfig(_Section):
             problems.append(
                 _problem(
                     "screening.samples",
-                    f"a screening of {n_screened:g} samples ({self.screening.levels} levels) exceeds the "
-                    f"{MAX_PLANNED_SAMPLES:g} samples any run may plan",
+                    f"a screening of {n_screened:,} samples ({self.screening.levels} levels) exceeds the "
+                    f"{MAX_PLANNED_SAMPLES:,} samples any run may plan",
                     self.screening.samples,
                     f"integer in 2..{MAX_PLANNED_SAMPLES // self.screening.levels}",
                 )

@@ -130,9 +130,7 @@ def check_threads(threads: object, name: str = "threads") -> int:
     ``1..max_workers()`` (at most 4 per core, as for workers): with ``solver.threads: 10000`` two workers
     died creating their OpenMP threads, and a rerun failed the same way."""
     if not (is_integer(threads) and 1 <= threads <= max_workers()):
-        cores = available_cores()
-        raise InvalidParameterError(name, threads, f"an integer in 1..{max_workers()} (at most {MAX_WORKERS_PER_CORE} "
-                                    f"per core; this process may use {cores} core{'s' if cores != 1 else ''})")
+        raise InvalidParameterError(name, threads, _workers_allowed())
     return int(threads)
 
 

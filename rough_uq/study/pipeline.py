@@ -71,7 +71,6 @@ from rough_uq.multilevel.drivers import (
     refuse_large_plan,
     starting_forecast,
     starting_plan,
-    with_run_bias,
 )
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.fft_wisdom import prepare_wisdom
@@ -785,6 +784,19 @@ def _base_tolerance(config: StudyConfig, statistics: LevelStatistics) -> np.ndar
     return np.array(base)
 
 
+def _marked_as_runs_refuse(prediction: Plan, config: StudyConfig, rates: Rates, statistics: LevelStatistics) -> Plan:
+    """The table's optimal plan, unreachable (with the bias that decides it) where ``roughuq mlmc`` refuses it.
+
+    The run starts from :func:`~rough_uq.multilevel.drivers.starting_plan` (its coarsest level may differ) and
+    samples levels its bias test needs beyond a plan's finest (:func:`~rough_uq.multilevel.drivers.with_run_bias`).
+    """
+    start = starting_plan(tol=prediction.tol, rates=rates, statistics=statistics, theta=prediction.theta,
+                          max_level=config.grid.max_level)
+    if start.is_bias_met or not prediction.is_bias_met:
+        return prediction
+    return replace(prediction, bias=start.bias, is_bias_met=False)
+
+
 def _no_prediction(names: Sequence[str], rates: Rates, statistics: LevelStatistics, exc: Exception | None) -> str:
     """Why the screening predicts no cost, in words (the QoIs whose bias does not decay, by name)."""
     stalled = stalled_bias(names, rates, statistics)
@@ -902,9 +914,8 @@ def _predictions(
             # E.g. a bias that does not decay yet (alpha <= 0 on pre-asymptotic
             # levels): keep the table and rates, say why nothing can be predicted.
             return tuple(predictions), [_no_prediction(config.qoi_names, rates, statistics, exc)]
-        # Marked unreachable as `mlmc` refuses it: where the run's own levels cannot meet the bias either.
-        prediction = with_run_bias(prediction, rates=planned, statistics=statistics, max_level=config.grid.max_level)
-        predictions.append(PlanRecord.from_plan(prediction, seconds_per_cost))
+        predictions.append(PlanRecord.from_plan(_marked_as_runs_refuse(prediction, config, planned, statistics),
+                                                seconds_per_cost))
     return tuple(predictions), []
 
 
