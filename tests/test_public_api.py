@@ -683,6 +683,23 @@ def test_a_screening_forecasts_what_mlmc_draws_first_and_what_it_costs():
     assert repr(forecast).endswith(f"is_bias_met={forecast.is_bias_met})") and "array(" not in repr(forecast)
 
 
+def test_a_forecast_previews_the_run_of_a_deeper_max_level_the_refusal_suggests():
+    # "or raise the problem's max_level (the same screening serves it)", but the forecast knew only the screened
+    # problem's max_level. Synthetic screening: level means 0.3 / 0.15 on levels 1 / 2, max_level 2 misses tol 0.2.
+    problem = _problem(max_level=2)
+    statistics = level_statistics(**shifted_screening((0.0, 0.3, 0.15), seed=5))
+    screening = dataclasses.replace(rough_uq.screen(problem, levels=3, samples=4), statistics=statistics,
+                                    rates=fit_rates(statistics))
+    shallow, deep = screening.forecast(tol=0.2), screening.forecast(tol=0.2, max_level=5)
+    assert not shallow.is_bias_met and deep.is_bias_met and len(deep.n_samples) > len(shallow.n_samples)
+    served = dataclasses.replace(screening, problem=dataclasses.replace(problem, max_level=5))
+    assert repr(served.forecast(tol=0.2)) == repr(deep)
+    with pytest.raises(rough_uq.EstimationError, match=r"its forecast\(tol, max_level=...\) previews the run"):
+        rough_uq.mlmc(problem, tol=0.2, screening=screening)
+    with pytest.raises(rough_uq.InvalidParameterError, match="^max_level: got 1; allowed: an integer >= 2"):
+        screening.forecast(tol=0.2, max_level=1)
+
+
 def test_mc_from_a_screening_with_a_flat_bias_plans_with_the_rate_mlmc_runs_use():
     # Level means -0.09, +0.084 (alpha 0.1): the bias |E[Y_2]| / (2^0.1 - 1) = 1.2 sent MC to max_level with a
     # bias too large for tol 1 ("bias" stop); MLMC runs floor alpha at 0.5 (bias 0.2) and so does MC's plan now.

@@ -131,18 +131,25 @@ class ScreeningResult:
     problem: ContactProblem | None = None
     seconds_per_cost: float | None = None
 
-    def forecast(self, tol: object, *, theta: float = 0.5, richardson: bool = False) -> RunForecast:
+    def forecast(self, tol: object, *, theta: float = 0.5, richardson: bool = False,
+                 max_level: int | None = None) -> RunForecast:
         """What :func:`mlmc` with this screening will draw first and cost, before any sample (as ``roughuq mlmc``
         forecasts).
 
         ``tol``, ``theta`` and ``richardson`` as in :func:`mlmc`. The plan is the one the run starts from (the
         rates floored as it floors them, :func:`~rough_uq.multilevel.drivers.planning_rates`); the run then
-        adapts it to its own samples. Raises :class:`~rough_uq.errors.EstimationError` where the screening's
-        bias does not decay (:func:`mlmc` cannot choose a finest level then).
+        adapts it to its own samples. ``max_level`` (default the screened problem's) forecasts the run of the
+        problem with that ``max_level`` (``dataclasses.replace(problem, max_level=...)``, which the same
+        screening serves, as the refusal of an unreachable tolerance suggests). Raises
+        :class:`~rough_uq.errors.EstimationError` where the screening's bias does not decay (:func:`mlmc`
+        cannot choose a finest level then).
         """
         problem = self.problem
         if problem is None:
             raise InvalidParameterError("problem", None, "the screening's ContactProblem (a result of screen())")
+        if max_level is not None:
+            problem = dataclasses.replace(problem, max_level=max_level)  # checked as the problem checks it
+            drivers.check_finest_levels(2, problem.max_level, least_max_level=2)
         tol = _tolerances(tol, problem.n_qoi, problem.columns)
         theta = _check_fraction("theta", theta)
         richardson = checked_bool("richardson", richardson)  # bool("no") is True
@@ -678,7 +685,8 @@ def _refuse_unreachable(problem: ContactProblem, tol: np.ndarray, prediction: Pl
     raise EstimationError(unreachable_text(
         problem.columns, tol, prediction, tol_name="tol", level_name="max_level", max_level=finest,
         grid=problem.grid(finest), n_screened=int(np.min(statistics.n_samples)),
-        advice=f"{_UNREACHABLE_ADVICE[method]}; or raise the problem's max_level (the same screening serves it)",
+        advice=f"{_UNREACHABLE_ADVICE[method]}; or raise the problem's max_level (the same screening serves it; "
+        "its forecast(tol, max_level=...) previews the run)",
     ))
 
 
