@@ -208,6 +208,7 @@ from rough_uq.multilevel.statistics import (
     _Moments,
     _qoi_text,
     _readonly,
+    _summary,
     diagnose,
     kurtosis_text,
     kurtosis_threshold,
@@ -429,6 +430,18 @@ class EstimationResult:
     dropped_levels: tuple[DroppedLevel, ...] = ()
     qoi_names: tuple[str, ...] | None = None
     n_not_converged: int = 0
+
+    def __repr__(self) -> str:
+        # One line for notebooks and print(), with the RMSE (a property the dataclass repr left out); the
+        # per-QoI arrays of a load curve's columns (944 characters for 6) summarised as TargetEstimate's are.
+        names = self.qoi_names
+        shown = repr(names) if names is None or len(names) <= 6 else f"<{len(names)} columns>"
+        return (
+            f"EstimationResult(method={self.method!r}, qoi_names={shown}, estimate={_summary(self.estimate)}, "
+            f"rmse={_summary(self.rmse)}, tol={_summary(self.tol)}, tol_met={self.tol_met}, "
+            f"stop_reason={self.stop_reason!r}, levels={np.asarray(self.levels).tolist()}, "
+            f"n_samples={np.asarray(self.n_samples).tolist()}, n_not_converged={self.n_not_converged})"
+        )
 
     @property
     def rmse(self) -> float | np.ndarray:

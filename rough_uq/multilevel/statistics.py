@@ -105,6 +105,18 @@ CONSISTENCY_CHECK_SAMPLES = 5
 _ROUNDING = 64 * np.finfo(float).eps
 
 
+#: Arrays of up to this many values are shown in a summary (:func:`_summary`), longer ones by their size.
+_SHOWN_VALUES = 6
+
+
+def _summary(values: object) -> str:
+    """``[1.23, 4.56]`` (three significant digits), or ``<121 values>`` for a long array (the results' reprs)."""
+    values = np.atleast_1d(np.asarray(values, dtype=float))
+    if values.size > _SHOWN_VALUES:
+        return f"<{values.size} values>"
+    return "[" + ", ".join(f"{value:.3g}" for value in values) + "]"
+
+
 def _readonly(array: np.ndarray) -> np.ndarray:
     array = np.array(array)
     array.setflags(write=False)

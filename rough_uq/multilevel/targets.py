@@ -128,6 +128,7 @@ from rough_uq.multilevel.statistics import (
     EstimationWarning,
     _checked_names,
     _readonly,
+    _summary,
     diagnose,
     level_statistics,
 )
@@ -301,18 +302,6 @@ class TargetEstimate:
             f"tol={_summary(self.tol)}, tol_met={self.tol_met}, stop_reason={self.stop_reason!r}, "
             f"levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()})"
         )
-
-
-#: Arrays of up to this many values are shown in a summary (:func:`_summary`), longer ones by their size.
-_SHOWN_VALUES = 6
-
-
-def _summary(values: np.ndarray) -> str:
-    """``[1.23, 4.56]`` (three significant digits), or ``<121 values>`` for a long array."""
-    values = np.atleast_1d(np.asarray(values, dtype=float))
-    if values.size > _SHOWN_VALUES:
-        return f"<{values.size} values>"
-    return "[" + ", ".join(f"{value:.3g}" for value in values) + "]"
 
 
 # --------------------------------------------------------------------------
