@@ -846,13 +846,18 @@ def test_plan_with_zero_variances_and_the_zero_cost_guard():
     assert info.value.name == "costs"
 
 
+def _jump_table(n: int, jumps: list[int]):
+    """Two levels of an integer QoI (a cluster count) whose level difference is 1 in the samples ``jumps``."""
+    base = np.arange(n) % 7 + 20.0
+    jump = np.zeros(n)
+    jump[jumps] = 1.0
+    return level_statistics(fine=[base, base + jump], coarse=[np.zeros(n), base], cost=[np.ones(n)] * 2)
+
+
 def test_bernoulli_level_difference_has_the_exact_heavy_kurtosis():
     # Integer QoI (a cluster count) whose level difference is 1 in one sample of n.
     n = 1000
-    base = np.arange(n) % 7 + 20.0
-    jump = np.zeros(n)
-    jump[123] = 1.0
-    table = level_statistics(fine=[base, base + jump], coarse=[np.zeros(n), base], cost=[np.ones(n)] * 2)
+    table = _jump_table(n, [123])
     p = 1.0 / n
     # Population kurtosis of a Bernoulli(p) variable.
     assert table.kurtosis[1, 0] == pytest.approx((1.0 - 3.0 * p * (1.0 - p)) / (p * (1.0 - p)), rel=1e-12)
@@ -866,21 +871,14 @@ def test_a_screening_sized_level_whose_variance_rests_on_one_sample_is_flagged()
     # alone a default screening (20 samples per level) could never flag a level, however few samples its V_l
     # rests on. A cluster-count difference of 1 in one sample of 20 now is.
     n = 20
-    base = np.arange(n) % 7 + 20.0
-    jump = np.zeros(n)
-    jump[5] = 1.0
-    table = level_statistics(fine=[base, base + jump], coarse=[np.zeros(n), base], cost=[np.ones(n)] * 2)
+    table = _jump_table(n, [5])
     assert table.kurtosis[1, 0] == pytest.approx(n - 2 + 1 / (n - 1), rel=1e-12)
     (message,) = [m for m in diagnose(table, names=["clusters"]) if "kurtosis" in m]
     assert message == ("level 1: kurtosis 18.1 of Q_l - Q_l-1 for clusters exceeds 10 = 20 samples / 2: the "
                        "variance rests on 20 / 18.1 = 1.11 of them, fewer than 2; its variance estimate is unreliable")
     # Two jumps of 20: the variance rests on about 2.5 samples, not flagged; nor one jump in 19 samples.
-    jump[11] = 1.0
-    table = level_statistics(fine=[base, base + jump], coarse=[np.zeros(n), base], cost=[np.ones(n)] * 2)
-    assert not [m for m in diagnose(table) if "kurtosis" in m]
-    short = level_statistics(fine=[base[:19], base[:19] + np.eye(19)[3]], coarse=[np.zeros(19), base[:19]],
-                             cost=[np.ones(19)] * 2)
-    assert not [m for m in diagnose(short) if "kurtosis" in m]
+    assert not [m for m in diagnose(_jump_table(n, [5, 11])) if "kurtosis" in m]
+    assert not [m for m in diagnose(_jump_table(19, [3])) if "kurtosis" in m]
 
 
 @pytest.mark.parametrize("seed", range(20))
