@@ -237,8 +237,8 @@ MIN_TOL = 1e-140
 MAX_TOL = 1e140
 
 #: What :func:`_check_tol` allows, in words (for the messages of the layers that check tolerances first).
-TOL_RANGE_TEXT = f"in [{MIN_TOL:g}, {MAX_TOL:g}] (errors are compared in squares, which underflow or overflow " \
-    "beyond; express the QoI in another unit)"
+TOL_RANGE_TEXT = (f"in [{MIN_TOL:g}, {MAX_TOL:g}] (errors are compared in squares, which underflow or overflow "
+                  "beyond; express the QoI in another unit)")
 
 
 def _check_tol(tol: object, n_qoi: int | None) -> np.ndarray:
