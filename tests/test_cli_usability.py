@@ -1436,3 +1436,14 @@ def test_merge_calls_a_missing_or_damaged_shard_a_shard(screened):
     assert line.startswith("error: cut.h5 cannot be read: ")
     assert line.endswith("otherwise restore the file from a copy or compute the shard again (`roughuq sample`)")
     assert (screened / "results.h5").read_bytes() == before
+
+
+def test_the_screening_legend_is_printed_once_under_the_last_table(tmp_path, monkeypatch):
+    # A load curve of 20 columns printed the 5-line legend under each of its 20 tables.
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("COLUMNS", "100")
+    qoi = {"contact_area": {"tol": 4.0}, "mean_gap": {"tol": 0.1}}
+    write_config(tmp_path / "two.yaml", tiny_config(qoi=qoi, load={"relative": [0.1, 0.2]}))
+    output = run("screen", "two.yaml", "--out", "s.h5", "--workers", "1").output
+    assert output.count("Screening of ") == 4 and output.count("kurt: kurtosis of Y") == 1
+    assert output.index("kurt: kurtosis of Y") > output.rindex("Screening of ")

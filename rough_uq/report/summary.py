@@ -633,7 +633,8 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
     console.print(f"screened levels {stats.levels[0]}..{stats.levels[-1]}, {screening.n_screened} samples each",
                   highlight=False)
     for q, name in enumerate(qoi_names):
-        console.print(_screening_table(stats, q, name, _column_unit(units, name)))
+        # The legend once, under the last table: a load curve of 20 columns printed it 20 times (100 lines).
+        console.print(_screening_table(stats, q, name, _column_unit(units, name), legend=q == len(qoi_names) - 1))
     table = _table("Time per sample")
     for column in ("level", "grid", "modelled cost", "measured"):
         table.add_column(column, justify="right")
@@ -647,15 +648,11 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
         console.print(_predictions_table(screening))
 
 
-def _screening_table(stats: Any, q: int, name: str, unit: str | None) -> Any:
+def _screening_table(stats: Any, q: int, name: str, unit: str | None, *, legend: bool = True) -> Any:
     table = _table(escape(f"Screening of {_labelled(name, unit or '')} per level"))
-    # What a reader cannot guess from the header (the rest is the usual MLMC notation, README).
-    table.caption = ("Y = Q_l - Q_(l-1) on coupled grids; kurt: kurtosis of Y (3 for Gaussian Y; var Y rests on "
-                     f"about N / kurt samples: flagged above {KURTOSIS_LIMIT:g}, and from "
-                     f"{SAMPLE_KURTOSIS_CHECK_SAMPLES} samples above N / {FEWEST_VARIANCE_SAMPLES:g}); "
-                     "check: |mean Y - (mean Q_l - mean Q_(l-1))| "
-                     "over 3 times the sum of the three means' standard errors; above 1 the levels do not telescope")
-    table.caption_justify = "left"
+    if legend:
+        table.caption = _SCREENING_LEGEND
+        table.caption_justify = "left"
     for column in ("level", "N", "mean Q", "var Q", "mean Y", "var Y", "kurt", "check"):
         table.add_column(column, justify="right")
     for i, level in enumerate(stats.levels):
@@ -666,6 +663,14 @@ def _screening_table(stats: Any, q: int, name: str, unit: str | None) -> Any:
             _g(stats.kurtosis[i][q]), _g(stats.consistency[i][q], 2),
         )
     return table
+
+
+#: What a reader of the screening tables cannot guess from their headers (the rest is the usual MLMC notation).
+_SCREENING_LEGEND = ("Y = Q_l - Q_(l-1) on coupled grids; kurt: kurtosis of Y (3 for Gaussian Y; var Y rests on "
+                     f"about N / kurt samples: flagged above {KURTOSIS_LIMIT:g}, and from "
+                     f"{SAMPLE_KURTOSIS_CHECK_SAMPLES} samples above N / {FEWEST_VARIANCE_SAMPLES:g}); "
+                     "check: |mean Y - (mean Q_l - mean Q_(l-1))| "
+                     "over 3 times the sum of the three means' standard errors; above 1 the levels do not telescope")
 
 
 def _print_rates(console: Any, screening: ScreeningRecord, qoi_names: Sequence[str]) -> None:
