@@ -536,6 +536,10 @@ def validate(config_paths: Sequence[str]) -> None:
         grids = [config.grid.n_at(level) for level in range(config.grid.max_level + 1)]
         click.echo(f"{config_path}: valid (schema version {config.schema_version})")
         click.echo(f"  QoIs: {', '.join(f'{n} [{s.unit_label}]' for n, s in config.qoi.items())}")
+        if config.load.n_loads > 1:  # the columns a run estimates (and names in --tol QOI@LOAD=EPS)
+            loads = ", ".join(f"{value:g}" for value in config.load.values)
+            click.echo(f"  load curve: {config.load.n_loads} {config.load.kind} loads ({loads}), "
+                       f"{len(config.qoi_names)} columns QOI@LOAD")
         # Information only: a config is valid whatever machine reads it; commands warn before computing.
         finest, memory = solver_memory_bytes(grids[-1]), _physical_memory_bytes()
         here = "" if memory is None else f"; this machine has {_memory(memory)}" + (

@@ -1447,3 +1447,13 @@ def test_the_screening_legend_is_printed_once_under_the_last_table(tmp_path, mon
     output = run("screen", "two.yaml", "--out", "s.h5", "--workers", "1").output
     assert output.count("Screening of ") == 4 and output.count("kurt: kurtosis of Y") == 1
     assert output.index("kurt: kurtosis of Y") > output.rindex("Screening of ")
+
+
+def test_validate_names_a_load_curve_and_its_columns(tmp_path):
+    # It listed the QoIs only: nothing said the study has a column per QoI and load.
+    qoi = {"contact_area": {"tol": 4.0}, "mean_gap": {"tol": 0.1}}
+    curve = write_config(tmp_path / "curve.yaml", tiny_config(qoi=qoi, load={"relative": [0.2, 0.05, 0.1]}))
+    lines = run("validate", str(curve)).output.splitlines()
+    assert "  load curve: 3 relative loads (0.2, 0.05, 0.1), 6 columns QOI@LOAD" in lines
+    single = write_config(tmp_path / "one.yaml", tiny_config(qoi=qoi))
+    assert not any("load curve" in line for line in run("validate", str(single)).output.splitlines())
