@@ -1411,6 +1411,9 @@ def merge(shards: Sequence[str], study_path: str) -> None:
     click.echo(f"{study_path}: added {_counted(counts['added'], 'sample')} from {_counted(len(shards), 'shard')}")
     if counts["duplicates"]:
         click.echo(f"warning: skipped {_counted(counts['duplicates'], 'sample')} already in the study", err=True)
+    for path in counts["studies"]:
+        click.echo(f"note: {path} is a study file, not a shard: only its samples are merged (the new ones added), "
+                   "not its screening or runs", err=True)
 
 
 @main.command()

@@ -1457,3 +1457,11 @@ def test_validate_names_a_load_curve_and_its_columns(tmp_path):
     assert "  load curve: 3 relative loads (0.2, 0.05, 0.1), 6 columns QOI@LOAD" in lines
     single = write_config(tmp_path / "one.yaml", tiny_config(qoi=qoi))
     assert not any("load curve" in line for line in run("validate", str(single)).output.splitlines())
+
+
+def test_merge_says_when_an_input_is_a_whole_study(screened):
+    # A study file given as a shard lost its screening and run records without a word.
+    (screened / "copy.h5").write_bytes((screened / "results.h5").read_bytes())
+    result = run("merge", "copy.h5", "--into", "results.h5")
+    assert ("note: copy.h5 is a study file, not a shard: only its samples are merged (the new ones added), not its "
+            "screening or runs") in result.stderr

@@ -2231,15 +2231,19 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
     Returns
     -------
     dict
-        ``{"added": n, "duplicates": n}``.
+        ``{"added": n, "duplicates": n, "studies": [paths]}``, ``studies`` the inputs that are study files, not
+        shards (their samples are added; their screening and run records are not).
     """
     from rough_uq.study.store import DuplicateSampleWarning
 
     batches: list[LevelBatch] = []
+    studies = []
     for path in shards:
         _refuse_the_study_itself(study, path)
         with _open_shard(path) as shard:
             _check_shard(study, path, shard)
+            if shard.role != "shard":
+                studies.append(str(path))
             for level in shard.levels():
                 for stage in shard.stages(level=level):
                     batches.append(shard.read_samples(level=level, stage=stage))
@@ -2250,7 +2254,7 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
             n = study.store.append_samples(batch)
         added += n
         duplicates += batch.n_samples - n
-    return {"added": added, "duplicates": duplicates}
+    return {"added": added, "duplicates": duplicates, "studies": studies}
 
 
 def _open_shard(path: str | Path) -> StudyFile:
