@@ -116,10 +116,24 @@ def test_a_tall_spike_converges_at_the_loads_just_before_the_rest_touches(seed, 
     assert all(sol.contact[top] for top in tops)
 
 
+@pytest.fixture
+def estimated_plans():
+    """FFTW_ESTIMATE plans, as a fresh process has them: a test before may have left measured plans (the
+    pipeline's), whose rounding moves where an iteration at the rounding floor stalls."""
+    from rough_uq.physics import fft
+
+    previous = fft._PLANNER.wisdom
+    fft.use_wisdom(None)
+    yield
+    fft.use_wisdom(previous)
+
+
 @pytest.mark.parametrize(("seed", "n"), [(1, 64), (3, 128)])
-def test_a_solve_stalled_at_the_rounding_floor_keeps_its_answer_through_the_hand_over(seed, n):
+def test_a_solve_stalled_at_the_rounding_floor_keeps_its_answer_through_the_hand_over(seed, n, estimated_plans):
     # tol 1e-17 is below what rounding allows: the preconditioned iteration stalls at an error of 1e-15. Handed
     # over to a plain start from uniform pressure, the same 100 iterations ended at an error of 6.5e-6 or 4e-4.
+    # With the pipeline's measured plans the same surfaces went on halving their error past 100 iterations (no
+    # stall to test): the test failed after tests/test_pipeline.py in one process.
     s = sample_surface(SPECTRUM, n, np.random.default_rng(seed))
     sol = solve_contact(s, system_size=L, mean_pressure=0.05 * SPECTRUM.rms_slope, tol=1e-17, max_iter=100)
     assert sol.path == "preconditioned+plain" and not sol.converged
