@@ -1128,3 +1128,17 @@ def test_a_plan_below_the_runs_levels_is_unreachable_where_those_levels_miss_the
     level_3 = plan(tol=np.array([0.6]), rates=rates, statistics=statistics, theta=0.5, max_level=3, finest_level=3,
                    coarsest_level=0)
     assert extended.is_bias_met == level_3.is_bias_met
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_batch_size_changes_no_result(seed):
+    # Runs re-planned after every batch: rough_uq.mlmc drew N_l 21 10 10 with batches of 1 and 22 10 10 with
+    # batches of 10 (another estimate), mc 38 / 40 / 43 samples. A round now draws all a level misses.
+    problem = Synthetic(seed=seed, scales=(1.0, 2.0))
+    runs = {size: (run_quietly(mlmc, problem, tol=0.05, batch_size=size)[0],
+                   run_quietly(mc, problem, tol=0.05, level=2, batch_size=size)[0]) for size in (1, 3, 10, None)}
+    for mean_run, mc_run in runs.values():
+        np.testing.assert_array_equal(mean_run.n_samples, runs[None][0].n_samples)
+        np.testing.assert_array_equal(mean_run.estimate, runs[None][0].estimate)
+        np.testing.assert_array_equal(mc_run.n_samples, runs[None][1].n_samples)
+        np.testing.assert_array_equal(mc_run.estimate, runs[None][1].estimate)

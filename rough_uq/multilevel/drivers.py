@@ -66,8 +66,9 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    ``sqrt(V_l / (N_run + N_screening))`` for the Richardson ratio check). The
    estimate itself uses the run's samples only. Without a screening, every
    level keeps at least ``n_initial`` samples.
-2. Draw the missing samples level by level in batches of at most
-   ``batch_size`` (where ``max_cost`` cannot pay what the current plan
+2. Draw the missing samples level by level, each level all it misses, in
+   batches of at most ``batch_size``, so that the plans and the result do not
+   depend on the batch size (where ``max_cost`` cannot pay what the current plan
    still misses, at the costs per sample measured so far, a round draws on
    each level the share of its missing samples that the budget left pays,
    so that a run the budget stops has its samples in about the planned
@@ -1088,12 +1089,19 @@ def _drive(
     while not run.stop_reason:
         pending = hierarchy.pending()
         missing = [hierarchy.targets[samples.level] - samples.n for samples in pending]
-        counts = round_counts(missing, batch_cap, _round_share(run, pending, missing, max_cost))
+        share = _round_share(run, pending, missing, max_cost)
+        counts = round_counts(missing, batch_cap, share)
         for samples, count in zip(pending, counts):
-            # A level needs two samples for a variance (_batch_size refuses to start it with fewer).
-            batches, is_over_budget = _draw(run, sampler, samples, max(count, 2 - samples.n), max_cost)
-            for batch in batches:
-                yield _batch_event(hierarchy, samples.level, batch)
+            is_over_budget = False
+            while not is_over_budget:
+                # A level needs two samples for a variance (_batch_size refuses to start it with fewer).
+                batches, is_over_budget = _draw(run, sampler, samples, max(count, 2 - samples.n), max_cost)
+                for batch in batches:
+                    yield _batch_event(hierarchy, samples.level, batch)
+                # Without a budget that cuts the round, a level gets all it misses before the next plan, in
+                # batches of batch_size: the plans, and so the result, do not depend on the batch size.
+                if share is not None or samples.n >= hierarchy.targets[samples.level]:
+                    break
             if is_over_budget:
                 run.stop_reason = "max_cost"
                 break
@@ -1190,10 +1198,9 @@ def iter_mlmc(
         ``math.inf``): no budget.
     batch_size : int or None
         Largest batch per sampler call (None: no cap). Smaller batches give
-        more frequent events and store writes, and more frequent plans: the
-        run re-estimates ``V_l`` after every round of batches (step 2), so
-        another batch size can end with other ``N_l`` and another estimate
-        (sample ``i`` of level ``l`` is the same whatever the batch size).
+        more frequent events and store writes; the plans do not change (a
+        round draws all a level misses before the next plan, step 2), so
+        neither does the result, except where ``max_cost`` cuts a round.
     screening : LevelStatistics, optional
         Screening table (from independent samples); sets the initial finest
         level and ``N_l`` via :func:`~rough_uq.multilevel.allocation.plan`, and its ``V_l``
@@ -1811,8 +1818,7 @@ def iter_mc(
         stops before its first ``n_initial`` samples (2 from a screening) does
         not meet ``tol``.
     batch_size : int or None
-        Largest batch per sampler call; the run re-plans after each, so another
-        size can end with another ``N`` (as for :func:`iter_mlmc`).
+        Largest batch per sampler call; the result does not depend on it (as for :func:`iter_mlmc`).
     screening : LevelStatistics, optional
         Screening table (independent samples) of the same hierarchy.
     kurtosis_limit : float

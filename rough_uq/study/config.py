@@ -847,8 +847,8 @@ class EstimationConfig(_Section):
     )
     batch_size: Int = _field(
         10,
-        description="Samples computed and stored together (count); a run re-plans after each batch, so another size "
-        "can end with other sample counts (each sample is the same)",
+        description="Samples computed and stored together (count); a run draws all a level misses before its next "
+        "plan, so the size changes no result (but a max_cost budget cuts a round short)",
         allowed="integer >= 1",
         ge=1,
     )
