@@ -92,7 +92,7 @@ from rough_uq.study.records import (
     read_screening_record,
     utc_timestamp,
 )
-from rough_uq.problem.columns import tol_text
+from rough_uq.problem.columns import LOAD_SEPARATOR, column_name, tol_text
 from rough_uq.problem.contact import ContactProblem
 from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
@@ -961,22 +961,18 @@ def parse_tolerances(
 
 
 def _column_of_load(name: str, names: Sequence[str]) -> str:
-    """``name``, or the column ``QOI@LOAD`` whose load equals ``name``'s as a number (``@0.050``, ``@5e-2``).
+    """``name``, or ``QOI@LOAD`` with the load written as column names write it (:func:`column_name`):
+    ``@0.050`` and ``@5e-2`` name ``@0.05``.
 
     ``show --load`` compared loads as numbers, ``--tol QOI@LOAD=EPS`` as text: ``@0.050`` was "not a QoI".
     """
-    qoi, at, load = name.partition("@")
+    qoi, at, load = name.partition(LOAD_SEPARATOR)
     if name in names or not at:
         return name
     try:
-        value = float(load)
+        return column_name(qoi, float(load))
     except ValueError:
         return name
-    for column in names:
-        column_qoi, _, column_load = column.partition("@")
-        if column_qoi == qoi and column_load and float(column_load) == value:
-            return column
-    return name
 
 
 def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, option: str) -> dict[str, float]:
