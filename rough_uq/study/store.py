@@ -72,7 +72,9 @@ crash) is a copy-on-write transaction: close the file, copy ``<path>`` to
 old or the new complete file. These cost a copy of the file but happen a few
 times per command (run records are written when a run starts and ends).
 Temporary files left by a killed writer are removed when the study is next
-opened for writing.
+opened for writing. Ctrl-C and SIGTERM are held back while an append or a
+transaction writes (:mod:`rough_uq.study.signals`): the command stops once
+the write is done, so a second Ctrl-C in the final save loses no batch.
 
 Reading
 -------
@@ -143,6 +145,7 @@ import numpy as np
 from rough_uq.problem.batch import LevelBatch
 from rough_uq.errors import DuplicateSampleWarning, StudyFileError, checked_path, warn_at_caller
 from rough_uq.study.records import utc_timestamp
+from rough_uq.study.signals import signals_held
 
 __all__ = [
     "FORMAT",
@@ -417,8 +420,9 @@ class StudyStore(ABC):
         n_new = int(np.count_nonzero(keep))
         if n_new:
             rows = {name: values[keep] for name, values in _batch_columns(batch).items()}
-            self._append_rows(batch.level, rows)
-            stored.setdefault(batch.stage, _IndexSet()).add(rows["index"])
+            with signals_held():  # a Ctrl-C meanwhile stops the command once the rows are stored
+                self._append_rows(batch.level, rows)
+                stored.setdefault(batch.stage, _IndexSet()).add(rows["index"])
         return n_new
 
     def _indices_by_stage(self, level: int) -> dict[int, _IndexSet]:
@@ -1059,7 +1063,8 @@ class StudyFile(StudyStore):
         """Apply ``action`` to a copy of the file, then atomically replace the file by the copy."""
         self._check_writable()
         self._close_handle()  # a complete file on disk, without the writer's mark, to copy
-        _replace_atomically(self.path, action, copy_from=self.path)
+        with signals_held():  # a Ctrl-C meanwhile stops the command once the file is replaced
+            _replace_atomically(self.path, action, copy_from=self.path)
 
     # -- storage primitives ----------------------------------------------------
 
