@@ -338,6 +338,34 @@ def test_version_1_file_is_converted_when_opened_for_writing(tmp_path: Path) -> 
     assert sorted(os.listdir(tmp_path)) == ["study.h5"]
 
 
+def _as_version_2(path: Path) -> None:
+    """Make ``path`` (written by this store) a version-2 file: no checksums of its rows."""
+    with h5py.File(path, "r+") as f:
+        f.attrs["format_version"] = 2
+        for level in f["samples"].values():
+            del level["checksum"]
+
+
+def test_version_2_file_is_read_unchecked_and_converted_when_opened_for_writing(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, [0, 1]))
+        study.append_samples(make_batch(0, 0, [2]))
+    _as_version_2(path)
+    with open_study_readonly(path) as reader:
+        assert reader.format_version == 2
+        assert_same_batch(reader.read_samples(level=0, stage=0), make_batch(0, 0, range(3)))
+    with new_study(path, create=False) as study:
+        assert study.format_version == FORMAT_VERSION == 3
+        assert study.append_samples(make_batch(0, 0, [3])) == 1
+    with h5py.File(path, "r+") as f:  # every row has its checksum now, the converted ones too
+        assert f["samples/level_0/checksum"].shape == (4,)
+        f["samples/level_0/fine"][1, 0] += 1.0
+    with open_study_readonly(path) as reader:
+        with pytest.raises(StudyFileError, match=r"samples/level_0: 1 of 4 rows differ from their checksums \(rows 1\)"):
+            reader.read_samples(level=0, stage=0)
+
+
 def test_read_only_file_is_opened_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = tmp_path / "study.h5"
     with new_study(path) as study:
@@ -417,7 +445,7 @@ def _empty(path: Path, tmp_path: Path) -> None:
 def _wrong_version(path: Path, tmp_path: Path) -> None:
     path.write_bytes(_valid_bytes(tmp_path))
     with h5py.File(path, "r+") as f:
-        f.attrs["format_version"] = 3
+        f.attrs["format_version"] = FORMAT_VERSION + 1
 
 
 def _foreign_hdf5(path: Path, tmp_path: Path) -> None:
@@ -436,7 +464,7 @@ def _other_format_hdf5(path: Path, tmp_path: Path) -> None:
         (_not_hdf5, "not an HDF5 file"),
         (_truncated, "truncated or damaged"),
         (_empty, "is empty"),
-        (_wrong_version, "format version 3; this roughuq reads versions 1 and 2"),
+        (_wrong_version, "format version 4; this roughuq reads versions 1, 2 and 3"),
         (_foreign_hdf5, r"not a roughuq study file \(no 'format' attribute; a study file's is 'roughuq-study'\)"),
         (_other_format_hdf5, r"not a roughuq study file \(its 'format' attribute is 'netcdf4'; a study file's is "),
     ],

@@ -1,10 +1,10 @@
 """Study files: the samples, screening results and estimation runs of a study.
 
 This is the only module that uses h5py. A study lives in one HDF5 file with
-this layout (format ``roughuq-study``, version 2)::
+this layout (format ``roughuq-study``, version 3)::
 
     /                              attrs: format = "roughuq-study"
-    |                                     format_version = 2
+    |                                     format_version = 3
     |                                     config_hash   (sha256 hex, see rough_uq.study.config.config_hash)
     |                                     code_version  (roughuq version that created the file)
     |                                     created       (ISO 8601 time, UTC)
@@ -19,7 +19,8 @@ this layout (format ``roughuq-study``, version 2)::
     |       |-- coarse             (n, n_qoi) float64  QoI on grid n_{l-1} (0 on level 0)
     |       |-- cost               (n,) float64   wall time of the sample (s)
     |       |-- n_iter             (n, 2) int64   solver iterations (fine, coarse)
-    |       `-- converged          (n, 2) bool    solver converged (fine, coarse)
+    |       |-- converged          (n, 2) bool    solver converged (fine, coarse)
+    |       `-- checksum           (n,) uint64    hash of the row's bits (version 3)
     |-- screening/                 (present once written)
     |   `-- record                 (m,) uint8: UTF-8 JSON text of the screening dict
     `-- runs/
@@ -28,13 +29,22 @@ this layout (format ``roughuq-study``, version 2)::
 
 The sample datasets are chunked and resizable along the first axis; they may
 hold rows beyond ``n_committed`` (left by a writer that died in an append),
-which are not part of the study and are never read. Version 2 files use the
-HDF5 1.10 file format (``libver="v110"``), which any HDF5 >= 1.10 reads.
-Version 1 (written by roughuq before the in-place appends) had no
-``n_committed`` (every row counted) and the HDF5 1.8 file format; it is read
-as it is and converted to version 2 when opened for writing. JSON records are
+which are not part of the study and are never read. Version 2 and 3 files
+use the HDF5 1.10 file format (``libver="v110"``), which any HDF5 >= 1.10
+reads. Version 1 (written by roughuq before the in-place appends) had no
+``n_committed`` (every row counted) and the HDF5 1.8 file format; version 2
+no ``checksum``. Both are read as they are (without checks of their rows)
+and converted to version 3 when opened for writing. JSON records are
 byte arrays rather than string attributes because HDF5 never reuses the space
 of a rewritten attribute or string.
+
+HDF5 checksums its own metadata, not the data. Version 3 stores a 64-bit hash
+of every sample row (``checksum``; :func:`_row_checksums`) and checks every
+row it reads against it: a damaged row makes the file unreadable, with the
+level and rows named, instead of entering an estimate (zeroed QoI values were
+read as contact areas of 0). Records carry HDF5's Fletcher-32 checksum per
+chunk, which catches changed bytes, though not a chunk zeroed whole with its
+checksum (HDF5 skips a checksum of 0); a zeroed record is no JSON text.
 
 Writing and crash safety
 ------------------------
@@ -168,11 +178,11 @@ __all__ = [
 FORMAT = "roughuq-study"
 """Value of the root attribute ``format``."""
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 """Version of the layout this code writes."""
 
-READABLE_VERSIONS = (1, 2)
-"""Versions of the layout this code reads (version 1 is converted when opened for writing)."""
+READABLE_VERSIONS = (1, 2, 3)
+"""Versions of the layout this code reads (older ones are converted when opened for writing)."""
 
 ROLES = ("study", "shard")
 """Values of the root attribute ``role``: a study, or a shard of samples written by ``roughuq sample``.
@@ -185,6 +195,7 @@ ALL_STAGES = -1
 
 _COLUMNS = ("stage", "index", "fine", "coarse", "cost", "n_iter", "converged")
 _COMMITTED = "n_committed"
+_CHECKSUM = "checksum"  # version 3: one per row (_row_checksums)
 _CHUNK_ROWS = 512
 _RECORD_CHUNK = 4096
 _RUN_ID = re.compile(r"^[A-Za-z0-9_.\-]+$")
@@ -216,6 +227,29 @@ def _batch_columns(batch: LevelBatch) -> dict[str, np.ndarray]:
         "n_iter": np.asarray(batch.n_iter, dtype=np.int64),
         "converged": np.asarray(batch.converged, dtype=bool),
     }
+
+
+#: The 64-bit FNV-1a constants; the hash of a row runs over its 8-byte words, column by column.
+_FNV_OFFSET = np.uint64(0xCBF29CE484222325)
+_FNV_PRIME = np.uint64(0x100000001B3)
+
+
+def _row_checksums(columns: Mapping[str, np.ndarray]) -> np.ndarray:
+    """A 64-bit hash of each row's stored bits (shape ``(n,)``, uint64), never 0 for a row of zeros.
+
+    HDF5 checksums its metadata only; a sample column damaged on disk was read as it was (zeroed QoI values
+    became contact areas of 0, a zeroed index column a study without screening). The hash of every row is
+    stored beside it and compared on every read.
+    """
+    n = len(columns["index"])
+    digest = np.full(n, _FNV_OFFSET, dtype=np.uint64)
+    for name in _COLUMNS:
+        words = np.ascontiguousarray(columns[name]).reshape(n, -1)
+        words = words.astype(np.uint64) if words.dtype == bool else words.view(np.uint64)
+        for k in range(words.shape[1]):
+            digest ^= words[:, k]
+            digest *= _FNV_PRIME
+    return digest
 
 
 def _empty_columns(n_qoi: int) -> dict[str, np.ndarray]:
@@ -874,7 +908,7 @@ def _read_header(path: Path) -> dict[str, Any]:
                 )
             version = f.attrs.get("format_version")
             if version is None or int(version) not in READABLE_VERSIONS:
-                readable = " and ".join(str(v) for v in READABLE_VERSIONS)
+                readable = ", ".join(str(v) for v in READABLE_VERSIONS[:-1]) + f" and {READABLE_VERSIONS[-1]}"
                 raise StudyFileError(
                     f"{path} has study format version {version}; this roughuq reads versions {readable}",
                     path,
@@ -918,11 +952,10 @@ def _create_level(f: h5py.File, level: int, columns: Mapping[str, np.ndarray]) -
     """Create ``samples/level_<level>`` holding ``columns`` (all committed)."""
     group = f["samples"].create_group(f"level_{level}")
     group.attrs["level"] = np.int64(level)
-    for name in _COLUMNS:
-        tail = columns[name].shape[1:]
-        group.create_dataset(
-            name, data=columns[name], maxshape=(None, *tail), chunks=(_CHUNK_ROWS, *tail)
-        )
+    stored = {**{name: columns[name] for name in _COLUMNS}, _CHECKSUM: _row_checksums(columns)}
+    for name, values in stored.items():
+        tail = values.shape[1:]
+        group.create_dataset(name, data=values, maxshape=(None, *tail), chunks=(_CHUNK_ROWS, *tail))
     group.create_dataset(_COMMITTED, data=np.int64(len(columns["index"])))
 
 
@@ -938,14 +971,26 @@ def _committed_rows(f: h5py.File, version: int) -> dict[int, int]:
 
 
 def _read_columns(f: h5py.File, level: int, n_rows: int) -> dict[str, np.ndarray]:
+    """The first ``n_rows`` rows of ``level``, checked against their checksums (version 3; OSError if damaged)."""
     group = f[f"samples/level_{level}"]
     columns = {}
-    for name in _COLUMNS:
+    for name in (*_COLUMNS, _CHECKSUM) if _CHECKSUM in group else _COLUMNS:
         dataset = group[name]
         if dataset.shape[0] < n_rows:  # a SWMR reader's cached extent; ask the file again
             dataset.refresh()
         columns[name] = dataset[:n_rows]
+    if _CHECKSUM in columns:
+        _check_rows(level, columns.pop(_CHECKSUM), columns)
     return columns
+
+
+def _check_rows(level: int, checksums: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
+    """Raise OSError (reported as a damaged file) where rows of ``level`` differ from their stored checksums."""
+    bad = np.flatnonzero(_row_checksums(columns) != checksums)
+    if bad.size:
+        rows = ", ".join(str(row) for row in bad[:3]) + (", ..." if bad.size > 3 else "")
+        raise OSError(f"samples/level_{level}: {bad.size} of {len(checksums)} rows differ from their checksums "
+                      f"(rows {rows})")
 
 
 class StudyFile(StudyStore):
@@ -1099,12 +1144,12 @@ class StudyFile(StudyStore):
             f = self._handle()
             if level not in self._datasets:
                 group = f[f"samples/level_{level}"]
-                self._datasets[level] = {name: group[name] for name in (*_COLUMNS, _COMMITTED)}
+                self._datasets[level] = {name: group[name] for name in (*_COLUMNS, _CHECKSUM, _COMMITTED)}
             datasets = self._datasets[level]
-            for name in _COLUMNS:
+            for name, values in {**rows, _CHECKSUM: _row_checksums(rows)}.items():
                 if datasets[name].shape[0] < n_new:
                     datasets[name].resize(n_new, axis=0)
-                datasets[name][n_old:n_new] = rows[name]
+                datasets[name][n_old:n_new] = values
             f.flush()
             _fsync_path(self.path)  # the rows are on disk before the count that makes them visible
             datasets[_COMMITTED][()] = n_new
@@ -1136,7 +1181,7 @@ class StudyFile(StudyStore):
                     group.attrs["order"] = np.int64(len(f["runs"]) - 1)
             if "record" not in group:
                 group.create_dataset(
-                    "record", shape=(0,), maxshape=(None,), chunks=(_RECORD_CHUNK,), dtype=np.uint8
+                    "record", shape=(0,), maxshape=(None,), chunks=(_RECORD_CHUNK,), dtype=np.uint8, fletcher32=True
                 )
             record = group["record"]
             record.resize(len(data), axis=0)
