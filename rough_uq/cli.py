@@ -824,7 +824,8 @@ def _estimation_options(method: str) -> list[Callable[[Any], Any]]:
                           f"{_CREATING_RUNS[method]}, which need no screening, create a missing --study from it."),
         click.option("--max-cost", type=_PositiveFinite(), default=None, metavar="SECONDS",
                      help="Budget in modelled cost, a finite number > 0 (reference seconds, about CPU-seconds on the "
-                          "calibration machine): a plan predicted above it is refused, a run reaching it stops "
+                          "calibration machine): a plan predicted above it is refused, a run reaching it stops; "
+                          "a round is drawn at the costs measured so far, so the last one may end above it "
                           "(default: the config's estimation.max_cost; without any, plans over a week of "
                           "CPU time are refused)."),
         click.option("--plan", "show_plan", is_flag=True, help="Print the samples still missing; compute nothing."),
