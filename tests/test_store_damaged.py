@@ -145,7 +145,7 @@ def _damage_first_chunk(path: Path, dataset: str, change: Callable[[bytes], byte
     """Replace the first stored chunk of ``dataset`` by ``change`` of it, as a bad disk block or a stray write."""
     import h5py
 
-    with h5py.File(path, "r") as f:
+    with h5py.File(path, "r", swmr=True, locking=False) as f:  # SWMR: a dead writer's mark may be set
         chunk = f[dataset].id.get_chunk_info(0)
     with open(path, "r+b") as file:
         file.seek(chunk.byte_offset)
@@ -185,3 +185,16 @@ def test_a_changed_byte_of_a_record_is_refused(tmp_path):
     with open_study_readonly(path) as reader:
         with pytest.raises(StudyFileError, match="study.h5 cannot be read: truncated or damaged study file"):
             reader.read_runs()
+
+
+def test_damaged_rows_in_a_file_a_dead_writer_left_are_refused_as_damaged(tmp_path, study_bytes):
+    # Opened for writing, such a file is rewritten first; its rows are read for the copy, and a row that differs
+    # from its checksum was reported as a failed write ("could not write ...; the study file is unchanged").
+    path = tmp_path / "study.h5"
+    path.write_bytes(study_bytes[0])
+    _damage_first_chunk(path, "samples/level_0/cost", lambda data: data[:8] + b"\x01" + data[9:])
+    damaged = path.read_bytes()
+    result = _roughuq("drop", "some-run", "--study", "study.h5", cwd=tmp_path)
+    _assert_refused_as_damaged(result, "study.h5")
+    assert "samples/level_0: 1 of 10 rows differ from their checksums (rows 1)" in result.stderr
+    assert path.read_bytes() == damaged

@@ -244,7 +244,7 @@ def _row_checksums(columns: Mapping[str, np.ndarray]) -> np.ndarray:
     n = len(columns["index"])
     digest = np.full(n, _FNV_OFFSET, dtype=np.uint64)
     for name in _COLUMNS:
-        words = np.ascontiguousarray(columns[name]).reshape(n, -1)
+        words = np.ascontiguousarray(columns[name]).reshape(n, math.prod(columns[name].shape[1:]))
         words = words.astype(np.uint64) if words.dtype == bool else words.view(np.uint64)
         for k in range(words.shape[1]):
             digest ^= words[:, k]
@@ -971,7 +971,7 @@ def _committed_rows(f: h5py.File, version: int) -> dict[int, int]:
 
 
 def _read_columns(f: h5py.File, level: int, n_rows: int) -> dict[str, np.ndarray]:
-    """The first ``n_rows`` rows of ``level``, checked against their checksums (version 3; OSError if damaged)."""
+    """The first ``n_rows`` rows of ``level``, checked against their checksums (version 3; :class:`_DamagedRows`)."""
     group = f[f"samples/level_{level}"]
     columns = {}
     for name in (*_COLUMNS, _CHECKSUM) if _CHECKSUM in group else _COLUMNS:
@@ -984,12 +984,17 @@ def _read_columns(f: h5py.File, level: int, n_rows: int) -> dict[str, np.ndarray
     return columns
 
 
+class _DamagedRows(RuntimeError):
+    """Rows that differ from their checksums: reported as a damaged file (one of :data:`_HDF5_READ_ERRORS`, and
+    not an OSError, which a copy-on-write transaction would report as a failed write)."""
+
+
 def _check_rows(level: int, checksums: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
-    """Raise OSError (reported as a damaged file) where rows of ``level`` differ from their stored checksums."""
+    """Raise :class:`_DamagedRows` where rows of ``level`` differ from their stored checksums."""
     bad = np.flatnonzero(_row_checksums(columns) != checksums)
     if bad.size:
         rows = ", ".join(str(row) for row in bad[:3]) + (", ..." if bad.size > 3 else "")
-        raise OSError(f"samples/level_{level}: {bad.size} of {len(checksums)} rows differ from their checksums "
+        raise _DamagedRows(f"samples/level_{level}: {bad.size} of {len(checksums)} rows differ from their checksums "
                       f"(rows {rows})")
 
 
