@@ -68,3 +68,41 @@ def test_ignored_signals_and_other_threads_are_left_alone(recorded) -> None:
     thread.start()
     thread.join()
     assert seen == [signal.getsignal(signal.SIGTERM)] and seen[0] is not None
+
+
+def test_a_failed_write_raises_its_own_error_not_the_held_stop(recorded) -> None:
+    # A Ctrl-C raised in place of the failed write's error made roughuq say that every completed sample was saved.
+    with pytest.raises(OSError, match="No space left"):
+        with signals_held():
+            _send(signal.SIGINT)
+            raise OSError(28, "No space left on device")
+    assert recorded == []
+    assert signal.getsignal(signal.SIGINT) is not None and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+
+
+def test_a_signal_while_the_handlers_are_put_back_leaves_none_behind(monkeypatch: pytest.MonkeyPatch) -> None:
+    # One arriving after SIGINT's handler was back but before SIGTERM's raised from the first and left SIGTERM to a
+    # handler that only recorded it: later SIGTERMs did nothing.
+    previous = {signum: signal.signal(signum, signal.default_int_handler)
+                for signum in (signal.SIGINT, signal.SIGTERM)}
+    install = signal.signal
+    sent = []
+
+    def signal_then_interrupt(signum, handler):
+        old = install(signum, handler)
+        if handler is signal.default_int_handler and not sent:  # the first handler put back
+            sent.append(signum)
+            _send(signal.SIGINT)
+        return old
+
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with signals_held():
+                monkeypatch.setattr(signal, "signal", signal_then_interrupt)
+        monkeypatch.undo()
+        assert sent
+        assert all(signal.getsignal(signum) is signal.default_int_handler for signum in previous)
+    finally:
+        monkeypatch.undo()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)

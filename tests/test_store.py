@@ -366,6 +366,53 @@ def test_version_2_file_is_read_unchecked_and_converted_when_opened_for_writing(
             reader.read_samples(level=0, stage=0)
 
 
+def test_converted_files_get_checksums_on_their_old_records(tmp_path: Path) -> None:
+    path = tmp_path / "study.h5"
+    path.write_bytes(VERSION_1.read_bytes())
+    with new_study(path, create=False):
+        pass
+    with h5py.File(path, "r") as f:
+        records = [f["screening/record"], *(group["record"] for group in f["runs"].values())]
+        assert len(records) == 3 and all(record.fletcher32 for record in records)
+    with open_study_readonly(path) as reader:
+        _check_version_1_content(reader)
+
+
+def test_rows_stored_big_endian_are_checked_by_value(tmp_path: Path) -> None:
+    # h5py reads a big-endian column as it is stored; its bits viewed as native words differed from the checksum.
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, [0, 1, 2]))
+    with h5py.File(path, "r+") as f:
+        group = f["samples/level_0"]
+        values = group["fine"][()]
+        del group["fine"]
+        group.create_dataset("fine", data=values.astype(">f8"), maxshape=(None, 2), chunks=(512, 2))
+    with open_study_readonly(path) as reader:
+        np.testing.assert_array_equal(reader.read_samples(level=0, stage=0).fine, make_batch(0, 0, [0, 1, 2]).fine)
+
+
+@pytest.mark.parametrize("damage", ["no checksum", "a boolean byte"])
+def test_version_3_rows_without_their_checksum_or_with_a_changed_byte_are_refused(tmp_path: Path, damage: str) -> None:
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, [0, 1, 2]))
+    with h5py.File(path, "r+") as f:
+        group = f["samples/level_0"]
+        if damage == "no checksum":
+            del group["checksum"]
+        else:  # a byte of True changed from 1 to 2: h5py still reads True
+            raw = group["converged"][()].view(np.uint8).copy()
+            raw[1, 0] = 2
+            group["converged"][1] = raw[1].view(bool)
+    expected = "no checksum dataset"
+    if damage != "no checksum":
+        expected = r"1 of 3 rows differ from their checksums \(rows 1\)"
+    with open_study_readonly(path) as reader:
+        with pytest.raises(StudyFileError, match=f"damaged study file \\(samples/level_0: {expected}"):
+            reader.read_samples(level=0, stage=0)
+
+
 def test_read_only_file_is_opened_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = tmp_path / "study.h5"
     with new_study(path) as study:

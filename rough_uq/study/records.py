@@ -5,7 +5,8 @@ dataclasses, the store keeps them as JSON text (:mod:`rough_uq.study.store`,
 ``screening/record`` and ``runs/<run_id>/record``), and the report and the
 CLI read them back with ``from_json``. ``to_json`` gives exactly the mapping
 the store holds; the layout is the one every roughuq so far has written
-(format version 2 of the study file), so files need no conversion.
+(format versions 1-3 of the study file differ in their samples only), so
+records need no conversion.
 
 Older layouts
 -------------
@@ -16,7 +17,7 @@ Keys added since the first study files are optional when read: a run's
 mean (``method`` ``variance`` or ``cdf``, :class:`RunOutcome`) add optional
 keys and leave out the mean run's ``variance``, ``variance_error`` and
 ``statistics``, which are therefore optional too; a file with such runs keeps
-format version 2 (an older roughuq refuses the new methods by name when it
+its format version (an older roughuq refuses the new methods by name when it
 reads them, rather than misreading them). A record read without them writes
 them back only where a value is known (``None`` keys stay absent), except the
 keys the pipeline has always written as ``null`` (``max_cost``, ``forecast``,

@@ -12,7 +12,10 @@ save could too.
 
 :func:`signals_held` records such a signal during the write and hands the
 first one to the handler it was meant for once the write is done; later ones
-of the same write are dropped (two Ctrl-Cs in a row ask for one stop). Only
+of the same write are dropped (two Ctrl-Cs in a row ask for one stop). A
+write that fails raises its own error instead, which ends the command anyway
+and says what was not saved (a Ctrl-C raised in its place claimed that every
+completed sample was). Only
 signal handlers written in Python are held back: a signal that is ignored,
 left to the system's default, or handled outside Python, and any signal off
 the main thread (where Python runs no handler), is left alone.
@@ -22,7 +25,7 @@ from __future__ import annotations
 
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
 
@@ -48,9 +51,25 @@ def signals_held() -> Iterator[None]:
             previous[signum] = signal.signal(signum, record)
     try:
         yield
+    except BaseException:
+        _restore(previous)  # the body's own error (a failed write) is what the caller must see
+        raise
+    _restore(previous)
+    if received:
+        signum, frame = received[0]
+        previous[signum](signum, frame)
+
+
+def _restore(handlers: dict[int, Callable[..., object]]) -> None:
+    """Put ``handlers`` back, each in the ``finally`` of the one before: a signal arriving between two raises from
+    the handler already restored, and the others must still be restored (left to ``record``, a later SIGTERM did
+    nothing). Blocking the signals meanwhile would not do: another thread may take a signal the main thread
+    blocks, and Python runs its handler in the main thread all the same."""
+    items = list(handlers.items())
+    if not items:
+        return
+    (signum, handler), rest = items[0], dict(items[1:])
+    try:
+        signal.signal(signum, handler)
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-        if received:
-            signum, frame = received[0]
-            previous[signum](signum, frame)
+        _restore(rest)

@@ -75,7 +75,7 @@ no writer is alive) rewrites the file with its committed rows only, which
 also drops the leftovers.
 
 Everything else (creating the file, the first batch of a level, the
-screening and run records, converting a version 1 file, the rewrite after a
+screening and run records, converting a version 1 or 2 file, the rewrite after a
 crash) is a copy-on-write transaction: close the file, copy ``<path>`` to
 ``<path>.tmp-<pid>``, change the copy, ``fsync`` it, ``os.replace`` it onto
 ``<path>`` and ``fsync`` the directory, so ``<path>`` is always either the
@@ -244,8 +244,10 @@ def _row_checksums(columns: Mapping[str, np.ndarray]) -> np.ndarray:
     n = len(columns["index"])
     digest = np.full(n, _FNV_OFFSET, dtype=np.uint64)
     for name in _COLUMNS:
-        words = np.ascontiguousarray(columns[name]).reshape(n, math.prod(columns[name].shape[1:]))
-        words = words.astype(np.uint64) if words.dtype == bool else words.view(np.uint64)
+        values = columns[name]  # in native byte order: h5py reads a big-endian file's columns as they are
+        words = np.ascontiguousarray(values, dtype=values.dtype.newbyteorder("="))
+        words = words.reshape(n, math.prod(values.shape[1:]))
+        words = words.view(np.uint8).astype(np.uint64) if words.dtype == bool else words.view(np.uint64)
         for k in range(words.shape[1]):
             digest ^= words[:, k]
             digest *= _FNV_PRIME
@@ -973,8 +975,11 @@ def _committed_rows(f: h5py.File, version: int) -> dict[int, int]:
 def _read_columns(f: h5py.File, level: int, n_rows: int) -> dict[str, np.ndarray]:
     """The first ``n_rows`` rows of ``level``, checked against their checksums (version 3; :class:`_DamagedRows`)."""
     group = f[f"samples/level_{level}"]
+    is_checked = int(f.attrs["format_version"]) >= 3
+    if is_checked and _CHECKSUM not in group:
+        raise _DamagedRows(f"samples/level_{level}: no {_CHECKSUM} dataset")
     columns = {}
-    for name in (*_COLUMNS, _CHECKSUM) if _CHECKSUM in group else _COLUMNS:
+    for name in (*_COLUMNS, _CHECKSUM) if is_checked else _COLUMNS:
         dataset = group[name]
         if dataset.shape[0] < n_rows:  # a SWMR reader's cached extent; ask the file again
             dataset.refresh()
@@ -1184,6 +1189,8 @@ class StudyFile(StudyStore):
                 group = f.create_group("/".join(key))
                 if key[0] == "runs":
                     group.attrs["order"] = np.int64(len(f["runs"]) - 1)
+            if "record" in group and not group["record"].fletcher32:  # written before the checksums
+                del group["record"]
             if "record" not in group:
                 group.create_dataset(
                     "record", shape=(0,), maxshape=(None,), chunks=(_RECORD_CHUNK,), dtype=np.uint8, fletcher32=True
@@ -1228,7 +1235,7 @@ def _describe(item: h5py.Group | h5py.Dataset) -> str:
 
 
 def _open_for_writing(path: Path) -> h5py.File:
-    """Open ``path`` (a version 2 file without a writer's mark) for appending in SWMR mode.
+    """Open ``path`` (a file of this version without a writer's mark) for appending in SWMR mode.
 
     One open marks the superblock "SWMR writer" at once. (h5py's ``"r+"``
     followed by ``swmr_mode = True`` marks it "writer" first: a kill in
@@ -1264,9 +1271,9 @@ def _replace_atomically(
 
 
 def _rewrite(path: Path) -> None:
-    """Rewrite ``path`` as a fresh version-2 file holding its committed rows only (atomically).
+    """Rewrite ``path`` as a fresh file of this version holding its committed rows only (atomically).
 
-    Converts a version 1 file, and cleans up after a writer that died: drops
+    Converts a version 1 or 2 file, and cleans up after a writer that died: drops
     rows beyond ``n_committed`` and the writer's mark in the superblock.
     """
     try:
@@ -1282,7 +1289,8 @@ def _rewrite(path: Path) -> None:
 
 
 def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int]) -> None:
-    """Copy the header, records and ``committed`` rows per level of ``src`` into the new file ``dst`` (version 2)."""
+    """Copy the header, records and ``committed`` rows per level of ``src`` into the new file ``dst`` (this version,
+    with the checksums of rows and records)."""
     for name in ("format", "config_hash", "code_version", "created"):
         dst.attrs[name] = src.attrs[name]
     if "role" in src.attrs:
@@ -1291,10 +1299,29 @@ def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int]
     for name in ("config_yaml", "qoi_names", "runs", "screening"):
         if name in src:
             src.copy(src[name], dst, name)
+    for record in _record_datasets(dst):
+        _with_checksums(record)
     dst.create_group("samples")
     for level, n_rows in sorted(committed.items()):
         _create_level(dst, level, _read_columns(src, level, n_rows))
 
+
+
+def _record_datasets(f: h5py.File) -> list[h5py.Dataset]:
+    """The record datasets of ``f``: the screening's and every run's."""
+    groups = [f["screening"]] if "screening" in f else []
+    groups += list(f["runs"].values()) if "runs" in f else []
+    return [group["record"] for group in groups if isinstance(group.get("record"), h5py.Dataset)]
+
+
+def _with_checksums(record: h5py.Dataset) -> None:
+    """Re-create ``record`` (a copy's, in a transaction) with HDF5's Fletcher-32 checksum, where it has none."""
+    if record.fletcher32:
+        return
+    group, data = record.parent, record[()]
+    del group["record"]
+    group.create_dataset("record", data=data, maxshape=(None,), chunks=(_RECORD_CHUNK,), dtype=np.uint8,
+                         fletcher32=True)
 
 def _installed_version() -> str:
     """The installed roughuq version (imported late: the package imports this module)."""
@@ -1326,7 +1353,7 @@ def _make_directory(path: Path) -> None:
 def _prepare_locked(
     path: Path, *, config_text: str, config_hash: str, qoi_names: Sequence[str], code_version: str, role: str
 ) -> dict[str, Any]:
-    """With the lock held: create the file if missing, check it, bring it to version 2; its header."""
+    """With the lock held: create the file if missing, check it, bring it to this version; its header."""
     if not path.exists():
         _replace_atomically(
             path,
@@ -1400,8 +1427,9 @@ def open_study(
 ) -> StudyFile:
     """Open a study file for writing, creating it if asked; takes the file's lock.
 
-    A version 1 file, and a file whose last writer died, are first rewritten
-    as a version 2 file holding the committed samples (module docstring).
+    A version 1 or 2 file, and a file whose last writer died, are first
+    rewritten as a file of version :data:`FORMAT_VERSION` holding the
+    committed samples, with their checksums (module docstring).
 
     Parameters
     ----------
