@@ -409,6 +409,31 @@ def test_a_mean_run_the_estimator_refuses_is_recorded_as_refused(monkeypatch):
     assert run.status == "refused" and run.reason.startswith("a plan of 2e+11 samples") and run.outcome is None
 
 
+@pytest.mark.parametrize("method", ["mlmc", "mc"])
+def test_a_run_refuses_a_plan_beyond_any_budget_that_its_own_samples_make(monkeypatch, method):
+    # The forecast checks the first plan only: on a study in full contact (a mean gap at rounding level), mc --tol
+    # at a tolerance the screening called cheap re-planned 2.7e7 samples from its own and began to draw them.
+    import rough_uq.study.pipeline as pipeline
+    from rough_uq.multilevel.drivers import PlanUpdated
+
+    drawn = []
+
+    def replanning(sampler, **kwargs):
+        yield PlanUpdated(levels=np.array([0, 1]), n_planned=np.array([10, 2]), n_done=np.zeros(2, int),
+                          reason="initial")
+        yield PlanUpdated(levels=np.array([0, 1]), n_planned=np.array([27_000_000, 2]), n_done=np.array([10, 2]),
+                          reason="variance")
+        drawn.append(True)
+
+    study = _screened()
+    monkeypatch.setattr(pipeline, "iter_mlmc" if method == "mlmc" else "iter_mc", replanning)
+    with pytest.raises(PlanTooLargeError, match=r"--tol contact_area=1 needs about 2\.7e\+07 samples .*loosen --tol"):
+        run_estimation(study, method=method, tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
+    assert not drawn
+    (run,) = read_run_records(study.store)
+    assert run.status == "refused" and run.outcome is None
+
+
 def test_a_target_run_refused_on_the_way_names_the_option_the_user_gave():
     # The driver says "tol 1e-06 needs about ...: loosen the tolerance"; the user typed --tol-var or --tol-cdf.
     study = _study(qoi={"contact_area": {"unit": "percent"}, "mean_gap": {}})

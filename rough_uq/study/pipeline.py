@@ -1127,9 +1127,12 @@ def forecast_run(
 def _refusing_large_plans(events: Iterator[object], names: Sequence[str], tol: np.ndarray) -> Iterator[object]:
     """``events``, refused (:class:`~rough_uq.errors.PlanTooLargeError`) at a plan of more than MAX_PLANNED_SAMPLES.
 
-    For runs no forecast checks (``mc --level``): the plan that follows the
-    initial samples comes from their variance, and a tight ``--tol`` asked for
-    some 1e10 samples (an ETA of years) that the run then began to draw.
+    The forecast checks a run's first plan only. The plans that follow come
+    from the run's own samples: after the initial samples of ``mc --level``
+    a tight ``--tol`` asked for some 1e10 samples (an ETA of years), and on a
+    study in full contact, whose mean gap is rounding noise, ``mc --tol`` at a
+    tolerance the screening called cheap re-planned some 2.7e7 samples; both
+    runs began to draw them.
     """
     try:
         for event in events:
@@ -1404,6 +1407,15 @@ def _events(
     if method == "mc" and level is not None:
         # An explicit level needs no screening (and so no forecast); the bias of that level is then unknown.
         return _refusing_large_plans(iter_mc(sampler, level=level, **options), config.qoi_names, tol), {"level": level}
+    events, context = _screened_events(study, method=method, sampler=sampler, options=options)
+    return _refusing_large_plans(events, config.qoi_names, tol), context
+
+
+def _screened_events(
+    study: Study, *, method: str, sampler: StudySampler, options: dict[str, Any]
+) -> tuple[Iterator[object], dict[str, Any]]:
+    """The events of an ``mlmc`` or ``mc --tol`` run from the screening's plan, and the run's context."""
+    config, estimation, tol = study.config, study.config.estimation, options["tol"]
     statistics, rates, prediction = _estimation_plan(study, tol, method=method)
     predicted = PlanRecord.from_plan(prediction, _screened_seconds_per_cost(read_screening_record(study.store)))
     context: dict[str, Any] = {"screening_rates": RatesRecord.from_rates(rates), "predicted": predicted}
