@@ -790,6 +790,19 @@ def test_the_reachable_tolerance_of_a_column_without_bias_is_the_one_asked():
     assert "tol contact_area=0.1 cannot be reached for contact_area@0.2: on the finest grid" in str(caught.value)
 
 
+def test_the_proposed_tolerance_keeps_the_columns_that_do_not_block():
+    # The refusal proposed every column's bias floor: a mean gap asked at 2.2e-06 came back as 7.8e-09, and the
+    # proposal was then refused as a plan of 2.8e7 samples (config fuzz, 2026-11-28).
+    from types import SimpleNamespace
+
+    from rough_uq.multilevel.allocation import reachable_tolerance
+
+    prediction = SimpleNamespace(bias=np.array([0.024, 5.5e-9, 0.0]), theta=0.5)
+    proposed = reachable_tolerance(prediction, np.array([0.02, 2.2e-6, 0.3]))
+    np.testing.assert_allclose(proposed, [0.034, 2.2e-6, 0.3])  # 0.024 / sqrt(0.5) = 0.0339, rounded up
+    np.testing.assert_allclose(reachable_tolerance(prediction), [0.034, 7.8e-9, 0.0])  # without a request: floors
+
+
 def test_the_blocking_columns_are_named_only_where_a_bias_exceeds_its_share():
     from types import SimpleNamespace
 
