@@ -1306,7 +1306,6 @@ def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int]
         _create_level(dst, level, _read_columns(src, level, n_rows))
 
 
-
 def _record_datasets(f: h5py.File) -> list[h5py.Dataset]:
     """The record datasets of ``f``: the screening's and every run's."""
     groups = [f["screening"]] if "screening" in f else []
