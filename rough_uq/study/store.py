@@ -984,7 +984,7 @@ def _read_columns(f: h5py.File, level: int, n_rows: int) -> dict[str, np.ndarray
         if dataset.shape[0] < n_rows:  # a SWMR reader's cached extent; ask the file again
             dataset.refresh()
         columns[name] = dataset[:n_rows]
-    if _CHECKSUM in columns:
+    if is_checked:
         _check_rows(level, columns.pop(_CHECKSUM), columns)
     return columns
 
@@ -1189,12 +1189,8 @@ class StudyFile(StudyStore):
                 group = f.create_group("/".join(key))
                 if key[0] == "runs":
                     group.attrs["order"] = np.int64(len(f["runs"]) - 1)
-            if "record" in group and not group["record"].fletcher32:  # written before the checksums
-                del group["record"]
             if "record" not in group:
-                group.create_dataset(
-                    "record", shape=(0,), maxshape=(None,), chunks=(_RECORD_CHUNK,), dtype=np.uint8, fletcher32=True
-                )
+                _new_record(group, np.zeros(0, dtype=np.uint8))
             record = group["record"]
             record.resize(len(data), axis=0)
             if len(data):
@@ -1319,6 +1315,11 @@ def _with_checksums(record: h5py.Dataset) -> None:
         return
     group, data = record.parent, record[()]
     del group["record"]
+    _new_record(group, data)
+
+
+def _new_record(group: h5py.Group, data: np.ndarray) -> None:
+    """Create ``group/record`` holding ``data``: uint8, resizable, with HDF5's Fletcher-32 checksum per chunk."""
     group.create_dataset("record", data=data, maxshape=(None,), chunks=(_RECORD_CHUNK,), dtype=np.uint8,
                          fletcher32=True)
 
