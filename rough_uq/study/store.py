@@ -972,10 +972,11 @@ def _committed_rows(f: h5py.File, version: int) -> dict[int, int]:
     return counts
 
 
-def _read_columns(f: h5py.File, level: int, n_rows: int) -> dict[str, np.ndarray]:
-    """The first ``n_rows`` rows of ``level``, checked against their checksums (version 3; :class:`_DamagedRows`)."""
+def _read_columns(f: h5py.File, level: int, n_rows: int, version: int) -> dict[str, np.ndarray]:
+    """The first ``n_rows`` rows of ``level`` of a file of format ``version``, checked against their checksums from
+    version 3 on (:class:`_DamagedRows`)."""
     group = f[f"samples/level_{level}"]
-    is_checked = int(f.attrs["format_version"]) >= 3
+    is_checked = version >= 3
     if is_checked and _CHECKSUM not in group:
         raise _DamagedRows(f"samples/level_{level}: no {_CHECKSUM} dataset")
     columns = {}
@@ -1130,7 +1131,7 @@ class StudyFile(StudyStore):
         if n_rows == 0:
             return _empty_columns(self.n_qoi)
         with self._reading() as f:
-            columns = _read_columns(f, level, n_rows)
+            columns = _read_columns(f, level, n_rows, self.format_version)
         if not self._is_closed:
             self._cache[level] = [columns]
         return columns
@@ -1278,15 +1279,16 @@ def _rewrite(path: Path) -> None:
         raise _unreadable(path, exc) from None
     with src:
         try:
-            committed = _committed_rows(src, int(src.attrs["format_version"]))
-            _replace_atomically(path, lambda dst: _copy_committed(src, dst, committed), copy_from=None)
+            version = int(src.attrs["format_version"])
+            committed = _committed_rows(src, version)
+            _replace_atomically(path, lambda dst: _copy_committed(src, dst, committed, version), copy_from=None)
         except _HDF5_READ_ERRORS as exc:  # reading ``src`` failed (_replace_atomically reports its writing)
             raise _unreadable(path, exc) from None
 
 
-def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int]) -> None:
-    """Copy the header, records and ``committed`` rows per level of ``src`` into the new file ``dst`` (this version,
-    with the checksums of rows and records)."""
+def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int], version: int) -> None:
+    """Copy the header, records and ``committed`` rows per level of ``src`` (of format ``version``) into the new file
+    ``dst`` (of :data:`FORMAT_VERSION`, with the checksums of rows and records)."""
     for name in ("format", "config_hash", "code_version", "created"):
         dst.attrs[name] = src.attrs[name]
     if "role" in src.attrs:
@@ -1299,7 +1301,7 @@ def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int]
         _with_checksums(record)
     dst.create_group("samples")
     for level, n_rows in sorted(committed.items()):
-        _create_level(dst, level, _read_columns(src, level, n_rows))
+        _create_level(dst, level, _read_columns(src, level, n_rows, version))
 
 
 def _record_datasets(f: h5py.File) -> list[h5py.Dataset]:
