@@ -169,6 +169,31 @@ def test_a_bias_of_another_length_is_refused_before_any_sample():
     assert caught.value.value == [0.1, 0.2]
 
 
+def test_a_bias_by_column_name_equals_the_bias_in_column_order():
+    # tol= took a mapping by name, bias= only numbers in column order.
+    problem = _problem(qoi=("contact_area", "mean_gap"))
+    by_name = rough_uq.mc(problem, tol=[20.0, 0.5], level=0, bias={"mean_gap": -0.01, "contact_area": 0.5},
+                          n_initial=2)
+    in_order = rough_uq.mc(problem, tol=[20.0, 0.5], level=0, bias=[0.5, 0.01], n_initial=2)
+    np.testing.assert_array_equal(by_name.bias_estimate, [0.5, 0.01])
+    np.testing.assert_array_equal(by_name.estimate, in_order.estimate)
+
+
+def test_a_bias_by_name_must_name_every_column_and_no_other_before_sampling():
+    problem = _problem(qoi=("contact_area", "mean_gap"))
+    cases = [
+        ({"contact_area": 0.1}, "no bias for mean_gap", "one bias for every QoI column (contact_area, mean_gap)"),
+        ({"contact_area": 0.1, "mean_gap": 0.0, "gap": 1.0}, "key 'gap'",
+         "QoI or column names: contact_area, mean_gap"),
+        ({"contact_area": 0.1, "mean_gap": np.inf}, "mean_gap: inf", "a finite number for every key"),
+        ({"contact_area": "0.1", "mean_gap": 0.0}, "contact_area: '0.1'", "a finite number for every key"),
+    ]
+    for bias, value, allowed in cases:
+        with pytest.raises(rough_uq.InvalidParameterError) as caught:
+            rough_uq.mc(problem, tol=0.5, level=1, bias=bias, executor=_NoSampling())
+        assert (caught.value.name, caught.value.value, caught.value.allowed) == ("bias", value, allowed)
+
+
 @pytest.mark.parametrize("call", ["thresholds", "tol by name"])
 def test_an_integer_beyond_the_float_range_is_refused_by_name(call):
     # 10**400 escaped as an OverflowError from numpy / math.isfinite.

@@ -392,7 +392,7 @@ def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -
     QoI in column order and was applied to both.
     """
     if columns is not None and isinstance(tol, Mapping):
-        tol = _tolerances_by_name(tol, columns)
+        tol = _values_by_name("tol", tol, columns, noun="tolerance", positive=True)
     per_qoi = "one per QoI" if columns is None else f"one per QoI column: {', '.join(columns)}"
     sequence = f"a sequence of {n_qoi} ({per_qoi}, in its unit)" if n_qoi > 1 else f"a sequence of one ({per_qoi})"
     by_name = "" if columns is None else ", or a mapping of every QoI column to one"
@@ -405,27 +405,31 @@ def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -
     raise InvalidParameterError("tol", tol, allowed)
 
 
-def _tolerances_by_name(tol: Mapping, columns: Sequence[str]) -> list[object]:
-    """The values of ``tol`` in column order, by column or by QoI (as ``--tol NAME=EPS``).
+def _values_by_name(name: str, values: Mapping, columns: Sequence[str], *, noun: str, positive: bool) -> list:
+    """The values of the mapping ``values`` (parameter ``name``) in column order, by column or by QoI (as
+    ``--tol NAME=EPS``).
 
     A QoI's name gives all its columns of a load curve (``contact_area`` for
     ``contact_area@0.1`` and ``contact_area@0.2``); a column's own name takes
     precedence. Every column must get one, and no other key may be there.
+    Each value is a finite number, ``> 0`` if ``positive``; ``noun`` names one in messages ("tolerance").
     """
     qois = {column: split_column(column)[0] for column in columns}
     known = set(columns) | set(qois.values())
-    unknown = [key for key in tol if key not in known]
+    unknown = [key for key in values if key not in known]
     if unknown:
-        raise InvalidParameterError("tol", f"key {unknown[0]!r}", f"QoI or column names: {', '.join(sorted(known))}")
-    keys = [column if column in tol else qois[column] for column in columns]
-    missing = [column for column, key in zip(columns, keys) if key not in tol]
+        raise InvalidParameterError(name, f"key {unknown[0]!r}", f"QoI or column names: {', '.join(sorted(known))}")
+    keys = [column if column in values else qois[column] for column in columns]
+    missing = [column for column, key in zip(columns, keys) if key not in values]
     if missing:
-        every = f"one tolerance for every QoI column ({', '.join(columns)})"
-        raise InvalidParameterError("tol", f"no tolerance for {', '.join(missing)}", every)
+        every = f"one {noun} for every QoI column ({', '.join(columns)})"
+        raise InvalidParameterError(name, f"no {noun} for {', '.join(missing)}", every)
+    allowed = f"a finite number{' > 0' if positive else ''} for every key"
     for key in keys:
-        if not (is_real_number(tol[key]) and math.isfinite(tol[key]) and tol[key] > 0):
-            raise InvalidParameterError("tol", f"{key}: {tol[key]!r}", "a finite number > 0 for every key")
-    return [tol[key] for key in keys]
+        value = values[key]
+        if not (is_real_number(value) and math.isfinite(value) and (value > 0 or not positive)):
+            raise InvalidParameterError(name, f"{key}: {value!r}", allowed)
+    return [values[key] for key in keys]
 
 
 #: The fields of a :class:`ContactProblem` in which a run's problem may differ from the problem its screening
@@ -804,7 +808,7 @@ def mc(
     level: int | None = None,
     theta: float = 0.5,
     screening: ScreeningResult | LevelStatistics | None = None,
-    bias: float | Sequence[float] | np.ndarray | None = None,
+    bias: float | Sequence[float] | np.ndarray | Mapping[str, float] | None = None,
     n_initial: int = 10,
     max_cost: float | None = None,
     max_samples: int | None = MAX_PLANNED_SAMPLES,
@@ -835,8 +839,9 @@ def mc(
     screening : ScreeningResult or LevelStatistics, optional
         A screening of the same problem (:func:`screen`); a ScreeningResult of another problem is refused, a
         LevelStatistics (no problem to compare) is taken on the caller's word.
-    bias : float or sequence of float, optional
-        Known bias of ``level`` (overrides the plan's), at most ``sqrt(theta) tol`` per column: the run draws
+    bias : float, sequence of float or mapping of str to float, optional
+        Known bias of ``level`` (overrides the plan's), one for all QoIs or one per QoI (in column order or by
+        column name, as ``tol``; its sign does not count), at most ``sqrt(theta) tol`` per column: the run draws
         samples for the statistical share ``(1 - theta) tol^2``, so a larger bias is refused before any sample
         (:class:`~rough_uq.errors.EstimationError`, with the ``theta`` that would take it).
     n_initial, max_cost, batch_size, kurtosis_limit
@@ -864,6 +869,8 @@ def mc(
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
     max_samples = _max_samples(max_samples)
     statistics = _screening_of(problem, screening)
+    if isinstance(bias, Mapping):
+        bias = _values_by_name("bias", bias, problem.columns, noun="bias", positive=False)
     given_bias = bias
     mc_level, bias = _mc_level(problem, tol, theta, level, screening, bias)
     stage = run_stage("mc", run_id("mc", problem.columns, tol, theta, level))
