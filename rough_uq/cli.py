@@ -517,7 +517,8 @@ def validate(config_paths: Sequence[str]) -> None:
     solve: the file and its fields, then the surface spectrum, loads and
     quantities of interest built from them, and every load against the
     solver's range (a dimensionless load p_mean L / (E* rms_height) in about
-    [2e-298, 1e15]). Nothing is solved.
+    [2e-298, 1e15], and at most solver.tol / (0.02 eps), where rounding still
+    lets solves converge). Nothing is solved.
     """
     from rough_uq.study.config import _physical_memory_bytes, solver_memory_bytes
 

@@ -311,11 +311,38 @@ def test_the_load_range_is_the_solvers_less_the_margin_and_a_load_at_its_ends_is
     for outside in (lowest / 1.001, highest * 1.001):
         with pytest.raises(rough_uq.InvalidParameterError, match=r"in \[2.2e-298, 1e\+15\]"):
             _problem(load=rough_uq.AbsoluteLoad(outside))
-    for end in (lowest, highest):  # a sample's own RMS height leaves them inside the solver's range
-        problem = _problem(load=rough_uq.AbsoluteLoad(end), max_iter=2)
+    # A sample's own RMS height leaves them inside the solver's range. The high end is taken at a loose solver
+    # tolerance: at a tight one rounding keeps solves from it, and the problem is refused
+    # (test_a_load_beyond_what_rounding_allows_...).
+    for end, solver_tol in ((lowest, 1e-7), (highest, 0.5)):
+        problem = _problem(load=rough_uq.AbsoluteLoad(end), max_iter=2, solver_tol=solver_tol)
         for level in range(problem.max_level + 1):
             fine, coarse, _ = problem.sampler(STAGE_SCREENING)(level, np.arange(2))
             assert np.all(np.isfinite(fine)) and np.all(np.isfinite(coarse))
+
+
+def test_a_load_beyond_what_rounding_allows_is_refused_when_the_problem_is_built_and_named_by_the_solver():
+    # relative: 1e9 passed `roughuq validate`; every solve then ran max_iter (110 000 iterations with its retry)
+    # and was stored as not converged.
+    from rough_uq.physics.solver import max_convergent_load
+
+    limit = max_convergent_load(1e-8)
+    problem = _problem(solver_tol=1e-8)
+    spectrum = problem.spectrum
+    # The premise: solves at 10 times the limit stop above the tolerance, at a hundredth of it they converge.
+    heights = rough_uq.sample_surface(spectrum, 64, np.random.default_rng(5))
+    rms = float(np.std(heights))
+    far = rough_uq.solve_contact(heights, system_size=1.0, mean_pressure=10 * limit * rms, tol=1e-8, max_iter=300)
+    assert not far.converged and f"above {limit:.3g}" in far.message
+    near = rough_uq.solve_contact(heights, system_size=1.0, mean_pressure=limit / 100 * rms, tol=1e-8)
+    assert near.converged and "rounding of the pressures" not in near.message
+    pressure = 2 * limit * spectrum.rms_height / spectrum.system_size
+    with pytest.raises(rough_uq.InvalidParameterError) as caught:
+        _problem(load=[rough_uq.AbsoluteLoad(1.0), rough_uq.AbsoluteLoad(pressure)], solver_tol=1e-8)
+    assert caught.value.name == "load.absolute.1" and caught.value.value == pressure
+    assert caught.value.allowed.startswith("a dimensionless load mean_pressure * system_size / (e_star * rms_height) "
+                                           "at most 2.3e+9 at solver tol 1e-08; here it is 4.5e+9")
+    _problem(load=rough_uq.AbsoluteLoad(pressure), solver_tol=1e-7)  # twice the limit of 1e-8, within that of 1e-7
 
 
 @pytest.mark.parametrize("n", [16, 256])

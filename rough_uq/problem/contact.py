@@ -21,7 +21,7 @@ import numpy as np
 
 from rough_uq.errors import InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_number
 from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES, ordered_names
-from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD
+from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD, max_convergent_load
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
 from rough_uq.problem.batch import LevelBatch
 from rough_uq.problem.loads import (
@@ -132,7 +132,7 @@ MIN_SOLVER_TOL = 1e-14
 #: probability of 1e-20), and it costs nothing: the range left, about
 #: [2e-298, 1e15], still takes every load a solve can converge at (full
 #: contact sets in below 2 pi k_s <= 2e5, and from some 1e8 times that load
-#: on no solve converges).
+#: on no solve converges; :func:`refuse_loads_beyond_rounding` refuses those).
 LOAD_MARGIN = 1e10
 
 
@@ -188,6 +188,33 @@ def checked_mean_pressures(
             )
         pressures.append(pressure)
     return tuple(pressures)
+
+
+def refuse_loads_beyond_rounding(
+    loads: Sequence[RelativeLoad | AbsoluteLoad], pressures: Sequence[float], *, spectrum: SurfaceSpectrum,
+    e_star: float, solver_tol: float,
+) -> None:
+    """Raise :class:`~rough_uq.errors.InvalidParameterError` for a load at which rounding keeps most solves from
+    reaching ``solver_tol``: a dimensionless load (with the nominal RMS height) above
+    :func:`~rough_uq.physics.solver.max_convergent_load`.
+
+    Such a load is many orders of magnitude beyond full contact (a unit taken for another, as a rule): every
+    solve would run ``max_iter`` iterations and be stored as not converged.
+    """
+    size, height = spectrum.system_size, spectrum.rms_height
+    limit = max_convergent_load(solver_tol)
+    for position, (load, pressure) in enumerate(zip(loads, pressures)):
+        exponent = math.log10(pressure) + math.log10(size) - math.log10(e_star) - math.log10(height)
+        if exponent > math.log10(limit):
+            name = "load." + ("relative" if isinstance(load, RelativeLoad) else "absolute")
+            name += f".{position}" if len(loads) > 1 else ""
+            raise InvalidParameterError(
+                name, load.value, f"a dimensionless load mean_pressure * system_size / (e_star * rms_height) at "
+                f"most {_power_of_ten(math.log10(limit))} at solver tol {solver_tol:g}; here it is "
+                f"{_power_of_ten(exponent)}, where the "
+                f"rounding of the pressures (about the load) alone keeps most solves from reaching the tolerance "
+                f"(full contact sets in at a load of order 2 pi k_s = {2 * math.pi * spectrum.k_s:.3g})"
+            )
 
 
 def _power_of_ten(exponent: float) -> str:
@@ -247,7 +274,8 @@ class ContactProblem:
         load, named ``<qoi>@<load>`` (:attr:`columns`). Every load must give
         a mean pressure that a solve on the finest grid takes
         (:func:`checked_mean_pressures`: a dimensionless load
-        ``p_mean L / (E* rms_height)`` in about ``[2e-298, 1e15]``).
+        ``p_mean L / (E* rms_height)`` in about ``[2e-298, 1e15]``), and at most
+        ``max_convergent_load(solver_tol)`` (:func:`refuse_loads_beyond_rounding`).
     qoi : str or sequence of str
         Quantities of interest, in column order of every result (names of
         :data:`~rough_uq.physics.qoi.QOI_NAMES`). Stored as a tuple. A set
@@ -329,7 +357,9 @@ class ContactProblem:
         set_(self, "units", _units(self.units, names))
         set_(self, "e_star", positive("e_star", self.e_star))
         self._check_grids()
-        checked_mean_pressures(loads, spectrum=self.spectrum, e_star=self.e_star, finest=self.grid(self.max_level))
+        pressures = checked_mean_pressures(
+            loads, spectrum=self.spectrum, e_star=self.e_star, finest=self.grid(self.max_level)
+        )
         _choice("connectivity", self.connectivity, CLUSTER_COUNTS)
         _choice("area_estimator", self.area_estimator, AREA_ESTIMATORS)
         if self.critical_pressure is not None:
@@ -337,6 +367,9 @@ class ContactProblem:
         elif "area_above" in names:
             raise InvalidParameterError("critical_pressure", None, "a number > 0 when 'area_above' is asked for")
         self._check_solver()
+        refuse_loads_beyond_rounding(
+            loads, pressures, spectrum=self.spectrum, e_star=self.e_star, solver_tol=self.solver_tol
+        )
         set_(self, "_model", self._build_model())
 
     def _check_grids(self) -> None:
