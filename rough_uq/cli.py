@@ -274,7 +274,12 @@ def _stop_aware(inner: Any) -> Any:
 def _executor(config: Any, workers: int | None, executor: str, scheduler: str | None) -> Any:
     from rough_uq.study.executors import make_executor
 
-    return make_executor(executor, workers=workers, threads=config.solver.threads, scheduler=scheduler)
+    try:
+        return make_executor(executor, workers=workers, threads=config.solver.threads, scheduler=scheduler)
+    except InvalidParameterError as error:
+        if error.name != "scheduler":
+            raise
+        raise InvalidParameterError("--scheduler", error.value, error.allowed) from None
 
 
 def _check_executor_options(executor: str, scheduler: str | None, workers: int | None) -> None:

@@ -120,6 +120,18 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path, monkeypatch):
     assert result.exit_code == 2 and "dask scheduler" in result.stderr
 
 
+@pytest.mark.parametrize("address", ["notaurl", "localhost:abc", "tcp://", "foo://bar:1", "tcp://host:0", "h:99999"])
+def test_a_malformed_scheduler_address_is_refused_by_name_before_any_connection(tmp_path, monkeypatch, address):
+    # distributed's Client raised a bare ValueError (a traceback, status 1), and its finaliser then waited 20 s.
+    pytest.importorskip("distributed")
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    result = CliRunner().invoke(main, ["screen", str(config), "--executor", "dask", "--scheduler", address, "-q"])
+    assert result.exit_code == 2 and result.stderr.startswith(f"error: --scheduler: got {address!r}; allowed: the "
+                                                              "address of a dask scheduler, [scheme://]host:port")
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
 @pytest.mark.parametrize("is_pool_worker", [True, False])
 def test_a_worker_warms_the_kernels_once_before_its_first_sample(monkeypatch, is_pool_worker):
     calls: list[str] = []

@@ -476,8 +476,9 @@ class DaskExecutor(Executor):
             self._client = scheduler
             self._owns_client = False
         else:
+            scheduler = _checked_address(scheduler)
             try:
-                self._client = Client(str(scheduler), timeout="10s", set_as_default=False)
+                self._client = Client(scheduler, timeout="10s", set_as_default=False)
             except OSError as exc:
                 raise ExecutorError(f"cannot reach the dask scheduler at {scheduler!r}: {exc}") from None
             self._owns_client = True
@@ -518,6 +519,34 @@ class DaskExecutor(Executor):
         if self._owns_client:
             self._client.close()
             self._owns_client = False
+
+
+#: Schemes of a scheduler address whose location is ``host:port``.
+_HOST_PORT_SCHEMES = ("tcp", "tls", "ws", "wss")
+
+
+def _checked_address(scheduler: object) -> str:
+    """``scheduler`` as an address distributed can connect to, ``[scheme://]host:port``; refused by name otherwise.
+
+    distributed's ``Client`` raised a bare ValueError for an address such as ``localhost:abc`` or ``notaurl`` (no
+    port), and its finaliser then waited 20 s and printed a traceback of its own.
+    """
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
+
+    allowed = f"the address of a dask scheduler, [scheme://]host:port with a scheme of {', '.join(sorted(backends))} "
+    allowed += "(e.g. tcp://127.0.0.1:8786)"
+    try:
+        scheme, location = parse_address(str(scheduler))
+        if scheme not in backends:
+            raise ValueError(scheme)
+        if scheme in _HOST_PORT_SCHEMES:
+            host, port = parse_host_port(location)
+            if not host or not 0 < int(port) < 65536:
+                raise ValueError(location)
+    except (ValueError, TypeError):
+        raise InvalidParameterError("scheduler", scheduler, allowed) from None
+    return str(scheduler)
 
 
 def make_executor(kind: str, *, workers: int | None = None, threads: int = 1, scheduler: str | None = None) -> Executor:
