@@ -249,8 +249,8 @@ __all__ = [
 Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
 
 _MAX_COUNT = float(PLANNED_COUNT_CAP)
-#: Plans with more samples than this are beyond any budget: the Python runs
-#: (:mod:`rough_uq.problem.runs`) and ``roughuq`` forecasts refuse them.
+#: Plans with more samples than this are refused, by the Python runs (:mod:`rough_uq.problem.runs`, unless
+#: ``max_samples=`` moves the limit) and by ``roughuq`` (whatever ``--max-cost``).
 MAX_PLANNED_SAMPLES = 10**7
 MIN_LEVEL_SAMPLES = 2
 """Fewest samples on a level of an MLMC run started from a screening (one variance needs two)."""

@@ -1239,7 +1239,8 @@ def _forecast(
 
 
 def _check_budget(names: Sequence[str], tol: np.ndarray, forecast: Forecast, max_cost: float | None) -> None:
-    """Refuse a forecast beyond any budget, over ``max_cost``, or (without it) over :data:`DEFAULT_COST_CEILING`."""
+    """Refuse a forecast of more than :data:`MAX_PLANNED_SAMPLES` samples, over ``max_cost``, or (without it) over
+    :data:`DEFAULT_COST_CEILING`."""
     total, modelled, cpu_seconds = sum(forecast.n_samples), forecast.modelled_cost, forecast.cpu_seconds
     asked = tol_text(names, tol, digits=3)
     if total > MAX_PLANNED_SAMPLES or not math.isfinite(modelled):
@@ -1247,7 +1248,7 @@ def _check_budget(names: Sequence[str], tol: np.ndarray, forecast: Forecast, max
         amount = "more than" if max(forecast.n_samples) >= PLANNED_COUNT_CAP else "about"
         raise EstimationError(
             f"--tol {asked} needs {amount} {total:.3g} samples ({format_duration(cpu_seconds)} "
-            "CPU); that is beyond any budget: loosen --tol"
+            f"CPU), more than the {MAX_PLANNED_SAMPLES:.0e} a roughuq run may plan (whatever --max-cost): loosen --tol"
         )
     if max_cost is not None and modelled > max_cost:
         raise EstimationError(
