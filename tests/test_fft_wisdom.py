@@ -45,6 +45,33 @@ def test_plans_are_measured_once_per_grid_and_the_measuring_is_announced(fresh_w
     assert notes[1:] == [f"measuring FFT plans for 24x24 (once per machine, kept in {fresh_wisdom})"]
 
 
+@pytest.mark.parametrize("where", ["a directory", "under a file"])
+def test_a_wisdom_file_that_cannot_be_written_is_said_once_measured(fresh_wisdom, monkeypatch, where):
+    # ROUGHUQ_FFTW_WISDOM=/proc/nope/w.json: "measuring FFT plans ... kept in /proc/nope/w.json" on every command,
+    # nothing kept and nothing said.
+    if where == "a directory":
+        unwritable = fresh_wisdom.parent
+    else:
+        fresh_wisdom.write_text("not a directory")
+        unwritable = fresh_wisdom / "w.json"
+    monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", str(unwritable))
+    notes: list[str] = []
+    prepare_wisdom([16], threads=1, note=notes.append)
+    assert len(notes) == 2 and notes[0].startswith("measuring FFT plans for 16x16")
+    assert notes[1].startswith(f"warning: the measured FFT plans could not be kept in {unwritable} (")
+    assert notes[1].endswith("every command measures them again; set ROUGHUQ_FFTW_WISDOM to a writable file (or to "
+                             "'estimate': no measured plans)")
+
+
+@pytest.mark.parametrize("setting", ["ESTIMATE", "Estimate", " estimate"])
+def test_estimate_in_any_case_turns_measured_planning_off(fresh_wisdom, monkeypatch, setting):
+    # "ESTIMATE" measured plans and wrote them to a file of that name in the working directory.
+    monkeypatch.chdir(fresh_wisdom.parent)
+    monkeypatch.setenv("ROUGHUQ_FFTW_WISDOM", setting)
+    assert prepare_wisdom([16], threads=1, note=None) is None
+    assert os.listdir(fresh_wisdom.parent) == []
+
+
 def test_plans_measured_before_a_ctrl_c_are_kept_on_disk(fresh_wisdom, monkeypatch):
     # Ctrl-C while "measuring FFT plans" threw every measured plan away: each rerun measured them all again.
     measure = fft_module._plan_variant

@@ -12,9 +12,10 @@ Where the file lives: ``$ROUGHUQ_FFTW_WISDOM`` if set, else
 machine. The file is JSON (``format``, ``version`` and FFTW's own text export
 of the double, single and long-double wisdom): reading it runs no code, unlike
 a pickle a stranger could have put in the cache directory.
-``ROUGHUQ_FFTW_WISDOM=estimate`` turns measured planning off
+``ROUGHUQ_FFTW_WISDOM=estimate`` (in any case) turns measured planning off
 (``FFTW_ESTIMATE`` plans, nothing measured or written). An unreadable or
-corrupt file is ignored and replaced. The file is written only when it
+corrupt file is ignored and replaced; a file that cannot be written is said
+(a warning through the progress notes: every command then measures again). The file is written only when it
 gains plans, also when Ctrl-C or SIGTERM stops the measuring (the plans
 measured by then are kept, and a rerun measures only the rest), and the
 study's progress says when plans are being measured (seconds per grid the
@@ -44,7 +45,7 @@ ESTIMATE = "estimate"
 def wisdom_path() -> Path | None:
     """The wisdom file of this machine, or ``None`` when measured planning is off."""
     setting = os.environ.get("ROUGHUQ_FFTW_WISDOM", "")
-    if setting == ESTIMATE:
+    if setting.strip().lower() == ESTIMATE:  # "ESTIMATE" named a file of that name
         return None
     if setting:
         return Path(setting)
@@ -75,7 +76,8 @@ def load_wisdom(path: Path) -> tuple[bytes, ...] | None:
         return None
 
 
-def _save(path: Path, wisdom: tuple[bytes, ...]) -> None:
+def _save(path: Path, wisdom: tuple[bytes, ...]) -> str | None:
+    """Write ``wisdom`` to ``path``; returns why it could not (None once written)."""
     # Atomic replacement: concurrent studies on one machine never read half a file.
     text = json.dumps({"format": _FORMAT, "version": _VERSION, "wisdom": [part.decode("latin-1") for part in wisdom]})
     temporary = None
@@ -85,10 +87,12 @@ def _save(path: Path, wisdom: tuple[bytes, ...]) -> None:
         with os.fdopen(handle, "w", encoding="utf-8") as out:
             out.write(text)
         os.replace(temporary, path)
-    except OSError:
-        # A read-only cache costs only the measuring time of the next run.
+    except OSError as error:
+        # A read-only cache costs only the measuring time of the next run (which says so: prepare_wisdom).
         if temporary is not None:
             Path(temporary).unlink(missing_ok=True)
+        return error.strerror or type(error).__name__
+    return None
 
 
 def prepare_wisdom(
@@ -118,7 +122,10 @@ def prepare_wisdom(
             # (tens of seconds at 1024^2-4096^2).
             _save_gained(path, stored, export_wisdom())
             raise
-        _save_gained(path, stored, wisdom)
+        failure = _save_gained(path, stored, wisdom)
+    if failure is not None and note is not None:
+        note(f"warning: the measured FFT plans could not be kept in {path} ({failure}): every command measures them "
+             f"again; set ROUGHUQ_FFTW_WISDOM to a writable file (or to '{ESTIMATE}': no measured plans)")
     return wisdom
 
 
@@ -156,10 +163,11 @@ def _measuring_lock(path: Path, note: Callable[[str], None] | None) -> Iterator[
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
-def _save_gained(path: Path, stored: tuple[bytes, ...] | None, wisdom: tuple[bytes, ...]) -> None:
-    """Write ``wisdom`` to ``path`` if it holds plans ``stored`` (the file's) does not."""
+def _save_gained(path: Path, stored: tuple[bytes, ...] | None, wisdom: tuple[bytes, ...]) -> str | None:
+    """Write ``wisdom`` to ``path`` if it holds plans ``stored`` (the file's) does not; why it could not, or None."""
     if stored is None or wisdom_entries(wisdom) != wisdom_entries(stored):
-        _save(path, wisdom)
+        return _save(path, wisdom)
+    return None
 
 
 def wisdom_entries(wisdom: tuple[bytes, ...]) -> list[list[bytes]]:
