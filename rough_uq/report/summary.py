@@ -152,6 +152,11 @@ def _config_summary(config: Any) -> dict[str, Any]:
         "load": {config.load.kind: config.load.value},
         "grids": [config.grid.n_at(level) for level in range(config.grid.max_level + 1)],
         "qoi": {name: settings.unit_label for name, settings in config.qoi.items()},
+        # What else defines a QoI's numbers (the area estimator, cluster connectivity, critical pressure): two
+        # studies that differ in it alone gave reports that differed in their numbers alone.
+        "qoi_settings": {
+            name: settings.model_dump(mode="json", exclude={"unit", "tol"}) for name, settings in config.qoi.items()
+        },
         "solver_tol": config.solver.tol,
         "theta": config.estimation.theta,
     }
@@ -859,6 +864,14 @@ def _out_option(path: str) -> str:
     return f" --out {escape(path)}" if path else ""
 
 
+def _settings_text(settings: dict[str, Any] | None) -> str:
+    """`` (estimator corrected)``: a QoI's settings beyond its unit and tolerance, or nothing."""
+    if not settings:
+        return ""
+    return " (" + ", ".join(f"{key.replace('_', ' ')} {value:g}" if isinstance(value, float) else
+                            f"{key.replace('_', ' ')} {value}" for key, value in settings.items()) + ")"
+
+
 def render_report(report: dict[str, Any], console: Any) -> None:
     """Print a :func:`study_report` (or its JSON round trip) with rich."""
     config = report["config"]
@@ -873,7 +886,9 @@ def render_report(report: dict[str, Any], console: Any) -> None:
         f"load {load_text(config['load'])}; grids {', '.join(str(n) for n in grids)}; seed {config['seed']}",
         highlight=False,
     )
-    console.print(escape("QoIs: " + ", ".join(f"{name} [{unit}]" for name, unit in units.items())), highlight=False)
+    settings = config.get("qoi_settings", {})  # absent from the JSON of earlier versions
+    console.print(escape("QoIs: " + ", ".join(f"{name} [{unit}]{_settings_text(settings.get(name))}"
+                                              for name, unit in units.items())), highlight=False)
     counts = "; ".join(
         f"{stage}: " + ", ".join(f"L{level} {n}" for level, n in levels.items())
         for stage, levels in report["samples"].items()
