@@ -265,3 +265,24 @@ def test_a_broken_pool_is_explained_by_when_it_broke():
     assert computing.startswith("a worker process died while computing samples (killed, or out of memory)")
     for message in (unguarded, starting, computing):
         assert "run the command again" not in message  # a Python script has no command to run again
+
+
+def test_a_dask_task_lost_with_its_workers_says_that_a_rerun_computes_the_rest():
+    # Killing the dask workers said "a dask task failed: FutureCancelledError: ... already forgotten", with no way
+    # forward, although the stored samples were kept (as a local pool's dead worker says).
+    pytest.importorskip("distributed")
+    from distributed import KilledWorker
+    from distributed.client import FutureCancelledError
+    from distributed.comm.core import CommClosedError
+
+    from rough_uq.study.executors import dask_failure_text
+
+    from types import SimpleNamespace
+
+    killed = KilledWorker("_compute-1", SimpleNamespace(address="tcp://10.0.0.2:40001"), 3)
+    for lost in (killed, FutureCancelledError("_compute-1", "already forgotten"),
+                 CommClosedError("in <TCP>: Stream is closed")):
+        text = dask_failure_text(lost)
+        assert text.startswith(f"a dask task was lost ({type(lost).__name__}: ")
+        assert text.endswith("the same roughuq command run again, on a cluster with workers, computes the rest")
+    assert dask_failure_text(ZeroDivisionError("x")) == "a dask task failed: ZeroDivisionError: x"

@@ -508,7 +508,8 @@ class DaskExecutor(Executor):
                 except Exception as exc:
                     if isinstance(exc, RoughUQError):
                         raise
-                    raise ExecutorError(f"a dask task failed: {type(exc).__name__}: {exc}") from exc
+                    self._scattered = None  # its workers may be gone with it: the next run scatters again
+                    raise ExecutorError(dask_failure_text(exc)) from exc
             is_done = True
         finally:
             if not is_done:
@@ -519,6 +520,25 @@ class DaskExecutor(Executor):
         if self._owns_client:
             self._client.close()
             self._owns_client = False
+
+
+def dask_failure_text(error: Exception) -> str:
+    """What an :class:`ExecutorError` says about a dask task that raised ``error`` (not a roughuq error).
+
+    A task whose workers died or left the cluster (``KilledWorker``; a cancelled future, "already forgotten" once
+    the scattered model was lost with them; a closed connection) is lost, not wrong: the same command run again
+    computes the rest, as after a local worker's death.
+    """
+    from concurrent.futures import CancelledError
+
+    from distributed import KilledWorker
+
+    cause = f"{type(error).__name__}: {error}"
+    if isinstance(error, (KilledWorker, CancelledError, OSError)):
+        return (f"a dask task was lost ({cause}): its workers died (killed, or out of memory) or left the cluster; "
+                "a study file keeps the samples already stored: the same roughuq command run again, on a cluster "
+                "with workers, computes the rest")
+    return f"a dask task failed: {cause}"
 
 
 #: Schemes of a scheduler address whose location is ``host:port``.
