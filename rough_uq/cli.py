@@ -672,7 +672,7 @@ def init(name: str | None, out: str | None, force: bool, show_list: bool, quiet:
     """Write a shipped study config to the working directory, to edit and run.
 
     NAME is one of: quickstart (a small study, about a minute), classic-area,
-    classic-clusters (the classic studies, SPEC section 6). Then e.g.
+    classic-clusters (the classic studies of the README). Then e.g.
     `roughuq screen quickstart.yaml`.
     """
     if show_list:

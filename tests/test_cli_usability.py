@@ -1467,3 +1467,14 @@ def test_merge_says_when_an_input_is_a_whole_study(screened):
     result = run("merge", "copy.h5", "--into", "results.h5")
     assert ("note: copy.h5 is a study file, not a shard: only its samples are merged (the new ones added), not its "
             "screening or runs") in result.stderr
+
+
+def test_python_dash_m_rough_uq_is_the_command_line(tmp_path):
+    # `python -m rough_uq` said "No module named rough_uq.__main__"; only `python -m rough_uq.cli` worked.
+    out = subprocess.run([sys.executable, "-m", "rough_uq", "init", "--list"], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=120)
+    assert out.returncode == 0 and "quickstart" in out.stdout and out.stderr == ""
+    usage = subprocess.run([sys.executable, "-m", "rough_uq", "mlmc", "--tol"], capture_output=True, text=True,
+                           cwd=tmp_path, timeout=120)
+    assert usage.returncode == 2
+    assert usage.stderr == "error: mlmc: Option '--tol' requires an argument; see `python -m rough_uq mlmc --help`\n"
