@@ -410,13 +410,15 @@ def test_too_few_samples_and_unbracketed_quantiles_are_refused():
 
 
 @pytest.mark.parametrize(
-    "probabilities", ["0.5", "abc", ["0.5", 0.9], np.array(["0.5"]), [0.5, True], 0.5j, [[0.1], [0.2, 0.3]], None]
+    "probabilities",
+    ["0.5", "abc", ["0.5", 0.9], np.array(["0.5"]), [0.5, True], 0.5j, [[0.1], [0.2, 0.3]], None, [], [0.5, 0.5]],
 )
 def test_quantiles_refuse_probabilities_that_are_not_numbers_by_name(probabilities):
-    # "abc" and the ragged list gave bare ValueErrors, 0.5j a TypeError; "0.5" and ["0.5", 0.9] were converted.
+    # "abc" and the ragged list gave bare ValueErrors, 0.5j a TypeError; "0.5" and ["0.5", 0.9] were converted;
+    # [] gave no quantiles and [0.5, 0.5] one twice, where --probabilities refuses both.
     fine = np.linspace(-2.0, 2.0, 200)
     result = cdf_from_samples(fine=[fine], coarse=[fine], thresholds=np.linspace(-3.0, 3.0, 25), bandwidth=0.1)
-    allowed = "allowed: a number or a 1-d sequence of numbers strictly between 0 and 1$"
+    allowed = "allowed: a number or a non-empty 1-d sequence of distinct numbers strictly between 0 and 1$"
     with pytest.raises(InvalidParameterError, match=r"^probabilities: got .*; " + allowed):
         quantiles(result, probabilities=probabilities)
     np.testing.assert_array_equal(quantiles(result, probabilities=0.5).values, [0.0])

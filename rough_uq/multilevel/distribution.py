@@ -781,16 +781,17 @@ def quantiles(estimate: CdfEstimate, *, probabilities: Sequence[float] | np.ndar
     Raises
     ------
     InvalidParameterError
-        If ``probabilities`` is not a number or a 1-d sequence of numbers
-        strictly between 0 and 1 (strings such as ``"0.5"`` and booleans are
+        If ``probabilities`` is not a number or a non-empty 1-d sequence of
+        distinct numbers strictly between 0 and 1 (strings such as ``"0.5"`` and booleans are
         refused, not converted).
     EstimationError
         If the estimated CDF does not cross some ``p`` inside the grid
         (extend the thresholds).
     """
-    allowed = "a number or a 1-d sequence of numbers strictly between 0 and 1"
+    # Distinct and at least one, as --probabilities: [] gave empty quantiles, [0.5, 0.5] one quantile twice.
+    allowed = "a number or a non-empty 1-d sequence of distinct numbers strictly between 0 and 1"
     p = np.atleast_1d(checked_real_array("probabilities", probabilities, allowed))
-    if p.ndim != 1 or not np.all((p > 0) & (p < 1)):
+    if p.ndim != 1 or p.size == 0 or np.unique(p).size != p.size or not np.all((p > 0) & (p < 1)):
         raise InvalidParameterError("probabilities", probabilities, allowed)
     cdf, s = estimate.cdf, estimate.thresholds
     values = np.array([_invert(cdf, s, float(pk)) for pk in p])

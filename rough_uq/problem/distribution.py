@@ -237,8 +237,8 @@ class DistributionResult:
         Raises
         ------
         InvalidParameterError
-            If ``probabilities`` is not a number or a 1-d sequence of numbers
-            strictly between 0 and 1 (strings and booleans are refused, not
+            If ``probabilities`` is not a number or a non-empty 1-d sequence of
+            distinct numbers strictly between 0 and 1 (strings and booleans are refused, not
             converted), naming ``probabilities``.
         EstimationError
             If the estimated CDF does not cross a probability inside the
