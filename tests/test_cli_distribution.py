@@ -55,7 +55,8 @@ def test_the_report_of_such_a_run_shows_no_error_it_did_not_measure(tmp_path, mo
     assert "RMSE 0 <=" not in report.stdout
     assert "the thresholds miss the samples of a level, whose variance they do not measure" in report.stdout
     # The Distribution table showed "sup RMSE 0", the figure a band of width 0 labelled "sup RMSE 0".
-    (row,) = [line.split() for line in report.stdout.splitlines() if line.split()[:2] == ["contact_area", "0.5"]]
+    # (The run's cells are on its first row, the first quantile's.)
+    (row,) = [line.split() for line in report.stdout.splitlines() if line.split()[:2] == ["contact_area", "0.05"]]
     assert row[4:6] == ["-", "0.1"], row
     assert json.loads(CliRunner().invoke(main, ["report", "results.h5", "--json"]).stdout)["runs"][0]["rmse"] is None
     from rough_uq.report.figures import _cdf_figure
@@ -110,3 +111,23 @@ def test_a_cdf_run_on_thresholds_far_coarser_than_the_spread_is_not_met_and_says
     report = CliRunner().invoke(main, ["report", str(tmp_path / "results.h5")], terminal_width=200)
     assert report.exit_code == 0, (report.output, report.exception)
     assert "the smoothing bandwidth exceeds twice the spread of the values; the bias is not estimated" in report.stdout
+    # Its Distribution table showed the statistical error alone as its "sup RMSE" (0.05): "-", as for variance.
+    (row,) = [line.split() for line in report.stdout.splitlines() if line.split()[:2] == ["contact_area", "0.05"]]
+    assert row[3].startswith("[") and row[4].endswith("]") and row[5:7] == ["-", "0.1"], row
+
+
+def test_the_distribution_table_has_one_line_per_quantile_at_80_columns(tmp_path, monkeypatch):
+    # At 80 columns every row wrapped over two lines: error bars split ("[-inf," / "19.85]"), N_l too, and the
+    # run's RMSE, tol, N_l and met were repeated on every quantile's row.
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    run = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.2", "--thresholds", "20:70:51",
+                                    "--workers", "1", "-q"])
+    assert run.exit_code in (0, 3), (run.output, run.exception)
+    report = CliRunner().invoke(main, ["report", "results.h5"], terminal_width=80)
+    lines = report.stdout.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("Distribution"))
+    rows = [line for line in lines[start + 4:] if line.strip() not in ("", "[%]")][:3]  # the unit under the QoI
+    assert [line.split()[0] for line in rows] == ["contact_area", "0.5", "0.95"], rows  # one line each
+    assert all(line.count("[") == line.count("]") == 1 for line in rows), rows  # whole error bars
+    assert len(rows[0].split()) > len(rows[1].split()) == len(rows[2].split()) == 4, rows  # p, q_p, error bar

@@ -800,15 +800,24 @@ def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
 
 
 def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
-    """Every finished cdf run, one row per quantile (its error bar from the sup-norm RMSE band)."""
-    table = _table("Distribution (MLMC CDF, quantiles with error bars)")
+    """Every finished cdf run, one row per quantile (its error bar from the sup-norm RMSE band).
+
+    The run's own cells (RMSE, tol, N_l, met) are on its first row only: repeated on every quantile they wrapped
+    each row over two lines at 80 columns. Its RMSE is "-" where the bias was not estimated (the statistical error
+    alone is no RMSE), as in the variance table.
+    """
+    table = _table("Distribution (MLMC CDF, its RMSE in the sup norm; quantiles with error bars)")
     _add_qoi_column(table)
-    for column in ("p", "q_p", "error bar", "sup RMSE", "tol", "N_l", "met"):
-        table.add_column(column, justify="right")
+    for column in ("p", "q_p", "error bar", "RMSE", "tol", "N_l", "met"):
+        # An error bar is read whole; N_l (one line per run now) may wrap instead.
+        table.add_column(column, justify="right", no_wrap=column == "error bar")
     for run in runs:
         outcome, distribution = run.outcome, run.outcome.distribution
         unit = _column_unit(units, distribution.column)
-        for quantile in distribution.quantiles or (None,):
+        is_rmse = is_rmse_measured(outcome) and bool(outcome.is_bias_estimated)
+        run_cells = (_g(outcome.rmse[0], 2) if is_rmse else "-", _g(run.tol[0]),
+                     " ".join(str(n) for n in outcome.n_samples), "yes" if outcome.tol_met else "no")
+        for row, quantile in enumerate(distribution.quantiles or (None,)):
             value, bar = "-", "-"
             is_bracketed = quantile is not None and quantile.value is not None
             if is_bracketed:
@@ -818,10 +827,9 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
                 upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
                 bar = f"[{lower}, {upper}]"
             table.add_row(
-                _qoi_cell(distribution.column, unit),
+                _qoi_cell(distribution.column, unit) if row == 0 else "",
                 "-" if quantile is None else _g(quantile.probability), value, bar,
-                _g(outcome.rmse[0] if is_rmse_measured(outcome) else None, 2), _g(run.tol[0]),
-                " ".join(str(n) for n in outcome.n_samples), "yes" if outcome.tol_met else "no",
+                *(run_cells if row == 0 else ("",) * len(run_cells)),
             )
     return table
 
