@@ -854,7 +854,7 @@ def render_sweep(console: Any, rows: Sequence[Any], *, key: str, level: int,
     summary has (a sweep of ``qoi.NAME.unit`` gives each row its own).
     """
     table = _table(escape(f"Sweep of {key} (plain MC on level {level}; bias not estimated)"))
-    for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "CPU"):
+    for column in ("value", "grid", "QoI", "estimate ± stat. error", "N", "CPU time"):
         table.add_column(column, justify="right")
     for row, row_units in zip(rows, units, strict=True):
         outcome = row.run.outcome
@@ -862,7 +862,7 @@ def render_sweep(console: Any, rows: Sequence[Any], *, key: str, level: int,
             table.add_row(
                 escape(row.value), str(row.grid), escape(_labelled(name, _column_unit(row_units, name))),
                 _value_error(outcome.estimate[q], outcome.stat_error[q]), str(outcome.n_samples[0]),
-                f"{format_duration(outcome.seconds)} CPU",
+                format_duration(outcome.seconds),
             )
     console.print(table)
 
