@@ -746,11 +746,16 @@ def test_study_file_roundtrip_and_mismatch(tmp_path):
 
 
 def _tamper_qoi_names(path: Path, names: list[str]) -> None:
+    """Other QoI names, with the header checksum that goes with them (as a faulty writer would leave them: names
+    altered alone are refused by the checksum, test_store_damaged)."""
     import h5py
+
+    from rough_uq.study.store import header_checksum
 
     with h5py.File(path, "r+") as f:
         del f["qoi_names"]
         f.create_dataset("qoi_names", data=names, dtype=h5py.string_dtype())
+        f.attrs["header_checksum"] = header_checksum(f["config_yaml"].asstr()[()], names)
 
 
 def test_a_study_whose_qoi_names_are_not_its_configs_columns_is_refused_as_damaged(tmp_path):

@@ -198,3 +198,44 @@ def test_damaged_rows_in_a_file_a_dead_writer_left_are_refused_as_damaged(tmp_pa
     _assert_refused_as_damaged(result, "study.h5")
     assert "samples/level_0: 1 of 10 rows differ from their checksums (rows 1)" in result.stderr
     assert path.read_bytes() == damaged
+
+
+@pytest.mark.parametrize("altered", [(b"relative: 0.2", b"relative: 0.3"), (b"contact_area", b"contact_arex")])
+def test_a_stored_config_or_qoi_name_altered_in_the_file_is_refused_as_damage(tmp_path, altered):
+    # One byte of the stored config (in HDF5's global heap, which has no checksum) changed the load: a resumed run
+    # mixed samples of the two loads into one estimate, and the report showed the altered load.
+    config = load_config(write_config(tmp_path / "tiny.yaml", tiny_config()))
+    path = tmp_path / "results.h5"
+    with create_study(config, path) as study:
+        study.store.append_samples(make_batch(0, 0, range(5), n_qoi=len(config.qoi_names)))
+    data = path.read_bytes()
+    old, new = altered
+    assert data.count(old) >= 1
+    path.write_bytes(data.replace(old, new))
+    with pytest.raises(StudyFileError, match="damaged study file .its stored config or QoI names do not match"):
+        open_study_readonly(path)
+    report = subprocess.run([sys.executable, "-m", "rough_uq", "report", str(path)], capture_output=True,
+                            text=True, timeout=TIMEOUT, cwd=tmp_path)
+    assert report.returncode == 2 and report.stderr.startswith(f"error: {path} cannot be read: damaged study file")
+
+
+def test_a_study_file_without_a_header_checksum_is_read_and_gets_one_when_rewritten(tmp_path):
+    import h5py
+
+    from rough_uq.study.store import header_checksum, open_study
+
+    config = load_config(write_config(tmp_path / "tiny.yaml", tiny_config()))
+    path = tmp_path / "results.h5"
+    with create_study(config, path) as study:
+        study.store.append_samples(make_batch(0, 0, range(5), n_qoi=len(config.qoi_names)))
+        text, names, digest = study.store.config_text, study.store.qoi_names, study.store.config_hash
+    with h5py.File(path, "r+") as f:  # as written before the checksum existed
+        del f.attrs["header_checksum"]
+        f.attrs["format_version"] = 2  # a version this roughuq converts when it writes
+        del f["samples/level_0/checksum"]
+    with open_study_readonly(path) as store:
+        assert store.read_samples(level=0).indices.size == 5
+    with open_study(path, config_text=text, config_hash=digest, qoi_names=names, create=False) as store:
+        assert store.read_samples(level=0).indices.size == 5
+    with h5py.File(path, "r") as f:
+        assert f.attrs["header_checksum"] == header_checksum(text, names)

@@ -8,6 +8,7 @@ this layout (format ``roughuq-study``, version 3)::
     |                                     config_hash   (sha256 hex, see rough_uq.study.config.config_hash)
     |                                     code_version  (roughuq version that created the file)
     |                                     created       (ISO 8601 time, UTC)
+    |                                     header_checksum (sha256 hex of config_yaml and qoi_names)
     |-- config_yaml                scalar string: the resolved config (YAML text)
     |-- qoi_names                  (n_qoi,) string: names of the QoI columns, in order
     |-- samples/
@@ -34,7 +35,11 @@ use the HDF5 1.10 file format (``libver="v110"``), which any HDF5 >= 1.10
 reads. Version 1 (written by roughuq before the in-place appends) had no
 ``n_committed`` (every row counted) and the HDF5 1.8 file format; version 2
 no ``checksum``. Both are read as they are (without checks of their rows)
-and converted to version 3 when opened for writing. JSON records are
+and converted to version 3 when opened for writing. ``header_checksum``
+covers the two variable-length strings, which HDF5 keeps in its global heap
+without a checksum (one altered byte of the stored config changed the load
+of every later sample); files written before it have none and get it when
+they are rewritten (converted, or mended after a writer's death). JSON records are
 byte arrays rather than string attributes because HDF5 never reuses the space
 of a rewritten attribute or string.
 
@@ -915,7 +920,7 @@ def _read_header(path: Path) -> dict[str, Any]:
                     f"{path} has study format version {version}; this roughuq reads versions {readable}",
                     path,
                 )
-            return {
+            header = {
                 "format_version": int(version),
                 "config_hash": str(f.attrs["config_hash"]),
                 "code_version": str(f.attrs["code_version"]),
@@ -925,10 +930,31 @@ def _read_header(path: Path) -> dict[str, Any]:
                 "qoi_names": tuple(f["qoi_names"].asstr()[()]),
                 "has_samples": isinstance(f.get("samples"), h5py.Group),
             }
+            stored = f.attrs.get(_HEADER_CHECKSUM)
+            if stored is not None and _text_attribute(stored) != header_checksum(
+                header["config_text"], header["qoi_names"]
+            ):
+                raise StudyFileError(
+                    f"{path} cannot be read: damaged study file (its stored config or QoI names do not match their "
+                    "checksum); restore it from a copy, or start a new study file",
+                    path,
+                )
+            return header
     except StudyFileError:
         raise
     except (*_HDF5_READ_ERRORS, ValueError, TypeError) as exc:
         raise _unreadable(path, exc) from None
+
+
+#: Root attribute: :func:`header_checksum` of the stored config text and QoI names.
+_HEADER_CHECKSUM = "header_checksum"
+
+
+def header_checksum(config_text: str, qoi_names: Sequence[str]) -> str:
+    """SHA-256 (hex) of a study file's config text and QoI names (``header_checksum``, module docstring)."""
+    import hashlib
+
+    return hashlib.sha256("\0".join((config_text, *qoi_names)).encode("utf-8")).hexdigest()
 
 
 def _text_attribute(value: Any) -> str:
@@ -944,6 +970,7 @@ def _write_header(
     f.attrs["config_hash"] = config_hash
     f.attrs["code_version"] = code_version
     f.attrs["created"] = utc_timestamp()
+    f.attrs[_HEADER_CHECKSUM] = header_checksum(config_text, qoi_names)
     f.create_dataset("config_yaml", data=config_text, dtype=h5py.string_dtype())
     f.create_dataset("qoi_names", data=list(qoi_names), dtype=h5py.string_dtype())
     f.create_group("samples")
@@ -1293,6 +1320,10 @@ def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int]
         dst.attrs[name] = src.attrs[name]
     if "role" in src.attrs:
         dst.attrs["role"] = src.attrs["role"]
+    # Kept as it is (the caller read the header, which checked it), or first computed for a file without one.
+    dst.attrs[_HEADER_CHECKSUM] = src.attrs[_HEADER_CHECKSUM] if _HEADER_CHECKSUM in src.attrs else header_checksum(
+        _read_text(src["config_yaml"]), tuple(src["qoi_names"].asstr()[()])
+    )
     dst.attrs["format_version"] = np.int64(FORMAT_VERSION)
     for name in ("config_yaml", "qoi_names", "runs", "screening"):
         if name in src:
