@@ -733,6 +733,24 @@ def test_second_writer_is_refused_while_locked(tmp_path: Path) -> None:
         pass
 
 
+def test_a_study_reached_through_a_symlink_is_written_and_locked_as_the_file_it_names(tmp_path: Path) -> None:
+    # Through work/results.h5 -> ../store/study.h5 a run's copy-on-write replaced the link by a file of its own
+    # (the study never got the run's samples), and the lock was the link's: both names could be written at once.
+    target = tmp_path / "store" / "study.h5"
+    target.parent.mkdir()
+    new_study(target).close()
+    link = tmp_path / "work" / "results.h5"
+    link.parent.mkdir()
+    link.symlink_to(Path("..") / "store" / "study.h5")
+    with new_study(link, create=False) as study:
+        study.append_samples(make_batch(1, 0, range(3)))  # a new level: a copy-on-write transaction
+        with pytest.raises(StudyFileError, match="locked by a running process"):
+            new_study(target, create=False)
+    assert link.is_symlink()
+    with open_study_readonly(target) as reader:
+        assert reader.read_samples(level=1).indices.tolist() == [0, 1, 2]
+
+
 def _child(code: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     return subprocess.Popen(

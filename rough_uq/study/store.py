@@ -1497,6 +1497,10 @@ def open_study(
         other ``qoi_names`` than given. A refused file is not modified.
     """
     path = Path(os.fspath(path))
+    if path.is_symlink():
+        # Written through a link, the copy-on-write writes replaced the link by a file of their own (the study
+        # behind it never got the samples), under a lock of the link's name: write to the file it names.
+        path = Path(os.path.realpath(path))
     if role not in ROLES:
         raise ValueError(f"role must be one of {', '.join(ROLES)}, got {role!r}")
     if code_version is None:
