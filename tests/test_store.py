@@ -929,3 +929,36 @@ def test_store_and_report_do_not_import_the_solver() -> None:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
     assert out.stdout.strip() == "[]"
+
+
+#: What h5py raises for a write that a full disk failed (HDF5's error stack, shortened).
+_FULL_DISK = RuntimeError(
+    "Unable to synchronously flush file (file write failed: time = Sat Nov 28 04:21:31 2026\n, filename = "
+    "'results.h5', file descriptor = 14, errno = 28, error message = 'No space left on device', buf = 0x5558, "
+    "total write size = 2120, bytes this sub-write = 2120, offset = 188416)"
+)
+
+
+def test_a_full_disk_in_an_append_or_a_transaction_is_a_study_file_error(tmp_path: Path, monkeypatch) -> None:
+    # HDF5 reports a failed write as a RuntimeError, which escaped as a traceback (status 1, then a crash).
+    path = tmp_path / "study.h5"
+    with new_study(path) as study:
+        study.append_samples(make_batch(0, 0, range(3)))
+
+        def full(*args, **kwargs):
+            raise _FULL_DISK
+
+        with monkeypatch.context() as patch:
+            patch.setattr(h5py.File, "flush", full)
+            with pytest.raises(StudyFileError, match=r"could not write \(No space left on device\); the committed "
+                                                     r"samples are intact, this batch may be missing$"):
+                study.append_samples(make_batch(0, 0, range(3, 6)))
+        with monkeypatch.context() as patch:
+            patch.setattr(store_module, "_create_level", full)
+            with pytest.raises(StudyFileError, match=r"could not write \(No space left on device\); the study file "
+                                                     r"is unchanged$"):
+                study.append_samples(make_batch(1, 0, range(3)))
+        assert study.read_samples(level=0).indices.tolist() == [0, 1, 2]
+        study.append_samples(make_batch(0, 0, range(3, 6)))  # with room again, the same batch is stored
+    with open_study_readonly(path) as reader:
+        assert reader.read_samples(level=0).indices.tolist() == list(range(6)) and reader.levels() == [0]

@@ -1111,7 +1111,7 @@ class StudyFile(StudyStore):
             h5, self._h5 = self._h5, None
             try:
                 h5.close()
-            except OSError:
+            except (OSError, RuntimeError):  # HDF5 reports a failed flush (a full disk) as a RuntimeError
                 pass  # a writer's mark may stay in the superblock; the next writer rewrites the file
 
     def _forget(self) -> None:
@@ -1196,10 +1196,9 @@ class StudyFile(StudyStore):
         except BaseException as exc:
             # Whether the count reached the file is unknown: read everything again from the file.
             self._forget()
-            if isinstance(exc, OSError):
-                reason = exc.strerror or str(exc)
+            if isinstance(exc, (OSError, RuntimeError)):  # HDF5's failed flush (a full disk): a RuntimeError
                 raise StudyFileError(
-                    f"{self.path}: could not write ({reason}); the committed samples are intact, "
+                    f"{self.path}: could not write ({_write_failure(exc)}); the committed samples are intact, "
                     "this batch may be missing",
                     self.path,
                 ) from None
@@ -1285,13 +1284,25 @@ def _replace_atomically(
         _fsync_path(tmp)
         os.replace(tmp, path)
         _fsync_path(path.parent, directory=True)
-    except OSError as exc:
+    except (OSError, RuntimeError) as exc:  # HDF5 reports a failed flush or close (a full disk) as a RuntimeError
         tmp.unlink(missing_ok=True)
-        reason = exc.strerror or str(exc)
-        raise StudyFileError(f"{path}: could not write ({reason}); the study file is unchanged", path) from None
+        raise StudyFileError(f"{path}: could not write ({_write_failure(exc)}); the study file is unchanged",
+                             path) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _write_failure(error: OSError | RuntimeError) -> str:
+    """Why a write failed, in a few words: the system's reason (``No space left on device``) where there is one.
+
+    HDF5's errors are RuntimeErrors whose text is its whole error stack; the system's reason is in it.
+    """
+    if isinstance(error, OSError) and error.strerror:
+        return error.strerror
+    text = str(error)
+    match = re.search(r"error message = '([^']+)'", text)
+    return match.group(1) if match else text.splitlines()[0][:200]
 
 
 def _rewrite(path: Path) -> None:
