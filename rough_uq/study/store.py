@@ -1284,6 +1284,9 @@ def _replace_atomically(
         _fsync_path(tmp)
         os.replace(tmp, path)
         _fsync_path(path.parent, directory=True)
+    except _DamagedRows:  # read from the file copied (a rewrite): damage, reported as such by the caller
+        tmp.unlink(missing_ok=True)
+        raise
     except (OSError, RuntimeError) as exc:  # HDF5 reports a failed flush or close (a full disk) as a RuntimeError
         tmp.unlink(missing_ok=True)
         raise StudyFileError(f"{path}: could not write ({_write_failure(exc)}); the study file is unchanged",
