@@ -169,16 +169,14 @@ def checked_mean_pressures(
     size, height = spectrum.system_size, spectrum.rms_height
     pressures = []
     for position, load in enumerate(loads):
-        name = "load." + ("relative" if isinstance(load, RelativeLoad) else "absolute")
-        name += f".{position}" if len(loads) > 1 else ""
+        name = _load_field(load, position, len(loads))
         pressure = load.mean_pressure(spectrum=spectrum, e_star=e_star)
         if not (pressure > 0 and math.isfinite(pressure * float(finest) ** 2)):
             raise InvalidParameterError(
                 name, load.value, f"a load whose mean pressure (here {pressure:.3g}, unit of E*) is a float > 0 and "
                 f"whose total over the finest grid's {finest}^2 nodes is finite"
             )
-        # In logarithms: the dimensionless load itself may be beyond the float range.
-        exponent = math.log10(pressure) + math.log10(size) - math.log10(e_star) - math.log10(height)
+        exponent = _load_exponent(pressure, spectrum, e_star)
         if not math.log10(lowest) <= exponent <= math.log10(highest):
             raise InvalidParameterError(
                 name, load.value, f"a dimensionless load mean_pressure * system_size / (e_star * rms_height) in "
@@ -201,20 +199,30 @@ def refuse_loads_beyond_rounding(
     Such a load is many orders of magnitude beyond full contact (a unit taken for another, as a rule): every
     solve would run ``max_iter`` iterations and be stored as not converged.
     """
-    size, height = spectrum.system_size, spectrum.rms_height
-    limit = max_convergent_load(solver_tol)
+    limit = math.log10(max_convergent_load(solver_tol))
     for position, (load, pressure) in enumerate(zip(loads, pressures)):
-        exponent = math.log10(pressure) + math.log10(size) - math.log10(e_star) - math.log10(height)
-        if exponent > math.log10(limit):
-            name = "load." + ("relative" if isinstance(load, RelativeLoad) else "absolute")
-            name += f".{position}" if len(loads) > 1 else ""
+        exponent = _load_exponent(pressure, spectrum, e_star)
+        if exponent > limit:
             raise InvalidParameterError(
-                name, load.value, f"a dimensionless load mean_pressure * system_size / (e_star * rms_height) at "
-                f"most {_power_of_ten(math.log10(limit))} at solver tol {solver_tol:g}; here it is "
-                f"{_power_of_ten(exponent)}, where the "
-                f"rounding of the pressures (about the load) alone keeps most solves from reaching the tolerance "
+                _load_field(load, position, len(loads)), load.value,
+                f"a dimensionless load mean_pressure * system_size / (e_star * rms_height) at most "
+                f"{_power_of_ten(limit)} at solver tol {solver_tol:g}; here it is {_power_of_ten(exponent)}, where "
+                "the rounding of the pressures (about the load) alone keeps most solves from reaching the tolerance "
                 f"(full contact sets in at a load of order 2 pi k_s = {2 * math.pi * spectrum.k_s:.3g})"
             )
+
+
+def _load_field(load: RelativeLoad | AbsoluteLoad, position: int, n_loads: int) -> str:
+    """The config field of a load: ``load.relative``, or ``load.relative.1`` in a load curve."""
+    name = "load." + ("relative" if isinstance(load, RelativeLoad) else "absolute")
+    return name + (f".{position}" if n_loads > 1 else "")
+
+
+def _load_exponent(pressure: float, spectrum: SurfaceSpectrum, e_star: float) -> float:
+    """``log10`` of the dimensionless load ``pressure L / (E* rms_height)`` (nominal RMS height), in logarithms:
+    the load itself may be beyond the float range."""
+    return (math.log10(pressure) + math.log10(spectrum.system_size) - math.log10(e_star)
+            - math.log10(spectrum.rms_height))
 
 
 def _power_of_ten(exponent: float) -> str:

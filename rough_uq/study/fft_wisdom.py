@@ -15,11 +15,11 @@ a pickle a stranger could have put in the cache directory.
 ``ROUGHUQ_FFTW_WISDOM=estimate`` (in any case) turns measured planning off
 (``FFTW_ESTIMATE`` plans, nothing measured or written). An unreadable or
 corrupt file is ignored and replaced; a file that cannot be written is said
-(a warning through the progress notes: every command then measures again). The file is written only when it
-gains plans, also when Ctrl-C or SIGTERM stops the measuring (the plans
-measured by then are kept, and a rerun measures only the rest), and the
-study's progress says when plans are being measured (seconds per grid the
-first time, about 20 s at 1024^2). Processes of one machine read, measure
+(a warning among the progress notes: every command then measures again).
+The file is written only when it gains plans, also when Ctrl-C or SIGTERM
+stops the measuring (the plans measured by then are kept, and a rerun
+measures only the rest), and the study's progress says when plans are being
+measured (seconds per grid the first time, about 20 s at 1024^2). Processes of one machine read, measure
 and write the file one at a time (a lock file beside it), so that two that
 start at once do not measure the same grid twice and choose different plans.
 """

@@ -39,9 +39,9 @@ and converted to version 3 when opened for writing. ``header_checksum``
 covers the two variable-length strings, which HDF5 keeps in its global heap
 without a checksum (one altered byte of the stored config changed the load
 of every later sample); files written before it have none and get it when
-they are rewritten (converted, or mended after a writer's death). JSON records are
-byte arrays rather than string attributes because HDF5 never reuses the space
-of a rewritten attribute or string.
+they are rewritten (converted, or mended after a writer's death). JSON
+records are byte arrays rather than string attributes because HDF5 never
+reuses the space of a rewritten attribute or string.
 
 HDF5 checksums its own metadata, not the data. Version 3 stores a 64-bit hash
 of every sample row (``checksum``; :func:`_row_checksums`) and checks every
@@ -141,6 +141,7 @@ import ctypes
 import errno
 import fcntl
 import functools
+import hashlib
 import json
 import math
 import os
@@ -952,8 +953,6 @@ _HEADER_CHECKSUM = "header_checksum"
 
 def header_checksum(config_text: str, qoi_names: Sequence[str]) -> str:
     """SHA-256 (hex) of a study file's config text and QoI names (``header_checksum``, module docstring)."""
-    import hashlib
-
     return hashlib.sha256("\0".join((config_text, *qoi_names)).encode("utf-8")).hexdigest()
 
 
