@@ -196,8 +196,8 @@ def refuse_loads_beyond_rounding(
     reaching ``solver_tol``: a dimensionless load (with the nominal RMS height) above
     :func:`~rough_uq.physics.solver.max_convergent_load`.
 
-    Such a load is many orders of magnitude beyond full contact (a unit taken for another, as a rule): every
-    solve would run ``max_iter`` iterations and be stored as not converged.
+    Such a load is many orders of magnitude beyond full contact (a unit taken for another, as a rule): most
+    solves would run ``max_iter`` iterations and be stored as not converged.
     """
     limit = math.log10(max_convergent_load(solver_tol))
     for position, (load, pressure) in enumerate(zip(loads, pressures)):
