@@ -274,18 +274,14 @@ def _stop_aware(inner: Any) -> Any:
 def _executor(config: Any, workers: int | None, executor: str, scheduler: str | None) -> Any:
     from rough_uq.study.executors import make_executor
 
-    try:
-        return make_executor(executor, workers=workers, threads=config.solver.threads, scheduler=scheduler)
-    except InvalidParameterError as error:
-        if error.name != "scheduler":
-            raise
-        raise InvalidParameterError("--scheduler", error.value, error.allowed) from None
+    return make_executor(executor, workers=workers, threads=config.solver.threads, scheduler=scheduler)
 
 
 def _check_executor_options(executor: str, scheduler: str | None, workers: int | None) -> None:
-    """Refuse ``--scheduler`` without ``--executor dask``, ``--workers`` with it, dask without a scheduler,
-    and more ``--workers`` than :func:`~rough_uq.study.executors.max_workers` (before anything is created)."""
-    from rough_uq.study.executors import check_workers
+    """Refuse ``--scheduler`` without ``--executor dask``, ``--workers`` with it, dask without a scheduler or with
+    a malformed address, and more ``--workers`` than :func:`~rough_uq.study.executors.max_workers` (before anything
+    is created)."""
+    from rough_uq.study.executors import check_scheduler_address, check_workers
 
     if executor != "dask" and scheduler is not None:
         raise MisplacedOptionError("--scheduler", scheduler, context="without --executor dask",
@@ -296,6 +292,8 @@ def _check_executor_options(executor: str, scheduler: str | None, workers: int |
     if executor == "dask" and not scheduler:
         raise MisplacedOptionError("--executor", executor, context="without --scheduler ADDRESS", allowed="it "
                                    "needs the address of a running dask scheduler, e.g. --scheduler tcp://host:8786")
+    if executor == "dask":
+        check_scheduler_address(scheduler, name="--scheduler")
     if workers is not None:
         check_workers(workers, name="--workers")
 

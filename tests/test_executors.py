@@ -130,6 +130,7 @@ def test_a_malformed_scheduler_address_is_refused_by_name_before_any_connection(
     assert result.exit_code == 2 and result.stderr.startswith(f"error: --scheduler: got {address!r}; allowed: the "
                                                               "address of a dask scheduler, [scheme://]host:port")
     assert result.exception is None or isinstance(result.exception, SystemExit)
+    assert not (tmp_path / "results.h5").exists()  # refused with the other options, before the study file
 
 
 @pytest.mark.parametrize("is_pool_worker", [True, False])

@@ -1386,10 +1386,11 @@ def _message(status: str, st: _State, *, tol: float, max_iter: int, n_iter_plain
             f"; the preconditioned iteration stalled after {st.n_iter - n_iter_plain} iterations and plain "
             f"Polonsky-Keer took over for {n_iter_plain}"
         )
-    if status != "converged" and load > max_convergent_load(tol):
+    limit = max_convergent_load(tol)
+    if status != "converged" and load > limit:
         text += (
             f"; the dimensionless load mean_pressure * system_size / (e_star * RMS height) is {load:.3g}, above "
-            f"{max_convergent_load(tol):.3g}, where the rounding of the pressures (about the load) alone leaves an "
+            f"{limit:.3g}, where the rounding of the pressures (about the load) alone leaves an "
             f"error above tol (full contact sets in below 2 pi k_s)"
         )
     return text

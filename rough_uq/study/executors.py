@@ -73,6 +73,7 @@ __all__ = [
     "default_workers",
     "max_workers",
     "check_workers",
+    "check_scheduler_address",
     "make_executor",
     "thread_environment",
     "freeze_garbage",
@@ -476,7 +477,7 @@ class DaskExecutor(Executor):
             self._client = scheduler
             self._owns_client = False
         else:
-            scheduler = _checked_address(scheduler)
+            scheduler = check_scheduler_address(scheduler)
             try:
                 self._client = Client(scheduler, timeout="10s", set_as_default=False)
             except OSError as exc:
@@ -545,8 +546,9 @@ def dask_failure_text(error: Exception) -> str:
 _HOST_PORT_SCHEMES = ("tcp", "tls", "ws", "wss")
 
 
-def _checked_address(scheduler: object) -> str:
-    """``scheduler`` as an address distributed can connect to, ``[scheme://]host:port``; refused by name otherwise.
+def check_scheduler_address(scheduler: object, name: str = "scheduler") -> str:
+    """``scheduler`` as an address distributed can connect to, ``[scheme://]host:port``; otherwise
+    :class:`InvalidParameterError` naming ``name``.
 
     distributed's ``Client`` raised a bare ValueError for an address such as ``localhost:abc`` or ``notaurl`` (no
     port), and its finaliser then waited 20 s and printed a traceback of its own.
@@ -565,7 +567,7 @@ def _checked_address(scheduler: object) -> str:
             if not host or not 0 < int(port) < 65536:
                 raise ValueError(location)
     except (ValueError, TypeError):
-        raise InvalidParameterError("scheduler", scheduler, allowed) from None
+        raise InvalidParameterError(name, scheduler, allowed) from None
     return str(scheduler)
 
 
