@@ -375,6 +375,29 @@ def test_plan_on_a_pre_asymptotic_hierarchy_picks_fewer_levels_with_too_much_bia
     assert new_misses < old_misses
 
 
+def test_a_level_below_screened_ones_is_not_planned_more_accurate_than_they_measure():
+    # The screening of the quickstart on 32^2-128^2: E[Y_1] = -0.30, E[Y_2] = +0.12 (standard error 0.04), alpha a
+    # line through the two (1.33). Level 1's own rate gave it a bias of 0.198 where level 2 had 0.372: plain MC
+    # claimed on 64^2 a tolerance that MLMC refused on 256^2.
+    rng = np.random.default_rng(39)
+    fine, coarse, cost, q = [], [], [], 20.0
+    for level, mean in enumerate([0.0, -0.30, 0.12]):
+        below = q + rng.normal(0.0, 1.0, 20)
+        q += mean
+        fine.append(below + mean + rng.normal(0.0, 0.17, 20))
+        coarse.append(below if level else np.zeros(20))
+        cost.append(np.full(20, 4.0**level))
+    table = level_statistics(fine=fine, coarse=coarse, cost=cost)
+    rates = fit_rates(table)
+    assert rates.levels_alpha == ((1, 2),) and rates.alpha[0] > 1.0
+    biases = [plan(tol=1.0, rates=rates, statistics=table, finest_level=level).bias[0] for level in range(3)]
+    for level in (0, 1):
+        # E[Q] - E[Q_level] = E[Q] - E[Q_2] + sum of the measured E[Y_l] above it: at least what the finer level
+        # has left, up to the differences the screening measured between them.
+        assert biases[level] >= abs(table.mean_diff[level + 1 :, 0].sum()) + biases[2] - 1e-12
+    assert biases[1] > biases[2]
+
+
 # --------------------------------------------------------------------------
 # plan
 # --------------------------------------------------------------------------
