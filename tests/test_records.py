@@ -369,6 +369,16 @@ def test_work_ratio_and_measured_ratio():
     assert derive_runs([mlmc, _run(MC_DROPPED)])[0].measured_ratio is None
 
 
+def test_the_measured_ratio_pairs_runs_of_the_same_theta():
+    # Keyed on the tolerances alone, an mc run at theta 0.25 stood in for the theta-0.5 one (0.09 against 0.13).
+    mlmc, mc = _run(MLMC), replace(_run(MC_DROPPED), status="finished")
+    other_theta = replace(mc, run_id=MC_LEVEL, theta=mlmc.theta / 2, outcome=replace(mc.outcome, cost=1e-3))
+    assert mlmc.theta == mc.theta and other_theta.tol == mlmc.tol
+    for order in ([mlmc, mc, other_theta], [mlmc, other_theta, mc]):
+        assert derive_runs(order)[0].measured_ratio == mc.outcome.cost / mlmc.outcome.cost
+    assert derive_runs([mlmc, other_theta])[0].measured_ratio is None
+
+
 def test_a_richardson_run_is_told_apart_from_plain_mlmc_at_the_same_tolerance():
     # Both runs were headed "mlmc contact_area=3, clusters=8: tolerance met"; only a warning named the run.
     from rough_uq.report.summary import format_run

@@ -338,14 +338,14 @@ def _samples_figure(drawn: _Drawn, path: Path) -> Path | None:
     if not mlmc:
         return None
     shown = [mlmc[0]] if len(mlmc) == 1 else [mlmc[0], mlmc[-1]]
-    mc_by_tol = {run.tol: run.outcome for run in drawn.finished("mc") if run.measures_plain_mc}
+    mc_by_key = {run.comparison_key: run.outcome for run in drawn.finished("mc") if run.measures_plain_mc}
 
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
     figure = _new_figure(5.5 * len(shown), 4.5)
     axes = figure.subplots(1, len(shown), squeeze=False, sharey=True)[0]
     for ax, run in zip(axes, shown):
-        mc = mc_by_tol.get(run.tol)
+        mc = mc_by_key.get(run.comparison_key)
         width = 0.4 if mc is not None else 0.8
         shift = -0.2 if mc is not None else 0.0
         levels = np.asarray(run.outcome.levels, dtype=float)
@@ -368,7 +368,7 @@ def _samples_figure(drawn: _Drawn, path: Path) -> Path | None:
     axes[0].set_ylabel("samples per level")
     # Shared by the panels; from below 1 so that a bar of N = 1 shows, with room for the bar labels on top.
     counts = [n for run in shown for n in run.outcome.n_samples]
-    counts += [n for run in shown if run.tol in mc_by_tol for n in mc_by_tol[run.tol].n_samples]
+    counts += [n for run in shown if run.comparison_key in mc_by_key for n in mc_by_key[run.comparison_key].n_samples]
     axes[0].set_ylim(0.7, 2.0 * max(counts))
     return _save(figure, path)
 

@@ -209,7 +209,7 @@ class ReportedRun:
         Its status is as seen now (a ``running`` record is ``running`` or ``interrupted``).
     mc_seconds_measured, mc_cost_measured : float or None
         CPU-seconds and modelled cost of a finished plain MC run at the same
-        tolerances on the level the screening picks (``roughuq mc --tol``;
+        tolerances and ``theta`` on the level the screening picks (``roughuq mc --tol``;
         MLMC runs only).
     """
 
@@ -255,17 +255,17 @@ def derive_runs(runs: Sequence[RunRecord]) -> list[ReportedRun]:
 
     ``work_ratio`` (:attr:`~rough_uq.study.records.RunOutcome.work_ratio`):
     predicted plain-MC modelled cost over the run's modelled cost. Where a
-    finished plain MC run at the same tolerances exists on the level the
+    finished plain MC run at the same tolerances and ``theta`` exists on the level the
     screening picks (``roughuq mc --tol``; not ``mc --level``, another
     level's bias), ``mc_seconds_measured`` and ``mc_cost_measured`` (its
     CPU-seconds and modelled cost) and ``measured_ratio`` (over the MLMC
     run's modelled cost). Dropped runs (``roughuq drop``) are left out.
     """
     kept = [run for run in runs if run.status != "dropped"]
-    measured_mc = {run.tol: run.outcome for run in kept if run.measures_plain_mc and run.is_finished}
+    measured_mc = {run.comparison_key: run.outcome for run in kept if run.measures_plain_mc and run.is_finished}
     shown = []
     for run in kept:
-        mc = measured_mc.get(run.tol) if run.method == "mlmc" and run.is_finished else None
+        mc = measured_mc.get(run.comparison_key) if run.method == "mlmc" and run.is_finished else None
         shown.append(ReportedRun(run) if mc is None else ReportedRun(run, float(mc.seconds), float(mc.cost)))
     return shown
 

@@ -1023,6 +1023,16 @@ class RunRecord:
         return self.method == "mc" and self.screening_rates is not None
 
     @property
+    def comparison_key(self) -> tuple[tuple[Number, ...], Number | None]:
+        """What a plain MC run and an MLMC run share to be compared: the tolerances and ``theta``.
+
+        ``theta`` splits the tolerance between bias and statistical error, so MC runs at another
+        ``theta`` are other problems: keyed on the tolerances alone, an ``mc`` run at theta 0.25 took
+        the place of the theta-0.5 one in the measured MC/MLMC ratio of a theta-0.5 MLMC run.
+        """
+        return self.tol, self.theta
+
+    @property
     def is_richardson(self) -> bool:
         """An MLMC run that asked for Richardson extrapolation, applied or refused.
 
