@@ -27,6 +27,7 @@ Exit status (also in ``roughuq --help`` and the README):
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -122,6 +123,10 @@ def _check_stop() -> None:
         raise _stop_exception(_STOP.signum)
 
 
+#: The errors of a write that the machine refuses (full disk, quota, file size limit, I/O error): reported in one line.
+_WRITE_FAILURES = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO})
+
+
 #: What a command stopped by Ctrl-C or SIGTERM leaves, by command ("": the commands that store samples as they go).
 _STOPPED_TEXT = {
     "": "every completed sample is saved; run the same command to continue",
@@ -182,6 +187,15 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             # SIGPIPE ends does (status 141), instead of click's status 1, which says "a bug" here.
             sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - the interpreter's final flush must not fail again
             sys.exit(EXIT_BROKEN_PIPE)
+        except OSError as exc:
+            if exc.errno not in _WRITE_FAILURES:
+                raise
+            # A full disk or quota under the output (`roughuq report FILE > report.txt`) is the machine's, not a
+            # bug: one line and status 2, as for a study file that cannot be written (was a traceback, status 1).
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - the interpreter's final flush must not fail again
+            where = "the output" if exc.filename is None else exc.filename
+            click.echo(f"error: could not write {where} ({exc.strerror})", err=True)
+            sys.exit(2)
         finally:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)

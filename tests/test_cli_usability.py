@@ -698,6 +698,17 @@ def test_a_reader_that_goes_away_ends_the_command_quietly_with_status_141(screen
     assert process.wait(timeout=120) == 141 and stderr == b""
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (a device whose writes find a full disk)")
+@pytest.mark.parametrize("form", [[], ["--json"]])
+def test_an_output_on_a_full_disk_is_one_error_line_and_status_2(screened, form):
+    """`roughuq report results.h5 > full-disk-file` ended with a 44-line OSError traceback and status 1 ('a bug')."""
+    with open("/dev/full", "w") as full:
+        process = subprocess.run([sys.executable, "-m", "rough_uq.cli", "report", "results.h5", *form], cwd=screened,
+                                 stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+    assert process.returncode == 2
+    assert process.stderr == "error: could not write the output (No space left on device)\n"
+
+
 def test_validate_accepts_several_files_and_fails_if_any_is_bad(tmp_path):
     shipped = sorted(str(path) for path in (ROOT / "rough_uq" / "study" / "configs").glob("*.yaml"))
     assert len(shipped) >= 2
