@@ -1205,6 +1205,21 @@ def test_report_says_running_while_another_process_holds_the_study(screened):
     assert "interrupted" in text and "roughuq drop mlmc_contact_area-9_theta-0.5" in text
 
 
+def test_report_says_interrupted_where_the_lock_file_names_a_live_process_that_holds_no_lock(screened):
+    # After a kill -9 the lock file stays, naming the dead pid; once another process had that pid (pid 1 in a
+    # container) the dead run read "running (another process is computing it)" for as long as it lived.
+    from rough_uq.study.config import config_hash, load_config, resolved_yaml
+
+    config = load_config(screened / "tiny.yaml")
+    with open_study(screened / "results.h5", config_text=resolved_yaml(config), config_hash=config_hash(config),
+                    qoi_names=config.qoi_names, create=False, code_version="test") as store:
+        store.write_run("mlmc_contact_area-9_theta-0.5", {"method": "mlmc", "stage": 7, "status": "running",
+                                                          "tol": [9.0]})
+    (screened / "results.h5.lock").write_text(f"{os.getppid()}\n")  # alive, and not this process
+    text = run("report", "results.h5").stdout
+    assert "mlmc contact_area=9: interrupted" in text and "running" not in text
+
+
 def test_report_says_interrupted_for_a_stopped_run_while_another_run_holds_the_study(screened, monkeypatch):
     # A run stopped by Ctrl-C showed as "running (another process is computing it)" whenever any process held the
     # study's lock, e.g. while the user ran another tolerance.

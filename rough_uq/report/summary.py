@@ -90,7 +90,7 @@ from rough_uq.study.records import (
     read_run_records,
     read_screening_record,
 )
-from rough_uq.study.store import FORMAT_VERSION, StudyStore
+from rough_uq.study.store import FORMAT_VERSION, StudyStore, is_lock_held
 
 __all__ = [
     "MIN_ALPHA",
@@ -181,7 +181,9 @@ def _not_converged(store: StudyStore) -> int:
 def is_locked_by_running_process(path: str | Path) -> bool:
     """Whether a live process holds the study's lock.
 
-    ``<file>.lock`` names its pid, see :mod:`rough_uq.study.store`.
+    ``<file>.lock`` names its pid, see :mod:`rough_uq.study.store`; a live pid counts only while the lock is held
+    (:func:`~rough_uq.study.store.is_lock_held`): after a ``kill -9`` its pid may be another process's, and a dead
+    run read "running" for as long as that process lived.
     """
     lock = Path(str(path) + ".lock")
     try:
@@ -195,8 +197,8 @@ def is_locked_by_running_process(path: str | Path) -> bool:
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
-    return True
+        pass
+    return is_lock_held(path)
 
 
 @dataclass(frozen=True)

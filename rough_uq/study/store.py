@@ -734,6 +734,25 @@ def _age(path: Path) -> float:
         return math.inf
 
 
+def is_lock_held(path: str | Path) -> bool:
+    """Whether a process holds the lock of the study file ``path`` now (False where it has no lock file).
+
+    Probed with a shared non-blocking ``flock``, released at once: the pid a lock file names outlives its
+    process (``kill -9``) and may be another process's later, so only the lock itself says "running".
+    """
+    try:
+        fd = os.open(_lock_path(Path(path)), os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as exc:
+        return exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+    finally:
+        os.close(fd)  # closing releases a lock taken
+    return False
+
+
 def _acquire_lock(path: Path) -> int:
     """Take the exclusive lock of ``path``; return the lock file descriptor."""
     lock_path = _lock_path(path)
