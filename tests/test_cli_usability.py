@@ -1477,6 +1477,16 @@ def test_the_screening_legend_is_printed_once_under_the_last_table(tmp_path, mon
     assert output.index("kurt: kurtosis of Y") > output.rindex("Screening of ")
 
 
+@pytest.mark.parametrize("columns", ["40", "60"])
+def test_a_narrow_terminal_cuts_no_number_of_the_report(screened, columns):
+    # At 60 columns rich cut the screening's "0.0299" to "0.02…" and folded "contact_area=0.25 *" mid-number.
+    wide = run("report", "results.h5", env={"COLUMNS": "200"}).stdout
+    narrow = run("report", "results.h5", env={"COLUMNS": columns}).stdout
+    assert "…" not in narrow
+    numbers = {word for word in wide.split() if re.fullmatch(r"[-+]?[0-9][0-9.e+-]*|[a-z_]+=[0-9.e+-]+", word)}
+    assert len(numbers) > 30 and numbers <= set(narrow.split()), numbers - set(narrow.split())
+
+
 def test_validate_names_a_load_curve_and_its_columns(tmp_path):
     # It listed the QoIs only: nothing said the study has a column per QoI and load.
     qoi = {"contact_area": {"tol": 4.0}, "mean_gap": {"tol": 0.1}}

@@ -622,6 +622,32 @@ def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
     return lines + [f"  {_quantile_text(q, unit, is_measured=measured)}" for q in distribution.quantiles]
 
 
+def _print_table(console: Any, table: Any) -> None:
+    """Print ``table``; one wider than the terminal at its natural width (the terminal wraps its lines).
+
+    Squeezed into a narrow terminal rich cut numbers to "..." and folded tolerances mid-number (at 60 columns
+    "0.0299" read "0.02...", "contact_area=0.25" read "contact_" / "area=0.2" / "5"), and giving every
+    column its longest word as a minimum made rich leave out whole columns. Cells that are meant to fold
+    (the tolerances of several columns, N_l) carry their own line breaks and maximum widths.
+    """
+    from rich.measure import Measurement
+
+    natural = Measurement.get(console, console.options.update_width(_WIDEST_TABLE), table).maximum
+    if natural <= console.width:
+        console.print(table)
+        return
+    width = console.width
+    console.width = natural
+    try:
+        console.print(table)
+    finally:
+        console.width = width
+
+
+#: Widest table :func:`_print_table` prints without folding (characters).
+_WIDEST_TABLE = 10_000
+
+
 def _table(title: str) -> Any:
     from rich import box
     from rich.table import Table
@@ -641,7 +667,7 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
                   highlight=False)
     for q, name in enumerate(qoi_names):
         # The legend once, under the last table: a load curve of 20 columns printed it 20 times (100 lines).
-        console.print(_screening_table(stats, q, name, _column_unit(units, name), legend=q == len(qoi_names) - 1))
+        _print_table(console, _screening_table(stats, q, name, _column_unit(units, name), legend=q == len(qoi_names) - 1))
     table = _table("Time per sample")
     for column in ("level", "grid", "modelled cost", "measured"):
         table.add_column(column, justify="right")
@@ -649,10 +675,10 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
         grid = str(grids[level]) if level < len(grids) else "-"
         measured = f"{format_duration(stats.mean_seconds[i])} CPU"
         table.add_row(str(level), grid, f"{_g(stats.mean_cost[i])} ref-s", measured)
-    console.print(table)
+    _print_table(console, table)
     _print_rates(console, screening, qoi_names)
     if screening.predictions:
-        console.print(_predictions_table(screening))
+        _print_table(console, _predictions_table(screening))
 
 
 def _screening_table(stats: Any, q: int, name: str, unit: str | None, *, legend: bool = True) -> Any:
@@ -843,9 +869,9 @@ def render_targets(console: Any, runs: Sequence[RunRecord], units: dict[str, str
     variance = [run for run in finished if run.method == "variance"]
     cdf = [run for run in finished if run.method == "cdf" and run.outcome.distribution is not None]
     if variance:
-        console.print(_variance_table(variance, units))
+        _print_table(console, _variance_table(variance, units))
     if cdf:
-        console.print(_distribution_table(cdf, units))
+        _print_table(console, _distribution_table(cdf, units))
 
 
 def render_sweep(console: Any, rows: Sequence[Any], *, key: str, level: int,
@@ -866,7 +892,7 @@ def render_sweep(console: Any, rows: Sequence[Any], *, key: str, level: int,
                 _value_error(outcome.estimate[q], outcome.stat_error[q]), str(outcome.n_samples[0]),
                 format_duration(outcome.seconds),
             )
-    console.print(table)
+    _print_table(console, table)
 
 
 def _out_option(path: str) -> str:
@@ -1091,7 +1117,7 @@ def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: di
         for j, load in enumerate(entry["loads"]):
             cells = [_value_error(entry["curves"][n]["estimate"][j], entry["curves"][n]["rmse"][j]) for n in names]
             table.add_row(_g(load, 4), _g(entry["relative_loads"][j], 4), *cells)
-        console.print(table)
+        _print_table(console, table)
         fit = entry.get("kappa")
         if fit is not None:
             console.print(
