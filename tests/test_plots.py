@@ -175,6 +175,21 @@ def test_cost_against_tolerance_leaves_out_mc_on_a_chosen_level(tmp_path, report
     assert _legend_texts(loosest) == ["MLMC $N_l$", "MC $N$"] and _legend_texts(tightest) == ["MLMC $N_l$"]
 
 
+def test_richardson_runs_are_drawn_apart_from_plain_mlmc(tmp_path, report, figures):
+    # Both were "MLMC measured CPU-s" and "MLMC $N_l$": a Richardson run read as plain MLMC's cost and samples.
+    plain = [run for run in report["runs"] if run["method"] == "mlmc"]
+    extrapolated = copy.deepcopy(plain[0])
+    extrapolated["run_id"] += "_richardson"
+    extrapolated["richardson"] = "applied"
+    extrapolated["tol"] = [min(run["tol"][0] for run in plain) / 2]  # the tightest: the samples figure's right panel
+    plots.write_report_plots(dict(report, runs=[*report["runs"], extrapolated]), tmp_path)
+    lines = _lines(figures["cost_vs_tol.png"].axes[0])
+    assert sorted(lines["MLMC measured CPU-s"].get_xdata()) == sorted(run["tol"][0] for run in plain)
+    assert list(lines["Richardson MLMC measured CPU-s"].get_xdata()) == [extrapolated["tol"][0]]
+    legends = [_legend_texts(ax) for ax in figures["samples_per_level.png"].axes if ax.get_legend() is not None]
+    assert legends[0][0] == "MLMC $N_l$" and legends[-1][0] == "Richardson MLMC $N_l$"
+
+
 def test_cost_against_tolerance_states_the_slope_of_the_lines_it_draws(tmp_path, report, figures):
     # A fitted alpha of 0.3 and gamma 2: the legend said MC eps^-8.67 beside a line planned at alpha 0.5 (eps^-6).
     changed = copy.deepcopy(report)

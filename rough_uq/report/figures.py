@@ -301,14 +301,17 @@ def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
         ([(p.tol[0], p.mlmc_seconds) for p in refused if _positive(p.mlmc_seconds)], "x",
          {"color": "0.5", "label": "MLMC predicted at tol whose bias grid.max_level cannot reach"}),
     ]
-    measured = {"mlmc": drawn.finished("mlmc"),
-                "mc": [run for run in drawn.finished("mc") if run.measures_plain_mc]}
-    for (method, runs), marker, colour in zip(measured.items(), ("o", "s"), ("C0", "C3")):
+    # Richardson-extrapolated runs apart: drawn as "MLMC" they read as plain MLMC's cost at their tolerance.
+    mlmc = drawn.finished("mlmc")
+    measured = {"MLMC": [run for run in mlmc if not run.is_richardson],
+                "Richardson MLMC": [run for run in mlmc if run.is_richardson],
+                "MC": [run for run in drawn.finished("mc") if run.measures_plain_mc]}
+    for (method, runs), marker, colour in zip(measured.items(), ("o", "D", "s"), ("C0", "C2", "C3")):
         runs = [run for run in runs if _positive(run.outcome.seconds)]
         for is_on_curve in (True, False):
             points = sorted((run.tol[0], run.outcome.seconds) for run in runs
                             if _is_on_curve(run, ratio) == is_on_curve)
-            label = f"{method.upper()} measured CPU-s" + ("" if is_on_curve else ", other tol ratio than the lines")
+            label = f"{method} measured CPU-s" + ("" if is_on_curve else ", other tol ratio than the lines")
             face = colour if is_on_curve else "none"
             series.append((points, marker, {"color": colour, "markerfacecolor": face, "label": label}))
     if not any(points for points, *_ in series):
@@ -349,7 +352,8 @@ def _samples_figure(drawn: _Drawn, path: Path) -> Path | None:
         width = 0.4 if mc is not None else 0.8
         shift = -0.2 if mc is not None else 0.0
         levels = np.asarray(run.outcome.levels, dtype=float)
-        bars = ax.bar(levels + shift, run.outcome.n_samples, width=width, color="C0", label="MLMC $N_l$")
+        method = "Richardson MLMC" if run.is_richardson else "MLMC"
+        bars = ax.bar(levels + shift, run.outcome.n_samples, width=width, color="C0", label=f"{method} $N_l$")
         ax.bar_label(bars, fontsize="small")
         if mc is not None:
             bars = ax.bar(np.asarray(mc.levels, dtype=float) + 0.2, mc.n_samples, width=width, color="C3",
