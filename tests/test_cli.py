@@ -125,6 +125,10 @@ def test_user_errors_are_one_line_and_status_2(screened):
     for args in cases:
         result = run(*args, expect=2)
         assert len(result.stderr.strip().splitlines()) == 1 and result.stderr.startswith("error: "), args
+    # report takes the file as its argument: the remedy named --study and --config, which it does not have.
+    line = run("report", "missing.h5", expect=2).stderr.strip()
+    assert line.startswith("error: study file 'missing.h5' does not exist; name one that `roughuq screen` or a run")
+    assert "--study" not in line and "--config" not in line
 
 
 def test_study_from_another_config_is_refused_and_untouched(screened):

@@ -7,6 +7,7 @@ import itertools
 import json
 import os
 import re
+from dataclasses import replace
 
 import pytest
 
@@ -180,3 +181,14 @@ def test_a_run_heading_names_a_theta_other_than_the_default():
     assert format_run(usual, COLUMNS, {}) == ["mlmc contact_area=1, mean_gap=1: running (another process is "
                                               "computing it)"]
     assert format_run(other, COLUMNS, {})[0].startswith("mlmc contact_area=1, mean_gap=1, theta 0.3: running")
+
+
+def test_the_heading_of_mc_on_a_given_level_names_the_level():
+    # `mc --tol 1` and `mc --level 1 --tol 1` were both headed "mc contact_area=1, ...: interrupted; rerun the same
+    # command to resume", which did not say which command.
+    from rough_uq.report.summary import format_run
+
+    chosen, given = _record("mc-tol", (1.0,) * 4, 0.5), _record("mc-level-1", (1.0,) * 4, 0.5)
+    interrupted = [replace(run, status="interrupted") for run in (chosen, given)]
+    assert format_run(interrupted[0], COLUMNS, {})[0].startswith("mc contact_area=1, mean_gap=1: interrupted")
+    assert format_run(interrupted[1], COLUMNS, {})[0].startswith("mc on level 1, contact_area=1, mean_gap=1: interr")

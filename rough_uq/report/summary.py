@@ -72,7 +72,7 @@ from typing import Any
 import numpy as np
 from rich.markup import escape
 
-from rough_uq.errors import PLANNED_COUNT_CAP
+from rough_uq.errors import PLANNED_COUNT_CAP, StudyFileError
 from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.rates import EXACT_RATE, RATE_FLOOR
 from rough_uq.multilevel.statistics import FEWEST_VARIANCE_SAMPLES, KURTOSIS_LIMIT, SAMPLE_KURTOSIS_CHECK_SAMPLES
@@ -90,7 +90,7 @@ from rough_uq.study.records import (
     read_run_records,
     read_screening_record,
 )
-from rough_uq.study.store import FORMAT_VERSION, StudyStore, is_lock_held
+from rough_uq.study.store import FORMAT_VERSION, StudyStore, checked_study_path, is_lock_held
 
 __all__ = [
     "MIN_ALPHA",
@@ -349,6 +349,10 @@ def read_report(path: str | os.PathLike[str]) -> dict[str, Any]:
     """
     from rough_uq.study.pipeline import open_existing_study
 
+    path = checked_study_path(path)
+    if not path.exists():  # open_existing_study's remedy names the options of the commands that compute
+        raise StudyFileError(f"study file {str(path)!r} does not exist; name one that `roughuq screen` or a run "
+                             "wrote (its config's output.path, results.h5 by default)", path)
     with open_existing_study(path, writable=False) as study:
         return study_report(study.store, study.config)
 
@@ -464,10 +468,14 @@ def run_label(run: RunRecord, qoi_names: Sequence[str]) -> str:
     report``'s ``samples stored`` line and in its ``--json`` (``run_id``),
     for ``roughuq drop`` and ``roughuq show --stage``.
     """
-    is_given_level = run.method == "mc" and run.level is not None and not run.measures_plain_mc
-    where = f" on level {run.level}" if is_given_level else ""
     theta = "" if run.theta is None else f", theta {run.theta:g}"
-    return f"{_method_text(run)}{where}, tol {tol_text(run.qoi_names or qoi_names, run.tol)}{theta}"
+    return f"{_method_text(run)}{_given_level(run)}, tol {tol_text(run.qoi_names or qoi_names, run.tol)}{theta}"
+
+
+def _given_level(run: RunRecord) -> str:
+    """`` on level L`` for an ``mc --level`` run (not the level an ``mc --tol`` run chose), else ``""``."""
+    is_given_level = run.method == "mc" and run.level is not None and not run.measures_plain_mc
+    return f" on level {run.level}" if is_given_level else ""
 
 
 #: The default ``estimation.theta`` (and of the Python runs); a run's heading names any other.
@@ -484,7 +492,9 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
         qoi_names = run.qoi_names  # a cdf run has one column, whatever the study's
     # theta is part of a run's identity: two runs that differ in it alone had the same heading.
     theta = "" if run.theta is None or run.theta == _USUAL_THETA else f", theta {run.theta:g}"
-    head = f"{_method_text(run)} {tol_text(qoi_names, run.tol)}{theta}"
+    # So is an `mc --level` run's level: `mc --tol 0.3` and `mc --level 1 --tol 0.3` were both "mc contact_area=0.3".
+    where = _given_level(run) and f"{_given_level(run)},"
+    head = f"{_method_text(run)}{where} {tol_text(qoi_names, run.tol)}{theta}"
     outcome = run.outcome
     if run.status != "finished" or outcome is None:
         if run.status == "running":
