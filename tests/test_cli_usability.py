@@ -593,7 +593,7 @@ def test_unfittable_rates_are_said_plainly(tmp_path, monkeypatch):
     result = run("mc", "--level", "1", "--tol", "2", "--workers", "1")  # as the message suggests
     assert "forecast: none" in result.stderr and "bias not estimated" in result.stdout
     # Not "tolerance met": only the statistical error is known to be within it.
-    assert "mc clusters=2: statistical error within tolerance, bias not estimated" in result.stdout
+    assert "mc on level 1, clusters=2: statistical error within tolerance, bias not estimated" in result.stdout
     assert "tolerance met" not in result.stdout
 
 
