@@ -493,8 +493,8 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     # theta is part of a run's identity: two runs that differ in it alone had the same heading.
     theta = "" if run.theta is None or run.theta == _USUAL_THETA else f", theta {run.theta:g}"
     # So is an `mc --level` run's level: `mc --tol 0.3` and `mc --level 1 --tol 0.3` were both "mc contact_area=0.3".
-    where = _given_level(run) and f"{_given_level(run)},"
-    head = f"{_method_text(run)}{where} {tol_text(qoi_names, run.tol)}{theta}"
+    level = _given_level(run)
+    head = f"{_method_text(run)}{level + ',' if level else ''} {tol_text(qoi_names, run.tol)}{theta}"
     outcome = run.outcome
     if run.status != "finished" or outcome is None:
         if run.status == "running":
@@ -677,7 +677,8 @@ def render_screening(console: Any, screening: ScreeningRecord, qoi_names: Sequen
                   highlight=False)
     for q, name in enumerate(qoi_names):
         # The legend once, under the last table: a load curve of 20 columns printed it 20 times (100 lines).
-        _print_table(console, _screening_table(stats, q, name, _column_unit(units, name), legend=q == len(qoi_names) - 1))
+        table = _screening_table(stats, q, name, _column_unit(units, name), legend=q == len(qoi_names) - 1)
+        _print_table(console, table)
     table = _table("Time per sample")
     for column in ("level", "grid", "modelled cost", "measured"):
         table.add_column(column, justify="right")
