@@ -8,6 +8,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -1191,14 +1192,22 @@ def test_show_refuses_a_stage_beyond_int64(screened):
     assert line.startswith("error: --stage: got") and f"a stage number in 0..{INT64_MAX}" in line
 
 
-def test_report_says_running_while_another_process_holds_the_study(screened):
+def _open_tiny_study(directory: Path) -> Any:
+    """The study of ``screened`` opened for writing (it holds the study's lock)."""
     from rough_uq.study.config import config_hash, load_config, resolved_yaml
 
-    config = load_config(screened / "tiny.yaml")
-    with open_study(screened / "results.h5", config_text=resolved_yaml(config), config_hash=config_hash(config),
-                    qoi_names=config.qoi_names, create=False, code_version="test") as store:
-        store.write_run("mlmc_contact_area-9_theta-0.5", {"method": "mlmc", "stage": 7, "status": "running",
-                                                          "tol": [9.0]})
+    config = load_config(directory / "tiny.yaml")
+    return open_study(directory / "results.h5", config_text=resolved_yaml(config), config_hash=config_hash(config),
+                      qoi_names=config.qoi_names, create=False, code_version="test")
+
+
+#: A run record as a run writes it when it starts ("running" until it ends).
+RUNNING = ("mlmc_contact_area-9_theta-0.5", {"method": "mlmc", "stage": 7, "status": "running", "tol": [9.0]})
+
+
+def test_report_says_running_while_another_process_holds_the_study(screened):
+    with _open_tiny_study(screened) as store:
+        store.write_run(*RUNNING)
         text = run("report", "results.h5").stdout
         assert "running (another process is computing it)" in text and "interrupted" not in text
     text = run("report", "results.h5").stdout
@@ -1208,13 +1217,8 @@ def test_report_says_running_while_another_process_holds_the_study(screened):
 def test_report_says_interrupted_where_the_lock_file_names_a_live_process_that_holds_no_lock(screened):
     # After a kill -9 the lock file stays, naming the dead pid; once another process had that pid (pid 1 in a
     # container) the dead run read "running (another process is computing it)" for as long as it lived.
-    from rough_uq.study.config import config_hash, load_config, resolved_yaml
-
-    config = load_config(screened / "tiny.yaml")
-    with open_study(screened / "results.h5", config_text=resolved_yaml(config), config_hash=config_hash(config),
-                    qoi_names=config.qoi_names, create=False, code_version="test") as store:
-        store.write_run("mlmc_contact_area-9_theta-0.5", {"method": "mlmc", "stage": 7, "status": "running",
-                                                          "tol": [9.0]})
+    with _open_tiny_study(screened) as store:
+        store.write_run(*RUNNING)
     (screened / "results.h5.lock").write_text(f"{os.getppid()}\n")  # alive, and not this process
     text = run("report", "results.h5").stdout
     assert "mlmc contact_area=9: interrupted" in text and "running" not in text
