@@ -192,3 +192,26 @@ def test_the_heading_of_mc_on_a_given_level_names_the_level():
     interrupted = [replace(run, status="interrupted") for run in (chosen, given)]
     assert format_run(interrupted[0], COLUMNS, {})[0].startswith("mc contact_area=1, mean_gap=1: interrupted")
     assert format_run(interrupted[1], COLUMNS, {})[0].startswith("mc on level 1, contact_area=1, mean_gap=1: interr")
+
+
+def test_a_table_is_printed_wider_than_the_terminal_only_where_squeezing_would_cut_a_word():
+    from rich.console import Console
+
+    from rough_uq.report.summary import _print_table, _table
+
+    def printed(cells: list[str], width: int) -> list[str]:
+        table = _table("t")
+        for j in range(len(cells)):
+            table.add_column(f"c{j}", justify="right")
+        table.add_row(*cells)
+        out = io.StringIO()
+        _print_table(Console(file=out, width=width, color_system=None), table)
+        return out.getvalue().splitlines()
+
+    # Cells that wrap at their spaces (a load curve's values) fit a narrow terminal as before.
+    lines = printed(["20.15 ± 0.30"] * 4, 40)  # 56 characters wide unsqueezed
+    assert max(map(len, lines)) <= 40 and "…" not in "".join(lines)
+    # A word rich would cut ("0.02…") or fold ("contact_" / "area=0.2" / "5"): the table keeps its natural width.
+    words = ["contact_area=0.25", "0.029912", "0.0044721", "12345.678", "0.08445"]
+    lines = printed(words, 30)
+    assert max(map(len, lines)) > 30 and all(word in "".join(lines).split() for word in words)

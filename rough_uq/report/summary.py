@@ -633,25 +633,43 @@ def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
 
 
 def _print_table(console: Any, table: Any) -> None:
-    """Print ``table``; one wider than the terminal at its natural width (the terminal wraps its lines).
+    """Print ``table``; where the terminal is too narrow for it without cutting or folding a word of a cell, at its
+    natural width (the terminal then wraps its lines).
 
     Squeezed into a narrow terminal rich cut numbers to "..." and folded tolerances mid-number (at 60 columns
     "0.0299" read "0.02...", "contact_area=0.25" read "contact_" / "area=0.2" / "5"), and giving every
-    column its longest word as a minimum made rich leave out whole columns. Cells that are meant to fold
-    (the tolerances of several columns, N_l) carry their own line breaks and maximum widths.
+    column its longest word as a minimum made rich leave out whole columns. A table rich can fit by wrapping
+    cells at their spaces (a load curve's "20.15 ± 0.30") is printed so, as before.
     """
     from rich.measure import Measurement
 
-    natural = Measurement.get(console, console.options.update_width(_WIDEST_TABLE), table).maximum
-    if natural <= console.width:
-        console.print(table)
-        return
+    natural = max(Measurement.get(console, console.options.update_width(_WIDEST_TABLE), table).maximum, console.width)
+    if _words(_rendered(console, table, natural)) <= _words(_rendered(console, table, console.width)):
+        natural = console.width
     width = console.width
     console.width = natural
     try:
         console.print(table)
     finally:
         console.width = width
+
+
+def _words(text: str) -> set[str]:
+    """The words of a rendered table, its rules (which change with the width) left out."""
+    return {word for word in text.split() if any(character.isalnum() for character in word)}
+
+
+def _rendered(console: Any, table: Any, width: int) -> str:
+    """The text of ``table`` printed ``width`` characters wide (styles left out)."""
+    from rich.text import Text
+
+    width, console.width = console.width, width
+    try:
+        with console.capture() as capture:
+            console.print(table)
+    finally:
+        console.width = width
+    return Text.from_ansi(capture.get()).plain
 
 
 #: Widest table :func:`_print_table` prints without folding (characters).
