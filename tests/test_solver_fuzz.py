@@ -6,8 +6,10 @@ contact) to 3 (full contact on most spectra) are drawn from seeded
 generators, on grids of 32 to 256 nodes per side (slow-marked: 1024^2 and
 2048^2, with the classic samples that once made the preconditioned iteration
 diverge). The preconditioned solver (the default) must converge without the
-hand-over to plain Polonsky-Keer, and its pressure must agree with the plain
-iteration's: relative L2 difference below 1e-6 and the same contact set.
+hand-over to plain Polonsky-Keer (except at loads just above those where a
+second node touches, where the hand-over is how it converges), and its
+pressure must agree with the plain iteration's: relative L2 difference below
+1e-6 and the same contact set.
 """
 
 from __future__ import annotations
@@ -59,10 +61,10 @@ def assert_exact_displacement(solution, size, description):
     assert difference < 1e-12, f"{description}: displacement differs from K p by {difference:.2e} of its maximum"
 
 
-def assert_agrees_with_plain(heights, size, pressure, description, tol=TOL, **options):
+def assert_agrees_with_plain(heights, size, pressure, description, tol=TOL, paths=("preconditioned",), **options):
     solution = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=tol, **options)
     assert solution.converged, f"{description}: {solution.message}"
-    assert solution.path == "preconditioned", f"{description}: {solution.message}"
+    assert solution.path in paths, f"{description}: {solution.message}"
     assert_exact_displacement(solution, size, description)
     plain = solve_contact(heights, system_size=size, mean_pressure=pressure, tol=tol, precondition=False, **options)
     assert plain.converged and plain.path == "plain", f"{description}: {plain.message}"
@@ -88,6 +90,54 @@ def test_load_range_spans_a_few_nodes_to_full_contact():
         if heights.shape[0] <= 64:
             fractions.append(solve_contact(heights, system_size=size, mean_pressure=pressure).contact.mean())
     assert min(fractions) < 0.01 and max(fractions) == 1.0
+
+
+def second_node_load(heights, size, description):
+    """The load at which a second node comes into contact (plain Polonsky-Keer, bisected to 1e-9 of it)."""
+
+    def n_contact(pressure):
+        plain = solve_contact(heights, system_size=size, mean_pressure=pressure, precondition=False)
+        assert plain.converged, f"{description}: {plain.message}"
+        return int(np.count_nonzero(plain.contact))
+
+    upper = 1e-8 * float(np.std(heights)) / size
+    while n_contact(upper) < 2:
+        upper *= 2.0
+    lower = upper / 2.0
+    while upper - lower > 1e-9 * upper:
+        middle = 0.5 * (lower + upper)
+        lower, upper = (middle, upper) if n_contact(middle) < 2 else (lower, middle)
+    return upper
+
+
+#: The spectrum of the README's unit example (on 32^2: k_s = 16 is the grid's Nyquist wave number), on which the
+#: preconditioned iteration stopped short of the second node (below).
+NYQUIST_BAND = SurfaceSpectrum(system_size=1.0, k_l=2, k_r=2, k_s=16, hurst=0.8, rms_height=1.0)
+
+
+def nyquist_band_problem(seed: int):
+    heights = sample_surface(NYQUIST_BAND, 32, np.random.default_rng(seed))
+    return heights, 1.0, None, f"seed {seed}: 32^2, {NYQUIST_BAND}"
+
+
+@pytest.mark.parametrize("problems", ["nyquist_band", "random"])
+def test_loads_where_a_second_node_touches_converge_and_agree_with_plain(problems):
+    # Just above that load the preconditioned iteration can reach the highest node alone in contact, where the
+    # residual on the contact set is zero and it has no descent direction while the second node interpenetrates:
+    # it stopped there unconverged (error 2e-6; seeds 15, 19 and 37 of the 40 Nyquist-band surfaces, 1 sample in
+    # 796 of the README's unit example). It hands over to plain Polonsky-Keer, which adds the node.
+    for seed in range(40):
+        if problems == "nyquist_band":
+            heights, size, _, description = nyquist_band_problem(seed)
+        else:
+            heights, size, _, description = random_problem(seed, grids=(32, 64))
+        touch = second_node_load(heights, size, description)
+        for excess in (1e-3, 5e-3, 1e-2, 3e-2):
+            solution, _ = assert_agrees_with_plain(
+                heights, size, touch * (1.0 + excess), f"{description}, {excess:.0e} above the second node's load",
+                paths=("preconditioned", "preconditioned+plain"),
+            )
+            assert np.count_nonzero(solution.contact) >= 2
 
 
 @pytest.mark.parametrize("max_iter", [1, 4, 9])

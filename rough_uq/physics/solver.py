@@ -55,8 +55,9 @@ what rounding allows, all but converged) and finishes the solve
 iterations). Plain Polonsky-Keer is a projected conjugate gradient on a
 convex problem and converged on every spectral problem we tried. With the
 overlap scale above no randomised spectral problem of the test suite needs
-the hand-over; it is there so that a solve never ends in a wrong number
-after ``max_iter`` iterations. It is needed on a single tall spike (one
+the hand-over for a stall (for the lack of descent below, some do); it is
+there so that a solve never ends in a wrong number after ``max_iter``
+iterations. It is needed on a single tall spike (one
 node, or a few, far above the rest) at loads just below those where the
 rest of the surface starts to touch: the preconditioned direction of a
 spike's residual is spread over the whole grid, and the iteration cycles
@@ -67,6 +68,16 @@ contact sets of about 2100 and 2950 nodes at 64^2); started from uniform
 pressure its first direction is the spike itself, and it converged in one
 iteration on every spike on a flat surface we tried
 (``tests/test_hard_cases.py``).
+
+The preconditioned iteration hands over in the same way when it finds no
+descent direction. With a single node in contact the residual on the
+contact set is zero (its mean is removed), so no step is left even where
+other nodes interpenetrate: just above the load at which a second node
+touches, the iteration can reach the highest node alone and stopped there,
+unconverged at an error of about 1e-6 (3 of 40 surfaces of 32^2 with
+``k_s`` at the grid's Nyquist wave number; ``tests/test_solver_fuzz.py``).
+Plain Polonsky-Keer adds the interpenetrating nodes (below) and converged
+in one or two more iterations.
 
 Plain Polonsky-Keer has a safeguard of its own. After each step it restores
 the mean pressure by a factor ``c``; where the step length is set by a stiff
@@ -286,8 +297,9 @@ class ContactSolution:
     path : str
         Which iteration produced the solution: ``"preconditioned"``,
         ``"plain"`` (``precondition=False``), or ``"preconditioned+plain"``
-        when the preconditioned iteration stalled and plain Polonsky-Keer
-        finished the solve from its last iterate (module docstring).
+        when the preconditioned iteration stalled or found no descent
+        direction and plain Polonsky-Keer finished the solve (module
+        docstring, "Safeguard").
     n_iter_plain : int
         Iterations of plain Polonsky-Keer among ``n_iter``.
     """
@@ -807,8 +819,8 @@ def solve_contact(
     numba.set_num_threads(_pass_threads(threads, s.size))
     try:
         status = _iterate(ops, state, precondition=precondition, tol=tol, max_iter=max_iter)
-        n_iter_first = state.n_iter
-        if status == "stalled":
+        n_iter_first, handed_over = state.n_iter, status
+        if status in ("stalled", "no_descent") and precondition:
             ops = ops.for_plain()
             state.switch_to_plain(ops)
             status = _iterate(ops, state, precondition=False, tol=tol, max_iter=max_iter)
@@ -826,7 +838,7 @@ def solve_contact(
         scales=(offset, s_rms, system_size, e_star),
         converged=status == "converged",
         message=_message(status, state, tol=tol, max_iter=max_iter, n_iter_plain=n_iter_plain, path=path,
-                         load=load),
+                         load=load, handed_over=handed_over),
         path=path,
         n_iter_plain=n_iter_plain,
     )
@@ -1369,9 +1381,14 @@ def _result_arrays(ops: _Operators, st: _State) -> tuple[np.ndarray, np.ndarray,
     return np.empty_like(st.p), np.empty_like(st.w), ops.heights
 
 
+#: Why the preconditioned iteration handed over to plain Polonsky-Keer, in words (:func:`_message`).
+_HAND_OVER_REASONS = {"stalled": "stalled", "no_descent": "found no descent direction"}
+
+
 def _message(status: str, st: _State, *, tol: float, max_iter: int, n_iter_plain: int, path: str,
-             load: float) -> str:
-    """Why the solver stopped, in words (with the dimensionless ``load`` where rounding is the likely cause)."""
+             load: float, handed_over: str) -> str:
+    """Why the solver stopped, in words (with the dimensionless ``load`` where rounding is the likely cause;
+    ``handed_over``: why the first iteration stopped, when plain Polonsky-Keer took over)."""
     if status == "converged":
         text = f"converged: error {st.error:.3g} < tol {tol:.3g}"
     elif status == "max_iter":
@@ -1383,8 +1400,8 @@ def _message(status: str, st: _State, *, tol: float, max_iter: int, n_iter_plain
         )
     if path == "preconditioned+plain":
         text += (
-            f"; the preconditioned iteration stalled after {st.n_iter - n_iter_plain} iterations and plain "
-            f"Polonsky-Keer took over for {n_iter_plain}"
+            f"; the preconditioned iteration {_HAND_OVER_REASONS[handed_over]} after {st.n_iter - n_iter_plain} "
+            f"iterations and plain Polonsky-Keer took over for {n_iter_plain}"
         )
     limit = max_convergent_load(tol)
     if status != "converged" and load > limit:
