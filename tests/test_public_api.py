@@ -897,7 +897,45 @@ def test_a_printed_result_shows_the_estimate_not_the_statistics_arrays():
     text = repr(result)
     assert f"estimate={[float(f'{v:.3g}') for v in result.estimate]}" in text and "stop_reason=" in text
     assert f"rmse=[{result.rmse[0]:.3g}]" in text and f"tol_met={result.tol_met}" in text  # the RMSE was left out
-    assert "statistics=" not in text and "rates=" not in text and len(text) < 300
+    assert "statistics=" not in text and "rates=" not in text and len(text) < 360
+    assert f"stat_error=[{result.stat_error[0]:.3g}], bias=[{result.bias_estimate[0]:.3g}]" in text
+    assert "units=('percent',)" in text and result.units == ("percent",)
+
+
+def test_a_printed_mc_result_on_a_given_level_says_its_bias_is_not_estimated():
+    # It printed rmse=[0.398] next to tol_met=True on 16^2, whose estimate (32.9 %) was 12 points above 256^2's.
+    result = rough_uq.mc(_problem(), tol=2.0, level=0)
+    text = repr(result)
+    assert not result.is_bias_estimated and result.tol_met
+    assert f"stat_error=[{result.stat_error[0]:.3g}], bias='not estimated'" in text and "rmse=" not in text
+
+
+def test_results_name_their_columns_and_units():
+    problem = _problem(load=[rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(0.2)], qoi=["contact_area", "clusters"],
+                       units={"clusters": "absolute"})
+    assert problem.column_units == ("percent", "percent", "absolute", "absolute")
+    result = rough_uq.variance(problem, tol=50.0)  # printed four unlabelled numbers
+    assert result.qoi_names == problem.columns and result.units == problem.column_units
+    assert repr(result).startswith(f"TargetEstimate(qoi_names={problem.columns!r}, units={problem.column_units!r}, ")
+
+
+def test_the_default_units_given_or_not_make_the_same_problem():
+    # units={"contact_area": "percent"} (the default) made a problem unequal to the one without units.
+    assert _problem(units={"contact_area": "percent"}) == _problem()
+    assert _problem(qoi=["clusters", "contact_area"]).units == (("clusters", "per_area"), ("contact_area", "percent"))
+
+
+def test_a_unit_given_twice_is_refused():
+    # [("contact_area", "fraction"), ("contact_area", "percent")]: the last pair won, silently.
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^units: .*given twice: contact_area"):
+        _problem(units=[("contact_area", "fraction"), ("contact_area", "percent")])
+
+
+def test_a_qoi_mapping_of_settings_is_refused_pointing_to_the_arguments():
+    # qoi={"contact_area": {"unit": "fraction", ...}} as in the config file was read as its keys, settings lost.
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^qoi: .*not a mapping of settings.*units=") as caught:
+        _problem(qoi={"contact_area": {"unit": "fraction", "tol": 0.005}})
+    assert caught.value.name == "qoi"
 
 
 #: The refusal of a plan beyond the sample limit.

@@ -209,7 +209,10 @@ from rough_uq.multilevel.statistics import (
     _Moments,
     _qoi_text,
     _readonly,
+    _errors_summary,
+    _names_summary,
     _summary,
+    _units_summary,
     diagnose,
     kurtosis_text,
     kurtosis_threshold,
@@ -407,6 +410,9 @@ class EstimationResult:
         Samples of the run with a solve that did not converge, kept with the
         QoIs of their last iterate (:func:`rough_uq.mlmc` and :func:`rough_uq.mc`
         count them and warn; 0 from a level sampler, which has no solves).
+    units : tuple of str or None
+        Unit of each QoI column (:func:`rough_uq.mlmc` and :func:`rough_uq.mc`: the problem's
+        ``column_units``, e.g. ``"percent"``), None if not known (a level sampler's run).
     """
 
     method: str
@@ -431,15 +437,18 @@ class EstimationResult:
     dropped_levels: tuple[DroppedLevel, ...] = ()
     qoi_names: tuple[str, ...] | None = None
     n_not_converged: int = 0
+    units: tuple[str, ...] | None = None
 
     def __repr__(self) -> str:
         # One line for notebooks and print(), with the RMSE (a property the dataclass repr left out); the
         # per-QoI arrays of a load curve's columns (944 characters for 6) summarised as TargetEstimate's are.
-        names = self.qoi_names
-        shown = repr(names) if names is None or len(names) <= 6 else f"<{len(names)} columns>"
+        # Without an estimated bias the RMSE is unknown: the repr says so rather than show the statistical error
+        # as the RMSE next to tol_met=True (mc on a given level).
         return (
-            f"EstimationResult(method={self.method!r}, qoi_names={shown}, estimate={_summary(self.estimate)}, "
-            f"rmse={_summary(self.rmse)}, tol={_summary(self.tol)}, tol_met={self.tol_met}, "
+            f"EstimationResult(method={self.method!r}, qoi_names={_names_summary(self.qoi_names)}, "
+            f"{_units_summary(self.units)}estimate={_summary(self.estimate)}, "
+            f"{_errors_summary(self.rmse, self.stat_error, self.bias_estimate, self.is_bias_estimated)}, "
+            f"tol={_summary(self.tol)}, tol_met={self.tol_met}, "
             f"stop_reason={self.stop_reason!r}, levels={np.asarray(self.levels).tolist()}, "
             f"n_samples={np.asarray(self.n_samples).tolist()}, n_not_converged={self.n_not_converged})"
         )

@@ -117,6 +117,27 @@ def _summary(values: object) -> str:
     return "[" + ", ".join(f"{value:.3g}" for value in values) + "]"
 
 
+def _names_summary(names: tuple[str, ...] | None) -> str:
+    """The names of a result's columns for its repr, ``<12 columns>`` for many (a load curve's)."""
+    return repr(names) if names is None or len(names) <= _SHOWN_VALUES else f"<{len(names)} columns>"
+
+
+def _units_summary(units: tuple[str, ...] | None) -> str:
+    """``units=(...), `` for a result's repr (for many columns, a load curve's: each distinct unit once, in
+    column order); ``""`` where not known."""
+    if units is None:
+        return ""
+    return f"units={units if len(units) <= _SHOWN_VALUES else tuple(dict.fromkeys(units))!r}, "
+
+
+def _errors_summary(rmse: object, stat_error: object, bias: object, is_bias_estimated: bool) -> str:
+    """``rmse=[..], stat_error=[..], bias=[..]``; without an estimated bias the RMSE is unknown:
+    ``stat_error=[..], bias='not estimated'``."""
+    if not is_bias_estimated:
+        return f"stat_error={_summary(stat_error)}, bias='not estimated'"
+    return f"rmse={_summary(rmse)}, stat_error={_summary(stat_error)}, bias={_summary(bias)}"
+
+
 def _readonly(array: np.ndarray) -> np.ndarray:
     array = np.array(array)
     array.setflags(write=False)

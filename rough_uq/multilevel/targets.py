@@ -128,7 +128,10 @@ from rough_uq.multilevel.statistics import (
     EstimationWarning,
     _checked_names,
     _readonly,
+    _errors_summary,
+    _names_summary,
     _summary,
+    _units_summary,
     diagnose,
     level_statistics,
 )
@@ -237,6 +240,11 @@ class TargetEstimate:
         Samples with a solve that did not converge, kept with the QoIs of their last iterate
         (:func:`rough_uq.variance` counts them and warns, :func:`rough_uq.distribution` in its result's
         ``n_not_converged``; 0 from a level sampler).
+    qoi_names : tuple of str or None
+        Names of the components where each is a QoI column (:func:`rough_uq.variance`: the problem's
+        columns), None otherwise (a CDF's components are thresholds; its :class:`CdfEstimate` names them).
+    units : tuple of str or None
+        Unit of each QoI column named by ``qoi_names`` (a variance is in its square), None if not known.
     """
 
     estimate: np.ndarray
@@ -257,6 +265,8 @@ class TargetEstimate:
     is_bias_estimated: bool
     is_variance_measured: bool = True
     n_not_converged: int = 0
+    qoi_names: tuple[str, ...] | None = None
+    units: tuple[str, ...] | None = None
 
     @property
     def rmse(self) -> np.ndarray:
@@ -297,8 +307,10 @@ class TargetEstimate:
     def __repr__(self) -> str:
         # One line for notebooks and print(): the per-level term arrays (a CDF's have a column per threshold)
         # stay in the attributes.
+        names = "" if self.qoi_names is None else f"qoi_names={_names_summary(self.qoi_names)}, "
+        errors = _errors_summary(self.rmse, self.stat_error, self.bias, self.is_bias_estimated)
         return (
-            f"TargetEstimate(estimate={_summary(self.estimate)}, rmse={_summary(self.rmse)}, "
+            f"TargetEstimate({names}{_units_summary(self.units)}estimate={_summary(self.estimate)}, {errors}, "
             f"tol={_summary(self.tol)}, tol_met={self.tol_met}, stop_reason={self.stop_reason!r}, "
             f"levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()})"
         )

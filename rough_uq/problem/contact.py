@@ -236,6 +236,11 @@ def _power_of_ten(exponent: float) -> str:
 
 def _qoi_names(qoi: object) -> tuple[str, ...]:
     allowed = "a name or a list of distinct names from " + ", ".join(QOI_NAMES)
+    if isinstance(qoi, Mapping):
+        # The config file's qoi section maps names to settings; taken as its keys, the settings would be lost.
+        raise InvalidParameterError("qoi", qoi, allowed + " (not a mapping of settings as in the config file: "
+                                    "give units=, connectivity= and area_estimator= to ContactProblem and each "
+                                    "QoI's tol to the run)")
     names = ordered_names("qoi", qoi, allowed)
     if not names or any(name not in QOI_NAMES for name in names) or len(set(names)) != len(names):
         raise InvalidParameterError("qoi", qoi, allowed)
@@ -243,19 +248,25 @@ def _qoi_names(qoi: object) -> tuple[str, ...]:
 
 
 def _units(units: object, names: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    """Every QoI's unit as ``(name, unit)`` pairs in the order of ``names``, defaults filled in: the same
+    problem compares equal whether a default unit was given or not."""
     if units is None:
-        return ()
+        units = {}
     if not isinstance(units, Mapping):
         pairs = tuple(units) if isinstance(units, (tuple, list)) else None
-        if pairs is None or not all(isinstance(p, tuple) and len(p) == 2 for p in pairs):
-            allowed = "a mapping from QoI name to unit, e.g. {'contact_area': 'fraction'}"
+        allowed = "a mapping from QoI name to unit, e.g. {'contact_area': 'fraction'}"
+        if pairs is None or not all(isinstance(p, tuple) and len(p) == 2 and isinstance(p[0], str) for p in pairs):
             raise InvalidParameterError("units", units, allowed)
+        repeated = sorted({name for name, _ in pairs if sum(other == name for other, _ in pairs) > 1}, key=str)
+        if repeated:
+            raise InvalidParameterError("units", units, allowed + f" (one unit per QoI; given twice: "
+                                        f"{', '.join(map(str, repeated))})")
         units = dict(pairs)
     for name, unit in units.items():
         if name not in names:
             raise InvalidParameterError("units", name, "a QoI of this problem: " + ", ".join(names))
         qoi_scale(name, unit, system_size=1.0)  # refuses a unit the QoI does not have
-    return tuple((name, units[name]) for name in names if name in units)
+    return tuple((name, units.get(name, QOI_UNITS[name][0])) for name in names)
 
 
 def _choice(name: str, value: object, allowed: tuple) -> object:
@@ -294,7 +305,8 @@ class ContactProblem:
         grid resolves the roll-off). Level ``l`` has ``n_0 2^l`` nodes per side.
     units : mapping of str to str, optional
         Unit per QoI where not the default (:data:`~rough_uq.problem.loads.QOI_UNITS`),
-        e.g. ``{"contact_area": "fraction"}``. Stored as a tuple of pairs.
+        e.g. ``{"contact_area": "fraction"}`` (or a sequence of ``(name, unit)`` pairs, each name once).
+        Stored as a tuple of pairs for every QoI, in the order of ``qoi``, the defaults filled in.
     e_star : float
         Effective modulus ``E*``, > 0, in the pressure unit of the problem: absolute loads,
         ``critical_pressure`` and ``max_pressure`` are in the unit ``e_star`` is given in, not divided
@@ -467,8 +479,12 @@ class ContactProblem:
     @property
     def qoi_units(self) -> tuple[str, ...]:
         """Unit of each QoI, in the order of ``qoi``."""
-        given = dict(self.units)
-        return tuple(given.get(name, QOI_UNITS[name][0]) for name in self.qoi)
+        return tuple(unit for _, unit in self.units)
+
+    @property
+    def column_units(self) -> tuple[str, ...]:
+        """Unit of each result column (:attr:`columns`, QoI-major): its QoI's."""
+        return tuple(unit for _, unit in self.units for _ in self.loads)
 
     @property
     def n_qoi(self) -> int:

@@ -187,7 +187,8 @@ def variance(
             min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
             qoi_names=problem.columns,
         )
-    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "variance"))
+    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "variance"),
+                                 qoi_names=problem.columns, units=problem.column_units)
     warn_not_met("variance", problem.columns, result, tol)
     return result
 

@@ -671,7 +671,8 @@ def mlmc(
     with _reporting(sampler.progress, f"mlmc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
-    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mlmc"))
+    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mlmc"),
+                                 units=problem.column_units)
     warn_not_met("mlmc", problem.columns, result, tol)
     screened = None if statistics is None else _screened_mc_cost(problem, screening, statistics, tol, theta)
     return result if screened is None else dataclasses.replace(result, mc_cost=screened)
@@ -896,7 +897,8 @@ def mc(
     with _reporting(sampler.progress, f"mc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
-    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mc"))
+    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mc"),
+                                 units=problem.column_units)
     warn_not_met("mc", problem.columns, result, tol, advice=_mc_advice(result, n_initial))
     return result
 
