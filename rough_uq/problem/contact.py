@@ -24,6 +24,7 @@ from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES, ord
 from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD, max_convergent_load
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
 from rough_uq.problem.batch import LevelBatch
+from rough_uq.problem.kept import KeptSamples
 from rough_uq.problem.loads import (
     QOI_UNITS,
     AbsoluteLoad,
@@ -364,6 +365,7 @@ class ContactProblem:
     warm_start: bool = True
     threads: int = 1
     _model: ContactModel = field(init=False, repr=False, compare=False)
+    _kept: KeptSamples = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.spectrum, SurfaceSpectrum):
@@ -391,6 +393,7 @@ class ContactProblem:
             loads, pressures, spectrum=self.spectrum, e_star=self.e_star, solver_tol=self.solver_tol
         )
         set_(self, "_model", self._build_model())
+        set_(self, "_kept", KeptSamples())
 
     def _check_grids(self) -> None:
         set_ = object.__setattr__
@@ -521,6 +524,10 @@ class ContactProblem:
         plans_asked : bool
             Also report the samples asked for so far as the plan (for runs
             whose estimator announces no plan).
+
+        Every sample its samplers compute is kept with the problem (:mod:`rough_uq.problem.kept`): asked for
+        again, it is given back, not solved again (a run interrupted by Ctrl-C and made again goes on from
+        where it stopped). A problem made by ``dataclasses.replace`` starts with none.
         """
         if executor is not None and not callable(getattr(executor, "run", None)):
             raise InvalidParameterError(
@@ -529,7 +536,7 @@ class ContactProblem:
             )
         stage = checked_integer("stage", stage, 0)
         return ContactSampler(self.model, stage=stage, executor=executor, max_level=self.max_level,
-                              progress=_checked_progress(progress), plans_asked=bool(plans_asked))
+                              progress=_checked_progress(progress), plans_asked=bool(plans_asked), kept=self._kept)
 
 
 def _checked_level(level: object, max_level: int | None) -> int:
@@ -582,7 +589,9 @@ class ContactSampler:
     max_level : int or None
         The finest level a batch may ask for (the problem's); None: no bound.
     n_samples : int
-        Samples computed so far.
+        Samples given so far (in whole batches), computed or kept from before (``kept``).
+    n_computed : int
+        Samples computed here so far (one by one, also those of a batch interrupted before its end).
     n_not_converged : int
         Samples among them with a solve that did not converge (kept, with
         the QoIs of the last iterate; :mod:`rough_uq.problem.sampler`).
@@ -595,19 +604,25 @@ class ContactSampler:
         Told (``advance``) of each sample as it is done; with ``plans_asked``
         the samples asked for so far per level are its plan. In this process
         a batch is then computed one sample at a time (the same numbers).
+    kept : KeptSamples or None
+        Samples computed before (the problem's, :mod:`rough_uq.problem.kept`): those asked for again are
+        given back (counted in ``n_samples`` and ``n_not_converged``, not in ``seconds``); every sample
+        computed is added. None: none kept.
     """
 
     def __init__(
         self, model: ContactModel, *, stage: int, executor: BatchExecutor | None = None, max_level: int | None = None,
-        progress: ProgressReporter | None = None, plans_asked: bool = False,
+        progress: ProgressReporter | None = None, plans_asked: bool = False, kept: KeptSamples | None = None,
     ) -> None:
         self.model = model
+        self.kept = kept
         self.stage = stage
         self.executor = executor
         self.max_level = max_level
         self.progress = progress
         self.plans_asked = plans_asked
         self.n_samples = 0
+        self.n_computed = 0
         self.n_not_converged = 0
         self.seconds = 0.0
         self._is_warm = False
@@ -629,15 +644,21 @@ class ContactSampler:
             self._asked[level] = done.get(level, 0) + int(indices.size)
             levels = sorted(self._asked)
             self.progress.plan(levels, [self._asked[lv] for lv in levels], [done.get(lv, 0) for lv in levels])
-        pieces = []
-        for piece in self._pieces(level, indices):
+        given, missing = (None, indices) if self.kept is None else self.kept.split(self.stage, level, indices)
+        pieces = [] if given is None else [given]
+        if given is not None and self.progress is not None:
+            self.progress.advance(level, given.n_samples)
+        for piece in self._pieces(level, missing) if missing.size else ():
             pieces.append(piece)
+            self.n_computed += piece.n_samples
+            self.seconds += float(np.sum(piece.cost))
+            if self.kept is not None:
+                self.kept.add(piece)
             if self.progress is not None:
                 self.progress.advance(level, piece.n_samples)
         batch = pieces[0] if len(pieces) == 1 else _ordered(pieces, indices)
         self.n_samples += batch.n_samples
         self.n_not_converged += batch.n_not_converged
-        self.seconds += float(np.sum(batch.cost))
         return batch
 
     def _pieces(self, level: int, indices: np.ndarray) -> Iterator[LevelBatch]:

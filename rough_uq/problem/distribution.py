@@ -181,7 +181,7 @@ def variance(
     tol = _tolerances(tol, problem.n_qoi, problem.columns)
     stage = run_stage("mlmc", run_id("variance", problem.columns, tol, theta))
     sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
-    with _reporting(sampler.progress, f"variance {tol_text(problem.columns, tol)}"):
+    with _reporting(sampler, f"variance {tol_text(problem.columns, tol)}"):
         result = estimate_target(
             sampler, target="variance", tol=tol, max_level=problem.max_level, theta=theta, n_initial=n_initial,
             min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
@@ -325,7 +325,7 @@ def distribution(
     name = problem.columns[index]
     stage = run_stage("mlmc", run_id("cdf", [name], tol_array, theta))
     sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
-    with _reporting(sampler.progress, f"cdf {tol_text([name], tol_array)}"):
+    with _reporting(sampler, f"cdf {tol_text([name], tol_array)}"):
         estimate = estimate_target(
             sampler, target="cdf", tol=tol_array, max_level=problem.max_level, thresholds=thresholds, qoi=index,
             bandwidth=bandwidth, theta=theta, n_initial=n_initial, min_finest_level=min_finest_level,

@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import sys
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -301,7 +302,7 @@ def screen(
         )
     sampler = problem.sampler(STAGE_SCREENING, executor=executor, progress=progress)
     indices = np.arange(samples, dtype=np.int64)
-    with _reporting(sampler.progress, "screening"):
+    with _reporting(sampler, "screening"):
         if sampler.progress is not None:
             sampler.progress.plan(list(range(levels)), [samples] * levels, [0] * levels)
         batches = [sampler.batch(level, indices) for level in range(levels)]
@@ -668,7 +669,7 @@ def mlmc(
         coarsest_level=None if statistics is not None else 0,
         qoi_names=problem.columns,
     )
-    with _reporting(sampler.progress, f"mlmc {tol_text(problem.columns, tol)}"):
+    with _reporting(sampler, f"mlmc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mlmc"),
@@ -894,7 +895,7 @@ def mc(
         if values.size not in (1, problem.n_qoi):  # iter_mc would refuse it only after its first batch
             raise InvalidParameterError("bias", given_bias, f"a scalar or {problem.n_qoi} values (one per QoI column)")
         _refuse_given_bias(problem.columns, tol, float(theta), values)
-    with _reporting(sampler.progress, f"mc {tol_text(problem.columns, tol)}"):
+    with _reporting(sampler, f"mc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
     result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mc"),
@@ -904,18 +905,26 @@ def mc(
 
 
 @contextlib.contextmanager
-def _reporting(progress: ProgressReporter | None, title: str) -> Iterator[None]:
-    """Start and stop ``progress`` (if any) around a run: ``stop(is_complete=False)`` if the run raises."""
-    if progress is None:
-        yield
-        return
-    progress.start(title)
+def _reporting(sampler: ContactSampler, title: str) -> Iterator[None]:
+    """Start and stop the sampler's progress (if any) around a run: ``stop(is_complete=False)`` if the run raises.
+
+    An interrupted run (Ctrl-C: :class:`KeyboardInterrupt`) gets a note that its samples are kept with the
+    problem (:mod:`rough_uq.problem.kept`) and the same call goes on from them.
+    """
+    progress = sampler.progress
+    if progress is not None:
+        progress.start(title)
     try:
         yield
-    except BaseException:
-        progress.stop(is_complete=False)
+    except KeyboardInterrupt as interrupt:
+        interrupt.add_note(
+            f"rough_uq: {title} interrupted after {sampler.n_computed} samples computed; they are kept with the "
+            "problem (in memory): the same call on the same problem goes on from them"
+        )
         raise
-    progress.stop()
+    finally:
+        if progress is not None:
+            progress.stop(is_complete=sys.exc_info()[0] is None)
 
 
 def _max_samples(max_samples: object) -> int | None:
