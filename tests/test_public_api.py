@@ -957,3 +957,34 @@ def test_variance_and_distribution_refuse_a_tolerance_out_of_reach_before_drawin
         assert caught.value.total == sum(caught.value.n_planned) and caught.value.tol[0] == run.keywords["tol"]
         with pytest.raises(rough_uq.InvalidParameterError, match="max_samples"):
             run(max_samples=0)
+
+
+def test_the_api_warns_before_solves_that_exceed_the_machines_memory(monkeypatch):
+    # The CLI warned before a level whose solves exceed physical memory; rough_uq.mc on 8192^2 (10.7 GB a solve)
+    # went on silently until the machine swapped or the solve died.
+    import rough_uq.problem.contact as contact_module
+    from rough_uq.problem.memory import solver_memory_bytes
+
+    monkeypatch.setattr(contact_module, "physical_memory_bytes", lambda: solver_memory_bytes(32) - 1)
+    with pytest.warns(rough_uq.EstimationWarning) as caught:
+        rough_uq.mc(_problem(), tol=2.0, level=1)
+    (text,) = [str(w.message) for w in caught if "memory" in str(w.message)]  # once, not per batch
+    assert text.startswith("level 1 (grid 32 x 32) needs about 0.156 MiB per solve (20 float64 arrays of n^2), "
+                           "but this machine has 0.156 MiB: stay at level <= 0 (a smaller max_level)"), text
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rough_uq.mc(_problem(), tol=2.0, level=0)  # 16^2 fits
+
+    class TwoWorkers(_Reversed):
+        n_workers = 2
+
+    monkeypatch.setattr(contact_module, "physical_memory_bytes", lambda: solver_memory_bytes(32) * 3 // 2)
+    with pytest.warns(rough_uq.EstimationWarning, match=r"x 2 workers = .*: use an executor with n_workers = 1"):
+        rough_uq.mc(_problem(), tol=2.0, level=1, executor=TwoWorkers())
+
+    class Remote(TwoWorkers):
+        runs_here = False  # a dask cluster's workers run on other machines
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rough_uq.mc(_problem(), tol=2.0, level=1, executor=Remote())

@@ -19,12 +19,21 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_number
+from rough_uq.errors import (
+    EstimationWarning,
+    InvalidParameterError,
+    checked_bool,
+    checked_integer,
+    is_integer,
+    is_real_number,
+    warn_at_caller,
+)
 from rough_uq.physics.qoi import AREA_ESTIMATORS, CLUSTER_COUNTS, QOI_NAMES, ordered_names
 from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD, max_convergent_load
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
 from rough_uq.problem.batch import LevelBatch
 from rough_uq.problem.kept import KeptSamples
+from rough_uq.problem.memory import memory_warning, physical_memory_bytes
 from rough_uq.problem.loads import (
     QOI_UNITS,
     AbsoluteLoad,
@@ -627,6 +636,7 @@ class ContactSampler:
         self.seconds = 0.0
         self._is_warm = False
         self._asked: dict[int, int] = {}
+        self._memory_checked: set[int] = set()
 
     def batch(self, level: int, indices: np.ndarray) -> LevelBatch:
         """Samples ``(stage, level, i)`` for ``i`` in ``indices``, in that order, with their solver records.
@@ -661,8 +671,22 @@ class ContactSampler:
         self.n_not_converged += batch.n_not_converged
         return batch
 
+    def _warn_memory(self, level: int) -> None:
+        """An :class:`~rough_uq.errors.EstimationWarning` before the first solves of ``level`` if they need more
+        than this machine's physical memory (:mod:`rough_uq.problem.memory`; the CLI prints the same line)."""
+        if level in self._memory_checked or not getattr(self.executor, "runs_here", True):
+            return
+        self._memory_checked.add(level)
+        grids = [self.model.grid(lv) for lv in range(level + 1)]
+        n_workers = int(getattr(self.executor, "n_workers", 1)) if self.executor is not None else 1
+        text = memory_warning(grids, level, n_workers, physical_memory_bytes(), lower_with="a smaller max_level",
+                              workers="an executor with n_workers = {}", smaller_coarsest="a smaller coarsest")
+        if text:
+            warn_at_caller(text, EstimationWarning)
+
     def _pieces(self, level: int, indices: np.ndarray) -> Iterator[LevelBatch]:
         """The samples of ``indices`` in batches as they are done: one (or, with progress, one per sample) here."""
+        self._warn_memory(level)
         if self.executor is None or indices.size <= 1:
             if not self._is_warm:
                 # Load the kernels before the first sample computed here is timed

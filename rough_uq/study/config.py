@@ -88,6 +88,8 @@ from rough_uq.errors import ConfigError
 from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES
 from rough_uq.problem.columns import column_name
+from rough_uq.problem.memory import SOLVER_ARRAYS_PER_NODE, physical_memory_bytes, solver_memory_bytes
+from rough_uq.problem.memory import memory_warning as grid_memory_warning
 
 __all__ = [
     "sweep_configs",
@@ -125,9 +127,6 @@ __all__ = [
 
 SCHEMA_VERSION = 1
 """The config schema version this code reads and writes."""
-
-SOLVER_ARRAYS_PER_NODE = 20
-"""Estimated number of float64 ``n x n`` arrays alive during one solve."""
 
 _ERROR_TYPE = "roughuq_config"
 
@@ -889,20 +888,9 @@ class OutputConfig(_Section):
 # ---------------------------------------------------------------------------
 
 
-def solver_memory_bytes(n: int) -> int:
-    """Estimated memory of one contact solve on an ``n x n`` grid, in bytes."""
-    return SOLVER_ARRAYS_PER_NODE * 8 * n * n
-
-
 def _physical_memory_bytes() -> int | None:
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):  # not available on this platform
-        return None
-
-
-def _size(n_bytes: float) -> str:
-    return f"{n_bytes / 2**30:.1f} GiB" if n_bytes >= 2**30 else f"{n_bytes / 2**20:.3g} MiB"
+    """This machine's physical memory (a name of this module, which the tests replace to stand in for one)."""
+    return physical_memory_bytes()
 
 
 def memory_warning(
@@ -916,27 +904,11 @@ def memory_warning(
     returned line names the grid, the estimate, the machine's memory and
     what to change: fewer workers if one solve fits, else a lower level (or
     another machine); ``lower_with`` says how the caller's command gets to a
-    lower level.
+    lower level (:func:`rough_uq.problem.memory.memory_warning`).
     """
-    memory = _physical_memory_bytes()
-    n = config.grid.n_at(level)
-    per_solve = solver_memory_bytes(n)
-    n_workers = max(1, int(n_workers))
-    if memory is None or per_solve * n_workers <= memory:
-        return None
-    at_once = f" x {n_workers} workers = {_size(per_solve * n_workers)}" if n_workers > 1 else ""
-    if per_solve <= memory:
-        change = f"use --workers {memory // per_solve}, or run on a machine with more memory"
-    else:
-        fitting = [lv for lv in range(level) if solver_memory_bytes(config.grid.n_at(lv)) <= memory]
-        lower = f"stay at level <= {fitting[-1]} ({lower_with})" if fitting else (
-            "use a smaller grid.coarsest"
-        )
-        change = f"{lower}, or run on a machine with more memory"
-    return (
-        f"level {level} (grid {n} x {n}) needs about {_size(per_solve)} per solve{at_once} "
-        f"({SOLVER_ARRAYS_PER_NODE} float64 arrays of n^2), but this machine has {_size(memory)}: {change}"
-    )
+    grids = [config.grid.n_at(lv) for lv in range(level + 1)]
+    return grid_memory_warning(grids, level, n_workers, _physical_memory_bytes(), lower_with=lower_with,
+                               workers="--workers {}", smaller_coarsest="a smaller grid.coarsest")
 
 
 class StudyConfig(_Section):

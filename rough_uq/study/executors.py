@@ -153,6 +153,9 @@ class Executor(ABC):
     #: Number of samples computed at once.
     n_workers: int = 1
 
+    #: Whether the samples are computed on this machine (its memory is what the solves need; not a cluster's).
+    runs_here: bool = True
+
     @abstractmethod
     def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
         """Compute ``items``; yield one :class:`LevelBatch` per item, in completion order.
@@ -465,6 +468,8 @@ class DaskExecutor(Executor):
     The cluster's workers should run one thread each per ``solver.threads``
     (e.g. ``dask worker --nthreads 1``); roughuq does not manage them.
     """
+
+    runs_here = False
 
     def __init__(self, scheduler: object) -> None:
         try:
