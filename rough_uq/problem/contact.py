@@ -658,7 +658,7 @@ class ContactSampler:
         pieces = [] if given is None else [given]
         if given is not None and self.progress is not None:
             self.progress.advance(level, given.n_samples)
-        for piece in self._pieces(level, missing) if missing.size else ():
+        for piece in self._pieces(level, missing) if missing.size or given is None else ():  # None: an empty batch
             pieces.append(piece)
             self.n_computed += piece.n_samples
             self.seconds += float(np.sum(piece.cost))
