@@ -722,8 +722,17 @@ def test_a_forecast_previews_the_run_of_a_deeper_max_level_the_refusal_suggests(
     assert not shallow.is_bias_met and deep.is_bias_met and len(deep.n_samples) > len(shallow.n_samples)
     served = dataclasses.replace(screening, problem=dataclasses.replace(problem, max_level=5))
     assert repr(served.forecast(tol=0.2)) == repr(deep)
-    with pytest.raises(rough_uq.EstimationError, match=r"its forecast\(tol, max_level=...\) previews the run"):
+    previews = r"its forecast\(tol, max_level=...\) previews the run"
+    with pytest.raises(rough_uq.EstimationError, match=previews) as caught:
         rough_uq.mlmc(problem, tol=0.2, screening=screening)
+    # The forecast of the refused tolerance said is_bias_met=False and nothing of why or what would do: it names the
+    # bias and the smallest reachable tolerance, the numbers of mlmc's refusal.
+    bias, reachable = shallow.bias[0], shallow.reachable_tol[0]
+    assert f"bias of contact_area={bias:.3g};" in str(caught.value)
+    assert f"about contact_area={reachable:.3g}," in str(caught.value)
+    assert repr(shallow).endswith(f"is_bias_met=False, bias=[{bias:.3g}], reachable_tol=[{reachable:.3g}])")
+    assert deep.reachable_tol.tolist() == [0.2] and "reachable_tol" not in repr(deep)
+    assert screening.forecast(tol=reachable).is_bias_met
     with pytest.raises(rough_uq.InvalidParameterError, match="^max_level: got 1; allowed: an integer >= 2"):
         screening.forecast(tol=0.2, max_level=1)
 

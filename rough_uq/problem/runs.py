@@ -46,6 +46,7 @@ from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
     LevelStatistics,
+    _summary,
     diagnose,
     level_statistics,
 )
@@ -164,6 +165,7 @@ class ScreeningResult:
         per_cost = self.seconds_per_cost
         return RunForecast(
             n_samples=np.array(counts), cost=cost, mc_cost=mc_cost, is_bias_met=bool(initial.is_bias_met),
+            bias=np.asarray(initial.bias, dtype=float), reachable_tol=reachable_tolerance(initial, tol),
             cpu_seconds=None if per_cost is None else cost * per_cost,
             mc_cpu_seconds=None if per_cost is None else mc_cost * per_cost,
         )
@@ -205,6 +207,11 @@ class RunForecast:
     is_bias_met : bool
         False where the screening predicts a bias above ``sqrt(theta) tol`` on the problem's ``max_level``:
         :func:`mlmc` refuses such a tolerance (as ``roughuq mlmc`` does), with the smallest reachable one.
+    bias : ndarray, shape (n_qoi,)
+        The bias the screening predicts on the plan's finest level (on ``max_level`` where not ``is_bias_met``).
+    reachable_tol : ndarray, shape (n_qoi,)
+        The smallest tolerance whose bias share that bias meets where ``tol`` does not (two significant digits,
+        rounded up), ``tol`` where it does: what :func:`mlmc`'s refusal proposes.
     """
 
     n_samples: np.ndarray
@@ -213,6 +220,8 @@ class RunForecast:
     cpu_seconds: float | None
     mc_cpu_seconds: float | None
     is_bias_met: bool
+    bias: np.ndarray
+    reachable_tol: np.ndarray
 
     @property
     def levels(self) -> np.ndarray:
@@ -224,10 +233,14 @@ class RunForecast:
         def seconds(value: float | None) -> str:
             return "None" if value is None else f"{value:.3g}"
 
+        # An unreachable tolerance: the bias that blocks it and the smallest reachable one, as mlmc refuses it.
+        unreachable = "" if self.is_bias_met else (
+            f", bias={_summary(self.bias)}, reachable_tol={_summary(self.reachable_tol)}"
+        )
         return (
             f"RunForecast(levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()}, "
             f"cost={self.cost:.3g}, mc_cost={self.mc_cost:.3g}, cpu_seconds={seconds(self.cpu_seconds)}, "
-            f"mc_cpu_seconds={seconds(self.mc_cpu_seconds)}, is_bias_met={self.is_bias_met})"
+            f"mc_cpu_seconds={seconds(self.mc_cpu_seconds)}, is_bias_met={self.is_bias_met}{unreachable})"
         )
 
 
