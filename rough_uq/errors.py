@@ -9,6 +9,7 @@ that input was skipped; the run goes on.
 
 from __future__ import annotations
 
+import math
 import numbers
 import os
 import sys
@@ -91,7 +92,11 @@ class InvalidParameterError(RoughUQError, ValueError):
 
 def _shown(value: object) -> str:
     """``repr(value)``, but an integer of hundreds of digits as its size (``10**400`` was printed whole), also
-    inside a list or tuple."""
+    inside a list or tuple, and an array of more than one dimension or many values as its shape and dtype
+    (an 11 x 11 array of thresholds made a message of 22 lines)."""
+    shape = getattr(value, "shape", None)
+    if isinstance(shape, tuple) and hasattr(value, "dtype") and (len(shape) > 1 or math.prod(shape) > 12):
+        return f"an array of shape {shape} ({value.dtype})"
     if isinstance(value, int) and not isinstance(value, bool):
         digits = _digits(value)
         if digits > 30:

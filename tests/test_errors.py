@@ -64,3 +64,16 @@ def test_checked_real_array_converts_real_numbers_and_refuses_what_it_would_have
     for value in ("0.5", b"1", True, np.bool_(True), [1, "2"], [1, None], 1j, np.array([1j]), [[1], [2, 3]], 10**400):
         with pytest.raises(errors.InvalidParameterError, match="^x: got .*; allowed: numbers$"):
             errors.checked_real_array("x", value, "numbers")
+
+
+@pytest.mark.parametrize(("value", "shown"), [
+    (np.linspace(10, 40, 121).reshape(11, 11), "an array of shape (11, 11) (float64)"),
+    (np.zeros(13, dtype=np.int32), "an array of shape (13,) (int32)"),
+    (np.zeros((1, 2)), "an array of shape (1, 2) (float64)"),
+    (np.array([1.0, 2.0]), "array([1., 2.])"),
+    ([1, 2], "[1, 2]"),
+])
+def test_a_refused_array_is_shown_by_its_shape_where_its_values_would_take_lines(value, shown):
+    # An 11 x 11 array of thresholds made a message of 22 lines.
+    text = str(errors.InvalidParameterError("thresholds", value, "a 1-d array"))
+    assert text == f"thresholds: got {shown}; allowed: a 1-d array"
