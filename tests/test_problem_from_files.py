@@ -162,6 +162,10 @@ def test_files_that_hold_no_problem_are_refused_by_name(tmp_path):
             read("")
     with pytest.raises(StudyFileError, match=r"is a directory \(got .*; allowed: a study file\)"):
         load_screening(tmp_path)  # a directory: it said "is a directory ... allowed: a YAML file"
+    # A missing file: the message advised the CLI's options "--study or --config" in a Python call.
+    with pytest.raises(StudyFileError, match=r"missing.h5' does not exist: load_screening reads the file") as caught:
+        load_screening(tmp_path / "missing.h5")
+    assert "--" not in str(caught.value)
     if Path("/dev/null").exists():  # it said "/dev/null is not a file"
         with pytest.raises(StudyFileError, match=r"^/dev/null is not a regular file \(a device or a pipe\?\)"):
             load_screening("/dev/null")

@@ -339,7 +339,13 @@ def load_screening(path: str | os.PathLike[str]) -> ScreeningResult:
     EstimationError
         Where the rates cannot be fitted on the stored samples (``roughuq screen`` refused them), naming the file.
     """
-    with open_existing_study(path, writable=False) as study:
+    checked = checked_study_path(path)
+    if not checked.exists():  # open_existing_study's message advises the CLI's options
+        raise StudyFileError(
+            f"study file {str(checked)!r} does not exist: load_screening reads the file `roughuq screen` wrote "
+            "(its config's output.path)", checked,
+        )
+    with open_existing_study(checked, writable=False) as study:
         with naming_source(f"{os.fspath(path)} (stored config)"):
             problem = problem_of_config(study.config)
         _, batches = screening_statistics(study)  # its table is computed again with the problem's model
