@@ -83,16 +83,30 @@ def test_the_report_of_such_a_run_shows_no_error_it_did_not_measure(tmp_path, mo
     bracketed = QuantileRecord(probability=0.5, value=5.0, lower=5.0, upper=5.0)
     distribution = replace(record.outcome.distribution, quantiles=(bracketed,))
     shown = replace(record, outcome=replace(record.outcome, distribution=distribution))
-    assert "  q(0.5) = 5 % (error not measured)" in _cdf_lines(shown.outcome, 0.1, {"contact_area": "%"})
+    assert "  q(0.5) = 5.000 % (error not measured)" in _cdf_lines(shown.outcome, 0.1, {"contact_area": "%"})
     console = Console(width=120, record=True)
     console.print(_distribution_table([shown], {"contact_area": "%"}))
     lines = console.export_text().splitlines()
     (row,) = [line.split() for line in lines if line.split()[:2] == ["contact_area", "0.5"]]
-    assert row[2:5] == ["5", "-", "-"], row
+    assert row[2:5] == ["5.000", "-", "-"], row
     captured.clear()
     _cdf_figure([shown], "contact_area", "%", tmp_path / "cdf.png")
     (ax,) = captured["figure"].axes
     assert not ax.containers  # the quantile as a point, without an error bar
+
+
+def test_quantiles_are_printed_to_four_significant_digits_trailing_zeros_kept():
+    # q(0.05) = 18.6 beside q(0.5) = 20.45: the trailing zero was dropped, the first read as less precise.
+    from rough_uq.report.summary import _quantile_text
+    from rough_uq.study.records import QuantileRecord
+
+    for value, lower, upper, text in [
+        (18.6, 18.25, None, "18.60 [18.25, inf]"),
+        (1000.0, None, 1003.0, "1000 [-inf, 1003]"),
+        (2.5e-7, 2.0e-7, 3.0e-7, "2.500e-07 [2.000e-07, 3.000e-07]"),
+    ]:
+        quantile = QuantileRecord(probability=0.05, value=value, lower=lower, upper=upper)
+        assert _quantile_text(quantile, "%") == f"q(0.05) = {text} %"
 
 
 def test_a_cdf_run_on_thresholds_far_coarser_than_the_spread_is_not_met_and_says_to_refine_them(tmp_path, monkeypatch):

@@ -266,7 +266,7 @@ def test_report_shows_variance_and_distribution_tables_json_and_the_cdf_figure(t
     assert "\n [%^2] " in variance_rows and "\n [%] " in distribution_rows
     assert re.search(r"^ contact_area ", variance_rows, re.M) and re.search(r"^ contact_area ", distribution_rows, re.M)
     q05 = cdf.outcome.distribution.quantiles[0]
-    assert f"q(0.05) = {q05.value:.4g}" in text
+    assert f"q(0.05) = {q05.value:#.4g}" in text
     report = json.loads(run("report", "results.h5", "--json").stdout)
     by_method = {entry["method"]: entry for entry in report["runs"]}
     assert by_method["cdf"]["distribution"]["cdf"] == list(cdf.outcome.distribution.cdf)

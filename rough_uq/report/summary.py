@@ -406,6 +406,20 @@ def _g(value: float | None, digits: int = 3) -> str:
     return f"{value + 0.0:.{digits}g}"  # + 0.0: a fitted -0.0 reads "0", not "-0"
 
 
+def _digits(value: float, digits: int) -> str:
+    """``value`` to ``digits`` significant digits, trailing zeros kept (``18.60`` beside ``20.45``; ``:.4g``
+    printed ``18.6``), without a bare trailing point (``1000``, not ``1000.``)."""
+    mantissa, mark, exponent = f"{value + 0.0:#.{digits}g}".partition("e")
+    return mantissa.rstrip(".") + mark + exponent
+
+
+def _quantile_values(quantile: Any) -> tuple[str, str, str]:
+    """A quantile's value and the ends of its error bar, four significant digits each (open ends ``-inf``/``inf``)."""
+    lower = "-inf" if quantile.lower is None else _digits(quantile.lower, 4)
+    upper = "inf" if quantile.upper is None else _digits(quantile.upper, 4)
+    return _digits(quantile.value, 4), lower, upper
+
+
 #: Planned counts from here on are shown in three digits (``1.97e+15``; sixteen digits said nothing more).
 _COUNT_DIGITS_LIMIT = 10**7
 
@@ -591,11 +605,10 @@ def _quantile_text(quantile: Any, unit: str, *, is_measured: bool = True) -> str
     """
     if quantile.value is None:
         return f"q({quantile.probability:g}) not bracketed by the thresholds"
+    value, lower, upper = _quantile_values(quantile)
     if not is_measured:
-        return f"q({quantile.probability:g}) = {_g(quantile.value, 4)}{_unit(unit)} (error not measured)"
-    lower = "-inf" if quantile.lower is None else _g(quantile.lower, 4)
-    upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
-    return f"q({quantile.probability:g}) = {_g(quantile.value, 4)} [{lower}, {upper}]{_unit(unit)}"
+        return f"q({quantile.probability:g}) = {value}{_unit(unit)} (error not measured)"
+    return f"q({quantile.probability:g}) = {value} [{lower}, {upper}]{_unit(unit)}"
 
 
 def is_bias_in_noise(outcome: Any) -> bool:
@@ -878,11 +891,9 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
             value, bar = "-", "-"
             is_bracketed = quantile is not None and quantile.value is not None
             if is_bracketed:
-                value = _g(quantile.value, 4)
-            if is_bracketed and is_rmse_measured(outcome):  # else the band of an unmeasured RMSE
-                lower = "-inf" if quantile.lower is None else _g(quantile.lower, 4)
-                upper = "inf" if quantile.upper is None else _g(quantile.upper, 4)
-                bar = f"[{lower}, {upper}]"
+                value, lower, upper = _quantile_values(quantile)
+                if is_rmse_measured(outcome):  # else the band of an unmeasured RMSE
+                    bar = f"[{lower}, {upper}]"
             table.add_row(
                 _qoi_cell(distribution.column, unit) if row == 0 else "",
                 "-" if quantile is None else _g(quantile.probability), value, bar,
