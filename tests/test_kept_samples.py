@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+import pickle
+
 import numpy as np
 import pytest
 
 import rough_uq
 import rough_uq.problem.contact as contact_module
 from rough_uq.problem.batch import LevelBatch
-from rough_uq.problem.kept import KeptSamples
+from rough_uq.problem.kept import MAX_GAP, KeptSamples
 from rough_uq.study.progress import Progress
 
 
@@ -113,10 +116,86 @@ def test_kept_samples_give_back_exactly_the_rows_added_in_the_order_asked(seed):
                     assert np.array_equal(getattr(given, name)[row], value)
 
 
-def test_a_replaced_problem_and_an_equal_problem_keep_their_own_samples(computed):
+def test_an_equal_problem_keeps_its_own_samples(computed):
     problem = _problem()
     rough_uq.mc(problem, tol=2.0, level=0)
     n_first = len(computed)
     rough_uq.mc(_problem(), tol=2.0, level=0)  # equal, not the same object: its own (empty) store
     assert len(computed) == 2 * n_first
     assert _problem() == problem
+
+
+def test_a_run_without_progress_goes_on_from_its_last_completed_batch(computed):
+    # Without a progress reporter a batch is one computation: an interrupt loses the batch in flight only.
+    whole = RUNS["mc"](_problem())
+    computed.clear()
+    problem, calls = _problem(), []
+    compute = contact_module.compute_batch
+
+    def interrupt_third(model, **item):
+        calls.append(item["indices"].size)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return compute(model, **item)
+
+    contact_module.compute_batch = interrupt_third
+    try:
+        with pytest.raises(KeyboardInterrupt) as caught:
+            RUNS["mc"](problem)
+    finally:
+        contact_module.compute_batch = compute
+    kept = sum(calls[:2])
+    assert f"after {kept} samples computed" in caught.value.__notes__[-1] and len(problem._kept) == kept
+    computed.clear()
+    assert repr(RUNS["mc"](problem)) == repr(whole)
+    assert len(computed) == int(whole.n_samples.sum()) - kept
+
+
+def test_a_screening_is_kept_too(computed):
+    problem = _problem()
+    first = rough_uq.screen(problem, levels=3, samples=5)
+    computed.clear()
+    again = rough_uq.screen(problem, levels=3, samples=5)
+    assert computed == [] and np.array_equal(again.statistics.mean_fine, first.statistics.mean_fine)
+
+
+def test_replaced_and_unpickled_problems_start_with_no_samples(computed):
+    problem = _problem()
+    rough_uq.mc(problem, tol=2.0, level=0)
+    n_first = len(computed)
+    for other in (dataclasses.replace(problem, max_level=1), pickle.loads(pickle.dumps(problem))):
+        computed.clear()
+        rough_uq.mc(other, tol=2.0, level=0)
+        assert len(computed) == n_first, other  # computed again: nothing carried over
+    # A pickle leaves the samples behind: it does not grow with the runs (another version would serve them).
+    assert len(pickle.dumps(problem)) == len(pickle.dumps(_problem()))
+
+
+def test_a_sample_far_beyond_those_kept_is_computed_not_kept():
+    # sampler.batch(0, [2**40]) computed the sample, then asked for a 1 TiB array to keep it.
+    rng = np.random.default_rng(3)
+    kept = KeptSamples()
+    kept.add(_batch(0, 1, [0, 1, 2], rng))
+    far = 4 * (3 + 2) + MAX_GAP  # the first index out of reach with 3 kept and a batch of 2
+    kept.add(_batch(0, 1, [far, 2**40], rng))
+    assert len(kept) == 3
+    given, missing = kept.split(0, 1, np.array([2, far, 2**40], dtype=np.int64))
+    assert given.indices.tolist() == [2] and missing.tolist() == [far, 2**40]
+    kept.add(_batch(0, 1, [MAX_GAP], rng))  # within reach: kept
+    assert len(kept) == 4
+
+
+def test_a_run_inside_an_except_block_reports_its_end_as_complete():
+    # The end was decided on sys.exc_info(), which inside an except block is the exception being handled:
+    # a run made there (a retry after an EstimationError) was reported "stopped", not "done".
+    stops = []
+
+    class Recorded(Progress):
+        def stop(self, *, is_complete=True):
+            stops.append(is_complete)
+
+    try:
+        raise ValueError("a failed attempt")
+    except ValueError:
+        rough_uq.mc(_problem(), tol=2.0, level=0, progress=Recorded())
+    assert stops == [True]

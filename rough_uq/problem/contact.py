@@ -33,7 +33,6 @@ from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LO
 from rough_uq.physics.surface import PROJECTIONS, SurfaceSpectrum
 from rough_uq.problem.batch import LevelBatch
 from rough_uq.problem.kept import KeptSamples
-from rough_uq.problem.memory import memory_warning, physical_memory_bytes
 from rough_uq.problem.loads import (
     QOI_UNITS,
     AbsoluteLoad,
@@ -43,6 +42,7 @@ from rough_uq.problem.loads import (
     positive,
     qoi_scale,
 )
+from rough_uq.problem.memory import memory_warning, physical_memory_bytes
 from rough_uq.problem.sampler import ContactModel, compute_batch, is_coupled_stage, modelled_cost, warm_up
 
 if TYPE_CHECKING:
@@ -258,8 +258,9 @@ def _qoi_names(qoi: object) -> tuple[str, ...]:
 
 
 def _units(units: object, names: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
-    """Every QoI's unit as ``(name, unit)`` pairs in the order of ``names``, defaults filled in: the same
-    problem compares equal whether a default unit was given or not."""
+    """The units given as ``(name, unit)`` pairs in the order of ``names``, those equal to the default left
+    out: the same problem compares equal whether a default unit was given or not, and a problem made by
+    ``dataclasses.replace`` with fewer QoIs does not carry the units of those it dropped."""
     if units is None:
         units = {}
     if not isinstance(units, Mapping):
@@ -276,7 +277,7 @@ def _units(units: object, names: tuple[str, ...]) -> tuple[tuple[str, str], ...]
         if name not in names:
             raise InvalidParameterError("units", name, "a QoI of this problem: " + ", ".join(names))
         qoi_scale(name, unit, system_size=1.0)  # refuses a unit the QoI does not have
-    return tuple((name, units.get(name, QOI_UNITS[name][0])) for name in names)
+    return tuple((name, units[name]) for name in names if units.get(name, QOI_UNITS[name][0]) != QOI_UNITS[name][0])
 
 
 def _choice(name: str, value: object, allowed: tuple) -> object:
@@ -316,7 +317,8 @@ class ContactProblem:
     units : mapping of str to str, optional
         Unit per QoI where not the default (:data:`~rough_uq.problem.loads.QOI_UNITS`),
         e.g. ``{"contact_area": "fraction"}`` (or a sequence of ``(name, unit)`` pairs, each name once).
-        Stored as a tuple of pairs for every QoI, in the order of ``qoi``, the defaults filled in.
+        Stored as a tuple of pairs in the order of ``qoi``, without those equal to the default
+        (:attr:`qoi_units` has every QoI's).
     e_star : float
         Effective modulus ``E*``, > 0, in the pressure unit of the problem: absolute loads,
         ``critical_pressure`` and ``max_pressure`` are in the unit ``e_star`` is given in, not divided
@@ -403,6 +405,15 @@ class ContactProblem:
         )
         set_(self, "_model", self._build_model())
         set_(self, "_kept", KeptSamples())
+
+    def __getstate__(self) -> dict:
+        # A pickled (or copied) problem leaves its kept samples behind: loaded by another version of rough_uq,
+        # they would be another solver's numbers, and a pickle would grow with every run.
+        return {name: value for name, value in self.__dict__.items() if name != "_kept"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        object.__setattr__(self, "_kept", KeptSamples())
 
     def _check_grids(self) -> None:
         set_ = object.__setattr__
@@ -491,12 +502,13 @@ class ContactProblem:
     @property
     def qoi_units(self) -> tuple[str, ...]:
         """Unit of each QoI, in the order of ``qoi``."""
-        return tuple(unit for _, unit in self.units)
+        given = dict(self.units)
+        return tuple(given.get(name, QOI_UNITS[name][0]) for name in self.qoi)
 
     @property
     def column_units(self) -> tuple[str, ...]:
         """Unit of each result column (:attr:`columns`, QoI-major): its QoI's."""
-        return tuple(unit for _, unit in self.units for _ in self.loads)
+        return tuple(unit for unit in self.qoi_units for _ in self.loads)
 
     @property
     def n_qoi(self) -> int:
@@ -658,18 +670,23 @@ class ContactSampler:
         pieces = [] if given is None else [given]
         if given is not None and self.progress is not None:
             self.progress.advance(level, given.n_samples)
-        for piece in self._pieces(level, missing) if missing.size or given is None else ():  # None: an empty batch
-            pieces.append(piece)
+        if missing.size or given is None:  # an empty batch is computed as before (an empty LevelBatch)
+            pieces.extend(self._computed(level, missing))
+        batch = pieces[0] if len(pieces) == 1 else _ordered(pieces, indices)
+        self.n_samples += batch.n_samples
+        self.n_not_converged += batch.n_not_converged
+        return batch
+
+    def _computed(self, level: int, indices: np.ndarray) -> Iterator[LevelBatch]:
+        """The pieces of :meth:`_pieces`, each counted, kept and reported as soon as it is done."""
+        for piece in self._pieces(level, indices):
             self.n_computed += piece.n_samples
             self.seconds += float(np.sum(piece.cost))
             if self.kept is not None:
                 self.kept.add(piece)
             if self.progress is not None:
                 self.progress.advance(level, piece.n_samples)
-        batch = pieces[0] if len(pieces) == 1 else _ordered(pieces, indices)
-        self.n_samples += batch.n_samples
-        self.n_not_converged += batch.n_not_converged
-        return batch
+            yield piece
 
     def _warn_memory(self, level: int) -> None:
         """An :class:`~rough_uq.errors.EstimationWarning` before the first solves of ``level`` if they need more
@@ -679,7 +696,8 @@ class ContactSampler:
         self._memory_checked.add(level)
         grids = [self.model.grid(lv) for lv in range(level + 1)]
         n_workers = int(getattr(self.executor, "n_workers", 1)) if self.executor is not None else 1
-        text = memory_warning(grids, level, n_workers, physical_memory_bytes(), lower_with="a smaller max_level",
+        text = memory_warning(grids, level, n_workers, physical_memory_bytes(),
+                              lower_with="a smaller max_level, or mc's level=",
                               workers="an executor with n_workers = {}", smaller_coarsest="a smaller coarsest")
         if text:
             warn_at_caller(text, EstimationWarning)

@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import sys
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -929,15 +928,17 @@ def _reporting(sampler: ContactSampler, title: str) -> Iterator[None]:
         progress.start(title)
     try:
         yield
-    except KeyboardInterrupt as interrupt:
-        interrupt.add_note(
-            f"rough_uq: {title} interrupted after {sampler.n_computed} samples computed; they are kept with the "
-            "problem (in memory): the same call on the same problem goes on from them"
-        )
-        raise
-    finally:
+    except BaseException as error:
+        if isinstance(error, KeyboardInterrupt):
+            error.add_note(
+                f"rough_uq: {title} interrupted after {sampler.n_computed} samples computed; they are kept with the "
+                "problem (in memory): the same call on the same problem goes on from them"
+            )
         if progress is not None:
-            progress.stop(is_complete=sys.exc_info()[0] is None)
+            progress.stop(is_complete=False)
+        raise
+    if progress is not None:
+        progress.stop()
 
 
 def _max_samples(max_samples: object) -> int | None:
