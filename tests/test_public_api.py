@@ -925,14 +925,18 @@ def test_results_name_their_columns_and_units():
                        units={"clusters": "absolute"})
     assert problem.column_units == ("percent", "percent", "absolute", "absolute")
     result = rough_uq.variance(problem, tol=50.0)  # printed four unlabelled numbers
-    assert result.qoi_names == problem.columns and result.units == problem.column_units
-    assert repr(result).startswith(f"TargetEstimate(qoi_names={problem.columns!r}, units={problem.column_units!r}, ")
+    squares = ("percent^2", "percent^2", "absolute^2", "absolute^2")  # a variance is in its QoI's unit squared
+    assert result.qoi_names == problem.columns and result.units == squares
+    assert repr(result).startswith(f"TargetEstimate(qoi_names={problem.columns!r}, units={squares!r}, ")
 
 
 def test_the_default_units_given_or_not_make_the_same_problem():
     # units={"contact_area": "percent"} (the default) made a problem unequal to the one without units.
     assert _problem(units={"contact_area": "percent"}) == _problem()
-    assert _problem(qoi=["clusters", "contact_area"]).units == (("clusters", "per_area"), ("contact_area", "percent"))
+    both = _problem(qoi=["clusters", "contact_area"], units={"clusters": "absolute", "contact_area": "percent"})
+    assert both.units == (("clusters", "absolute"),) and both.qoi_units == ("absolute", "percent")
+    # A QoI dropped by dataclasses.replace leaves no unit behind (with every unit stored, its default was refused).
+    assert dataclasses.replace(_problem(qoi=["clusters", "contact_area"]), qoi=["contact_area"]) == _problem()
 
 
 def test_a_unit_given_twice_is_refused():
@@ -979,7 +983,8 @@ def test_the_api_warns_before_solves_that_exceed_the_machines_memory(monkeypatch
         rough_uq.mc(_problem(), tol=2.0, level=1)
     (text,) = [str(w.message) for w in caught if "memory" in str(w.message)]  # once, not per batch
     assert text.startswith("level 1 (grid 32 x 32) needs about 0.156 MiB per solve (20 float64 arrays of n^2), "
-                           "but this machine has 0.156 MiB: stay at level <= 0 (a smaller max_level)"), text
+                           "but this machine has 0.156 MiB: stay at level <= 0 "
+                           "(a smaller max_level, or mc's level=)"), text
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         rough_uq.mc(_problem(), tol=2.0, level=0)  # 16^2 fits

@@ -123,11 +123,11 @@ def _names_summary(names: tuple[str, ...] | None) -> str:
 
 
 def _units_summary(units: tuple[str, ...] | None) -> str:
-    """``units=(...), `` for a result's repr (for many columns, a load curve's: each distinct unit once, in
-    column order); ``""`` where not known."""
+    """``units=(...), `` for a result's repr (for many columns, a load curve's: ``units=<percent, length>``, each
+    distinct unit once, in column order); ``""`` where not known."""
     if units is None:
         return ""
-    return f"units={units if len(units) <= _SHOWN_VALUES else tuple(dict.fromkeys(units))!r}, "
+    return f"units={units!r}, " if len(units) <= _SHOWN_VALUES else f"units=<{', '.join(dict.fromkeys(units))}>, "
 
 
 def _errors_summary(rmse: object, stat_error: object, bias: object, is_bias_estimated: bool) -> str:

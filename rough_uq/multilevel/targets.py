@@ -244,7 +244,8 @@ class TargetEstimate:
         Names of the components where each is a QoI column (:func:`rough_uq.variance`: the problem's
         columns), None otherwise (a CDF's components are thresholds; its :class:`CdfEstimate` names them).
     units : tuple of str or None
-        Unit of each QoI column named by ``qoi_names`` (a variance is in its square), None if not known.
+        Unit of each component of ``estimate`` where ``qoi_names`` names them (:func:`rough_uq.variance`: the
+        square of its QoI's, e.g. ``"percent^2"``), None if not known.
     """
 
     estimate: np.ndarray

@@ -188,7 +188,7 @@ def variance(
             qoi_names=problem.columns,
         )
     result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "variance"),
-                                 qoi_names=problem.columns, units=problem.column_units)
+                                 qoi_names=problem.columns, units=tuple(f"{unit}^2" for unit in problem.column_units))
     warn_not_met("variance", problem.columns, result, tol)
     return result
 
