@@ -199,3 +199,38 @@ def test_a_run_inside_an_except_block_reports_its_end_as_complete():
     except ValueError:
         rough_uq.mc(_problem(), tol=2.0, level=0, progress=Recorded())
     assert stops == [True]
+
+
+def test_the_note_counts_only_samples_kept_when_the_interrupt_lands_while_one_is_kept(monkeypatch):
+    # n_computed was counted before KeptSamples.add: a Ctrl-C inside add() made the note count a sample not kept.
+    calls = []
+    add = KeptSamples.add
+
+    def interrupted_third(kept, batch):
+        calls.append(batch.n_samples)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        add(kept, batch)
+
+    monkeypatch.setattr(KeptSamples, "add", interrupted_third)
+    problem = _problem()
+    with pytest.raises(KeyboardInterrupt) as caught:
+        RUNS["mc"](problem, progress=Progress())
+    assert f"after {len(problem._kept)} samples computed" in caught.value.__notes__[-1] and len(problem._kept) == 2
+
+
+def test_a_progress_interrupted_while_it_starts_is_stopped():
+    # A Ctrl-C inside RichProgress.start() (before the run's try) left rich's live display running.
+    events = []
+
+    class SlowStart(Progress):
+        def start(self, title):
+            events.append("start")
+            raise KeyboardInterrupt
+
+        def stop(self, *, is_complete=True):
+            events.append(("stop", is_complete))
+
+    with pytest.raises(KeyboardInterrupt):
+        RUNS["mc"](_problem(), progress=SlowStart())
+    assert events == ["start", ("stop", False)]

@@ -680,10 +680,10 @@ class ContactSampler:
     def _computed(self, level: int, indices: np.ndarray) -> Iterator[LevelBatch]:
         """The pieces of :meth:`_pieces`, each counted, kept and reported as soon as it is done."""
         for piece in self._pieces(level, indices):
-            self.n_computed += piece.n_samples
-            self.seconds += float(np.sum(piece.cost))
             if self.kept is not None:
                 self.kept.add(piece)
+            self.n_computed += piece.n_samples  # after add: an interrupt between them counts no unkept sample
+            self.seconds += float(np.sum(piece.cost))
             if self.progress is not None:
                 self.progress.advance(level, piece.n_samples)
             yield piece

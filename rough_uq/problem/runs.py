@@ -924,9 +924,9 @@ def _reporting(sampler: ContactSampler, title: str) -> Iterator[None]:
     problem (:mod:`rough_uq.problem.kept`) and the same call goes on from them.
     """
     progress = sampler.progress
-    if progress is not None:
-        progress.start(title)
     try:
+        if progress is not None:
+            progress.start(title)  # inside: a Ctrl-C while it starts stops it too (rich's display kept running)
         yield
     except BaseException as error:
         if isinstance(error, KeyboardInterrupt):
