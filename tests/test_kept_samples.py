@@ -72,7 +72,7 @@ def test_an_interrupted_run_made_again_computes_only_the_missing_samples_and_giv
     before = list(computed)
     assert len(before) == stop_after  # one sample at a time with a progress reporter
     note = caught.value.__notes__[-1]
-    assert f"interrupted after {stop_after} samples computed; they are kept with the problem" in note
+    assert f"interrupted; the {stop_after} samples it computed are kept with the problem" in note
     again = run(problem)
     assert sorted(computed) == uninterrupted  # each sample computed once over both calls, none twice
     assert repr(again) == repr(whole)
@@ -145,7 +145,7 @@ def test_a_run_without_progress_goes_on_from_its_last_completed_batch(computed):
     finally:
         contact_module.compute_batch = compute
     kept = sum(calls[:2])
-    assert f"after {kept} samples computed" in caught.value.__notes__[-1] and len(problem._kept) == kept
+    assert f"the {kept} samples it computed are kept" in caught.value.__notes__[-1] and len(problem._kept) == kept
     computed.clear()
     assert repr(RUNS["mc"](problem)) == repr(whole)
     assert len(computed) == int(whole.n_samples.sum()) - kept
@@ -216,7 +216,7 @@ def test_the_note_counts_only_samples_kept_when_the_interrupt_lands_while_one_is
     problem = _problem()
     with pytest.raises(KeyboardInterrupt) as caught:
         RUNS["mc"](problem, progress=Progress())
-    assert f"after {len(problem._kept)} samples computed" in caught.value.__notes__[-1] and len(problem._kept) == 2
+    assert f"the {len(problem._kept)} samples it computed" in caught.value.__notes__[-1] and len(problem._kept) == 2
 
 
 def test_a_progress_interrupted_while_it_starts_is_stopped():
@@ -234,3 +234,36 @@ def test_a_progress_interrupted_while_it_starts_is_stopped():
     with pytest.raises(KeyboardInterrupt):
         RUNS["mc"](_problem(), progress=SlowStart())
     assert events == ["start", ("stop", False)]
+
+
+def test_a_ctrl_c_while_the_kernels_warm_up_takes_effect_once_they_are_loaded(monkeypatch):
+    # A Ctrl-C while numba registered its implementations (a process's first solve) broke every later solve of
+    # the process (RuntimeError: generator raised StopIteration): the warm-up now defers it.
+    import os
+    import signal
+
+    import rough_uq.problem.sampler as sampler_module
+
+    done = []
+    compute = sampler_module.compute_batch
+
+    def interrupted(model, **item):
+        os.kill(os.getpid(), signal.SIGINT)  # delivered while the warm-up solves
+        batch = compute(model, **item)
+        done.append(batch.n_samples)
+        return batch
+
+    monkeypatch.setattr(sampler_module, "compute_batch", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        sampler_module.warm_up(_problem().model)
+    assert done == [1]  # the warm-up's sample was solved whole before the interrupt took effect
+
+
+def test_the_note_of_a_second_interrupt_counts_that_calls_samples():
+    # It counted what that call computed, but the README said the samples kept (the problem's, 9 here).
+    problem = _problem()
+    for stop_after, computed_here in ((5, 5), (9, 4)):  # the second call is given 5 back, then computes 4
+        with pytest.raises(KeyboardInterrupt) as caught:
+            RUNS["mlmc"](problem, progress=InterruptAfter(stop_after))
+        assert f"the {computed_here} samples it computed are kept" in caught.value.__notes__[-1]
+    assert len(problem._kept) == 9

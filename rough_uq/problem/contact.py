@@ -637,6 +637,7 @@ class ContactSampler:
     ) -> None:
         self.model = model
         self.kept = kept
+        self._kept_before = 0 if kept is None else len(kept)
         self.stage = stage
         self.executor = executor
         self.max_level = max_level
@@ -676,6 +677,12 @@ class ContactSampler:
         self.n_samples += batch.n_samples
         self.n_not_converged += batch.n_not_converged
         return batch
+
+    @property
+    def n_kept(self) -> int:
+        """Samples this sampler computed and kept: what ``kept`` gained since the sampler was made (exact
+        whatever an interrupt interrupts, where ``n_computed`` may lag by a piece); ``n_computed`` without ``kept``."""
+        return self.n_computed if self.kept is None else len(self.kept) - self._kept_before
 
     def _computed(self, level: int, indices: np.ndarray) -> Iterator[LevelBatch]:
         """The pieces of :meth:`_pieces`, each counted, kept and reported as soon as it is done."""

@@ -931,8 +931,8 @@ def _reporting(sampler: ContactSampler, title: str) -> Iterator[None]:
     except BaseException as error:
         if isinstance(error, KeyboardInterrupt):
             error.add_note(
-                f"rough_uq: {title} interrupted after {sampler.n_computed} samples computed; they are kept with the "
-                "problem (in memory): the same call on the same problem goes on from them"
+                f"rough_uq: {title} interrupted; the {sampler.n_kept} samples it computed are kept with the problem "
+                "(in memory): the same call on the same problem goes on from them"
             )
         if progress is not None:
             progress.stop(is_complete=False)

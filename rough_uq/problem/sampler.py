@@ -57,8 +57,11 @@ from __future__ import annotations
 
 import hashlib
 import math
+import signal
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -357,8 +360,30 @@ def warm_up(model: ContactModel) -> None:
     would otherwise fall into the measured cost of the first sample of a
     process (about 0.3 s in the quickstart's pool workers, against 1.5 ms for
     its 32^2 samples). Its result is discarded; it changes no other sample.
+
+    A Ctrl-C meanwhile takes effect once it is done (:func:`_sigint_deferred`): one that landed while numba
+    registered its implementations left them half-registered, and every later solve of the process raised
+    ``RuntimeError: generator raised StopIteration`` (6 of about 290 processes interrupted in their first run).
     """
-    compute_batch(replace(model, coarsest=8), stage=1, level=1, indices=np.zeros(1, dtype=np.int64))
+    with _sigint_deferred():
+        compute_batch(replace(model, coarsest=8), stage=1, level=1, indices=np.zeros(1, dtype=np.int64))
+
+
+@contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """On the main thread with a SIGINT handler: record a Ctrl-C in the body and hand it to that handler when it
+    ends (Python's raises :class:`KeyboardInterrupt`); elsewhere (a pool worker ignores SIGINT) nothing changes."""
+    if threading.current_thread() is not threading.main_thread() or not callable(signal.getsignal(signal.SIGINT)):
+        yield
+        return
+    received: list[object] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        previous(signal.SIGINT, received[0])
 
 
 def compute_batch(model: ContactModel, *, stage: int, level: int, indices: np.ndarray) -> LevelBatch:

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from typing import IO
 
 from rough_uq.errors import InvalidParameterError, is_real_number
+from rough_uq.study.signals import signals_held
 
 __all__ = [
     "ETA_MIN_SAMPLES", "ETA_MIN_SECONDS", "PlainProgress", "PrefixedProgress", "RichProgress", "format_duration",
@@ -293,7 +294,8 @@ class RichProgress(Progress):
             console=self._console,
             transient=False,
         )
-        self._bars.start()
+        with signals_held():  # a Ctrl-C inside rich's start left a half-started display whose stop() raised
+            self._bars.start()
 
     def plan(self, levels: Sequence[int], n_planned: Sequence[int], n_done: Sequence[int]) -> None:
         if self._bars is None:
@@ -318,8 +320,9 @@ class RichProgress(Progress):
 
     def stop(self, *, is_complete: bool = True) -> None:
         if self._bars is not None:
-            self._bars.stop()
-            self._bars = None
+            bars, self._bars = self._bars, None
+            with signals_held():  # the terminal restored whole (cursor shown) before a Ctrl-C takes effect
+                bars.stop()
 
 
 def make_progress(*, is_quiet: bool = False, stream: IO[str] | None = None) -> Progress:
