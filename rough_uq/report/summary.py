@@ -72,7 +72,7 @@ from typing import Any
 import numpy as np
 from rich.markup import escape
 
-from rough_uq.errors import PLANNED_COUNT_CAP, StudyFileError
+from rough_uq.errors import PLANNED_COUNT_CAP
 from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.rates import EXACT_RATE, RATE_FLOOR
 from rough_uq.multilevel.statistics import FEWEST_VARIANCE_SAMPLES, KURTOSIS_LIMIT, SAMPLE_KURTOSIS_CHECK_SAMPLES
@@ -90,7 +90,7 @@ from rough_uq.study.records import (
     read_run_records,
     read_screening_record,
 )
-from rough_uq.study.store import FORMAT_VERSION, StudyStore, checked_study_path, is_lock_held
+from rough_uq.study.store import FORMAT_VERSION, StudyStore, is_lock_held
 
 __all__ = [
     "MIN_ALPHA",
@@ -349,11 +349,8 @@ def read_report(path: str | os.PathLike[str]) -> dict[str, Any]:
     """
     from rough_uq.study.pipeline import open_existing_study
 
-    path = checked_study_path(path)
-    if not path.exists():  # open_existing_study's remedy names the options of the commands that compute
-        raise StudyFileError(f"study file {str(path)!r} does not exist; name one that `roughuq screen` or a run "
-                             "wrote (its config's output.path, results.h5 by default)", path)
-    with open_existing_study(path, writable=False) as study:
+    missing = "; name one that `roughuq screen` or a run wrote (its config's output.path, results.h5 by default)"
+    with open_existing_study(path, writable=False, missing=missing) as study:
         return study_report(study.store, study.config)
 
 

@@ -339,13 +339,8 @@ def load_screening(path: str | os.PathLike[str]) -> ScreeningResult:
     EstimationError
         Where the rates cannot be fitted on the stored samples (``roughuq screen`` refused them), naming the file.
     """
-    checked = checked_study_path(path)
-    if not checked.exists():  # open_existing_study's message advises the CLI's options
-        raise StudyFileError(
-            f"study file {str(checked)!r} does not exist: load_screening reads the file `roughuq screen` wrote "
-            "(its config's output.path)", checked,
-        )
-    with open_existing_study(checked, writable=False) as study:
+    missing = ": load_screening reads the file `roughuq screen` wrote (its config's output.path)"
+    with open_existing_study(path, writable=False, missing=missing) as study:
         with naming_source(f"{os.fspath(path)} (stored config)"):
             problem = problem_of_config(study.config)
         _, batches = screening_statistics(study)  # its table is computed again with the problem's model
@@ -527,7 +522,8 @@ def _setting_text(value: object) -> str:
 
 
 def open_existing_study(
-    path: str | Path, *, config: StudyConfig | None = None, writable: bool = True, source: str | None = None
+    path: str | Path, *, config: StudyConfig | None = None, writable: bool = True, source: str | None = None,
+    missing: str | None = None,
 ) -> Study:
     """Open an existing study file.
 
@@ -536,15 +532,15 @@ def open_existing_study(
     estimation settings and QoI tolerances, which do not change samples), and
     ``source`` is where it comes from (its file; :class:`Study`). A
     file whose stored ``qoi_names`` are not the result columns of its stored
-    config is refused as damaged (:class:`StudyFileError`).
+    config is refused as damaged (:class:`StudyFileError`). ``missing`` follows ``study file '...' does not
+    exist`` where the file is missing (default: the CLI's remedy, with its ``--study`` / ``--config`` options).
     """
     path = checked_study_path(path)
     if not path.exists():
-        raise StudyFileError(
-            f"study file {str(path)!r} does not exist; create it with `roughuq screen CONFIG --out {path}`, or "
-            "name the study file screen wrote (its config's output.path) with --study or --config",
-            path,
-        )
+        if missing is None:
+            missing = (f"; create it with `roughuq screen CONFIG --out {path}`, or name the study file screen wrote "
+                       "(its config's output.path) with --study or --config")
+        raise StudyFileError(f"study file {str(path)!r} does not exist{missing}", path)
     with open_study_readonly(path) as header:
         config_text, stored_hash, qoi_names = header.config_text, header.config_hash, header.qoi_names
         stored = _stored_config(header)
