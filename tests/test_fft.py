@@ -175,6 +175,50 @@ def test_the_solvers_in_place_single_plans_are_patient_up_to_the_documented_grid
         fft_module.use_wisdom(None)
 
 
+@pytest.mark.parametrize("limits", ["patient", "both"])
+def test_plans_whose_search_runs_out_of_time_are_still_planned_from_the_wisdom(monkeypatch, limits):
+    # A search that reaches FFTW's time limit leaves no wisdom of its rigour, and
+    # planning from the wisdom only then estimated: the in-place single-precision
+    # plan of 1024^2 on two threads (patient, over 30 s) ran estimated in every solve.
+    import pyfftw
+
+    monkeypatch.setattr(fft_module, "_PATIENT_TIMELIMIT", 1e-9)
+    if limits == "both":
+        monkeypatch.setattr(fft_module, "_PLANNING_TIMELIMIT", 1e-9)
+    try:
+        pyfftw.forget_wisdom()
+        wisdom = fft_module.measure_plans([64], threads=1)
+        planned = fft_module.RealFFT((64, 64), single=True, in_place=True)
+        assert planned.flags == ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
+        for layout in ({}, {"separate_output": True}, {"single": True}):
+            assert fft_module.RealFFT((64, 64), **layout).flags == ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
+        # The next run takes the measured plan as known: no patient search again, out of time again.
+        pyfftw.forget_wisdom()
+        calls: list[list[int]] = []
+        fft_module.measure_plans([64], threads=1, wisdom=wisdom, before_measuring=calls.append)
+        assert calls == []
+    finally:
+        fft_module.use_wisdom(None)
+
+
+@pytest.mark.slow
+def test_a_patient_search_out_of_time_at_1024_leaves_a_measured_plan_in_the_wisdom(monkeypatch):
+    # There the search out of time left solutions in FFTW's planner that served
+    # the measured search at once without becoming wisdom (here with a 5 s limit
+    # on one thread; with two threads the default 30 s ran out), and the
+    # preconditioned solver's transforms ran estimated in every process.
+    import pyfftw
+
+    monkeypatch.setattr(fft_module, "_PATIENT_TIMELIMIT", 5.0)
+    try:
+        pyfftw.forget_wisdom()
+        fft_module.measure_plans([1024], threads=1)
+        planned = fft_module.RealFFT((1024, 1024), single=True, in_place=True)
+        assert planned.flags == ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
+    finally:
+        fft_module.use_wisdom(None)
+
+
 def test_pyfftw_is_imported_without_dask_and_scipy_fftpack_which_import_later_as_usual():
     code = (
         "import sys, rough_uq.physics.fft as f\n"

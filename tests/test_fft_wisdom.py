@@ -77,12 +77,12 @@ def test_plans_measured_before_a_ctrl_c_are_kept_on_disk(fresh_wisdom, monkeypat
     measure = fft_module._plan_variant
     grids: list[int] = []
 
-    def interrupted_at_24(n, variant, flags):
+    def interrupted_at_24(n, variant, flags, **options):
         if "FFTW_WISDOM_ONLY" not in flags:  # measuring, not looking up
             if n == 24:
                 raise KeyboardInterrupt
             grids.append(n)
-        return measure(n, variant, flags)
+        return measure(n, variant, flags, **options)
 
     monkeypatch.setattr(fft_module, "_plan_variant", interrupted_at_24)
     with pytest.raises(KeyboardInterrupt):
