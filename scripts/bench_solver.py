@@ -347,6 +347,16 @@ def time_fft_pair(n: int, threads: int, *, single: bool = False, in_place: bool 
     return time_pair(lambda: (plan.forward(), plan.inverse(normalise=not in_place)))
 
 
+def warn_estimated_plans(n: int, threads: int) -> None:
+    """Say so on stderr where one of the solver's plans (just timed) is estimated: the wisdom lacks it."""
+    kinds = {"double": {}, "single": {"single": True}, "single in place": {"single": True, "in_place": True}}
+    for name, layout in kinds.items():
+        plan = get_fft(n, threads=threads, separate_output=not layout, **layout)
+        if "FFTW_ESTIMATE" in plan.flags:
+            print(f"warning: the solver's {name} plan of {n}^2 is estimated (not in the measured wisdom)",
+                  file=sys.stderr)
+
+
 def timed_solve(
     heights: np.ndarray,
     *,
@@ -483,6 +493,7 @@ def run_grid(
     fft_pair = time_fft_pair(n, args.threads)
     single_pair = time_fft_pair(n, args.threads, single=True, in_place=True)
     plain_single_pair = time_fft_pair(n, args.threads, single=True)
+    warn_estimated_plans(n, args.threads)
     cold, cold_timing = timed_solve(
         heights, pressure=pressure, tol=args.tol, threads=args.threads, repeats=args.repeats
     )

@@ -348,7 +348,8 @@ def _measure_variant(n: int, variant: tuple[int, bool, bool, bool], effort: str)
     measured instead (``FFTW_MEASURE``, within its own time limit), and where
     even that search runs out of time, measured without a limit: planning
     happens once per machine and grid, and every later process plans from the
-    wisdom.
+    wisdom. (Should that too leave no wisdom, every process estimates the plan:
+    slower, but the same plan everywhere.)
     """
     attempts = [(effort, False), ("FFTW_MEASURE", False), ("FFTW_MEASURE", True)]
     for attempt_effort, unlimited in attempts[1:] if effort == "FFTW_MEASURE" else attempts:
@@ -358,8 +359,9 @@ def _measure_variant(n: int, variant: tuple[int, bool, bool, bool], effort: str)
             return
         # The search that ran out of time left solutions in FFTW's planner that are
         # not wisdom but serve every later search of the problem at once: forget them.
-        pyfftw.forget_wisdom()
-        pyfftw.import_wisdom(before)
+        with _PLANS_LOCK:
+            pyfftw.forget_wisdom()
+            pyfftw.import_wisdom(before)
 
 
 def measure_plans(
@@ -385,7 +387,8 @@ def measure_plans(
     wisdom : tuple of bytes, optional
         Wisdom to start from (:func:`export_wisdom` of this or another process).
     effort : {"FFTW_MEASURE", "FFTW_PATIENT"}, optional
-        Planner effort for plans not in the wisdom yet. By default
+        Planner effort for plans not in the wisdom yet (a plan the wisdom
+        holds at ``FFTW_MEASURE`` rigour or more counts as in it). By default
         ``FFTW_MEASURE``, and ``FFTW_PATIENT`` for the preconditioned solver's
         in-place single-precision plans on grids up to :data:`PATIENT_MAX_GRID`
         (module docstring).
