@@ -66,6 +66,22 @@ def test_samples_counted_by_a_plan_and_not_advanced_reach_both_progresses():
     assert level_lines[-1].startswith("[mlmc] level 1: 11/11 samples")
 
 
+@pytest.mark.parametrize("is_complete", [True, False])
+def test_rich_bars_of_an_interrupted_run_say_that_it_stopped(is_complete):
+    """The bars froze where an interrupted run stopped and said nothing, as if it were still going (the plain
+    lines said "stopped after")."""
+    from rich.console import Console
+
+    out = io.StringIO()
+    progress = RichProgress(console=Console(file=out, force_terminal=False, width=120))
+    progress.start("mlmc tol 0.2")
+    progress.plan([0], [10], [0])
+    progress.advance(0, 3)
+    progress.stop(is_complete=is_complete)
+    stopped = [line for line in out.getvalue().splitlines() if "stopped after" in line]
+    assert stopped == ([] if is_complete else ["[mlmc tol 0.2] stopped after 0s"])
+
+
 def test_a_plan_that_grows_with_every_batch_is_not_a_line_per_batch():
     # Adaptive MLMC raises a level's plan after each batch, and each batch reaches it: the log said "18/18",
     # "21/21", ... one line per batch, each reading as done. Within an interval: the first line and the last.

@@ -272,6 +272,7 @@ class RichProgress(Progress):
         self._bars: object | None = None
         self._tasks: dict[int, int] = {}
         self._title = ""
+        self._t0 = time.monotonic()
 
     def start(self, title: str) -> None:
         from rich.progress import (
@@ -284,6 +285,7 @@ class RichProgress(Progress):
 
         self._title = title
         self._tasks = {}
+        self._t0 = time.monotonic()
         self._bars = Bars(
             TextColumn("{task.description}"),
             BarColumn(),
@@ -323,6 +325,9 @@ class RichProgress(Progress):
             bars, self._bars = self._bars, None
             with signals_held():  # the terminal restored whole (cursor shown) before a Ctrl-C takes effect
                 bars.stop()
+            if not is_complete:  # frozen bars alone read as a run still going, or as one that ended
+                self._console.print(f"[{self._title}] stopped after "
+                                    f"{format_duration(time.monotonic() - self._t0, clock=True)}", markup=False)
 
 
 def make_progress(*, is_quiet: bool = False, stream: IO[str] | None = None) -> Progress:
