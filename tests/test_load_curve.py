@@ -448,3 +448,14 @@ def test_a_load_curve_through_full_contact_is_screened_and_estimated():
     (caveat,) = exact_column_caveats(coarse, problem.columns, screening.rates, screening.statistics)
     assert caveat.startswith("clusters@3.0: every level difference is 0 on the screened grids up to 16^2")
     assert "k_s = 8 needs a grid above 16" in caveat
+
+
+def test_solutions_compare_by_identity_like_every_result():
+    """``==``, ``in`` and ``hash`` raised numpy's "truth value of an array is ambiguous" and "unhashable"."""
+    spectrum = SurfaceSpectrum(system_size=2.0, k_l=2, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    heights = sample_surface(spectrum, 16, np.random.default_rng(0))
+    solutions = [solve_contact(heights, system_size=2.0, mean_pressure=1.0) for _ in range(2)]
+    curves = [solve_load_curve(heights, system_size=2.0, mean_pressures=[0.5, 1.0]) for _ in range(2)]
+    for first, second in (solutions, curves):
+        assert first == first and first != second and first in [first] and second not in [first]
+        assert len({first, second, first}) == 2

@@ -45,7 +45,7 @@ from rough_uq.physics.solver import ContactSolution, solve_contact
 __all__ = ["LoadCurveSolution", "solve_load_curve", "check_mean_pressures"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays: no field-wise ==, which raised (as the other results)
 class LoadCurveSolution:
     """Result of :func:`solve_load_curve`, in the caller's order of the loads.
 

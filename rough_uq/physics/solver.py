@@ -267,7 +267,7 @@ def max_convergent_load(tol: float) -> float:
     return tol / (ROUNDING_FLOOR * float(np.finfo(np.float64).eps))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays: no field-wise ==, which raised (as the other results)
 class ContactSolution:
     """Result of :func:`solve_contact`.
 
