@@ -94,14 +94,20 @@ def test_psd_values() -> None:
 @pytest.mark.parametrize(
     "k",
     ["abc", "3", ["1", 2], np.array(["3"]), None, True, 1j, [1, None], [[1, 2], [3]],
-     pytest.param(10**400, id="1e400")],
+     pytest.param(10**400, id="1e400"), math.nan, [3.0, math.nan], np.full((2, 2), np.nan)],
 )
 def test_psd_refuses_wave_numbers_that_are_not_real_numbers_by_name(k) -> None:
     # "abc" and the ragged list gave bare ValueErrors, 1j a TypeError, 10**400 an OverflowError; "3", ["1", 2]
-    # and True were converted to numbers and None to NaN (Phi = 0).
+    # and True were converted to numbers and None to NaN (Phi = 0); NaN itself gave Phi = 0 too.
     spectrum = SurfaceSpectrum(system_size=2.0, k_l=0.0, k_r=4.0, k_s=10.0, hurst=0.5, rms_height=1.0)
     with pytest.raises(InvalidParameterError, match=r"^k: got .*; allowed: a real number or an array of real"):
         spectrum.psd(k)
+
+
+def test_psd_is_radial_in_negative_wave_numbers() -> None:
+    spectrum = SurfaceSpectrum(system_size=2.0, k_l=0.0, k_r=4.0, k_s=10.0, hurst=0.5, rms_height=1.0)
+    k = np.array([0.5, 4.0, 7.0, 12.0])
+    np.testing.assert_array_equal(spectrum.psd(-k), spectrum.psd(k))
 
 
 def test_psd_takes_numbers_and_arrays_of_them_of_any_real_type() -> None:

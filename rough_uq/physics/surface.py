@@ -294,7 +294,7 @@ class SurfaceSpectrum:
         Parameters
         ----------
         k : array_like, any shape
-            Wave numbers ``|k| >= 0``.
+            Wave numbers; the spectrum is radial, so ``-k`` gives ``Phi(|k|)``.
 
         Returns
         -------
@@ -305,10 +305,13 @@ class SurfaceSpectrum:
         ------
         InvalidParameterError
             If ``k`` is not a real number or an array of them (strings such
-            as ``"3"``, booleans, complex numbers, ``None`` or a ragged list),
-            naming ``k``.
+            as ``"3"``, booleans, complex numbers, ``None`` or a ragged list)
+            or holds NaN (which came back as ``Phi = 0``), naming ``k``.
         """
-        k = checked_real_array("k", k, "a real number or an array of real numbers (wave numbers, periods per box)")
+        allowed = "a real number or an array of real numbers, none NaN (wave numbers, periods per box)"
+        k = checked_real_array("k", k, allowed)
+        if np.isnan(k).any():
+            raise InvalidParameterError("k", k, allowed)
         return self.C * self._shape_k2(k * k)
 
     def grid_psd(self, n: int) -> np.ndarray:
