@@ -461,6 +461,19 @@ def test_max_cost_stops_honestly():
     assert mc_result.stop_reason == "max_cost" and not mc_result.tol_met and mc_result.cost <= 500.0
 
 
+def test_mc_without_a_bias_stopped_between_its_share_and_tol_is_not_met():
+    # Plain MC on a given level plans for its statistical error's share sqrt(1 - theta) tol; `roughuq mc --level 3
+    # --tol 0.043 --max-cost 45` stopped at a statistical error of 0.0355 (share 0.0304) and said the tolerance
+    # met, status 0, while the same command without the budget drew on.
+    tol, unit = 0.01, Synthetic(seed=2).cost(3)
+    result = mc(Synthetic(seed=2), tol=tol, level=3, max_cost=18000 * unit)
+    assert result.stop_reason == "max_cost" and result.n_samples.tolist() == [18000]
+    assert math.sqrt(0.5) * tol < result.stat_error < tol and not result.tol_met
+    unbounded = mc(Synthetic(seed=2), tol=tol, level=3)
+    assert unbounded.stop_reason == "tol_met" and unbounded.tol_met
+    assert unbounded.stat_error <= math.sqrt(0.5) * tol
+
+
 @pytest.mark.parametrize(("driver", "level", "budget", "n_drawn"), [
     (mc, 3, 1e-9, 2), (mc, 3, 3.5, 3), (mlmc, 0, 1e-9, 2), (mlmc, 0, 3.5, 3),
 ])

@@ -549,6 +549,10 @@ def test_a_plain_mc_run_stopped_by_its_budget_is_not_said_to_miss_bias_levels():
     lines = format_run(record, study.config.qoi_names, {"contact_area": "%"})
     assert lines[0].endswith(": NOT MET (max_cost)")
     assert lines[1].startswith("  stopped at --max-cost; level 1, N "), lines[1]
+    # Its statistical error against the share sqrt(1 - theta) tol that it had to meet ("<= tol 0.043" beside NOT MET).
+    share = 0.01 * math.sqrt(0.5)
+    assert lines[2].endswith(f"(stat. error {outcome.stat_error[0]:.2g} > {share:.2g}, its share of tol 0.01, "
+                             "bias not estimated)"), lines[2]
 
 
 def test_a_target_run_passes_other_refusals_on_as_they_are(monkeypatch):

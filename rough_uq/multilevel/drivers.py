@@ -1937,15 +1937,20 @@ class _McRun(_Run):
         return self.bias if self.bias is not None else np.zeros(self.n_qoi)
 
     def is_tol_met(self) -> bool:
-        """``Var / N + bias^2 <= eps^2``, once the run has the samples it starts with (``max_cost`` may stop it first).
+        """``Var / N + bias^2 <= eps^2`` with a given bias, ``Var / N <= (1 - theta) eps^2`` without one (the
+        statistical error's share, which the plan aims at), once the run has the samples it starts with.
 
         Fewer than the first plan's samples (``n_initial``, or 2 from a
         screening) give no variance estimate to trust: a budget that stopped
         the run after a probe of two (:data:`_PROBE`) claimed the tolerance met.
+        Without a bias, ``max_cost`` stopped runs between the two errors and
+        called them met, while the same run without the budget drew on.
         """
         if self.samples.n < self.hierarchy.floor:
             return False
         stat_variance = self.variance() / self.samples.n
+        if self.bias is None:
+            return bool(np.all(stat_variance <= (1.0 - self.options.theta) * self.tol**2 * (1 + 1e-12)))
         return bool(np.all(stat_variance + self.bias_values() ** 2 <= self.tol**2 * (1 + 1e-12)))
 
     def after_round(self) -> Iterator[Event]:

@@ -544,7 +544,9 @@ def warn_not_met(method: str, names: Sequence[str] | None, result, tol, *, advic
     if result.tol_met:
         return
     stop_reason, is_bias_estimated = result.stop_reason, result.is_bias_estimated
-    if advice is None and stop_reason == "max_cost" and not is_bias_estimated:
+    # Plain MC on a given level never estimates its bias: its statistical error must be within its share.
+    is_level_mc = getattr(result, "method", None) == "mc" and not is_bias_estimated
+    if advice is None and stop_reason == "max_cost" and not is_bias_estimated and not is_level_mc:
         advice = "the run reached max_cost before its bias was estimated: raise max_cost or lower n_initial"
     if advice is None and stop_reason == "max_level" and getattr(result, "noisy_bias_groups", ()):
         advice = ("the bias estimate rests on level terms within their noise (see the warning): raise n_initial "
@@ -559,10 +561,13 @@ def warn_not_met(method: str, names: Sequence[str] | None, result, tol, *, advic
     if stop_reason == THRESHOLDS_MISS_SAMPLES:
         errors = "not measured"  # from variances of 0 (rough_uq.multilevel.distribution)
     unestimated = "" if is_bias_estimated else " (bias not estimated)"
-    warn_at_caller(
-        f"{method}: tolerance not met ({stop_reason}): RMSE {errors}{unestimated} against tol {tolerances}; {advice}",
-        EstimationWarning,
-    )
+    if is_level_mc:
+        share = math.sqrt(1.0 - result.theta)
+        shares = values_text(names, share * tol) if names is not None else ", ".join(f"{e:.3g}" for e in share * tol)
+        text = f"statistical error {errors} against its share sqrt(1 - theta) tol = {shares} of tol {tolerances}"
+    else:
+        text = f"RMSE {errors}{unestimated} against tol {tolerances}"
+    warn_at_caller(f"{method}: tolerance not met ({stop_reason}): {text}; {advice}", EstimationWarning)
 
 
 def mlmc(
