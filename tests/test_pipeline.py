@@ -286,6 +286,29 @@ def test_a_rerun_that_computes_nothing_keeps_the_elapsed_time_of_the_run():
         assert again.elapsed == first.elapsed and again.estimate == first.estimate
 
 
+def test_a_rerun_that_extends_a_finished_run_adds_its_time_to_the_first():
+    # `mc --max-cost 40` (8.68 s), then the same run without the budget: its elapsed time was the rerun's 5.05 s
+    # alone, against 21.6 CPU-seconds of samples on two workers.
+    import time
+
+    study = _study()
+    budget = 1.2 * 4 * float(modelled_cost(study.model, 1, np.zeros((1, 2)))[0])  # as the budget test above
+
+    def run(max_cost):
+        return run_estimation(study, method="mc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET,
+                              level=1, max_cost=max_cost)
+
+    first = run(budget)
+    assert first.status == "finished" and first.outcome.stop_reason == "max_cost"
+    # A first command of 1000 s, so that the sum cannot be mistaken for the rerun's own time.
+    study.store.write_run(first.run_id, replace(first, outcome=replace(first.outcome, elapsed=1000.0)).to_json())
+    started = time.monotonic()
+    again = run(None)
+    took = time.monotonic() - started
+    assert again.run_id == first.run_id and again.outcome.n_computed > 0 and again.outcome.tol_met
+    assert 1000.0 < again.outcome.elapsed <= 1000.0 + took
+
+
 def _raising(failure: BaseException):
     def driver(*args: object, **kwargs: object) -> None:
         raise failure

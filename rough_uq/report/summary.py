@@ -8,8 +8,8 @@ Three kinds of time, each with one name and unit everywhere:
 
 * **elapsed** (s): wall-clock time of the commands that ran the run (JSON
   ``elapsed``; a run stopped and resumed before it finished adds its stopped
-  commands', ``stopped_elapsed``; a finished run extended by a rerun counts
-  the rerun);
+  commands', ``stopped_elapsed``; a finished run extended by a rerun adds
+  the rerun's);
 * **CPU-seconds** (CPU-s): the wall times of the samples, each measured in the
   process that computed it, summed (JSON keys with ``seconds``: ``seconds``,
   ``mean_seconds``, ``mlmc_seconds``, ``mc_seconds``,
