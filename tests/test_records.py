@@ -445,6 +445,32 @@ def test_the_prediction_table_marks_tolerances_whose_bias_the_finest_grid_cannot
     assert "planned, as runs plan, with every rate raised to at least 0.5" in " ".join(console.export_text().split())
 
 
+def test_the_prediction_table_marks_the_qoi_whose_bias_the_finest_grid_misses():
+    # The mark ended the cell, next to its last QoI: "contact_area=0.25 / clusters=2.5 *", where contact_area's
+    # bias was the one that `mlmc --tol` refused.
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    from rough_uq.report.summary import _predictions_table
+
+    names = ("contact_area", "clusters", "mean_gap@0.1", "mean_gap@0.2")
+
+    def row(unmet: tuple[int, ...] | None) -> PlanRecord:
+        return PlanRecord(tol=(0.25, 2.5, 0.01, 0.02), finest_level=3, n_samples=(9, 4, 2, 1), mlmc_cost=1.0,
+                          mc_cost=1.0, mlmc_seconds=1.0, mc_seconds=1.0, work_ratio=1.0, is_bias_met=False,
+                          unmet_columns=unmet)
+
+    rates = SimpleNamespace(alpha=(1.0,) * 4, beta=(2.0,) * 4, gamma=1.5)
+    for unmet, marked in (((0,), ["contact_area=0.25 *"]), ((3,), ["mean_gap=0.01 *", "mean_gap@0.2=0.02 *"]),
+                          (None, ["mean_gap@0.2=0.02 *"]), ((), ["mean_gap@0.2=0.02 *"])):  # no columns: at its end
+        record = PlanRecord.from_json(row(unmet).to_json())  # as a file keeps it
+        assert record.unmet_columns == unmet
+        console = Console(width=120, record=True)
+        console.print(_predictions_table(SimpleNamespace(qoi_names=names, predictions=(record,), rates=rates)))
+        assert re.findall(r"\S+=\S+ \*", console.export_text()) == marked, unmet
+
+
 def test_the_prediction_table_of_many_qois_shows_every_tolerance_whole_at_80_columns():
     # Five QoIs at 80 columns: rich cut "mean_gap=4.93058e-05" to "mean_gap=4.93058e…" and "max_pressure=0.00…",
     # and the tolerances of the QoIs without a configured tol came with no word of where they came from.

@@ -64,7 +64,7 @@ from __future__ import annotations
 import math
 import os
 import textwrap
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -795,7 +795,7 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
     table.caption, table.caption_justify = "\n".join(captions), "left"
     # One column's tolerance per line, folded rather than cut: at 80 columns rich cut "mean_gap=4.93058e-05"
     # to "mean_gap=4.93058e…" and "max_pressure=0.00339897" to "max_pressure=0.00…".
-    cells = [_tol_cell(screening.qoi_names, p.tol) + ("" if p.is_bias_met else " *") for p in screening.predictions]
+    cells = [_marked_tol_cell(screening.qoi_names, p) for p in screening.predictions]
     # Several columns: rich gave the tolerances 17 characters at 80 columns and folded "max_pressure=0.0034"
     # mid-number; N_l, wrapping between its counts, leaves them their width.
     several = any("\n" in cell for cell in cells)
@@ -821,11 +821,23 @@ def _predictions_table(screening: ScreeningRecord) -> Any:
 _TOL_LINE = 20
 
 
-def _tol_cell(names: Sequence[str], tol: Sequence[float]) -> str:
+def _tol_cell(names: Sequence[str], tol: Sequence[float], marked: Collection[str] = ()) -> str:
     """The tolerances of a prediction, one column (or group of a load curve's) per line, a long line broken
-    after its ``=`` (``contact_area@0.01=`` / ``0.0492``) rather than folded mid-number."""
+    after its ``=`` (``contact_area@0.01=`` / ``0.0492``) rather than folded mid-number; the lines of the QoIs
+    ``marked`` end in `` *``."""
     parts = tol_text(names, tol, digits=3).split(", ")
+    parts = [part + " *" if split_column(part.split("=", 1)[0])[0] in marked else part for part in parts]
     return "\n".join(part.replace("=", "=\n", 1) if len(part) > _TOL_LINE else part for part in parts)
+
+
+def _marked_tol_cell(names: Sequence[str], plan: Any) -> str:
+    """:func:`_tol_cell` of a prediction whose bias the finest allowed grid misses, marked at the QoIs that miss
+    it (the mark ended the cell, next to the last QoI: ``clusters=2.5 *`` where contact_area's bias missed).
+    A plan without the columns (older files), or whose columns all meet their share, is marked at its end."""
+    if plan.is_bias_met:
+        return _tol_cell(names, plan.tol)
+    unmet = {split_column(names[q])[0] for q in plan.unmet_columns or ()}
+    return _tol_cell(names, plan.tol, unmet) if unmet else _tol_cell(names, plan.tol) + " *"
 
 
 def render_runs(console: Any, runs: Sequence[ReportedRun], qoi_names: Sequence[str],

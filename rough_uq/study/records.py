@@ -480,6 +480,9 @@ class PlanRecord:
         ``mc_cost / mlmc_cost``.
     is_bias_met : bool
         The finest level allowed reaches the bias ``tol`` needs.
+    unmet_columns : tuple of int or None
+        The columns whose predicted bias on the plan's finest level is above
+        their share ``sqrt(theta) tol`` (None in files before it was recorded).
     """
 
     tol: tuple[Number, ...]
@@ -491,19 +494,23 @@ class PlanRecord:
     mc_seconds: Number
     work_ratio: Number
     is_bias_met: bool
+    unmet_columns: tuple[int, ...] | None = None
 
     @classmethod
     def from_plan(cls, plan: Any, seconds_per_cost: float) -> PlanRecord:
         """The record of a :class:`~rough_uq.multilevel.allocation.Plan`; seconds are ``cost * seconds_per_cost``."""
+        limit = math.sqrt(plan.theta) * np.asarray(plan.tol, dtype=float)
         return cls(
             tol=_tuples(plan.tol), finest_level=int(plan.finest_level), n_samples=_tuples(plan.n_samples),
             mlmc_cost=float(plan.cost), mc_cost=float(plan.mc_cost),
             mlmc_seconds=float(plan.cost * seconds_per_cost), mc_seconds=float(plan.mc_cost * seconds_per_cost),
             work_ratio=float(plan.work_ratio), is_bias_met=bool(plan.is_bias_met),
+            unmet_columns=tuple(int(q) for q in np.flatnonzero(~(np.asarray(plan.bias) <= limit))),
         )
 
     def to_json(self) -> dict[str, Any]:
-        return {key: _lists(getattr(self, key)) for key in _PLAN_KEYS}
+        data = {key: _lists(getattr(self, key)) for key in _PLAN_KEYS}
+        return data if self.unmet_columns is None else {**data, "unmet_columns": list(self.unmet_columns)}
 
     @classmethod
     def from_json(cls, data: object, where: str = "plan") -> PlanRecord:
@@ -514,6 +521,7 @@ class PlanRecord:
             n_samples=fields.required("n_samples", _integers),
             **{key: fields.required(key, _number) for key in _PLAN_COSTS},
             is_bias_met=fields.required("is_bias_met", _flag),
+            unmet_columns=fields.optional("unmet_columns", _integers),
         )
 
 
