@@ -96,6 +96,17 @@ def test_a_qoi_that_never_changes_says_so_instead_of_asking_for_more_samples():
     with pytest.raises(EstimationError, match="contact_area took one value in every sample of every level"):
         run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(), progress=QUIET)
 
+
+def test_a_load_that_touches_one_node_says_so_instead_of_asking_for_more_samples():
+    # One node in contact in every sample: one value per level (one node's area), another on each grid. The beta
+    # fit asked to "screen more levels (screening.levels) or more samples (screening.samples)", in vain.
+    study = _study(load={"relative": 1.0e-9}, qoi={"contact_area": {}, "clusters": {}})
+    with pytest.raises(EstimationError) as info:
+        run_screening(study, executor=SerialExecutor(), progress=QUIET)
+    assert str(info.value).startswith("contact_area, clusters took one value in every sample of each level, which "
+                                      "only the grid changes"), str(info.value)
+    assert "more samples (screening.samples)" not in str(info.value)
+
 def test_a_column_exact_on_grids_that_truncate_the_spectrum_gets_a_caveat():
     # Full contact at the second load on grids 6, 12, 24 (k_s = 12 needs a grid above 24): planned as exact,
     # with the caveat that a finer grid may differ.

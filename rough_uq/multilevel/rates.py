@@ -387,14 +387,25 @@ def refuse_constant_columns(statistics: LevelStatistics, names: Sequence[str] | 
     Far past full contact (or before any) the area is 100 % (0 %) in every sample: there is nothing to
     estimate, and more levels or samples would not change that. A constant column beside others that vary (a
     load curve through full contact) is fitted as exact (:func:`_exact_line`).
+
+    A load so small that only the highest node touches gives each level one value (one node's area, one
+    cluster), but another on each grid: no variance to fit beta with, and "screen more levels or more samples",
+    which the fit said, cannot help either.
     """
-    constant = [q for q in range(statistics.n_qoi) if _is_constant(statistics, q)]
-    if not constant or len(constant) < statistics.n_qoi:
+    columns, sampled = range(statistics.n_qoi), statistics.n_samples >= 2
+    if not np.any(sampled) or np.any(statistics.var_fine[sampled] != 0):
         return
-    which = ", ".join(names[q] if names is not None else f"QoI {q}" for q in constant)
+    constant = [q for q in columns if _is_constant(statistics, q)]
+    which = ", ".join(names[q] if names is not None else f"QoI {q}" for q in columns)
+    if len(constant) == statistics.n_qoi:
+        raise EstimationError(
+            f"{which} took one value in every sample of every level (at this load, e.g. full contact or none): "
+            "there is nothing to estimate; change the load or the QoIs"
+        )
     raise EstimationError(
-        f"{which} took one value in every sample of every level (at this load, e.g. full contact or none): there "
-        "is nothing to estimate; change the load or the QoIs"
+        f"{which} took one value in every sample of each level, which only the grid changes (at this load, e.g. "
+        "a single node in contact, or full contact): no sample differs from another, more levels or samples "
+        "would not change that; change the load or the QoIs"
     )
 
 
