@@ -320,6 +320,25 @@ def test_a_rerun_that_extends_a_finished_run_adds_its_time_to_the_first():
     assert 1000.0 < again.outcome.elapsed <= 1000.0 + took
 
 
+def test_a_resumed_run_counts_the_stored_samples_of_a_batch_that_computes_the_rest():
+    # Interrupted at 416 samples stored, the rerun's progress began at "level 3: 411/827": a batch's stored samples
+    # counted only once the batch was done.
+    import io
+
+    from rough_uq.study.progress import PlainProgress
+
+    study = _study(estimation={"initial_samples": 10, "batch_size": 10})
+    tol, estimation = np.array([2.0]), study.config.estimation
+    key = run_id("mc", study.config.qoi_names, tol, estimation.theta, 1, richardson=estimation.richardson)
+    StudySampler(study, stage=run_stage("mc", key), executor=SerialExecutor(), progress=QUIET).compute(1, np.arange(6))
+    out = io.StringIO()
+    record = run_estimation(study, method="mc", tol=tol, executor=SerialExecutor(),
+                            progress=PlainProgress(out, interval=0.0), level=1)
+    assert record.outcome.n_computed == sum(record.outcome.n_samples) - 6
+    counts = [int(n) for n in re.findall(r"level 1: ([0-9]+)/", out.getvalue())]
+    assert counts[0] >= 6 and counts == sorted(counts), out.getvalue()
+
+
 def _raising(failure: BaseException):
     def driver(*args: object, **kwargs: object) -> None:
         raise failure

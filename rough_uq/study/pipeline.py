@@ -598,16 +598,22 @@ class StudySampler:
     progress : Progress
     chunk : int
         Samples per work item sent to the executor.
+    advance_served : bool
+        Advance ``progress`` by the stored samples of a batch that also computes some (an estimation run's,
+        whose progress counts a batch's stored samples only once the batch is done: a resumed run's progress
+        started below what was stored, "411/827" of 416). Not where the plan counted them first (screening).
     """
 
     def __init__(
-        self, study: Study, *, stage: int, executor: Executor, progress: Progress, chunk: int = 1
+        self, study: Study, *, stage: int, executor: Executor, progress: Progress, chunk: int = 1,
+        advance_served: bool = False,
     ) -> None:
         self.study = study
         self.stage = stage
         self.executor = executor
         self.progress = progress
         self.chunk = max(1, int(chunk))
+        self.advance_served = advance_served
         self._cache: dict[int, dict[int, int]] = {}
         self._batches: dict[int, LevelBatch] = {}
         self.n_computed = 0
@@ -634,6 +640,8 @@ class StudySampler:
         missing = self.missing(level, indices)
         if missing.size == 0:
             return
+        if self.advance_served and missing.size < np.size(indices):
+            self.progress.advance(level, np.size(indices) - missing.size)
         items = [(self.stage, level, missing[i : i + self.chunk]) for i in range(0, missing.size, self.chunk)]
         pending: list[LevelBatch] = []
         last_flush = time.monotonic()
@@ -1539,7 +1547,8 @@ def run_estimation(
     key = run_id(method, study.config.qoi_names, tol, estimation.theta, level, richardson=estimation.richardson)
     earlier = _earlier_run(study, key)
     clock = _RunClock.start(earlier)
-    sampler = StudySampler(study, stage=run_stage(method, key), executor=executor, progress=progress)
+    sampler = StudySampler(study, stage=run_stage(method, key), executor=executor, progress=progress,
+                           advance_served=True)
     events, context = _events(study, method=method, tol=tol, sampler=sampler, max_cost=max_cost, level=level)
     record = _started_record(study, key=key, method=method, tol=tol, stage=sampler.stage, max_cost=max_cost,
                              context=context, forecast=forecast)
