@@ -1335,20 +1335,6 @@ main.command(name="mc", help="Plain Monte Carlo on the finest level the toleranc
 )
 
 
-def _stage_number(text: str) -> int:
-    """``--stage``: 'screening' (0) or an integer in 0..MAX_INT64."""
-    if text == "screening":
-        return 0
-    allowed = f"'screening' or an integer in 0..{MAX_INT64} (the stage `--plan` prints)"
-    try:
-        stage = int(text)
-    except ValueError:
-        raise InvalidParameterError("--stage", text, allowed) from None
-    if not 0 <= stage <= MAX_INT64:
-        raise InvalidParameterError("--stage", text, allowed)
-    return stage
-
-
 def _parse_indices(text: str) -> Any:
     """``A:B`` (half-open), ``I``, or a comma-separated list of those, as a sorted index array.
 
@@ -1385,7 +1371,9 @@ def _index_range(text: str, part: str) -> tuple[int, int]:
 @main.command()
 @click.option("--study", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
               help="Study file (only read).")
-@click.option("--stage", required=True, help="Stage of the samples: 'screening' or the number `--plan` prints.")
+@click.option("--stage", required=True,
+              help="Stage of the samples: 'screening', the number `--plan` prints, or a run id as `roughuq report` "
+                   "prints it (as `show --stage`).")
 @click.option("--level", type=click.IntRange(min=0), required=True, help="Level of the samples.")
 @click.option("--indices", required=True, metavar="A:B[,C:D]",
               help="Sample indices, comma-separated half-open ranges A:B or single indices (at most 10^7 "
@@ -1405,9 +1393,9 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
 
     _check_executor_options("local", None, workers)
     _check_output_file("--out", out)
-    stage_id = _stage_number(stage)
     wanted = _parse_indices(indices)
     with open_existing_study(study_path, writable=False) as study:
+        stage_id = _stage_of(study, stage)  # a run id too, as `show --stage` takes it (it was refused here)
         with _executor(study.config, workers, "local", None) as pool:
             watch = (study.config, pool, "local", "a study with a smaller grid.max_level")
             path = compute_shard(study, stage=stage_id, level=level, indices=wanted, out=out, executor=pool,

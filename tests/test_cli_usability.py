@@ -1146,6 +1146,20 @@ def test_show_takes_a_run_id_and_refuses_samples_not_stored(screened):
     assert not (screened / "x.png").exists()
 
 
+def test_sample_takes_a_run_id_as_show_does(screened):
+    # `show --stage` took a run id and `sample --stage` refused it ("'screening' or an integer").
+    record = json.loads(run("mlmc", "--tol", "5", "--workers", "1", "--json").output)
+    assert isinstance(record["stage"], int)
+    for stage, out in ((record["run_id"], "by_id.h5"), (str(record["stage"]), "by_number.h5")):
+        result = run("sample", "--stage", stage, "--level", "1", "--indices", "0:2", "--out", out, "--workers", "1",
+                     "--quiet")
+        assert result.output.strip().endswith(f"{out}: 2 samples of stage {record['stage']}, level 1"), result.output
+    line = one_error_line(run("sample", "--stage", "nonsense", "--level", "1", "--indices", "0:2", "--out", "x.h5",
+                              expect=2))
+    assert "--stage" in line and record["run_id"] in line
+    assert not (screened / "x.h5").exists()
+
+
 INT64_MAX = 2**63 - 1
 
 
@@ -1154,9 +1168,9 @@ INT64_MAX = 2**63 - 1
     (("--indices", "0:5000000,5000000:10000001"), "at most 10000000 samples in one shard"),
     (("--indices", "0:99999999999999999999"), f"indices in 0..{INT64_MAX}"),  # was 'Maximum allowed size exceeded'
     (("--indices", str(INT64_MAX + 1)), f"indices in 0..{INT64_MAX}"),
-    (("--stage", "99999999999999999999999"), f"an integer in 0..{INT64_MAX}"),  # was an OverflowError after the work
-    (("--stage", str(INT64_MAX + 1)), f"an integer in 0..{INT64_MAX}"),
-    (("--stage", "-1"), f"an integer in 0..{INT64_MAX}"),
+    (("--stage", "99999999999999999999999"), f"a stage number in 0..{INT64_MAX}"),  # was an OverflowError after the work
+    (("--stage", str(INT64_MAX + 1)), f"a stage number in 0..{INT64_MAX}"),
+    (("--stage", "-1"), f"a stage number in 0..{INT64_MAX}"),
 ], ids=["1e11 samples", "1e7 + 1 samples", "stop 1e20", "index 2^63", "stage 1e23", "stage 2^63", "stage -1"])
 def test_sample_refuses_stages_and_indices_int64_cannot_hold_before_any_work(screened, options, text):
     given = {"--stage": "screening", "--indices": "0:2", **dict(zip(options[::2], options[1::2]))}
