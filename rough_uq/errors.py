@@ -97,10 +97,6 @@ def _shown(value: object) -> str:
     shape = getattr(value, "shape", None)
     if isinstance(shape, tuple) and hasattr(value, "dtype") and (len(shape) > 1 or math.prod(shape) > 12):
         return f"an array of shape {shape} ({value.dtype})"
-    if shape == () and type(value).__name__ == "ndarray":
-        # "got array(1.); allowed: a finite number > 0" read as a contradiction where the number is fine and its
-        # type is not (scalar parameters take numbers, numpy's scalars too, not 0-d arrays: x.item() is one).
-        return f"{value!r} (a 0-d array)"
     if isinstance(value, int) and not isinstance(value, bool):
         digits = _digits(value)
         if digits > 30:

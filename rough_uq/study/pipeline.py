@@ -893,11 +893,12 @@ def _check_screenable(config: StudyConfig) -> None:
 
 
 def _screening_rates(statistics: LevelStatistics, qoi_names: Sequence[str]) -> Rates:
-    refuse_constant_columns(statistics, qoi_names)  # nothing to estimate: more levels or samples would not help
+    advice = "screen more levels (screening.levels) or more samples (screening.samples)"
+    # Nothing to estimate at all (more levels or samples would not help), or no variance on the screened grids.
+    refuse_constant_columns(statistics, qoi_names, advice=f"{advice}, or change the load")
     try:
         return fit_rates(statistics, names=qoi_names)
     except EstimationError as exc:
-        advice = "screen more levels (screening.levels) or more samples (screening.samples)"
         raise EstimationError(f"screening cannot fit the rates: {exc}; {advice}") from None
 
 
