@@ -62,6 +62,14 @@ def is_real_number(value: object) -> bool:
     return True
 
 
+def scalar_refusal(name: str, value: object, allowed: str) -> InvalidParameterError:
+    """The :class:`InvalidParameterError` of a scalar parameter; for a 0-d array, ``allowed`` says that a plain
+    number is meant ("got array(1.); allowed: a finite number > 0" read as a contradiction)."""
+    if type(value).__name__ == "ndarray" and getattr(value, "shape", None) == ():
+        allowed += " (a number, not a 0-d array: x.item() is one)"
+    return InvalidParameterError(name, value, allowed)
+
+
 def is_integer(value: object) -> bool:
     """An integer (numpy's too), not a boolean, a string nor a float with an integral value (``2.0``)."""
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)

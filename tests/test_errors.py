@@ -77,3 +77,25 @@ def test_a_refused_array_is_shown_by_its_shape_where_its_values_would_take_lines
     # An 11 x 11 array of thresholds made a message of 22 lines.
     text = str(errors.InvalidParameterError("thresholds", value, "a 1-d array"))
     assert text == f"thresholds: got {shown}; allowed: a 1-d array"
+
+
+def test_a_scalar_parameter_given_a_0d_array_says_that_a_number_is_meant():
+    # "rms_height: got array(1.); allowed: a finite number > 0" read as a contradiction.
+    from rough_uq.physics.solver import solve_contact
+    from rough_uq.physics.surface import SurfaceSpectrum
+    from rough_uq.problem.loads import RelativeLoad
+
+    hint = "(a number, not a 0-d array: x.item() is one)"
+    calls = {
+        "rms_height": lambda: SurfaceSpectrum(system_size=1, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=np.array(1.0)),
+        "system_size": lambda: solve_contact(np.zeros((8, 8)), system_size=np.array(2.0), mean_pressure=1.0),
+        "tol": lambda: solve_contact(np.zeros((8, 8)), system_size=2.0, mean_pressure=1.0, tol=np.array(1e-8)),
+        "load.relative": lambda: RelativeLoad(np.array(0.1)),
+    }
+    for name, call in calls.items():
+        with pytest.raises(errors.InvalidParameterError) as info:
+            call()
+        assert info.value.name == name and str(info.value).endswith(hint), str(info.value)
+    with pytest.raises(errors.InvalidParameterError) as info:  # a number out of range: no hint
+        SurfaceSpectrum(system_size=1, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=-1.0)
+    assert "0-d" not in str(info.value)

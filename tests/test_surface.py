@@ -100,8 +100,9 @@ def test_psd_refuses_wave_numbers_that_are_not_real_numbers_by_name(k) -> None:
     # "abc" and the ragged list gave bare ValueErrors, 1j a TypeError, 10**400 an OverflowError; "3", ["1", 2]
     # and True were converted to numbers and None to NaN (Phi = 0); NaN itself gave Phi = 0 too.
     spectrum = SurfaceSpectrum(system_size=2.0, k_l=0.0, k_r=4.0, k_s=10.0, hurst=0.5, rms_height=1.0)
-    with pytest.raises(InvalidParameterError, match=r"^k: got .*; allowed: a real number or an array of real"):
+    with pytest.raises(InvalidParameterError, match=r"^k: got .*; allowed: a real number or an array of real") as info:
         spectrum.psd(k)
+    assert info.value.value is k  # as given: psd(nan) said "got array(nan)"
 
 
 def test_psd_is_radial_in_negative_wave_numbers() -> None:

@@ -226,6 +226,7 @@ import numpy as np
 from rough_uq.physics.elastic import HalfSpace, multiply_spectrum
 from rough_uq.errors import (
     ConvergenceError, InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_array, is_real_number,
+    scalar_refusal,
 )
 from rough_uq.physics.fft import RealFFT, get_fft
 
@@ -612,9 +613,9 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, th
         raise InvalidParameterError("heights", "non-finite values", "finite numbers")
     for name, value in (("system_size", system_size), ("mean_pressure", mean_pressure), ("e_star", e_star)):
         if not (is_real_number(value) and math.isfinite(value) and value > 0):
-            raise InvalidParameterError(name, value, "a finite number > 0")
+            raise scalar_refusal(name, value, "a finite number > 0")
     if not (is_real_number(tol) and 0 < tol < 1):
-        raise InvalidParameterError("tol", tol, "a number in (0, 1)")
+        raise scalar_refusal("tol", tol, "a number in (0, 1)")
     checked_integer("max_iter", max_iter, 1)
     checked_integer("threads", threads, 1)
     return s

@@ -57,7 +57,9 @@ from typing import Literal
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, checked_real_array, is_integer, is_real_number
+from rough_uq.errors import (
+    InvalidParameterError, checked_real_array, is_integer, is_real_number, scalar_refusal,
+)
 from rough_uq.physics.fft import get_fft
 
 __all__ = [
@@ -94,7 +96,7 @@ def _check_real(name: str, value: object, *, allowed: str) -> float:
     refused rather than converted, as the config refuses it.
     """
     if not (is_real_number(value) and math.isfinite(value)):
-        raise InvalidParameterError(name, value, allowed)
+        raise scalar_refusal(name, value, allowed)
     return float(value)
 
 
@@ -309,10 +311,10 @@ class SurfaceSpectrum:
             or holds NaN (which came back as ``Phi = 0``), naming ``k``.
         """
         allowed = "a real number or an array of real numbers, none NaN (wave numbers, periods per box)"
-        k = checked_real_array("k", k, allowed)
-        if np.isnan(k).any():
-            raise InvalidParameterError("k", k, allowed)
-        return self.C * self._shape_k2(k * k)
+        wave_numbers = checked_real_array("k", k, allowed)
+        if np.isnan(wave_numbers).any():
+            raise InvalidParameterError("k", k, allowed)  # as given (nan, not array(nan))
+        return self.C * self._shape_k2(wave_numbers * wave_numbers)
 
     def grid_psd(self, n: int) -> np.ndarray:
         """``Phi(|k|)`` at every wave vector of the ``n x n`` grid, in numpy's FFT order.

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, is_real_number
+from rough_uq.errors import InvalidParameterError, is_real_number, scalar_refusal
 from rough_uq.physics.surface import SurfaceSpectrum
 from rough_uq.problem.columns import LOAD_SEPARATOR, column_name, load_label
 
@@ -104,7 +104,7 @@ def qoi_scale(name: str, unit: str, *, system_size: float) -> float:
 def positive(name: str, value: object) -> float:
     """``value`` as a float, or :class:`InvalidParameterError` naming ``name`` unless finite and > 0."""
     if not is_real_number(value) or not (math.isfinite(value) and value > 0):
-        raise InvalidParameterError(name, value, "a finite number > 0")
+        raise scalar_refusal(name, value, "a finite number > 0")
     return float(value)
 
 
