@@ -823,20 +823,22 @@ _TOL_LINE = 20
 
 def _tol_cell(names: Sequence[str], tol: Sequence[float], marked: Collection[str] = ()) -> str:
     """The tolerances of a prediction, one column (or group of a load curve's) per line, a long line broken
-    after its ``=`` (``contact_area@0.01=`` / ``0.0492``) rather than folded mid-number; the lines of the QoIs
-    ``marked`` end in `` *``."""
+    after its ``=`` (``contact_area@0.01=`` / ``0.0492``) rather than folded mid-number; the lines of the
+    columns ``marked`` end in `` *`` (a load curve's group line where a column it stands for is marked)."""
     parts = tol_text(names, tol, digits=3).split(", ")
-    parts = [part + " *" if split_column(part.split("=", 1)[0])[0] in marked else part for part in parts]
+    keys = [part.split("=", 1)[0] for part in parts]
+    grouped = {split_column(name)[0] for name in marked if name not in keys}  # columns a group line stands for
+    parts = [part + " *" if key in marked or key in grouped else part for part, key in zip(parts, keys)]
     return "\n".join(part.replace("=", "=\n", 1) if len(part) > _TOL_LINE else part for part in parts)
 
 
 def _marked_tol_cell(names: Sequence[str], plan: Any) -> str:
-    """:func:`_tol_cell` of a prediction whose bias the finest allowed grid misses, marked at the QoIs that miss
-    it (the mark ended the cell, next to the last QoI: ``clusters=2.5 *`` where contact_area's bias missed).
+    """:func:`_tol_cell` of a prediction whose bias the finest allowed grid misses, marked at the columns that
+    miss it (the mark ended the cell, next to the last QoI: ``clusters=2.5 *`` where contact_area's bias missed).
     A plan without the columns (older files), or whose columns all meet their share, is marked at its end."""
     if plan.is_bias_met:
         return _tol_cell(names, plan.tol)
-    unmet = {split_column(names[q])[0] for q in plan.unmet_columns or ()}
+    unmet = {names[q] for q in plan.unmet_columns or () if 0 <= q < len(names)}
     return _tol_cell(names, plan.tol, unmet) if unmet else _tol_cell(names, plan.tol) + " *"
 
 

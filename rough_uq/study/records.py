@@ -50,6 +50,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError
+from rough_uq.multilevel.allocation import unreachable_columns
 from rough_uq.multilevel.drivers import RATE_FLOOR
 from rough_uq.multilevel.rates import BIAS_RATE_CAP, EXACT_RATE
 from rough_uq.problem.batch import LevelBatch
@@ -499,13 +500,12 @@ class PlanRecord:
     @classmethod
     def from_plan(cls, plan: Any, seconds_per_cost: float) -> PlanRecord:
         """The record of a :class:`~rough_uq.multilevel.allocation.Plan`; seconds are ``cost * seconds_per_cost``."""
-        limit = math.sqrt(plan.theta) * np.asarray(plan.tol, dtype=float)
         return cls(
             tol=_tuples(plan.tol), finest_level=int(plan.finest_level), n_samples=_tuples(plan.n_samples),
             mlmc_cost=float(plan.cost), mc_cost=float(plan.mc_cost),
             mlmc_seconds=float(plan.cost * seconds_per_cost), mc_seconds=float(plan.mc_cost * seconds_per_cost),
             work_ratio=float(plan.work_ratio), is_bias_met=bool(plan.is_bias_met),
-            unmet_columns=tuple(int(q) for q in np.flatnonzero(~(np.asarray(plan.bias) <= limit))),
+            unmet_columns=tuple(int(q) for q in np.flatnonzero(unreachable_columns(plan, plan.tol))),
         )
 
     def to_json(self) -> dict[str, Any]:
