@@ -382,7 +382,8 @@ class EstimationResult:
         Bias share of ``eps^2``.
     tol_met : bool
         ``stat_error^2 + bias_estimate^2 <= tol^2`` for every QoI, with an
-        estimated bias (MC without a ``bias``: the statistical error alone);
+        estimated bias (MC without a ``bias``: the statistical error alone,
+        ``stat_error <= sqrt(1 - theta) tol``, the share it plans for);
         False for MC stopped by ``max_cost`` before it drew the samples it
         starts with (``n_initial``, 2 from a screening).
     stop_reason : str
@@ -391,7 +392,7 @@ class EstimationResult:
         met but the given bias is too large).
     is_bias_estimated : bool
         False for MC without a ``bias`` (``bias_estimate`` is then 0 and
-        ``tol_met`` concerns the statistical error only), and for MLMC
+        ``tol_met`` concerns the statistical error only, within its share), and for MLMC
         stopped by ``max_cost`` before the levels its bias test needs were
         sampled (module docstring, step 4: ``bias_estimate`` 0, ``tol_met``
         False).

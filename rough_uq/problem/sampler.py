@@ -290,7 +290,7 @@ def _qoi(model: ContactModel, curve: LoadCurveSolution) -> np.ndarray:
     return (values * np.asarray(model.qoi_scales)).T.reshape(-1)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays: no field-wise == (as ContactSolution)
 class SampleSolution:
     """The fields behind one sample (:func:`solve_sample`).
 
