@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import yaml
 from click.testing import CliRunner
 
 from rough_uq.cli import main
@@ -106,7 +108,8 @@ def test_quantiles_are_printed_to_four_significant_digits_trailing_zeros_kept():
         (2.5e-7, 2.0e-7, 3.0e-7, "2.500e-07 [2.000e-07, 3.000e-07]"),
     ]:
         quantile = QuantileRecord(probability=0.05, value=value, lower=lower, upper=upper)
-        assert _quantile_text(quantile, "%") == f"q(0.05) = {text} %"
+        outcome = SimpleNamespace(stop_reason="tol_met", is_bias_estimated=True)
+        assert _quantile_text(quantile, "%", outcome) == f"q(0.05) = {text} %"
 
 
 def test_a_cdf_run_on_thresholds_far_coarser_than_the_spread_is_not_met_and_says_to_refine_them(tmp_path, monkeypatch):
@@ -122,12 +125,21 @@ def test_a_cdf_run_on_thresholds_far_coarser_than_the_spread_is_not_met_and_says
     assert "give finer thresholds (--thresholds or the config's thresholds)" in result.stderr
     (message,) = [text for text in shown["warnings"] if text.startswith("cdf: ")]
     assert message.startswith(f"cdf: the smoothing bandwidth on the finest level {shown['levels'][-1]}, ")
+    # "the bias estimate 0.184 ... rests on level terms within their noise" beside "the bias is not estimated".
+    assert not [text for text in shown["warnings"] if "within their noise" in text], shown["warnings"]
     report = CliRunner().invoke(main, ["report", str(tmp_path / "results.h5")], terminal_width=200)
     assert report.exit_code == 0, (report.output, report.exception)
     assert "the smoothing bandwidth exceeds twice the spread of the values; the bias is not estimated" in report.stdout
-    # Its Distribution table showed the statistical error alone as its "sup RMSE" (0.05): "-", as for variance.
+    # Its Distribution table showed the statistical error alone as its "sup RMSE" (0.05): "-", as for variance;
+    # and its quantiles' error bars, that band's (q(0.05) = 1.804 [0.8969, 2.072] % where the truth was 18.6).
     (row,) = [line.split() for line in report.stdout.splitlines() if line.split()[:2] == ["contact_area", "0.05"]]
-    assert row[3].startswith("[") and row[4].endswith("]") and row[5:7] == ["-", "0.1"], row
+    assert row[3:6] == ["-", "-", "0.1"], row
+    assert all(q["lower"] is None and q["upper"] is None for q in shown["distribution"]["quantiles"]), shown
+    run = CliRunner().invoke(main, ["mlmc", "--study", "results.h5", "--tol-cdf", "0.1", "--thresholds", "0:100:3",
+                                    "--workers", "1"])
+    assert run.exit_code == 3, (run.output, run.exception)
+    lines = [line for line in run.stdout.splitlines() if line.startswith("  q(")]
+    assert len(lines) == 3 and all(line.endswith(" % (no error bar: smoothing bias not estimated)") for line in lines), lines
 
 
 def test_the_distribution_table_has_one_line_per_quantile_at_80_columns(tmp_path, monkeypatch):
@@ -145,3 +157,19 @@ def test_the_distribution_table_has_one_line_per_quantile_at_80_columns(tmp_path
     assert [line.split()[0] for line in rows] == ["contact_area", "0.5", "0.95"], rows  # one line each
     assert all(line.count("[") == line.count("]") == 1 for line in rows), rows  # whole error bars
     assert len(rows[0].split()) > len(rows[1].split()) == len(rows[2].split()) == 4, rows  # p, q_p, error bar
+
+
+def test_a_cdf_run_whose_bandwidth_withdraws_its_bias_does_not_also_warn_of_a_noisy_bias(tmp_path, monkeypatch):
+    # The quickstart at max_level 2 with --thresholds 0:40:3 (an audit): the run warned "the bias estimate 0.184
+    # ... rests on level terms within their noise" beside "so the bias is not estimated" (bandwidth too wide).
+    monkeypatch.chdir(tmp_path)
+    assert CliRunner().invoke(main, ["init", "quickstart", "-q"]).exit_code == 0
+    config = yaml.safe_load((tmp_path / "quickstart.yaml").read_text())
+    config["grid"]["max_level"] = 2
+    write_config(tmp_path / "quickstart.yaml", config)
+    result = CliRunner().invoke(main, ["mlmc", "--config", "quickstart.yaml", "--tol-cdf", "0.1", "--thresholds",
+                                       "0:40:3", "--workers", "1", "--json", "-q"])
+    assert result.exit_code == 3, (result.output, result.exception)
+    shown = json.loads(result.stdout)
+    assert shown["stop_reason"] == "bandwidth_too_wide" and shown["levels"][-1] == 2, shown
+    assert [text[:40] for text in shown["warnings"]] == ["cdf: the smoothing bandwidth on the fine"], shown

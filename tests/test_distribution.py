@@ -267,6 +267,10 @@ def test_a_bandwidth_far_wider_than_the_values_does_not_claim_the_tolerance(band
     assert np.max(np.abs(result.cdf - problem.limit.cdf(s))) > 0.3  # what was reported as within 0.05
     assert result.stop_reason == result.target.stop_reason == "bandwidth_too_wide"
     assert not result.tol_met and not result.is_bias_estimated and result.bias == 0.0
+    # Its quantiles' error bars were the statistical error's band alone (an audit: [0.8969, 2.072] % about a
+    # q(0.05) of 1.804 % where the truth was 18.6 %): open now.
+    bars = quantiles(result, probabilities=[0.5])
+    assert not result.has_error_band and np.isneginf(bars.lower[0]) and np.isposinf(bars.upper[0])
     finest = level_bandwidth(int(result.levels[-1]), bandwidth=bandwidth)
     (message,) = [str(w.message) for w in caught]
     assert message.startswith(f"cdf: the smoothing bandwidth on the finest level {result.levels[-1]}, {finest:.4g}, "
@@ -275,6 +279,8 @@ def test_a_bandwidth_far_wider_than_the_values_does_not_claim_the_tolerance(band
     # Some 30 times the standard deviation is fine: the run refines until its bias estimate is within its share.
     wide = mlmc_cdf(problem, thresholds=s, tol=0.05, bandwidth=30.0)  # warnings are errors
     assert wide.tol_met and wide.bandwidths[-1] < 1.0 and np.max(np.abs(wide.cdf - problem.limit.cdf(s))) < 0.05
+    bars = quantiles(wide, probabilities=[0.5])
+    assert wide.has_error_band and bars.lower[0] < bars.values[0] < bars.upper[0] < bars.lower[0] + 10
 
 
 @pytest.mark.parametrize(("bandwidth", "is_too_wide"), [(7.3, False), (7.31, True)])

@@ -483,6 +483,14 @@ class CdfEstimate:
         return self.target.is_bias_estimated
 
     @property
+    def has_error_band(self) -> bool:
+        """Whether the band ``cdf +- rmse`` measures the error: False where the thresholds miss a level's samples
+        (its variance unmeasured) or the bandwidth is too wide (the smoothing bias, known to be large, not
+        estimated). A run stopped before its bias, or one level of given samples, has the band of its
+        statistical error, as a mean estimate without a bias has its statistical error."""
+        return self.stop_reason not in (THRESHOLDS_MISS_SAMPLES, BANDWIDTH_TOO_WIDE)
+
+    @property
     def tol_met(self) -> bool:
         """``rmse <= tol`` with an estimated bias; False without a tolerance or that estimate, or with missed levels."""
         return self.target.tol_met
@@ -579,7 +587,7 @@ def _is_exact(fine: np.ndarray, qoi: int, thresholds: np.ndarray, delta: float) 
     return bool(np.all(nearest >= delta))
 
 
-def _cdf_estimate(
+def _checked_target(
     target: TargetEstimate,
     thresholds: np.ndarray,
     bandwidth: float,
@@ -587,21 +595,32 @@ def _cdf_estimate(
     missed: dict[int, tuple[float, float]],
     spread: float,
     is_exact: bool,
-) -> CdfEstimate:
-    """The CDF estimate of ``target``; ``missed``: the value range per level whose samples the thresholds miss;
-    ``spread``: the telescoped standard deviation of ``Q_L`` (:class:`_Spread`); ``is_exact``: every finest
-    value lies a finest bandwidth or more from every threshold."""
+) -> TargetEstimate:
+    """``target`` with the CDF's own checks applied, each failed one warned: ``missed``, the value range per level
+    whose samples the thresholds miss; ``spread``, the telescoped standard deviation of ``Q_L`` (:class:`_Spread`);
+    ``is_exact``: every finest value lies a finest bandwidth or more from every threshold."""
     finest_level = int(target.levels[-1])
     finest = level_bandwidth(finest_level, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
     # A run stopped before it estimated its bias claims none; with bandwidth_rate 0 the target is the smoothed CDF.
     is_checked = target.is_bias_estimated and bandwidth_rate > 0 and not is_exact
     if missed:
         _warn_thresholds_miss(thresholds, missed)
-        target = replace(target, stop_reason=THRESHOLDS_MISS_SAMPLES, is_variance_measured=False)
-    elif is_checked and not finest <= BANDWIDTH_SPREAD_LIMIT * spread:
+        return replace(target, stop_reason=THRESHOLDS_MISS_SAMPLES, is_variance_measured=False)
+    if is_checked and not finest <= BANDWIDTH_SPREAD_LIMIT * spread:
         _warn_bandwidth_too_wide(finest, spread, finest_level)
-        target = replace(target, stop_reason=BANDWIDTH_TOO_WIDE, is_bias_estimated=False,
-                         bias=np.zeros_like(target.bias))
+        return replace(target, stop_reason=BANDWIDTH_TOO_WIDE, is_bias_estimated=False,
+                       bias=np.zeros_like(target.bias))
+    return target
+
+
+def _cdf_estimate(
+    target: TargetEstimate,
+    thresholds: np.ndarray,
+    bandwidth: float,
+    bandwidth_rate: float,
+    missed: dict[int, tuple[float, float]],
+) -> CdfEstimate:
+    """The CDF estimate of a checked ``target`` (:func:`_checked_target`)."""
     raw = target.estimate
     return CdfEstimate(
         thresholds=_readonly(thresholds),
@@ -663,8 +682,9 @@ def cdf_from_samples(
     for level, (values, below) in enumerate(zip(fine, coarse)):
         spread.add(level, values, below, qoi)
     finest = level_bandwidth(len(fine) - 1, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
-    return _cdf_estimate(telescope(terms, tol=tol), s, bandwidth, bandwidth_rate, missed,
-                         spread.value(np.arange(len(fine))), _is_exact(fine[-1], qoi, s, finest))
+    target = _checked_target(telescope(terms, tol=tol), s, bandwidth, bandwidth_rate, missed,
+                             spread.value(np.arange(len(fine))), _is_exact(fine[-1], qoi, s, finest))
+    return _cdf_estimate(target, s, bandwidth, bandwidth_rate, missed)
 
 
 def mlmc_cdf(
@@ -722,10 +742,17 @@ def mlmc_cdf(
                                                                bandwidth_rate=bandwidth_rate))
         return cdf_level_term(fine, coarse, level, **settings)
 
-    target = adaptive_mlmc(sampler, term=term, tol=tol, **({"label": "cdf"} | options | {"checked_column": qoi}))
-    missed = {int(level): ranges[int(level)] for level in target.levels if ranges[int(level)] is not None}
-    return _cdf_estimate(target, s, bandwidth, bandwidth_rate, missed, spread.value(target.levels),
-                         exact[int(target.levels[-1])])
+    def missed_ranges(target: TargetEstimate) -> dict[int, tuple[float, float]]:
+        return {int(level): ranges[int(level)] for level in target.levels if ranges[int(level)] is not None}
+
+    def check(target: TargetEstimate) -> TargetEstimate:
+        # Before the driver's own warnings: a bias this check withdraws is not then called one of noisy terms.
+        return _checked_target(target, s, bandwidth, bandwidth_rate, missed_ranges(target),
+                               spread.value(target.levels), exact[int(target.levels[-1])])
+
+    options = {"label": "cdf"} | options | {"checked_column": qoi, "check": check}
+    target = adaptive_mlmc(sampler, term=term, tol=tol, **options)
+    return _cdf_estimate(target, s, bandwidth, bandwidth_rate, missed_ranges(target))
 
 
 @dataclass(frozen=True, eq=False)
@@ -740,7 +767,9 @@ class Quantiles:
         ``q_p``, the unit of ``Q``.
     lower, upper : ndarray, shape (k,)
         Where the band ``cdf +- rmse`` reaches ``p`` (module docstring);
-        ``-inf``/``+inf`` where that is beyond the grid.
+        ``-inf``/``+inf`` where that is beyond the grid, and everywhere when
+        the estimate has no error band (:attr:`CdfEstimate.has_error_band`:
+        the thresholds miss a level's samples, or the bandwidth is too wide).
     """
 
     probabilities: np.ndarray
@@ -801,11 +830,13 @@ def quantiles(estimate: CdfEstimate, *, probabilities: Sequence[float] | np.ndar
             f"the thresholds [{s[0]:.6g}, {s[-1]:.6g}] do not bracket the quantiles of p = {p[outside].tolist()} "
             f"(F = {cdf[0]:.3g} .. {cdf[-1]:.3g} on the grid); extend the grid"
         )
-    band_high = np.clip(cdf + estimate.rmse, 0.0, 1.0)
-    band_low = np.clip(cdf - estimate.rmse, 0.0, 1.0)
+    if estimate.has_error_band:
+        band_high = np.clip(cdf + estimate.rmse, 0.0, 1.0)
+        band_low = np.clip(cdf - estimate.rmse, 0.0, 1.0)
+        lower = [_invert(band_high, s, float(pk)) for pk in p]
+        upper = [_invert(band_low, s, float(pk)) for pk in p]
+    else:  # no band: a variance not measured, or a bias known to be large and not estimated
+        lower, upper = np.full(p.size, -np.inf), np.full(p.size, np.inf)
     return Quantiles(
-        probabilities=_readonly(p),
-        values=_readonly(values),
-        lower=_readonly([_invert(band_high, s, float(pk)) for pk in p]),
-        upper=_readonly([_invert(band_low, s, float(pk)) for pk in p]),
+        probabilities=_readonly(p), values=_readonly(values), lower=_readonly(lower), upper=_readonly(upper)
     )

@@ -689,6 +689,7 @@ def adaptive_mlmc(
     label: str = "mlmc",
     qoi_names: Sequence[str] | None = None,
     checked_column: int | None = None,
+    check: Callable[[TargetEstimate], TargetEstimate] | None = None,
 ) -> TargetEstimate:
     """Adaptive MLMC estimate of a target to an RMS tolerance per group (module docstring).
 
@@ -727,6 +728,10 @@ def adaptive_mlmc(
         ``checked_column`` (every column if None), named by ``qoi_names`` (one per column of the samples,
         checked against the first batch), each failed one an :class:`~rough_uq.errors.EstimationWarning`
         that starts with ``label``.
+    check : callable, optional
+        ``check(estimate) -> estimate``: the target's own checks of the final
+        estimate (a CDF's bandwidth may withdraw its bias estimate), applied
+        before the driver's warnings about it.
 
     Returns
     -------
@@ -749,6 +754,8 @@ def adaptive_mlmc(
     estimate = _final_estimate(
         levels, term, tol, theta=theta, stop_reason=stop_reason, min_finest_level=min_finest_level
     )
+    if check is not None:
+        estimate = check(estimate)
     if stop_reason == "max_level" and not estimate.tol_met and estimate.noisy_bias_groups:
         _warn_noisy_bias(estimate)
     names = qoi_names if qoi_names is None or checked_column is None else [qoi_names[checked_column]]

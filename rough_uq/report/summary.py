@@ -609,16 +609,18 @@ def _variance_line(outcome: Any, q: int, name: str, tol: float, units: dict[str,
     return _estimate_line(outcome, q, f"Var({name})", _unit(_column_unit(units, name), 2), tol)
 
 
-def _quantile_text(quantile: Any, unit: str, *, is_measured: bool = True) -> str:
+def _quantile_text(quantile: Any, unit: str, outcome: Any) -> str:
     """``q(0.05) = 17.9 [17.5, 18.3] %``; an open end of the error bar is ``-inf`` / ``inf``.
 
-    ``is_measured`` False (:func:`is_rmse_measured`): no error bar, it would be the band of an unmeasured RMSE.
+    No error bar where the run has no error band (:func:`has_error_band`).
     """
     if quantile.value is None:
         return f"q({quantile.probability:g}) not bracketed by the thresholds"
     value, lower, upper = _quantile_values(quantile)
-    if not is_measured:
+    if not is_rmse_measured(outcome):
         return f"q({quantile.probability:g}) = {value}{_unit(unit)} (error not measured)"
+    if not has_error_band(outcome):
+        return f"q({quantile.probability:g}) = {value}{_unit(unit)} (no error bar: smoothing bias not estimated)"
     return f"q({quantile.probability:g}) = {value} [{lower}, {upper}]{_unit(unit)}"
 
 
@@ -631,6 +633,14 @@ def is_rmse_measured(outcome: Any) -> bool:
     """False for a cdf run whose thresholds miss a level's samples: its stored RMSE (from variances of 0) means
     nothing (:mod:`rough_uq.multilevel.distribution`)."""
     return outcome.stop_reason != THRESHOLDS_MISS_SAMPLES
+
+
+def has_error_band(outcome: Any) -> bool:
+    """Whether a cdf run's band ``cdf +- rmse`` and its quantiles' error bars are shown
+    (:attr:`~rough_uq.multilevel.distribution.CdfEstimate.has_error_band`): not where the thresholds miss a
+    level's samples or the bandwidth is too wide (its band, the statistical error's, ignores a smoothing bias
+    known to be large; files written before 2026-11-28 stored finite quantile bars from it)."""
+    return outcome.stop_reason not in (THRESHOLDS_MISS_SAMPLES, BANDWIDTH_TOO_WIDE)
 
 
 def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
@@ -652,8 +662,7 @@ def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
         f"  F(s) = P({distribution.column} <= s) at {len(s)} thresholds {_g(s[0], 4)} .. {_g(s[-1], 4)}{_unit(unit)}",
         f"  {error}",
     ]
-    measured = is_rmse_measured(outcome)
-    return lines + [f"  {_quantile_text(q, unit, is_measured=measured)}" for q in distribution.quantiles]
+    return lines + [f"  {_quantile_text(q, unit, outcome)}" for q in distribution.quantiles]
 
 
 def _print_table(console: Any, table: Any) -> None:
@@ -917,7 +926,7 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
             is_bracketed = quantile is not None and quantile.value is not None
             if is_bracketed:
                 value, lower, upper = _quantile_values(quantile)
-                if is_rmse_measured(outcome):  # else the band of an unmeasured RMSE
+                if has_error_band(outcome):  # else the band of an unmeasured RMSE or beside a large bias
                     bar = f"[{lower}, {upper}]"
             table.add_row(
                 _qoi_cell(distribution.column, unit) if row == 0 else "",
