@@ -173,3 +173,14 @@ def test_a_cdf_run_whose_bandwidth_withdraws_its_bias_does_not_also_warn_of_a_no
     shown = json.loads(result.stdout)
     assert shown["stop_reason"] == "bandwidth_too_wide" and shown["levels"][-1] == 2, shown
     assert [text[:40] for text in shown["warnings"]] == ["cdf: the smoothing bandwidth on the fine"], shown
+
+
+def test_the_cdf_column_of_a_load_curve_takes_the_load_written_as_tol_takes_it(tmp_path, monkeypatch):
+    # `--tol contact_area@5=0.5` was taken, `--tol-cdf 0.2 --qoi contact_area@5` refused ("allowed: ...@5.0").
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "curve.yaml", tiny_config(load={"relative": [0.2, 5]}))
+    for column in ("contact_area@5", "contact_area@5.0"):
+        result = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.3", "--qoi", column,
+                                           "--thresholds", "99:101:5", "--workers", "1", "--json", "-q"])
+        assert result.exit_code in (0, 3), (result.output, result.exception)
+        assert json.loads(result.stdout)["distribution"]["column"] == "contact_area@5.0"

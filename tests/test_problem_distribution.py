@@ -102,6 +102,31 @@ def test_bad_column_and_unbracketed_quantiles_say_what_is_wrong():
         result.quantiles()
 
 
+def test_the_column_of_a_load_curve_is_required_and_takes_the_load_written_any_way():
+    # With several columns distribution() used the first unasked (roughuq mlmc --tol-cdf asks for --qoi), and
+    # column="contact_area@5" was refused ("allowed: ... contact_area@5.0") where --tol contact_area@5 was taken.
+    problem = _problem(load=[rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(5)])
+    assert problem.columns == ("contact_area@0.1", "contact_area@5.0")
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^column: .*contact_area@0\.1, contact_area@5\.0 \(th"):
+        rough_uq.distribution(problem, tol=0.2, thresholds=[99.0, 100.0], executor=_NoSampling())
+    for column in ("contact_area@5", "contact_area@5.00", "contact_area@5e0"):
+        with pytest.raises(_Sampled):  # got past the column's check to the samples
+            rough_uq.distribution(problem, tol=0.2, thresholds=[99.0, 100.0], column=column, executor=_NoSampling())
+    with pytest.raises(rough_uq.InvalidParameterError, match="column"):
+        rough_uq.distribution(problem, tol=0.2, thresholds=[99.0, 100.0], column="contact_area@6")
+
+
+class _Sampled(Exception):
+    """Raised by :class:`_NoSampling` when asked for samples."""
+
+
+class _NoSampling:
+    """An executor that refuses to compute: a call that reaches sampling raises :class:`_Sampled`."""
+
+    def run(self, model: object, items: object) -> None:
+        raise _Sampled
+
+
 @NOT_MET_IS_BESIDE_THE_POINT  # of the run whose thresholds do not miss the samples, at its end
 @pytest.mark.parametrize(("thresholds", "side"), [(np.linspace(0, 10, 11), 0.0), (np.linspace(90, 100, 11), 1.0)])
 def test_a_distribution_whose_thresholds_miss_the_contact_area_does_not_meet_its_tolerance(thresholds, side):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 
-__all__ = ["LOAD_SEPARATOR", "load_label", "column_name", "split_column", "tol_text", "values_text"]
+__all__ = ["LOAD_SEPARATOR", "load_label", "column_name", "column_of_load", "split_column", "tol_text", "values_text"]
 
 #: Separates the QoI name from the load in the name of a load-curve column.
 LOAD_SEPARATOR = "@"
@@ -23,6 +23,22 @@ def load_label(value: float) -> str:
 def column_name(qoi: str, load: float) -> str:
     """The column of ``qoi`` at ``load`` on a load curve: ``<qoi>@<load>``."""
     return f"{qoi}{LOAD_SEPARATOR}{load_label(load)}"
+
+
+def column_of_load(name: str, names: Sequence[str]) -> str:
+    """``name``, or ``QOI@LOAD`` with the load written as column names write it (:func:`column_name`):
+    ``@5``, ``@5.00`` and ``@5e0`` name ``@5.0`` (and are returned unchanged when not a load at all).
+
+    ``show --load`` compared loads as numbers, ``--tol QOI@LOAD=EPS`` as text: ``@0.050`` was "not a QoI"; the
+    column of a cdf run (``--qoi``, ``column=``) did not take ``@5`` for ``@5.0`` where ``--tol`` did.
+    """
+    qoi, at, load = name.partition(LOAD_SEPARATOR)
+    if name in names or not at:
+        return name
+    try:
+        return column_name(qoi, float(load))
+    except ValueError:
+        return name
 
 
 def split_column(column: str) -> tuple[str, float | None]:

@@ -33,7 +33,7 @@ from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
 from rough_uq.multilevel.statistics import _checked_names, _qoi_text
 from rough_uq.multilevel.targets import TargetEstimate
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ProgressReporter
-from rough_uq.problem.columns import tol_text
+from rough_uq.problem.columns import column_of_load, tol_text
 from rough_uq.problem.runs import _problem, _reporting, _tolerances, _warn_not_converged, run_id, warn_not_met
 from rough_uq.problem.sampler import run_stage
 
@@ -249,11 +249,17 @@ class DistributionResult:
 
 
 def _column_index(problem: ContactProblem, column: str | None) -> int:
+    """The index of ``column`` (``QOI@LOAD`` with the load written any way, :func:`column_of_load`); None names
+    the one column of a problem that has one (with several it picked the first, where ``--qoi`` is required)."""
+    columns = problem.columns
+    if column is None and len(columns) > 1:
+        raise InvalidParameterError("column", None, f"one of {', '.join(columns)} (this problem has several)")
     if column is None:
         return 0
-    if column not in problem.columns:
-        raise InvalidParameterError("column", column, f"one of {', '.join(problem.columns)}")
-    return problem.columns.index(column)
+    name = column_of_load(column, columns) if isinstance(column, str) else column
+    if name not in columns:
+        raise InvalidParameterError("column", column, f"one of {', '.join(columns)}")
+    return columns.index(name)
 
 
 def _default_bandwidth(thresholds: np.ndarray) -> float:
@@ -295,7 +301,8 @@ def distribution(
         thresholds below the smallest contact area) leave its variance
         unmeasured: the run then warns and does not meet ``tol``.
     column : str, optional
-        Column of ``problem.columns``; default the first.
+        Column of ``problem.columns`` (a load curve's ``QOI@LOAD`` may write the load any way: ``@5`` is
+        ``@5.0``); required where the problem has several columns.
     bandwidth : float, optional
         Smoothing width on level 0, halved per level (the column's unit);
         default twice the mean threshold spacing.

@@ -92,7 +92,7 @@ from rough_uq.study.records import (
     read_screening_record,
     utc_timestamp,
 )
-from rough_uq.problem.columns import LOAD_SEPARATOR, column_name, tol_text
+from rough_uq.problem.columns import column_name, column_of_load, tol_text
 from rough_uq.problem.contact import ContactProblem
 from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
@@ -971,21 +971,6 @@ def parse_tolerances(
     return np.array(tol, dtype=float)
 
 
-def _column_of_load(name: str, names: Sequence[str]) -> str:
-    """``name``, or ``QOI@LOAD`` with the load written as column names write it (:func:`column_name`):
-    ``@0.050`` and ``@5e-2`` name ``@0.05``.
-
-    ``show --load`` compared loads as numbers, ``--tol QOI@LOAD=EPS`` as text: ``@0.050`` was "not a QoI".
-    """
-    qoi, at, load = name.partition(LOAD_SEPARATOR)
-    if name in names or not at:
-        return name
-    try:
-        return column_name(qoi, float(load))
-    except ValueError:
-        return name
-
-
 def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, option: str) -> dict[str, float]:
     """The tolerances ``values`` give (:func:`parse_tolerances`), by QoI or column name (a bare EPS: the one QoI's)."""
     columns = config.qoi_columns
@@ -1003,7 +988,7 @@ def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, opti
                         option, part, f"NAME=EPS pairs, one per QoI ({', '.join(config.qoi)}), with several QoIs"
                     )
                 name = next(iter(config.qoi))
-            name = _column_of_load(name, names)
+            name = column_of_load(name, names)
             if name not in names:
                 raise InvalidParameterError(option, part, f"a QoI of this study: {', '.join(names)}")
             try:
@@ -1744,6 +1729,8 @@ def cdf_request(
     names = config.qoi_names
     if column is None and len(names) == 1:
         column = names[0]
+    if column is not None:
+        column = column_of_load(column, names)
     if column is None:  # it read "--qoi: got None"
         columns = ", ".join(names)
         raise InvalidParameterError("--qoi", None, f"one result column of this study: {columns}",
