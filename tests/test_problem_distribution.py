@@ -107,7 +107,8 @@ def test_the_column_of_a_load_curve_is_required_and_takes_the_load_written_any_w
     # column="contact_area@5" was refused ("allowed: ... contact_area@5.0") where --tol contact_area@5 was taken.
     problem = _problem(load=[rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(5)])
     assert problem.columns == ("contact_area@0.1", "contact_area@5.0")
-    with pytest.raises(rough_uq.InvalidParameterError, match=r"^column: .*contact_area@0\.1, contact_area@5\.0 \(th"):
+    several = r"^column: this problem has several columns; name one of contact_area@0\.1, contact_area@5\.0$"
+    with pytest.raises(rough_uq.InvalidParameterError, match=several):
         rough_uq.distribution(problem, tol=0.2, thresholds=[99.0, 100.0], executor=_NoSampling())
     for column in ("contact_area@5", "contact_area@5.00", "contact_area@5e0"):
         with pytest.raises(_Sampled):  # got past the column's check to the samples
@@ -230,7 +231,8 @@ def test_a_negative_variance_estimate_is_returned_with_a_warning():
 def test_printed_results_are_one_line_summaries_with_tol_met():
     """print(distribution(...)) gave some 25 000 characters of arrays, and not whether the tolerance was met."""
     problem = _problem(qoi=["contact_area", "mean_gap"])
-    law = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(10, 60, 121), n_initial=8)
+    law = rough_uq.distribution(problem, tol=0.2, thresholds=np.linspace(10, 60, 121), n_initial=8,
+                                column="contact_area")
     text = repr(law)
     assert "\n" not in text and len(text) < 300
     assert text.startswith("DistributionResult(column='contact_area', cdf=CdfEstimate(thresholds=<121 from 10 to 60>, "

@@ -253,7 +253,8 @@ def _column_index(problem: ContactProblem, column: str | None) -> int:
     the one column of a problem that has one (with several it picked the first, where ``--qoi`` is required)."""
     columns = problem.columns
     if column is None and len(columns) > 1:
-        raise InvalidParameterError("column", None, f"one of {', '.join(columns)} (this problem has several)")
+        raise InvalidParameterError("column", None, f"one of {', '.join(columns)}",
+                                    text=f"column: this problem has several columns; name one of {', '.join(columns)}")
     if column is None:
         return 0
     name = column_of_load(column, columns) if isinstance(column, str) else column
