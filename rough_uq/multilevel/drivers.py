@@ -445,10 +445,11 @@ class EstimationResult:
         # per-QoI arrays of a load curve's columns (944 characters for 6) summarised as TargetEstimate's are.
         # Without an estimated bias the RMSE is unknown: the repr says so rather than show the statistical error
         # as the RMSE next to tol_met=True (mc on a given level).
+        errors = _errors_summary(self.rmse, self.stat_error, self.bias_estimate, self.is_bias_estimated,
+                                 bias_name="bias_estimate")
         return (
             f"EstimationResult(method={self.method!r}, qoi_names={_names_summary(self.qoi_names)}, "
-            f"{_units_summary(self.units)}estimate={_summary(self.estimate)}, "
-            f"{_errors_summary(self.rmse, self.stat_error, self.bias_estimate, self.is_bias_estimated)}, "
+            f"{_units_summary(self.units)}estimate={_summary(self.estimate)}, {errors}, "
             f"tol={_summary(self.tol)}, tol_met={self.tol_met}, "
             f"stop_reason={self.stop_reason!r}, levels={np.asarray(self.levels).tolist()}, "
             f"n_samples={np.asarray(self.n_samples).tolist()}, n_not_converged={self.n_not_converged})"

@@ -130,12 +130,14 @@ def _units_summary(units: tuple[str, ...] | None) -> str:
     return f"units={units!r}, " if len(units) <= _SHOWN_VALUES else f"units=<{', '.join(dict.fromkeys(units))}>, "
 
 
-def _errors_summary(rmse: object, stat_error: object, bias: object, is_bias_estimated: bool) -> str:
+def _errors_summary(
+    rmse: object, stat_error: object, bias: object, is_bias_estimated: bool, *, bias_name: str = "bias"
+) -> str:
     """``rmse=[..], stat_error=[..], bias=[..]``; without an estimated bias the RMSE is unknown:
-    ``stat_error=[..], bias='not estimated'``."""
+    ``stat_error=[..], bias='not estimated'``. ``bias_name``: the result's attribute that holds the bias."""
     if not is_bias_estimated:
-        return f"stat_error={_summary(stat_error)}, bias='not estimated'"
-    return f"rmse={_summary(rmse)}, stat_error={_summary(stat_error)}, bias={_summary(bias)}"
+        return f"stat_error={_summary(stat_error)}, {bias_name}='not estimated'"
+    return f"rmse={_summary(rmse)}, stat_error={_summary(stat_error)}, {bias_name}={_summary(bias)}"
 
 
 def _readonly(array: np.ndarray) -> np.ndarray:
