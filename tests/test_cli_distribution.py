@@ -139,7 +139,8 @@ def test_a_cdf_run_on_thresholds_far_coarser_than_the_spread_is_not_met_and_says
                                     "--workers", "1"])
     assert run.exit_code == 3, (run.output, run.exception)
     lines = [line for line in run.stdout.splitlines() if line.startswith("  q(")]
-    assert len(lines) == 3 and all(line.endswith(" % (no error bar: smoothing bias not estimated)") for line in lines), lines
+    assert len(lines) == 3, lines
+    assert all(line.endswith(" % (no error bar: smoothing bias not estimated)") for line in lines), lines
 
 
 def test_the_distribution_table_has_one_line_per_quantile_at_80_columns(tmp_path, monkeypatch):
@@ -153,7 +154,9 @@ def test_the_distribution_table_has_one_line_per_quantile_at_80_columns(tmp_path
     report = CliRunner().invoke(main, ["report", "results.h5"], terminal_width=80)
     lines = report.stdout.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("Distribution"))
-    rows = [line for line in lines[start + 4:] if line.strip() not in ("", "[%]")][:3]  # the unit under the QoI
+    # Under the QoI its unit and its thresholds, which tell apart the runs of one column and tolerance.
+    assert [line.strip() for line in lines[start + 5:start + 8]] == ["[%]", "s 20 .. 70", "(51 values)"], lines
+    rows = [line for line in lines[start + 4:] if line.strip() not in ("", "[%]", "s 20 .. 70", "(51 values)")][:3]
     assert [line.split()[0] for line in rows] == ["contact_area", "0.5", "0.95"], rows  # one line each
     assert all(line.count("[") == line.count("]") == 1 for line in rows), rows  # whole error bars
     assert len(rows[0].split()) > len(rows[1].split()) == len(rows[2].split()) == 4, rows  # p, q_p, error bar
@@ -184,3 +187,20 @@ def test_the_cdf_column_of_a_load_curve_takes_the_load_written_as_tol_takes_it(t
                                            "--thresholds", "99:101:5", "--workers", "1", "--json", "-q"])
         assert result.exit_code in (0, 3), (result.output, result.exception)
         assert json.loads(result.stdout)["distribution"]["column"] == "contact_area@5.0"
+
+
+def test_cdf_runs_of_one_tolerance_with_other_thresholds_read_apart_in_the_report(tmp_path, monkeypatch):
+    # Three runs at tol 0.1 with other thresholds: every row of the Distribution table and every warning read
+    # "contact_area ... 0.1" / "cdf, tol contact_area=0.1, theta 0.5", whichever run it was.
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    for thresholds, probabilities in (("0:100:3", []), ("20:70:51", ["--probabilities", "0.1,0.9"])):
+        run = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.2", "--thresholds",
+                                        thresholds, *probabilities, "--workers", "1", "-q"])
+        assert run.exit_code in (0, 3), (run.output, run.exception)
+    report = CliRunner().invoke(main, ["report", "results.h5"], terminal_width=200)
+    warned = {line.split(": ")[1] for line in report.stdout.splitlines() if line.startswith("warning: cdf")}
+    assert "cdf, tol contact_area=0.2, theta 0.5, thresholds 0 .. 100 (3)" in warned, warned
+    assert all(label.startswith("cdf, tol contact_area=0.2, theta 0.5, thresholds ") for label in warned), warned
+    cells = [line.strip() for line in report.stdout.splitlines() if line.strip().startswith("s ")]
+    assert cells == ["s 0 .. 100", "s 20 .. 70"], cells

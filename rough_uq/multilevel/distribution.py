@@ -172,6 +172,7 @@ __all__ = [
     "THRESHOLDS_MISS_SAMPLES",
     "BANDWIDTH_TOO_WIDE",
     "BANDWIDTH_SPREAD_LIMIT",
+    "DEFAULT_PROBABILITIES",
     "cdf_from_samples",
     "cdf_level_term",
     "isotonic",
@@ -189,6 +190,9 @@ THRESHOLDS_MISS_SAMPLES = "thresholds_miss_samples"
 #: ``stop_reason`` of a CDF estimate whose finest bandwidth exceeds the spread of the values there (module
 #: docstring, "A bandwidth wider than the distribution"): its smoothing bias is not estimated.
 BANDWIDTH_TOO_WIDE = "bandwidth_too_wide"
+
+#: Quantiles reported by default: the 5 %, 50 % and 95 % points.
+DEFAULT_PROBABILITIES = (0.05, 0.5, 0.95)
 
 #: A level ``>= 1`` of ``n`` pairs none of which changes a smoothed indicator has ``Var(T_c) = UNSEEN_CHANGE / n^2``
 #: (module docstring: the rule of three).

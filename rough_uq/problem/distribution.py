@@ -26,7 +26,7 @@ import numpy as np
 
 from rough_uq.errors import EstimationWarning, InvalidParameterError, warn_at_caller
 from rough_uq.multilevel.distribution import (
-    CdfEstimate, Quantiles, _check_thresholds, check_cdf_tol, mlmc_cdf, quantiles,
+    DEFAULT_PROBABILITIES, CdfEstimate, Quantiles, _check_thresholds, check_cdf_tol, mlmc_cdf, quantiles,
 )
 from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
@@ -39,8 +39,6 @@ from rough_uq.problem.sampler import run_stage
 
 __all__ = ["DistributionResult", "distribution", "estimate_target", "initial_finest_level", "variance"]
 
-#: Quantiles reported by default: the 5 %, 50 % and 95 % points.
-DEFAULT_PROBABILITIES = (0.05, 0.5, 0.95)
 
 #: The targets :func:`estimate_target` runs.
 TARGETS = ("variance", "cdf")

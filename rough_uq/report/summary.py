@@ -73,7 +73,7 @@ import numpy as np
 from rich.markup import escape
 
 from rough_uq.errors import PLANNED_COUNT_CAP
-from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
+from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, DEFAULT_PROBABILITIES, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.rates import EXACT_RATE, RATE_FLOOR
 from rough_uq.multilevel.statistics import FEWEST_VARIANCE_SAMPLES, KURTOSIS_LIMIT, SAMPLE_KURTOSIS_CHECK_SAMPLES
 from rough_uq.problem.batch import STAGE_SCREENING
@@ -480,7 +480,30 @@ def run_label(run: RunRecord, qoi_names: Sequence[str]) -> str:
     for ``roughuq drop`` and ``roughuq show --stage``.
     """
     theta = "" if run.theta is None else f", theta {run.theta:g}"
-    return f"{_method_text(run)}{_given_level(run)}, tol {tol_text(run.qoi_names or qoi_names, run.tol)}{theta}"
+    tol = tol_text(run.qoi_names or qoi_names, run.tol)
+    return f"{_method_text(run)}{_given_level(run)}, tol {tol}{theta}{_cdf_request_text(run)}"
+
+
+def _cdf_request_text(run: RunRecord) -> str:
+    """``, thresholds 0 .. 40 (3)`` (and ``, p 0.1, 0.9`` where not the default probabilities) for a finished
+    cdf run, ``, request 1a2b3c4d`` (its id's suffix) for another: the runs of one column and tolerance with other
+    thresholds, which their ids tell apart, read alike in the report's warnings and tables; ``""`` for other
+    methods."""
+    if run.method != "cdf":
+        return ""
+    distribution = None if run.outcome is None else run.outcome.distribution
+    if distribution is None:
+        _, separator, digest = run.run_id.partition("_request-")
+        return f", request {digest}" if separator else ""
+    s = distribution.thresholds
+    probabilities = tuple(q.probability for q in distribution.quantiles)
+    shown = "" if probabilities == DEFAULT_PROBABILITIES else f", p {', '.join(f'{p:g}' for p in probabilities)}"
+    return f", {_thresholds_text(s)}{shown}"
+
+
+def _thresholds_text(s: Sequence[float]) -> str:
+    """``thresholds 0 .. 40 (3)``."""
+    return f"thresholds {_g(s[0], 4)} .. {_g(s[-1], 4)} ({len(s)})"
 
 
 def _given_level(run: RunRecord) -> str:
@@ -928,8 +951,11 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
                 value, lower, upper = _quantile_values(quantile)
                 if has_error_band(outcome):  # else the band of an unmeasured RMSE or beside a large bias
                     bar = f"[{lower}, {upper}]"
+            # The thresholds on the QoI's lines: runs of one column and tolerance read alike without them.
+            s = distribution.thresholds
+            qoi = f"{_qoi_cell(distribution.column, unit)}\ns {_g(s[0], 4)} .. {_g(s[-1], 4)}\n({len(s)} values)"
             table.add_row(
-                _qoi_cell(distribution.column, unit) if row == 0 else "",
+                qoi if row == 0 else "",
                 "-" if quantile is None else _g(quantile.probability), value, bar,
                 *(run_cells if row == 0 else ("",) * len(run_cells)),
             )

@@ -92,7 +92,7 @@ from rough_uq.study.records import (
     read_screening_record,
     utc_timestamp,
 )
-from rough_uq.problem.columns import column_name, column_of_load, tol_text
+from rough_uq.problem.columns import column_of_load, tol_text
 from rough_uq.problem.contact import ContactProblem
 from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
