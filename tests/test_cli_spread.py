@@ -392,6 +392,9 @@ def test_a_run_its_budget_stops_before_its_bias_is_estimated_is_told_to_raise_th
     result = run("mlmc", "--config", str(tiny), *target, "--max-cost", f"{1.01 * least:.6g}", "--workers", "1",
                  expect=3)
     assert "bias not estimated" in result.stdout
+    # "MC/MLMC 26 predicted" compared MC to the tolerance with a run that stopped short of it.
+    assert "  plain MC: " in result.stdout and not re.search(r"MC/MLMC [0-9]", result.stdout), result.stdout
+    assert "ref-s predicted (no MC/MLMC ratio: the run stopped at --max-cost)" in result.stdout
     last = result.stderr.strip().splitlines()[-1]
     assert last.startswith("tolerance not met (max_cost): the run reached --max-cost before its bias was estimated; "
                            "raise --max-cost (or estimation.max_cost) or lower estimation.initial_samples"), last

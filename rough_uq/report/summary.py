@@ -564,12 +564,20 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
         f"modelled cost {_g(outcome.cost)} ref-s"
     )
     if run.method != "mc":
-        # Modelled cost, as the ratios: CPU-seconds converted at the screening's rate contradicted them.
-        text = f"  plain MC: {_g(outcome.mc_cost)} ref-s predicted; MC/MLMC {_g(outcome.work_ratio, 2)} predicted"
-        if measured_ratio is not None:
-            text += f", {_g(measured_ratio, 2)} measured"
-        lines.append(text)
+        lines.append(_mc_comparison(outcome, measured_ratio))
     return lines
+
+
+def _mc_comparison(outcome: Any, measured_ratio: float | None) -> str:
+    """``  plain MC: 1.31 ref-s predicted; MC/MLMC 26 predicted, 24 measured`` for an MLMC run; without the
+    ratios for a run that ``--max-cost`` stopped (its cost is not that of its tolerance: "MC/MLMC 26" compared
+    MC to the tolerance with a run that stopped short of it)."""
+    # Modelled cost, as the ratios: CPU-seconds converted at the screening's rate contradicted them.
+    text = f"  plain MC: {_g(outcome.mc_cost)} ref-s predicted"
+    if outcome.stop_reason == "max_cost":
+        return f"{text} (no MC/MLMC ratio: the run stopped at --max-cost)"
+    text += f"; MC/MLMC {_g(outcome.work_ratio, 2)} predicted"
+    return text if measured_ratio is None else f"{text}, {_g(measured_ratio, 2)} measured"
 
 
 def _method_text(run: RunRecord) -> str:
