@@ -1209,8 +1209,9 @@ def _what_to_change(outcome: Any, option: str = "--tol") -> str:
                 f"estimation.initial_samples to measure it, loosen {option}, or use a study with a larger "
                 "grid.max_level")
     if reason == "max_level":
-        return (f"the bias needs a grid finer than grid.max_level; loosen {option}, or screen a new study with a "
-                "larger grid.max_level")
+        # Variance and cdf runs need no screening.
+        where = "screen a new study" if option == "--tol" else "use a study"
+        return f"the bias needs a grid finer than grid.max_level; loosen {option}, or {where} with a larger grid.max_level"
     return f"loosen {option}, raise --max-cost, or use a study with a larger grid.max_level"
 
 

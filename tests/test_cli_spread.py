@@ -548,3 +548,16 @@ def test_a_load_curve_variance_table_at_80_columns_keeps_the_loads_apart(tmp_pat
     met = [cells[-1] for cells in lines if cells and cells[0] in ("clusters", "contact_area")]
     assert len(met) == 4 and set(met) <= {"yes", "no"}, text  # the last column, whole
     assert "…" not in text
+
+
+def test_a_variance_or_cdf_run_at_max_level_is_not_told_to_screen():
+    # "screen a new study with a larger grid.max_level" after --tol-var: variance and cdf runs need no screening.
+    from types import SimpleNamespace
+
+    from rough_uq.cli import _what_to_change
+
+    outcome = SimpleNamespace(stop_reason="max_level", is_bias_estimated=True, diagnostics=())
+    assert _what_to_change(outcome, "--tol").endswith("or screen a new study with a larger grid.max_level")
+    for option in ("--tol-var", "--tol-cdf"):
+        assert _what_to_change(outcome, option) == (f"the bias needs a grid finer than grid.max_level; loosen {option}, "
+                                                    "or use a study with a larger grid.max_level")
