@@ -86,7 +86,7 @@ _EXPORTS = {
     "ConvergenceError": "rough_uq.errors",
     "EstimationError": "rough_uq.errors",
     "PlanTooLargeError": "rough_uq.errors",
-    "EstimationWarning": "rough_uq.multilevel.statistics",
+    "EstimationWarning": "rough_uq.errors",
 }
 
 __all__ = [
@@ -135,6 +135,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time names load on first
     from rough_uq.errors import (
         ConvergenceError,
         EstimationError,
+        EstimationWarning,
         InvalidParameterError,
         PlanTooLargeError,
         RoughUQError,
@@ -143,7 +144,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time names load on first
     from rough_uq.multilevel.drivers import EstimationResult
     from rough_uq.multilevel.targets import TargetEstimate
     from rough_uq.multilevel.rates import Rates
-    from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics
+    from rough_uq.multilevel.statistics import LevelStatistics
     from rough_uq.physics.qoi import (
         QOI_NAMES,
         area_above,

@@ -1211,7 +1211,8 @@ def _what_to_change(outcome: Any, option: str = "--tol") -> str:
     if reason == "max_level":
         # Variance and cdf runs need no screening.
         where = "screen a new study" if option == "--tol" else "use a study"
-        return f"the bias needs a grid finer than grid.max_level; loosen {option}, or {where} with a larger grid.max_level"
+        return (f"the bias needs a grid finer than grid.max_level; loosen {option}, or {where} with a larger "
+                "grid.max_level")
     return f"loosen {option}, raise --max-cost, or use a study with a larger grid.max_level"
 
 

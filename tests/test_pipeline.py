@@ -38,11 +38,11 @@ from rough_uq.study.progress import Progress
 from rough_uq.study.records import read_run_records, read_screening_record
 from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, modelled_cost, run_stage
 
-MLMC_STAGE = run_stage("mlmc", "test")
-MC_STAGE = run_stage("mc", "test")
 from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
 from rough_uq.study.store import MemoryStore
 from tests.study_configs import tiny_config
+
+MLMC_STAGE = run_stage("mlmc", "test")
 
 QUIET = Progress()
 

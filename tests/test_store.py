@@ -362,7 +362,8 @@ def test_version_2_file_is_read_unchecked_and_converted_when_opened_for_writing(
         assert f["samples/level_0/checksum"].shape == (4,)
         f["samples/level_0/fine"][1, 0] += 1.0
     with open_study_readonly(path) as reader:
-        with pytest.raises(StudyFileError, match=r"samples/level_0: 1 of 4 rows differ from their checksums \(rows 1\)"):
+        damaged = r"samples/level_0: 1 of 4 rows differ from their checksums \(rows 1\)"
+        with pytest.raises(StudyFileError, match=damaged):
             reader.read_samples(level=0, stage=0)
 
 

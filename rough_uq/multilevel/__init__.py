@@ -8,4 +8,7 @@ Pure numpy/scipy; no I/O, never imports :mod:`rough_uq.physics`.
 * :mod:`~rough_uq.multilevel.allocation`: sample allocation (plans).
 * :mod:`~rough_uq.multilevel.drivers`: the adaptive MC and MLMC drivers (with Richardson
   extrapolation) as generators of events over a level sampler.
+* :mod:`~rough_uq.multilevel.moments`: h-statistics, the variance and central moments.
+* :mod:`~rough_uq.multilevel.distribution`: the smoothed-indicator CDF and its quantiles.
+* :mod:`~rough_uq.multilevel.targets`: the adaptive driver of those targets (variance, CDF).
 """

@@ -94,7 +94,6 @@ __all__ = [
     "measure_plans",
     "use_wisdom",
     "export_wisdom",
-    "planner_flags",
 ]
 
 #: Upper bound on planning time per plan, in seconds (measured planning only).
@@ -452,11 +451,6 @@ def use_wisdom(wisdom: tuple[bytes, ...] | None) -> None:
 def export_wisdom() -> tuple[bytes, ...]:
     """FFTW's accumulated wisdom in this process (:func:`pyfftw.export_wisdom`)."""
     return tuple(pyfftw.export_wisdom())
-
-
-def planner_flags() -> tuple[str, ...]:
-    """The planner flags of this process's planning mode."""
-    return _PLANNER.flags
 
 
 def rfft_wavenumbers(n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,9 @@
   curve), without the solver, for the config, the store and the report.
 * :mod:`~rough_uq.problem.contact`: :class:`ContactProblem` (a study in Python, no config
   file) and its level sampler.
+* :mod:`~rough_uq.problem.kept`: the samples a problem keeps in memory (an interrupted run loses none).
+* :mod:`~rough_uq.problem.memory`: a solve's memory against the machine's.
 * :mod:`~rough_uq.problem.runs`: :func:`screen`, :func:`mlmc` and :func:`mc` on a problem,
   the functions ``rough_uq`` exports.
+* :mod:`~rough_uq.problem.distribution`: :func:`variance` and :func:`distribution` on a problem.
 """

@@ -2,6 +2,8 @@
 
 * :mod:`~rough_uq.study.config`: the versioned YAML schema (pydantic), the only YAML reader.
 * :mod:`~rough_uq.study.store`: the HDF5 study file (and its in-memory twin), the only h5py importer.
+* :mod:`~rough_uq.study.records`: typed screening, run and plan records, to and from JSON.
+* :mod:`~rough_uq.study.signals`: Ctrl-C and SIGTERM held back while the study file is written.
 * :mod:`~rough_uq.study.executors`: serial, process pool and dask execution of sample batches.
 * :mod:`~rough_uq.study.pipeline`: screening and estimation runs from a config into a store.
 * :mod:`~rough_uq.study.progress`: progress reporting passed into the pipeline.
