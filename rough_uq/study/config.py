@@ -206,7 +206,8 @@ class _Section(BaseModel):
 
 
 #: The largest grid (nodes per side) of a study: ``rough_uq.problem.contact.MAX_GRID``, which
-#: says why (this module imports nothing of the core; tests/test_config.py checks they agree).
+#: says why (a copy: that module loads numba and pyFFTW, which reading a config does not need;
+#: tests/test_config.py checks they agree).
 MAX_GRID = 65536
 
 #: The largest short cut-off wave number: ``rough_uq.physics.surface.MAX_K_S``, half of MAX_GRID
@@ -508,8 +509,8 @@ class LoadConfig(_Section):
         return len(self.values)
 
 
-#: The smallest solver tolerance: ``rough_uq.problem.contact.MIN_SOLVER_TOL``, which says why (this module
-#: imports nothing of the core; tests/test_config.py checks they agree).
+#: The smallest solver tolerance: ``rough_uq.problem.contact.MIN_SOLVER_TOL``, which says why (a copy, as
+#: MAX_GRID; tests/test_problem_arguments.py checks they agree).
 MIN_SOLVER_TOL = 1e-14
 
 
@@ -744,8 +745,8 @@ class GridConfig(_Section):
         return self.n_at(self.max_level)
 
 
-#: Fewest levels a screening covers: ``rough_uq.problem.runs.MIN_SCREENED_LEVELS``, which says why (this module
-#: imports nothing of the core; tests/test_config.py checks they agree).
+#: Fewest levels a screening covers: ``rough_uq.problem.runs.MIN_SCREENED_LEVELS``, which says why (a copy, as
+#: MAX_GRID; tests/test_config.py checks they agree).
 MIN_SCREENED_LEVELS = 3
 
 
