@@ -456,6 +456,18 @@ def test_report_says_what_check_and_the_planned_levels_mean(screened, monkeypatc
     assert ("kurt: kurtosis of Y (3 for Gaussian Y; var Y rests on about N / kurt samples: flagged above 100, "
             "and from 20 samples above N / 2)") in report
     assert "levels, N_l: the optimal plan (0: a level it leaves out); a run takes at least two levels above" in report
+    assert "above 1 the levels do not telescope; - where not checked (level 0, fewer than 5 samples)" in report
+
+
+def test_the_check_column_tells_an_unchecked_level_from_a_pass():
+    # Level 0 and levels of fewer than 5 samples are not checked; their ratio, stored as 0, read as a clean pass.
+    from types import SimpleNamespace
+
+    from rough_uq.report.summary import _check_cell
+
+    stats = SimpleNamespace(consistency=[[0.0], [0.0], [0.5], [0.0], [0.0]], levels=[0, 1, 2, 3, 5],
+                            n_samples=[10, 4, 10, 10, 10])
+    assert [_check_cell(stats, i, 0) for i in range(5)] == ["-", "-", "0.5", "0", "-"]
 
 
 def test_each_kind_of_time_has_one_name_and_unit(screened):

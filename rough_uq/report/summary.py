@@ -75,7 +75,9 @@ from rich.markup import escape
 from rough_uq.errors import PLANNED_COUNT_CAP
 from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, DEFAULT_PROBABILITIES, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.rates import EXACT_RATE, RATE_FLOOR
-from rough_uq.multilevel.statistics import FEWEST_VARIANCE_SAMPLES, KURTOSIS_LIMIT, SAMPLE_KURTOSIS_CHECK_SAMPLES
+from rough_uq.multilevel.statistics import (
+    CONSISTENCY_CHECK_SAMPLES, FEWEST_VARIANCE_SAMPLES, KURTOSIS_LIMIT, SAMPLE_KURTOSIS_CHECK_SAMPLES,
+)
 from rough_uq.problem.batch import STAGE_SCREENING
 from rough_uq.problem.columns import split_column, tol_text
 from rough_uq.study.progress import format_duration
@@ -786,9 +788,18 @@ def _screening_table(stats: Any, q: int, name: str, unit: str | None, *, legend:
             str(level), str(stats.n_samples[i]),
             _g(stats.mean_fine[i][q], 4), _g(stats.var_fine[i][q]),
             _g(stats.mean_diff[i][q]), _g(stats.var_diff[i][q]),
-            _g(stats.kurtosis[i][q]), _g(stats.consistency[i][q], 2),
+            _g(stats.kurtosis[i][q]), _check_cell(stats, i, q),
         )
     return table
+
+
+def _check_cell(stats: Any, i: int, q: int) -> str:
+    """The consistency ratio of row ``i``, QoI ``q``; ``-`` where it was not checked (level 0, a level below
+    missing, fewer than :data:`CONSISTENCY_CHECK_SAMPLES` samples on either level), where it read 0, as a pass."""
+    value = stats.consistency[i][q]
+    levels, n = stats.levels, stats.n_samples
+    unchecked = i == 0 or levels[i - 1] != levels[i] - 1 or min(n[i], n[i - 1]) < CONSISTENCY_CHECK_SAMPLES
+    return "-" if unchecked and value == 0 else _g(value, 2)
 
 
 #: What a reader of the screening tables cannot guess from their headers (the rest is the usual MLMC notation).
@@ -796,7 +807,8 @@ _SCREENING_LEGEND = ("Y = Q_l - Q_(l-1) on coupled grids; kurt: kurtosis of Y (3
                      f"about N / kurt samples: flagged above {KURTOSIS_LIMIT:g}, and from "
                      f"{SAMPLE_KURTOSIS_CHECK_SAMPLES} samples above N / {FEWEST_VARIANCE_SAMPLES:g}); "
                      "check: |mean Y - (mean Q_l - mean Q_(l-1))| "
-                     "over 3 times the sum of the three means' standard errors; above 1 the levels do not telescope")
+                     "over 3 times the sum of the three means' standard errors; above 1 the levels do not telescope; "
+                     f"- where not checked (level 0, fewer than {CONSISTENCY_CHECK_SAMPLES} samples)")
 
 
 def _print_rates(console: Any, screening: ScreeningRecord, qoi_names: Sequence[str]) -> None:
