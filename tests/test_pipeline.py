@@ -413,7 +413,7 @@ def test_interrupted_mlmc_resumes_to_the_uninterrupted_result(n_items):
     with pytest.raises(KeyboardInterrupt):
         run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=_Interrupting(n_items), progress=QUIET)
     stage = run_stage("mlmc", "mlmc_contact_area-1_theta-0.5")
-    stored = sum(study.store.sample_indices(level=l, stage=stage).size for l in study.store.levels())
+    stored = sum(study.store.sample_indices(level=level, stage=stage).size for level in study.store.levels())
     assert stored == n_items  # every completed sample was kept
     (run,) = study.store.read_runs()
     assert run["status"] == "interrupted"

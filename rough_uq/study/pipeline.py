@@ -834,7 +834,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
     sampler = StudySampler(study, stage=STAGE_SCREENING, executor=executor, progress=progress)
     progress.start("screening")
     try:
-        progress.plan(levels, [n] * len(levels), [n - sampler.missing(l, np.arange(n)).size for l in levels])
+        progress.plan(levels, [n] * len(levels), [n - sampler.missing(level, np.arange(n)).size for level in levels])
         with _collecting_diagnostics() as caught:
             statistics, batches = screening_statistics(study, sampler)
             rates = _screening_rates(statistics, config.qoi_names)
@@ -1655,7 +1655,7 @@ def _outcome(
     clock: _RunClock,
 ) -> RunOutcome:
     """What the finished run found, with the seconds and non-converged solves of the samples it used."""
-    used = [sampler.samples(int(l), np.arange(int(n))) for l, n in zip(result.levels, result.n_samples)]
+    used = [sampler.samples(int(level), np.arange(int(n))) for level, n in zip(result.levels, result.n_samples)]
     seconds = 0.0
     for batch in used:  # summed level by level, as the records always have been
         seconds += float(np.sum(batch.cost))
@@ -2074,7 +2074,7 @@ def _target_outcome(
 ) -> RunOutcome:
     """The outcome of a variance run (a :class:`TargetEstimate`) or a cdf run (a :class:`CdfEstimate`)."""
     estimate = result if target == "variance" else result.target
-    used = [sampler.samples(int(l), np.arange(int(n))) for l, n in zip(estimate.levels, estimate.n_samples)]
+    used = [sampler.samples(int(level), np.arange(int(n))) for level, n in zip(estimate.levels, estimate.n_samples)]
     seconds = float(sum(float(np.sum(batch.cost)) for batch in used))
     seconds_per_cost = seconds / estimate.cost if estimate.cost > 0 else 1.0
     screening = read_screening_record(study.store)
@@ -2087,7 +2087,7 @@ def _target_outcome(
         finished=utc_timestamp(),
         estimate=_floats(estimate.estimate), stat_error=_floats(estimate.stat_error),
         bias_estimate=_floats(estimate.bias), is_bias_estimated=estimate.is_bias_estimated,
-        rmse=_floats(estimate.rmse), levels=tuple(int(l) for l in estimate.levels),
+        rmse=_floats(estimate.rmse), levels=tuple(int(level) for level in estimate.levels),
         n_samples=tuple(int(n) for n in estimate.n_samples), cost=float(estimate.cost), seconds=seconds,
         mc_cost=mc_cost, mc_seconds_predicted=mc_cost * seconds_per_cost, n_computed=sampler.n_computed,
         n_not_converged=count_not_converged(used), tol_met=bool(estimate.tol_met), stop_reason=estimate.stop_reason,
