@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import filecmp
 import json
 import math
 import os
@@ -295,6 +296,32 @@ def test_a_shard_removes_what_a_killed_run_of_it_left_and_nothing_another_proces
         "removed shard.h5.partial-999999, left by a run of this shard that was killed")
     assert sorted(p.name for p in screened.glob("shard.h5*")) == ["shard.h5", "shard.h5.partial-1",
                                                                   "shard.h5.partial-2"]
+
+
+def test_a_shard_written_meanwhile_under_the_same_out_is_not_replaced(screened, monkeypatch):
+    # Two jobs with the same --out: both exit 0 and say "3 samples written"; the second rename replaced the first
+    # one's shard, whose samples were gone.
+    import rough_uq.cli as cli
+    from rough_uq.study.executors import SerialExecutor
+
+    _sample(out="other job.h5")
+
+    class OtherJobFinishesFirst(SerialExecutor):
+        n_workers = 1
+
+        def run(self, model, items):
+            shutil.copy("other job.h5", "shard.h5")  # another job with the same --out finishes now
+            yield from super().run(model, items)
+
+    monkeypatch.setattr(cli, "_executor", lambda *args: OtherJobFinishesFirst())
+    kept = f"shard.{os.getpid()}.h5"
+    assert _sample("--quiet", expect=2).stderr.strip() == (
+        "error: shard 'shard.h5' was written by another process while this one computed its samples (two jobs with "
+        f"the same --out?); this job's shard is kept as '{kept}': merge both (roughuq merge shard.h5 {kept} --into "
+        "STUDY)")
+    assert filecmp.cmp("shard.h5", "other job.h5", shallow=False)
+    assert sorted(p.name for p in screened.glob("shard*")) == sorted(["shard.h5", kept])
+    assert run("merge", kept, "--into", "results.h5").exit_code == 0
 
 
 def test_a_shard_says_it_is_one_and_is_refused_as_a_study(screened):

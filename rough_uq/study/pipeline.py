@@ -2225,13 +2225,43 @@ def compute_shard(
         with shard:
             progress.plan([level], [indices.size], [0])
             StudySampler(shard, stage=stage, executor=executor, progress=progress).compute(level, indices)
-        os.replace(partial, out)
+        _publish_shard(partial, out)
     except BaseException:
         partial.unlink(missing_ok=True)
         progress.stop(is_complete=False)
         raise
     progress.stop()
     return out
+
+
+def _publish_shard(partial: Path, out: Path) -> None:
+    """Rename the complete shard ``partial`` to ``out``, never over a file that appeared there meanwhile.
+
+    Two jobs given the same ``--out`` both passed the check at their start, and the second rename replaced the
+    first one's shard: both said "130 samples written", one shard's samples were gone. A hard link fails where
+    ``out`` exists; the shard is then kept under a name of its own, which the error names (status 2). Where the
+    file system has no hard links, a last check and a rename (a window of microseconds instead of the job's run).
+    """
+    try:
+        os.link(partial, out)
+    except FileExistsError:
+        _keep_clashing_shard(partial, out)
+    except OSError:
+        if out.exists():
+            _keep_clashing_shard(partial, out)
+        os.replace(partial, out)
+        return
+    partial.unlink()
+
+
+def _keep_clashing_shard(partial: Path, out: Path) -> None:
+    """Keep ``partial`` as ``<stem>.<pid><suffix>`` beside ``out``, which another process wrote, and say so."""
+    kept = out.with_name(f"{out.stem}.{os.getpid()}{out.suffix}")
+    os.replace(partial, kept)
+    raise StudyFileError(
+        f"shard {str(out)!r} was written by another process while this one computed its samples (two jobs with "
+        f"the same --out?); this job's shard is kept as {str(kept)!r}: merge both (roughuq merge "
+        f"{shlex.quote(str(out))} {shlex.quote(str(kept))} --into STUDY)", out)
 
 
 def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
