@@ -963,3 +963,52 @@ def test_a_full_disk_in_an_append_or_a_transaction_is_a_study_file_error(tmp_pat
         study.append_samples(make_batch(0, 0, range(3, 6)))  # with room again, the same batch is stored
     with open_study_readonly(path) as reader:
         assert reader.read_samples(level=0).indices.tolist() == list(range(6)) and reader.levels() == [0]
+
+
+def test_a_writer_is_not_refused_for_a_reader_probing_the_lock(tmp_path):
+    # is_lock_held (report's "running") takes a shared lock for an instant: a writer starting then was refused,
+    # "locked by a running process (pid unknown)", in 2-3 of 25 reruns beside a loop of probes.
+    import fcntl
+    import threading
+
+    path = tmp_path / "s.h5"
+    store_module._release_lock(path, store_module._acquire_lock(path))
+    lock_path = tmp_path / "s.h5.lock"
+    lock_path.touch()
+    probe = os.open(lock_path, os.O_RDONLY)
+    fcntl.flock(probe, fcntl.LOCK_SH)
+    timer = threading.Timer(0.05, os.close, args=(probe,))  # the probe lets go after 50 ms
+    timer.start()
+    try:
+        fd = store_module._acquire_lock(path)
+    finally:
+        timer.join()
+    store_module._release_lock(path, fd)
+    held = os.open(lock_path, os.O_RDWR | os.O_CREAT)
+    fcntl.flock(held, fcntl.LOCK_EX)  # a real writer keeps it: refused as before
+    try:
+        with pytest.raises(StudyFileError, match="is locked by a running process"):
+            store_module._acquire_lock(path)
+    finally:
+        os.close(held)
+
+
+def test_a_lock_file_the_directory_no_longer_lets_go_of_is_released_without_a_traceback(tmp_path, monkeypatch):
+    # A directory made read-only under a left-over .lock: unlink raised PermissionError, a traceback (status 1)
+    # that hid the command's own one-line error, and the lock's descriptor stayed open.
+    path = tmp_path / "s.h5"
+    fd = store_module._acquire_lock(path)
+    lock_path = tmp_path / "s.h5.lock"
+    real_unlink = Path.unlink
+
+    def refused(self, missing_ok=False):
+        if self == lock_path:
+            raise PermissionError(13, "Permission denied", str(self))
+        real_unlink(self, missing_ok=missing_ok)
+
+    monkeypatch.setattr(Path, "unlink", refused)
+    store_module._release_lock(path, fd)
+    with pytest.raises(OSError):
+        os.fstat(fd)  # closed
+    monkeypatch.setattr(Path, "unlink", real_unlink)
+    store_module._release_lock(path, store_module._acquire_lock(path))  # and free

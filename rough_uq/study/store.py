@@ -753,6 +753,28 @@ def is_lock_held(path: str | Path) -> bool:
     return False
 
 
+#: Tries, :data:`_LOCK_RETRY_SECONDS` apart, of a writer's exclusive lock before the file counts as locked.
+_LOCK_TRIES = 20
+_LOCK_RETRY_SECONDS = 0.01
+
+
+def _flock_exclusive(fd: int) -> None:
+    """The exclusive ``flock`` of ``fd``, tried for some 0.2 s before the ``OSError`` of a held lock is raised.
+
+    :func:`is_lock_held` (``roughuq report``'s "running") holds a shared lock for microseconds: a writer that
+    started then was refused as "locked by a running process (pid unknown)" (2-3 of 25 reruns beside a loop of
+    probes), though readers need no lock.
+    """
+    for attempt in range(_LOCK_TRIES):
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES) or attempt == _LOCK_TRIES - 1:
+                raise
+        time.sleep(_LOCK_RETRY_SECONDS)
+
+
 def _acquire_lock(path: Path) -> int:
     """Take the exclusive lock of ``path``; return the lock file descriptor."""
     lock_path = _lock_path(path)
@@ -764,7 +786,7 @@ def _acquire_lock(path: Path) -> int:
                 f"{path}: cannot create the lock file {lock_path.name} in {path.parent} ({exc.strerror})", path
             ) from None
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _flock_exclusive(fd)
         except OSError as exc:
             holder = os.read(fd, 64).decode("ascii", "replace").strip() or "unknown"
             os.close(fd)
@@ -791,9 +813,12 @@ def _acquire_lock(path: Path) -> int:
 def _release_lock(path: Path, fd: int) -> None:
     try:
         _lock_path(path).unlink()  # while still holding the lock, see _acquire_lock
-    except FileNotFoundError:
+    except OSError:
+        # Gone, or a directory made read-only since (a PermissionError here was a traceback that hid the
+        # command's own error): the lock file stays, and the closing below releases the lock all the same.
         pass
-    os.close(fd)
+    finally:
+        os.close(fd)
 
 
 #: What to do with a study file HDF5 cannot read (a reader on NFS may fail while another machine writes).
