@@ -1425,6 +1425,21 @@ def test_a_tolerance_of_a_million_or_more_names_its_run(screened, options):
     assert "+" not in record["run_id"] and re.search(r"-[12]e0[67]_", record["run_id"])
 
 
+def test_tolerances_that_differ_beyond_six_digits_name_two_runs_and_the_names_of_others_stay():
+    # %.6g named --tol 0.25, 0.2500001 and 0.2499999 alike: the second run replaced the first's record, drew its
+    # samples and printed "tol 0.25".
+    from rough_uq.problem.runs import run_id
+
+    names = {eps: run_id("mlmc", ["contact_area"], np.array([eps]), 0.5) for eps in (0.25, 0.2500001, 0.2499999)}
+    assert len(set(names.values())) == 3, names
+    assert names[0.25] == "mlmc_contact_area-0.25_theta-0.5"  # as stored before: the same stage, resumed
+    assert run_id("mc", ["clusters"], np.array([5.0]), 0.5, 2) == "mc_clusters-5_theta-0.5_level-2"
+    assert run_id("mc", ["c"], np.array([1e6]), 0.25) == "mc_c-1e06_theta-0.25"
+    from rough_uq.problem.columns import tol_text
+
+    assert tol_text(["contact_area", "clusters"], [0.2499999, 5.0]) == "contact_area=0.2499999, clusters=5"
+
+
 def test_a_prediction_at_the_plan_cap_shows_the_cap_not_sixteen_digits(tmp_path, monkeypatch):
     # At tol 1e-9 the plan's counts reached the cap: "4503599627370496 1972859289853235 ..." read as counts,
     # and its times as "1530000000 h".

@@ -53,22 +53,30 @@ def tol_text(names: Sequence[str], values: Iterable[float], *, digits: int | Non
     The columns of a load curve are grouped by QoI: the value most of its
     loads share, then the columns set apart, ``mean_gap=0.05,
     mean_gap@0.02=0.1`` (not one ``name@load=eps`` per column, which made a
-    line of hundreds of characters). Values are written with ``%g``, or with
-    ``digits`` significant digits, and grouped as written.
+    line of hundreds of characters). Values are written with ``%g`` (their
+    shortest repr where six digits do not give them back: 0.2500001 read 0.25),
+    or with ``digits`` significant digits, and grouped as written.
     """
-    form = "g" if digits is None else f".{digits}g"
     columns: dict[str, list[tuple[str, float]]] = {}
     for name, value in zip(names, values):
         columns.setdefault(split_column(name)[0], []).append((name, float(value)))
     parts = []
     for qoi, pairs in columns.items():
         if len(pairs) == 1:
-            parts.append(f"{pairs[0][0]}={pairs[0][1]:{form}}")
+            parts.append(f"{pairs[0][0]}={_tol_number(pairs[0][1], digits)}")
             continue
-        shown = [format(value, form) for _, value in pairs]
+        shown = [_tol_number(value, digits) for _, value in pairs]
         common = max(shown, key=shown.count)
         parts += [f"{qoi}={common}"] + [f"{name}={text}" for (name, _), text in zip(pairs, shown) if text != common]
     return ", ".join(parts)
+
+
+def _tol_number(value: float, digits: int | None) -> str:
+    """A tolerance as :func:`tol_text` writes it."""
+    if digits is not None:
+        return format(value, f".{digits}g")
+    text = format(value, "g")
+    return text if float(text) == value else repr(value)
 
 
 def values_text(names: Sequence[str], values: Iterable[float], *, digits: int = 3) -> str:

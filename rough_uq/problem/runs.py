@@ -93,11 +93,14 @@ def run_id(
 
 
 def _tag(value: float) -> str:
-    """``value`` in a run name: ``%.6g`` without the ``+`` of a large exponent (``1e+06`` -> ``1e06``).
+    """``value`` in a run name: ``%.6g`` without the ``+`` of a large exponent (``1e+06`` -> ``1e06``), or its
+    shortest repr where six digits do not give it back.
 
-    Every name that had no ``+`` stays as it was, and with it its random stage.
+    Every name that had no ``+`` stays as it was, and with it its random stage; ``%.6g`` alone named
+    ``--tol 0.25`` and ``--tol 0.2500001`` alike: two runs, one name, one record, one stream of samples.
     """
-    return f"{value:.6g}".replace("+", "")
+    text = f"{value:.6g}"
+    return (text if float(text) == value else repr(float(value))).replace("+", "")
 
 
 @dataclass(frozen=True, eq=False)
