@@ -1396,7 +1396,7 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
     _check_executor_options("local", None, workers)
     _check_output_file("--out", out)
     wanted = _parse_indices(indices)
-    with open_existing_study(study_path, writable=False) as study:
+    with open_existing_study(study_path, writable=False, options="--study") as study:
         stage_id = _stage_of(study, stage)  # a run id too, as `show --stage` takes it (it was refused here)
         with _executor(study.config, workers, "local", None) as pool:
             watch = (study.config, pool, "local", "a study with a smaller grid.max_level")
@@ -1415,7 +1415,7 @@ def merge(shards: Sequence[str], study_path: str) -> None:
     _check_not_empty("--into", study_path)
     from rough_uq.study.pipeline import merge_shards, open_existing_study
 
-    with open_existing_study(study_path) as study:
+    with open_existing_study(study_path, options="--into") as study:
         counts = merge_shards(study, shards)
     click.echo(f"{study_path}: added {_counted(counts['added'], 'sample')} from {_counted(len(shards), 'shard')}")
     if counts["duplicates"]:
@@ -1605,7 +1605,7 @@ def show(study_path: str, stage: str, level: int, index: int, load_text: str | N
     _check_output_file("--out", out)
     if Path(out).suffix.lower() != ".png":  # it wrote PNG bytes into x.pdf, and into x
         raise InvalidParameterError("--out", out, "a file name ending in .png (the figure is written as PNG)")
-    with open_existing_study(study_path, writable=False) as study:
+    with open_existing_study(study_path, writable=False, options="--study") as study:
         if level > study.config.grid.max_level:
             raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")
         load_index = _load_index(study.config.load, load_text)
@@ -1641,7 +1641,7 @@ def drop(run_ids: Sequence[str], study_path: str) -> None:
 
     run_ids = list(dict.fromkeys(run_ids))  # one each, in the order given
 
-    with open_existing_study(study_path) as study:
+    with open_existing_study(study_path, options="--study") as study:
         runs = {run.run_id: run for run in read_run_records(study.store)}
         for key in run_ids:
             if key not in runs or runs[key].status == "dropped":

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 import pytest
 import yaml
@@ -1504,12 +1505,33 @@ def test_merge_calls_a_missing_or_damaged_shard_a_shard(screened):
     # "nope.h5: no such study file" and "... or start a new study file" for the shards of a merge.
     before = (screened / "results.h5").read_bytes()
     line = one_error_line(run("merge", "nope.h5", "--into", "results.h5", expect=2))
-    assert line == "error: nope.h5: no such shard file (`roughuq sample --out` writes one)"
+    assert line == "error: nope.h5: no such shard file (`roughuq sample --out` writes one); nothing was merged"
     (screened / "cut.h5").write_bytes(before[:3000])
     line = one_error_line(run("merge", "cut.h5", "--into", "results.h5", expect=2))
     assert line.startswith("error: cut.h5 cannot be read: ")
-    assert line.endswith("otherwise restore the file from a copy or compute the shard again (`roughuq sample`)")
+    assert line.endswith("otherwise restore the file from a copy or compute the shard again (`roughuq sample`); "
+                         "nothing was merged")
+    # Rows that fail their checksums are found while reading, after the shard opened: "or start a new study file".
+    run("sample", "--study", "results.h5", "--stage", "screening", "--level", "0", "--indices", "100:103",
+        "--out", "damaged.h5", "--workers", "1", "-q")
+    with h5py.File(screened / "damaged.h5", "r+") as f:
+        f["samples/level_0/fine"][1, 0] += 1.0
+    line = one_error_line(run("merge", "damaged.h5", "--into", "results.h5", expect=2))
+    assert "rows differ from their checksums" in line and line.endswith(
+        "compute the shard again (`roughuq sample`); nothing was merged"), line
     assert (screened / "results.h5").read_bytes() == before
+
+
+@pytest.mark.parametrize(("command", "option"), [
+    (("merge", "shard.h5", "--into", "new.h5"), "--into"),
+    (("sample", "--study", "new.h5", "--stage", "screening", "--level", "0", "--indices", "0:2", "--out", "s.h5"),
+     "--study"),
+    (("drop", "x", "--study", "new.h5"), "--study"),
+])
+def test_a_missing_study_file_is_named_with_the_options_the_command_has(screened, command, option):
+    # merge, sample, show and drop said "... with --study or --config"; merge has --into, the others no --config.
+    line = one_error_line(run(*command, expect=2))
+    assert line.endswith(f"name the study file screen wrote (its config's output.path) with {option}"), line
 
 
 def test_the_screening_legend_is_printed_once_under_the_last_table(tmp_path, monkeypatch):

@@ -523,7 +523,7 @@ def _setting_text(value: object) -> str:
 
 def open_existing_study(
     path: str | Path, *, config: StudyConfig | None = None, writable: bool = True, source: str | None = None,
-    missing: str | None = None,
+    missing: str | None = None, options: str = "--study or --config",
 ) -> Study:
     """Open an existing study file.
 
@@ -533,13 +533,14 @@ def open_existing_study(
     ``source`` is where it comes from (its file; :class:`Study`). A
     file whose stored ``qoi_names`` are not the result columns of its stored
     config is refused as damaged (:class:`StudyFileError`). ``missing`` follows ``study file '...' does not
-    exist`` where the file is missing (default: the CLI's remedy, with its ``--study`` / ``--config`` options).
+    exist`` where the file is missing (default: the CLI's remedy, naming the command's ``options`` that take a
+    study file: ``merge`` has ``--into``, ``sample`` no ``--config``).
     """
     path = checked_study_path(path)
     if not path.exists():
         if missing is None:
             missing = (f"; create it with `roughuq screen CONFIG --out {path}`, or name the study file screen wrote "
-                       "(its config's output.path) with --study or --config")
+                       f"(its config's output.path) with {options}")
         raise StudyFileError(f"study file {str(path)!r} does not exist{missing}", path)
     with open_study_readonly(path) as header:
         config_text, stored_hash, qoi_names = header.config_text, header.config_hash, header.qoi_names
@@ -2280,6 +2281,25 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
     """
     from rough_uq.study.store import DuplicateSampleWarning
 
+    try:
+        batches, studies = _read_shards(study, shards)
+    except StudyFileError as exc:
+        # Damaged rows read "... or start a new study file" (a study's remedy) and not what became of the others.
+        text = str(exc).replace("or start a new study file", _SHARD_REMEDY)
+        text = text if text.endswith("; nothing was merged") else f"{text}; nothing was merged"
+        raise StudyFileError(text, exc.path) from None
+    added = duplicates = 0
+    for batch in batches:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DuplicateSampleWarning)
+            n = study.store.append_samples(batch)
+        added += n
+        duplicates += batch.n_samples - n
+    return {"added": added, "duplicates": duplicates, "studies": studies}
+
+
+def _read_shards(study: Study, shards: Sequence[str | Path]) -> tuple[list[LevelBatch], list[str]]:
+    """Every sample of ``shards``, each checked (:func:`merge_shards`), and the inputs that are study files."""
     batches: list[LevelBatch] = []
     studies = []
     for path in shards:
@@ -2291,14 +2311,7 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
             for level in shard.levels():
                 for stage in shard.stages(level=level):
                     batches.append(shard.read_samples(level=level, stage=stage))
-    added = duplicates = 0
-    for batch in batches:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DuplicateSampleWarning)
-            n = study.store.append_samples(batch)
-        added += n
-        duplicates += batch.n_samples - n
-    return {"added": added, "duplicates": duplicates, "studies": studies}
+    return batches, studies
 
 
 def _open_shard(path: str | Path) -> StudyFile:
@@ -2309,8 +2322,11 @@ def _open_shard(path: str | Path) -> StudyFile:
     try:
         return open_study_readonly(path)
     except StudyFileError as exc:
-        text = str(exc).replace("or start a new study file", "or compute the shard again (`roughuq sample`)")
-        raise StudyFileError(text, Path(path)) from None
+        raise StudyFileError(str(exc).replace("or start a new study file", _SHARD_REMEDY), Path(path)) from None
+
+
+#: What to do with a damaged shard, where a study's remedy says "start a new study file".
+_SHARD_REMEDY = "or compute the shard again (`roughuq sample`)"
 
 
 def _is_the_study_file(study: Study, path: str | Path) -> bool:
