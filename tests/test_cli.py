@@ -324,6 +324,24 @@ def test_a_shard_written_meanwhile_under_the_same_out_is_not_replaced(screened, 
     assert run("merge", kept, "--into", "results.h5").exit_code == 0
 
 
+def test_a_shard_still_under_its_temporary_name_says_it_is_incomplete(screened):
+    # `report shard.h5.partial-PID` said "a shard of samples ...: add them to their study with roughuq merge".
+    from rough_uq.study.store import _acquire_lock, _release_lock
+
+    _sample(out="shard.h5")
+    shutil.copy("shard.h5", "shard.h5.partial-4242")
+    left = [line for line in run("report", "shard.h5.partial-4242").stdout.splitlines() if " shard " in line]
+    assert left == ["an incomplete shard (left by process 4242, which was stopped before it finished; the next run "
+                    "of that shard removes it): `roughuq sample` renames it shard.h5 once complete; merge that file"]
+    fd = _acquire_lock(screened / "shard.h5.partial-4242")  # as its writer holds it
+    try:
+        text = run("report", "shard.h5.partial-4242").stdout
+    finally:
+        _release_lock(screened / "shard.h5.partial-4242", fd)
+    assert "an incomplete shard (being written by process 4242): `roughuq sample` renames it shard.h5" in text
+    assert "add them to their study with `roughuq merge --into STUDY shard.h5`" in run("report", "shard.h5").stdout
+
+
 def test_a_shard_says_it_is_one_and_is_refused_as_a_study(screened):
     """`report shard.h5` said "screening not finished: run `roughuq screen CONFIG --out shard.h5`" (not a study)."""
     _sample("--quiet")

@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import math
 import os
+import shlex
 import textwrap
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass, replace
@@ -793,6 +794,19 @@ def _screening_table(stats: Any, q: int, name: str, unit: str | None, *, legend:
     return table
 
 
+def _shard_text(path: str, *, is_running: bool) -> str:
+    """What a shard file is and what to do with it; a ``.partial-PID`` one is a shard not yet complete (it read
+    "add them to their study", as if whole)."""
+    name, separator, pid = Path(path).name.rpartition(".partial-")
+    if not (separator and pid.isdigit()):
+        return ("a shard of samples (written by `roughuq sample`): add them to their study with `roughuq merge "
+                f"--into STUDY {escape(shlex.quote(path))}`")
+    state = ("being written by process " + pid) if is_running else (
+        f"left by process {pid}, which was stopped before it finished; the next run of that shard removes it")
+    return (f"an incomplete shard ({state}): `roughuq sample` renames it {escape(name)} once complete; merge that "
+            "file")
+
+
 def _check_cell(stats: Any, i: int, q: int) -> str:
     """The consistency ratio of row ``i``, QoI ``q``; ``-`` where it was not checked (level 0, a level below
     missing, fewer than :data:`CONSISTENCY_CHECK_SAMPLES` samples on either level), where it read 0, as a pass."""
@@ -1051,8 +1065,7 @@ def render_report(report: dict[str, Any], console: Any) -> None:
     )
     console.print(f"samples stored: {counts or 'none'}", highlight=False)
     if report.get("role") == "shard":
-        console.print(f"a shard of samples (written by `roughuq sample`): add them to their study with "
-                      f"`roughuq merge --into STUDY {escape(report['path'])}`", highlight=False)
+        console.print(_shard_text(report["path"], is_running=bool(report.get("is_running"))), highlight=False)
     elif report["screening"] is not None:
         screening = ScreeningRecord.from_json(report["screening"])
         render_screening(console, screening, report["qoi_names"], units, grids=grids)
