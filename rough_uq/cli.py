@@ -1409,8 +1409,9 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
 @click.argument("shards", metavar="SHARD...", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--into", "study_path", type=click.Path(dir_okay=False), default=DEFAULT_STUDY, show_default=True,
               help="Study file to add the samples to.")
+@_quiet_option
 @_user_errors
-def merge(shards: Sequence[str], study_path: str) -> None:
+def merge(shards: Sequence[str], study_path: str, quiet: bool) -> None:
     """Add the samples of shard files to a study (duplicates are skipped with a warning)."""
     _check_not_empty("--into", study_path)
     from rough_uq.study.pipeline import merge_shards, open_existing_study
@@ -1420,7 +1421,7 @@ def merge(shards: Sequence[str], study_path: str) -> None:
     click.echo(f"{study_path}: added {_counted(counts['added'], 'sample')} from {_counted(len(shards), 'shard')}")
     if counts["duplicates"]:
         click.echo(f"warning: skipped {_counted(counts['duplicates'], 'sample')} already in the study", err=True)
-    for path in counts["studies"]:
+    for path in () if quiet else counts["studies"]:
         click.echo(f"note: {path} is a study file, not a shard: only its samples are merged (the new ones added), "
                    "not its screening or runs", err=True)
 

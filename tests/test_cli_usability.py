@@ -1571,6 +1571,9 @@ def test_merge_says_when_an_input_is_a_whole_study(screened):
     result = run("merge", "copy.h5", "--into", "results.h5")
     assert ("note: copy.h5 is a study file, not a shard: only its samples are merged (the new ones added), not its "
             "screening or runs") in result.stderr
+    # -q, which every other command that prints notices takes, was "No such option" here.
+    quiet = run("merge", "copy.h5", "--into", "results.h5", "-q")
+    assert quiet.stdout == "results.h5: added 0 samples from 1 shard\n" and "note:" not in quiet.stderr
 
 
 def test_python_dash_m_rough_uq_is_the_command_line(tmp_path):
