@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import filecmp
 import json
 import math
@@ -18,6 +19,7 @@ from click.testing import CliRunner
 
 from rough_uq import __version__
 from rough_uq.cli import main
+from rough_uq.errors import StudyFileError
 from rough_uq.study.store import FORMAT_VERSION, open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
@@ -322,6 +324,42 @@ def test_a_shard_written_meanwhile_under_the_same_out_is_not_replaced(screened, 
     assert filecmp.cmp("shard.h5", "other job.h5", shallow=False)
     assert sorted(p.name for p in screened.glob("shard*")) == sorted(["shard.h5", kept])
     assert run("merge", kept, "--into", "results.h5").exit_code == 0
+
+
+def test_a_clashing_shard_is_kept_without_replacing_a_file_and_without_hard_links_too(screened):
+    # The kept name was written with os.replace, over a file of that name; and every OSError of os.link fell
+    # back to a rename (an EIO or a vanished file became a traceback or a silent replace).
+    from rough_uq.study.pipeline import _publish_shard
+
+    for name, content in (("out.h5", "another job's"), (f"out.{os.getpid()}.h5", "the user's")):
+        Path(name).write_text(content)
+    Path("a.partial-1").write_text("this job's")
+    with pytest.raises(StudyFileError, match=f"is kept as 'out.{os.getpid()}-1.h5'"):
+        _publish_shard(Path("a.partial-1"), Path("out.h5"))
+    assert [Path(name).read_text() for name in ("out.h5", f"out.{os.getpid()}.h5", f"out.{os.getpid()}-1.h5")] == [
+        "another job's", "the user's", "this job's"]
+    assert not Path("a.partial-1").exists()
+
+    def no_hard_links(source, target):
+        raise PermissionError(errno.EPERM, "Operation not permitted")
+
+    Path("b.partial-1").write_text("shard b")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(os, "link", no_hard_links)
+        _publish_shard(Path("b.partial-1"), Path("b.h5"))
+        assert Path("b.h5").read_text() == "shard b" and not Path("b.partial-1").exists()
+        Path("c.partial-1").write_text("shard c")
+        with pytest.raises(StudyFileError, match=f"is kept as 'b.{os.getpid()}.h5'"):
+            _publish_shard(Path("c.partial-1"), Path("b.h5"))
+        assert Path("b.h5").read_text() == "shard b"
+
+        def broken(source, target):
+            raise OSError(errno.EIO, "Input/output error")
+
+        patch.setattr(os, "link", broken)
+        with pytest.raises(OSError, match="Input/output error"):
+            _publish_shard(Path(f"b.{os.getpid()}.h5"), Path("d.h5"))
+        assert not Path("d.h5").exists()
 
 
 def test_a_shard_still_under_its_temporary_name_says_it_is_incomplete(screened):

@@ -28,6 +28,7 @@ records carry both it and the measured wall time.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import math
@@ -39,7 +40,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 import yaml
@@ -2226,9 +2227,13 @@ def compute_shard(
         with shard:
             progress.plan([level], [indices.size], [0])
             StudySampler(shard, stage=stage, executor=executor, progress=progress).compute(level, indices)
-        _publish_shard(partial, out)
     except BaseException:
         partial.unlink(missing_ok=True)
+        progress.stop(is_complete=False)
+        raise
+    try:
+        _publish_shard(partial, out)  # a shard that cannot take its name is kept under another, never removed
+    except BaseException:
         progress.stop(is_complete=False)
         raise
     progress.stop()
@@ -2243,22 +2248,38 @@ def _publish_shard(partial: Path, out: Path) -> None:
     ``out`` exists; the shard is then kept under a name of its own, which the error names (status 2). Where the
     file system has no hard links, a last check and a rename (a window of microseconds instead of the job's run).
     """
-    try:
-        os.link(partial, out)
-    except FileExistsError:
+    if not _rename_new(partial, out):
         _keep_clashing_shard(partial, out)
-    except OSError:
-        if out.exists():
-            _keep_clashing_shard(partial, out)
-        os.replace(partial, out)
-        return
+
+
+def _rename_new(partial: Path, target: Path) -> bool:
+    """Rename ``partial`` to ``target`` unless a file has that name (False, ``partial`` left as it is): a hard
+    link, which fails where ``target`` exists, then the old name removed; on a file system without hard links
+    a check and a rename."""
+    try:
+        os.link(partial, target)
+    except FileExistsError:
+        return False
+    except OSError as exc:
+        if exc.errno not in _NO_HARD_LINKS:
+            raise
+        if target.exists():
+            return False
+        os.replace(partial, target)
+        return True
     partial.unlink()
+    return True
 
 
-def _keep_clashing_shard(partial: Path, out: Path) -> None:
-    """Keep ``partial`` as ``<stem>.<pid><suffix>`` beside ``out``, which another process wrote, and say so."""
-    kept = out.with_name(f"{out.stem}.{os.getpid()}{out.suffix}")
-    os.replace(partial, kept)
+#: What ``os.link`` raises on a file system without hard links (and across devices).
+_NO_HARD_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK, errno.ENOSYS}
+
+
+def _keep_clashing_shard(partial: Path, out: Path) -> NoReturn:
+    """Keep ``partial`` as ``<stem>.<pid><suffix>`` beside ``out``, which another process wrote (or
+    ``<stem>.<pid>-<k><suffix>`` where that name is taken too: never over a file), and say so."""
+    names = (out.with_name(f"{out.stem}.{os.getpid()}{'' if k == 0 else f'-{k}'}{out.suffix}") for k in range(100))
+    kept = next((name for name in names if _rename_new(partial, name)), partial)
     raise StudyFileError(
         f"shard {str(out)!r} was written by another process while this one computed its samples (two jobs with "
         f"the same --out?); this job's shard is kept as {str(kept)!r}: merge both (roughuq merge "
