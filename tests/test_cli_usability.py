@@ -1434,6 +1434,8 @@ def test_tolerances_that_differ_beyond_six_digits_name_two_runs_and_the_names_of
     names = {eps: run_id("mlmc", ["contact_area"], np.array([eps]), 0.5) for eps in (0.25, 0.2500001, 0.2499999)}
     assert len(set(names.values())) == 3, names
     assert names[0.25] == "mlmc_contact_area-0.25_theta-0.5"  # as stored before: the same stage, resumed
+    # Rounding noise is no other tolerance: 0.1 * 3 from Python draws the samples of --tol 0.3.
+    assert run_id("mlmc", ["contact_area"], np.array([0.1 * 3]), 0.5) == "mlmc_contact_area-0.3_theta-0.5"
     assert run_id("mc", ["clusters"], np.array([5.0]), 0.5, 2) == "mc_clusters-5_theta-0.5_level-2"
     assert run_id("mc", ["c"], np.array([1e6]), 0.25) == "mc_c-1e06_theta-0.25"
     from rough_uq.problem.columns import tol_text

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 
-__all__ = ["LOAD_SEPARATOR", "load_label", "column_name", "column_of_load", "split_column", "tol_text", "values_text"]
+__all__ = ["LOAD_SEPARATOR", "load_label", "column_name", "column_of_load", "split_column", "tol_number", "tol_text",
+           "values_text"]
 
 #: Separates the QoI name from the load in the name of a load-curve column.
 LOAD_SEPARATOR = "@"
@@ -53,9 +54,8 @@ def tol_text(names: Sequence[str], values: Iterable[float], *, digits: int | Non
     The columns of a load curve are grouped by QoI: the value most of its
     loads share, then the columns set apart, ``mean_gap=0.05,
     mean_gap@0.02=0.1`` (not one ``name@load=eps`` per column, which made a
-    line of hundreds of characters). Values are written with ``%g`` (their
-    shortest repr where six digits do not give them back: 0.2500001 read 0.25),
-    or with ``digits`` significant digits, and grouped as written.
+    line of hundreds of characters). Values are written by :func:`tol_number`
+    (``%g``, or ``digits`` significant digits), and grouped as written.
     """
     columns: dict[str, list[tuple[str, float]]] = {}
     for name, value in zip(names, values):
@@ -63,20 +63,22 @@ def tol_text(names: Sequence[str], values: Iterable[float], *, digits: int | Non
     parts = []
     for qoi, pairs in columns.items():
         if len(pairs) == 1:
-            parts.append(f"{pairs[0][0]}={_tol_number(pairs[0][1], digits)}")
+            parts.append(f"{pairs[0][0]}={tol_number(pairs[0][1], digits)}")
             continue
-        shown = [_tol_number(value, digits) for _, value in pairs]
+        shown = [tol_number(value, digits) for _, value in pairs]
         common = max(shown, key=shown.count)
         parts += [f"{qoi}={common}"] + [f"{name}={text}" for (name, _), text in zip(pairs, shown) if text != common]
     return ", ".join(parts)
 
 
-def _tol_number(value: float, digits: int | None) -> str:
-    """A tolerance as :func:`tol_text` writes it."""
+def tol_number(value: float, digits: int | None = None) -> str:
+    """A tolerance as :func:`tol_text` and run names write it: ``%g``, or ``%.12g`` where six digits do not give
+    it back (0.2500001 read 0.25; twelve, not all seventeen, so that ``0.1 * 3`` is written 0.3, as typed);
+    with ``digits``, that many significant digits."""
     if digits is not None:
         return format(value, f".{digits}g")
     text = format(value, "g")
-    return text if float(text) == value else repr(value)
+    return text if float(text) == value else format(value, ".12g")
 
 
 def values_text(names: Sequence[str], values: Iterable[float], *, digits: int = 3) -> str:

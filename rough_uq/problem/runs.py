@@ -51,7 +51,7 @@ from rough_uq.multilevel.statistics import (
 )
 from rough_uq.problem.batch import STAGE_SCREENING, LevelBatch
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter
-from rough_uq.problem.columns import split_column, tol_text, values_text
+from rough_uq.problem.columns import split_column, tol_number, tol_text, values_text
 from rough_uq.problem.sampler import ContactModel, measured_seconds_per_cost, modelled_cost, run_stage
 
 __all__ = [
@@ -93,14 +93,13 @@ def run_id(
 
 
 def _tag(value: float) -> str:
-    """``value`` in a run name: ``%.6g`` without the ``+`` of a large exponent (``1e+06`` -> ``1e06``), or its
-    shortest repr where six digits do not give it back.
+    """``value`` in a run name: ``%.6g`` without the ``+`` of a large exponent (``1e+06`` -> ``1e06``), or
+    ``%.12g`` where six digits do not give it back (:func:`~rough_uq.problem.columns.tol_number`).
 
     Every name that had no ``+`` stays as it was, and with it its random stage; ``%.6g`` alone named
     ``--tol 0.25`` and ``--tol 0.2500001`` alike: two runs, one name, one record, one stream of samples.
     """
-    text = f"{value:.6g}"
-    return (text if float(text) == value else repr(float(value))).replace("+", "")
+    return tol_number(value).replace("+", "")
 
 
 @dataclass(frozen=True, eq=False)
