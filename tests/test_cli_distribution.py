@@ -134,6 +134,11 @@ def test_a_cdf_run_on_thresholds_far_coarser_than_the_spread_is_not_met_and_says
     # and its quantiles' error bars, that band's (q(0.05) = 1.804 [0.8969, 2.072] % where the truth was 18.6).
     (row,) = [line.split() for line in report.stdout.splitlines() if line.split()[:2] == ["contact_area", "0.05"]]
     assert row[3:6] == ["-", "-", "0.1"], row
+    # and its JSON, from a file written before as now: no band, open bars.
+    (stored,) = json.loads(CliRunner().invoke(main, ["report", "results.h5", "--json"]).stdout)["runs"]
+    band = stored["distribution"]
+    assert set(band["cdf_lower"]) == {0.0} and set(band["cdf_upper"]) == {1.0}
+    assert all(q["lower"] is None and q["upper"] is None for q in band["quantiles"])
     assert all(q["lower"] is None and q["upper"] is None for q in shown["distribution"]["quantiles"]), shown
     run = CliRunner().invoke(main, ["mlmc", "--study", "results.h5", "--tol-cdf", "0.1", "--thresholds", "0:100:3",
                                     "--workers", "1"])

@@ -395,6 +395,8 @@ def test_a_run_its_budget_stops_before_its_bias_is_estimated_is_told_to_raise_th
     # "MC/MLMC 26 predicted" compared MC to the tolerance with a run that stopped short of it.
     assert "  plain MC: " in result.stdout and not re.search(r"MC/MLMC [0-9]", result.stdout), result.stdout
     assert "ref-s predicted (no MC/MLMC ratio: the run stopped at --max-cost)" in result.stdout
+    stored = json.loads(run("report", str(tiny.parent / "results.h5"), "--json").stdout)["runs"]
+    assert [entry["work_ratio"] for entry in stored if entry["stop_reason"] == "max_cost"] == [None], stored
     last = result.stderr.strip().splitlines()[-1]
     assert last.startswith("tolerance not met (max_cost): the run reached --max-cost before its bias was estimated; "
                            "raise --max-cost (or estimation.max_cost) or lower estimation.initial_samples"), last

@@ -173,6 +173,7 @@ __all__ = [
     "BANDWIDTH_TOO_WIDE",
     "BANDWIDTH_SPREAD_LIMIT",
     "DEFAULT_PROBABILITIES",
+    "NO_ERROR_BAND",
     "cdf_from_samples",
     "cdf_level_term",
     "isotonic",
@@ -190,6 +191,9 @@ THRESHOLDS_MISS_SAMPLES = "thresholds_miss_samples"
 #: ``stop_reason`` of a CDF estimate whose finest bandwidth exceeds the spread of the values there (module
 #: docstring, "A bandwidth wider than the distribution"): its smoothing bias is not estimated.
 BANDWIDTH_TOO_WIDE = "bandwidth_too_wide"
+
+#: The ``stop_reason`` of estimates without an error band (:attr:`CdfEstimate.has_error_band`).
+NO_ERROR_BAND = (THRESHOLDS_MISS_SAMPLES, BANDWIDTH_TOO_WIDE)
 
 #: Quantiles reported by default: the 5 %, 50 % and 95 % points.
 DEFAULT_PROBABILITIES = (0.05, 0.5, 0.95)
@@ -492,7 +496,7 @@ class CdfEstimate:
         (its variance unmeasured) or the bandwidth is too wide (the smoothing bias, known to be large, not
         estimated). A run stopped before its bias, or one level of given samples, has the band of its
         statistical error, as a mean estimate without a bias has its statistical error."""
-        return self.stop_reason not in (THRESHOLDS_MISS_SAMPLES, BANDWIDTH_TOO_WIDE)
+        return self.stop_reason not in NO_ERROR_BAND
 
     @property
     def tol_met(self) -> bool:

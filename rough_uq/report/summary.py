@@ -74,7 +74,9 @@ import numpy as np
 from rich.markup import escape
 
 from rough_uq.errors import PLANNED_COUNT_CAP
-from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, DEFAULT_PROBABILITIES, THRESHOLDS_MISS_SAMPLES
+from rough_uq.multilevel.distribution import (
+    BANDWIDTH_TOO_WIDE, DEFAULT_PROBABILITIES, NO_ERROR_BAND, THRESHOLDS_MISS_SAMPLES,
+)
 from rough_uq.multilevel.rates import EXACT_RATE, RATE_FLOOR
 from rough_uq.multilevel.statistics import (
     CONSISTENCY_CHECK_SAMPLES, FEWEST_VARIANCE_SAMPLES, KURTOSIS_LIMIT, SAMPLE_KURTOSIS_CHECK_SAMPLES,
@@ -238,9 +240,13 @@ class ReportedRun:
         """The run as ``roughuq report --json`` lists it: ``run_id``, the stored record, the derived ratios."""
         data = {"run_id": self.record.run_id, **self.record.to_json()}
         if self.record.is_finished:
-            data["work_ratio"] = self.record.outcome.work_ratio
-            if not is_rmse_measured(self.record.outcome):
+            outcome = self.record.outcome
+            # A run that --max-cost stopped short of its tolerance is no measure of MLMC against MC (format_run).
+            data["work_ratio"] = None if outcome.stop_reason == "max_cost" else outcome.work_ratio
+            if not is_rmse_measured(outcome):
                 data["rmse"] = None  # the stored value rests on variances of 0: not an error
+            if data.get("distribution") is not None and not has_error_band(outcome):
+                _open_band(data["distribution"])
         if self.mc_cost_measured is not None:
             data["mc_seconds_measured"] = self.mc_seconds_measured
             data["mc_cost_measured"] = self.mc_cost_measured
@@ -674,7 +680,7 @@ def has_error_band(outcome: Any) -> bool:
     (:attr:`~rough_uq.multilevel.distribution.CdfEstimate.has_error_band`): not where the thresholds miss a
     level's samples or the bandwidth is too wide (its band, the statistical error's, ignores a smoothing bias
     known to be large; files written before 2026-11-28 stored finite quantile bars from it)."""
-    return outcome.stop_reason not in (THRESHOLDS_MISS_SAMPLES, BANDWIDTH_TOO_WIDE)
+    return outcome.stop_reason not in NO_ERROR_BAND
 
 
 def _cdf_lines(outcome: Any, tol: float, units: dict[str, str]) -> list[str]:
@@ -792,6 +798,16 @@ def _screening_table(stats: Any, q: int, name: str, unit: str | None, *, legend:
             _g(stats.kurtosis[i][q]), _check_cell(stats, i, q),
         )
     return table
+
+
+def _open_band(distribution: dict[str, Any]) -> None:
+    """The JSON of a CDF without an error band (:func:`has_error_band`): the band ``[0, 1]`` at every threshold
+    and open quantile bars, as :func:`~rough_uq.multilevel.distribution.quantiles` gives them now (files written
+    before 2026-11-28 stored the statistical error's band)."""
+    size = len(distribution["thresholds"])
+    distribution["cdf_lower"], distribution["cdf_upper"] = [0.0] * size, [1.0] * size
+    for quantile in distribution["quantiles"]:
+        quantile["lower"] = quantile["upper"] = None
 
 
 def _shard_text(path: str, *, is_running: bool) -> str:
