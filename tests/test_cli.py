@@ -368,9 +368,9 @@ def test_a_shard_still_under_its_temporary_name_says_it_is_incomplete(screened):
 
     _sample(out="shard.h5")
     shutil.copy("shard.h5", "shard.h5.partial-4242")
-    left = [line for line in run("report", "shard.h5.partial-4242").stdout.splitlines() if " shard " in line]
-    assert left == ["an incomplete shard (left by process 4242, which was stopped before it finished; the next run "
-                    "of that shard removes it): `roughuq sample` renames it shard.h5 once complete; merge that file"]
+    left = [line for line in run("report", "shard.h5.partial-4242").stdout.splitlines() if "incomplete" in line]
+    assert left == ["an incomplete shard, left by process 4242, which was stopped before it finished: run its "
+                    "`roughuq sample ... --out shard.h5` again (which removes this file), then merge shard.h5"]
     fd = _acquire_lock(screened / "shard.h5.partial-4242")  # as its writer holds it
     try:
         text = run("report", "shard.h5.partial-4242").stdout

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,6 +12,8 @@ import yaml
 from click.testing import CliRunner
 
 from rough_uq.cli import main
+from rough_uq.report.summary import read_report, run_label
+from rough_uq.study.records import read_run_records
 from rough_uq.study.store import open_study_readonly
 from tests.study_configs import tiny_config, write_config
 
@@ -192,6 +195,10 @@ def test_the_cdf_column_of_a_load_curve_takes_the_load_written_as_tol_takes_it(t
                                            "--thresholds", "99:101:5", "--workers", "1", "--json", "-q"])
         assert result.exit_code in (0, 3), (result.output, result.exception)
         assert json.loads(result.stdout)["distribution"]["column"] == "contact_area@5.0"
+    assert len(read_report("results.h5")["runs"]) == 1  # one run: the second command found the first one's
+    refused = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.3", "--qoi",
+                                        "contact_area@6", "--thresholds", "99:101:5"])
+    assert refused.exit_code == 2 and "--qoi: got 'contact_area@6'; allowed: one result column" in refused.stderr
 
 
 def test_cdf_runs_of_one_tolerance_with_other_thresholds_read_apart_in_the_report(tmp_path, monkeypatch):
@@ -206,6 +213,25 @@ def test_cdf_runs_of_one_tolerance_with_other_thresholds_read_apart_in_the_repor
     report = CliRunner().invoke(main, ["report", "results.h5"], terminal_width=200)
     warned = {line.split(": ")[1] for line in report.stdout.splitlines() if line.startswith("warning: cdf")}
     assert "cdf, tol contact_area=0.2, theta 0.5, thresholds 0 .. 100 (3)" in warned, warned
+    with open_study_readonly("results.h5") as stored:
+        labels = sorted(run_label(record, ["contact_area"]) for record in read_run_records(stored))
+    assert labels == ["cdf, tol contact_area=0.2, theta 0.5, thresholds 0 .. 100 (3)",
+                      "cdf, tol contact_area=0.2, theta 0.5, thresholds 20 .. 70 (51), p 0.1, 0.9"], labels
     assert all(label.startswith("cdf, tol contact_area=0.2, theta 0.5, thresholds ") for label in warned), warned
     cells = [line.strip() for line in report.stdout.splitlines() if line.strip().startswith("s ")]
     assert cells == ["s 0 .. 100", "s 20 .. 70"], cells
+
+
+def test_interrupted_cdf_runs_of_one_tolerance_read_apart(tmp_path, monkeypatch, ctrl_c_after_one_sample):
+    # Both read "cdf contact_area=0.2: interrupted; rerun the same command to resume": which command?
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    for thresholds in ("0:100:3", "20:70:51"):
+        run = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.2", "--thresholds",
+                                        thresholds, "--workers", "1", "-q"])
+        assert run.exit_code == 130, (run.output, run.exception)
+    report = CliRunner().invoke(main, ["report", "results.h5"], terminal_width=200).stdout
+    heads = sorted(line for line in report.splitlines() if line.endswith("interrupted; rerun the same command to "
+                                                                           "resume"))
+    assert len(heads) == 2 and heads[0] != heads[1], heads
+    assert all(re.fullmatch(r"cdf contact_area=0\.2, request [0-9a-f]{8}: interrupted; .*", head) for head in heads)

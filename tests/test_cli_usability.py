@@ -1529,6 +1529,7 @@ def test_merge_calls_a_missing_or_damaged_shard_a_shard(screened):
     (("sample", "--study", "new.h5", "--stage", "screening", "--level", "0", "--indices", "0:2", "--out", "s.h5"),
      "--study"),
     (("drop", "x", "--study", "new.h5"), "--study"),
+    (("show", "--study", "new.h5", "--level", "0", "--index", "0", "--out", "x.png"), "--study"),
 ])
 def test_a_missing_study_file_is_named_with_the_options_the_command_has(screened, command, option):
     # merge, sample, show and drop said "... with --study or --config"; merge has --into, the others no --config.

@@ -540,6 +540,7 @@ def format_run(run: RunRecord, qoi_names: Sequence[str], units: dict[str, str], 
     head = f"{_method_text(run)}{level + ',' if level else ''} {tol_text(qoi_names, run.tol)}{theta}"
     outcome = run.outcome
     if run.status != "finished" or outcome is None:
+        head += _cdf_request_text(run)  # cdf runs of one tolerance with other thresholds (finished: their F line)
         if run.status == "running":
             return [f"{head}: running (another process is computing it)"]
         if run.status == "refused":
@@ -817,10 +818,11 @@ def _shard_text(path: str, *, is_running: bool) -> str:
     if not (separator and pid.isdigit()):
         return ("a shard of samples (written by `roughuq sample`): add them to their study with `roughuq merge "
                 f"--into STUDY {escape(shlex.quote(path))}`")
-    state = ("being written by process " + pid) if is_running else (
-        f"left by process {pid}, which was stopped before it finished; the next run of that shard removes it")
-    return (f"an incomplete shard ({state}): `roughuq sample` renames it {escape(name)} once complete; merge that "
-            "file")
+    if is_running:
+        return (f"an incomplete shard (being written by process {pid}): `roughuq sample` renames it {escape(name)} "
+                "once complete; merge that file")
+    return (f"an incomplete shard, left by process {pid}, which was stopped before it finished: run its `roughuq "
+            f"sample ... --out {escape(name)}` again (which removes this file), then merge {escape(name)}")
 
 
 def _check_cell(stats: Any, i: int, q: int) -> str:

@@ -1731,14 +1731,13 @@ def cdf_request(
     names = config.qoi_names
     if column is None and len(names) == 1:
         column = names[0]
-    if column is not None:
-        column = column_of_load(column, names)
+    given, column = column, None if column is None else column_of_load(column, names)
     if column is None:  # it read "--qoi: got None"
         columns = ", ".join(names)
         raise InvalidParameterError("--qoi", None, f"one result column of this study: {columns}",
                                     text=f"--qoi: this study has several result columns; name one of {columns}")
-    if column not in names:
-        raise InvalidParameterError("--qoi", column, f"one result column of this study: {', '.join(names)}")
+    if column not in names:  # as typed: "contact_area@6", not the "contact_area@6.0" it was compared as
+        raise InvalidParameterError("--qoi", given, f"one result column of this study: {', '.join(names)}")
     settings = config.estimation.distribution.get(_qoi_of(config, column))
     if thresholds is None and (settings is None or settings.thresholds is None):
         raise InvalidParameterError(
