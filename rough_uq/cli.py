@@ -1210,7 +1210,7 @@ def _what_to_change(outcome: Any, option: str = "--tol") -> str:
                 "grid.max_level")
     if reason == "max_level":
         # Variance and cdf runs need no screening.
-        where = "screen a new study" if option == "--tol" else "use a study"
+        where = "screen a new study" if option == "--tol" else "run it on a new study (no screening needed)"
         return (f"the bias needs a grid finer than grid.max_level; loosen {option}, or {where} with a larger "
                 "grid.max_level")
     return f"loosen {option}, raise --max-cost, or use a study with a larger grid.max_level"
@@ -1421,7 +1421,9 @@ def merge(shards: Sequence[str], study_path: str, quiet: bool) -> None:
     click.echo(f"{study_path}: added {_counted(counts['added'], 'sample')} from {_counted(len(shards), 'shard')}")
     if counts["duplicates"]:
         click.echo(f"warning: skipped {_counted(counts['duplicates'], 'sample')} already in the study", err=True)
-    for path in () if quiet else counts["studies"]:
+    if quiet:
+        return
+    for path in counts["studies"]:
         click.echo(f"note: {path} is a study file, not a shard: only its samples are merged (the new ones added), "
                    "not its screening or runs", err=True)
 

@@ -561,5 +561,6 @@ def test_a_variance_or_cdf_run_at_max_level_is_not_told_to_screen():
     outcome = SimpleNamespace(stop_reason="max_level", is_bias_estimated=True, diagnostics=())
     assert _what_to_change(outcome, "--tol").endswith("or screen a new study with a larger grid.max_level")
     for option in ("--tol-var", "--tol-cdf"):
-        expected = f"the bias needs a grid finer than grid.max_level; loosen {option}, or use a study with a larger "
+        expected = (f"the bias needs a grid finer than grid.max_level; loosen {option}, or run it on a new study (no "
+                    "screening needed) with a larger ")
         assert _what_to_change(outcome, option) == expected + "grid.max_level"

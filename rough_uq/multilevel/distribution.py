@@ -142,7 +142,10 @@ the band leaves the grid). To first order ``(upper - lower) / 2 = rmse /
 f(q_p)``, the delta-method error. The linear interpolation between
 thresholds is not part of the error bar: choose a grid whose spacing is well
 below it (a distribution with atoms, e.g. a deterministic ``Q``, shows the
-interpolation alone).
+interpolation alone). An estimate without an error band
+(:data:`NO_ERROR_BAND`: the thresholds miss a level's samples, or the
+bandwidth is too wide, whose smoothing bias is known to be large and not
+estimated) has open error bars, ``-inf`` to ``+inf``.
 """
 
 from __future__ import annotations

@@ -44,7 +44,7 @@ from rough_uq.errors import InvalidParameterError, RoughUQError, is_integer
 from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
-from rough_uq.problem.columns import split_column
+from rough_uq.problem.columns import split_column, tol_number
 from rough_uq.report.summary import has_error_band, is_rmse_measured, run_label, tol_text
 from rough_uq.multilevel.rates import EXACT_RATE
 from rough_uq.study.records import RunRecord, ScreeningRecord, is_bias_decaying
@@ -500,11 +500,11 @@ def _cdf_figure(runs: Sequence[RunRecord], column: str, unit: str | None, path: 
         if is_band:
             ax.fill_between(s, distribution.cdf_lower, distribution.cdf_upper, color=colour, alpha=0.25,
                             linewidth=0, step=None)
-            label = f"MLMC, tol {run.tol[0]:g}: sup RMSE {run.outcome.rmse[0]:.2g} (band)"
+            label = f"MLMC, tol {tol_number(run.tol[0])}: sup RMSE {run.outcome.rmse[0]:.2g} (band)"
         elif not is_rmse_measured(run.outcome):  # the thresholds miss a level's samples: variance not measured
-            label = f"MLMC, tol {run.tol[0]:g}: RMSE not measured (thresholds miss samples)"
+            label = f"MLMC, tol {tol_number(run.tol[0])}: RMSE not measured (thresholds miss samples)"
         else:  # the bandwidth is too wide: the band, the statistical error's, ignores a large smoothing bias
-            label = f"MLMC, tol {run.tol[0]:g}: no band (smoothing bias not estimated)"
+            label = f"MLMC, tol {tol_number(run.tol[0])}: no band (smoothing bias not estimated)"
         ax.plot(s, distribution.cdf, "-", color=colour, label=label)
         for quantile in distribution.quantiles:
             if quantile.value is None:

@@ -482,9 +482,10 @@ def run_label(run: RunRecord, qoi_names: Sequence[str]) -> str:
 
     Method (``mlmc (Richardson)`` for an extrapolated run), the level of an
     ``mc --level`` run (not that an ``mc --tol`` run chose), tolerances
-    (:func:`tol_text`) and ``theta``: what its run id is made of
-    (:func:`~rough_uq.problem.runs.run_id`), so distinct runs have distinct
-    labels, in a fraction of the id's length. The id itself is in ``roughuq
+    (:func:`tol_text`), ``theta`` and, for a cdf run, its thresholds (and
+    probabilities other than the default; :func:`_cdf_request_text`): what
+    its run id is made of (:func:`~rough_uq.problem.runs.run_id`), so
+    distinct runs have distinct labels, in a fraction of the id's length. The id itself is in ``roughuq
     report``'s ``samples stored`` line and in its ``--json`` (``run_id``),
     for ``roughuq drop`` and ``roughuq show --stage``.
     """

@@ -93,7 +93,7 @@ from rough_uq.study.records import (
     read_screening_record,
     utc_timestamp,
 )
-from rough_uq.problem.columns import column_of_load, tol_text
+from rough_uq.problem.columns import column_of_load, tol_number, tol_text
 from rough_uq.problem.contact import ContactProblem
 from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
 from rough_uq.multilevel.distribution import cdf_level_term, quantiles
@@ -1908,7 +1908,7 @@ def run_target(
     )
     title = f"{target} {tol_text(names, tol)}"
     option = _TARGET_OPTIONS[target]
-    given = tol_text(names, tol) if target == "variance" else f"{tol[0]:g}"
+    given = tol_text(names, tol) if target == "variance" else tol_number(tol[0])
     with _run_recorded(study, record, earlier, clock) as record, _naming_options(f"{option} {given}", option):
         result, diagnostics = _follow_target(study, target, tol, sampler, progress, title, max_cost, request)
     outcome = _target_outcome(study, target=target, sampler=sampler, result=result, request=request,
@@ -2335,14 +2335,10 @@ def _read_shards(study: Study, shards: Sequence[str | Path]) -> tuple[list[Level
 
 
 def _open_shard(path: str | Path) -> StudyFile:
-    """A shard for reading; a missing or unreadable one refused as a shard (it was called a study file, whose
-    remedy, "start a new study file", is not a shard's)."""
+    """A shard for reading; a missing one refused as a shard (it was called a study file)."""
     if not Path(checked_path("shard", path)).exists():
         raise StudyFileError(f"{path}: no such shard file (`roughuq sample --out` writes one)", Path(path))
-    try:
-        return open_study_readonly(path)
-    except StudyFileError as exc:
-        raise StudyFileError(str(exc).replace("or start a new study file", _SHARD_REMEDY), Path(path)) from None
+    return open_study_readonly(path)  # a damaged shard's remedy: merge_shards
 
 
 #: What to do with a damaged shard, where a study's remedy says "start a new study file".
