@@ -329,7 +329,7 @@ def test_a_shard_written_meanwhile_under_the_same_out_is_not_replaced(screened, 
 def test_a_clashing_shard_is_kept_without_replacing_a_file_and_without_hard_links_too(screened):
     # The kept name was written with os.replace, over a file of that name; and every OSError of os.link fell
     # back to a rename (an EIO or a vanished file became a traceback or a silent replace).
-    from rough_uq.study.pipeline import _publish_shard
+    from rough_uq.study.pipeline.shards import _publish_shard
 
     for name, content in (("out.h5", "another job's"), (f"out.{os.getpid()}.h5", "the user's")):
         Path(name).write_text(content)

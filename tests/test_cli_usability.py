@@ -179,9 +179,9 @@ def test_a_max_cost_that_is_no_budget_is_refused_before_anything_is_printed(scre
 
 
 def test_a_plan_beyond_any_budget_is_refused(screened, monkeypatch):
-    import rough_uq.study.pipeline as pipeline
+    from rough_uq.study.pipeline import planning
 
-    monkeypatch.setattr(pipeline, "DEFAULT_COST_CEILING", 1e-9)
+    monkeypatch.setattr(planning, "DEFAULT_COST_CEILING", 1e-9)
     result = run("mc", "--tol", "5", "--workers", "1", expect=2)
     assert "ceiling" in one_error_line(result) and "--max-cost" in result.stderr
     run("mc", "--tol", "5", "--workers", "1", "--max-cost", "1e6", "--quiet")  # an explicit budget allows it

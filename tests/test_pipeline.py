@@ -18,7 +18,6 @@ from rough_uq.multilevel.rates import EXACT_RATE
 from rough_uq.study.pipeline import (
     Study,
     StudySampler,
-    _events,
     build_model,
     check_target_budget,
     create_study,
@@ -34,6 +33,7 @@ from rough_uq.study.pipeline import (
     run_sweep,
     run_target,
 )
+from rough_uq.study.pipeline.estimation import _events
 from rough_uq.study.progress import Progress
 from rough_uq.study.records import read_run_records, read_screening_record
 from rough_uq.problem.sampler import STAGE_SCREENING, compute_batch, is_coupled_stage, modelled_cost, run_stage
@@ -73,7 +73,7 @@ def test_a_run_from_a_screening_whose_bias_grows_is_refused_without_a_forecast()
 
 def test_a_forecast_capped_at_the_largest_count_is_refused_as_needing_more():
     # "needs about 4.5e+15 samples": the planners' cap, not the need (PlanTooLargeError says "more than").
-    from rough_uq.study.pipeline import _check_budget
+    from rough_uq.study.pipeline.planning import _check_budget
     from rough_uq.study.records import Forecast
 
     def forecast(counts):
@@ -182,11 +182,11 @@ def test_the_model_of_a_config_file_names_the_file_in_its_refusal():
 
 
 def test_a_study_created_with_its_model_does_not_build_it_again(tmp_path, monkeypatch):
-    import rough_uq.study.pipeline as pipeline
+    from rough_uq.study.pipeline import studies
 
     config = config_from_dict(tiny_config())
     model = build_model(config)
-    monkeypatch.setattr(pipeline, "build_model", lambda config: pytest.fail("built again"))
+    monkeypatch.setattr(studies, "build_model", lambda config: pytest.fail("built again"))
     with create_study(config, tmp_path / "s.h5", model=model) as study:
         assert study.model is model
 
@@ -350,9 +350,10 @@ def _raising(failure: BaseException):
 
 
 def test_a_rerun_that_fails_leaves_the_finished_record_as_it_was(monkeypatch):
-    from rough_uq.study import pipeline
+    from rough_uq.study.pipeline import estimation, target_runs
 
     study = _screened()
+    modules = {"_follow": estimation, "_follow_target": target_runs}
     runs = {
         "_follow": lambda: run_estimation(study, method="mlmc", tol=np.array([2.0]), executor=SerialExecutor(),
                                           progress=QUIET),
@@ -363,7 +364,7 @@ def test_a_rerun_that_fails_leaves_the_finished_record_as_it_was(monkeypatch):
         finished = run()
         for failure in (RuntimeError("a crash"), KeyboardInterrupt(), EstimationError("refused")):
             with monkeypatch.context() as patch:
-                patch.setattr(pipeline, driver, _raising(failure))
+                patch.setattr(modules[driver], driver, _raising(failure))
                 with pytest.raises(type(failure)):
                     run()
             (stored,) = [record for record in read_run_records(study.store) if record.run_id == finished.run_id]
@@ -450,15 +451,15 @@ def test_a_run_stopped_by_any_failure_is_recorded_interrupted_and_the_failure_ke
 
 
 def test_a_mean_run_the_estimator_refuses_is_recorded_as_refused(monkeypatch):
-    import rough_uq.study.pipeline as pipeline
     from rough_uq.errors import EstimationError
+    from rough_uq.study.pipeline import estimation
 
     def refusing(*args, **kwargs):
         raise EstimationError("a plan of 2e+11 samples, more than max_samples = 10000000: loosen the tolerance")
         yield
 
     study = _screened()
-    monkeypatch.setattr(pipeline, "iter_mlmc", refusing)
+    monkeypatch.setattr(estimation, "iter_mlmc", refusing)
     with pytest.raises(EstimationError, match="max_samples"):
         run_estimation(study, method="mlmc", tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
     (run,) = read_run_records(study.store)
@@ -469,8 +470,8 @@ def test_a_mean_run_the_estimator_refuses_is_recorded_as_refused(monkeypatch):
 def test_a_run_refuses_a_plan_beyond_any_budget_that_its_own_samples_make(monkeypatch, method):
     # The forecast checks the first plan only: on a study in full contact (a mean gap at rounding level), mc --tol
     # at a tolerance the screening called cheap re-planned 2.7e7 samples from its own and began to draw them.
-    import rough_uq.study.pipeline as pipeline
     from rough_uq.multilevel.drivers import PlanUpdated
+    from rough_uq.study.pipeline import estimation
 
     drawn = []
 
@@ -482,7 +483,7 @@ def test_a_run_refuses_a_plan_beyond_any_budget_that_its_own_samples_make(monkey
         drawn.append(True)
 
     study = _screened()
-    monkeypatch.setattr(pipeline, "iter_mlmc" if method == "mlmc" else "iter_mc", replanning)
+    monkeypatch.setattr(estimation, "iter_mlmc" if method == "mlmc" else "iter_mc", replanning)
     with pytest.raises(PlanTooLargeError, match=r"--tol contact_area=1 needs about 2\.7e\+07 samples .*loosen --tol"):
         run_estimation(study, method=method, tol=np.array([1.0]), executor=SerialExecutor(), progress=QUIET)
     assert not drawn
@@ -517,13 +518,13 @@ def test_a_target_run_refused_on_the_way_names_the_option_the_user_gave():
 
 def test_a_target_run_passes_on_other_refusals_of_the_driver_as_they_are(monkeypatch):
     # Only the driver's PlanTooLargeError is reworded; a message that merely reads like one is not parsed.
-    import rough_uq.study.pipeline as pipeline
+    from rough_uq.study.pipeline import target_runs
 
     def refusing(*args, **kwargs):
         raise EstimationError("tol 1e-06 needs about 3 samples: loosen the tolerance")
 
     study = _study()
-    monkeypatch.setattr(pipeline, "estimate_target", refusing)
+    monkeypatch.setattr(target_runs, "estimate_target", refusing)
     with pytest.raises(EstimationError) as info:
         run_target(study, target="variance", tol=np.array([1e-6]), executor=SerialExecutor(), progress=QUIET)
     assert str(info.value) == "tol 1e-06 needs about 3 samples: loosen the tolerance"
@@ -578,15 +579,17 @@ def test_a_target_run_that_its_budget_stops_before_the_bias_is_estimated_does_no
 def test_a_study_builds_its_model_once(tmp_path, monkeypatch):
     # The spectrum's set-up grows like k_s^2 (seconds at k_s in the thousands); create_study built the model
     # twice and a target run's budget check a third time.
-    import rough_uq.study.pipeline as pipeline
+    from rough_uq.study.pipeline import planning, studies
 
     calls = []
-    real = pipeline.build_model
-    monkeypatch.setattr(pipeline, "build_model", lambda config, **named: calls.append(1) or real(config, **named))
+    real = studies.build_model
+    counting = lambda config, **named: calls.append(1) or real(config, **named)  # noqa: E731
+    monkeypatch.setattr(studies, "build_model", counting)
+    monkeypatch.setattr(planning, "build_model", counting)  # the budget check's
     config = config_from_dict(tiny_config())
-    with pipeline.create_study(config, tmp_path / "s.h5") as study:
+    with create_study(config, tmp_path / "s.h5") as study:
         assert len(calls) == 1
-        pipeline.check_target_budget(study.config, max_cost=1e6, model=study.model)
+        check_target_budget(study.config, max_cost=1e6, model=study.model)
         assert len(calls) == 1
 
 
@@ -612,13 +615,13 @@ def test_a_plain_mc_run_stopped_by_its_budget_is_not_said_to_miss_bias_levels():
 
 
 def test_a_target_run_passes_other_refusals_on_as_they_are(monkeypatch):
-    import rough_uq.study.pipeline as pipeline
+    from rough_uq.study.pipeline import target_runs
 
     def refusing(*args, **kwargs):
         raise EstimationError("sampler returned a negative or non-finite cost on level 1")
 
     study = _study()
-    monkeypatch.setattr(pipeline, "estimate_target", refusing)
+    monkeypatch.setattr(target_runs, "estimate_target", refusing)
     with pytest.raises(EstimationError, match="^sampler returned a negative or non-finite cost on level 1$"):
         run_target(study, target="variance", tol=np.array([60.0]), executor=SerialExecutor(), progress=QUIET)
 
@@ -948,13 +951,13 @@ def test_a_study_too_shallow_to_screen_is_refused_before_any_sample_naming_grid_
 
 
 def test_screening_without_decaying_bias_keeps_its_table_and_says_why(monkeypatch):
-    import rough_uq.study.pipeline as pipeline
     from rough_uq.errors import InvalidParameterError as Invalid
+    from rough_uq.study.pipeline import screening
 
     def no_decay(**kwargs):
         raise Invalid("alpha", -0.9, "alpha > 0: the bias does not decay with the level")
 
-    monkeypatch.setattr(pipeline, "plan", no_decay)
+    monkeypatch.setattr(screening, "plan", no_decay)
     outcome = run_screening(_study(), executor=SerialExecutor(), progress=QUIET)
     assert outcome.record.predictions == ()
     (why,) = [d for d in outcome.record.diagnostics if d.kind == "prediction"]
@@ -1006,16 +1009,16 @@ def test_the_stored_warnings_of_a_run_name_the_qois():
 
 def test_a_variance_run_names_the_columns_of_its_warnings(monkeypatch):
     # A negative variance estimate of a study's --tol-var run was stored as "variance of QoI [0]: ...".
-    import rough_uq.study.pipeline as pipeline
+    from rough_uq.study.pipeline import target_runs
 
     seen = []
-    real = pipeline.estimate_target
+    real = target_runs.estimate_target
 
     def spy(*args, **kwargs):
         seen.append(kwargs.get("qoi_names"))
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(pipeline, "estimate_target", spy)
+    monkeypatch.setattr(target_runs, "estimate_target", spy)
     study = _study()
     run_target(study, target="variance", tol=np.array([60.0]), executor=SerialExecutor(), progress=QUIET,
                max_cost=1.01 * _initial_cost_floor(study))
@@ -1024,7 +1027,7 @@ def test_a_variance_run_names_the_columns_of_its_warnings(monkeypatch):
 
 def test_the_screening_checks_name_the_qois(monkeypatch):
     # The coupling warning of a five-QoI screening said "for QoI [4]": the screening passed no names.
-    import rough_uq.study.pipeline as pipeline
+    from rough_uq.study.pipeline import screening
 
     seen = []
 
@@ -1032,7 +1035,7 @@ def test_the_screening_checks_name_the_qois(monkeypatch):
         seen.append(options.get("names"))
         return ()
 
-    monkeypatch.setattr(pipeline, "diagnose", recording)
+    monkeypatch.setattr(screening, "diagnose", recording)
     study = _study(qoi={"contact_area": {"unit": "percent", "tol": 2.0}, "mean_gap": {"tol": 0.1}})
     run_screening(study, executor=SerialExecutor(), progress=QUIET)
     assert seen == [study.config.qoi_names] and len(study.config.qoi_names) == 2
