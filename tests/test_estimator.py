@@ -709,6 +709,13 @@ def test_the_drift_of_the_local_ratio_counts_beyond_half_its_standard_error():
     assert local_only < richardson_bias(means, alpha, errors(1.02))[0] < exact
 
 
+def test_richardson_bias_of_one_level_names_the_shape_it_got():
+    with pytest.raises(EstimationError, match=r"two levels >= 1 .* got shape \(1, 1\)"):
+        richardson_bias(np.array([[0.5]]), np.array([1.0]))
+    with pytest.raises(EstimationError, match=r"got shape \(3,\)"):
+        richardson_bias(np.array([1.0, 0.5, 0.25]), np.array([1.0]))
+
+
 @pytest.mark.parametrize("means, errors", [
     ([1e-310, 1.0, 0.5], None),  # the third-finest mean as a divisor: overflow
     ([1.0, 1e-200, 1e-201], [0.01] * 3),  # relative errors of 1e198 squared: overflow

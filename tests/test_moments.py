@@ -432,7 +432,8 @@ def test_too_few_samples_and_bad_shapes_are_refused():
 def test_telescope_refuses_mismatched_terms():
     a = LevelTerm(mean=np.zeros(2), variance=np.zeros(2), n_samples=4, groups=np.arange(2))
     b = LevelTerm(mean=np.zeros(3), variance=np.zeros(3), n_samples=4, groups=np.arange(3))
-    with pytest.raises(EstimationError, match="different components"):
+    with pytest.raises(EstimationError, match=r"different components: term 1 has means of shape \(3,\) and groups "
+                                              r"\[0, 1, 2\], term 0 \(2,\) and \[0, 1\]"):
         telescope([a, b])
     with pytest.raises(EstimationError, match="at least one level"):
         telescope([])

@@ -629,12 +629,17 @@ def test_invalid_input_is_refused():
         level_statistics(fine=[[1.0, 2.0]], coarse=[[1.0, 1.0]], cost=[[1.0, 1.0]])
     with pytest.raises(EstimationError, match="do not match"):
         level_statistics(fine=[[1.0, 2.0]], coarse=[[0.0, 0.0]], cost=[[1.0]])
-    with pytest.raises(EstimationError, match="non-finite"):
+    with pytest.raises(EstimationError, match=r"non-finite values \(the first: nan in sample 1, QoI 0\)"):
         level_statistics(fine=[[1.0, np.nan]], coarse=[[0.0, 0.0]], cost=[[1.0, 1.0]])
+    with pytest.raises(EstimationError, match=r"coarse of level 1 contains .* \(the first: -inf in sample 0, QoI 1\)"):
+        level_statistics(fine=[np.zeros((2, 2)), np.zeros((2, 2))], coarse=[np.zeros((2, 2)), [[0, -np.inf], [0, 0]]],
+                         cost=[[1.0, 1.0], [1.0, 1.0]])
     with pytest.raises(EstimationError, match="no samples"):
         level_statistics(fine=[[]], coarse=[[]], cost=[[]])
-    with pytest.raises(EstimationError, match="non-negative"):
+    with pytest.raises(EstimationError, match="non-negative, got -1.0 for sample 1"):
         level_statistics(fine=[[1.0, 2.0]], coarse=[[0.0, 0.0]], cost=[[1.0, -1.0]])
+    with pytest.raises(EstimationError, match="non-negative, got nan for sample 0"):
+        level_statistics(fine=[[1.0, 2.0]], coarse=[[0.0, 0.0]], cost=[[np.nan, 1.0]])
 
 
 # --------------------------------------------------------------------------

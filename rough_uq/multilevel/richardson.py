@@ -167,7 +167,10 @@ def richardson_bias(
     """
     mean_diff = np.asarray(mean_diff, dtype=float)
     if mean_diff.ndim != 2 or mean_diff.shape[0] < 2:
-        raise EstimationError("Richardson's remaining bias needs the means of two levels >= 1")
+        raise EstimationError(
+            f"Richardson's remaining bias needs the means of two levels >= 1 (an array of shape (levels, QoIs)), "
+            f"got shape {mean_diff.shape}"
+        )
     weight = richardson_weight(alpha)
     alpha = np.asarray(alpha, dtype=float)
     alpha2 = second_order_rate(alpha)

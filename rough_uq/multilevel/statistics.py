@@ -273,7 +273,11 @@ def _as_samples(values: object, *, name: str, level: int) -> np.ndarray:
     if array.ndim != 2:
         raise EstimationError(f"{name} of level {level} must have shape (n,) or (n, n_qoi), got {array.shape}")
     if not np.all(np.isfinite(array)):
-        raise EstimationError(f"{name} of level {level} contains non-finite values")
+        row, column = np.argwhere(~np.isfinite(array))[0]
+        raise EstimationError(
+            f"{name} of level {level} contains non-finite values (the first: {array[row, column]} in sample {row}, "
+            f"QoI {column}); every sample value must be finite"
+        )
     return array
 
 
@@ -492,7 +496,10 @@ def level_statistics(
             raise EstimationError(f"level {level} has {f.shape[1]} QoIs, the levels below have {n_qoi}")
         n_qoi = f.shape[1]
         if not np.all(np.isfinite(k)) or np.any(k < 0):
-            raise EstimationError(f"cost of level {level} must be finite and non-negative")
+            (bad,) = np.flatnonzero(~(np.isfinite(k) & (k >= 0)))[:1]
+            raise EstimationError(
+                f"cost of level {level} must be finite and non-negative, got {k[bad]} for sample {bad}"
+            )
         if level == 0 and np.any(c != 0):
             raise EstimationError("coarse values on level 0 must be zero (there is no coarser level)")
         if f.shape[0] < 2:

@@ -474,8 +474,12 @@ def telescope(
     if len(terms) == 0:
         raise EstimationError("telescope needs the term of at least one level")
     groups = terms[0].groups
-    if any(t.mean.shape != terms[0].mean.shape or not np.array_equal(t.groups, groups) for t in terms):
-        raise EstimationError("the level terms have different components")
+    for level, term in enumerate(terms):
+        if term.mean.shape != terms[0].mean.shape or not np.array_equal(term.groups, groups):
+            raise EstimationError(
+                f"the level terms have different components: term {level} has means of shape {term.mean.shape} "
+                f"and groups {term.groups.tolist()}, term 0 {terms[0].mean.shape} and {groups.tolist()}"
+            )
     means, variances, n_samples = _stack(terms)
     fitted_alpha, beta = _term_rates(means, variances, n_samples, groups)
     n_groups = terms[0].n_groups
