@@ -95,7 +95,7 @@ from rough_uq.study.records import (
     read_run_records,
     read_screening_record,
 )
-from rough_uq.study.store import FORMAT_VERSION, StudyStore, is_lock_held
+from rough_uq.study.store import FORMAT_VERSION, StudyStore, is_locked_by_running_process
 
 __all__ = [
     "MIN_ALPHA",
@@ -109,7 +109,6 @@ __all__ = [
     "render_load_curves",
     "derive_runs",
     "format_run",
-    "is_locked_by_running_process",
     "load_text",
     "render_report",
     "render_runs",
@@ -181,29 +180,6 @@ def _sample_counts(store: StudyStore, runs: Sequence[RunRecord]) -> dict[str, di
 
 def _not_converged(store: StudyStore) -> int:
     return count_not_converged(store.read_samples(level=level) for level in store.levels())
-
-
-def is_locked_by_running_process(path: str | Path) -> bool:
-    """Whether a live process holds the study's lock.
-
-    ``<file>.lock`` names its pid, see :mod:`rough_uq.study.store`; a live pid counts only while the lock is held
-    (:func:`~rough_uq.study.store.is_lock_held`): after a ``kill -9`` its pid may be another process's, and a dead
-    run read "running" for as long as that process lived.
-    """
-    lock = Path(str(path) + ".lock")
-    try:
-        pid = int(lock.read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return False
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        pass
-    return is_lock_held(path)
 
 
 @dataclass(frozen=True)

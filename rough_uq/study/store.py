@@ -178,6 +178,8 @@ __all__ = [
     "is_hdf5_file",
     "checked_study_path",
     "remove_abandoned",
+    "is_lock_held",
+    "is_locked_by_running_process",
     "shard_refusal",
 ]
 
@@ -751,6 +753,29 @@ def is_lock_held(path: str | Path) -> bool:
     finally:
         os.close(fd)  # closing releases a lock taken
     return False
+
+
+def is_locked_by_running_process(path: str | Path) -> bool:
+    """Whether a live process holds the study's lock.
+
+    ``<file>.lock`` names its holder's pid (:func:`_acquire_lock`); a live pid counts only while the lock is held
+    (:func:`is_lock_held`): after a ``kill -9`` its pid may be another process's, and a dead
+    run read "running" for as long as that process lived.
+    """
+    lock = _lock_path(Path(path))
+    try:
+        pid = int(lock.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return False
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    return is_lock_held(path)
 
 
 #: Tries, :data:`_LOCK_RETRY_SECONDS` apart, of a writer's exclusive lock before the file counts as locked.
