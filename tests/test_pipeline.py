@@ -152,7 +152,7 @@ REFUSED_LOADS = {
 @pytest.mark.parametrize(("load", "field", "text"), REFUSED_LOADS.values(), ids=REFUSED_LOADS.keys())
 def test_the_model_of_a_config_refuses_a_load_no_solve_takes(load, field, text):
     # build_model took them, and only the CLI checked them: a Python caller of create_study started a study of them.
-    from rough_uq.problem.contact import checked_mean_pressures
+    from rough_uq.problem.loads import checked_mean_pressures
 
     config = config_from_dict(tiny_config(load=load))
     with pytest.raises(InvalidParameterError) as caught:

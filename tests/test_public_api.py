@@ -305,7 +305,7 @@ def test_a_load_no_solve_takes_is_refused_when_the_problem_is_built(load, field,
 
 def test_the_load_range_is_the_solvers_less_the_margin_and_a_load_at_its_ends_is_solved():
     from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD
-    from rough_uq.problem.contact import LOAD_MARGIN
+    from rough_uq.problem.loads import LOAD_MARGIN
 
     lowest, highest = MIN_DIMENSIONLESS_LOAD * LOAD_MARGIN, MAX_DIMENSIONLESS_LOAD / LOAD_MARGIN
     for outside in (lowest / 1.001, highest * 1.001):

@@ -37,16 +37,25 @@ length unit (``"length"``), ``max_pressure`` in ``"pressure"``, the unit ``E*`` 
 of ``E*``: with ``e_star=210`` in GPa a maximum pressure of 35.8 is 35.8 GPa). Tolerances are in the
 same units. :func:`qoi_scale` is the factor from the raw value of
 :func:`~rough_uq.physics.qoi.evaluate_qoi` to the unit.
+
+Range of the loads
+------------------
+:func:`checked_mean_pressures` refuses, before any solve, a load whose dimensionless load ``mean_pressure *
+system_size / (e_star * rms_height)`` lies outside the solver's range (within :data:`LOAD_MARGIN`), and
+:func:`refuse_loads_beyond_rounding` one at which rounding alone keeps most solves from their tolerance;
+:class:`~rough_uq.problem.contact.ContactProblem` applies both when it is built.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError, is_real_number, scalar_refusal
+from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD, max_convergent_load
 from rough_uq.physics.surface import SurfaceSpectrum
 from rough_uq.problem.columns import LOAD_SEPARATOR, column_name, load_label
 
@@ -59,6 +68,9 @@ __all__ = [
     "load_sequence",
     "load_label",
     "column_names",
+    "LOAD_MARGIN",
+    "checked_mean_pressures",
+    "refuse_loads_beyond_rounding",
 ]
 
 #: Units each quantity of interest may be reported in; the first is the default.
@@ -210,3 +222,116 @@ def column_names(qoi_names: tuple[str, ...], load_values: tuple[float, ...]) -> 
         return tuple(qoi_names)
     return tuple(column_name(name, v) for name in qoi_names for v in load_values)
 
+
+#: Factor kept from each end of the solver's range of the dimensionless load
+#: (:data:`~rough_uq.physics.solver.MIN_DIMENSIONLESS_LOAD`, ``MAX_DIMENSIONLESS_LOAD``)
+#: when a problem's loads are checked with the spectrum's nominal RMS height.
+#: A solve divides by the RMS height of its own sample instead: a coarse grid
+#: misses the band above its Nyquist wave number, and a draw dominated by a
+#: few long-wavelength modes may be much rougher or smoother than the mean.
+#: No finite margin bounds that for every draw, but 1e10 is beyond any draw
+#: one will meet (even a surface of one random mode, whose variance is
+#: exponentially distributed, has a variance below 1e-20 of its mean with a
+#: probability of 1e-20), and it costs nothing: the range left, about
+#: [2e-298, 1e15], still takes every load a solve can converge at (full
+#: contact sets in below 2 pi k_s <= 2e5, and from some 1e8 times that load
+#: on no solve converges; :func:`refuse_loads_beyond_rounding` refuses those).
+LOAD_MARGIN = 1e10
+
+
+def checked_mean_pressures(
+    loads: Sequence[RelativeLoad | AbsoluteLoad], *, spectrum: SurfaceSpectrum, e_star: float, finest: int
+) -> tuple[float, ...]:
+    """The mean pressure of every load (unit of ``E*``), refused before any solve where a solve would refuse it.
+
+    A solve takes a mean pressure whose total over its nodes is a finite
+    float, and a dimensionless load ``mean_pressure * system_size / (e_star *
+    RMS height)`` in the range of :mod:`rough_uq.physics.solver`. Checked here
+    with the spectrum's nominal ``rms_height``, within :data:`LOAD_MARGIN` of
+    both ends, and on the ``finest`` grid (the most nodes).
+
+    Parameters
+    ----------
+    loads : sequence of RelativeLoad or AbsoluteLoad
+        One load, or the loads of a load curve in their order.
+    spectrum : SurfaceSpectrum
+    e_star : float
+        Effective modulus (finite, > 0).
+    finest : int
+        Nodes per side of the finest grid the problem may solve on.
+
+    Raises
+    ------
+    InvalidParameterError
+        Naming the load as a config does: ``load.relative`` or
+        ``load.absolute``, with the position in a load curve
+        (``load.relative.1``), the value, the allowed range and the
+        dimensionless load it gives.
+    """
+    lowest, highest = MIN_DIMENSIONLESS_LOAD * LOAD_MARGIN, MAX_DIMENSIONLESS_LOAD / LOAD_MARGIN
+    size, height = spectrum.system_size, spectrum.rms_height
+    pressures = []
+    for position, load in enumerate(loads):
+        name = _load_field(load, position, len(loads))
+        pressure = load.mean_pressure(spectrum=spectrum, e_star=e_star)
+        if not (pressure > 0 and math.isfinite(pressure * float(finest) ** 2)):
+            raise InvalidParameterError(
+                name, load.value, f"a load whose mean pressure (here {pressure:.3g}, unit of E*) is a float > 0 and "
+                f"whose total over the finest grid's {finest}^2 nodes is finite"
+            )
+        exponent = _load_exponent(pressure, spectrum, e_star)
+        if not math.log10(lowest) <= exponent <= math.log10(highest):
+            raise InvalidParameterError(
+                name, load.value, f"a dimensionless load mean_pressure * system_size / (e_star * rms_height) in "
+                f"[{lowest:.2g}, {highest:.2g}] (the solver's range within a margin of {LOAD_MARGIN:.0e} for a "
+                f"sample's RMS height); here it is {_power_of_ten(exponent)} (mean_pressure = "
+                f"{pressure:.3g}, system_size = {size:g}, e_star = {e_star:g}, rms_height = {height:g})"
+            )
+        pressures.append(pressure)
+    return tuple(pressures)
+
+
+def refuse_loads_beyond_rounding(
+    loads: Sequence[RelativeLoad | AbsoluteLoad], pressures: Sequence[float], *, spectrum: SurfaceSpectrum,
+    e_star: float, solver_tol: float,
+) -> None:
+    """Raise :class:`~rough_uq.errors.InvalidParameterError` for a load at which rounding keeps most solves from
+    reaching ``solver_tol``: a dimensionless load (with the nominal RMS height) above
+    :func:`~rough_uq.physics.solver.max_convergent_load`.
+
+    Such a load is many orders of magnitude beyond full contact (a unit taken for another, as a rule): most
+    solves would run ``max_iter`` iterations and be stored as not converged.
+    """
+    limit = math.log10(max_convergent_load(solver_tol))
+    for position, (load, pressure) in enumerate(zip(loads, pressures)):
+        exponent = _load_exponent(pressure, spectrum, e_star)
+        if exponent > limit:
+            raise InvalidParameterError(
+                _load_field(load, position, len(loads)), load.value,
+                f"a dimensionless load mean_pressure * system_size / (e_star * rms_height) at most "
+                f"{_power_of_ten(limit)} at solver tol {solver_tol:g}; here it is {_power_of_ten(exponent)}, where "
+                "the rounding of the pressures (about the load) alone keeps most solves from reaching the tolerance "
+                f"(full contact sets in at a load of order 2 pi k_s = {2 * math.pi * spectrum.k_s:.3g})"
+            )
+
+
+def _load_field(load: RelativeLoad | AbsoluteLoad, position: int, n_loads: int) -> str:
+    """The config field of a load: ``load.relative``, or ``load.relative.1`` in a load curve."""
+    name = "load." + ("relative" if isinstance(load, RelativeLoad) else "absolute")
+    return name + (f".{position}" if n_loads > 1 else "")
+
+
+def _load_exponent(pressure: float, spectrum: SurfaceSpectrum, e_star: float) -> float:
+    """``log10`` of the dimensionless load ``pressure L / (E* rms_height)`` (nominal RMS height), in logarithms:
+    the load itself may be beyond the float range."""
+    return (math.log10(pressure) + math.log10(spectrum.system_size) - math.log10(e_star)
+            - math.log10(spectrum.rms_height))
+
+
+def _power_of_ten(exponent: float) -> str:
+    """``10**exponent`` written with two significant digits, also beyond the float range (``3.2e+400``)."""
+    whole = math.floor(exponent)
+    mantissa = round(10 ** (exponent - whole), 1)
+    if mantissa >= 10:
+        mantissa, whole = mantissa / 10, whole + 1
+    return f"{mantissa:g}e{whole:+d}"

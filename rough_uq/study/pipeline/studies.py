@@ -59,7 +59,7 @@ def build_model(config: StudyConfig, *, source: str | None = None) -> ContactMod
     """The contact model (surface, load, solver, QoIs) of a study config, checked before any solve.
 
     Every load is checked as a :class:`~rough_uq.problem.contact.ContactProblem`
-    checks it (:func:`~rough_uq.problem.contact.checked_mean_pressures` on the
+    checks it (:func:`~rough_uq.problem.loads.checked_mean_pressures` on the
     finest grid, ``grid.max_level``): a mean pressure that overflows, or a
     dimensionless load outside the solver's range within a margin, is refused
     naming the config field (``load.relative``, ``load.absolute``, or
