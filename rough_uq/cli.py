@@ -1278,40 +1278,26 @@ def _print_plan(work: Any, as_json: bool, shard_size: int | None = None, resourc
 
 
 def _shards(work: Any, shard_size: int, resources: Any) -> list[dict[str, Any]]:
-    """The missing samples of ``work`` in shards of at most ``shard_size``: stage, level, indices ``A:B``, count.
+    """The shards of ``work`` (:meth:`~rough_uq.study.pipeline.WorkPlan.shards`): stage, level, indices ``A:B``, count.
 
     With ``resources``, also each shard's estimated wall seconds and peak MiB (rounded up), for batch
     systems' --time and --mem.
     """
     shards = []
-    for level, indices in work.missing.items():
-        for part in _ranges(indices):
-            start, stop = (int(x) for x in part.split(":"))
-            for first in range(start, stop, shard_size):
-                last = min(first + shard_size, stop)
-                shard = {"stage": int(work.stage), "level": int(level), "indices": f"{first}:{last}",
-                         "n_samples": last - first}
-                if resources is not None:
-                    shard["seconds"] = math.ceil(resources.seconds(level, last - first))
-                    shard["memory_mib"] = math.ceil(resources.memory_bytes[level] / 2**20)
-                shards.append(shard)
+    for level, first, last in work.shards(shard_size):
+        shard = {"stage": int(work.stage), "level": int(level), "indices": f"{first}:{last}", "n_samples": last - first}
+        if resources is not None:
+            shard["seconds"] = math.ceil(resources.seconds(level, last - first))
+            shard["memory_mib"] = math.ceil(resources.memory_bytes[level] / 2**20)
+        shards.append(shard)
     return shards
 
 
 def _ranges(indices: Any) -> list[str]:
     """Contiguous runs of sorted indices as ``A:B`` (half-open), the form `roughuq sample --indices` takes."""
-    out: list[str] = []
-    values = [int(i) for i in indices]
-    start = prev = None
-    for value in values + [None]:
-        if start is None:
-            start = prev = value
-        elif value is not None and value == prev + 1:
-            prev = value
-        else:
-            out.append(f"{start}:{prev + 1}")
-            start = prev = value
-    return out
+    from rough_uq.study.pipeline import index_ranges
+
+    return [f"{start}:{stop}" for start, stop in index_ranges(indices)]
 
 
 def _print_run(run: Any, report: dict[str, Any]) -> None:

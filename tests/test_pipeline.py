@@ -1039,3 +1039,24 @@ def test_the_screening_checks_name_the_qois(monkeypatch):
     study = _study(qoi={"contact_area": {"unit": "percent", "tol": 2.0}, "mean_gap": {"tol": 0.1}})
     run_screening(study, executor=SerialExecutor(), progress=QUIET)
     assert seen == [study.config.qoi_names] and len(study.config.qoi_names) == 2
+
+
+def test_index_ranges_and_shards_cover_the_missing_indices_exactly_once():
+    from rough_uq.study.pipeline import WorkPlan, index_ranges
+
+    rng = np.random.default_rng(44)
+    assert index_ranges([]) == [] and index_ranges([7]) == [(7, 8)]
+    assert index_ranges([0, 1, 2, 5, 6, 9]) == [(0, 3), (5, 7), (9, 10)]
+    for _ in range(200):
+        missing = {level: np.flatnonzero(rng.random(int(rng.integers(0, 60))) < rng.random())
+                   for level in range(int(rng.integers(1, 4)))}
+        for level, indices in missing.items():
+            ranges = index_ranges(indices)
+            assert np.array_equal(np.concatenate([np.arange(a, b) for a, b in ranges] or [[]]), indices)
+            assert all(b < c for (_, b), (c, _) in zip(ranges, ranges[1:]))  # runs are maximal and in order
+        size = int(rng.integers(1, 8))
+        shards = WorkPlan("run", 3, missing).shards(size)
+        assert all(0 < stop - start <= size for _, start, stop in shards)
+        for level, indices in missing.items():
+            covered = [i for lv, start, stop in shards if lv == level for i in range(start, stop)]
+            assert covered == indices.tolist()

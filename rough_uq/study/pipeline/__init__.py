@@ -43,7 +43,7 @@ from rough_uq.study.pipeline.screening import (
 from rough_uq.study.pipeline.planning import (
     MethodChoice, check_initial_samples, choose_method, forecast_run, parse_tolerances,
 )
-from rough_uq.study.pipeline.estimation import WorkPlan, missing_samples, run_estimation
+from rough_uq.study.pipeline.estimation import WorkPlan, index_ranges, missing_samples, run_estimation
 from rough_uq.study.pipeline.target_runs import (
     CdfRequest, cdf_request, check_target_budget, check_target_run, run_target, target_run_id,
 )
@@ -76,6 +76,7 @@ __all__ = [
     "screening_statistics",
     "missing_samples",
     "WorkPlan",
+    "index_ranges",
     "run_id",
     "compute_shard",
     "merge_shards",

@@ -66,6 +66,28 @@ class WorkPlan:
         """Total samples missing (0: the stored samples complete the run)."""
         return int(sum(indices.size for indices in self.missing.values()))
 
+    def shards(self, size: int) -> list[tuple[int, int, int]]:
+        """The missing samples as shards ``(level, start, stop)`` of at most ``size`` contiguous indices each.
+
+        Level by level, each contiguous run of missing indices (:func:`index_ranges`) cut into pieces of
+        ``size`` from its start: what one ``roughuq sample --level LEVEL --indices START:STOP`` computes.
+        """
+        return [(level, first, min(first + size, stop))
+                for level, indices in self.missing.items()
+                for start, stop in index_ranges(indices)
+                for first in range(start, stop, size)]
+
+
+def index_ranges(indices: Sequence[int] | np.ndarray) -> list[tuple[int, int]]:
+    """Contiguous runs of sorted ``indices`` as half-open ``(start, stop)`` pairs (``roughuq sample --indices``)."""
+    values = np.asarray(indices, dtype=np.int64).ravel()
+    if values.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(values) != 1) + 1
+    starts = values[np.concatenate(([0], breaks))]
+    stops = values[np.concatenate((breaks - 1, [values.size - 1]))] + 1
+    return [(int(start), int(stop)) for start, stop in zip(starts, stops)]
+
 
 def missing_samples(
     study: Study, *, method: str, tol: np.ndarray, max_cost: float | None = None, level: int | None = None
