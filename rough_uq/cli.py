@@ -1326,7 +1326,7 @@ main.command(name="mc", help="Plain Monte Carlo on the finest level the toleranc
 def _parse_indices(text: str) -> Any:
     """``A:B`` (half-open), ``I``, or a comma-separated list of those, as a sorted index array.
 
-    At most :data:`~rough_uq.multilevel.drivers.MAX_PLANNED_SAMPLES` samples (counted
+    At most :data:`~rough_uq.multilevel.drivers.adaptive.MAX_PLANNED_SAMPLES` samples (counted
     before overlaps are merged), each index at most :data:`MAX_INT64`.
     """
     import numpy as np

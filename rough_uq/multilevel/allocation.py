@@ -125,7 +125,7 @@ class Plan:
         True where ``V_l`` or ``C_l`` came from the rate models.
     bias : ndarray, shape (n_qoi,)
         Predicted remaining bias on level ``L``; where the levels a run samples
-        beyond ``L`` miss the bias (:func:`~rough_uq.multilevel.drivers.with_run_bias`),
+        beyond ``L`` miss the bias (:func:`~rough_uq.multilevel.drivers.adaptive.with_run_bias`),
         the bias ``max_level`` predicts.
     is_bias_met : bool
         Whether ``bias <= sqrt(theta) eps`` for every QoI (False when

@@ -73,7 +73,7 @@ before a batch would exceed ``max_cost``. A round draws level after level;
 where ``max_cost`` cannot pay what the round misses (at the costs per
 sample measured so far), it draws on each level the share of its missing
 samples that the budget left pays
-(:func:`~rough_uq.multilevel.drivers.round_counts`), so that a run the
+(:func:`~rough_uq.multilevel.drivers.loop.round_counts`), so that a run the
 budget stops has its levels in about the planned ratio (level by level, a
 variance run stopped by ``max_cost = 1`` had 953 / 32 / 32 samples where its
 plan asked for some 4150 / 970 / 280). The terms are recomputed only once a

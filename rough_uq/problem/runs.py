@@ -140,7 +140,7 @@ class ScreeningResult:
         forecasts).
 
         ``tol``, ``theta`` and ``richardson`` as in :func:`mlmc`. The plan is the one the run starts from (the
-        rates floored as it floors them, :func:`~rough_uq.multilevel.drivers.planning_rates`); the run then
+        rates floored as it floors them, :func:`~rough_uq.multilevel.drivers.planning.planning_rates`); the run then
         adapts it to its own samples. ``max_level`` (default the screened problem's) forecasts the run of the
         problem with that ``max_level`` (``dataclasses.replace(problem, max_level=...)``, which the same
         screening serves, as the refusal of an unreachable tolerance suggests). Raises
@@ -591,7 +591,7 @@ def mlmc(
 ) -> EstimationResult:
     """Adaptive MLMC estimate of ``E[Q]`` of a contact problem to RMS tolerance ``tol``.
 
-    Giles' algorithm (:func:`rough_uq.multilevel.drivers.iter_mlmc`) on levels
+    Giles' algorithm (:func:`rough_uq.multilevel.drivers.adaptive.iter_mlmc`) on levels
     up to ``problem.max_level``. Without ``screening`` it starts on levels
     ``0..min_finest_level`` with ``n_initial`` samples each; with one (what
     ``roughuq mlmc`` does) it starts from the screening's plan, pools its
@@ -617,11 +617,11 @@ def mlmc(
         Richardson-extrapolate the finest level where the level means allow
         it (refused with a reason in the result otherwise).
     n_initial, min_finest_level, max_cost, batch_size, rates, kurtosis_limit
-        As in :func:`rough_uq.multilevel.drivers.iter_mlmc`; ``max_cost`` and
+        As in :func:`rough_uq.multilevel.drivers.adaptive.iter_mlmc`; ``max_cost`` and
         costs are modelled reference seconds. Defaults are the config's.
     max_samples : int or None
         A plan with more samples in all (default
-        :data:`~rough_uq.multilevel.drivers.MAX_PLANNED_SAMPLES`, as ``roughuq``
+        :data:`~rough_uq.multilevel.drivers.adaptive.MAX_PLANNED_SAMPLES`, as ``roughuq``
         refuses) raises :class:`~rough_uq.errors.EstimationError` before its
         samples are drawn: the tolerance is out of reach. None: no limit.
     executor : BatchExecutor, optional
@@ -760,7 +760,7 @@ def _screened_mc_plan(problem: ContactProblem, screening, statistics: LevelStati
                       theta: float) -> Plan:
     """The plain MC run the screening plans for ``tol``: its level, bias and cost (``EstimationError`` where the
     screening's bias does not decay). Planned with the rates floored as MLMC runs plan
-    (:func:`~rough_uq.multilevel.drivers.planning_rates`), as ``roughuq mc`` does."""
+    (:func:`~rough_uq.multilevel.drivers.planning.planning_rates`), as ``roughuq mc`` does."""
     _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics), statistics)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
@@ -866,7 +866,7 @@ def mc(
         samples for the statistical share ``(1 - theta) tol^2``, so a larger bias is refused before any sample
         (:class:`~rough_uq.errors.EstimationError`, with the ``theta`` that would take it).
     n_initial, max_cost, batch_size, kurtosis_limit
-        As in :func:`rough_uq.multilevel.drivers.iter_mc`. Defaults are the config's.
+        As in :func:`rough_uq.multilevel.drivers.plain_mc.iter_mc`. Defaults are the config's.
     max_samples : int or None
         As in :func:`mlmc`.
     executor : BatchExecutor, optional

@@ -589,7 +589,7 @@ def _stop_text(outcome: Any, method: str) -> str:
 
 def _stat_share(run: RunRecord) -> float | None:
     """``sqrt(1 - theta)``, the statistical error's share of the tolerance that an ``mc --level`` run (no bias
-    estimate) must meet (:class:`~rough_uq.multilevel.drivers._McRun`); None for the other runs."""
+    estimate) must meet (:class:`~rough_uq.multilevel.drivers.plain_mc._McRun`); None for the other runs."""
     if run.method != "mc" or run.outcome is None or run.outcome.is_bias_estimated:
         return None
     return math.sqrt(1.0 - (_USUAL_THETA if run.theta is None else run.theta))

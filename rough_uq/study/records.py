@@ -432,7 +432,7 @@ class RatesRecord:
     @property
     def planned_complexity(self) -> tuple[Complexity, ...]:
         """Per QoI, the cost exponents of these rates raised to the floor the plans use (``RATE_FLOOR``,
-        :func:`~rough_uq.multilevel.drivers.planning_rates`), ``alpha`` also capped where the plans cap the
+        :func:`~rough_uq.multilevel.drivers.planning.planning_rates`), ``alpha`` also capped where the plans cap the
         bias's tail (``BIAS_RATE_CAP``, :func:`~rough_uq.multilevel.rates.tail_rate`): the slopes of the
         predicted costs."""
         def floored(rate: Number | None) -> Number | None:
@@ -863,7 +863,8 @@ class RunOutcome:
         cls, result: Any, *, mean_seconds: Sequence[float], seconds: float, elapsed: float, mc_cost: float,
         seconds_per_cost: float, n_computed: int, n_not_converged: int, diagnostics: Sequence[Diagnostic],
     ) -> RunOutcome:
-        """The outcome of an :class:`~rough_uq.multilevel.drivers.EstimationResult` and what the pipeline measured.
+        """The outcome of an :class:`~rough_uq.multilevel.drivers.events.EstimationResult` and what the pipeline
+        measured.
 
         ``mean_seconds`` are the CPU-seconds per sample of each level, ``seconds``
         their total over the run's samples; ``mc_cost`` (modelled) is converted
@@ -984,7 +985,7 @@ class RunRecord:
         MC only: the level sampled.
     screening_rates : RatesRecord or None
         The screening's fitted rates (None for MC on a given level); the run planned with them floored at 0.5
-        (:func:`~rough_uq.multilevel.drivers.planning_rates`).
+        (:func:`~rough_uq.multilevel.drivers.planning.planning_rates`).
     predicted : PlanRecord or None
         The screening's plan for ``tol`` (seconds are modelled cost: ``seconds_per_cost = 1``).
     forecast : Forecast or None

@@ -105,8 +105,8 @@ def _given_tolerances(values: Sequence[str] | None, config: StudyConfig, *, opti
 def _refuse_stalled_bias(config: StudyConfig, statistics: LevelStatistics, rates: Rates) -> None:
     """Refuse a run planned from a screening whose fitted bias of a QoI does not decay (``alpha <= 0``).
 
-    The planning rates are floored (:func:`~rough_uq.multilevel.drivers.planning_rates`) and would plan one all
-    the same, on a bias model the screening contradicts.
+    The planning rates are floored (:func:`~rough_uq.multilevel.drivers.planning.planning_rates`) and would plan
+    one all the same, on a bias model the screening contradicts.
     """
     stalled = stalled_bias(config.qoi_names, rates, statistics)
     if stalled:
@@ -120,7 +120,8 @@ def _refuse_stalled_bias(config: StudyConfig, statistics: LevelStatistics, rates
 def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[LevelStatistics, Rates, Plan]:
     """The screening's statistics and fitted rates, and the plan the run of ``method`` starts from.
 
-    The plan uses the rates floored as the runs use them (:func:`~rough_uq.multilevel.drivers.planning_rates`).
+    The plan uses the rates floored as the runs use them
+    (:func:`~rough_uq.multilevel.drivers.planning.planning_rates`).
     """
     statistics, _ = screening_statistics(study)
     with warnings.catch_warnings():

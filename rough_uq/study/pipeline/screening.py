@@ -104,8 +104,9 @@ def _base_tolerance(config: StudyConfig, statistics: LevelStatistics) -> np.ndar
 def _marked_as_runs_refuse(prediction: Plan, config: StudyConfig, rates: Rates, statistics: LevelStatistics) -> Plan:
     """The table's optimal plan, unreachable (with the bias that decides it) where ``roughuq mlmc`` refuses it.
 
-    The run starts from :func:`~rough_uq.multilevel.drivers.starting_plan` (its coarsest level may differ) and
-    samples levels its bias test needs beyond a plan's finest (:func:`~rough_uq.multilevel.drivers.with_run_bias`).
+    The run starts from :func:`~rough_uq.multilevel.drivers.adaptive.starting_plan` (its coarsest level may differ)
+    and samples levels its bias test needs beyond a plan's finest
+    (:func:`~rough_uq.multilevel.drivers.adaptive.with_run_bias`).
     """
     start = starting_plan(tol=prediction.tol, rates=rates, statistics=statistics, theta=prediction.theta,
                           max_level=config.grid.max_level)
