@@ -1119,10 +1119,10 @@ def test_a_sampled_v_below_half_the_v_above_it_is_floored_there(base, expected):
     # Level 2 sampled V = 0 under level 3's 4 (its samples missed a rare difference): half of 4 plans it, above
     # the floor from below (5 * 2^-1 / 2 = 1.25). The base level is Var(Q_base) and is floored from neither side;
     # level 4 has no samples (extrapolated from level 3).
-    from rough_uq.multilevel.drivers import _planning_variances
+    from rough_uq.multilevel.drivers import planning_variances
 
     has_data = np.array([True, True, True, True, False])
-    variances = _planning_variances(np.array([9.0, 5.0, 0.0, 4.0, 0.0]), has_data, np.float64(1.0), base)
+    variances = planning_variances(np.array([9.0, 5.0, 0.0, 4.0, 0.0]), has_data, np.float64(1.0), base)
     assert variances.tolist() == expected
 
 

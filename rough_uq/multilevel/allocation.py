@@ -62,7 +62,7 @@ from rough_uq.multilevel.richardson import (
     richardson_bias,
     richardson_weight,
 )
-from rough_uq.multilevel.statistics import LevelStatistics, _checked_names, _readonly
+from rough_uq.multilevel.statistics import LevelStatistics, checked_names, readonly_array
 
 __all__ = [
     "Plan",
@@ -72,6 +72,7 @@ __all__ = [
     "plan",
     "reachable_tolerance",
 ]
+# Also imported by the drivers and targets of rough_uq.multilevel, not part of the API: check_tol, check_fraction.
 
 _MAX_COUNT = float(PLANNED_COUNT_CAP)
 
@@ -226,7 +227,7 @@ def _round_up(value: float) -> float:
     return math.ceil(value / scale * (1 - 1e-12)) * scale
 
 
-def _check_fraction(name: str, value: object) -> float:
+def check_fraction(name: str, value: object) -> float:
     if not (is_real_number(value) and 0.0 < value < 1.0):
         raise InvalidParameterError(name, value, "a number strictly between 0 and 1")
     return float(value)
@@ -242,12 +243,12 @@ MIN_TOL = 1e-140
 #: "overflow encountered in square" and a plain MC cost of 0).
 MAX_TOL = 1e140
 
-#: What :func:`_check_tol` allows, in words (for the messages of the layers that check tolerances first).
+#: What :func:`check_tol` allows, in words (for the messages of the layers that check tolerances first).
 TOL_RANGE_TEXT = (f"in [{MIN_TOL:g}, {MAX_TOL:g}] (errors are compared in squares, which underflow or overflow "
                   "beyond; express the QoI in another unit)")
 
 
-def _check_tol(tol: object, n_qoi: int | None) -> np.ndarray:
+def check_tol(tol: object, n_qoi: int | None) -> np.ndarray:
     """Tolerance as a positive array of shape (n_qoi,) (a scalar is broadcast), each in [``MIN_TOL``, ``MAX_TOL``]."""
     array = np.atleast_1d(np.asarray(tol, dtype=float))
     if array.ndim != 1 or not np.all(np.isfinite(array)) or np.any(array <= 0):
@@ -348,13 +349,13 @@ def plan(
     from the screening at ``L`` or, beyond it, from the finest screened level
     (``Var(Q_l)`` converges), or is ``V_0 = Var(Q_0)`` without screening.
     """
-    theta = _check_fraction("theta", theta)
+    theta = check_fraction("theta", theta)
     if bias_from not in ("both", "model", "data"):
         raise InvalidParameterError("bias_from", bias_from, '"both", "model" or "data"')
     if statistics is not None and statistics.n_qoi != rates.n_qoi:
         raise EstimationError(f"rates have {rates.n_qoi} QoIs, the statistics {statistics.n_qoi}")
-    tol = _check_tol(tol, rates.n_qoi)
-    names = _checked_names(qoi_names, rates.n_qoi, argument="qoi_names")
+    tol = check_tol(tol, rates.n_qoi)
+    names = checked_names(qoi_names, rates.n_qoi, argument="qoi_names")
     variances = _explicit_variances(variances, rates.n_qoi)
     costs = _explicit_costs(costs)
     bias_model = _BiasModel(rates=rates, statistics=statistics, bias_from=bias_from)
@@ -616,16 +617,16 @@ def _allocated_plan(
     mc_n = _mc_samples(statistics, inputs.variances, level, budget)
     mc_cost = mc_n * inputs.costs[level] * fine_cost_share(rates.gamma, level)
     return Plan(
-        tol=_readonly(tol),
+        tol=readonly_array(tol),
         theta=theta,
         finest_level=level,
-        n_samples=_readonly(n_samples),
-        variances=_readonly(inputs.variances),
-        costs=_readonly(inputs.costs),
-        is_extrapolated=_readonly(inputs.is_extrapolated),
-        bias=_readonly(finest.bias),
+        n_samples=readonly_array(n_samples),
+        variances=readonly_array(inputs.variances),
+        costs=readonly_array(inputs.costs),
+        is_extrapolated=readonly_array(inputs.is_extrapolated),
+        bias=readonly_array(finest.bias),
         is_bias_met=finest.is_bias_met,
-        stat_variance=_readonly(stat_variance),
+        stat_variance=readonly_array(stat_variance),
         cost=float(np.sum(n_samples * inputs.costs)),
         mc_n_samples=mc_n,
         mc_cost=float(mc_cost),

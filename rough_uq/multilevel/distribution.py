@@ -165,7 +165,7 @@ from rough_uq.errors import (
 )
 from rough_uq.multilevel.allocation import MIN_TOL
 from rough_uq.multilevel.drivers import Sampler
-from rough_uq.multilevel.statistics import _readonly
+from rough_uq.multilevel.statistics import readonly_array
 from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc, telescope
 
 __all__ = [
@@ -345,10 +345,10 @@ def cdf_level_term(
         # No pair changed any indicator: the level's variance is unmeasured, not 0 (module docstring).
         variance = np.full(len(s), UNSEEN_CHANGE / n**2)
     return LevelTerm(
-        mean=_readonly(mean),
-        variance=_readonly(variance),
+        mean=readonly_array(mean),
+        variance=readonly_array(variance),
         n_samples=n,
-        groups=_readonly(np.zeros(len(s), dtype=np.int64)),
+        groups=readonly_array(np.zeros(len(s), dtype=np.int64)),
         is_bound=is_bound,
     )
 
@@ -634,17 +634,17 @@ def _cdf_estimate(
     """The CDF estimate of a checked ``target`` (:func:`_checked_target`)."""
     raw = target.estimate
     return CdfEstimate(
-        thresholds=_readonly(thresholds),
-        cdf=_readonly(np.clip(isotonic(raw), 0.0, 1.0)),
+        thresholds=readonly_array(thresholds),
+        cdf=readonly_array(np.clip(isotonic(raw), 0.0, 1.0)),
         cdf_raw=raw,
         stat_error=target.stat_error,
         bias=float(target.bias[0]),
         rmse=float(target.rmse[0]),
-        bandwidths=_readonly(
+        bandwidths=readonly_array(
             [level_bandwidth(int(level), bandwidth=bandwidth, bandwidth_rate=bandwidth_rate) for level in target.levels]
         ),
         target=target,
-        missed_levels=_readonly(np.array(sorted(missed), dtype=np.int64)),
+        missed_levels=readonly_array(np.array(sorted(missed), dtype=np.int64)),
     )
 
 
@@ -849,5 +849,6 @@ def quantiles(estimate: CdfEstimate, *, probabilities: Sequence[float] | np.ndar
     else:  # no band: a variance not measured, or a bias known to be large and not estimated
         lower, upper = np.full(p.size, -np.inf), np.full(p.size, np.inf)
     return Quantiles(
-        probabilities=_readonly(p), values=_readonly(values), lower=_readonly(lower), upper=_readonly(upper)
+        probabilities=readonly_array(p), values=readonly_array(values), lower=readonly_array(lower),
+        upper=readonly_array(upper),
     )

@@ -72,7 +72,7 @@ import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError
 from rough_uq.multilevel.drivers import Sampler
-from rough_uq.multilevel.statistics import _readonly
+from rough_uq.multilevel.statistics import readonly_array
 from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc, telescope
 
 __all__ = [
@@ -217,10 +217,10 @@ def variance_level_term(fine: np.ndarray, coarse: np.ndarray | None, level: int 
     x, y = _pair(fine, coarse, 4)
     term, variance = _h2_difference(x, y)
     return LevelTerm(
-        mean=_readonly(term),
-        variance=_readonly(np.maximum(variance, _influence_variance(x, y, 2))),
+        mean=readonly_array(term),
+        variance=readonly_array(np.maximum(variance, _influence_variance(x, y, 2))),
         n_samples=x.shape[0],
-        groups=_readonly(np.arange(x.shape[1])),
+        groups=readonly_array(np.arange(x.shape[1])),
     )
 
 
@@ -266,10 +266,10 @@ def central_moment_level_term(fine: np.ndarray, coarse: np.ndarray | None, level
     n = x.shape[0]
     mean = _h(x, order) - (0.0 if y is None else _h(y, order))
     return LevelTerm(
-        mean=_readonly(mean),
-        variance=_readonly(_influence_variance(x, y, order)),
+        mean=readonly_array(mean),
+        variance=readonly_array(_influence_variance(x, y, order)),
         n_samples=n,
-        groups=_readonly(np.arange(x.shape[1])),
+        groups=readonly_array(np.arange(x.shape[1])),
     )
 
 

@@ -120,7 +120,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer
-from rough_uq.multilevel.statistics import LevelStatistics, _checked_names, _readonly
+from rough_uq.multilevel.statistics import LevelStatistics, checked_names, readonly_array
 
 __all__ = [
     "BIAS_RATE_CAP",
@@ -164,7 +164,7 @@ EXACT_RATE = 64.0
 
 
 def _as_qoi_array(value: object) -> np.ndarray:
-    return _readonly(np.atleast_1d(np.asarray(value, dtype=float)))
+    return readonly_array(np.atleast_1d(np.asarray(value, dtype=float)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -213,7 +213,7 @@ class Rates:
         for name in ("alpha", "beta", "c_alpha", "c_beta", "alpha_se", "beta_se"):
             value = _as_qoi_array(getattr(self, name))
             if value.shape == (1,) and n_qoi > 1:
-                value = _readonly(np.repeat(value, n_qoi))
+                value = readonly_array(np.repeat(value, n_qoi))
             if value.shape != (n_qoi,):
                 raise InvalidParameterError(f"Rates.{name}", getattr(self, name), f"a scalar or {n_qoi} values")
             object.__setattr__(self, name, value)
@@ -523,7 +523,7 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequenc
     N_l)``, ``Var(s^2)/sigma^4 = (kurtosis - (N-3)/(N-1))/N`` for ``V_l``
     and ``se(C_l) = sd(cost)/sqrt(N_l)``.
     """
-    names = _checked_names(names, statistics.n_qoi)
+    names = checked_names(names, statistics.n_qoi)
     refuse_constant_columns(statistics, names)
     alpha, beta = [], []
     for q in range(statistics.n_qoi):

@@ -94,7 +94,7 @@ import numpy as np
 
 from rough_uq.errors import EstimationError
 from rough_uq.multilevel.rates import RATIO_LOG2_TOLERANCE, remaining_bias
-from rough_uq.multilevel.statistics import _checked_names
+from rough_uq.multilevel.statistics import checked_names
 
 __all__ = [
     "RICHARDSON_MIN_LEVELS",
@@ -301,7 +301,7 @@ def ratio_instability(
         )
     rows = slice(max(0, len(levels) - window - 1), len(levels))
     means, errors, shown = mean_diff[rows], mean_se[rows], levels[rows]
-    names = _checked_names(names, means.shape[1])
+    names = checked_names(names, means.shape[1])
     for q in range(means.shape[1]):
         m, se = means[:, q], errors[:, q]
         if not np.any(m) and not np.any(se):

@@ -48,6 +48,9 @@ __all__ = [
     "diagnose",
     "level_statistics",
 ]
+# Also imported by the other modules of rough_uq.multilevel (and the problem's results), not part of the API:
+# checked_names, readonly_array, qoi_text, the repr helpers values_summary / names_summary / units_summary /
+# errors_summary, and level_moments / assemble_statistics (the drivers' level table, kept as _Moments per level).
 
 #: Kurtosis of ``Y_l`` above which ``V_l`` is considered unreliable (Giles' ``mlmc_test`` value).
 KURTOSIS_LIMIT = 100.0
@@ -105,11 +108,11 @@ CONSISTENCY_CHECK_SAMPLES = 5
 _ROUNDING = 64 * np.finfo(float).eps
 
 
-#: Arrays of up to this many values are shown in a summary (:func:`_summary`), longer ones by their size.
+#: Arrays of up to this many values are shown in a summary (:func:`values_summary`), longer ones by their size.
 _SHOWN_VALUES = 6
 
 
-def _summary(values: object) -> str:
+def values_summary(values: object) -> str:
     """``[1.23, 4.56]`` (three significant digits), or ``<121 values>`` for a long array (the results' reprs)."""
     values = np.atleast_1d(np.asarray(values, dtype=float))
     if values.size > _SHOWN_VALUES:
@@ -117,12 +120,12 @@ def _summary(values: object) -> str:
     return "[" + ", ".join(f"{value:.3g}" for value in values) + "]"
 
 
-def _names_summary(names: tuple[str, ...] | None) -> str:
+def names_summary(names: tuple[str, ...] | None) -> str:
     """The names of a result's columns for its repr, ``<12 columns>`` for many (a load curve's)."""
     return repr(names) if names is None or len(names) <= _SHOWN_VALUES else f"<{len(names)} columns>"
 
 
-def _units_summary(units: tuple[str, ...] | None) -> str:
+def units_summary(units: tuple[str, ...] | None) -> str:
     """``units=(...), `` for a result's repr (for many columns, a load curve's: ``units=<percent, length>``, each
     distinct unit once, in column order); ``""`` where not known."""
     if units is None:
@@ -130,17 +133,17 @@ def _units_summary(units: tuple[str, ...] | None) -> str:
     return f"units={units!r}, " if len(units) <= _SHOWN_VALUES else f"units=<{', '.join(dict.fromkeys(units))}>, "
 
 
-def _errors_summary(
+def errors_summary(
     rmse: object, stat_error: object, bias: object, is_bias_estimated: bool, *, bias_name: str = "bias"
 ) -> str:
     """``rmse=[..], stat_error=[..], bias=[..]``; without an estimated bias the RMSE is unknown:
     ``stat_error=[..], bias='not estimated'``. ``bias_name``: the result's attribute that holds the bias."""
     if not is_bias_estimated:
-        return f"stat_error={_summary(stat_error)}, {bias_name}='not estimated'"
-    return f"rmse={_summary(rmse)}, stat_error={_summary(stat_error)}, {bias_name}={_summary(bias)}"
+        return f"stat_error={values_summary(stat_error)}, {bias_name}='not estimated'"
+    return f"rmse={values_summary(rmse)}, stat_error={values_summary(stat_error)}, {bias_name}={values_summary(bias)}"
 
 
-def _readonly(array: np.ndarray) -> np.ndarray:
+def readonly_array(array: np.ndarray) -> np.ndarray:
     array = np.array(array)
     array.setflags(write=False)
     return array
@@ -323,7 +326,7 @@ def _centre(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return values[0] + mean_shift, shifted - mean_shift
 
 
-def _level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> _Moments:
+def level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> _Moments:
     n = fine.shape[0]
     mean_fine, d_fine = _centre(fine)
     mean_coarse, d_coarse = _centre(coarse)
@@ -353,7 +356,7 @@ def _level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> _M
     )
 
 
-#: The per-level moments :func:`_assemble` stacks into :class:`LevelStatistics` (fields of :class:`_Moments`).
+#: The per-level moments :func:`assemble_statistics` stacks into :class:`LevelStatistics` (fields of :class:`_Moments`).
 _MOMENT_FIELDS = (
     "mean_fine",
     "var_fine",
@@ -369,18 +372,18 @@ _MOMENT_FIELDS = (
 )
 
 
-def _assemble(levels: Sequence[int], moments: Sequence[_Moments], base_level: int = 0) -> LevelStatistics:
+def assemble_statistics(levels: Sequence[int], moments: Sequence[_Moments], base_level: int = 0) -> LevelStatistics:
     """Stack per-level moments and add the cross-level checks (``base_level``: see :class:`LevelStatistics`)."""
     levels_array = np.asarray(levels, dtype=np.int64)
     table = {name: np.array([getattr(m, name) for m in moments], dtype=float) for name in _MOMENT_FIELDS}
     n_samples = np.array([m.n for m in moments], dtype=np.int64)
     return LevelStatistics(
         base_level=int(base_level),
-        levels=_readonly(levels_array),
-        n_samples=_readonly(n_samples),
-        consistency=_readonly(_consistency(table, n_samples, levels_array)),
-        coupling_ratio=_readonly(_coupling_ratio(table, levels_array, base_level)),
-        **{name: _readonly(value) for name, value in table.items()},
+        levels=readonly_array(levels_array),
+        n_samples=readonly_array(n_samples),
+        consistency=readonly_array(_consistency(table, n_samples, levels_array)),
+        coupling_ratio=readonly_array(_coupling_ratio(table, levels_array, base_level)),
+        **{name: readonly_array(value) for name, value in table.items()},
     )
 
 
@@ -507,15 +510,15 @@ def level_statistics(
                 f"level {level} has a single sample: its variances are unknown and reported as 0",
                 EstimationWarning,
             )
-        moments.append(_level_moments(f, c, k))
-    return _assemble(levels, moments)
+        moments.append(level_moments(f, c, k))
+    return assemble_statistics(levels, moments)
 
 
 COUPLING_CHECK_SAMPLES = 10
 """Fewest samples on a level for the coupling check of :func:`diagnose`."""
 
 
-def _checked_names(names: object, n_qoi: int | None, *, argument: str = "names") -> list[str] | None:
+def checked_names(names: object, n_qoi: int | None, *, argument: str = "names") -> list[str] | None:
     """``names`` as a list of ``n_qoi`` strings (None stays None), else an error naming ``argument``.
 
     ``n_qoi`` None (the number of QoIs is not known yet) accepts any number of names.
@@ -531,7 +534,7 @@ def _checked_names(names: object, n_qoi: int | None, *, argument: str = "names")
     return list(names)
 
 
-def _qoi_text(columns: np.ndarray, names: Sequence[str] | None) -> str:
+def qoi_text(columns: np.ndarray, names: Sequence[str] | None) -> str:
     """The QoIs of ``columns`` in a message: by name (``clusters, area_above``), else by index (``QoI [1, 4]``)."""
     if names is None:
         return f"QoI {columns.tolist()}"
@@ -569,7 +572,7 @@ def _level_messages(
     if bad.size:
         worst = float(np.max(statistics.consistency[row]))
         messages.append(
-            f"level {level}: consistency check failed for {_qoi_text(bad, names)} "
+            f"level {level}: consistency check failed for {qoi_text(bad, names)} "
             f"(|E[Q_l - Q_l-1] - (E[Q_l] - E[Q_l-1])| = {worst:.3g} x 3 standard deviations); "
             "the coarse sample of level l does not match the fine sample of level l-1"
         )
@@ -577,7 +580,7 @@ def _level_messages(
     if heavy.size:
         worst = float(np.max(statistics.kurtosis[row]))
         messages.append(
-            f"level {level}: kurtosis {worst:.3g} of Q_l - Q_l-1 for {_qoi_text(heavy, names)} "
+            f"level {level}: kurtosis {worst:.3g} of Q_l - Q_l-1 for {qoi_text(heavy, names)} "
             f"{kurtosis_text(worst, n, kurtosis_limit)}; its variance estimate is unreliable"
         )
     if level <= statistics.base_level:
@@ -585,7 +588,7 @@ def _level_messages(
     frozen = np.flatnonzero((statistics.var_diff[row] == 0) & (statistics.var_fine[row] > 0))
     if frozen.size:
         messages.append(
-            f"level {level}: Q_l - Q_l-1 is the same in all {n} samples for {_qoi_text(frozen, names)} "
+            f"level {level}: Q_l - Q_l-1 is the same in all {n} samples for {qoi_text(frozen, names)} "
             "although Q_l varies; if the differences are rare events (integer QoIs), this level's "
             "mean and variance are underestimated -- use more samples per level"
         )
@@ -628,7 +631,7 @@ def diagnose(
     tuple of str
         Empty when every check passes.
     """
-    names = _checked_names(names, statistics.mean_fine.shape[1])
+    names = checked_names(names, statistics.mean_fine.shape[1])
     messages = []
     for row in range(len(statistics.levels)):
         messages += _level_messages(statistics, row, kurtosis_limit, names)

@@ -106,14 +106,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer, warn_at_caller
-from rough_uq.multilevel.allocation import _check_fraction, _check_tol, optimal_samples
+from rough_uq.multilevel.allocation import check_fraction, check_tol, optimal_samples
 from rough_uq.multilevel.drivers import (
     RATE_FLOOR,
     Sampler,
-    _call_sampler,
-    _check_optional_positive,
-    _fill_costs,
-    _planning_variances,
+    call_sampler,
+    check_optional_positive,
+    fill_costs,
+    planning_variances,
     affordable_count,
     budget_share,
     check_finest_levels,
@@ -126,12 +126,12 @@ from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bia
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
-    _checked_names,
-    _readonly,
-    _errors_summary,
-    _names_summary,
-    _summary,
-    _units_summary,
+    checked_names,
+    readonly_array,
+    errors_summary,
+    names_summary,
+    values_summary,
+    units_summary,
     diagnose,
     level_statistics,
 )
@@ -308,11 +308,11 @@ class TargetEstimate:
     def __repr__(self) -> str:
         # One line for notebooks and print(): the per-level term arrays (a CDF's have a column per threshold)
         # stay in the attributes.
-        names = "" if self.qoi_names is None else f"qoi_names={_names_summary(self.qoi_names)}, "
-        errors = _errors_summary(self.rmse, self.stat_error, self.bias, self.is_bias_estimated)
+        names = "" if self.qoi_names is None else f"qoi_names={names_summary(self.qoi_names)}, "
+        errors = errors_summary(self.rmse, self.stat_error, self.bias, self.is_bias_estimated)
         return (
-            f"TargetEstimate({names}{_units_summary(self.units)}estimate={_summary(self.estimate)}, {errors}, "
-            f"tol={_summary(self.tol)}, tol_met={self.tol_met}, stop_reason={self.stop_reason!r}, "
+            f"TargetEstimate({names}{units_summary(self.units)}estimate={values_summary(self.estimate)}, {errors}, "
+            f"tol={values_summary(self.tol)}, tol_met={self.tol_met}, stop_reason={self.stop_reason!r}, "
             f"levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()})"
         )
 
@@ -484,10 +484,10 @@ def telescope(
     fitted_alpha, beta = _term_rates(means, variances, n_samples, groups)
     n_groups = terms[0].n_groups
     alpha = fitted_alpha if alpha is None else np.broadcast_to(np.asarray(alpha, dtype=float), (n_groups,))
-    tol_array = np.full(n_groups, np.nan) if tol is None else _check_tol(tol, n_groups)
+    tol_array = np.full(n_groups, np.nan) if tol is None else check_tol(tol, n_groups)
     return _estimate(
         means, variances, n_samples, groups, alpha, beta, 0.0,
-        cost=0.0 if costs is None else float(np.sum(costs)), tol=tol_array, theta=_check_fraction("theta", theta),
+        cost=0.0 if costs is None else float(np.sum(costs)), tol=tol_array, theta=check_fraction("theta", theta),
         stop_reason="given", is_bias_estimated=len(terms) > 1,
     )
 
@@ -498,19 +498,19 @@ def _estimate(
     n_groups = int(np.max(groups)) + 1
     bias = _remaining_bias(means, variances, groups, alpha) if is_bias_estimated else np.zeros(n_groups)
     return TargetEstimate(
-        estimate=_readonly(np.sum(means, axis=0)),
-        stat_error=_readonly(np.sqrt(np.sum(np.maximum(variances, 0.0), axis=0))),
-        bias=_readonly(bias),
-        levels=_readonly(np.arange(len(means))),
-        n_samples=_readonly(n_samples),
-        term_means=_readonly(means),
-        term_variances=_readonly(variances),
-        groups=_readonly(groups),
-        alpha=_readonly(alpha),
-        beta=_readonly(beta),
+        estimate=readonly_array(np.sum(means, axis=0)),
+        stat_error=readonly_array(np.sqrt(np.sum(np.maximum(variances, 0.0), axis=0))),
+        bias=readonly_array(bias),
+        levels=readonly_array(np.arange(len(means))),
+        n_samples=readonly_array(n_samples),
+        term_means=readonly_array(means),
+        term_variances=readonly_array(variances),
+        groups=readonly_array(groups),
+        alpha=readonly_array(alpha),
+        beta=readonly_array(beta),
         gamma=float(gamma),
         cost=float(cost),
-        tol=_readonly(tol),
+        tol=readonly_array(tol),
         theta=theta,
         stop_reason=stop_reason,
         is_bias_estimated=bool(is_bias_estimated),
@@ -606,7 +606,7 @@ def _draw(
                 n = _batch_count(levels, s, int(min(goal - s.n, batch_cap)), max_cost, gamma, n_initial)
                 if n == 0:
                     return False
-                batch = _call_sampler(sampler, s.level, s.n, n)
+                batch = call_sampler(sampler, s.level, s.n, n)
                 s.add(batch.fine, batch.coarse, batch.cost)
     return True
 
@@ -628,8 +628,8 @@ def _targets(
     for s, term in zip(levels, terms):
         if term is not None:
             per_sample[s.level] = np.maximum(term.per_sample_variance, 0.0)
-    variances = _planning_variances(per_sample, has_data, beta[groups])
-    costs = _fill_costs(np.array([s.mean_cost for s in levels]), has_data, gamma)
+    variances = planning_variances(per_sample, has_data, beta[groups])
+    costs = fill_costs(np.array([s.mean_cost for s in levels]), has_data, gamma)
     wanted = _allocate(variances, costs, groups, tol, theta)
     # A bound's W = N Var falls like 1 / N: planned as fixed, it asked for far more samples than the bound needs.
     wanted = [min(n, 2 * s.n) if term is not None and term.is_bound else n for s, term, n in zip(levels, terms, wanted)]
@@ -673,8 +673,8 @@ def sample_plan(
     costs = np.asarray(costs, dtype=float)
     if costs.shape != (len(terms),):
         raise EstimationError(f"costs need one value per level ({len(terms)}), got shape {costs.shape}")
-    tol_groups = _check_tol(tol, terms[0].n_groups)
-    wanted = _allocate(per_sample, costs, groups, tol_groups, _check_fraction("theta", theta))
+    tol_groups = check_tol(tol, terms[0].n_groups)
+    wanted = _allocate(per_sample, costs, groups, tol_groups, check_fraction("theta", theta))
     return np.maximum(wanted, 1).astype(np.int64)
 
 
@@ -741,14 +741,14 @@ def adaptive_mlmc(
     -------
     TargetEstimate
     """
-    theta = _check_fraction("theta", theta)
+    theta = check_fraction("theta", theta)
     n_initial = checked_integer("n_initial", n_initial, 4)
     min_finest_level, max_level = check_finest_levels(min_finest_level, max_level, least_max_level=1)
     batch_cap = checked_batch_cap(None if batch_size is None else checked_integer("batch_size", batch_size, 1))
-    max_cost = _check_optional_positive("max_cost", max_cost)
+    max_cost = check_optional_positive("max_cost", max_cost)
     max_samples = None if max_samples is None else checked_integer("max_samples", max_samples, 1)
-    _check_tol(tol, None)  # fails early; the number of groups is known after the first batch
-    _checked_names(qoi_names, None, argument="qoi_names")  # and their number against the first batch's columns
+    check_tol(tol, None)  # fails early; the number of groups is known after the first batch
+    checked_names(qoi_names, None, argument="qoi_names")  # and their number against the first batch's columns
     refuse_large_start(n_initial, range(min_finest_level + 1), max_samples=max_samples)
     levels, stop_reason = _sample_to_tolerance(
         sampler, _checking_columns(term, qoi_names, checked_column), tol, theta=theta, n_initial=n_initial,
@@ -774,7 +774,7 @@ def _checking_columns(term: TermFunction, qoi_names: Sequence[str] | None, colum
     def checked(fine: np.ndarray, coarse: np.ndarray | None, level: int) -> LevelTerm:
         result = term(fine, coarse, level)  # checks the samples (and a CDF's column, by its own name) first
         n_qoi = np.shape(fine)[1] if np.ndim(fine) == 2 else 1
-        _checked_names(qoi_names, n_qoi, argument="qoi_names")
+        checked_names(qoi_names, n_qoi, argument="qoi_names")
         if column is not None and not 0 <= column < n_qoi:
             raise InvalidParameterError("checked_column", column, f"a column of the samples, 0..{n_qoi - 1}")
         return result
@@ -834,7 +834,7 @@ def _sample_to_tolerance(
         terms = [s.term(term) if s.n else None for s in levels]
         sampled = [t for t in terms if t is not None]
         if tol_groups is None:
-            tol_groups = _check_tol(tol, sampled[0].n_groups)
+            tol_groups = check_tol(tol, sampled[0].n_groups)
         means, variances, n_samples = _stack(sampled)
         alpha, beta = _term_rates(means, variances, n_samples, sampled[0].groups)
         gamma = _cost_rate(np.array([s.mean_cost for s in levels if s.n]))
@@ -866,7 +866,7 @@ def _final_estimate(
     sampled_levels = [s for s in levels if s.n]
     terms = [s.term(term) for s in sampled_levels]
     groups = terms[0].groups
-    tol_groups = _check_tol(tol, terms[0].n_groups)
+    tol_groups = check_tol(tol, terms[0].n_groups)
     means, variances, n_samples = _stack(terms)
     # Rates of the final samples (a run stopped by max_cost may not have refitted them).
     alpha, beta = _term_rates(means, variances, n_samples, groups)

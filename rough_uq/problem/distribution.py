@@ -30,7 +30,7 @@ from rough_uq.multilevel.distribution import (
 )
 from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
-from rough_uq.multilevel.statistics import _checked_names, _qoi_text
+from rough_uq.multilevel.statistics import checked_names, qoi_text
 from rough_uq.multilevel.targets import TargetEstimate
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ProgressReporter
 from rough_uq.problem.columns import column_of_load, tol_text
@@ -104,7 +104,7 @@ def estimate_target(
         # The driver would name its min_finest_level (min(2, 0) = 0), which the caller never gave.
         raise InvalidParameterError("max_level", max_level, "an integer >= 1: variance and distribution runs "
                                     "estimate level differences")
-    _checked_names(qoi_names, None, argument="qoi_names")
+    checked_names(qoi_names, None, argument="qoi_names")
     options = dict(
         theta=theta,
         n_initial=n_initial,
@@ -117,7 +117,7 @@ def estimate_target(
     )
     if target == "variance":
         result = mlmc_variance(sampler, tol=tol, **options)
-        _warn_negative_variance(result, _checked_names(qoi_names, result.estimate.size, argument="qoi_names"))
+        _warn_negative_variance(result, checked_names(qoi_names, result.estimate.size, argument="qoi_names"))
         return result
     if target != "cdf":
         raise InvalidParameterError("target", target, f"one of {', '.join(TARGETS)}")
@@ -204,7 +204,7 @@ def _warn_negative_variance(result: TargetEstimate, names: Sequence[str] | None)
         if value < 0:
             warn_at_caller(
                 EstimationWarning(
-                    f"variance of {_qoi_text(np.array([column]), names)}: the estimate {value:.3g} is negative "
+                    f"variance of {qoi_text(np.array([column]), names)}: the estimate {value:.3g} is negative "
                     f"(RMSE {rmse:.3g}); the unbiased multilevel estimator can be, with few samples: a tighter tol "
                     "takes more"
                 ),

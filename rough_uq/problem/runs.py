@@ -36,7 +36,7 @@ from rough_uq.errors import (
 )
 from rough_uq.multilevel import drivers
 from rough_uq.multilevel.allocation import (
-    Plan, _check_fraction, mc_run_cost, plan, reachable_tolerance, unreachable_columns,
+    Plan, check_fraction, mc_run_cost, plan, reachable_tolerance, unreachable_columns,
 )
 from rough_uq.multilevel.distribution import BANDWIDTH_TOO_WIDE, THRESHOLDS_MISS_SAMPLES
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, EstimationResult
@@ -45,7 +45,7 @@ from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
     LevelStatistics,
-    _summary,
+    values_summary,
     diagnose,
     level_statistics,
 )
@@ -80,7 +80,7 @@ def run_id(
     rerunning its command, and :func:`mlmc` / :func:`mc` draw the samples the
     CLI draws. A Richardson-extrapolated MLMC run ends in ``_richardson``.
     """
-    theta = _check_fraction("theta", theta)  # the first use of a caller's theta: refuse a bad one by name
+    theta = check_fraction("theta", theta)  # the first use of a caller's theta: refuse a bad one by name
     # A load-curve column "contact_area@0.05" appears as "contact_area-at-0.05" (and "@1e+16" as "-at-1e16"):
     # run names are file-safe.
     names = [name.replace("@", "-at-").replace("+", "") for name in names]
@@ -154,7 +154,7 @@ class ScreeningResult:
             problem = dataclasses.replace(problem, max_level=max_level)  # checked as the problem checks it
             drivers.check_finest_levels(2, problem.max_level, least_max_level=2)
         tol = _tolerances(tol, problem.n_qoi, problem.columns)
-        theta = _check_fraction("theta", theta)
+        theta = check_fraction("theta", theta)
         richardson = checked_bool("richardson", richardson)  # bool("no") is True
         _refuse_stalled_bias(problem.columns, self.rates, self.statistics)
         planned = drivers.planning_rates(self.statistics)
@@ -236,7 +236,7 @@ class RunForecast:
 
         # An unreachable tolerance: the bias that blocks it and the smallest reachable one, as mlmc refuses it.
         unreachable = "" if self.is_bias_met else (
-            f", bias={_summary(self.bias)}, reachable_tol={_summary(self.reachable_tol)}"
+            f", bias={values_summary(self.bias)}, reachable_tol={values_summary(self.reachable_tol)}"
         )
         return (
             f"RunForecast(levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()}, "

@@ -205,10 +205,10 @@ from rough_uq.multilevel.drivers.adaptive import MAX_PLANNED_SAMPLES as MAX_PLAN
 from rough_uq.multilevel.drivers.loop import budget_share as budget_share
 from rough_uq.multilevel.drivers.loop import checked_batch_cap as checked_batch_cap
 from rough_uq.multilevel.drivers.loop import round_counts as round_counts
-from rough_uq.multilevel.drivers.planning import _fill_costs as _fill_costs
-from rough_uq.multilevel.drivers.planning import _planning_variances as _planning_variances
-from rough_uq.multilevel.drivers.samples import _call_sampler as _call_sampler
-from rough_uq.multilevel.drivers.samples import _check_optional_positive as _check_optional_positive
+from rough_uq.multilevel.drivers.planning import fill_costs as fill_costs
+from rough_uq.multilevel.drivers.planning import planning_variances as planning_variances
+from rough_uq.multilevel.drivers.samples import call_sampler as call_sampler
+from rough_uq.multilevel.drivers.samples import check_optional_positive as check_optional_positive
 from rough_uq.multilevel.rates import RATE_FLOOR as RATE_FLOOR
 
 __all__ = [

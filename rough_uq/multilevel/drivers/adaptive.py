@@ -26,8 +26,8 @@ from rough_uq.errors import (
 )
 from rough_uq.multilevel.allocation import (
     Plan,
-    _check_fraction,
-    _check_tol,
+    check_fraction,
+    check_tol,
     fine_cost_share,
     mc_run_cost,
     optimal_samples,
@@ -46,16 +46,16 @@ from rough_uq.multilevel.drivers.loop import (
     checked_batch_cap,
 )
 from rough_uq.multilevel.drivers.planning import (
-    _fill_costs,
+    fill_costs,
     _floor_rates,
     _lenient_rates,
-    _planning_variances,
+    planning_variances,
     planning_rates,
 )
-from rough_uq.multilevel.drivers.samples import Sampler, _check_optional_positive, _check_positive, _shape_out
+from rough_uq.multilevel.drivers.samples import Sampler, check_optional_positive, _check_positive, _shape_out
 from rough_uq.multilevel.rates import STALL_SIGNIFICANCE, DroppedLevel, Rates, confirmed_tail, estimated_bias, tail_rate
 from rough_uq.multilevel.richardson import RICHARDSON_MIN_LEVELS, ratio_instability, richardson_bias, richardson_weight
-from rough_uq.multilevel.statistics import KURTOSIS_LIMIT, EstimationWarning, LevelStatistics, _readonly, diagnose
+from rough_uq.multilevel.statistics import KURTOSIS_LIMIT, EstimationWarning, LevelStatistics, readonly_array, diagnose
 
 #: Plans with more samples than this are refused, by the Python runs (:mod:`rough_uq.problem.runs`, unless
 #: ``max_samples=`` moves the limit) and by ``roughuq`` (whatever ``--max-cost``).
@@ -162,16 +162,16 @@ def iter_mlmc(
         :func:`~rough_uq.multilevel.statistics.diagnose`, for zero reported costs and for a
         refused Richardson extrapolation.
     """
-    theta = _check_fraction("theta", theta)
+    theta = check_fraction("theta", theta)
     n_initial = checked_integer("n_initial", n_initial, 2)
     # Two levels above the base (>= 0) to fit the rates from: levels 0..2 at least.
     min_finest_level, max_level = check_finest_levels(min_finest_level, max_level, least_max_level=2)
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
-    max_cost = _check_optional_positive("max_cost", max_cost)
+    max_cost = check_optional_positive("max_cost", max_cost)
     if rates is not None and not isinstance(rates, Rates):
         raise InvalidParameterError("rates", rates, "a Rates (e.g. the rates of rough_uq.screen's result) or None")
     n_qoi = screening.n_qoi if screening is not None else (rates.n_qoi if rates is not None else None)
-    tol = _check_tol(tol, n_qoi)
+    tol = check_tol(tol, n_qoi)
     if rates is not None:
         _refuse_growing_bias(rates)
         if screening is not None and rates.n_qoi != screening.n_qoi:
@@ -433,10 +433,10 @@ class _MlmcRun(_Run):
         if self.options.rates is None:
             self.driver = _lenient_rates(statistics, self.fallback, base + 1, hierarchy.bias_statistics(statistics))
         var_diff, has_data, mean_cost = hierarchy.planning_inputs(self.n_qoi)
-        variances = _planning_variances(var_diff, has_data, self.driver.beta, base)
+        variances = planning_variances(var_diff, has_data, self.driver.beta, base)
         if self.extrapolation == "active":
             variances[-1] = variances[-1] * richardson_weight(self.driver.alpha) ** 2
-        costs = _fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), self.driver.gamma)
+        costs = fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), self.driver.gamma)
         budget = (1.0 - self.options.theta) * self.tol**2
         wanted = np.zeros(hierarchy.n_levels)
         wanted[base:] = np.ceil(np.max(optimal_samples(variances[base:], costs[base:], budget), axis=1))
@@ -561,7 +561,7 @@ def _mlmc_result(run: _MlmcRun, statistics: LevelStatistics) -> EstimationResult
         mc_cost=_predicted_mc_cost(statistics, driver, tol, run.options),
         statistics=statistics,
         rates=driver,
-        tol=_readonly(tol),
+        tol=readonly_array(tol),
         theta=run.options.theta,
         tol_met=run.is_bias_estimated() and bool(np.all(stat_variance + bias**2 <= tol**2 * (1 + 1e-12))),
         stop_reason=run.stop_reason,
@@ -591,7 +591,7 @@ def _predicted_mc_cost(statistics: LevelStatistics, rates: Rates, tol: np.ndarra
 def _finest_mc_cost(statistics: LevelStatistics, gamma: float, tol: np.ndarray, theta: float) -> float:
     """Cost of plain MC on the finest level for the same tolerance (fine solves only)."""
     finest = statistics.n_levels - 1
-    costs = _fill_costs(statistics.mean_cost, np.ones(statistics.n_levels, dtype=bool), gamma)
+    costs = fill_costs(statistics.mean_cost, np.ones(statistics.n_levels, dtype=bool), gamma)
     budget = (1.0 - theta) * tol**2
     mc_n = float(np.max(np.minimum(np.ceil(statistics.var_fine[finest] / budget), _MAX_COUNT)))
     return float(mc_n * costs[finest] * fine_cost_share(gamma, finest))

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rough_uq.multilevel.rates import DroppedLevel, Rates
-from rough_uq.multilevel.statistics import LevelStatistics, _errors_summary, _names_summary, _summary, _units_summary
+from rough_uq.multilevel.statistics import LevelStatistics, errors_summary, names_summary, values_summary, units_summary
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,12 +194,12 @@ class EstimationResult:
         # per-QoI arrays of a load curve's columns (944 characters for 6) summarised as TargetEstimate's are.
         # Without an estimated bias the RMSE is unknown: the repr says so rather than show the statistical error
         # as the RMSE next to tol_met=True (mc on a given level).
-        errors = _errors_summary(self.rmse, self.stat_error, self.bias_estimate, self.is_bias_estimated,
+        errors = errors_summary(self.rmse, self.stat_error, self.bias_estimate, self.is_bias_estimated,
                                  bias_name="bias_estimate")
         return (
-            f"EstimationResult(method={self.method!r}, qoi_names={_names_summary(self.qoi_names)}, "
-            f"{_units_summary(self.units)}estimate={_summary(self.estimate)}, {errors}, "
-            f"tol={_summary(self.tol)}, tol_met={self.tol_met}, "
+            f"EstimationResult(method={self.method!r}, qoi_names={names_summary(self.qoi_names)}, "
+            f"{units_summary(self.units)}estimate={values_summary(self.estimate)}, {errors}, "
+            f"tol={values_summary(self.tol)}, tol_met={self.tol_met}, "
             f"stop_reason={self.stop_reason!r}, levels={np.asarray(self.levels).tolist()}, "
             f"n_samples={np.asarray(self.n_samples).tolist()}, n_not_converged={self.n_not_converged})"
         )

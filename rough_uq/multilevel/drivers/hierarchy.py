@@ -13,7 +13,7 @@ import numpy as np
 from rough_uq.multilevel.drivers.events import PlanUpdated
 from rough_uq.multilevel.drivers.planning import _pooled_variance
 from rough_uq.multilevel.drivers.samples import _LevelSamples
-from rough_uq.multilevel.statistics import LevelStatistics, _assemble, _readonly
+from rough_uq.multilevel.statistics import LevelStatistics, assemble_statistics, readonly_array
 
 
 class _Hierarchy:
@@ -97,9 +97,9 @@ class _Hierarchy:
             n_samples[row] += self.prior_n.get(level, 0)
         return dataclasses.replace(
             statistics,
-            mean_diff=_readonly(means[statistics.levels]),
-            var_diff=_readonly(var_diff),
-            n_samples=_readonly(n_samples),
+            mean_diff=readonly_array(means[statistics.levels]),
+            var_diff=readonly_array(var_diff),
+            n_samples=readonly_array(n_samples),
         )
 
     def planning_inputs(self, n_qoi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -123,13 +123,13 @@ class _Hierarchy:
         return len(self.samples)
 
     def levels(self) -> np.ndarray:
-        return _readonly(np.arange(self.reported_from, self.n_levels))
+        return readonly_array(np.arange(self.reported_from, self.n_levels))
 
     def n_done(self) -> np.ndarray:
-        return _readonly(np.array([s.n for s in self.samples[self.reported_from :]], dtype=np.int64))
+        return readonly_array(np.array([s.n for s in self.samples[self.reported_from :]], dtype=np.int64))
 
     def n_planned(self) -> np.ndarray:
-        return _readonly(np.array(self.targets[self.reported_from :], dtype=np.int64))
+        return readonly_array(np.array(self.targets[self.reported_from :], dtype=np.int64))
 
     def plan_event(self, reason: str) -> PlanUpdated:
         return PlanUpdated(levels=self.levels(), n_planned=self.n_planned(), n_done=self.n_done(), reason=reason)
@@ -150,7 +150,7 @@ class _Hierarchy:
 
     def statistics(self) -> LevelStatistics:
         sampled = self.sampled()
-        return _assemble([s.level for s in sampled], [s.moments() for s in sampled], base_level=self.base)
+        return assemble_statistics([s.level for s in sampled], [s.moments() for s in sampled], base_level=self.base)
 
 
 def _per_sample_cost(hierarchy: _Hierarchy, level: int, gamma: float) -> float:

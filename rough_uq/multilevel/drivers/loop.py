@@ -9,12 +9,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import PLANNED_COUNT_CAP, EstimationError, warn_at_caller
-from rough_uq.multilevel.allocation import _check_tol
+from rough_uq.multilevel.allocation import check_tol
 from rough_uq.multilevel.drivers.events import BatchDone, Event
 from rough_uq.multilevel.drivers.hierarchy import _batch_size, _Hierarchy, _per_sample_cost
-from rough_uq.multilevel.drivers.samples import Sampler, _Batch, _call_sampler, _LevelSamples
+from rough_uq.multilevel.drivers.samples import Sampler, _Batch, call_sampler, _LevelSamples
 from rough_uq.multilevel.rates import RATE_FLOOR
-from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, _checked_names, _readonly
+from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, checked_names, readonly_array
 
 _MAX_COUNT = float(PLANNED_COUNT_CAP)
 
@@ -65,7 +65,7 @@ class _Run:
         """Check a batch's number of QoIs; the first batch fixes it."""
         if self.n_qoi is None:
             self.n_qoi, self.is_scalar = batch.fine.shape[1], batch.is_scalar
-            self.tol = _check_tol(self.tol, self.n_qoi)
+            self.tol = check_tol(self.tol, self.n_qoi)
             _check_qoi_names(self.options.qoi_names, self.n_qoi)
             self.on_qoi_count(self.n_qoi)
         elif batch.fine.shape[1] != self.n_qoi:
@@ -164,7 +164,7 @@ _PROBE = 2
 def _draw_batch(run: _Run, sampler: Sampler, samples: _LevelSamples, n: int) -> _Batch:
     """Draw ``n`` samples of ``samples``' level and store them."""
     hierarchy = run.hierarchy
-    batch = _call_sampler(sampler, samples.level, samples.n, n)
+    batch = call_sampler(sampler, samples.level, samples.n, n)
     run.accept(batch, samples.level)
     # The base level is sampled as Q_base: its coarse values are not part of the sum.
     coarse = np.zeros_like(batch.fine) if samples.level == hierarchy.base else batch.coarse
@@ -176,10 +176,10 @@ def _draw_batch(run: _Run, sampler: Sampler, samples: _LevelSamples, n: int) -> 
 def _batch_event(hierarchy: _Hierarchy, level: int, batch: _Batch) -> BatchDone:
     return BatchDone(
         level=level,
-        indices=_readonly(batch.indices),
-        fine=_readonly(batch.fine),
-        coarse=_readonly(batch.coarse),
-        cost=_readonly(batch.cost),
+        indices=readonly_array(batch.indices),
+        fine=readonly_array(batch.fine),
+        coarse=readonly_array(batch.coarse),
+        cost=readonly_array(batch.cost),
         levels=hierarchy.levels(),
         n_done=hierarchy.n_done(),
         n_planned=hierarchy.n_planned(),
@@ -239,7 +239,7 @@ def _per_qoi(names: Sequence[str], values: np.ndarray, columns: np.ndarray) -> s
 
 def _check_qoi_names(qoi_names: object, n_qoi: int | None) -> tuple[str, ...] | None:
     """``qoi_names`` as a tuple of ``n_qoi`` strings (any number while ``n_qoi`` is None), or None."""
-    names = _checked_names(qoi_names, n_qoi, argument="qoi_names")
+    names = checked_names(qoi_names, n_qoi, argument="qoi_names")
     return None if names is None else tuple(names)
 
 

@@ -9,14 +9,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError, checked_integer, checked_real_array, warn_at_caller
-from rough_uq.multilevel.allocation import _check_fraction, _check_tol
+from rough_uq.multilevel.allocation import check_fraction, check_tol
 from rough_uq.multilevel.drivers.adaptive import MIN_LEVEL_SAMPLES, _final
 from rough_uq.multilevel.drivers.events import EstimationResult, Event, Finished
 from rough_uq.multilevel.drivers.hierarchy import _Hierarchy
 from rough_uq.multilevel.drivers.loop import _MAX_COUNT, _check_qoi_names, _drive, _Options, _Run, checked_batch_cap
 from rough_uq.multilevel.drivers.samples import (
     Sampler,
-    _check_optional_positive,
+    check_optional_positive,
     _check_positive,
     _LevelSamples,
     _shape_out,
@@ -25,9 +25,9 @@ from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
     LevelStatistics,
-    _assemble,
-    _qoi_text,
-    _readonly,
+    assemble_statistics,
+    qoi_text,
+    readonly_array,
     kurtosis_text,
     kurtosis_threshold,
 )
@@ -97,13 +97,13 @@ def iter_mc(
     ------
     PlanUpdated, BatchDone, Finished
     """
-    theta = _check_fraction("theta", theta)
+    theta = check_fraction("theta", theta)
     level = checked_integer("level", level, 0)
     n_initial = checked_integer("n_initial", n_initial, 2)
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
-    max_cost = _check_optional_positive("max_cost", max_cost)
+    max_cost = check_optional_positive("max_cost", max_cost)
     n_qoi = screening.n_qoi if screening is not None else None
-    tol = _check_tol(tol, n_qoi)
+    tol = check_tol(tol, n_qoi)
     options = _McOptions(
         tol=tol,
         qoi_names=_check_qoi_names(qoi_names, n_qoi),
@@ -222,7 +222,7 @@ class _McRun(_Run):
         limit, names = self.options.kurtosis_limit, self.options.qoi_names
         heavy = np.flatnonzero(moments.kurtosis > kurtosis_threshold(moments.n, limit))
         if heavy.size:
-            which = "" if names is None else f" for {_qoi_text(heavy, names)}"
+            which = "" if names is None else f" for {qoi_text(heavy, names)}"
             worst = float(np.max(moments.kurtosis))
             warn_at_caller(
                 f"mc: kurtosis {worst:.3g} of Q on level {self.level}{which} {kurtosis_text(worst, moments.n, limit)}; "
@@ -235,7 +235,7 @@ class _McRun(_Run):
 def _mc_result(run: _McRun) -> EstimationResult:
     moments = run.samples.moments()
     # A table of Q alone (coarse values stored as zeros), with base level 0 as MC tables always had.
-    statistics = _assemble([run.level], [moments])
+    statistics = assemble_statistics([run.level], [moments])
     is_scalar = run.is_scalar
     budget = (1.0 - run.options.theta) * run.tol**2
     mc_n = float(np.max(np.minimum(np.ceil(run.variance() / budget), _MAX_COUNT)))
@@ -252,7 +252,7 @@ def _mc_result(run: _McRun) -> EstimationResult:
         mc_cost=float(mc_n * moments.mean_cost),
         statistics=statistics,
         rates=None,
-        tol=_readonly(run.tol),
+        tol=readonly_array(run.tol),
         theta=run.options.theta,
         tol_met=run.is_tol_met(),
         stop_reason=run.stop_reason,

@@ -118,7 +118,7 @@ def _lenient_gamma(statistics: LevelStatistics, base: Rates, min_level: int, *, 
     return _Line(rate=base.gamma, constant=c_gamma, se=base.gamma_se, levels=base.levels_gamma)
 
 
-def _fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np.ndarray:
+def fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np.ndarray:
     """Positive ``C_l`` for every level: measured where positive, else from the nearest measured level."""
     known = np.flatnonzero(has_data & (mean_cost > 0))
     levels = np.arange(len(mean_cost))
@@ -140,7 +140,7 @@ def _fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np
 _FLOOR_FROM_ABOVE = 0.5
 
 
-def _planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.ndarray, base: int = 0) -> np.ndarray:
+def planning_variances(var_diff: np.ndarray, has_data: np.ndarray, beta: np.ndarray, base: int = 0) -> np.ndarray:
     """``V_l`` for the allocation: sample values, extrapolated where missing, floored from below and above.
 
     Levels below ``base`` get 0; the base level's ``V`` is ``Var(Q_base)``, so

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
-from rough_uq.multilevel.statistics import _level_moments, _Moments, _readonly
+from rough_uq.multilevel.statistics import level_moments, _Moments, readonly_array
 
 Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
 
@@ -39,7 +39,7 @@ class _LevelSamples:
 
     def moments(self) -> _Moments:
         if self._moments is None:
-            self._moments = _level_moments(*self.arrays())
+            self._moments = level_moments(*self.arrays())
         return self._moments
 
 
@@ -70,7 +70,7 @@ class _Batch:
     is_scalar: bool
 
 
-def _call_sampler(sampler: Sampler, level: int, start: int, n: int) -> _Batch:
+def call_sampler(sampler: Sampler, level: int, start: int, n: int) -> _Batch:
     indices = np.arange(start, start + n, dtype=np.int64)
     returned = sampler(level, indices.copy())
     try:
@@ -93,7 +93,7 @@ def _call_sampler(sampler: Sampler, level: int, start: int, n: int) -> _Batch:
     return _Batch(indices=indices, fine=fine, coarse=coarse, cost=cost, is_scalar=is_scalar)
 
 
-def _check_optional_positive(name: str, value: object) -> float | None:
+def check_optional_positive(name: str, value: object) -> float | None:
     """A limit: a number > 0, or None for none (``math.inf`` means none too)."""
     if value is None:
         return None
@@ -109,4 +109,4 @@ def _check_positive(name: str, value: object) -> float:
 
 
 def _shape_out(values: np.ndarray, is_scalar: bool) -> float | np.ndarray:
-    return float(values[0]) if is_scalar else _readonly(values)
+    return float(values[0]) if is_scalar else readonly_array(values)
