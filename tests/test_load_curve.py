@@ -232,14 +232,14 @@ def test_problem_columns_and_model_match_the_pipeline():
 @pytest.mark.parametrize("dtype", [np.float32, np.float16])
 def test_single_precision_loads_are_taken_at_their_shortest_decimal(dtype):
     import rough_uq
-    from rough_uq.problem.runs import _tolerances
+    from rough_uq.problem.runs import checked_tolerances
 
     values = np.array(CURVE, dtype=dtype)
     for kind in (rough_uq.RelativeLoad, rough_uq.AbsoluteLoad):
         problem = _curve_problem(load=[kind(v) for v in values])
         assert problem.columns == _curve_problem(load=[kind(v) for v in CURVE]).columns
         assert "contact_area@0.02" in problem.columns
-        tol = _tolerances({"contact_area@0.02": 3.0, "contact_area": 1.0, "clusters": 50.0}, problem.n_qoi,
+        tol = checked_tolerances({"contact_area@0.02": 3.0, "contact_area": 1.0, "clusters": 50.0}, problem.n_qoi,
                           problem.columns)
         np.testing.assert_array_equal(tol, [1.0, 3.0, 1.0, 50.0, 50.0, 50.0])
     assert rough_uq.RelativeLoad(np.float64(0.05000000074505806)).value == 0.05000000074505806

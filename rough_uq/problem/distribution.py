@@ -34,7 +34,9 @@ from rough_uq.multilevel.statistics import checked_names, qoi_text
 from rough_uq.multilevel.targets import TargetEstimate
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ProgressReporter
 from rough_uq.problem.columns import column_of_load, tol_text
-from rough_uq.problem.runs import _problem, _reporting, _tolerances, _warn_not_converged, run_id, warn_not_met
+from rough_uq.problem.runs import (
+    checked_problem, checked_tolerances, reporting_progress, run_id, warn_not_converged, warn_not_met,
+)
 from rough_uq.problem.sampler import run_stage
 
 __all__ = ["DistributionResult", "distribution", "estimate_target", "initial_finest_level", "variance"]
@@ -175,17 +177,17 @@ def variance(
         (the variances, in the QoIs' units squared); ``levels`` and
         ``n_samples`` of shape ``(n_levels,)``.
     """
-    problem = _problem(problem)
-    tol = _tolerances(tol, problem.n_qoi, problem.columns)
+    problem = checked_problem(problem)
+    tol = checked_tolerances(tol, problem.n_qoi, problem.columns)
     stage = run_stage("mlmc", run_id("variance", problem.columns, tol, theta))
     sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
-    with _reporting(sampler, f"variance {tol_text(problem.columns, tol)}"):
+    with reporting_progress(sampler, f"variance {tol_text(problem.columns, tol)}"):
         result = estimate_target(
             sampler, target="variance", tol=tol, max_level=problem.max_level, theta=theta, n_initial=n_initial,
             min_finest_level=min_finest_level, max_cost=max_cost, batch_size=batch_size, max_samples=max_samples,
             qoi_names=problem.columns,
         )
-    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "variance"),
+    result = dataclasses.replace(result, n_not_converged=warn_not_converged(sampler, "variance"),
                                  qoi_names=problem.columns, units=tuple(f"{unit}^2" for unit in problem.column_units))
     warn_not_met("variance", problem.columns, result, tol)
     return result
@@ -325,18 +327,18 @@ def distribution(
         ``"bandwidth_too_wide"``, the bias not estimated, ``tol_met`` False
         (:mod:`rough_uq.multilevel.distribution`).
     """
-    problem = _problem(problem)
+    problem = checked_problem(problem)
     index = _column_index(problem, column)
     tol_array = np.array([check_cdf_tol(tol)])
     name = problem.columns[index]
     stage = run_stage("mlmc", run_id("cdf", [name], tol_array, theta))
     sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
-    with _reporting(sampler, f"cdf {tol_text([name], tol_array)}"):
+    with reporting_progress(sampler, f"cdf {tol_text([name], tol_array)}"):
         estimate = estimate_target(
             sampler, target="cdf", tol=tol_array, max_level=problem.max_level, thresholds=thresholds, qoi=index,
             bandwidth=bandwidth, theta=theta, n_initial=n_initial, min_finest_level=min_finest_level,
             max_cost=max_cost, batch_size=batch_size, max_samples=max_samples, qoi_names=problem.columns,
         )
-    n_not_converged = _warn_not_converged(sampler, "distribution")
+    n_not_converged = warn_not_converged(sampler, "distribution")
     warn_not_met(f"distribution of {name}", None, estimate, tol_array)
     return DistributionResult(column=name, cdf=estimate, n_not_converged=n_not_converged)

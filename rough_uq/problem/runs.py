@@ -58,6 +58,8 @@ __all__ = [
     "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "exact_column_caveats", "mc", "mlmc", "run_id", "screen",
     "screening_of_batches", "unreachable_text",
 ]
+# Also imported by rough_uq.problem.distribution (variance and distribution runs), not part of the API:
+# checked_problem, checked_tolerances, reporting_progress, warn_not_converged, warn_not_met.
 
 #: Fewest levels a screening covers, ``0..2``: the rates are fitted on levels >= 1 (level 0's ``Y_0 = Q_0``
 #: follows none of their models) and a line needs two of them. The config's ``screening.levels`` says the same.
@@ -153,7 +155,7 @@ class ScreeningResult:
         if max_level is not None:
             problem = dataclasses.replace(problem, max_level=max_level)  # checked as the problem checks it
             drivers.check_finest_levels(2, problem.max_level, least_max_level=2)
-        tol = _tolerances(tol, problem.n_qoi, problem.columns)
+        tol = checked_tolerances(tol, problem.n_qoi, problem.columns)
         theta = check_fraction("theta", theta)
         richardson = checked_bool("richardson", richardson)  # bool("no") is True
         _refuse_stalled_bias(problem.columns, self.rates, self.statistics)
@@ -250,7 +252,7 @@ def _rounded(values: np.ndarray) -> list[float]:
     return [float(f"{value:.3g}") + 0.0 for value in np.asarray(values, dtype=float)]  # + 0.0: no -0.0
 
 
-def _problem(problem: object) -> ContactProblem:
+def checked_problem(problem: object) -> ContactProblem:
     if not isinstance(problem, ContactProblem):
         raise InvalidParameterError("problem", problem, "a rough_uq.ContactProblem")
     return problem
@@ -293,7 +295,7 @@ def screen(
     EstimationError
         The rates cannot be fitted (e.g. every ``E[Y_l]`` is 0).
     """
-    problem = _problem(problem)
+    problem = checked_problem(problem)
     why = "the rates are fitted on levels >= 1, two of them at least"
     if problem.max_level + 1 < MIN_SCREENED_LEVELS:
         raise InvalidParameterError(
@@ -316,7 +318,7 @@ def screen(
         )
     sampler = problem.sampler(STAGE_SCREENING, executor=executor, progress=progress)
     indices = np.arange(samples, dtype=np.int64)
-    with _reporting(sampler, "screening"):
+    with reporting_progress(sampler, "screening"):
         if sampler.progress is not None:
             sampler.progress.plan(list(range(levels)), [samples] * levels, [0] * levels)
         batches = [sampler.batch(level, indices) for level in range(levels)]
@@ -399,7 +401,7 @@ def _stalled_bias(columns: Sequence[str], rates: Rates, statistics: LevelStatist
             "(a larger coarsest), or use mc(level=...) (bias not estimated)",)
 
 
-def _tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -> np.ndarray:
+def checked_tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = None) -> np.ndarray:
     """``tol`` as one tolerance per QoI: a number (for all), a sequence of ``n_qoi`` numbers, or (``columns``
     given) a mapping by column.
 
@@ -510,7 +512,7 @@ def _check_qoi_count(problem: ContactProblem, name: str, n_qoi: int) -> None:
         )
 
 
-def _warn_not_converged(sampler: ContactSampler, method: str) -> int:
+def warn_not_converged(sampler: ContactSampler, method: str) -> int:
     """Warn of the run's samples whose solve did not converge; returns their number (for the result)."""
     if sampler.n_not_converged:
         warn_at_caller(
@@ -653,8 +655,8 @@ def mlmc(
         (its RMSE, the stop reason and what to change, as ``roughuq`` exits 3) and for a Richardson
         extrapolation refused (the run is then plain MLMC; ``richardson_reason`` says why).
     """
-    problem = _problem(problem)
-    tol = _tolerances(tol, problem.n_qoi, problem.columns)
+    problem = checked_problem(problem)
+    tol = checked_tolerances(tol, problem.n_qoi, problem.columns)
     richardson = checked_bool("richardson", richardson)
     max_samples = _max_samples(max_samples)
     # Before the screening's plan, which reads them (iter_mlmc checks them again).
@@ -688,10 +690,10 @@ def mlmc(
         coarsest_level=None if statistics is not None else 0,
         qoi_names=problem.columns,
     )
-    with _reporting(sampler, f"mlmc {tol_text(problem.columns, tol)}"):
+    with reporting_progress(sampler, f"mlmc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
-    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mlmc"),
+    result = dataclasses.replace(result, n_not_converged=warn_not_converged(sampler, "mlmc"),
                                  units=problem.column_units)
     warn_not_met("mlmc", problem.columns, result, tol)
     screened = None if statistics is None else _screened_mc_cost(problem, screening, statistics, tol, theta)
@@ -886,8 +888,8 @@ def mc(
         and without ``bias`` too, a tolerance whose bias the screening predicts above ``sqrt(theta) tol`` on
         ``max_level`` (as ``roughuq mc`` refuses them).
     """
-    problem = _problem(problem)
-    tol = _tolerances(tol, problem.n_qoi, problem.columns)
+    problem = checked_problem(problem)
+    tol = checked_tolerances(tol, problem.n_qoi, problem.columns)
     max_samples = _max_samples(max_samples)
     statistics = _screening_of(problem, screening)
     if isinstance(bias, Mapping):
@@ -914,17 +916,17 @@ def mc(
         if values.size not in (1, problem.n_qoi):  # iter_mc would refuse it only after its first batch
             raise InvalidParameterError("bias", given_bias, f"a scalar or {problem.n_qoi} values (one per QoI column)")
         _refuse_given_bias(problem.columns, tol, float(theta), values)
-    with _reporting(sampler, f"mc {tol_text(problem.columns, tol)}"):
+    with reporting_progress(sampler, f"mc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
                              n_initial=n_initial if statistics is None else None, progress=sampler.progress)
-    result = dataclasses.replace(result, n_not_converged=_warn_not_converged(sampler, "mc"),
+    result = dataclasses.replace(result, n_not_converged=warn_not_converged(sampler, "mc"),
                                  units=problem.column_units)
     warn_not_met("mc", problem.columns, result, tol, advice=_mc_advice(result, n_initial))
     return result
 
 
 @contextlib.contextmanager
-def _reporting(sampler: ContactSampler, title: str) -> Iterator[None]:
+def reporting_progress(sampler: ContactSampler, title: str) -> Iterator[None]:
     """Start and stop the sampler's progress (if any) around a run: ``stop(is_complete=False)`` if the run raises.
 
     An interrupted run (Ctrl-C: :class:`KeyboardInterrupt`) gets a note that its samples are kept with the
