@@ -537,7 +537,7 @@ def validate(config_paths: Sequence[str]) -> None:
     [2e-298, 1e15], and at most solver.tol / (0.02 eps), where rounding still
     lets solves converge). Nothing is solved.
     """
-    from rough_uq.study.config import _physical_memory_bytes, solver_memory_bytes
+    from rough_uq.study.config import machine_memory_bytes, solver_memory_bytes
 
     n_bad = 0
     for config_path in config_paths:
@@ -559,7 +559,7 @@ def validate(config_paths: Sequence[str]) -> None:
             click.echo(f"  load curve: {config.load.n_loads} {config.load.kind} loads ({loads}), "
                        f"{len(config.qoi_names)} columns QOI@LOAD")
         # Information only: a config is valid whatever machine reads it; commands warn before computing.
-        finest, memory = solver_memory_bytes(grids[-1]), _physical_memory_bytes()
+        finest, memory = solver_memory_bytes(grids[-1]), machine_memory_bytes()
         here = "" if memory is None else f"; this machine has {_memory(memory)}" + (
             ", too little for it" if finest > memory else "")
         click.echo(f"  grids: {', '.join(str(n) for n in grids)} (finest solve about {_memory(finest)} "

@@ -298,7 +298,7 @@ def test_a_bad_number_in_a_yaml_file_is_told_as_written(line: str, expected: str
 def test_memory_is_a_run_time_warning_not_a_validation_rule(monkeypatch: pytest.MonkeyPatch) -> None:
     assert solver_memory_bytes(1024) == 20 * 8 * 1024**2
     # Pretend the machine has just enough memory for one 512 x 512 solve.
-    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(512))
+    monkeypatch.setattr(config_module, "machine_memory_bytes", lambda: solver_memory_bytes(512))
     data = _base()
     data["grid"] = {"coarsest": 256, "max_level": 2}  # finest 1024 x 1024: four times too much
     config = config_from_dict(data)  # a cluster config validates on a laptop
@@ -311,10 +311,10 @@ def test_memory_is_a_run_time_warning_not_a_validation_rule(monkeypatch: pytest.
     assert "x 2 workers = 80 MiB" in text and "use --workers 1" in text and "unused" not in text
     assert memory_warning(config, 0, n_workers=4) is None
     # Not even the coarsest grid fits.
-    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(128))
+    monkeypatch.setattr(config_module, "machine_memory_bytes", lambda: solver_memory_bytes(128))
     assert "use a smaller grid.coarsest" in memory_warning(config, 0)
     # Unknown machine memory: nothing to say.
-    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: None)
+    monkeypatch.setattr(config_module, "machine_memory_bytes", lambda: None)
     assert memory_warning(config, 2, n_workers=64) is None
 
 
@@ -337,7 +337,7 @@ def test_commands_warn_before_computing_levels_beyond_the_machine(tmp_path, monk
 
     monkeypatch.chdir(tmp_path)
     path = str(write_config(tmp_path / "tiny.yaml", tiny_config()))  # grids 8, 16, 32; screens levels 0..2
-    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(16))
+    monkeypatch.setattr(config_module, "machine_memory_bytes", lambda: solver_memory_bytes(16))
     checked = _cli("validate", path)
     assert checked.stderr == "" and ": valid" in checked.stdout
     assert "(finest solve about 0.16 MiB per worker; this machine has 0.039 MiB, too little for it)" in checked.stdout
@@ -357,14 +357,14 @@ def test_commands_warn_before_computing_levels_beyond_the_machine(tmp_path, monk
                                      "--out", "shard1.h5", "--workers", "1", "--quiet"))
 
     # Not even the coarsest grid fits: every run warns, whatever level it plans.
-    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(8) // 2)
+    monkeypatch.setattr(config_module, "machine_memory_bytes", lambda: solver_memory_bytes(8) // 2)
     lines = _memory_warnings(_cli("mlmc", "--workers", "1", "--quiet", expect=(0, 3)))
     assert lines and all("use a smaller grid.coarsest" in line for line in lines)
     levels = [int(line.split()[2]) for line in lines]
     assert levels == sorted(set(levels))  # once per level, as the run adds levels
 
     # Enough memory for one solve of level 2 but not for two at once.
-    monkeypatch.setattr(config_module, "_physical_memory_bytes", lambda: solver_memory_bytes(32) * 3 // 2)
+    monkeypatch.setattr(config_module, "machine_memory_bytes", lambda: solver_memory_bytes(32) * 3 // 2)
     (line,) = _memory_warnings(_cli("sample", "--stage", "screening", "--level", "2", "--indices", "9:11",
                                     "--out", "shard2.h5", "--workers", "2", "--quiet"))
     assert "x 2 workers = 0.312 MiB" in line and "use --workers 1" in line

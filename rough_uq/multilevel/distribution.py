@@ -187,6 +187,7 @@ __all__ = [
     "UNSEEN_CHANGE",
     "TIE_TOLERANCE",
 ]
+# Also imported by rough_uq.problem.distribution, not part of the API: checked_thresholds.
 
 #: ``stop_reason`` of an estimate whose thresholds miss the samples of a level (module docstring).
 THRESHOLDS_MISS_SAMPLES = "thresholds_miss_samples"
@@ -240,7 +241,7 @@ def check_cdf_tol(tol: object, name: str = "tol") -> float:
     return float(tol)
 
 
-def _check_thresholds(thresholds: object) -> np.ndarray:
+def checked_thresholds(thresholds: object) -> np.ndarray:
     allowed = "a 1-d array of at least two finite, strictly increasing values"
     array = checked_real_array("thresholds", thresholds, allowed)  # numbers only: strings ("10") were converted
     if array.ndim != 1 or array.size < 2 or not np.all(np.isfinite(array)) or np.any(np.diff(array) <= 0):
@@ -318,7 +319,7 @@ def cdf_level_term(
         One component per threshold, all in one tolerance group; the
         variance is the sample variance of the differences over ``n``.
     """
-    s = _check_thresholds(thresholds)
+    s = checked_thresholds(thresholds)
     _check_bandwidth(bandwidth, bandwidth_rate)
     x = _column(fine, qoi, "fine")
     y = None if coarse is None else _column(coarse, qoi, "coarse")
@@ -681,7 +682,7 @@ def cdf_from_samples(
         where the finest bandwidth exceeds twice the spread of the values:
         ``stop_reason`` ``"bandwidth_too_wide"``, the bias not estimated.
     """
-    s = _check_thresholds(thresholds)
+    s = checked_thresholds(thresholds)
     if len(fine) != len(coarse) or len(fine) == 0:
         raise EstimationError(f"fine and coarse need one entry per level, got {len(fine)} and {len(coarse)}")
     options = {"thresholds": s, "bandwidth": bandwidth, "bandwidth_rate": bandwidth_rate, "qoi": qoi}
@@ -737,7 +738,7 @@ def mlmc_cdf(
         where the finest bandwidth exceeds twice the spread of the values
         (module docstring): ``"bandwidth_too_wide"``, the bias not estimated.
     """
-    s = _check_thresholds(thresholds)
+    s = checked_thresholds(thresholds)
     _check_bandwidth(bandwidth, bandwidth_rate)
     check_cdf_tol(tol)
 

@@ -141,6 +141,8 @@ __all__ = [
     "stalled_bias",
     "tail_rate",
 ]
+# Also imported by the drivers' planning and the targets, not part of the API: RateLine (a fitted rate),
+# rate_line, alpha_line, beta_line, gamma_line.
 
 #: Smallest predicted saving (fraction of the MLMC cost) for which coarse levels are dropped.
 DROP_MARGIN = 0.1
@@ -269,14 +271,14 @@ def _level(level: object) -> int:
 
 
 @dataclass(frozen=True, eq=False)
-class _Line:
+class RateLine:
     rate: float
     constant: float
     se: float
     levels: tuple[int, ...]
 
 
-def _fit_line(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: float) -> _Line | None:
+def rate_line(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: float) -> RateLine | None:
     """Least-squares fit ``log2 value = log2 constant + sign * rate * level``.
 
     ``rel_se`` is the standard error of each value relative to the value; it
@@ -300,7 +302,7 @@ def _fit_line(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: 
         se_residual = math.sqrt(float(np.sum(residual**2)) / (len(levels) - 2) / sxx)
         # The residual error also sees model misfit (pre-asymptotic levels); keep the larger.
         se = max(se_sampling, se_residual)
-    return _Line(rate=sign * slope, constant=2.0**intercept, se=se, levels=tuple(int(level) for level in levels))
+    return RateLine(rate=sign * slope, constant=2.0**intercept, se=se, levels=tuple(int(level) for level in levels))
 
 
 def _asymptotic_window(levels: np.ndarray, means: np.ndarray, rel_se: np.ndarray) -> np.ndarray:
@@ -343,14 +345,14 @@ def _is_rounding_zero(mean: np.ndarray, error: np.ndarray) -> np.ndarray:
 
     Integer differences (cluster counts) whose pooled mean is exactly 0 came out as 1.9e-17, whose logarithm
     fitted alpha = 57 and certified a bias of 1.8e-34; no sample resolves a mean that small. Such a mean has no
-    sign: the fit takes it at its bound and anchors no window on it (:func:`_fit_alpha`), and the tail is held
+    sign: the fit takes it at its bound and anchors no window on it (:func:`alpha_line`), and the tail is held
     to the decay the two finest means confirm (:func:`confirmed_tail`). A mean of 0 with a standard error of 0
     (every difference 0) is zero too.
     """
     return np.abs(mean) <= ROUNDING_ZERO_MEAN * np.asarray(error)
 
 
-def _fit_alpha(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Line | None, str]:
+def alpha_line(statistics: LevelStatistics, q: int, min_level: int) -> tuple[RateLine | None, str]:
     use = (statistics.levels >= min_level) & (statistics.n_samples >= 2)
     mean = np.abs(statistics.mean_diff[:, q])
     se = statistics.mean_diff_error[:, q]
@@ -364,19 +366,19 @@ def _fit_alpha(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Li
     # A bounded mean has no sign: no asymptotic window is anchored on it.
     signed = np.where(is_zero, 0.0, statistics.mean_diff[:, q])[usable]
     window = _asymptotic_window(statistics.levels[usable], signed, rel_se)
-    line = _fit_line(statistics.levels[usable][window], magnitude[usable][window], rel_se[window], -1.0)
+    line = rate_line(statistics.levels[usable][window], magnitude[usable][window], rel_se[window], -1.0)
     zero = statistics.levels[use & ~(magnitude > 0)].tolist()
     return line, f"levels with E[Q_l - Q_l-1] = 0 and no variance (unusable): {zero}" if zero else ""
 
 
-def _fit_beta(statistics: LevelStatistics, q: int, min_level: int) -> tuple[_Line | None, str]:
+def beta_line(statistics: LevelStatistics, q: int, min_level: int) -> tuple[RateLine | None, str]:
     use = (statistics.levels >= min_level) & (statistics.n_samples >= 2)
     var = statistics.var_diff[:, q]
     usable = use & (var > 0)
     n = statistics.n_samples[usable]
     # Var(s^2)/sigma^4 = (kurtosis - (n-3)/(n-1))/n; the kurtosis is >= 1, the bracket > 0.
     rel_var = np.maximum(statistics.kurtosis[usable, q] - (n - 3) / (n - 1), 0.0) / n
-    line = _fit_line(statistics.levels[usable], var[usable], np.sqrt(rel_var), -1.0)
+    line = rate_line(statistics.levels[usable], var[usable], np.sqrt(rel_var), -1.0)
     zero = statistics.levels[use & (var == 0)].tolist()
     return line, f"levels with Var(Q_l - Q_l-1) = 0 (unusable): {zero}" if zero else ""
 
@@ -418,7 +420,7 @@ def _is_constant(statistics: LevelStatistics, q: int) -> bool:
     return bool(np.all(statistics.var_fine[:, q] == 0) and np.all(values == values[0]))
 
 
-def _exact_line(statistics: LevelStatistics, q: int, min_level: int) -> _Line | None:
+def _exact_line(statistics: LevelStatistics, q: int, min_level: int) -> RateLine | None:
     """Rate :data:`EXACT_RATE` with constant 0 for a column whose differences are 0 in every sample of every
     fitted level.
 
@@ -431,15 +433,15 @@ def _exact_line(statistics: LevelStatistics, q: int, min_level: int) -> _Line | 
         return None
     if np.any(statistics.mean_diff[use, q] != 0) or np.any(statistics.var_diff[use, q] != 0):
         return None
-    return _Line(rate=EXACT_RATE, constant=0.0, se=0.0, levels=tuple(statistics.levels[use].tolist()))
+    return RateLine(rate=EXACT_RATE, constant=0.0, se=0.0, levels=tuple(statistics.levels[use].tolist()))
 
 
-def _fit_gamma(statistics: LevelStatistics, min_level: int) -> tuple[_Line | None, str]:
+def gamma_line(statistics: LevelStatistics, min_level: int) -> tuple[RateLine | None, str]:
     use = statistics.levels >= min_level
     cost = statistics.mean_cost
     usable = use & (cost > 0)
     rel_se = np.sqrt(statistics.var_cost[usable] / statistics.n_samples[usable]) / cost[usable]
-    line = _fit_line(statistics.levels[usable], cost[usable], rel_se, 1.0)
+    line = rate_line(statistics.levels[usable], cost[usable], rel_se, 1.0)
     zero = statistics.levels[use & (cost <= 0)].tolist()
     return line, f"levels with zero cost (unusable): {zero}" if zero else ""
 
@@ -533,7 +535,7 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequenc
             alpha.append(exact)
             beta.append(exact)
             continue
-        for name, fit, out in (("alpha", _fit_alpha, alpha), ("beta", _fit_beta, beta)):
+        for name, fit, out in (("alpha", alpha_line, alpha), ("beta", beta_line, beta)):
             line, note = fit(statistics, q, min_level)
             if line is None:
                 raise EstimationError(
@@ -542,7 +544,7 @@ def fit_rates(statistics: LevelStatistics, *, min_level: int = 1, names: Sequenc
                     + (f"; {note}" if note else "")
                 )
             out.append(line)
-    gamma, note = _fit_gamma(statistics, min_level)
+    gamma, note = gamma_line(statistics, min_level)
     if gamma is None:
         raise EstimationError(
             f"cannot fit gamma: needs at least two levels >= {min_level} with positive cost; "

@@ -50,7 +50,7 @@ __all__ = [
 ]
 # Also imported by the other modules of rough_uq.multilevel (and the problem's results), not part of the API:
 # checked_names, readonly_array, qoi_text, the repr helpers values_summary / names_summary / units_summary /
-# errors_summary, and level_moments / assemble_statistics (the drivers' level table, kept as _Moments per level).
+# errors_summary, and level_moments / assemble_statistics (the drivers' level table, kept as LevelMoments per level).
 
 #: Kurtosis of ``Y_l`` above which ``V_l`` is considered unreliable (Giles' ``mlmc_test`` value).
 KURTOSIS_LIMIT = 100.0
@@ -252,7 +252,7 @@ class LevelStatistics:
 
 
 @dataclass(frozen=True, eq=False)
-class _Moments:
+class LevelMoments:
     """Statistics of one level, computed once per change of its samples."""
 
     n: int
@@ -326,7 +326,7 @@ def _centre(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return values[0] + mean_shift, shifted - mean_shift
 
 
-def level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> _Moments:
+def level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> LevelMoments:
     n = fine.shape[0]
     mean_fine, d_fine = _centre(fine)
     mean_coarse, d_coarse = _centre(coarse)
@@ -340,7 +340,7 @@ def level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> _Mo
     d_diff = np.where(is_rounding, 0.0, d_diff)
     mean_diff = np.where(np.abs(mean_diff) <= rounding, 0.0, mean_diff)
     var_delta = np.sum(d_diff * d_total, axis=0) / (n - 1) if n >= 2 else np.zeros(fine.shape[1])
-    return _Moments(
+    return LevelMoments(
         n=n,
         mean_fine=mean_fine,
         var_fine=_sample_variance(d_fine, n),
@@ -356,7 +356,8 @@ def level_moments(fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> _Mo
     )
 
 
-#: The per-level moments :func:`assemble_statistics` stacks into :class:`LevelStatistics` (fields of :class:`_Moments`).
+#: The per-level moments :func:`assemble_statistics` stacks into :class:`LevelStatistics` (fields of
+#: :class:`LevelMoments`).
 _MOMENT_FIELDS = (
     "mean_fine",
     "var_fine",
@@ -372,7 +373,7 @@ _MOMENT_FIELDS = (
 )
 
 
-def assemble_statistics(levels: Sequence[int], moments: Sequence[_Moments], base_level: int = 0) -> LevelStatistics:
+def assemble_statistics(levels: Sequence[int], moments: Sequence[LevelMoments], base_level: int = 0) -> LevelStatistics:
     """Stack per-level moments and add the cross-level checks (``base_level``: see :class:`LevelStatistics`)."""
     levels_array = np.asarray(levels, dtype=np.int64)
     table = {name: np.array([getattr(m, name) for m in moments], dtype=float) for name in _MOMENT_FIELDS}

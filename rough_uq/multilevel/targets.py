@@ -122,7 +122,7 @@ from rough_uq.multilevel.drivers import (
     refuse_large_start,
     round_counts,
 )
-from rough_uq.multilevel.rates import _fit_line, giles_prediction, remaining_bias, tail_rate
+from rough_uq.multilevel.rates import rate_line, giles_prediction, remaining_bias, tail_rate
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
@@ -325,7 +325,7 @@ class TargetEstimate:
 def _fit_rate(levels: np.ndarray, values: np.ndarray, rel_se: np.ndarray, sign: float) -> float:
     """Rate of ``values ~ 2^(-sign rate l)`` on the positive values, floored; the floor when unfittable."""
     usable = values > 0
-    line = _fit_line(levels[usable], values[usable], rel_se[usable], sign)
+    line = rate_line(levels[usable], values[usable], rel_se[usable], sign)
     return RATE_FLOOR if line is None else max(line.rate, RATE_FLOOR)
 
 

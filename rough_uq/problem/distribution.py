@@ -26,7 +26,7 @@ import numpy as np
 
 from rough_uq.errors import EstimationWarning, InvalidParameterError, warn_at_caller
 from rough_uq.multilevel.distribution import (
-    DEFAULT_PROBABILITIES, CdfEstimate, Quantiles, _check_thresholds, check_cdf_tol, mlmc_cdf, quantiles,
+    DEFAULT_PROBABILITIES, CdfEstimate, Quantiles, checked_thresholds, check_cdf_tol, mlmc_cdf, quantiles,
 )
 from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler
@@ -123,7 +123,7 @@ def estimate_target(
         return result
     if target != "cdf":
         raise InvalidParameterError("target", target, f"one of {', '.join(TARGETS)}")
-    s = _check_thresholds(thresholds)
+    s = checked_thresholds(thresholds)
     width = _default_bandwidth(s) if bandwidth is None else bandwidth
     tol_value = float(np.asarray(tol).reshape(-1)[0])
     return mlmc_cdf(sampler, thresholds=s, tol=tol_value, bandwidth=width, qoi=qoi, **options)

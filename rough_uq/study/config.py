@@ -889,7 +889,7 @@ class OutputConfig(_Section):
 # ---------------------------------------------------------------------------
 
 
-def _physical_memory_bytes() -> int | None:
+def machine_memory_bytes() -> int | None:
     """This machine's physical memory (a name of this module, which the tests replace to stand in for one)."""
     return physical_memory_bytes()
 
@@ -908,7 +908,7 @@ def memory_warning(
     lower level (:func:`rough_uq.problem.memory.memory_warning`).
     """
     grids = [config.grid.n_at(lv) for lv in range(level + 1)]
-    return grid_memory_warning(grids, level, n_workers, _physical_memory_bytes(), lower_with=lower_with,
+    return grid_memory_warning(grids, level, n_workers, machine_memory_bytes(), lower_with=lower_with,
                                workers="--workers {}", smaller_coarsest="a smaller grid.coarsest")
 
 

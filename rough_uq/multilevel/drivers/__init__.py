@@ -66,7 +66,8 @@ Submodules
 
 Their docstrings call this one "the module docstring". The package re-exports
 the names of ``__all__`` and the few others that the rest of roughuq imports
-from it.
+from it; names with a leading underscore are private to the package (its
+modules share them).
 
 Adaptive MLMC
 -------------

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.multilevel.rates import RATE_FLOOR, Rates, _fit_alpha, _fit_beta, _fit_gamma, _Line
+from rough_uq.multilevel.rates import RATE_FLOOR, Rates, alpha_line, beta_line, gamma_line, RateLine
 from rough_uq.multilevel.statistics import LevelStatistics
 
 
@@ -54,10 +54,10 @@ def _lenient_rates(
     base = fallback if fallback is not None else _floor_rates(statistics.n_qoi)
     qois = range(statistics.n_qoi)
     alpha = _lenient_fit(
-        [_fit_alpha(means, q, min_level)[0] for q in qois], base.alpha, base.c_alpha, base.alpha_se, base.levels_alpha
+        [alpha_line(means, q, min_level)[0] for q in qois], base.alpha, base.c_alpha, base.alpha_se, base.levels_alpha
     )
     beta = _lenient_fit(
-        [_fit_beta(statistics, q, min_level)[0] for q in qois], base.beta, base.c_beta, base.beta_se, base.levels_beta
+        [beta_line(statistics, q, min_level)[0] for q in qois], base.beta, base.c_beta, base.beta_se, base.levels_beta
     )
     gamma = _lenient_gamma(statistics, base, min_level, is_anchored=fallback is None)
     return Rates(
@@ -87,7 +87,7 @@ class _QoiRates:
 
 
 def _lenient_fit(
-    lines: list[_Line | None],
+    lines: list[RateLine | None],
     rate: np.ndarray,
     constant: np.ndarray,
     se: np.ndarray,
@@ -103,11 +103,11 @@ def _lenient_fit(
     return _QoiRates(rate=rate, constant=constant, se=se, levels=tuple(fitted_levels))
 
 
-def _lenient_gamma(statistics: LevelStatistics, base: Rates, min_level: int, *, is_anchored: bool) -> _Line:
+def _lenient_gamma(statistics: LevelStatistics, base: Rates, min_level: int, *, is_anchored: bool) -> RateLine:
     """``gamma`` fitted (floored), else the fallback's; ``is_anchored``: put a fallback's ``c_gamma`` on the data."""
-    line, _ = _fit_gamma(statistics, min_level)
+    line, _ = gamma_line(statistics, min_level)
     if line is not None:
-        return _Line(rate=max(line.rate, RATE_FLOOR), constant=line.constant, se=line.se, levels=line.levels)
+        return RateLine(rate=max(line.rate, RATE_FLOOR), constant=line.constant, se=line.se, levels=line.levels)
     c_gamma = base.c_gamma
     known = np.flatnonzero(statistics.mean_cost > 0)
     if is_anchored and known.size:
@@ -115,7 +115,7 @@ def _lenient_gamma(statistics: LevelStatistics, base: Rates, min_level: int, *, 
         # extrapolated costs stay on the scale of the measured ones.
         top = known[-1]
         c_gamma = statistics.mean_cost[top] * 2.0 ** (-base.gamma * statistics.levels[top])
-    return _Line(rate=base.gamma, constant=c_gamma, se=base.gamma_se, levels=base.levels_gamma)
+    return RateLine(rate=base.gamma, constant=c_gamma, se=base.gamma_se, levels=base.levels_gamma)
 
 
 def fill_costs(mean_cost: np.ndarray, has_data: np.ndarray, gamma: float) -> np.ndarray:

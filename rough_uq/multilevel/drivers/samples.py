@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
-from rough_uq.multilevel.statistics import level_moments, _Moments, readonly_array
+from rough_uq.multilevel.statistics import level_moments, LevelMoments, readonly_array
 
 Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
 
@@ -24,7 +24,7 @@ class _LevelSamples:
         self.level = level
         self.n = 0
         self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self._moments: _Moments | None = None
+        self._moments: LevelMoments | None = None
 
     def add(self, fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> None:
         self._chunks.append((fine, coarse, cost))
@@ -37,7 +37,7 @@ class _LevelSamples:
             self._chunks = [tuple(np.concatenate(part) for part in zip(*self._chunks))]
         return self._chunks[0]
 
-    def moments(self) -> _Moments:
+    def moments(self) -> LevelMoments:
         if self._moments is None:
             self._moments = level_moments(*self.arrays())
         return self._moments
