@@ -1047,6 +1047,8 @@ def test_index_ranges_and_shards_cover_the_missing_indices_exactly_once():
     rng = np.random.default_rng(44)
     assert index_ranges([]) == [] and index_ranges([7]) == [(7, 8)]
     assert index_ranges([0, 1, 2, 5, 6, 9]) == [(0, 3), (5, 7), (9, 10)]
+    last = np.iinfo(np.int64).max  # `sample --indices` takes it; the range's end is one past it, no int64 wrap
+    assert index_ranges([last - 1, last]) == [(last - 1, last + 1)]
     for _ in range(200):
         missing = {level: np.flatnonzero(rng.random(int(rng.integers(0, 60))) < rng.random())
                    for level in range(int(rng.integers(1, 4)))}

@@ -143,6 +143,13 @@ def test_import_is_light_and_the_api_needs_no_edge_library():
     assert not {"pydantic", "h5py", "click", "rich"} & set(used)
 
 
+def test_the_loads_and_the_spectrum_need_no_numba():
+    # The load range checks moved to rough_uq.problem.loads import the solver's limits where they run: a module
+    # import of them loaded numba with every RelativeLoad.
+    names = "rough_uq.RelativeLoad, rough_uq.AbsoluteLoad, rough_uq.SurfaceSpectrum"
+    assert "numba" not in _modules_after(f"import rough_uq; {names}")  # (pyFFTW comes with the surfaces' module)
+
+
 def test_init_imports_no_edge_module():
     # The problem package is checked by tests/test_layering.py; __init__ only names modules lazily.
     tree = ast.parse((ROOT / "rough_uq" / "__init__.py").read_text())

@@ -1013,3 +1013,16 @@ def test_a_lock_file_the_directory_no_longer_lets_go_of_is_released_without_a_tr
         os.fstat(fd)  # closed
     monkeypatch.setattr(Path, "unlink", real_unlink)
     store_module._release_lock(path, store_module._acquire_lock(path))  # and free
+
+
+def test_running_is_a_live_lock_holder_and_nothing_else(tmp_path: Path) -> None:
+    from rough_uq.study.store import is_locked_by_running_process
+
+    path = tmp_path / "study.h5"
+    assert not is_locked_by_running_process(path)  # no lock file
+    with new_study(path):
+        assert is_locked_by_running_process(path) and is_locked_by_running_process(str(path))
+    (tmp_path / "study.h5.lock").write_text("not a pid\n")
+    assert not is_locked_by_running_process(path)
+    for odd in (".", "/", ""):  # no file name to put ".lock" after: not a running study
+        assert not is_locked_by_running_process(odd)

@@ -72,7 +72,8 @@ __all__ = [
     "plan",
     "reachable_tolerance",
 ]
-# Also imported by the drivers and targets of rough_uq.multilevel, not part of the API: check_tol, check_fraction.
+# Also imported by the drivers and targets and by rough_uq.problem.runs, not part of the API: check_tol,
+# check_fraction.
 
 _MAX_COUNT = float(PLANNED_COUNT_CAP)
 

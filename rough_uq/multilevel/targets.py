@@ -478,7 +478,10 @@ def telescope(
         if term.mean.shape != terms[0].mean.shape or not np.array_equal(term.groups, groups):
             raise EstimationError(
                 f"the level terms have different components: term {level} has means of shape {term.mean.shape} "
-                f"and groups {term.groups.tolist()}, term 0 {terms[0].mean.shape} and {groups.tolist()}"
+                f"and {term.groups.size} groups, term 0 {terms[0].mean.shape} and {groups.size}"
+                + ("" if term.groups.shape != groups.shape else
+                   f" (group {term.groups[term.groups != groups][0]} at component "
+                   f"{int(np.flatnonzero(term.groups != groups)[0])} against {groups[term.groups != groups][0]})")
             )
     means, variances, n_samples = _stack(terms)
     fitted_alpha, beta = _term_rates(means, variances, n_samples, groups)

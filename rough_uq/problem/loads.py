@@ -55,7 +55,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import InvalidParameterError, is_real_number, scalar_refusal
-from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD, max_convergent_load
 from rough_uq.physics.surface import SurfaceSpectrum
 from rough_uq.problem.columns import LOAD_SEPARATOR, column_name, load_label
 
@@ -268,6 +267,8 @@ def checked_mean_pressures(
         (``load.relative.1``), the value, the allowed range and the
         dimensionless load it gives.
     """
+    from rough_uq.physics.solver import MAX_DIMENSIONLESS_LOAD, MIN_DIMENSIONLESS_LOAD  # loads numba: not at import
+
     lowest, highest = MIN_DIMENSIONLESS_LOAD * LOAD_MARGIN, MAX_DIMENSIONLESS_LOAD / LOAD_MARGIN
     size, height = spectrum.system_size, spectrum.rms_height
     pressures = []
@@ -302,6 +303,8 @@ def refuse_loads_beyond_rounding(
     Such a load is many orders of magnitude beyond full contact (a unit taken for another, as a rule): most
     solves would run ``max_iter`` iterations and be stored as not converged.
     """
+    from rough_uq.physics.solver import max_convergent_load  # loads numba: not when the loads are imported
+
     limit = math.log10(max_convergent_load(solver_tol))
     for position, (load, pressure) in enumerate(zip(loads, pressures)):
         exponent = _load_exponent(pressure, spectrum, e_star)

@@ -762,9 +762,8 @@ def is_locked_by_running_process(path: str | Path) -> bool:
     (:func:`is_lock_held`): after a ``kill -9`` its pid may be another process's, and a dead
     run read "running" for as long as that process lived.
     """
-    lock = _lock_path(Path(path))
     try:
-        pid = int(lock.read_text().split()[0])
+        pid = int(_lock_path(Path(path)).read_text().split()[0])
     except (OSError, ValueError, IndexError):
         return False
     if pid == os.getpid():

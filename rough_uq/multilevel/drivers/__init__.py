@@ -67,7 +67,9 @@ Submodules
 Their docstrings call this one "the module docstring". The package re-exports
 the names of ``__all__`` and the few others that the rest of roughuq imports
 from it; names with a leading underscore are private to the package (its
-modules share them).
+modules share them). A name is looked up in the submodule that defines it:
+a test that replaces one (``monkeypatch.setattr``) patches that submodule,
+since setting it on the package changes no caller inside.
 
 Adaptive MLMC
 -------------
@@ -200,8 +202,9 @@ from rough_uq.multilevel.drivers.samples import Sampler
 from rough_uq.multilevel.rates import Rates, fit_rates
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, diagnose, level_statistics
 
-# Not in __all__, but imported from here: the limit of a plan's samples and the rate floor (by the runs, the
-# pipeline and the CLI), and the helpers the variance and CDF driver (rough_uq.multilevel.targets) shares.
+# Not in __all__, but imported from here: the limit of a plan's samples (by the runs, the pipeline and the CLI),
+# the rate floor (by the records and the targets), and the helpers the variance and CDF driver
+# (rough_uq.multilevel.targets) shares.
 from rough_uq.multilevel.drivers.adaptive import MAX_PLANNED_SAMPLES as MAX_PLANNED_SAMPLES
 from rough_uq.multilevel.drivers.loop import budget_share as budget_share
 from rough_uq.multilevel.drivers.loop import checked_batch_cap as checked_batch_cap

@@ -24,7 +24,9 @@ they build on each other (each imports only those before it):
 Runs store their records, the typed records of :mod:`rough_uq.study.records`. Cost used for planning is the
 modelled cost of :mod:`rough_uq.problem.sampler` (reference seconds, independent of the process that computed a
 sample); the records carry both it and the measured wall time. The names below are the pipeline's interface to
-the CLI and the Python API; names with a leading underscore are private to the package.
+the CLI and the Python API; names with a leading underscore are private to the package. A name is looked up in
+the submodule that defines it: a test that replaces one (``monkeypatch.setattr``) patches that submodule (or each
+submodule that imports it), since setting it on the package changes no caller inside.
 """
 
 from __future__ import annotations

@@ -70,9 +70,10 @@ class WorkPlan:
         """The missing samples as shards ``(level, start, stop)`` of at most ``size`` contiguous indices each.
 
         Level by level, each contiguous run of missing indices (:func:`index_ranges`) cut into pieces of
-        ``size`` from its start: what one ``roughuq sample --level LEVEL --indices START:STOP`` computes.
+        ``size`` from its start: what one ``roughuq sample --stage STAGE --level LEVEL --indices START:STOP``
+        computes.
         """
-        return [(level, first, min(first + size, stop))
+        return [(int(level), first, min(first + size, stop))
                 for level, indices in self.missing.items()
                 for start, stop in index_ranges(indices)
                 for first in range(start, stop, size)]
@@ -85,8 +86,8 @@ def index_ranges(indices: Sequence[int] | np.ndarray) -> list[tuple[int, int]]:
         return []
     breaks = np.flatnonzero(np.diff(values) != 1) + 1
     starts = values[np.concatenate(([0], breaks))]
-    stops = values[np.concatenate((breaks - 1, [values.size - 1]))] + 1
-    return [(int(start), int(stop)) for start, stop in zip(starts, stops)]
+    lasts = values[np.concatenate((breaks - 1, [values.size - 1]))]
+    return [(int(start), int(last) + 1) for start, last in zip(starts, lasts)]  # + 1 in Python: no int64 overflow
 
 
 def missing_samples(
@@ -250,7 +251,7 @@ def run_estimation(
 ) -> RunRecord:
     """Run MLMC (``method="mlmc"``) or plain MC (``"mc"``) to ``tol`` and store its record.
 
-    ``forecast`` (:func:`forecast_run`, which the CLI calls first to refuse
+    ``forecast`` (:func:`~rough_uq.study.pipeline.planning.forecast_run`, which the CLI calls first to refuse
     hopeless tolerances) is stored in the record as ``forecast``.
 
     MC runs on the finest level the screening's plan needs for ``tol``, or on

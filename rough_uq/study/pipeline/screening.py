@@ -242,8 +242,9 @@ def load_screening(path: str | os.PathLike[str]) -> ScreeningResult:
     """The screening a study file holds, as :func:`rough_uq.screen` returns it, for the Python API.
 
     Recomputed from the stored screening samples, as ``roughuq mlmc`` recomputes it, with the problem of
-    :func:`load_problem`: ``rough_uq.mlmc(load_problem(path), tol=..., screening=load_screening(path))`` plans
-    as ``roughuq mlmc --study path --tol ...`` does, without solving the screening again.
+    :func:`~rough_uq.study.pipeline.studies.load_problem`: ``rough_uq.mlmc(load_problem(path), tol=...,
+    screening=load_screening(path))`` plans as ``roughuq mlmc --study path --tol ...`` does, without solving the
+    screening again.
 
     Raises
     ------

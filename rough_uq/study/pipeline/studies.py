@@ -156,7 +156,7 @@ def load_problem(path: str | os.PathLike[str]) -> ContactProblem:
     says what is taken over: the samples, not the estimation settings. A run
     on it draws the samples ``roughuq`` draws for that config (the same
     numbers where FFTs are planned alike, ``ROUGHUQ_FFTW_WISDOM=estimate``);
-    it makes the same choices from the same screening (:func:`load_screening`)
+    it makes the same choices from the same screening (:func:`~rough_uq.study.pipeline.screening.load_screening`)
     and settings (``n_initial=`` the config's ``estimation.initial_samples``,
     ``theta``, ...). ``dataclasses.replace(problem, max_level=5)`` changes a
     field.

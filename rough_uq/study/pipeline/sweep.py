@@ -68,7 +68,7 @@ def run_sweep(
     swept value: the studies would run the same tolerance); studies that give
     a QoI in different units (one tolerance would ask each for another
     accuracy); ``estimation.initial_samples`` beyond what MC on ``level``
-    may draw (:func:`check_initial_samples`; :class:`ConfigError` naming
+    may draw (:func:`check_initial_samples`; :class:`~rough_uq.errors.ConfigError` naming
     ``source``, the swept config's file, or ``--set KEY=VALUE`` where ``key``
     is that field); a study file in ``directory`` written by another config
     (:class:`StudyFileError`).

@@ -332,9 +332,9 @@ def check_target_budget(
     of solves that need no iteration at all. A budget below that bound could
     only stop the run before its bias is estimated, a result that cannot meet
     its tolerance (the mean's forecast refuses a predicted overrun alike,
-    :func:`forecast_run`). ``max_cost`` is ``--max-cost`` (reference seconds);
+    :func:`~rough_uq.study.pipeline.planning.forecast_run`). ``max_cost`` is ``--max-cost`` (reference seconds);
     None takes ``estimation.max_cost``, named so in the message; no budget at
-    all passes. ``model`` is the config's (:func:`build_model`), built here if
+    all passes. ``model`` is the config's (:func:`~rough_uq.study.pipeline.studies.build_model`), built here if
     not given. ``source`` (the config's file) is named first in a refusal of
     ``estimation.max_cost``.
 
