@@ -110,30 +110,30 @@ from rough_uq.multilevel.allocation import check_fraction, check_tol, optimal_sa
 from rough_uq.multilevel.drivers import (
     RATE_FLOOR,
     Sampler,
-    call_sampler,
-    check_optional_positive,
-    fill_costs,
-    planning_variances,
     affordable_count,
     budget_share,
+    call_sampler,
     check_finest_levels,
+    check_optional_positive,
     checked_batch_cap,
+    fill_costs,
+    planning_variances,
     refuse_large_plan,
     refuse_large_start,
     round_counts,
 )
-from rough_uq.multilevel.rates import rate_line, giles_prediction, remaining_bias, tail_rate
+from rough_uq.multilevel.rates import giles_prediction, rate_line, remaining_bias, tail_rate
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
     checked_names,
-    readonly_array,
-    errors_summary,
-    names_summary,
-    values_summary,
-    units_summary,
     diagnose,
+    errors_summary,
     level_statistics,
+    names_summary,
+    readonly_array,
+    units_summary,
+    values_summary,
 )
 
 __all__ = [

@@ -26,7 +26,7 @@ import numpy as np
 
 from rough_uq.errors import EstimationWarning, InvalidParameterError, warn_at_caller
 from rough_uq.multilevel.distribution import (
-    DEFAULT_PROBABILITIES, CdfEstimate, Quantiles, checked_thresholds, check_cdf_tol, mlmc_cdf, quantiles,
+    DEFAULT_PROBABILITIES, CdfEstimate, Quantiles, check_cdf_tol, checked_thresholds, mlmc_cdf, quantiles,
 )
 from rough_uq.multilevel.moments import mlmc_variance
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES, Sampler

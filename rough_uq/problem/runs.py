@@ -45,9 +45,9 @@ from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
     LevelStatistics,
-    values_summary,
     diagnose,
     level_statistics,
+    values_summary,
 )
 from rough_uq.problem.batch import STAGE_SCREENING, LevelBatch
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter

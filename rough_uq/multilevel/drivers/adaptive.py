@@ -37,25 +37,25 @@ from rough_uq.multilevel.drivers.events import EstimationResult, Event, Finished
 from rough_uq.multilevel.drivers.hierarchy import _Hierarchy
 from rough_uq.multilevel.drivers.loop import (
     _MAX_COUNT,
+    _Options,
+    _Run,
     _check_qoi_names,
     _drive,
-    _Options,
     _per_qoi,
-    _Run,
     _warn_zero_cost,
     checked_batch_cap,
 )
 from rough_uq.multilevel.drivers.planning import (
-    fill_costs,
     _floor_rates,
     _lenient_rates,
-    planning_variances,
+    fill_costs,
     planning_rates,
+    planning_variances,
 )
-from rough_uq.multilevel.drivers.samples import Sampler, check_optional_positive, _check_positive, _shape_out
+from rough_uq.multilevel.drivers.samples import Sampler, _check_positive, _shape_out, check_optional_positive
 from rough_uq.multilevel.rates import STALL_SIGNIFICANCE, DroppedLevel, Rates, confirmed_tail, estimated_bias, tail_rate
 from rough_uq.multilevel.richardson import RICHARDSON_MIN_LEVELS, ratio_instability, richardson_bias, richardson_weight
-from rough_uq.multilevel.statistics import KURTOSIS_LIMIT, EstimationWarning, LevelStatistics, readonly_array, diagnose
+from rough_uq.multilevel.statistics import KURTOSIS_LIMIT, EstimationWarning, LevelStatistics, diagnose, readonly_array
 
 #: Plans with more samples than this are refused, by the Python runs (:mod:`rough_uq.problem.runs`, unless
 #: ``max_samples=`` moves the limit) and by ``roughuq`` (whatever ``--max-cost``).

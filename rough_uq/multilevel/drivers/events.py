@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rough_uq.multilevel.rates import DroppedLevel, Rates
-from rough_uq.multilevel.statistics import LevelStatistics, errors_summary, names_summary, values_summary, units_summary
+from rough_uq.multilevel.statistics import LevelStatistics, errors_summary, names_summary, units_summary, values_summary
 
 
 @dataclass(frozen=True, eq=False)

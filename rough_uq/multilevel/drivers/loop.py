@@ -11,8 +11,8 @@ import numpy as np
 from rough_uq.errors import PLANNED_COUNT_CAP, EstimationError, warn_at_caller
 from rough_uq.multilevel.allocation import check_tol
 from rough_uq.multilevel.drivers.events import BatchDone, Event
-from rough_uq.multilevel.drivers.hierarchy import _batch_size, _Hierarchy, _per_sample_cost
-from rough_uq.multilevel.drivers.samples import Sampler, _Batch, call_sampler, _LevelSamples
+from rough_uq.multilevel.drivers.hierarchy import _Hierarchy, _batch_size, _per_sample_cost
+from rough_uq.multilevel.drivers.samples import _Batch, _LevelSamples, Sampler, call_sampler
 from rough_uq.multilevel.rates import RATE_FLOOR
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics, checked_names, readonly_array
 

@@ -13,23 +13,23 @@ from rough_uq.multilevel.allocation import check_fraction, check_tol
 from rough_uq.multilevel.drivers.adaptive import MIN_LEVEL_SAMPLES, _final
 from rough_uq.multilevel.drivers.events import EstimationResult, Event, Finished
 from rough_uq.multilevel.drivers.hierarchy import _Hierarchy
-from rough_uq.multilevel.drivers.loop import _MAX_COUNT, _check_qoi_names, _drive, _Options, _Run, checked_batch_cap
+from rough_uq.multilevel.drivers.loop import _MAX_COUNT, _Options, _Run, _check_qoi_names, _drive, checked_batch_cap
 from rough_uq.multilevel.drivers.samples import (
-    Sampler,
-    check_optional_positive,
-    _check_positive,
     _LevelSamples,
+    Sampler,
+    _check_positive,
     _shape_out,
+    check_optional_positive,
 )
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
     LevelStatistics,
     assemble_statistics,
-    qoi_text,
-    readonly_array,
     kurtosis_text,
     kurtosis_threshold,
+    qoi_text,
+    readonly_array,
 )
 
 

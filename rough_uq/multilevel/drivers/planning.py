@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.multilevel.rates import RATE_FLOOR, Rates, alpha_line, beta_line, gamma_line, RateLine
+from rough_uq.multilevel.rates import RATE_FLOOR, RateLine, Rates, alpha_line, beta_line, gamma_line
 from rough_uq.multilevel.statistics import LevelStatistics
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
-from rough_uq.multilevel.statistics import level_moments, LevelMoments, readonly_array
+from rough_uq.multilevel.statistics import LevelMoments, level_moments, readonly_array
 
 Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
 

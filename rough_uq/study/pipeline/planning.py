@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from rough_uq.study.config import StudyConfig
-from rough_uq.errors import EstimationError, InvalidParameterError, PLANNED_COUNT_CAP
+from rough_uq.errors import PLANNED_COUNT_CAP, EstimationError, InvalidParameterError
 from rough_uq.multilevel.drivers import (
     MAX_PLANNED_SAMPLES, PlanUpdated, planning_rates, refuse_large_plan, starting_forecast, starting_plan,
 )
@@ -24,7 +24,7 @@ from rough_uq.study.records import Forecast, ScreeningRecord, read_screening_rec
 from rough_uq.problem.columns import column_of_load, tol_text
 from rough_uq.problem.runs import run_id, unreachable_text
 from rough_uq.problem.sampler import ContactModel, modelled_cost, run_stage
-from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL, Plan, TOL_RANGE_TEXT, plan
+from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL, TOL_RANGE_TEXT, Plan, plan
 from rough_uq.multilevel.rates import Rates, fit_rates, stalled_bias, stalled_text
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics
 from rough_uq.study.pipeline.screening import screening_statistics

@@ -26,7 +26,7 @@ from rough_uq.study.records import (
     read_screening_record, utc_timestamp,
 )
 from rough_uq.problem.runs import MIN_SCREENED_LEVELS, ScreeningResult, exact_column_caveats, screening_of_batches
-from rough_uq.problem.sampler import LevelBatch, STAGE_SCREENING, measured_seconds_per_cost, modelled_cost
+from rough_uq.problem.sampler import STAGE_SCREENING, LevelBatch, measured_seconds_per_cost, modelled_cost
 from rough_uq.multilevel.allocation import Plan, plan
 from rough_uq.multilevel.rates import (
     Rates, choose_coarsest_level, fit_rates, refuse_constant_columns, stalled_bias, stalled_text,
