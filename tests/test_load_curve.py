@@ -166,6 +166,9 @@ def _curve_problem(**overrides):
         ({"relative": [0.05, 0.1, 0.05]}, "load.relative", "given once; repeated: 0.05"),
         ({"relative": [0.1], "absolute": [0.2]}, "load.relative", "exactly once"),
         ({"relative": {"a": 0.1}}, "load.relative", "a number or a list"),
+        # An integer beyond the floats was an OverflowError traceback from math.isfinite:
+        ({"relative": 10**400}, "load.relative", "finite number > 0"),
+        ({"absolute": [0.1, 10**400]}, "load.absolute.1", "finite number > 0"),
     ],
 )
 def test_bad_load_lists_name_the_field(load, field, what):

@@ -270,3 +270,38 @@ def test_a_boolean_load_is_refused_not_read_as_1(flag) -> None:
     with pytest.raises(InvalidParameterError) as caught:
         rough_uq.solve_load_curve(np.eye(8), system_size=1.0, mean_pressures=[0.1, flag])
     assert caught.value.name == "mean_pressures"
+
+
+@pytest.mark.parametrize("threads", [2**31, 2**64, 10**100])
+def test_a_thread_count_beyond_what_any_layer_takes_is_refused_by_name(threads) -> None:
+    # Each was an OverflowError from deep inside pyFFTW's planner (`roughuq screen` with solver.threads: 1e100
+    # written as an integer printed a traceback).
+    from rough_uq.physics.solver import MAX_THREADS
+    from rough_uq.problem.contact import MAX_THREADS as problem_max_threads
+    from tests.test_config import _base
+
+    assert MAX_THREADS == problem_max_threads == config_module.MAX_THREADS
+    with pytest.raises(InvalidParameterError, match=r"^threads: got [^;]+; allowed: an integer in 1\.\.1024"):
+        _problem(threads=threads)
+    with pytest.raises(InvalidParameterError, match=r"^threads: got .*allowed: an integer in 1\.\.1024"):
+        rough_uq.solve_contact(np.zeros((8, 8)), system_size=1.0, mean_pressure=0.1, threads=threads)
+    data = _base()
+    data["solver"] = {"threads": threads}
+    with pytest.raises(ConfigError, match=r"solver\.threads: .*allowed: integer in 1\.\.1024"):
+        config_module.config_from_dict(data)
+    data["solver"] = {"threads": MAX_THREADS}
+    assert config_module.config_from_dict(data).solver.threads == _problem(threads=MAX_THREADS).threads
+
+
+@pytest.mark.parametrize("max_level", [17, 2**63, 10**100])
+def test_a_huge_max_level_is_refused_at_once(max_level) -> None:
+    # 32 * 2**max_level was computed before the comparison: 2**63 never finished (`roughuq validate` hung).
+    from tests.test_config import _base
+
+    with pytest.raises(InvalidParameterError, match=r"^max_level: got [^;]+; allowed: a finest grid"):
+        _problem(coarsest=32, max_level=max_level)
+    data = _base()
+    data["grid"] = {"coarsest": 32, "max_level": max_level}
+    with pytest.raises(ConfigError, match=rf"grid\.max_level: makes the finest grid 32 \* 2\*\*{max_level} larger"):
+        config_module.config_from_dict(data)
+    assert _problem(coarsest=32, max_level=11).max_level == 11

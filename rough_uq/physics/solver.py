@@ -247,6 +247,10 @@ _FASTMATH = {"reassoc"}
 #: every pass gains or ties (``scripts/profile_solver.py --threads 2``).
 PARALLEL_PASS_MIN_NODES = 512 * 512
 
+#: The most threads a solve takes. pyFFTW cannot pass 2**31 or more to FFTW (an OverflowError from deep inside
+#: its planner), and a thousand threads on one grid are far beyond any machine's use; a larger count is a typo.
+MAX_THREADS = 1024
+
 #: Range of the dimensionless load ``mean_pressure * L / (E* * s_rms)`` a solve takes (module docstring,
 #: "Scaled units"); ``s_rms`` is the RMS of the heights it is given. A contact problem checks its loads
 #: against it when it is built (:func:`rough_uq.problem.contact.checked_mean_pressures`).
@@ -617,7 +621,8 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, th
     if not (is_real_number(tol) and 0 < tol < 1):
         raise scalar_refusal("tol", tol, "a number in (0, 1)")
     checked_integer("max_iter", max_iter, 1)
-    checked_integer("threads", threads, 1)
+    if checked_integer("threads", threads, 1) > MAX_THREADS:
+        raise InvalidParameterError("threads", threads, f"an integer in 1..{MAX_THREADS} (MAX_THREADS)")
     return s
 
 
@@ -784,7 +789,8 @@ def solve_contact(
     threads : int, optional
         FFTW threads, and numba threads of the fused passes on grids of at
         least :data:`PARALLEL_PASS_MIN_NODES` nodes (on smaller grids a pass
-        takes less time than waking a second thread; it runs on one).
+        takes less time than waking a second thread; it runs on one); 1 to
+        :data:`MAX_THREADS`.
     precondition : bool, optional
         Precondition the conjugate gradient with the inverse Westergaard
         operator restricted to the contact set (module docstring). ``False``

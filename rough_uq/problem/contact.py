@@ -54,6 +54,7 @@ __all__ = [
     "BatchExecutor",
     "ProgressReporter",
     "MAX_GRID",
+    "MAX_THREADS",
     "MIN_SOLVER_TOL",
 ]
 
@@ -126,6 +127,11 @@ MAX_GRID = 65536
 #: bound refuses only tolerances that no grid reaches reliably (1e-14 does on
 #: 64^2 and 128^2).
 MIN_SOLVER_TOL = 1e-14
+
+
+#: The most threads per solve: ``rough_uq.physics.solver.MAX_THREADS``, which says why (a copy: this module
+#: loads no numba; tests/test_problem_arguments.py checks they agree).
+MAX_THREADS = 1024
 
 
 def _qoi_names(qoi: object) -> tuple[str, ...]:
@@ -233,7 +239,7 @@ class ContactProblem:
     warm_start : bool
         Start the fine solve of a coupled sample from the coarse pressure.
     threads : int
-        FFTW / numba threads per solve, >= 1.
+        FFTW / numba threads per solve, 1 to :data:`MAX_THREADS`.
 
     Raises
     ------
@@ -310,7 +316,8 @@ class ContactProblem:
             )
         set_(self, "coarsest", n_0)
         max_level = checked_integer("max_level", self.max_level, 0)
-        if n_0 * 2**max_level > MAX_GRID:
+        # The level first: n_0 * 2**max_level of a max_level such as 2**63 would never finish.
+        if max_level > MAX_GRID.bit_length() or n_0 * 2**max_level > MAX_GRID:
             raise InvalidParameterError(
                 "max_level", self.max_level, f"a finest grid coarsest * 2**max_level <= {MAX_GRID} (MAX_GRID)"
             )
@@ -333,7 +340,10 @@ class ContactProblem:
         set_(self, "solver_tol", float(tol))
         set_(self, "max_iter", checked_integer("max_iter", self.max_iter, 1))
         set_(self, "warm_start", checked_bool("warm_start", self.warm_start))
-        set_(self, "threads", checked_integer("threads", self.threads, 1))
+        threads = checked_integer("threads", self.threads, 1)
+        if threads > MAX_THREADS:
+            raise InvalidParameterError("threads", self.threads, f"an integer in 1..{MAX_THREADS} (MAX_THREADS)")
+        set_(self, "threads", threads)
 
     def _build_model(self) -> ContactModel:
         scales = tuple(

@@ -84,7 +84,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from rough_uq.errors import ConfigError
+from rough_uq.errors import ConfigError, is_real_number
 from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES
 from rough_uq.problem.columns import column_name
@@ -415,9 +415,10 @@ def _load_value(value: object) -> object:
     """
     if value is None:
         return None
-    is_number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
-    if is_number(value):
-        if not (math.isfinite(value) and value > 0):
+    # is_real_number refuses an integer beyond the floats (10**400), where math.isfinite raised OverflowError.
+    is_load = lambda v: is_real_number(v) and math.isfinite(v) and v > 0  # noqa: E731
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if not is_load(value):
             _fail([_problem("", "must be a finite number > 0", value, _LOAD_ALLOWED)])
         return float(value)
     if not isinstance(value, (list, tuple)):
@@ -427,7 +428,7 @@ def _load_value(value: object) -> object:
     problems = [
         _problem(str(i), "must be a finite number > 0", v, "number > 0")
         for i, v in enumerate(value)
-        if not (is_number(v) and math.isfinite(v) and v > 0)
+        if not is_load(v)
     ]
     if problems:
         _fail(problems)
@@ -513,6 +514,10 @@ class LoadConfig(_Section):
 #: MAX_GRID; tests/test_problem_arguments.py checks they agree).
 MIN_SOLVER_TOL = 1e-14
 
+#: The most threads per solve: ``rough_uq.problem.contact.MAX_THREADS``, which says why (a copy, as MAX_GRID;
+#: tests/test_problem_arguments.py checks they agree). A run on local workers also refuses more than 4 per core.
+MAX_THREADS = 1024
+
 
 class SolverConfig(_Section):
     """The constrained conjugate-gradient contact solver (SPEC section 2)."""
@@ -543,8 +548,9 @@ class SolverConfig(_Section):
     threads: Int = _field(
         1,
         description="FFTW and numba threads per solve (count; changes results only by rounding)",
-        allowed="integer >= 1",
+        allowed=f"integer in 1..{MAX_THREADS}",
         ge=1,
+        le=MAX_THREADS,
     )
 
 
@@ -730,7 +736,8 @@ class GridConfig(_Section):
         if self.coarsest > MAX_GRID:
             _fail([_problem("coarsest", f"larger than the largest grid, {MAX_GRID}", self.coarsest,
                             f"even integer >= 4 and <= {MAX_GRID}")])
-        if self.finest > MAX_GRID:
+        # The level first: coarsest * 2**max_level of a max_level such as 2**63 would never finish.
+        if self.max_level > MAX_GRID.bit_length() or self.finest > MAX_GRID:
             _fail([_problem("max_level", f"makes the finest grid {self.coarsest} * 2**{self.max_level} larger than "
                             f"{MAX_GRID}", self.max_level, f"integer with coarsest * 2**max_level <= {MAX_GRID}")])
         return self
