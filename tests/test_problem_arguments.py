@@ -180,6 +180,14 @@ def test_qoi_names_that_are_not_names_are_refused_by_name(names) -> None:
         rough_uq.evaluate_qoi(names, pressure=np.ones((4, 4)))
 
 
+@pytest.mark.parametrize("names", [b"contact_area", [1], ("contact_area", None)])
+def test_qoi_names_that_are_not_strings_are_refused_as_given(names) -> None:
+    # The message showed the tuple made of them: got (99, 111, 110, ...) for b"contact_area".
+    with pytest.raises(InvalidParameterError) as caught:
+        _problem(qoi=names)
+    assert caught.value.name == "qoi" and caught.value.value is names
+
+
 @pytest.mark.parametrize("kind", [set, frozenset])
 def test_qoi_names_in_a_set_are_refused_since_their_order_changes_between_processes(kind) -> None:
     # A set's order follows string hashing, randomised per process: the columns (and a list of tolerances meant for
@@ -305,3 +313,14 @@ def test_a_huge_max_level_is_refused_at_once(max_level) -> None:
     with pytest.raises(ConfigError, match=rf"grid\.max_level: makes the finest grid 32 \* 2\*\*{max_level} larger"):
         config_module.config_from_dict(data)
     assert _problem(coarsest=32, max_level=11).max_level == 11
+
+
+def test_numpy_choices_are_kept_as_plain_values() -> None:
+    # np.int64(8) was kept as given: the problem's repr read connectivity=np.int64(8), and the problem differed in
+    # type from one built with 8.
+    problem = _problem(
+        connectivity=np.int64(8), area_estimator=np.str_("nodes"), projection=np.str_("injection"), coarsest=32
+    )
+    assert type(problem.connectivity) is int and type(problem.area_estimator) is str
+    assert type(problem.projection) is str and "connectivity=8," in repr(problem)
+    assert problem == _problem(connectivity=8, area_estimator="nodes", projection="injection", coarsest=32)

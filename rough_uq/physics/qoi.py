@@ -401,12 +401,13 @@ def ordered_names(label: str, names: object, allowed: str) -> tuple[str, ...]:
     if isinstance(names, (set, frozenset)):
         raise InvalidParameterError(label, names, allowed + " in a list or tuple (a set has no fixed order)")
     try:
-        names = tuple(names)  # type: ignore[arg-type]
+        listed = tuple(names)  # type: ignore[arg-type]
     except TypeError:
         raise InvalidParameterError(label, names, allowed) from None
-    if not all(isinstance(name, str) for name in names):
+    if not all(isinstance(name, str) for name in listed):
+        # The value as given: b'contact_area' read as (99, 111, ...) once made a tuple.
         raise InvalidParameterError(label, names, allowed)
-    return tuple(str(name) for name in names)
+    return tuple(str(name) for name in listed)
 
 
 def _names(names: object) -> tuple[str, ...]:

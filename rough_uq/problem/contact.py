@@ -174,7 +174,7 @@ def _choice(name: str, value: object, allowed: tuple) -> object:
     # 8.0 == 8: a number must be an integer to stand for one of the allowed integers.
     if isinstance(value, bool) or (is_real_number(value) and not is_integer(value)) or value not in allowed:
         raise InvalidParameterError(name, value, " or ".join(repr(a) for a in allowed))
-    return value
+    return allowed[allowed.index(value)]  # the plain value: np.int64(8) is kept as 8, np.str_ as str
 
 
 @dataclass(frozen=True)
@@ -283,8 +283,8 @@ class ContactProblem:
         pressures = checked_mean_pressures(
             loads, spectrum=self.spectrum, e_star=self.e_star, finest=self.grid(self.max_level)
         )
-        _choice("connectivity", self.connectivity, CLUSTER_COUNTS)
-        _choice("area_estimator", self.area_estimator, AREA_ESTIMATORS)
+        set_(self, "connectivity", _choice("connectivity", self.connectivity, CLUSTER_COUNTS))
+        set_(self, "area_estimator", _choice("area_estimator", self.area_estimator, AREA_ESTIMATORS))
         if self.critical_pressure is not None:
             set_(self, "critical_pressure", positive("critical_pressure", self.critical_pressure))
         elif "area_above" in names:
@@ -322,7 +322,7 @@ class ContactProblem:
                 "max_level", self.max_level, f"a finest grid coarsest * 2**max_level <= {MAX_GRID} (MAX_GRID)"
             )
         set_(self, "max_level", max_level)
-        _choice("projection", self.projection, PROJECTIONS)
+        set_(self, "projection", _choice("projection", self.projection, PROJECTIONS))
         if self.projection == "injection" and not k_s < n_0 / 2:
             raise InvalidParameterError(
                 "projection", self.projection, f"'truncation', or injection with k_s < coarsest / 2 = {n_0 // 2}"
