@@ -2,7 +2,19 @@
 
 from __future__ import annotations
 
+import signal
+
 import pytest
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _ctrl_c_as_in_a_terminal():
+    # A shell starts a background job (`pytest &` in a script) with SIGINT ignored, and its children inherit that:
+    # the Ctrl-C tests then saw no interruption at all (4 failures of a suite run in the background on 2026-11-29).
+    # They test what a terminal's Ctrl-C does, so the session restores Python's handler, which children reset.
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
 
 
 @pytest.fixture(autouse=True, scope="session")
