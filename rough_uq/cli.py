@@ -188,6 +188,12 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - the interpreter's final flush must not fail again
             sys.exit(EXIT_BROKEN_PIPE)
         except OSError as exc:
+            if exc.errno == errno.ENAMETOOLONG:
+                # A path the file system cannot name (a typo, a pasted paragraph) is what was typed: one line.
+                name = str(exc.filename) if exc.filename is not None else "a path"
+                shown = name if len(name) <= 60 else name[:57] + "..."
+                click.echo(f"error: {shown}: file name too long ({len(name)} characters; {exc.strerror})", err=True)
+                sys.exit(2)
             if exc.errno not in _WRITE_FAILURES:
                 raise
             # A full disk or quota under the output (`roughuq report FILE > report.txt`) is the machine's, not a

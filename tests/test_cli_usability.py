@@ -1589,3 +1589,14 @@ def test_python_dash_m_rough_uq_is_the_command_line(tmp_path):
                            cwd=tmp_path, timeout=120)
     assert usage.returncode == 2
     assert usage.stderr == "error: mlmc: Option '--tol' requires an argument; see `python -m rough_uq mlmc --help`\n"
+
+
+@pytest.mark.parametrize("args", [["report", "{long}"], ["init", "quickstart", "--out", "{long}"],
+                                  ["mlmc", "--tol", "1", "--study", "{long}"]])
+def test_a_file_name_too_long_for_the_file_system_is_one_line_and_status_2(tmp_path, monkeypatch, args) -> None:
+    # OSError: [Errno 36] File name too long: a traceback (status 1) from 10 of the 11 commands that take a path.
+    monkeypatch.chdir(tmp_path)
+    long = "a" * 300
+    result = CliRunner().invoke(main, [a.format(long=long) for a in args])
+    assert result.exit_code == 2, result.output
+    assert re.fullmatch(r"error: a{57}\.\.\.: file name too long \(300 characters; .*\)\n", result.output)

@@ -706,3 +706,30 @@ def test_every_qoi_tolerance_lies_in_the_range_the_runs_take(tmp_path, qoi, tol)
     path = write_config(tmp_path / "q.yaml", tiny_config(qoi={name: {**qoi[name], "tol": tol}}))
     with pytest.raises(ConfigError, match=rf"q.yaml: qoi.{name}.tol: .*allowed: number in \[1e-140, 1e\+140\]"):
         load_config(path)
+
+
+@pytest.mark.parametrize(("key", "kind"), [("[a, b]", "list"), ("{a: 1}", "dict")])
+def test_a_complex_yaml_key_is_refused_as_malformed(key, kind) -> None:
+    # `key in seen` of the duplicate check raised TypeError: unhashable type (a traceback from `roughuq validate`).
+    text = yaml.safe_dump(_base(), sort_keys=False) + f"? {key}\n: 1\n"
+    with pytest.raises(ConfigError, match=f"found a {kind} as a key; keys are field names"):
+        config_from_yaml_text(text)
+
+
+def test_an_output_path_with_a_nul_character_is_refused() -> None:
+    # Accepted by `validate`; `screen` then ended in "ValueError: embedded null byte".
+    data = _base()
+    data["output"] = {"path": "a\0b.h5"}
+    with pytest.raises(ConfigError, match=r"output\.path: contains a NUL character"):
+        config_from_dict(data)
+
+
+def test_nested_yaml_aliases_under_an_unknown_key_are_refused_at_once() -> None:
+    # Ten aliases of ten (10^9 elements from 1 KB): the message built the whole repr before cutting it to 80
+    # characters (minutes, and memory); a bounded repr names the key at once.
+    lines = ["bogus:", "  a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    lines += [f"  a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 10)]
+    text = yaml.safe_dump(_base(), sort_keys=False) + "\n".join(lines) + "\n"
+    with pytest.raises(ConfigError, match=r"bogus: unknown key \(got a mapping \{") as info:
+        config_from_yaml_text(text)
+    assert len(str(info.value)) < 400

@@ -67,7 +67,8 @@ import json
 import math
 import os
 import re
-from collections.abc import Mapping, Sequence
+import reprlib
+from collections.abc import Hashable, Mapping, Sequence
 import typing
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal, Union
@@ -888,6 +889,9 @@ class OutputConfig(_Section):
         # '.', 'runs/' or 'a/..' name a directory whatever the disk holds: `screen` said only ". is not a file".
         if value.endswith(("/", os.sep)) or os.path.basename(value) in (".", ".."):
             raise PydanticCustomError("not_a_file_name", "names a directory, not a file")
+        if "\0" in value:
+            # No file system takes it: `screen` ended in "ValueError: embedded null byte".
+            raise PydanticCustomError("not_a_file_name", "contains a NUL character, which no file name can")
         return value
 
 
@@ -1062,10 +1066,17 @@ def _keys_of(model: type[BaseModel]) -> str:
 _NOTHING = object()  # the "value" of a missing field
 
 
+#: The repr of a refused value, bounded before it is cut to 80 characters: nested YAML aliases under an unknown key
+#: (a 3.7 KB file) expand to 10^8 elements, whose full repr took minutes.
+_SHORT_REPR = reprlib.Repr()
+_SHORT_REPR.maxlevel, _SHORT_REPR.maxlist, _SHORT_REPR.maxdict, _SHORT_REPR.maxstring = 3, 8, 8, 80
+_SHORT_REPR.maxlong, _SHORT_REPR.maxother = 80, 80
+
+
 def _show(value: object) -> str:
     if value is _NOTHING:
         return "nothing"
-    text = repr(value)
+    text = _SHORT_REPR.repr(value)
     if isinstance(value, Mapping):
         text = "a mapping " + text
     elif isinstance(value, list):
@@ -1219,6 +1230,12 @@ class _StrictLoader(yaml.SafeLoader):
         seen: set[object] = set()
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=deep)
+            if not isinstance(key, Hashable):
+                # A complex key (`? [a, b]`) was a TypeError from `key in seen`: no field is named so.
+                raise yaml.constructor.ConstructorError(
+                    "while reading a mapping", node.start_mark, f"found a {type(key).__name__} as a key; "
+                    "keys are field names", key_node.start_mark
+                )
             if key in seen:
                 raise yaml.constructor.ConstructorError(
                     "while reading a mapping", node.start_mark, f"found duplicate key {key!r}", key_node.start_mark
