@@ -124,14 +124,18 @@ def _digits(value: int) -> int:
     return digits
 
 
-def checked_integer(name: str, value: object, minimum: int) -> int:
-    """``value`` as an int, or :class:`InvalidParameterError` naming ``name`` unless an integer ``>= minimum``.
+def checked_integer(name: str, value: object, minimum: int, maximum: int | None = None) -> int:
+    """``value`` as an int, or :class:`InvalidParameterError` naming ``name`` unless an integer ``>= minimum``
+    (and ``<= maximum`` if given).
 
     The integer check of every layer (:func:`is_integer`: booleans, strings and
     floats are refused, never converted).
     """
-    if not (is_integer(value) and value >= minimum):
-        raise InvalidParameterError(name, value, f"an integer >= {minimum}")
+    if maximum is None:
+        if not (is_integer(value) and value >= minimum):
+            raise InvalidParameterError(name, value, f"an integer >= {minimum}")
+    elif not (is_integer(value) and minimum <= value <= maximum):
+        raise InvalidParameterError(name, value, f"an integer in {minimum}..{maximum}")
     return int(value)
 
 

@@ -621,8 +621,7 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, th
     if not (is_real_number(tol) and 0 < tol < 1):
         raise scalar_refusal("tol", tol, "a number in (0, 1)")
     checked_integer("max_iter", max_iter, 1)
-    if checked_integer("threads", threads, 1) > MAX_THREADS:
-        raise InvalidParameterError("threads", threads, f"an integer in 1..{MAX_THREADS} (MAX_THREADS)")
+    checked_integer("threads", threads, 1, MAX_THREADS)
     return s
 
 

@@ -340,10 +340,7 @@ class ContactProblem:
         set_(self, "solver_tol", float(tol))
         set_(self, "max_iter", checked_integer("max_iter", self.max_iter, 1))
         set_(self, "warm_start", checked_bool("warm_start", self.warm_start))
-        threads = checked_integer("threads", self.threads, 1)
-        if threads > MAX_THREADS:
-            raise InvalidParameterError("threads", self.threads, f"an integer in 1..{MAX_THREADS} (MAX_THREADS)")
-        set_(self, "threads", threads)
+        set_(self, "threads", checked_integer("threads", self.threads, 1, MAX_THREADS))
 
     def _build_model(self) -> ContactModel:
         scales = tuple(
