@@ -695,6 +695,43 @@ def test_a_screening_over_the_planned_sample_cap_is_refused(tmp_path, samples):
     assert load_config(write_config(tmp_path / "fine.yaml", fine))
 
 
+def test_screening_levels_beyond_the_grid_are_the_one_error_not_a_sample_bound_of_2_to_0():
+    # levels: 10**30 also refused screening.samples: 20 with "allowed: integer in 2..0".
+    text = _message({**_base(), "screening": {"levels": 10**30, "samples": 20}})
+    assert "screening.levels: cannot screen more levels than exist" in text
+    assert "screening.samples" not in text
+
+
+@pytest.mark.parametrize("value", [10**7 + 1, 1e15, 1e29])
+def test_initial_samples_beyond_any_plan_are_refused_by_the_config(value):
+    # `validate` passed 1e15 (the runs refused it later) and said of 1e29 "unable to parse input string as an
+    # integer, exceeded maximum size".
+    text = _message({**_base(), "estimation": {"initial_samples": value}})
+    assert "estimation.initial_samples: " in text and "allowed: integer in 2..10000000 " in text
+    assert "parse" not in text and "input" not in text.lower()
+
+
+@pytest.mark.parametrize("field, value, what", [
+    (("schema_version",), 10**30, "is far beyond any integer allowed here"),
+    (("seed",), [1], "must be an integer"),
+    (("seed",), 0.5, "must be an integer, not a number with a fractional part"),
+    (("surface", "hurst"), [1], "must be a number"),
+    (("output", "path"), 1.5, "must be text"),
+    (("estimation", "distribution"), {"contact_area": {"probabilities": 0.5}}, "must be a list"),
+], ids=["huge integer", "list for integer", "fraction for integer", "list for number", "number for path",
+        "number for list"])
+def test_pydantic_type_errors_are_said_in_the_words_of_a_config(field, value, what):
+    # They said "Input should be a valid tuple", "valid string", "unable to parse input string".
+    config = _base()
+    section = config
+    for key in field[:-1]:
+        section = section.setdefault(key, {})
+    section[field[-1]] = value
+    text = _message(config)
+    assert f": {what} (got " in text, text
+    assert "valid" not in text and "parse" not in text, text
+
+
 @pytest.mark.parametrize("qoi", [{"contact_area": {}}, {"clusters": {}}, {"mean_gap": {}}, {"max_pressure": {}},
                                  {"area_above": {"critical_pressure": 0.1}}], ids=lambda q: next(iter(q)))
 @pytest.mark.parametrize("tol", [1e-200, 1e200])

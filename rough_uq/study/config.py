@@ -850,8 +850,10 @@ class EstimationConfig(_Section):
             "mlmc --tol-var and --tol-cdf; count; more of them steady the bias test of the latter two); "
             "runs started from a screening need only 2 per level"
         ),
-        allowed="integer >= 2",
+        allowed=f"integer in 2..{MAX_PLANNED_SAMPLES} (runs of several levels allow fewer: at most "
+        f"{MAX_PLANNED_SAMPLES:,} samples in all)",
         ge=2,
+        le=MAX_PLANNED_SAMPLES,
     )
     batch_size: Int = _field(
         10,
@@ -1016,7 +1018,8 @@ class StudyConfig(_Section):
                 )
             )
         n_screened = self.screening.samples * self.screening.levels
-        if is_screenable and n_screened > MAX_PLANNED_SAMPLES:
+        levels_fit = self.screening.levels <= self.grid.max_level + 1  # else that is the one error to show
+        if is_screenable and levels_fit and n_screened > MAX_PLANNED_SAMPLES:
             # `screen` accepted 10^11 and failed allocating its progress (745 GiB), or began 6e7 solves.
             problems.append(
                 _problem(
@@ -1177,8 +1180,23 @@ def _number_text(value: object) -> str:
     return str(value)
 
 
+#: pydantic's own wording, in a config message's words ("valid tuple" is no word of a YAML file; "unable to
+#: parse input string" was said of the number 1e29 in an integer field).
+_PYDANTIC_WORDS = {
+    "int_type": "must be an integer",
+    "int_from_float": "must be an integer, not a number with a fractional part",
+    "int_parsing_size": "is far beyond any integer allowed here",
+    "float_type": "must be a number",
+    "string_type": "must be text",
+    "tuple_type": "must be a list",
+    "list_type": "must be a list",
+}
+
+
 def _pydantic_what(item: Mapping[str, Any]) -> str:
     """What is wrong, in the words of a config message, for one of pydantic's own errors."""
+    if item["type"] in _PYDANTIC_WORDS:
+        return _PYDANTIC_WORDS[item["type"]]
     bound = _BOUNDS.get(item["type"])
     context = item.get("ctx") or {}
     if bound is not None and bound[0] in context:
