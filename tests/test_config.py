@@ -675,6 +675,13 @@ def test_an_output_path_that_names_a_directory_is_refused(path):
     assert f"output.path: names a directory, not a file (got {path!r}" in text
 
 
+def test_an_output_path_in_the_home_directory_is_expanded(tmp_path, monkeypatch):
+    # `output.path: ~/runs/x.h5` made a directory named `~` in the working directory.
+    monkeypatch.setenv("HOME", str(tmp_path))
+    config = config_from_dict({**_base(), "output": {"path": "~/runs/x.h5"}})
+    assert config.output.path == str(tmp_path / "runs" / "x.h5")
+
+
 def test_an_empty_config_path_is_named_as_such():
     # It said ": config file not found (got '' ...)", a file name missing in front of the colon.
     with pytest.raises(ConfigError, match=r"^config file: got ''; allowed: a non-empty path of a YAML file$"):

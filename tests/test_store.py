@@ -6,6 +6,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -593,11 +594,13 @@ def test_create_makes_parent_directories(tmp_path: Path) -> None:
         assert study.path.exists()
 
 
-def test_unusable_directory_is_refused_before_any_work(tmp_path: Path) -> None:
+@pytest.mark.parametrize("below", [(), ("sub",)], ids=["parent", "grandparent"])
+def test_unusable_directory_is_refused_before_any_work(tmp_path: Path, below: tuple[str, ...]) -> None:
+    # It said "cannot create the directory file (File exists)": the file in the way is named as such.
     blocker = tmp_path / "file"
     blocker.write_text("")
-    with pytest.raises(StudyFileError, match="cannot create the directory"):
-        new_study(blocker / "study.h5")
+    with pytest.raises(StudyFileError, match=f": {re.escape(str(blocker))} is a file, not a directory$"):
+        new_study(blocker.joinpath(*below, "study.h5"))
 
 
 @pytest.mark.skipif(os.geteuid() == 0, reason="root may write to read-only directories")

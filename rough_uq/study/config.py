@@ -46,7 +46,8 @@ Choices where the specification is silent
   (a cluster config must validate on a laptop): :func:`memory_warning` says,
   when samples of a level are about to be computed here, whether that many
   solves at once (one per worker) exceed this machine's physical memory.
-* ``output.path`` is a plain string, relative to the working directory.
+* ``output.path`` is a plain string, relative to the working directory; a
+  leading ``~`` is expanded to the home directory, as a shell would.
 * ``config_hash`` hashes the spectrum as resolved wave numbers, so the same
   surface given as wavelengths or as wave numbers has the same hash, and
   keeps the order of the quantities of interest (it is the column order of
@@ -880,7 +881,7 @@ class OutputConfig(_Section):
 
     path: str = _field(
         "results.h5",
-        description="Study file (HDF5), relative to the working directory",
+        description="Study file (HDF5), relative to the working directory; a leading ~ is the home directory",
         allowed="a non-empty file path",
         min_length=1,
     )
@@ -894,7 +895,8 @@ class OutputConfig(_Section):
         if "\0" in value:
             # No file system takes it: `screen` ended in "ValueError: embedded null byte".
             raise PydanticCustomError("not_a_file_name", "contains a NUL character, which no file name can")
-        return value
+        # `~/runs/x.h5` created a directory named `~` in the working directory: only a shell expands it.
+        return os.path.expanduser(value)
 
 
 # ---------------------------------------------------------------------------

@@ -1458,6 +1458,12 @@ def _make_directory(path: Path) -> None:
     """Create the missing parent directories of ``path``; refuse a directory this process cannot write in."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError) as exc:
+        # It said "cannot create the directory afile (File exists)" of a file in the way.
+        blocking = [parent for parent in reversed(path.parents) if parent.exists() and not parent.is_dir()]
+        what = (f"{blocking[0]} is a file, not a directory" if blocking
+                else f"cannot create the directory {path.parent} ({exc.strerror})")
+        raise StudyFileError(f"{path}: {what}", path) from None
     except OSError as exc:
         raise StudyFileError(f"{path}: cannot create the directory {path.parent} ({exc.strerror})", path) from None
     if not os.access(path.parent, os.W_OK | os.X_OK):
