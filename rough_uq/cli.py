@@ -984,17 +984,22 @@ def _thresholds(text: str | None) -> Any:
 
     if text is None:
         return None
-    allowed = (f"START:STOP:COUNT with START < STOP and an integer COUNT in 2..{MAX_THRESHOLDS}, in the QoI's "
-               "unit (e.g. 15:25:41)")
+    allowed = (f"START:STOP:COUNT with START < STOP (STOP - START a finite number) and an integer COUNT in "
+               f"2..{MAX_THRESHOLDS}, in the QoI's unit (e.g. 15:25:41)")
     parts = text.split(":")
     try:
         start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
     except (ValueError, IndexError):
         raise InvalidParameterError("--thresholds", text, allowed) from None
-    is_grid = math.isfinite(start) and math.isfinite(stop) and start < stop and 2 <= count <= MAX_THRESHOLDS
+    # A span beyond the floats (-1e308:1e308:5) made nan thresholds and numpy's overflow warnings.
+    is_grid = math.isfinite(stop - start) and start < stop and 2 <= count <= MAX_THRESHOLDS
     if len(parts) != 3 or not is_grid:
         raise InvalidParameterError("--thresholds", text, allowed)
-    return np.linspace(start, stop, count)
+    values = np.linspace(start, stop, count)
+    if np.any(np.diff(values) <= 0):
+        raise InvalidParameterError("--thresholds", text, f"{allowed}; COUNT distinct numbers (here neighbours round "
+                                    "to one float: fewer thresholds or a wider range)")
+    return values
 
 
 def _probabilities(text: str | None) -> tuple[float, ...] | None:

@@ -676,6 +676,19 @@ def test_a_cdf_run_without_thresholds_says_none_were_given(tmp_path, monkeypatch
     assert "None" not in line and not (tmp_path / "new.h5").exists()
 
 
+@pytest.mark.parametrize("grid, words", [("-1e308:1e308:5", "STOP - START a finite number"),
+                                         ("1e-320:2e-320:10000", "here neighbours round to one float")],
+                         ids=["span beyond the floats", "subnormal neighbours"])
+def test_cdf_thresholds_floats_cannot_hold_are_refused_as_given(tmp_path, monkeypatch, grid, words):
+    """-1e308:1e308:5 printed numpy's overflow warnings and refused an array of nan and inf thresholds."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "tiny.yaml", tiny_config())
+    line = one_error_line(run("mlmc", "--config", "tiny.yaml", "--study", "new.h5", "--tol-cdf", "0.1",
+                              f"--thresholds={grid}", expect=2))
+    assert line.startswith(f"error: --thresholds: got '{grid}'; allowed: ") and words in line, line
+    assert not (tmp_path / "new.h5").exists()
+
+
 def test_validate_says_a_study_too_shallow_to_screen_has_no_screening(tmp_path):
     """With grid.max_level 1 it listed grids 8, 16 and 'screening: levels 0..2', which screen then refused."""
     config = write_config(tmp_path / "shallow.yaml", tiny_config(grid={"coarsest": 8, "max_level": 1}))

@@ -682,6 +682,16 @@ def test_an_output_path_in_the_home_directory_is_expanded(tmp_path, monkeypatch)
     assert config.output.path == str(tmp_path / "runs" / "x.h5")
 
 
+@pytest.mark.parametrize("grid, field, words", [
+    ({"start": -1e308, "stop": 1e308, "count": 5}, "stop", "stop - start exceeds the largest float"),
+    ({"start": 1e-320, "stop": 2e-320, "count": 10_000}, "count", "are not distinct numbers"),
+], ids=["span beyond the floats", "subnormal neighbours"])
+def test_a_threshold_grid_floats_cannot_hold_is_refused(grid, field, words):
+    # validate passed both; the cdf run then said "--thresholds: got None" of the first.
+    text = _message({**_base(), "estimation": {"distribution": {"contact_area": {"thresholds": grid}}}})
+    assert f"estimation.distribution.contact_area.thresholds.{field}: " in text and words in text, text
+
+
 def test_an_empty_config_path_is_named_as_such():
     # It said ": config file not found (got '' ...)", a file name missing in front of the colon.
     with pytest.raises(ConfigError, match=r"^config file: got ''; allowed: a non-empty path of a YAML file$"):

@@ -69,6 +69,7 @@ import math
 import os
 import re
 import reprlib
+import sys
 from collections.abc import Hashable, Mapping, Sequence
 import typing
 from dataclasses import dataclass
@@ -793,6 +794,15 @@ class ThresholdGrid(_Section):
     def _increasing(self) -> ThresholdGrid:
         if not self.stop > self.start:
             _fail([_problem("stop", "must be larger than start", self.stop, f"a number > start = {self.start:g}")])
+        # -1e308..1e308 passed validate and the run said "--thresholds: got None" (the span overflowed).
+        if not math.isfinite(self.stop - self.start):
+            _fail([_problem("stop", "is too far from start: stop - start exceeds the largest float", self.stop,
+                            f"a number with stop - start <= {sys.float_info.max:.3g}")])
+        values = self.values()
+        if any(later <= earlier for earlier, later in zip(values, values[1:])):
+            _fail([_problem("count", f"{self.count} thresholds from {self.start:g} to {self.stop:g} are not "
+                            "distinct numbers (neighbours round to one float)", self.count,
+                            "fewer thresholds, or a wider range")])
         return self
 
     def values(self) -> list[float]:

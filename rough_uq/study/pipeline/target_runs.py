@@ -104,7 +104,10 @@ def cdf_request(
         )
     values = np.asarray(settings.thresholds.values() if thresholds is None else thresholds, dtype=float)
     if values.ndim != 1 or values.size < 2 or not np.all(np.isfinite(values)) or np.any(np.diff(values) <= 0):
-        raise InvalidParameterError("--thresholds", thresholds, "at least two finite, strictly increasing values")
+        # The config's grid is checked when it is loaded; name it, not the --thresholds nobody gave, if not.
+        field = ("--thresholds" if thresholds is not None
+                 else f"estimation.distribution.{_qoi_of(config, column)}.thresholds")
+        raise InvalidParameterError(field, values, "at least two finite, strictly increasing values")
     if probabilities is None:
         probabilities = DEFAULT_PROBABILITIES if settings is None else settings.probabilities
     return CdfRequest(column=column, thresholds=values, probabilities=_probabilities(probabilities))
