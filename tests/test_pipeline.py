@@ -964,6 +964,23 @@ def test_screening_without_decaying_bias_keeps_its_table_and_says_why(monkeypatc
     assert "no cost prediction" in why.message and "screening.levels" in why.message
 
 
+@pytest.mark.parametrize("tol, kept", [(3e-140, 3), (8e139, 4), (1.0, 5)], ids=["near 1e-140", "near 1e140", "inside"])
+def test_a_tol_near_the_edge_of_the_range_keeps_the_rows_runs_take(tol, kept):
+    # tol 2e-140: its 1/4 row failed, the table lost the rows after it, and the warning said "tol: got
+    # array([5.e-141])... screen more levels".
+    from rough_uq.study.pipeline.screening import PREDICTION_FACTORS
+
+    outcome = run_screening(_study(qoi={"contact_area": {"unit": "percent", "tol": tol}}),
+                            executor=SerialExecutor(), progress=QUIET)
+    rows = [prediction.tol[0] for prediction in outcome.record.predictions]
+    assert rows == pytest.approx([tol * f for f in PREDICTION_FACTORS if 1e-140 <= tol * f <= 1e140], rel=1e-12)
+    assert len(rows) == kept
+    notes = [d.message for d in outcome.record.diagnostics if d.kind == "prediction"]
+    assert notes == ([] if kept == 5 else [notes[0]])
+    assert all("times the tolerance: a tolerance beyond [1e-140, 1e+140]" in note for note in notes)
+    assert not any("array" in note or "screen more levels" in note for note in notes)
+
+
 def test_the_forecast_plans_the_samples_the_run_starts_with():
     # The quickstart's screening drops level 0 at these tolerances (its 32^2 samples cost more than they
     # save): the forecast printed before the run must plan what the run then plans, level 0 dropped too.

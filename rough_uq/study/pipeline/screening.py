@@ -27,7 +27,7 @@ from rough_uq.study.records import (
 )
 from rough_uq.problem.runs import MIN_SCREENED_LEVELS, ScreeningResult, exact_column_caveats, screening_of_batches
 from rough_uq.problem.sampler import STAGE_SCREENING, LevelBatch, measured_seconds_per_cost, modelled_cost
-from rough_uq.multilevel.allocation import Plan, plan
+from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL, Plan, plan
 from rough_uq.multilevel.rates import (
     Rates, choose_coarsest_level, fit_rates, refuse_constant_columns, stalled_bias, stalled_text,
 )
@@ -219,7 +219,10 @@ def _predictions(
     if stalled_bias(config.qoi_names, rates, statistics):
         return (), [_no_prediction(config.qoi_names, rates, statistics, None)]
     planned = planning_rates(statistics)  # floored, as the runs plan (the record keeps the fitted rates)
-    for factor in PREDICTION_FACTORS:
+    # A tol within a factor 8 of the range's edge dropped the rows after it, advising more levels.
+    factors = [f for f in PREDICTION_FACTORS if np.all((base * f >= MIN_TOL) & (base * f <= MAX_TOL))]
+    notes = [] if len(factors) == len(PREDICTION_FACTORS) else [_beyond_tolerances(PREDICTION_FACTORS, factors)]
+    for factor in factors:
         try:
             prediction = plan(
                 tol=base * factor,
@@ -232,10 +235,17 @@ def _predictions(
         except RoughUQError as exc:
             # E.g. a bias that does not decay yet (alpha <= 0 on pre-asymptotic
             # levels): keep the table and rates, say why nothing can be predicted.
-            return tuple(predictions), [_no_prediction(config.qoi_names, rates, statistics, exc)]
+            return tuple(predictions), [*notes, _no_prediction(config.qoi_names, rates, statistics, exc)]
         predictions.append(PlanRecord.from_plan(_marked_as_runs_refuse(prediction, config, planned, statistics),
                                                 seconds_per_cost))
-    return tuple(predictions), []
+    return tuple(predictions), notes
+
+
+def _beyond_tolerances(all_factors: Sequence[float], kept: Sequence[float]) -> str:
+    """Which multiples of the base tolerance the table leaves out, and why."""
+    left_out = ", ".join(f"{f:g}" for f in all_factors if f not in kept)
+    return (f"no cost prediction for {left_out} times the tolerance: a tolerance beyond [{MIN_TOL:g}, {MAX_TOL:g}] "
+            "(the QoI's unit) is refused by every run; express the QoI in another unit")
 
 
 def load_screening(path: str | os.PathLike[str]) -> ScreeningResult:
