@@ -1053,6 +1053,17 @@ def test_a_sweep_of_the_refused_field_names_the_swept_value(tmp_path, monkeypatc
     assert sorted(path.name for path in tmp_path.iterdir()) == ["c.yaml"]
 
 
+def test_a_sweep_of_a_budget_below_the_initial_samples_is_refused_before_any_study(tmp_path, monkeypatch):
+    """max_cost=100,1e-9 ran the first study, then refused the second naming the config file, not --set."""
+    monkeypatch.chdir(tmp_path)
+    write_config(tmp_path / "c.yaml", tiny_config())
+    line = one_error_line(run("sweep", "c.yaml", "--set", "estimation.max_cost=100,1e-9", "--tol", "1",
+                              "--dir", "swept", "--workers", "1", expect=2))
+    assert line.startswith("error: --set estimation.max_cost=1e-9: estimation.max_cost 1e-09 is too small for the "
+                           "initial samples of level "), line
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["c.yaml"]
+
+
 def test_a_study_file_is_kept_once_it_holds_anything(tmp_path, monkeypatch):
     """Only a file the command created and left empty goes: a refusal after samples keeps them."""
     monkeypatch.chdir(tmp_path)

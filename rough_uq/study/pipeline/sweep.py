@@ -13,7 +13,9 @@ from rough_uq.study.executors import Executor
 from rough_uq.study.progress import PrefixedProgress, Progress
 from rough_uq.study.records import RunRecord
 from rough_uq.study.pipeline.estimation import run_estimation
-from rough_uq.study.pipeline.planning import _given_tolerances, check_initial_samples, parse_tolerances
+from rough_uq.study.pipeline.planning import (
+    _check_initial_budget, _given_tolerances, check_initial_samples, parse_tolerances,
+)
 from rough_uq.study.pipeline.studies import _refuse_other_config, create_study
 
 
@@ -70,7 +72,8 @@ def run_sweep(
     accuracy); ``estimation.initial_samples`` beyond what MC on ``level``
     may draw (:func:`check_initial_samples`; :class:`~rough_uq.errors.ConfigError` naming
     ``source``, the swept config's file, or ``--set KEY=VALUE`` where ``key``
-    is that field); a study file in ``directory`` written by another config
+    is that field); an ``estimation.max_cost`` below the least cost of those
+    samples (:class:`~rough_uq.errors.EstimationError`, named alike); a study file in ``directory`` written by another config
     (:class:`StudyFileError`).
     """
     directory = Path(directory)
@@ -81,8 +84,12 @@ def run_sweep(
         _refuse_overridden_tolerance(key, configs[0][1], tol)
     _refuse_mixed_units(key, configs)
     for value, config in configs:
-        where = f"--set {key}={value}" if key == "estimation.initial_samples" else source
-        check_initial_samples(config, n_levels=1, run=f"a sweep (mc on level {level})", source=where)
+        # A budget below a later value's initial samples was refused after the first studies ran, naming the file.
+        swept = f"--set {key}={value}"
+        check_initial_samples(config, n_levels=1, run=f"a sweep (mc on level {level})",
+                              source=swept if key == "estimation.initial_samples" else source)
+        _check_initial_budget(config, [level], max_cost=None, model=None, without="the run has no variance estimate",
+                              source=swept if key == "estimation.max_cost" else source)
     for study_path, (_, config) in zip(paths, configs):
         _refuse_other_config(study_path, config, remedy)
     try:
