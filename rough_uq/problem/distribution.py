@@ -18,7 +18,7 @@ never share samples.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 import dataclasses
 from dataclasses import dataclass
 
@@ -132,7 +132,7 @@ def estimate_target(
 def variance(
     problem: ContactProblem,
     *,
-    tol: float | Sequence[float] | np.ndarray,
+    tol: float | Sequence[float] | Mapping[str, float] | np.ndarray,
     theta: float = 0.5,
     n_initial: int = 32,
     min_finest_level: int | None = None,

@@ -577,7 +577,7 @@ def warn_not_met(method: str, names: Sequence[str] | None, result, tol, *, advic
 def mlmc(
     problem: ContactProblem,
     *,
-    tol: float | Sequence[float] | np.ndarray,
+    tol: float | Sequence[float] | Mapping[str, float] | np.ndarray,
     theta: float = 0.5,
     screening: ScreeningResult | LevelStatistics | None = None,
     richardson: bool = False,
@@ -827,7 +827,7 @@ def _mc_advice(result: EstimationResult, n_initial: int) -> str | None:
 def mc(
     problem: ContactProblem,
     *,
-    tol: float | Sequence[float] | np.ndarray,
+    tol: float | Sequence[float] | Mapping[str, float] | np.ndarray,
     level: int | None = None,
     theta: float = 0.5,
     screening: ScreeningResult | LevelStatistics | None = None,

@@ -136,9 +136,12 @@ class EstimationResult:
         False for MC stopped by ``max_cost`` before it drew the samples it
         starts with (``n_initial``, 2 from a screening).
     stop_reason : str
-        ``"tol_met"``, ``"max_cost"``, ``"max_level"`` (MLMC: the bias needs a
-        level beyond ``max_level``) or ``"bias"`` (MC: the statistical target is
-        met but the given bias is too large).
+        ``"tol_met"``, ``"max_cost"``, ``"max_level"`` (MLMC: the bias test
+        asked for a level beyond ``max_level``; ``tol_met`` may still be True
+        where the bias then estimated on ``max_level`` and the statistical
+        error together meet ``tol``, since the bias test checks the stricter
+        share ``sqrt(theta) tol``) or ``"bias"`` (MC: the statistical target
+        is met but the given bias is too large).
     is_bias_estimated : bool
         False for MC without a ``bias`` (``bias_estimate`` is then 0 and
         ``tol_met`` concerns the statistical error only, within its share), and for MLMC
@@ -206,7 +209,11 @@ class EstimationResult:
 
     @property
     def rmse(self) -> float | np.ndarray:
-        """Estimated root-mean-square error ``sqrt(stat_error^2 + bias_estimate^2)``."""
+        """Estimated root-mean-square error ``sqrt(stat_error^2 + bias_estimate^2)``.
+
+        Where the bias is not estimated (``is_bias_estimated`` False, ``bias_estimate`` 0) the statistical error
+        alone: a lower bound of the error, not an estimate of it.
+        """
         return np.sqrt(np.square(self.stat_error) + np.square(self.bias_estimate))
 
     @property
