@@ -73,8 +73,8 @@ def run_sweep(
     may draw (:func:`check_initial_samples`; :class:`~rough_uq.errors.ConfigError` naming
     ``source``, the swept config's file, or ``--set KEY=VALUE`` where ``key``
     is that field); an ``estimation.max_cost`` below the least cost of those
-    samples (:class:`~rough_uq.errors.EstimationError`, named alike); a study file in ``directory`` written by another config
-    (:class:`StudyFileError`).
+    samples (:class:`~rough_uq.errors.EstimationError`, named alike); a study
+    file in ``directory`` written by another config (:class:`StudyFileError`).
     """
     directory = Path(directory)
     remedy = f"use another --dir than {str(directory)!r}, or the config and --set of that sweep"
