@@ -86,6 +86,7 @@ _EXPORTS = {
     "ConvergenceError": "rough_uq.errors",
     "EstimationError": "rough_uq.errors",
     "PlanTooLargeError": "rough_uq.errors",
+    "ExecutorError": "rough_uq.errors",
     "EstimationWarning": "rough_uq.errors",
 }
 
@@ -128,6 +129,7 @@ __all__ = [
     "ConvergenceError",
     "EstimationError",
     "PlanTooLargeError",
+    "ExecutorError",
     "EstimationWarning",
 ]
 
@@ -136,6 +138,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time names load on first
         ConvergenceError,
         EstimationError,
         EstimationWarning,
+        ExecutorError,
         InvalidParameterError,
         PlanTooLargeError,
         RoughUQError,

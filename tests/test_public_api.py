@@ -73,6 +73,7 @@ PUBLIC = [
     "ConvergenceError",
     "EstimationError",
     "PlanTooLargeError",
+    "ExecutorError",  # the README's PoolExecutor example names it; it was only in rough_uq.study.executors
     "EstimationWarning",
 ]
 
