@@ -692,6 +692,23 @@ def test_a_threshold_grid_floats_cannot_hold_is_refused(grid, field, words):
     assert f"estimation.distribution.contact_area.thresholds.{field}: " in text and words in text, text
 
 
+def test_colon_separated_numbers_stay_text_not_base_60_integers(tmp_path):
+    # YAML 1.1 read `thresholds: 15:25:41` (the --thresholds form) as 55541: "must be a mapping (got 55541)".
+    from tests.study_configs import tiny_config, write_config
+
+    path = write_config(tmp_path / "c.yaml", tiny_config())
+    text = path.read_text()
+    grid = "estimation:\n  distribution:\n    contact_area:\n      thresholds: 15:25:41\n"
+    path.write_text(text.replace("estimation:\n", grid, 1))
+    with pytest.raises(ConfigError, match=r"thresholds: must be a mapping \(got '15:25:41'; "):
+        load_config(path)
+    path.write_text(text.replace("seed: 2026", "seed: 1:30"))
+    with pytest.raises(ConfigError, match=r"seed: must be a number, not a string \(got '1:30'; "):
+        load_config(path)
+    path.write_text(text.replace("seed: 2026", "seed: 0x1f"))  # YAML 1.1's other integers are kept
+    assert load_config(path).seed == 31
+
+
 def test_an_empty_config_path_is_named_as_such():
     # It said ": config file not found (got '' ...)", a file name missing in front of the colon.
     with pytest.raises(ConfigError, match=r"^config file: got ''; allowed: a non-empty path of a YAML file$"):

@@ -32,7 +32,8 @@ Choices where the specification is silent
   defaults for every field.
 * Numbers must be finite; booleans are not accepted where a number is
   expected; duplicate YAML keys are an error; ``1e-8`` (no dot) is read as a
-  number, not as the string YAML 1.1 would make of it.
+  number, not as the string YAML 1.1 would make of it, and ``15:25:41`` as
+  text, not as the base-60 integer 55541 of YAML 1.1.
 * ``grid.projection: injection`` requires the spectrum to be band limited
   below the Nyquist wave number of the coarsest grid (``k_s < n_0 / 2``); with
   content above it injection aliases and the MLMC coupling is inconsistent
@@ -1254,7 +1255,7 @@ def _format_errors(error: ValidationError) -> list[str]:
 
 
 class _StrictLoader(yaml.SafeLoader):
-    """Safe YAML loader that rejects duplicate keys and reads 1e-8 as a float."""
+    """Safe YAML loader that rejects duplicate keys, reads 1e-8 as a float and 1:30 as text."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
         seen: set[object] = set()
@@ -1274,6 +1275,25 @@ class _StrictLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+_INT_TAG, _FLOAT_TAG = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+# YAML 1.1 reads `15:25:41` as the base-60 integer 55541 (and `1:30.5` as a float): a threshold grid written as
+# --thresholds takes it read "thresholds: must be a mapping (got 55541)". The numbers stay YAML 1.1's otherwise
+# (binary, octal and hexadecimal integers, `_` separators, .inf and .nan): only a colon now makes text.
+_StrictLoader.yaml_implicit_resolvers = {
+    first: [(tag, pattern) for tag, pattern in resolvers if tag not in (_INT_TAG, _FLOAT_TAG)]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_StrictLoader.add_implicit_resolver(
+    _INT_TAG,
+    re.compile(r"^[-+]?(?:0b[01_]+|0x[0-9a-fA-F_]+|0[0-7_]+|0|[1-9][0-9_]*)$"),
+    list("-+0123456789"),
+)
+_StrictLoader.add_implicit_resolver(
+    _FLOAT_TAG,
+    re.compile(r"^(?:[-+]?[0-9][0-9_]*\.[0-9_]*(?:[eE][-+][0-9]+)?|\.[0-9][0-9_]*(?:[eE][-+][0-9]+)?"
+               r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
+    list("-+0123456789."),
+)
 _StrictLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
     re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
