@@ -745,6 +745,19 @@ def test_initial_samples_beyond_any_plan_are_refused_by_the_config(value):
     assert "parse" not in text and "input" not in text.lower()
 
 
+@pytest.mark.parametrize("distribution, where, allowed", [
+    ({"contact_area": {"probabilities": [0.5, "x"]}}, "contact_area.probabilities.1",
+     "a non-empty list of distinct numbers in (0, 1)"),
+    ({"contact_area": 5}, "contact_area", "a mapping with keys thresholds, probabilities"),
+], ids=["list element", "named section"])
+def test_refused_distribution_fields_say_what_is_allowed(distribution, where, allowed):
+    # Both said "allowed: see the documentation".
+    config = _base()
+    config.setdefault("estimation", {})["distribution"] = distribution
+    text = _message(config)
+    assert f"estimation.distribution.{where}: " in text and f"; allowed: {allowed})" in text, text
+
+
 @pytest.mark.parametrize("field, value, what", [
     (("schema_version",), 10**30, "is far beyond any integer allowed here"),
     (("seed",), [1], "must be an integer"),
@@ -752,8 +765,9 @@ def test_initial_samples_beyond_any_plan_are_refused_by_the_config(value):
     (("surface", "hurst"), [1], "must be a number"),
     (("output", "path"), 1.5, "must be text"),
     (("estimation", "distribution"), {"contact_area": {"probabilities": 0.5}}, "must be a list"),
+    (("estimation", "distribution"), {"contact_area": {"probabilities": []}}, "must not be empty"),
 ], ids=["huge integer", "list for integer", "fraction for integer", "list for number", "number for path",
-        "number for list"])
+        "number for list", "empty list"])
 def test_pydantic_type_errors_are_said_in_the_words_of_a_config(field, value, what):
     # They said "Input should be a valid tuple", "valid string", "unable to parse input string".
     config = _base()

@@ -1166,6 +1166,12 @@ def _allowed(loc: tuple[str, ...]) -> str:
         return f"a mapping with keys {_keys_of(model)}" if model else ", ".join(QOI_NAMES)
     if parent is not None:
         return f"keys {_keys_of(parent)}"
+    if len(loc) > 1 and loc[-1].isdigit():  # an element of a list: what the list allows
+        return _allowed(loc[:-1])
+    _, holder = _walk(loc[:-1])
+    if holder is not None and typing.get_origin(holder.annotation) is dict and _model_of(holder.annotation):
+        # A named section of a mapping (estimation.distribution.<qoi>) said "see the documentation".
+        return f"a mapping with keys {_keys_of(_model_of(holder.annotation))}"
     return "see the documentation"
 
 
@@ -1203,6 +1209,7 @@ _PYDANTIC_WORDS = {
     "string_type": "must be text",
     "tuple_type": "must be a list",
     "list_type": "must be a list",
+    "too_short": "must not be empty",  # every list field has min_length 1
 }
 
 
