@@ -960,7 +960,8 @@ def test_a_full_disk_in_an_append_or_a_transaction_is_a_study_file_error(tmp_pat
         with monkeypatch.context() as patch:
             patch.setattr(store_module, "_create_level", full)
             with pytest.raises(StudyFileError, match=r"could not write \(No space left on device\); the study file "
-                                                     r"is unchanged$"):
+                                                     r"is unchanged by this write, and what it held before is kept: "
+                                                     r"rerun the command once it can write$"):
                 study.append_samples(make_batch(1, 0, range(3)))
         assert study.read_samples(level=0).indices.tolist() == [0, 1, 2]
         study.append_samples(make_batch(0, 0, range(3, 6)))  # with room again, the same batch is stored

@@ -1356,7 +1356,9 @@ def _replace_atomically(
         raise
     except (OSError, RuntimeError) as exc:  # HDF5 reports a failed flush or close (a full disk) as a RuntimeError
         tmp.unlink(missing_ok=True)
-        raise StudyFileError(f"{path}: could not write ({_write_failure(exc)}); the study file is unchanged",
+        # "the study file is unchanged" read as if a run's earlier samples were lost with it: they are not.
+        raise StudyFileError(f"{path}: could not write ({_write_failure(exc)}); the study file is unchanged by "
+                             "this write, and what it held before is kept: rerun the command once it can write",
                              path) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
