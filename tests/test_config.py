@@ -675,6 +675,13 @@ def test_an_output_path_that_names_a_directory_is_refused(path):
     assert f"output.path: names a directory, not a file (got {path!r}" in text
 
 
+@pytest.mark.parametrize("path", ["a\x1b[31mb.h5", "runs\n.h5", "x\t.h5", "del\x7f.h5"])
+def test_an_output_path_with_a_control_character_is_refused(path):
+    # `validate` showed "a\e[31mb.h5" as "ab.h5" (the terminal ate the escape) and screen wrote it as typed.
+    text = _message({**_base(), "output": {"path": path}})
+    assert "output.path: contains the control character " in text and "allowed: a non-empty file path" in text
+
+
 def test_an_output_path_in_the_home_directory_is_expanded(tmp_path, monkeypatch):
     # `output.path: ~/runs/x.h5` made a directory named `~` in the working directory.
     monkeypatch.setenv("HOME", str(tmp_path))

@@ -893,7 +893,7 @@ class OutputConfig(_Section):
     path: str = _field(
         "results.h5",
         description="Study file (HDF5), relative to the working directory; a leading ~ is the home directory",
-        allowed="a non-empty file path",
+        allowed="a non-empty file path (no control characters)",
         min_length=1,
     )
 
@@ -906,6 +906,11 @@ class OutputConfig(_Section):
         if "\0" in value:
             # No file system takes it: `screen` ended in "ValueError: embedded null byte".
             raise PydanticCustomError("not_a_file_name", "contains a NUL character, which no file name can")
+        control = next((c for c in value if ord(c) < 0x20 or ord(c) == 0x7F), None)
+        if control is not None:
+            # "a\e[31mb.h5" was shown as "ab.h5" by `validate` (the terminal ate the escape) and written as typed.
+            raise PydanticCustomError("not_a_file_name", f"contains the control character {control!r}, which a "
+                                      "terminal does not show as written")
         # `~/runs/x.h5` created a directory named `~` in the working directory: only a shell expands it.
         return os.path.expanduser(value)
 
