@@ -631,6 +631,19 @@ def test_a_stored_config_of_two_screening_levels_is_read_as_three() -> None:
     assert read.screening.levels == 3 and config_hash(read) == config_hash(config)
 
 
+def test_a_stored_config_of_values_refused_since_is_still_read() -> None:
+    # initial_samples above 10^7 and an output.path with a control character passed validate before: a study file
+    # written then must still open (its report, its runs), reading them as the runs could take them.
+    config = config_from_dict(_base())
+    stored = resolved_yaml(config)
+    assert "initial_samples: 10\n" in stored and "path: results.h5\n" in stored
+    stored = stored.replace("initial_samples: 10\n", "initial_samples: 100000000\n").replace(
+        "path: results.h5\n", 'path: "a\\e[31mb.h5"\n')
+    read = config_from_stored_text(stored)
+    assert read.estimation.initial_samples == 10_000_000 and read.output.path == "a\\x1b[31mb.h5"
+    assert config_hash(read) == config_hash(config)
+
+
 def test_the_fewest_screened_levels_are_the_problem_layers() -> None:
     from rough_uq.problem.runs import MIN_SCREENED_LEVELS
 

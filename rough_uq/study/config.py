@@ -887,6 +887,9 @@ class EstimationConfig(_Section):
     )
 
 
+_CONTROL_CHARACTER = re.compile(r"[\x00-\x1f\x7f]")
+
+
 class OutputConfig(_Section):
     """Where the study file goes."""
 
@@ -906,11 +909,11 @@ class OutputConfig(_Section):
         if "\0" in value:
             # No file system takes it: `screen` ended in "ValueError: embedded null byte".
             raise PydanticCustomError("not_a_file_name", "contains a NUL character, which no file name can")
-        control = next((c for c in value if ord(c) < 0x20 or ord(c) == 0x7F), None)
+        control = _CONTROL_CHARACTER.search(value)
         if control is not None:
             # "a\e[31mb.h5" was shown as "ab.h5" by `validate` (the terminal ate the escape) and written as typed.
-            raise PydanticCustomError("not_a_file_name", f"contains the control character {control!r}, which a "
-                                      "terminal does not show as written")
+            raise PydanticCustomError("not_a_file_name", f"contains the control character {control.group()!r}, "
+                                      "which a terminal does not show as written")
         # `~/runs/x.h5` created a directory named `~` in the working directory: only a shell expands it.
         return os.path.expanduser(value)
 
@@ -1396,9 +1399,27 @@ def config_from_stored_text(text: str, *, source: str = "config") -> StudyConfig
     screening = data.get("screening") if isinstance(data, dict) else None
     if isinstance(screening, dict) and screening.get("levels") == MIN_SCREENED_LEVELS - 1:
         data["screening"] = {**screening, "levels": MIN_SCREENED_LEVELS}
+    _accept_stored_forms(data)
     if data is None:
         raise _config_error([f"{source}: the file is empty (got no content; allowed: a YAML mapping of sections)"])
     return config_from_dict(data, source=source)
+
+
+def _accept_stored_forms(data: object) -> None:
+    """Make values a study file may hold from before a rule was added read as the runs took them.
+
+    ``estimation.initial_samples`` above :data:`MAX_PLANNED_SAMPLES` is read as that maximum (no run could draw
+    more: they refused it), and an ``output.path`` with control characters with them escaped (it is shown,
+    never opened, once the study exists): neither is in the config hash.
+    """
+    estimation = data.get("estimation") if isinstance(data, dict) else None
+    initial = estimation.get("initial_samples") if isinstance(estimation, dict) else None
+    if isinstance(initial, int) and not isinstance(initial, bool) and initial > MAX_PLANNED_SAMPLES:
+        estimation["initial_samples"] = MAX_PLANNED_SAMPLES
+    output = data.get("output") if isinstance(data, dict) else None
+    path = output.get("path") if isinstance(output, dict) else None
+    if isinstance(path, str):
+        output["path"] = _CONTROL_CHARACTER.sub(lambda match: match.group().encode("unicode_escape").decode(), path)
 
 
 def config_from_yaml_text(text: str, *, source: str = "config") -> StudyConfig:
