@@ -642,6 +642,14 @@ def test_a_stored_config_of_values_refused_since_is_still_read() -> None:
     read = config_from_stored_text(stored)
     assert read.estimation.initial_samples == 10_000_000 and read.output.path == "a\\x1b[31mb.h5"
     assert config_hash(read) == config_hash(config)
+    for grid in ({"start": -1e308, "stop": 1e308, "count": 5}, {"start": 1e-320, "stop": 2e-320, "count": 10_000}):
+        data = _base()
+        data.setdefault("estimation", {})["distribution"] = {"contact_area": {"thresholds": grid}}
+        text = yaml.safe_dump(data)
+        with pytest.raises(ConfigError, match="thresholds"):
+            config_from_dict(yaml.safe_load(text))
+        # Every cdf run on such a grid failed: read as none, so that runs ask for --thresholds.
+        assert config_from_stored_text(text).estimation.distribution["contact_area"].thresholds is None
 
 
 def test_the_fewest_screened_levels_are_the_problem_layers() -> None:

@@ -795,16 +795,23 @@ class ThresholdGrid(_Section):
     def _increasing(self) -> ThresholdGrid:
         if not self.stop > self.start:
             _fail([_problem("stop", "must be larger than start", self.stop, f"a number > start = {self.start:g}")])
+        problem = self._float_problem()
+        if problem is not None:
+            _fail([problem])
+        return self
+
+    def _float_problem(self) -> dict[str, object] | None:
+        """Why floats cannot hold these thresholds (a span beyond them, neighbours that round to one), or None."""
         # -1e308..1e308 passed validate and the run said "--thresholds: got None" (the span overflowed).
         if not math.isfinite(self.stop - self.start):
-            _fail([_problem("stop", "is too far from start: stop - start exceeds the largest float", self.stop,
-                            f"a number with stop - start <= {sys.float_info.max:.3g}")])
+            return _problem("stop", "is too far from start: stop - start exceeds the largest float", self.stop,
+                            f"a number with stop - start <= {sys.float_info.max:.3g}")
         values = self.values()
         if any(later <= earlier for earlier, later in zip(values, values[1:])):
-            _fail([_problem("count", f"{self.count} thresholds from {self.start:g} to {self.stop:g} are not "
+            return _problem("count", f"{self.count} thresholds from {self.start:g} to {self.stop:g} are not "
                             "distinct numbers (neighbours round to one float)", self.count,
-                            "fewer thresholds, or a wider range")])
-        return self
+                            "fewer thresholds, or a wider range")
+        return None
 
     def values(self) -> list[float]:
         """The thresholds, ``count`` values from ``start`` to ``stop`` (the QoI's unit)."""
@@ -1409,17 +1416,33 @@ def _accept_stored_forms(data: object) -> None:
     """Make values a study file may hold from before a rule was added read as the runs took them.
 
     ``estimation.initial_samples`` above :data:`MAX_PLANNED_SAMPLES` is read as that maximum (no run could draw
-    more: they refused it), and an ``output.path`` with control characters with them escaped (it is shown,
-    never opened, once the study exists): neither is in the config hash.
+    more: they refused it), a threshold grid floats cannot hold as none (every cdf run on it failed), and an
+    ``output.path`` with control characters with them escaped (it is shown, never opened, once the study exists):
+    none of them is in the config hash.
     """
     estimation = data.get("estimation") if isinstance(data, dict) else None
     initial = estimation.get("initial_samples") if isinstance(estimation, dict) else None
     if isinstance(initial, int) and not isinstance(initial, bool) and initial > MAX_PLANNED_SAMPLES:
         estimation["initial_samples"] = MAX_PLANNED_SAMPLES
+    distribution = estimation.get("distribution") if isinstance(estimation, dict) else None
+    for settings in distribution.values() if isinstance(distribution, dict) else ():
+        if isinstance(settings, dict) and _is_unusable_grid(settings.get("thresholds")):
+            settings["thresholds"] = None  # every cdf run on it failed; runs now ask for --thresholds
     output = data.get("output") if isinstance(data, dict) else None
     path = output.get("path") if isinstance(output, dict) else None
     if isinstance(path, str):
         output["path"] = _CONTROL_CHARACTER.sub(lambda match: match.group().encode("unicode_escape").decode(), path)
+
+
+def _is_unusable_grid(grid: object) -> bool:
+    """Whether ``grid`` is a threshold grid of numbers that floats cannot hold (:class:`ThresholdGrid`)."""
+    if not isinstance(grid, dict) or not all(is_real_number(grid.get(key)) for key in ("start", "stop", "count")):
+        return False
+    start, stop, count = grid["start"], grid["stop"], grid["count"]
+    if not (isinstance(count, int) and 2 <= count <= 10_000 and math.isfinite(start) and math.isfinite(stop)
+            and start < stop):
+        return False
+    return ThresholdGrid.model_construct(start=float(start), stop=float(stop), count=count)._float_problem() is not None
 
 
 def config_from_yaml_text(text: str, *, source: str = "config") -> StudyConfig:
