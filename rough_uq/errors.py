@@ -131,11 +131,9 @@ def checked_integer(name: str, value: object, minimum: int, maximum: int | None 
     The integer check of every layer (:func:`is_integer`: booleans, strings and
     floats are refused, never converted).
     """
-    if maximum is None:
-        if not (is_integer(value) and value >= minimum):
-            raise InvalidParameterError(name, value, f"an integer >= {minimum}")
-    elif not (is_integer(value) and minimum <= value <= maximum):
-        raise InvalidParameterError(name, value, f"an integer in {minimum}..{maximum}")
+    if not (is_integer(value) and minimum <= value and (maximum is None or value <= maximum)):
+        allowed = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
+        raise InvalidParameterError(name, value, f"an integer {allowed}")
     return int(value)
 
 

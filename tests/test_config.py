@@ -631,6 +631,12 @@ def test_a_stored_config_of_two_screening_levels_is_read_as_three() -> None:
     assert read.screening.levels == 3 and config_hash(read) == config_hash(config)
 
 
+def test_the_most_thresholds_of_the_config_and_the_command_line_agree() -> None:
+    from rough_uq import cli
+
+    assert config_module.MAX_THRESHOLDS == cli.MAX_THRESHOLDS == 10_000
+
+
 def test_a_stored_config_of_values_refused_since_is_still_read() -> None:
     # initial_samples above 10^7 and an output.path with a control character passed validate before: a study file
     # written then must still open (its report, its runs), reading them as the runs could take them.

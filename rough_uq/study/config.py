@@ -88,7 +88,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from rough_uq.errors import ConfigError, is_real_number
+from rough_uq.errors import ConfigError, is_integer, is_real_number
 from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES
 from rough_uq.problem.columns import column_name
@@ -779,16 +779,21 @@ class ScreeningConfig(_Section):
     )
 
 
+#: The most thresholds of a grid: ``roughuq --thresholds`` takes as many (``rough_uq.cli.MAX_THRESHOLDS``, a copy:
+#: the command line loads no pydantic before it needs to; tests/test_config.py checks they agree).
+MAX_THRESHOLDS = 10_000
+
+
 class ThresholdGrid(_Section):
     """Equally spaced thresholds ``s_j`` of a distribution function, in the QoI's unit."""
 
     start: Float = _field(description="First threshold (the QoI's unit)", allowed="a number < stop")
     stop: Float = _field(description="Last threshold (the QoI's unit)", allowed="a number > start")
     count: Int = _field(
-        description="Number of thresholds, ends included, at most 10000 as for --thresholds (count)",
+        description=f"Number of thresholds, ends included, at most {MAX_THRESHOLDS} as for --thresholds (count)",
         allowed="integer in 2..10000",
         ge=2,
-        le=10_000,
+        le=MAX_THRESHOLDS,
     )
 
     @model_validator(mode="after")
@@ -1422,7 +1427,7 @@ def _accept_stored_forms(data: object) -> None:
     """
     estimation = data.get("estimation") if isinstance(data, dict) else None
     initial = estimation.get("initial_samples") if isinstance(estimation, dict) else None
-    if isinstance(initial, int) and not isinstance(initial, bool) and initial > MAX_PLANNED_SAMPLES:
+    if is_integer(initial) and initial > MAX_PLANNED_SAMPLES:
         estimation["initial_samples"] = MAX_PLANNED_SAMPLES
     distribution = estimation.get("distribution") if isinstance(estimation, dict) else None
     for settings in distribution.values() if isinstance(distribution, dict) else ():
@@ -1439,7 +1444,7 @@ def _is_unusable_grid(grid: object) -> bool:
     if not isinstance(grid, dict) or not all(is_real_number(grid.get(key)) for key in ("start", "stop", "count")):
         return False
     start, stop, count = grid["start"], grid["stop"], grid["count"]
-    if not (isinstance(count, int) and 2 <= count <= 10_000 and math.isfinite(start) and math.isfinite(stop)
+    if not (is_integer(count) and 2 <= count <= MAX_THRESHOLDS and math.isfinite(start) and math.isfinite(stop)
             and start < stop):
         return False
     return ThresholdGrid.model_construct(start=float(start), stop=float(stop), count=count)._float_problem() is not None
