@@ -663,6 +663,23 @@ def test_readme_from_python_example_runs(capsys):
     assert str(result.stop_reason) in capsys.readouterr().out
 
 
+def test_every_readme_from_python_block_runs_in_order(capsys):
+    # The section's later blocks use the first one's problem, as a notebook would run them; the worker-pool
+    # block runs nothing here (its `if __name__ == "__main__":` guard; tests/test_executors.py runs pools).
+    namespace: dict[str, object] = {"__name__": "readme"}
+    blocks = _readme_python_blocks()
+    assert len(blocks) >= 5
+    for block in blocks:
+        exec(compile(block, "README.md (From Python)", "exec"), namespace)
+    assert isinstance(namespace["screening"], rough_uq.ScreeningResult)
+    assert isinstance(namespace["forecast"], rough_uq.RunForecast)
+    assert isinstance(namespace["var"], rough_uq.TargetEstimate) and namespace["var"].tol_met
+    law = namespace["law"]
+    assert isinstance(law, rough_uq.DistributionResult) and law.cdf.tol_met
+    assert np.all(np.isfinite(law.quantiles().values))
+    assert "[mlmc contact_area=0.5] done" in capsys.readouterr().err
+
+
 def test_the_package_docstring_example_imports_every_name_it_uses():
     # The example called numpy.linspace without `import numpy`.
     example = rough_uq.__doc__.split("::\n", 1)[1].split("\n\n", 1)[0]
@@ -677,7 +694,7 @@ def test_the_package_docstring_example_imports_every_name_it_uses():
 
 def test_readme_pool_example_runs_as_a_script(tmp_path):
     # The recipe had no `if __name__ == "__main__":`; as a script, every spawned worker re-ran it and it failed.
-    (_, block) = _readme_python_blocks()
+    (block,) = [block for block in _readme_python_blocks() if "PoolExecutor" in block]
     assert 'if __name__ == "__main__":' in block and "PoolExecutor(2)" in block
     script = tmp_path / "pool.py"
     script.write_text(block)
