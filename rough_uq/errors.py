@@ -195,6 +195,24 @@ def checked_real_array(name: str, value: object, allowed: str) -> np.ndarray:
     raise InvalidParameterError(name, value, allowed)
 
 
+#: What an array of a numpy dtype kind other than real numbers holds, for messages.
+_NON_REAL_KINDS = {
+    "b": "booleans", "c": "complex numbers", "U": "text", "S": "bytes", "O": "Python objects",
+    "m": "time differences", "M": "dates",
+}
+
+
+def refuse_non_real(name: str, values: np.ndarray) -> None:
+    """Refuse an array of anything but real numbers (text, booleans, complex numbers, times...) by name.
+
+    By dtype kind, so that ``np.timedelta64``, a subtype of ``np.integer``, is
+    refused too; the message says what the array holds, not its values.
+    """
+    if not is_real_array(values):
+        held = _NON_REAL_KINDS.get(values.dtype.kind, f"values of dtype {values.dtype}")
+        raise InvalidParameterError(name, f"an array of {held}", "real numbers (float or integer)")
+
+
 class MisplacedOptionError(InvalidParameterError):
     """A command-line option was given where it does not apply (e.g. ``--resources`` without ``--plan``).
 

@@ -80,6 +80,15 @@ def test_area_and_extras() -> None:
     assert isinstance(contact_area(pressure), float)
 
 
+@pytest.mark.parametrize("function", [contact_area, max_pressure, mean_gap, lambda field: area_above(field, 0.5)])
+def test_complex_and_boolean_fields_are_refused_not_converted(function) -> None:
+    # A complex field was read with its imaginary part dropped (a numpy ComplexWarning, then numbers); a boolean
+    # contact map passed for a pressure read as pressures 0 and 1. solve_contact refuses both alike.
+    for field, held in ((np.ones((4, 4)) + 1j, "complex numbers"), (np.ones((4, 4)) > 0, "booleans")):
+        with pytest.raises(InvalidParameterError, match=f"an array of {held}"):
+            function(field)
+
+
 def test_non_finite_fields_are_refused() -> None:
     pressure = np.zeros((4, 4))
     pressure[1, 2] = np.nan
@@ -89,8 +98,9 @@ def test_non_finite_fields_are_refused() -> None:
     with pytest.raises(InvalidParameterError) as info:
         mean_gap(np.full((2, 2), np.inf))
     assert info.value.name == "gap"
-    for field in (None, "abc", [[1.0], [1.0, 2.0]]):  # None read as "non-finite entries"; a ragged list
-        with pytest.raises(InvalidParameterError, match="an array of finite numbers") as info:
+    # None read as "non-finite entries"; a ragged list
+    for field, said in ((None, "an array of finite numbers"), ("abc", "an array of text"), ([[1.0], [1.0, 2.0]], "ragged")):
+        with pytest.raises(InvalidParameterError, match=said) as info:
             contact_area(field)
         assert info.value.name == "pressure"
     for bad in (-0.1, np.nan, "high", "0.1", True):

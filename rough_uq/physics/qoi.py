@@ -53,7 +53,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from rough_uq.errors import InvalidParameterError, is_integer, is_real_number
+from rough_uq.errors import InvalidParameterError, is_integer, is_real_number, refuse_non_real
 
 __all__ = [
     "QOI_NAMES",
@@ -103,15 +103,18 @@ def _grid_shaped(name: str, array: np.ndarray) -> np.ndarray:
 def _field(name: str, values: object) -> np.ndarray:
     """A non-empty, finite 2-d float64 array, or :class:`InvalidParameterError` naming ``name``.
 
-    A NaN would silently compare as "not in contact", so it is refused here.
+    A NaN would silently compare as "not in contact", so it is refused here;
+    so are complex numbers (converting drops the imaginary part, with a numpy
+    warning) and booleans (a contact map is no pressure or gap field).
     """
     if values is None:  # asarray(None, float) is a NaN, which would read as "non-finite entries"
         raise InvalidParameterError(name, None, "an array of finite numbers")
     try:
-        array = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError):  # text, a ragged list
-        raise InvalidParameterError(name, type(values).__name__, "an array of finite numbers") from None
-    _grid_shaped(name, array)
+        array = np.asarray(values)
+    except ValueError:  # numpy refuses a ragged sequence
+        raise InvalidParameterError(name, "a ragged sequence (rows of different lengths)", "a 2-d array") from None
+    refuse_non_real(name, array)
+    array = _grid_shaped(name, array.astype(np.float64, copy=False))
     if not np.all(np.isfinite(array)):
         raise InvalidParameterError(name, "an array with non-finite entries", "finite values")
     return array
@@ -479,7 +482,8 @@ def evaluate_qoi(
         strings (``name="names"``, listing the allowed ones), a missing ``gap`` / ``critical_pressure``, a
         ``gap`` of another shape than ``pressure``, a bad ``connectivity`` or
         ``area_estimator`` (``name="estimator"``), a field that is not a
-        non-empty 2-d array, a non-finite field, or a negative pressure.
+        non-empty 2-d array of real numbers (complex and boolean arrays are
+        refused, not converted), a non-finite field, or a negative pressure.
     """
     names = _names(names)
     _check_cluster_count(connectivity)  # a bad setting is an error even when clusters are not asked for

@@ -225,7 +225,7 @@ import numpy as np
 
 from rough_uq.physics.elastic import HalfSpace, multiply_spectrum
 from rough_uq.errors import (
-    ConvergenceError, InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_array, is_real_number,
+    ConvergenceError, InvalidParameterError, checked_bool, checked_integer, is_integer, is_real_number, refuse_non_real,
     scalar_refusal,
 )
 from rough_uq.physics.fft import RealFFT, get_fft
@@ -625,13 +625,6 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, th
     return s
 
 
-#: What an array of a numpy dtype kind other than real numbers holds, for messages.
-_NON_REAL_KINDS = {
-    "b": "booleans", "c": "complex numbers", "U": "text", "S": "bytes", "O": "Python objects",
-    "m": "time differences", "M": "dates",
-}
-
-
 def _real_array(name: str, values: object) -> np.ndarray:
     """``values`` as an array of real numbers, or :class:`InvalidParameterError` naming ``name`` (see below)."""
     try:
@@ -640,15 +633,8 @@ def _real_array(name: str, values: object) -> np.ndarray:
         raise InvalidParameterError(
             name, "a ragged sequence (rows of different lengths)", "a square 2-D array"
         ) from None
-    _refuse_non_real(name, array)
+    refuse_non_real(name, array)
     return array
-
-
-def _refuse_non_real(name: str, values: np.ndarray) -> None:
-    """Refuse an array of anything but real numbers (text, booleans, complex numbers, times...) by name."""
-    if not is_real_array(values):  # by dtype kind: np.timedelta64, a subtype of np.integer, is refused too
-        held = _NON_REAL_KINDS.get(values.dtype.kind, f"values of dtype {values.dtype}")
-        raise InvalidParameterError(name, f"an array of {held}", "real numbers (float or integer)")
 
 
 def _initial_guess(initial_pressure, n: int) -> np.ndarray | None:
