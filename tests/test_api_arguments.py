@@ -165,9 +165,13 @@ def test_a_given_bias_above_its_share_of_tol_is_refused_before_any_sample(bias, 
 
 def test_a_bias_of_another_length_is_refused_before_any_sample():
     # Two values for one column were refused only once the first batch had been drawn.
-    with pytest.raises(rough_uq.InvalidParameterError, match="^bias: .*a scalar or 1 values") as caught:
+    with pytest.raises(rough_uq.InvalidParameterError, match="^bias: .*a number .*or 1 values") as caught:
         rough_uq.mc(_problem(), tol=0.5, level=1, bias=[0.1, 0.2], executor=_NoSampling())
     assert caught.value.value == [0.1, 0.2]
+    # One number in a list for two columns was applied to both, where tol=[0.5] is refused.
+    with pytest.raises(rough_uq.InvalidParameterError, match="one per QoI column: contact_area, mean_gap") as caught:
+        rough_uq.mc(_problem(qoi=("contact_area", "mean_gap")), tol=0.5, level=1, bias=[0.1], executor=_NoSampling())
+    assert caught.value.value == [0.1]
 
 
 def test_a_bias_by_column_name_equals_the_bias_in_column_order():

@@ -913,8 +913,11 @@ def mc(
     )
     if given_bias is not None:  # checked by iter_mc: finite numbers
         values = np.abs(np.asarray(given_bias, dtype=float))
-        if values.size not in (1, problem.n_qoi):  # iter_mc would refuse it only after its first batch
-            raise InvalidParameterError("bias", given_bias, f"a scalar or {problem.n_qoi} values (one per QoI column)")
+        # iter_mc would refuse another length only after its first batch; one number in a list is refused as for
+        # tol ([1.0] for two QoIs read as one per QoI in column order and was applied to both)
+        if not (values.ndim == 0 or values.shape == (problem.n_qoi,)):
+            raise InvalidParameterError("bias", given_bias, f"a number (for every QoI) or {problem.n_qoi} values "
+                                        f"(one per QoI column: {', '.join(problem.columns)})")
         _refuse_given_bias(problem.columns, tol, float(theta), values)
     with reporting_progress(sampler, f"mc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
