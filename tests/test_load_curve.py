@@ -114,6 +114,19 @@ def test_guesses_per_load_replace_the_sequence():
                          initial_pressure=guesses[0])
 
 
+def test_a_bad_guess_per_load_is_named_by_its_index():
+    # A bad second field was refused as "initial_pressure: got 'grid 24 x 24'", a parameter not given, and no index.
+    heights, size, slope, _, _ = random_surface(401, grids=(32,))
+    loads = [0.2 * slope, 0.05 * slope]  # the bad field is the first load's, which is solved second
+    for bad, said in ((np.ones((24, 24)), "grid 24 x 24"), (-np.ones((32, 32)), "minimum -1")):
+        with pytest.raises(InvalidParameterError, match=f"^initial_pressures\\[0\\]: got '{said}'") as caught:
+            solve_load_curve(heights, system_size=size, mean_pressures=loads,
+                             initial_pressures=[bad, np.ones((16, 16))])
+        assert caught.value.name == "initial_pressures[0]"
+    with pytest.raises(InvalidParameterError, match="^initial_pressure: got 'grid 24 x 24'"):
+        solve_load_curve(heights, system_size=size, mean_pressures=loads, initial_pressure=np.ones((24, 24)))
+
+
 def test_a_solve_that_stops_early_is_flagged_and_continued_with_retry_iter():
     heights, size, slope, _, _ = random_surface(300, grids=(64,))
     loads = [0.05 * slope, 0.2 * slope]

@@ -126,16 +126,24 @@ def _guess_fields(initial_pressures: object, n_loads: int) -> Sequence[np.ndarra
     return initial_pressures
 
 
-def _given_guesses(pressures: np.ndarray, initial_pressure, initial_pressures) -> dict[float, np.ndarray]:
-    """Load -> warm start given by the caller (the first one given for a repeated load)."""
+def _given_guesses(pressures: np.ndarray, initial_pressure, initial_pressures) -> dict[float, tuple[str, object]]:
+    """Load -> the caller's name of its warm start (``initial_pressures[i]``) and the field (the first one given
+    for a repeated load)."""
     if initial_pressures is None:
-        return {} if initial_pressure is None else {float(pressures.min()): initial_pressure}
+        return {} if initial_pressure is None else {float(pressures.min()): ("initial_pressure", initial_pressure)}
     if initial_pressure is not None:
         raise InvalidParameterError("initial_pressure", "a field", "None when initial_pressures is given")
-    guesses: dict[float, np.ndarray] = {}
-    for load, guess in zip(pressures.tolist(), _guess_fields(initial_pressures, pressures.size)):
-        guesses.setdefault(load, guess)
+    guesses: dict[float, tuple[str, object]] = {}
+    for i, (load, guess) in enumerate(zip(pressures.tolist(), _guess_fields(initial_pressures, pressures.size))):
+        guesses.setdefault(load, (f"initial_pressures[{i}]", guess))
     return guesses
+
+
+def _renamed_guess_error(error: InvalidParameterError, name: str) -> InvalidParameterError:
+    """``error`` of :func:`solve_contact` about its ``initial_pressure``, naming the caller's field ``name``."""
+    if error.name != "initial_pressure" or name == error.name:
+        return error
+    return InvalidParameterError(name, error.value, error.allowed)
 
 
 def _solve_with_retry(heights, *, initial, mean_pressure, max_iter, retry_iter, options) -> tuple[ContactSolution, int]:
@@ -199,7 +207,8 @@ def solve_load_curve(
         For an empty or non-positive ``mean_pressures``, a negative
         ``retry_iter``, an ``initial_pressures`` that is not one field per
         load, and whatever :func:`~rough_uq.physics.solver.solve_contact`
-        refuses.
+        refuses (a bad field of ``initial_pressures`` named by its index,
+        ``initial_pressures[i]``).
     """
     pressures = check_mean_pressures(mean_pressures)
     checked_integer("retry_iter", retry_iter, 0)
@@ -207,16 +216,19 @@ def solve_load_curve(
     options = dict(system_size=system_size, e_star=e_star, tol=tol, threads=threads)
     distinct = np.unique(pressures)  # sorted increasingly
     solved: dict[float, tuple[ContactSolution, int]] = {}
-    guess, previous_load = None, None
+    guess, previous_load, guess_name = None, None, "initial_pressure"
     for load in distinct:
         if float(load) in given:
-            guess = given[float(load)]
+            guess_name, guess = given[float(load)]
         elif previous_load is not None:
             guess = guess * (load / previous_load)
-        solution, n_iter = _solve_with_retry(
-            heights, initial=guess, mean_pressure=float(load), max_iter=max_iter, retry_iter=int(retry_iter),
-            options=options,
-        )
+        try:
+            solution, n_iter = _solve_with_retry(
+                heights, initial=guess, mean_pressure=float(load), max_iter=max_iter, retry_iter=int(retry_iter),
+                options=options,
+            )
+        except InvalidParameterError as error:  # a bad guess said "initial_pressure", which was not given
+            raise _renamed_guess_error(error, guess_name) from None
         solved[float(load)] = (solution, n_iter)
         guess, previous_load = solution.pressure, load
     n_iter = np.zeros(len(pressures), dtype=np.int64)
