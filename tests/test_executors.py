@@ -287,3 +287,16 @@ def test_a_dask_task_lost_with_its_workers_says_that_a_rerun_computes_the_rest()
         assert text.startswith(f"a dask task was lost ({type(lost).__name__}: ")
         assert text.endswith("the same roughuq command run again, on a cluster with workers, computes the rest")
     assert dask_failure_text(ZeroDivisionError("x")) == "a dask task failed: ZeroDivisionError: x"
+
+
+
+def test_a_run_closed_early_cancels_pool_futures_only_where_a_breaking_pool_copes():
+    # A SIGTERM to the process group (a scheduler's) ends the workers while the run cancels its futures. Before
+    # Python 3.12 the pool's thread then raised InvalidStateError on a cancelled future ("Exception in thread
+    # Thread-1: ... CANCELLED", 2 of 20 group SIGTERMs of `roughuq mlmc`) and died before terminating the workers
+    # and closing the pool's queues; there the run leaves them to close(), whose shutdown cancels them in that thread.
+    from concurrent.futures import Future
+
+    futures = [Future(), Future()]
+    executors._abandon(futures)
+    assert [future.cancelled() for future in futures] == [sys.version_info >= (3, 12)] * 2

@@ -51,7 +51,7 @@ import sys
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
@@ -160,7 +160,8 @@ class Executor(ABC):
     def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
         """Compute ``items``; yield one :class:`LevelBatch` per item, in completion order.
 
-        Closing the iterator early (e.g. on Ctrl-C) cancels what has not started.
+        Closing the iterator early (e.g. on Ctrl-C) cancels what has not started (a
+        :class:`PoolExecutor` before Python 3.12 leaves that to :meth:`close`: :func:`_abandon`).
         """
 
     def close(self) -> None:
@@ -358,6 +359,26 @@ def _broken_pool_message(statuses: Sequence[int], *, is_starting: bool) -> str:
     )
 
 
+#: Whether a future of a process pool may be cancelled while the pool can break. Before Python 3.12 the pool's
+#: thread that marks the pending futures failed when a worker dies raised InvalidStateError on a cancelled one
+#: (CPython gh-107219): it printed a traceback and died before terminating the other workers and closing the
+#: pool's queues. A group SIGTERM (a scheduler's), which ends the workers while the run cancels its futures,
+#: printed that traceback about one time in ten.
+_CAN_CANCEL_POOL_FUTURES = sys.version_info >= (3, 12)
+
+
+def _abandon(pending: Iterable[Future]) -> None:
+    """Cancel the ``pending`` futures of a run closed early, where that is safe (:data:`_CAN_CANCEL_POOL_FUTURES`).
+
+    Where it is not, they are left to the pool: an aborted run closes it (``shutdown(cancel_futures=True)``
+    cancels them in the pool's own thread), and a pool used again first finishes the at most ``2 n_workers``
+    items a run keeps in flight.
+    """
+    if _CAN_CANCEL_POOL_FUTURES:
+        for future in pending:
+            future.cancel()
+
+
 class PoolExecutor(Executor):
     """A local pool of ``n_workers`` spawned processes (module docstring).
 
@@ -436,8 +457,7 @@ class PoolExecutor(Executor):
             raise ExecutorError(_broken_pool_message(statuses, is_starting=False)) from exc
         finally:
             if not is_done:
-                for future in pending:
-                    future.cancel()
+                _abandon(pending)
 
     def close(self, *, is_abort: bool = False) -> None:
         """Stop the workers; with ``is_abort`` (an error or Ctrl-C) without waiting for running samples."""
