@@ -1164,3 +1164,33 @@ def test_the_batch_size_changes_no_result(seed):
         np.testing.assert_array_equal(mean_run.estimate, runs[None][0].estimate)
         np.testing.assert_array_equal(mc_run.n_samples, runs[None][1].n_samples)
         np.testing.assert_array_equal(mc_run.estimate, runs[None][1].estimate)
+
+
+@pytest.mark.parametrize("scale", [1e100, 1e-100])
+def test_the_error_of_var_q_near_the_float_range_ends_scales_with_the_values(scale):
+    # With QoIs of 1e100 the standard error of Var(Q) came from fourth powers that overflowed (NaN, with numpy
+    # overflow warnings); with 1e-100 they underflowed.
+    from rough_uq.multilevel.statistics import level_moments
+
+    rng = np.random.default_rng(7)
+    fine = rng.normal(size=(50, 2))
+    coarse = fine + 0.1 * rng.normal(size=(50, 2))
+    unit = level_moments(fine, coarse, np.ones(50))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scaled = level_moments(scale * fine, scale * coarse, np.ones(50))
+    np.testing.assert_allclose(scaled.var_delta_se, unit.var_delta_se * scale**2, rtol=1e-12)
+
+
+def test_an_rmse_of_errors_whose_squares_underflow_is_not_below_its_bias():
+    # A variance target of QoIs of 1e-100 (errors of 1e-200) reported an RMSE of 0 beside a bias of 2e-200: the
+    # squares underflowed.
+    from types import SimpleNamespace
+
+    from rough_uq.multilevel.drivers.events import EstimationResult
+    from rough_uq.multilevel.targets import TargetEstimate
+
+    errors = SimpleNamespace(stat_error=np.array([3e-201, 3e200]), bias_estimate=np.array([4e-201, 4e200]))
+    np.testing.assert_allclose(EstimationResult.rmse.fget(errors), [5e-201, 5e200], rtol=1e-15)
+    target = SimpleNamespace(stat_error=np.array([3e-201, 1e-210]), bias=np.array([4e-201]), groups=np.array([0, 0]))
+    np.testing.assert_allclose(TargetEstimate.rmse.fget(target), [5e-201], rtol=1e-15)

@@ -312,11 +312,17 @@ def _covariance_se(dx: np.ndarray, dy: np.ndarray, cov: np.ndarray, n: int) -> n
     """
     if n < 2:
         return np.zeros(dx.shape[1:])
-    mu22 = np.mean(dx**2 * dy**2, axis=0)
-    var_x = np.sum(dx**2, axis=0) / (n - 1)
-    var_y = np.sum(dy**2, axis=0) / (n - 1)
-    variance = (mu22 - (n - 2) / (n - 1) * cov**2 + var_x * var_y / (n - 1)) / n
-    return np.sqrt(np.maximum(variance, 0.0))
+    # In units of each column's largest deviation (as _kurtosis): the fourth powers of values of 1e100 overflowed
+    # (a NaN error), those of 1e-100 underflowed (an error of 0).
+    sx, sy = np.max(np.abs(dx), axis=0), np.max(np.abs(dy), axis=0)
+    x = np.divide(dx, sx, out=np.zeros_like(dx), where=sx > 0)
+    y = np.divide(dy, sy, out=np.zeros_like(dy), where=sy > 0)
+    c = np.divide(np.divide(cov, sx, out=np.zeros_like(sx), where=sx > 0), sy, out=np.zeros_like(sy), where=sy > 0)
+    mu22 = np.mean(x**2 * y**2, axis=0)
+    var_x = np.sum(x**2, axis=0) / (n - 1)
+    var_y = np.sum(y**2, axis=0) / (n - 1)
+    variance = (mu22 - (n - 2) / (n - 1) * c**2 + var_x * var_y / (n - 1)) / n
+    return np.sqrt(np.maximum(variance, 0.0)) * sx * sy
 
 
 def _centre(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -273,9 +273,10 @@ class TargetEstimate:
     def rmse(self) -> np.ndarray:
         """Estimated RMS error per group, ``sqrt(max_c stat_error_c^2 + bias^2)``, shape (n_groups,).
 
-        Without an estimated bias (``is_bias_estimated`` False) the statistical error alone.
+        Without an estimated bias (``is_bias_estimated`` False) the statistical error alone. ``hypot``: the
+        squares of errors near the float range's ends (a variance in units of 1e-100) under- or overflowed.
         """
-        return np.sqrt(_group_max(self.stat_error**2, self.groups) + self.bias**2)
+        return np.hypot(_group_max(self.stat_error, self.groups), self.bias)
 
     @property
     def tol_met(self) -> bool:

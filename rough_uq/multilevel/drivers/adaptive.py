@@ -554,7 +554,7 @@ def _mlmc_result(run: _MlmcRun, statistics: LevelStatistics) -> EstimationResult
         stat_error=_shape_out(np.sqrt(stat_variance), is_scalar),
         bias_estimate=_shape_out(bias, is_scalar),
         variance=_shape_out(np.sum(statistics.var_delta, axis=0), is_scalar),
-        variance_error=_shape_out(np.sqrt(np.sum(statistics.var_delta_se**2, axis=0)), is_scalar),
+        variance_error=_shape_out(_root_sum_squares(statistics.var_delta_se), is_scalar),
         n_samples=statistics.n_samples,
         levels=statistics.levels,
         cost=hierarchy.spent,
@@ -682,3 +682,10 @@ def _final(events: Iterator[Event]) -> EstimationResult:
         if isinstance(event, Finished):
             return event.result
     raise EstimationError("the estimator stopped without a result")  # pragma: no cover - generator bug
+
+
+def _root_sum_squares(values: np.ndarray) -> np.ndarray:
+    """``sqrt(sum(values^2, axis=0))`` in units of the largest: no squares that overflow (errors of 1e200)."""
+    scale = np.max(np.abs(values), axis=0)
+    scaled = np.divide(values, scale, out=np.zeros_like(values), where=scale > 0)
+    return np.sqrt(np.sum(scaled**2, axis=0)) * scale

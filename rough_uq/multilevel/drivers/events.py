@@ -212,9 +212,9 @@ class EstimationResult:
         """Estimated root-mean-square error ``sqrt(stat_error^2 + bias_estimate^2)``.
 
         Where the bias is not estimated (``is_bias_estimated`` False, ``bias_estimate`` 0) the statistical error
-        alone: a lower bound of the error, not an estimate of it.
+        alone: a lower bound of the error, not an estimate of it. (``hypot``: no squares that under- or overflow.)
         """
-        return np.sqrt(np.square(self.stat_error) + np.square(self.bias_estimate))
+        return np.hypot(self.stat_error, self.bias_estimate)
 
     @property
     def finest_level(self) -> int:
