@@ -240,6 +240,8 @@ def test_cluster_arguments_are_checked() -> None:
     with pytest.raises(InvalidParameterError) as info:
         count_clusters(np.zeros(4, dtype=bool))
     assert info.value.name == "contact"
+    with pytest.raises(InvalidParameterError, match="^contact: got None; allowed: a boolean array"):
+        count_clusters(None)  # it said "got 'array of dtype object'"
     for bad in (6, True, "8"):
         with pytest.raises(InvalidParameterError) as info:
             count_clusters(np.zeros((4, 4), dtype=bool), connectivity=bad)

@@ -385,6 +385,12 @@ def test_arrays_that_are_not_real_numbers_are_refused_by_name(name, values, held
         solve_contact(arguments.pop("heights"), system_size=1.0, mean_pressure=0.1, **arguments)
 
 
+def test_no_heights_are_refused_as_none():
+    # They were "an array of Python objects".
+    with pytest.raises(InvalidParameterError, match="^heights: got None; allowed: a square 2-D array of real numbers$"):
+        solve_contact(None, system_size=1.0, mean_pressure=0.1)
+
+
 @pytest.mark.parametrize("name", ["heights", "initial_pressure"])
 def test_a_ragged_list_is_refused_by_name(name):
     # numpy's own ValueError ("inhomogeneous shape") came through before.

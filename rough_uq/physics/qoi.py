@@ -137,9 +137,12 @@ def _pressure(values: object) -> np.ndarray:
 
 
 def _contact_map(name: str, contact: object) -> np.ndarray:
+    allowed = "a boolean array (e.g. pressure > 0)"
+    if contact is None:  # "array of dtype object" said less than None
+        raise InvalidParameterError(name, None, allowed)
     array = np.asarray(contact)
     if array.dtype != np.bool_:
-        raise InvalidParameterError(name, f"array of dtype {array.dtype}", "a boolean array (e.g. pressure > 0)")
+        raise InvalidParameterError(name, f"array of dtype {array.dtype}", allowed)
     return _grid_shaped(name, array)
 
 

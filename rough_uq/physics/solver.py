@@ -627,6 +627,8 @@ def _check_inputs(heights, system_size, mean_pressure, e_star, tol, max_iter, th
 
 def _real_array(name: str, values: object) -> np.ndarray:
     """``values`` as an array of real numbers, or :class:`InvalidParameterError` naming ``name`` (see below)."""
+    if values is None:  # "an array of Python objects" said less than None
+        raise InvalidParameterError(name, None, "a square 2-D array of real numbers")
     try:
         array = np.asarray(values)
     except ValueError:  # numpy refuses a ragged sequence (rows of different lengths)
