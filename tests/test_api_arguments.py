@@ -135,6 +135,14 @@ def test_rates_of_another_type_are_refused_by_name():
         assert caught.value.name == "rates" and caught.value.value is rates and "a Rates" in caught.value.allowed
 
 
+@pytest.mark.parametrize("field", ["alpha", "beta", "gamma", "c_alpha", "c_beta", "c_gamma"])
+def test_rates_that_are_not_finite_are_refused_naming_the_field(field):
+    # A NaN alpha read "alpha = nan: the bias does not decay with the level"; a NaN beta or an infinite gamma ran.
+    rates = rough_uq.Rates(alpha=1.0, beta=1.5, gamma=2.0, c_alpha=1.0, c_beta=1.0, c_gamma=1.0)
+    with pytest.raises(rough_uq.InvalidParameterError, match=f"^rates.{field}: got .*; allowed: finite numbers$"):
+        rough_uq.mlmc(_problem(), tol=2.0, rates=dataclasses.replace(rates, **{field: np.nan}), executor=_NoSampling())
+
+
 @pytest.mark.parametrize("bias", ["a", "0.5", True, np.bool_(True), [0.5, "1"], [True], np.array(["0.5"]), np.nan,
                                   [np.inf], [[0.5]]])
 def test_a_bias_that_is_not_finite_numbers_is_refused_by_name(bias):

@@ -242,7 +242,14 @@ class _MlmcStart:
 
 
 def _refuse_growing_bias(rates: Rates) -> None:
-    """Fixed rates whose ``alpha`` is not positive meet no tolerance; a screening's raw fits can have such one."""
+    """Fixed rates whose ``alpha`` is not positive meet no tolerance; a screening's raw fits can have such one.
+
+    Rates that are not finite numbers (a hand-built ``Rates`` with a NaN) are refused first, naming the field.
+    """
+    for name in ("alpha", "beta", "gamma", "c_alpha", "c_beta", "c_gamma"):
+        values = np.asarray(getattr(rates, name), dtype=float)
+        if not np.all(np.isfinite(values)):
+            raise InvalidParameterError(f"rates.{name}", getattr(rates, name), "finite numbers")
     alpha = np.asarray(rates.alpha, dtype=float)
     if np.all(alpha > 0):
         return
