@@ -285,7 +285,8 @@ def test_a_bandwidth_far_wider_than_the_values_does_not_claim_the_tolerance(band
 
 @pytest.mark.parametrize(("bandwidth", "is_too_wide"), [(7.3, False), (7.31, True)])
 def test_the_finest_bandwidth_is_compared_with_twice_the_telescoped_standard_deviation(bandwidth, is_too_wide):
-    # Var(Q_1) = Var(Q_0) + (Var(Q_1) - Var(Q_0)) from each level's own pairs: 5/3 + (5/3 - 0) = 10/3, sd 1.826,
+    # Var(Q_1) = Var(Q_0) + (Var(Q_1) - Var(Q_0)) from each level's own pairs: 5/3 + (5/3 - 0) = 10/3, sd 1.826 (the
+    # finest level's own sample variance, 5/3, is smaller),
     # limit 3.651; delta_1 = bandwidth / 2. (Raw moments telescoped, E[Q_1^2] - E[Q_1]^2, gave 2.5.)
     fine, coarse = [np.arange(4.0), np.arange(4.0)], [np.zeros(4), np.full(4, 1.5)]
     options = {"thresholds": [0.0, 1.0, 2.0, 3.0], "bandwidth": bandwidth, "tol": 0.9}
@@ -294,7 +295,7 @@ def test_the_finest_bandwidth_is_compared_with_twice_the_telescoped_standard_dev
         assert result.stop_reason == "given" and result.is_bias_estimated
         return
     with pytest.warns(EstimationWarning, match=r"^cdf: the smoothing bandwidth on the finest level 1, 3\.655, "
-                                                r"exceeds 2 standard deviations of the values \(1\.826 each\): "):
+                                                r"exceeds 2 standard deviations of the values \(standard deviation 1\.826\): "):
         result = cdf_from_samples(fine=fine, coarse=coarse, **options)
     assert result.stop_reason == "bandwidth_too_wide" and not result.tol_met
 
@@ -316,11 +317,17 @@ def test_the_spread_is_telescoped_on_each_levels_own_means():
     result = cdf_from_samples(fine=fine, coarse=coarse, thresholds=np.linspace(10.0, 30.0, 21), bandwidth=2.0,
                               tol=0.9)  # warnings are errors: delta_2 = 0.5
     assert result.stop_reason == "given" and result.is_bias_estimated
-    # The spread the check uses: sqrt(0.588 - 0.339 + 0.054), each level's sample variances on its own pairs.
+    # Telescoped on each level's own pairs, sqrt(0.588 - 0.339 + 0.054) = 0.55, half the finest values' 1.08 (noise
+    # of 10 samples a level): a finest bandwidth of 1.125 ended "bandwidth_too_wide" too. The larger spread counts.
     centred = np.var(fine[0], ddof=1) + sum(np.var(f, ddof=1) - np.var(c, ddof=1) for f, c in zip(fine[1:], coarse[1:]))
-    with pytest.warns(EstimationWarning, match=rf"values \({math.sqrt(centred):.4g} each\)"):
-        wide = cdf_from_samples(fine=fine, coarse=coarse, thresholds=np.linspace(10.0, 30.0, 21), bandwidth=4.5,
-                                tol=0.9)  # delta_2 = 1.125 > 2 x 0.5513
+    finest = np.std(fine[2], ddof=1)
+    assert math.sqrt(centred) < 0.5 * 1.125 < 2 * finest < 0.25 * 10.0
+    moderate = cdf_from_samples(fine=fine, coarse=coarse, thresholds=np.linspace(10.0, 30.0, 21), bandwidth=4.5,
+                                tol=0.9)  # delta_2 = 1.125
+    assert moderate.stop_reason != "bandwidth_too_wide" and moderate.is_bias_estimated
+    with pytest.warns(EstimationWarning, match=rf"values \(standard deviation {finest:.4g}\)"):
+        wide = cdf_from_samples(fine=fine, coarse=coarse, thresholds=np.linspace(10.0, 30.0, 21), bandwidth=10.0,
+                                tol=0.9)  # delta_2 = 2.5 > 2 x 1.08
     assert wide.stop_reason == "bandwidth_too_wide"
 
 

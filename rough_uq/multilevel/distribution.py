@@ -108,7 +108,8 @@ thresholds at ``delta_L = 0.5 / 1 / 2 / 4 / 8 sigma``, and misses 0.0003 /
 finest bandwidth ``delta_L`` exceeds :data:`BANDWIDTH_SPREAD_LIMIT` (2) times
 the standard deviation of ``Q_L`` (its variance telescoped over the levels,
 ``sum_l [Var(Q_l) - Var(Q_{l-1})]`` from each level's own pairs, as the
-estimate telescopes; :class:`_Spread`) therefore warns (:class:`~rough_uq.errors.EstimationWarning`), reports
+estimate telescopes, or the finest level's own sample variance where that is
+larger; :class:`_Spread`) therefore warns (:class:`~rough_uq.errors.EstimationWarning`), reports
 ``stop_reason = "bandwidth_too_wide"`` with its bias not estimated, and does
 not meet its tolerance: give a narrower ``bandwidth`` (the default is twice
 the spacing of the thresholds: give finer thresholds). Below the limit, a
@@ -549,7 +550,7 @@ def _warn_bandwidth_too_wide(finest: float, spread: float, level: int) -> None:
     warn_at_caller(
         EstimationWarning(
             f"cdf: the smoothing bandwidth on the finest level {level}, {finest:.4g}, exceeds "
-            f"{BANDWIDTH_SPREAD_LIMIT:g} standard deviations of the values ({spread:.4g} each): the smoothing bias is "
+            f"{BANDWIDTH_SPREAD_LIMIT:g} standard deviations of the values (standard deviation {spread:.4g}): the smoothing bias is "
             "then beyond what the decay of the level terms measures (the smoothed CDF flattens towards 1/2), so the "
             "bias is not estimated and the tolerance is not met; give a bandwidth below twice the spread of the "
             "values (by default twice the thresholds' spacing: give finer thresholds)"
@@ -567,8 +568,11 @@ class _Spread:
     centred on its own means. Telescoping raw moments, ``E[Q_L^2] - E[Q_L]^2`` from ``sum_l E[Q_l^2 -
     Q_{l-1}^2]``, added a term ``2 sum_l E[Y_l] (mean of level l - mean of level 0)`` of noise: on the
     quickstart with 10 samples per level it gave a standard deviation of 0.16 where the values' is about 1.0,
-    and a correct run ended NOT MET (``bandwidth_too_wide``); centred, 0.55. Where noise makes the telescoped
-    variance not positive, the finest level's sample variance stands in.
+    and a correct run ended NOT MET (``bandwidth_too_wide``); centred, 0.55, and the same run at other thresholds
+    still ended so (a finest bandwidth of 1.5 against twice 0.55, where the finest level's own values had a
+    standard deviation of 1.08). The larger of the telescoped and the finest level's own sample variance is
+    taken: each alone is noisy with few samples, and the check is to catch a bandwidth that is clearly too wide,
+    not to fail a correct run on noise.
     """
 
     def __init__(self) -> None:
@@ -581,8 +585,8 @@ class _Spread:
         self.levels[level] = (fine_variance - below, fine_variance)
 
     def value(self, levels: np.ndarray) -> float:
-        variance = sum(self.levels[int(level)][0] for level in levels)
-        return float(np.sqrt(variance if variance > 0 else self.levels[int(levels[-1])][1]))
+        telescoped = sum(self.levels[int(level)][0] for level in levels)
+        return float(np.sqrt(max(telescoped, self.levels[int(levels[-1])][1])))
 
 
 def _sample_variance(values: np.ndarray) -> float:
@@ -609,7 +613,7 @@ def _checked_target(
     is_exact: bool,
 ) -> TargetEstimate:
     """``target`` with the CDF's own checks applied, each failed one warned: ``missed``, the value range per level
-    whose samples the thresholds miss; ``spread``, the telescoped standard deviation of ``Q_L`` (:class:`_Spread`);
+    whose samples the thresholds miss; ``spread``, the standard deviation of ``Q_L`` (:class:`_Spread`);
     ``is_exact``: every finest value lies a finest bandwidth or more from every threshold."""
     finest_level = int(target.levels[-1])
     finest = level_bandwidth(finest_level, bandwidth=bandwidth, bandwidth_rate=bandwidth_rate)
