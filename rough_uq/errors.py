@@ -297,11 +297,14 @@ class PlanTooLargeError(EstimationError):
     tolerance : str, optional
         How the message names the tolerance; default ``tol`` and the values
         of ``tol`` (``"tol 1e-06, 0.001"``).
+    limit : str, optional
+        How the message names the limit; default ``max_samples = 10000000``
+        (a command-line run: ``the 1e+07 samples a roughuq run may plan``).
     """
 
     def __init__(
         self, *, n_planned: Sequence[int], total: float, max_samples: int, tol: Sequence[float], advice: str,
-        tolerance: str | None = None,
+        tolerance: str | None = None, limit: str | None = None,
     ) -> None:
         self.n_planned = tuple(int(n) for n in n_planned)
         self.total = float(total)
@@ -309,19 +312,21 @@ class PlanTooLargeError(EstimationError):
         self.tol = tuple(float(eps) for eps in tol)
         self.advice = advice
         self.tolerance = "tol " + ", ".join(f"{eps:g}" for eps in self.tol) if tolerance is None else tolerance
+        self.limit = f"max_samples = {self.max_samples}" if limit is None else limit
         # The planners cap a level's count at PLANNED_COUNT_CAP (exact as a float): the need is then larger.
         is_capped = any(n >= PLANNED_COUNT_CAP for n in self.n_planned)
         plan_text = " ".join(str(n) if n < 10**7 else f"{n:.3g}" for n in self.n_planned)
         super().__init__(
             f"{self.tolerance} needs {'more than' if is_capped else 'about'} {self.total:.3g} samples "
-            f"(N_l {plan_text}), more than max_samples = {self.max_samples}: {advice}"
+            f"(N_l {plan_text}), more than {self.limit}: {advice}"
         )
 
-    def named(self, *, tolerance: str, advice: str) -> PlanTooLargeError:
-        """The same refusal naming the tolerance ``tolerance`` (e.g. ``"--tol-cdf 1e-05"``), ending in ``advice``."""
+    def named(self, *, tolerance: str, advice: str, limit: str | None = None) -> PlanTooLargeError:
+        """The same refusal naming the tolerance ``tolerance`` (e.g. ``"--tol-cdf 1e-05"``), ending in ``advice``;
+        ``limit`` names the limit (default as before)."""
         return PlanTooLargeError(
             n_planned=self.n_planned, total=self.total, max_samples=self.max_samples, tol=self.tol, advice=advice,
-            tolerance=tolerance,
+            tolerance=tolerance, limit=self.limit if limit is None else limit,
         )
 
 

@@ -1046,6 +1046,9 @@ def test_a_plan_beyond_max_samples_is_refused_with_its_numbers():
     assert isinstance(named, PlanTooLargeError) and (named.n_planned, named.tol) == (refusal.n_planned, refusal.tol)
     assert str(named) == ("--tol-var a=1e-06, b=0.001 needs about 101 samples (N_l 90 11), "
                           "more than max_samples = 100: loosen --tol-var")
+    # A command-line run names its limit: max_samples is no option of any roughuq command.
+    cli = refusal.named(tolerance="--tol-var a=1e-06", advice="loosen --tol-var", limit="the 100 a run may plan")
+    assert str(cli).endswith("more than the 100 a run may plan: loosen --tol-var") and cli.max_samples == 100
 
 
 def test_a_plan_capped_at_the_largest_count_is_refused_as_a_lower_bound():

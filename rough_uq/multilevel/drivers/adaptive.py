@@ -650,19 +650,20 @@ def mlmc(
 
 
 def refuse_large_plan(
-    n_planned, *, max_samples: int | None, tol: np.ndarray, advice: str, tolerance: str | None = None
+    n_planned, *, max_samples: int | None, tol: np.ndarray, advice: str, tolerance: str | None = None,
+    limit: str | None = None,
 ) -> None:
     """Raise :class:`~rough_uq.errors.PlanTooLargeError` for a plan of more than ``max_samples`` samples in all.
 
     ``n_planned`` are the samples per level; ``advice`` ends the message (what
-    to change); ``tolerance`` names the tolerance in it (default ``tol`` and
-    its values). ``max_samples`` None: no limit.
+    to change); ``tolerance`` and ``limit`` name the tolerance and the limit in it (default ``tol`` and its values,
+    ``max_samples = N``). ``max_samples`` None: no limit.
     """
     total = float(np.sum(n_planned))
     if max_samples is not None and total > max_samples:
         raise PlanTooLargeError(
             n_planned=n_planned, total=total, max_samples=max_samples, tol=np.ravel(tol), advice=advice,
-            tolerance=tolerance,
+            tolerance=tolerance, limit=limit,
         )
 
 

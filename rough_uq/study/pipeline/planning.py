@@ -217,6 +217,11 @@ def forecast_run(
     return replace(forecast, n_stored=stored, stored_cost=float(np.dot(stored, costs)))
 
 
+#: How a command-line run's refusals name the limit of its plans (:class:`~rough_uq.errors.PlanTooLargeError`'s
+#: ``limit``): ``max_samples`` is an argument of the Python API, which no roughuq command takes.
+RUN_PLAN_LIMIT = f"the {MAX_PLANNED_SAMPLES:.0e} samples a roughuq run may plan"
+
+
 def _refusing_large_plans(events: Iterator[object], names: Sequence[str], tol: np.ndarray) -> Iterator[object]:
     """``events``, refused (:class:`~rough_uq.errors.PlanTooLargeError`) at a plan of more than MAX_PLANNED_SAMPLES.
 
@@ -231,7 +236,7 @@ def _refusing_large_plans(events: Iterator[object], names: Sequence[str], tol: n
         for event in events:
             if isinstance(event, PlanUpdated):
                 refuse_large_plan(event.n_planned, max_samples=MAX_PLANNED_SAMPLES, tol=tol, advice="loosen --tol",
-                                  tolerance=f"--tol {tol_text(names, tol, digits=3)}")
+                                  tolerance=f"--tol {tol_text(names, tol, digits=3)}", limit=RUN_PLAN_LIMIT)
             yield event
     finally:
         events.close()

@@ -34,7 +34,7 @@ from rough_uq.problem.runs import run_id
 from rough_uq.problem.sampler import ContactModel, LevelBatch, modelled_cost, run_stage
 from rough_uq.study.pipeline.diagnostics import collecting_diagnostics, unique_diagnostics
 from rough_uq.study.pipeline.estimation import _RunClock, _earlier_run, _run_recorded
-from rough_uq.study.pipeline.planning import _check_initial_budget, check_initial_samples
+from rough_uq.study.pipeline.planning import RUN_PLAN_LIMIT, _check_initial_budget, check_initial_samples
 from rough_uq.study.pipeline.sampling import StudySampler
 from rough_uq.study.pipeline.studies import Study, naming_source
 
@@ -361,7 +361,8 @@ def _naming_options(tolerance: str, option: str) -> Iterator[None]:
     The multilevel core (and the Python API, :func:`rough_uq.variance` and
     :func:`rough_uq.distribution`, which keep its words) says ``tol 1e-06
     needs about ...: loosen the tolerance``; a run of ``roughuq mlmc`` says
-    ``--tol-var contact_area=1e-06 needs about ...: loosen --tol-var``
+    ``--tol-var contact_area=1e-06 needs about ..., more than the 1e+07 samples a roughuq run may plan: loosen
+    --tol-var``
     (``tolerance`` is the option with its value, ``option`` the bare option),
     the same :class:`~rough_uq.errors.PlanTooLargeError` with the same numbers.
     Other errors pass as they are.
@@ -369,7 +370,7 @@ def _naming_options(tolerance: str, option: str) -> Iterator[None]:
     try:
         yield
     except PlanTooLargeError as exc:
-        raise exc.named(tolerance=tolerance, advice=f"loosen {option}") from None
+        raise exc.named(tolerance=tolerance, advice=f"loosen {option}", limit=RUN_PLAN_LIMIT) from None
 
 
 def _follow_target(
