@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from rough_uq.study.config import config_from_dict, load_config
-from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError, StudyFileError
+from rough_uq.errors import ConfigError, EstimationError, InvalidParameterError, PlanTooLargeError, StudyFileError
 from rough_uq.study.executors import Executor, PoolExecutor, SerialExecutor
 from rough_uq.multilevel.drivers import PlanUpdated
 from rough_uq.multilevel.rates import EXACT_RATE
@@ -712,6 +712,25 @@ def test_a_cdf_request_keeps_the_probabilities_in_the_order_given():
     request = cdf_request(config, column="contact_area", thresholds=[10.0, 20.0], probabilities=(0.5, 0.05, 0.95))
     assert request.probabilities == (0.5, 0.05, 0.95)
     assert cdf_request(config, column=None, thresholds=[10.0, 20.0]).probabilities == (0.05, 0.5, 0.95)
+
+
+def test_a_load_curve_gives_a_column_its_own_thresholds_in_the_config():
+    # estimation.distribution took QoI names only: every load's column used one grid, which misses the samples of the
+    # others (contact areas of 4 % and 20 %), and `--tol-cdf --qoi contact_area@0.1` drew every sample, then ended
+    # NOT MET (thresholds_miss_samples); the column's own key was refused as "not a QoI of this study".
+    grids = {"contact_area": {"thresholds": {"start": 3, "stop": 7, "count": 9}},
+             "contact_area@0.10": {"thresholds": {"start": 15, "stop": 26, "count": 12}, "probabilities": [0.5]}}
+    config = config_from_dict(tiny_config(load={"relative": [0.02, 0.1]}, estimation={"distribution": grids}))
+    own = cdf_request(config, column="contact_area@0.1")
+    assert own.thresholds.tolist() == list(np.linspace(15, 26, 12)) and own.probabilities == (0.5,)
+    other = cdf_request(config, column="contact_area@0.02")
+    assert other.thresholds.tolist() == list(np.linspace(3, 7, 9)) and other.probabilities == (0.05, 0.5, 0.95)
+    grids["contact_area@0.3"] = grids.pop("contact_area@0.10")  # no such load
+    with pytest.raises(ConfigError, match="estimation.distribution.contact_area@0.3: not a QoI or load column of this "
+                                          "study .*one load's column: contact_area@0.02, contact_area@0.1"):
+        config_from_dict(tiny_config(load={"relative": [0.02, 0.1]}, estimation={"distribution": grids}))
+    with pytest.raises(ConfigError, match="estimation.distribution.contact_area@0.1: not a QoI of this study"):
+        config_from_dict(tiny_config(estimation={"distribution": {"contact_area@0.1": grids["contact_area"]}}))
 
 
 def test_parse_tolerances():

@@ -91,7 +91,7 @@ from pydantic_core import PydanticCustomError
 from rough_uq.errors import ConfigError, is_integer, is_real_number
 from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL
 from rough_uq.multilevel.drivers import MAX_PLANNED_SAMPLES
-from rough_uq.problem.columns import column_name
+from rough_uq.problem.columns import column_name, column_of_load
 from rough_uq.problem.memory import SOLVER_ARRAYS_PER_NODE, physical_memory_bytes, solver_memory_bytes
 from rough_uq.problem.memory import memory_warning as grid_memory_warning
 
@@ -894,8 +894,9 @@ class EstimationConfig(_Section):
     )
     distribution: dict[str, DistributionConfig] = _field(
         {},
-        description="Per QoI name, the thresholds and quantile probabilities of `roughuq mlmc --tol-cdf` runs",
-        allowed="a mapping of QoI names of the qoi section to {thresholds, probabilities}",
+        description="Per QoI name, the thresholds and quantile probabilities of `roughuq mlmc --tol-cdf` runs; "
+        "with a load curve also per column (`contact_area@0.1`), which takes precedence over its QoI's",
+        allowed="a mapping of QoI names of the qoi section (or load-curve columns) to {thresholds, probabilities}",
     )
 
 
@@ -1064,9 +1065,13 @@ class StudyConfig(_Section):
                 )
             )
         for name in self.estimation.distribution:
-            if name not in self.qoi:
-                problems.append(_problem(f"estimation.distribution.{name}", "not a QoI of this study", name,
-                                         f"a QoI of the qoi section: {', '.join(self.qoi)}"))
+            columns = self.qoi_names if len(self.load.values) > 1 else ()
+            if name not in self.qoi and column_of_load(name, columns) not in columns:
+                allowed = f"a QoI of the qoi section: {', '.join(self.qoi)}"
+                if columns:
+                    allowed += f"; or one load's column: {', '.join(columns)}"
+                what = "not a QoI or load column of this study" if columns else "not a QoI of this study"
+                problems.append(_problem(f"estimation.distribution.{name}", what, name, allowed))
         if problems:
             _fail(problems)
         return self

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from rough_uq import __version__
-from rough_uq.study.config import StudyConfig
+from rough_uq.study.config import DistributionConfig, StudyConfig
 from rough_uq.errors import EstimationError, InvalidParameterError, PlanTooLargeError, is_real_number
 from rough_uq.study.executors import Executor
 from rough_uq.study.progress import Progress
@@ -94,23 +94,32 @@ def cdf_request(
                                     text=f"--qoi: this study has several result columns; name one of {columns}")
     if column not in names:  # as typed: "contact_area@6", not the "contact_area@6.0" it was compared as
         raise InvalidParameterError("--qoi", given, f"one result column of this study: {', '.join(names)}")
-    settings = config.estimation.distribution.get(_qoi_of(config, column))
+    key, settings = _distribution_settings(config, column)
     if thresholds is None and (settings is None or settings.thresholds is None):
         raise InvalidParameterError(
             "--thresholds", "none (neither the option nor the config gives them)",
             f"the values s where F(s) = P({column} <= s) is estimated: give --thresholds "
-            f"START:STOP:COUNT (the QoI's unit) or set estimation.distribution.{_qoi_of(config, column)}.thresholds "
-            "in the config",
+            f"START:STOP:COUNT (the QoI's unit) or set estimation.distribution.{key}.thresholds in the config",
         )
     values = np.asarray(settings.thresholds.values() if thresholds is None else thresholds, dtype=float)
     if values.ndim != 1 or values.size < 2 or not np.all(np.isfinite(values)) or np.any(np.diff(values) <= 0):
         # The config's grid is checked when it is loaded; name it, not the --thresholds nobody gave, if not.
-        field = ("--thresholds" if thresholds is not None
-                 else f"estimation.distribution.{_qoi_of(config, column)}.thresholds")
+        field = "--thresholds" if thresholds is not None else f"estimation.distribution.{key}.thresholds"
         raise InvalidParameterError(field, values, "at least two finite, strictly increasing values")
     if probabilities is None:
         probabilities = DEFAULT_PROBABILITIES if settings is None else settings.probabilities
     return CdfRequest(column=column, thresholds=values, probabilities=_probabilities(probabilities))
+
+
+def _distribution_settings(config: StudyConfig, column: str) -> tuple[str, DistributionConfig | None]:
+    """The ``estimation.distribution`` entry of a result ``column`` and its key: the column's own (a load curve's
+    ``contact_area@0.1``, however its load is written), else its QoI's (the key then the QoI's name)."""
+    names = config.qoi_names
+    for key, settings in config.estimation.distribution.items():
+        if key != _qoi_of(config, column) and column_of_load(key, names) == column:
+            return key, settings
+    qoi = _qoi_of(config, column)
+    return qoi, config.estimation.distribution.get(qoi)
 
 
 def _probabilities(probabilities: object) -> tuple[float, ...]:
