@@ -1563,6 +1563,15 @@ def _stage_of(study: Any, text: str) -> int:
     return stage
 
 
+def _is_integer_text(text: str) -> bool:
+    """Whether ``int(text)`` reads ``text`` (a stage number, not a run id)."""
+    try:
+        int(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _load_index(load: Any, text: str | None) -> int:
     """``show --load``: the position of the load ``text`` among the config's ``load`` values (0 without it)."""
     from rough_uq.problem.columns import load_label
@@ -1616,9 +1625,14 @@ def show(study_path: str, stage: str, level: int, index: int, load_text: str | N
         have = f"stored: {' '.join(_ranges(sorted(int(i) for i in stored)))}" if stored.size else "none stored"
         raise InvalidParameterError("--index", index, f"a sample of stage {stage} on level {level} ({have})")
 
+    # The title names the stage as typed: a run's stage number is a 17-digit hash.
+    name = "the screening" if stage == "screening" else f"stage {stage_id}"
+    if stage != "screening" and not _is_integer_text(stage):
+        name = f"run {stage}"
+
     def write() -> Any:
         return write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out,
-                                   load_index=load_index)
+                                   load_index=load_index, stage_name=name)
 
     click.echo(f"wrote {_writing(out, write)}")
 

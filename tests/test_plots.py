@@ -357,3 +357,13 @@ def test_sample_figure_titles_fit_and_name_the_load_drawn(tmp_path, figures):
         assert box.x0 <= extent.x0 and extent.x1 <= box.x1 and extent.y1 <= box.y1, text.get_text()
     assert "mean of 4- and 8-connected" in figure.axes[2].get_title()
     assert "load 1 of 2: $p / (E^* \\sqrt{m_2})$ = 0.1 " in suptitle.get_text()
+    assert suptitle.get_text().startswith("sample of stage 0, level 1 (grid 16), index 0 [coupled draw]")
+
+
+def test_a_sample_figure_names_its_stage_as_given(tmp_path, figures):
+    # `roughuq show --stage <run id>` titled the figure "sample stage 65290023461150223": a run's stage is a hash.
+    model = build_model(config_from_dict(tiny_config()))
+    plots.write_sample_figure(model=model, stage=STAGE_SCREENING, level=0, index=0, path=tmp_path / "s.png",
+                              stage_name="run mlmc_contact_area-2_theta-0.5")
+    (suptitle,) = figures["s.png"].texts
+    assert suptitle.get_text().startswith("sample of run mlmc_contact_area-2_theta-0.5, level 0 (grid 8), index 0")

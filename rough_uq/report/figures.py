@@ -675,7 +675,7 @@ def _checked_load_index(model: ContactModel, load_index: object) -> int:
 
 
 def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: int, path: str | Path,
-                        load_index: int = 0) -> Path:
+                        load_index: int = 0, stage_name: str | None = None) -> Path:
     """Draw one sample: its heights, its contact pressure and its contact clusters.
 
     Of a load curve, the pressure and the clusters are those at the load
@@ -697,6 +697,10 @@ def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: i
         PNG file to write; its folder must exist.
     load_index : int
         Which of ``model.loads`` to draw, ``0..n_loads - 1`` (0 for a single load).
+    stage_name : str, optional
+        What the title calls the sample's stage, e.g. ``"the screening"`` or
+        ``"run mlmc_contact_area-0.5_theta-0.5"`` (the stage numbers of runs are
+        17-digit hashes); default ``"stage <stage>"``.
 
     Returns
     -------
@@ -732,6 +736,7 @@ def write_sample_figure(*, model: ContactModel, stage: int, level: int, index: i
         ax.set_xlabel("x")
         ax.set_ylabel("y")
     kind = "coupled" if is_coupled_stage(stage) and level > 0 else "single"
-    figure.suptitle(f"sample stage {stage}, level {level} (grid {n}), index {index} [{kind} draw]"
+    name = f"stage {stage}" if stage_name is None else stage_name
+    figure.suptitle(f"sample of {name}, level {level} (grid {n}), index {index} [{kind} draw]"
                     + _load_text(model, load_index))
     return _save(figure, path)
