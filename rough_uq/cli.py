@@ -1504,7 +1504,8 @@ def _sweep_assignment(assignments: Sequence[str]) -> tuple[str, list[str]]:
 @click.argument("study_path", metavar="FILE", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--plots", "plots_dir", type=click.Path(file_okay=False), default=None,
-              help="Also write PNG figures (rates, cost vs tolerance, samples per level) to this folder.")
+              help="Also write PNG figures to this folder, those the study has data for: rates, cost vs "
+                   "tolerance, samples per level, the load curve (several loads), one CDF per column (cdf runs).")
 @_user_errors
 def report(study_path: str, as_json: bool, plots_dir: str | None) -> None:
     """Show what a study file holds: config, screening, rates, every run, warnings."""
