@@ -214,6 +214,22 @@ def test_cost_against_tolerance_sets_the_refused_tolerances_apart(tmp_path, repo
     assert list(mlmc.get_xdata()) == tols[1:]
 
 
+def test_a_prediction_of_one_reachable_tolerance_is_drawn_as_a_mark(tmp_path, report, figures):
+    # Only the loosest screened tolerance reachable: each predicted "line" had one point, drew nothing, and the
+    # legend listed the MLMC and MC predictions all the same.
+    changed = copy.deepcopy(report)
+    predictions = sorted(changed["screening"]["predictions"], key=lambda p: p["tol"][0])
+    for prediction in predictions:
+        prediction["is_bias_met"] = prediction is predictions[-1]
+    changed["screening"]["predictions"] = predictions
+    plots.write_report_plots(changed, tmp_path)
+    lines = _lines(figures["cost_vs_tol.png"].axes[0])
+    predicted = [line for label, line in lines.items() if " predicted CPU-s" in label]
+    assert len(predicted) == 2
+    for line in predicted:
+        assert list(line.get_xdata()) == [predictions[-1]["tol"][0]] and line.get_marker() == "_"
+
+
 @pytest.fixture(scope="module")
 def two_qoi_report() -> dict:
     """Two QoIs screened with tolerances 2 % and 0.05 (ratio 0.025); MLMC at that ratio and at another."""

@@ -324,6 +324,9 @@ def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
     for points, style, keywords in series:
         if points:
             x, y = np.array(points, dtype=float).T
+            if len(points) == 1 and style in ("-", "--"):
+                # A line of one point draws nothing: a short dash marks it (only the loosest tolerance reachable).
+                keywords = {**keywords, "marker": "_", "markersize": 14, "markeredgewidth": 2}
             ax.plot(x, y, style, **keywords)
     ax.set_xscale("log")
     ax.set_yscale("log")
