@@ -170,6 +170,30 @@ def test_the_distribution_table_has_one_line_per_quantile_at_80_columns(tmp_path
     assert len(rows[0].split()) > len(rows[1].split()) == len(rows[2].split()) == 4, rows  # p, q_p, error bar
 
 
+def test_the_cdf_figure_says_which_run_missed_its_tolerance(tmp_path, monkeypatch):
+    # A run NOT MET with an error band (at grid.max_level, at --max-cost) was drawn and labelled as a met one.
+    import dataclasses
+
+    from rough_uq.report.figures import _cdf_figure
+    from rough_uq.study.pipeline import open_existing_study
+    from rough_uq.study.records import read_run_records
+
+    monkeypatch.chdir(tmp_path)
+    config = write_config(tmp_path / "tiny.yaml", tiny_config())
+    run = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.5", "--thresholds", "0:100:51",
+                                    "--workers", "1", "-q"])
+    assert run.exit_code == 3, (run.output, run.exception)  # NOT MET (max_level), with its error band
+    with open_existing_study(tmp_path / "results.h5", writable=False) as study:
+        (missed,) = read_run_records(study.store)
+    met = dataclasses.replace(missed, outcome=dataclasses.replace(missed.outcome, tol_met=True))
+    captured = []
+    monkeypatch.setattr("rough_uq.report.figures._save", lambda figure, path: captured.append(figure))
+    _cdf_figure([met, missed], "contact_area", "%", tmp_path / "cdf.png")
+    (ax,) = captured[0].axes
+    labels = [text.get_text() for text in ax.get_legend().get_texts()]
+    assert labels[0].endswith("(band)") and labels[1] == labels[0] + ", NOT MET", labels
+
+
 def test_a_cdf_run_whose_bandwidth_withdraws_its_bias_does_not_also_warn_of_a_noisy_bias(tmp_path, monkeypatch):
     # The quickstart at max_level 2 with --thresholds 0:40:3 (an audit): the run warned "the bias estimate 0.184
     # ... rests on level terms within their noise" beside "so the bias is not estimated" (bandwidth too wide).

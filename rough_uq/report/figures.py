@@ -504,6 +504,7 @@ def _cdf_figure(runs: Sequence[RunRecord], column: str, unit: str | None, path: 
             ax.fill_between(s, distribution.cdf_lower, distribution.cdf_upper, color=colour, alpha=0.25,
                             linewidth=0, step=None)
             label = f"MLMC, tol {tol_number(run.tol[0])}: sup RMSE {run.outcome.rmse[0]:.2g} (band)"
+            label += "" if run.outcome.tol_met else ", NOT MET"  # e.g. at grid.max_level: drawn as a met one
         elif not is_rmse_measured(run.outcome):  # the thresholds miss a level's samples: variance not measured
             label = f"MLMC, tol {tol_number(run.tol[0])}: RMSE not measured (thresholds miss samples)"
         else:  # the bandwidth is too wide: the band, the statistical error's, ignores a large smoothing bias
