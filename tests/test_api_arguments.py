@@ -453,3 +453,32 @@ def test_min_finest_level_is_checked_before_the_screenings_plan_reads_it(two_qoi
     with pytest.raises(rough_uq.InvalidParameterError) as caught:
         rough_uq.mlmc(problem, tol=50.0, screening=two_qoi_screening, min_finest_level=value, executor=_NoSampling())
     assert caught.value.name == "min_finest_level"
+
+
+def _load_curve_problem() -> rough_uq.ContactProblem:
+    spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)
+    loads = [rough_uq.RelativeLoad(0.1), rough_uq.RelativeLoad(0.05)]
+    return rough_uq.ContactProblem(spectrum, load=loads, qoi=["contact_area", "clusters"], coarsest=8, max_level=2)
+
+
+def test_a_tolerance_by_column_takes_the_load_written_as_column_takes_it():
+    # distribution(column="contact_area@0.10") named the column contact_area@0.1; tol={"contact_area@0.10": ...}
+    # was refused as an unknown key.
+    problem = _load_curve_problem()
+    spelled = {"contact_area@0.10": 20.0, "contact_area@5e-2": 30.0, "clusters": 1e3}
+    exact = {"contact_area@0.1": 20.0, "contact_area@0.05": 30.0, "clusters": 1e3}
+    result = rough_uq.mc(problem, tol=spelled, level=0, n_initial=2)
+    assert result.tol.tolist() == [20, 30, 1e3, 1e3]
+    assert rough_uq.mc(problem, tol=exact, level=0, n_initial=2).tol.tolist() == result.tol.tolist()
+    twice = "^tol: got \"keys 'contact_area@0.10' and 'contact_area@0.1'\"; allowed: one key for contact_area@0.1$"
+    with pytest.raises(rough_uq.InvalidParameterError, match=twice):
+        rough_uq.mc(problem, tol={**spelled, "contact_area@0.1": 5.0}, level=0, executor=_NoSampling())
+
+
+@pytest.mark.parametrize(("tol", "index"), [([1.0, 1.0, 30.0, float("nan")], 3), ([1.0, -1.0, 2.0, 3.0], 1)])
+def test_a_bad_tolerance_in_a_list_is_named_by_its_index_and_column(tol, index):
+    # "allowed: ... a sequence of 4" for a list of 4 said nothing of which entry was bad.
+    problem = _load_curve_problem()
+    with pytest.raises(rough_uq.InvalidParameterError, match=rf"^tol\[{index}\]: got .*; allowed: a number > 0 "
+                                                             rf"\(column {problem.columns[index]}\)$"):
+        rough_uq.mc(problem, tol=tol, level=0, executor=_NoSampling())

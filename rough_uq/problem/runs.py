@@ -51,7 +51,7 @@ from rough_uq.multilevel.statistics import (
 )
 from rough_uq.problem.batch import STAGE_SCREENING, LevelBatch
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter
-from rough_uq.problem.columns import split_column, tol_number, tol_text, values_text
+from rough_uq.problem.columns import column_of_load, split_column, tol_number, tol_text, values_text
 from rough_uq.problem.sampler import ContactModel, measured_seconds_per_cost, modelled_cost, run_stage
 
 __all__ = [
@@ -417,8 +417,13 @@ def checked_tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = 
     values = checked_real_array("tol", tol, allowed)  # numbers only: ["0.5"] and [True] were converted
     if values.ndim == 0 or values.shape == (n_qoi,):
         values = np.broadcast_to(values.reshape(-1), (n_qoi,)).copy()
-        if np.all(np.isfinite(values)) and np.all(values > 0):
+        bad = np.flatnonzero(~(np.isfinite(values) & (values > 0)))
+        if bad.size == 0:
             return values
+        if values.size > 1 and np.ndim(tol) == 1:  # "a sequence of 4" said nothing of which one of the 4 is bad
+            i = int(bad[0])
+            column = "" if columns is None else f" (column {columns[i]})"
+            raise InvalidParameterError(f"tol[{i}]", float(values[i]), f"a number > 0{column}")
     raise InvalidParameterError("tol", tol, allowed)
 
 
@@ -429,8 +434,10 @@ def _values_by_name(name: str, values: Mapping, columns: Sequence[str], *, noun:
     A QoI's name gives all its columns of a load curve (``contact_area`` for
     ``contact_area@0.1`` and ``contact_area@0.2``); a column's own name takes
     precedence. Every column must get one, and no other key may be there.
-    Each value is a finite number, ``> 0`` if ``positive``; ``noun`` names one in messages ("tolerance").
+    Each value is a finite number, ``> 0`` if ``positive``; ``noun`` names one in messages ("tolerance"). A
+    column's load may be written as ``column=`` takes it (``contact_area@0.10`` for ``contact_area@0.1``).
     """
+    values = _keys_as_columns(name, values, columns)
     qois = {column: split_column(column)[0] for column in columns}
     known = set(columns) | set(qois.values())
     unknown = [key for key in values if key not in known]
@@ -447,6 +454,18 @@ def _values_by_name(name: str, values: Mapping, columns: Sequence[str], *, noun:
         if not (is_real_number(value) and math.isfinite(value) and (value > 0 or not positive)):
             raise InvalidParameterError(name, f"{key}: {value!r}", allowed)
     return [values[key] for key in keys]
+
+
+def _keys_as_columns(name: str, values: Mapping, columns: Sequence[str]) -> dict:
+    """``values`` with each key that names a load column written as the column is (:func:`column_of_load`); two keys
+    of one column are refused (``contact_area@0.1`` and ``contact_area@0.10``)."""
+    spelled: dict = {}
+    for key, value in values.items():
+        column = column_of_load(key, columns) if isinstance(key, str) else key
+        if column in spelled:
+            raise InvalidParameterError(name, f"keys {spelled[column][0]!r} and {key!r}", f"one key for {column}")
+        spelled[column] = (key, value)
+    return {column: value for column, (_, value) in spelled.items()}
 
 
 #: The fields of a :class:`ContactProblem` in which a run's problem may differ from the problem its screening
