@@ -244,3 +244,16 @@ def test_printed_results_are_one_line_summaries_with_tol_met():
     assert "\n" not in text and len(text) < 300 and str(spread) == text
     assert f"tol=[20, 20], tol_met={spread.tol_met}, stop_reason='{spread.stop_reason}'" in text
     assert repr(law.cdf.target).startswith("TargetEstimate(estimate=<121 values>, rmse=[")  # one per threshold
+
+
+@pytest.mark.filterwarnings("ignore::rough_uq.errors.EstimationWarning")  # it misses its samples: said, beside the point
+def test_the_error_of_a_cdf_whose_thresholds_miss_some_levels_is_at_most_one():
+    # At a load of a few contact nodes the thresholds 0-0.01 % missed levels 0 and 1 but not 2: their level terms
+    # extrapolated a bias of 1.96, reported as the CDF's bias and RMSE, where no error of a CDF exceeds 1.
+    spectrum = rough_uq.SurfaceSpectrum(system_size=2, k_l=2, k_r=2, k_s=16, hurst=0.8, rms_height=1)
+    problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(1e-5), qoi=["contact_area"], coarsest=32,
+                                      seed=1, max_level=2)
+    law = rough_uq.distribution(problem, tol=0.3, thresholds=np.linspace(0, 0.01, 21)).cdf
+    assert law.stop_reason == "thresholds_miss_samples" and law.missed_levels.tolist() == [0, 1]
+    assert float(law.target.bias[0]) > 1  # what the level terms say
+    assert law.bias == law.rmse == 1.0 and not law.tol_met

@@ -439,9 +439,10 @@ class CdfEstimate:
         Statistical error of ``cdf_raw`` per threshold.
     bias : float
         Remaining bias (maximum over the thresholds) from the decay of the level terms; 0 where it is not
-        estimated (``is_bias_estimated``).
+        estimated (``is_bias_estimated``). At most 1, as ``rmse``: ``cdf`` lies in ``[0, 1]``, and no error of it
+        exceeds 1 (level terms of thresholds that miss a level's samples extrapolated a bias of 1.96).
     rmse : float
-        ``sqrt(max_j stat_error_j^2 + bias^2)``, the sup-norm RMS error estimate.
+        ``sqrt(max_j stat_error_j^2 + bias^2)``, the sup-norm RMS error estimate, at most 1.
     bandwidths : ndarray, shape (n_levels,)
         ``delta_l`` per level.
     target : TargetEstimate
@@ -643,8 +644,8 @@ def _cdf_estimate(
         cdf=readonly_array(np.clip(isotonic(raw), 0.0, 1.0)),
         cdf_raw=raw,
         stat_error=target.stat_error,
-        bias=float(target.bias[0]),
-        rmse=float(target.rmse[0]),
+        bias=min(float(target.bias[0]), 1.0),
+        rmse=min(float(target.rmse[0]), 1.0),
         bandwidths=readonly_array(
             [level_bandwidth(int(level), bandwidth=bandwidth, bandwidth_rate=bandwidth_rate) for level in target.levels]
         ),
