@@ -246,7 +246,7 @@ def test_printed_results_are_one_line_summaries_with_tol_met():
     assert repr(law.cdf.target).startswith("TargetEstimate(estimate=<121 values>, rmse=[")  # one per threshold
 
 
-@pytest.mark.filterwarnings("ignore::rough_uq.errors.EstimationWarning")  # it misses its samples: said, beside the point
+@pytest.mark.filterwarnings("ignore::rough_uq.errors.EstimationWarning")  # its samples missed: said, beside the point
 def test_the_error_of_a_cdf_whose_thresholds_miss_some_levels_is_at_most_one():
     # At a load of a few contact nodes the thresholds 0-0.01 % missed levels 0 and 1 but not 2: their level terms
     # extrapolated a bias of 1.96, reported as the CDF's bias and RMSE, where no error of a CDF exceeds 1.
