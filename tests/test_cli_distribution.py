@@ -259,3 +259,18 @@ def test_interrupted_cdf_runs_of_one_tolerance_read_apart(tmp_path, monkeypatch,
                                                                            "resume"))
     assert len(heads) == 2 and heads[0] != heads[1], heads
     assert all(re.fullmatch(r"cdf contact_area=0\.2, request [0-9a-f]{8}: interrupted; .*", head) for head in heads)
+
+
+def test_a_cdf_runs_stored_bias_is_at_most_one_as_the_apis(tmp_path, monkeypatch):
+    # Thresholds that miss two of three levels' samples: the level terms extrapolated a bias of 1.9 for a CDF, which
+    # the API's CdfEstimate caps at 1 and the study file stored as it was.
+    monkeypatch.chdir(tmp_path)
+    surface = {"system_size": 2.0, "wavenumbers": {"k_l": 2, "k_r": 2, "k_s": 16}, "hurst": 0.8, "rms_height": 1.0}
+    config = write_config(tmp_path / "tiny.yaml", tiny_config(surface=surface, load={"relative": 1e-5}, seed=1,
+                                                              grid={"coarsest": 32, "max_level": 2},
+                                                              estimation={"initial_samples": 32}))
+    run = CliRunner().invoke(main, ["mlmc", "--config", str(config), "--tol-cdf", "0.3", "--thresholds", "0:0.01:21",
+                                    "--workers", "1", "-q"])
+    assert run.exit_code == 3, (run.output, run.exception)
+    (record,) = json.loads(CliRunner().invoke(main, ["report", "results.h5", "--json"]).stdout)["runs"]
+    assert record["stop_reason"] == "thresholds_miss_samples" and record["bias_estimate"] == [1.0]

@@ -725,6 +725,17 @@ def test_a_load_curve_gives_a_column_its_own_thresholds_in_the_config():
     assert own.thresholds.tolist() == list(np.linspace(15, 26, 12)) and own.probabilities == (0.5,)
     other = cdf_request(config, column="contact_area@0.02")
     assert other.thresholds.tolist() == list(np.linspace(3, 7, 9)) and other.probabilities == (0.05, 0.5, 0.95)
+    # Each setting from the first entry that gives it: the column's probabilities with its QoI's thresholds.
+    config = config_from_dict(tiny_config(load={"relative": [0.02, 0.1]}, estimation={"distribution": {
+        "contact_area": {"thresholds": {"start": 3, "stop": 7, "count": 9}, "probabilities": [0.1, 0.9]},
+        "contact_area@0.1": {"probabilities": [0.5]}}}))
+    own = cdf_request(config, column="contact_area@0.1")
+    assert own.thresholds.tolist() == list(np.linspace(3, 7, 9)) and own.probabilities == (0.5,)
+    assert cdf_request(config, column="contact_area@0.02").probabilities == (0.1, 0.9)
+    with pytest.raises(ConfigError, match="estimation.distribution.contact_area@0.1: a second key for "
+                                          "contact_area@0.1 .*one key per column \\(contact_area@0.10 is the first"):
+        config_from_dict(tiny_config(load={"relative": [0.02, 0.1]}, estimation={"distribution": {
+            **grids, "contact_area@0.1": grids["contact_area"]}}))
     grids["contact_area@0.3"] = grids.pop("contact_area@0.10")  # no such load
     with pytest.raises(ConfigError, match="estimation.distribution.contact_area@0.3: not a QoI or load column of this "
                                           "study .*one load's column: contact_area@0.02, contact_area@0.1"):

@@ -895,7 +895,7 @@ class EstimationConfig(_Section):
     distribution: dict[str, DistributionConfig] = _field(
         {},
         description="Per QoI name, the thresholds and quantile probabilities of `roughuq mlmc --tol-cdf` runs; "
-        "with a load curve also per column (`contact_area@0.1`), which takes precedence over its QoI's",
+        "with a load curve also per column (`contact_area@0.1`), whose settings take precedence over its QoI's",
         allowed="a mapping of QoI names of the qoi section (or load-curve columns) to {thresholds, probabilities}",
     )
 
@@ -1064,17 +1064,31 @@ class StudyConfig(_Section):
                     f"integer in 2..{MAX_PLANNED_SAMPLES // self.screening.levels}",
                 )
             )
-        for name in self.estimation.distribution:
-            columns = self.qoi_names if len(self.load.values) > 1 else ()
-            if name not in self.qoi and column_of_load(name, columns) not in columns:
-                allowed = f"a QoI of the qoi section: {', '.join(self.qoi)}"
-                if columns:
-                    allowed += f"; or one load's column: {', '.join(columns)}"
-                what = "not a QoI or load column of this study" if columns else "not a QoI of this study"
-                problems.append(_problem(f"estimation.distribution.{name}", what, name, allowed))
+        problems += self._distribution_key_problems()
         if problems:
             _fail(problems)
         return self
+
+    def _distribution_key_problems(self) -> list[dict[str, object]]:
+        """Keys of ``estimation.distribution`` that name no QoI and no load column, or a load column twice."""
+        problems: list[dict[str, object]] = []
+        columns = self.qoi_names if len(self.load.values) > 1 else ()
+        first: dict[str, str] = {}  # load column -> its first key (contact_area@0.1 and @0.10 name one)
+        for name in self.estimation.distribution:
+            column = column_of_load(name, columns)
+            if name in self.qoi:
+                continue
+            if column not in columns:
+                allowed = f"a QoI of the qoi section: {', '.join(self.qoi)}"
+                allowed += f"; or one load's column: {', '.join(columns)}" if columns else ""
+                what = "not a QoI or load column of this study" if columns else "not a QoI of this study"
+                problems.append(_problem(f"estimation.distribution.{name}", what, name, allowed))
+            elif column in first:
+                problems.append(_problem(f"estimation.distribution.{name}", f"a second key for {column}", name,
+                                         f"one key per column ({first[column]} is the first)"))
+            else:
+                first[column] = name
+        return problems
 
     @property
     def qoi_names(self) -> tuple[str, ...]:

@@ -94,32 +94,34 @@ def cdf_request(
                                     text=f"--qoi: this study has several result columns; name one of {columns}")
     if column not in names:  # as typed: "contact_area@6", not the "contact_area@6.0" it was compared as
         raise InvalidParameterError("--qoi", given, f"one result column of this study: {', '.join(names)}")
-    key, settings = _distribution_settings(config, column)
-    if thresholds is None and (settings is None or settings.thresholds is None):
+    entries = _distribution_entries(config, column)
+    key, grid = next(((key, entry.thresholds) for key, entry in entries if entry.thresholds is not None),
+                     (_qoi_of(config, column), None))
+    if thresholds is None and grid is None:
         raise InvalidParameterError(
             "--thresholds", "none (neither the option nor the config gives them)",
             f"the values s where F(s) = P({column} <= s) is estimated: give --thresholds "
             f"START:STOP:COUNT (the QoI's unit) or set estimation.distribution.{key}.thresholds in the config",
         )
-    values = np.asarray(settings.thresholds.values() if thresholds is None else thresholds, dtype=float)
+    values = np.asarray(grid.values() if thresholds is None else thresholds, dtype=float)
     if values.ndim != 1 or values.size < 2 or not np.all(np.isfinite(values)) or np.any(np.diff(values) <= 0):
         # The config's grid is checked when it is loaded; name it, not the --thresholds nobody gave, if not.
         field = "--thresholds" if thresholds is not None else f"estimation.distribution.{key}.thresholds"
         raise InvalidParameterError(field, values, "at least two finite, strictly increasing values")
     if probabilities is None:
-        probabilities = DEFAULT_PROBABILITIES if settings is None else settings.probabilities
+        given = (entry.probabilities for _, entry in entries if "probabilities" in entry.model_fields_set)
+        probabilities = next(given, DEFAULT_PROBABILITIES)
     return CdfRequest(column=column, thresholds=values, probabilities=_probabilities(probabilities))
 
 
-def _distribution_settings(config: StudyConfig, column: str) -> tuple[str, DistributionConfig | None]:
-    """The ``estimation.distribution`` entry of a result ``column`` and its key: the column's own (a load curve's
-    ``contact_area@0.1``, however its load is written), else its QoI's (the key then the QoI's name)."""
-    names = config.qoi_names
-    for key, settings in config.estimation.distribution.items():
-        if key != _qoi_of(config, column) and column_of_load(key, names) == column:
-            return key, settings
-    qoi = _qoi_of(config, column)
-    return qoi, config.estimation.distribution.get(qoi)
+def _distribution_entries(config: StudyConfig, column: str) -> list[tuple[str, DistributionConfig]]:
+    """The ``estimation.distribution`` entries of a result ``column`` with their keys, the column's own first (a
+    load curve's ``contact_area@0.1``, however its load is written), then its QoI's: each setting comes from the
+    first entry that gives it."""
+    qoi, names = _qoi_of(config, column), config.qoi_names
+    entries = config.estimation.distribution
+    own = [(key, entry) for key, entry in entries.items() if key != qoi and column_of_load(key, names) == column]
+    return own + ([(qoi, entries[qoi])] if qoi in entries else [])
 
 
 def _probabilities(probabilities: object) -> tuple[float, ...]:
@@ -422,11 +424,13 @@ def _target_outcome(
     mc_cost = _target_mc_cost(study, estimate, used[-1], result if target == "cdf" else None, request)
     extra: list[Diagnostic] = []
     distribution = None if target == "variance" else _distribution_record(result, request, extra)
+    # A cdf run's bias and RMSE as its CdfEstimate gives them: at most 1, the largest error of a CDF.
+    bias, rmse = (estimate.bias, estimate.rmse) if target == "variance" else (result.bias, result.rmse)
     return RunOutcome(
         finished=utc_timestamp(),
         estimate=_floats(estimate.estimate), stat_error=_floats(estimate.stat_error),
-        bias_estimate=_floats(estimate.bias), is_bias_estimated=estimate.is_bias_estimated,
-        rmse=_floats(estimate.rmse), levels=tuple(int(level) for level in estimate.levels),
+        bias_estimate=_floats(bias), is_bias_estimated=estimate.is_bias_estimated,
+        rmse=_floats(rmse), levels=tuple(int(level) for level in estimate.levels),
         n_samples=tuple(int(n) for n in estimate.n_samples), cost=float(estimate.cost), seconds=seconds,
         mc_cost=mc_cost, mc_seconds_predicted=mc_cost * seconds_per_cost, n_computed=sampler.n_computed,
         n_not_converged=count_not_converged(used), tol_met=bool(estimate.tol_met), stop_reason=estimate.stop_reason,
