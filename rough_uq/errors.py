@@ -298,8 +298,8 @@ class PlanTooLargeError(EstimationError):
         How the message names the tolerance; default ``tol`` and the values
         of ``tol`` (``"tol 1e-06, 0.001"``).
     limit : str, optional
-        How the message names the limit; default ``max_samples = 10000000``
-        (a command-line run: ``the 1e+07 samples a roughuq run may plan``).
+        How the message names the limit; default ``max_samples = N`` (a
+        command-line run: ``the 1e+07 samples a roughuq run may plan``).
     """
 
     def __init__(
@@ -323,7 +323,7 @@ class PlanTooLargeError(EstimationError):
 
     def named(self, *, tolerance: str, advice: str, limit: str | None = None) -> PlanTooLargeError:
         """The same refusal naming the tolerance ``tolerance`` (e.g. ``"--tol-cdf 1e-05"``), ending in ``advice``;
-        ``limit`` names the limit (default as before)."""
+        ``limit`` names the limit (default this refusal's, :attr:`limit`)."""
         return PlanTooLargeError(
             n_planned=self.n_planned, total=self.total, max_samples=self.max_samples, tol=self.tol, advice=advice,
             tolerance=tolerance, limit=self.limit if limit is None else limit,

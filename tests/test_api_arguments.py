@@ -479,6 +479,6 @@ def test_a_tolerance_by_column_takes_the_load_written_as_column_takes_it():
 def test_a_bad_tolerance_in_a_list_is_named_by_its_index_and_column(tol, index):
     # "allowed: ... a sequence of 4" for a list of 4 said nothing of which entry was bad.
     problem = _load_curve_problem()
-    with pytest.raises(rough_uq.InvalidParameterError, match=rf"^tol\[{index}\]: got .*; allowed: a number > 0 "
+    with pytest.raises(rough_uq.InvalidParameterError, match=rf"^tol\[{index}\]: got .*; allowed: a finite number > 0 "
                                                              rf"\(column {problem.columns[index]}\)$"):
         rough_uq.mc(problem, tol=tol, level=0, executor=_NoSampling())

@@ -289,8 +289,7 @@ def test_a_dask_task_lost_with_its_workers_says_that_a_rerun_computes_the_rest()
     assert dask_failure_text(ZeroDivisionError("x")) == "a dask task failed: ZeroDivisionError: x"
 
 
-
-def test_a_run_closed_early_cancels_pool_futures_only_where_a_breaking_pool_copes():
+def test_a_run_closed_early_cancels_pool_futures_only_from_python_3_12():
     # A SIGTERM to the process group (a scheduler's) ends the workers while the run cancels its futures. Before
     # Python 3.12 the pool's thread then raised InvalidStateError on a cancelled future ("Exception in thread
     # Thread-1: ... CANCELLED", 2 of 20 group SIGTERMs of `roughuq mlmc`) and died before terminating the workers

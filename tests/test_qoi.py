@@ -99,7 +99,8 @@ def test_non_finite_fields_are_refused() -> None:
         mean_gap(np.full((2, 2), np.inf))
     assert info.value.name == "gap"
     # None read as "non-finite entries"; a ragged list
-    for field, said in ((None, "an array of finite numbers"), ("abc", "an array of text"), ([[1.0], [1.0, 2.0]], "ragged")):
+    refusals = ((None, "an array of finite numbers"), ("abc", "an array of text"), ([[1.0], [1.0, 2.0]], "ragged"))
+    for field, said in refusals:
         with pytest.raises(InvalidParameterError, match=said) as info:
             contact_area(field)
         assert info.value.name == "pressure"

@@ -551,10 +551,10 @@ def _warn_bandwidth_too_wide(finest: float, spread: float, level: int) -> None:
     warn_at_caller(
         EstimationWarning(
             f"cdf: the smoothing bandwidth on the finest level {level}, {finest:.4g}, exceeds "
-            f"{BANDWIDTH_SPREAD_LIMIT:g} standard deviations of the values (standard deviation {spread:.4g}): the smoothing bias is "
-            "then beyond what the decay of the level terms measures (the smoothed CDF flattens towards 1/2), so the "
-            "bias is not estimated and the tolerance is not met; give a bandwidth below twice the spread of the "
-            "values (by default twice the thresholds' spacing: give finer thresholds)"
+            f"{BANDWIDTH_SPREAD_LIMIT:g} standard deviations of the values (standard deviation {spread:.4g}): "
+            "the smoothing bias is then beyond what the decay of the level terms measures (the smoothed CDF "
+            "flattens towards 1/2), so the bias is not estimated and the tolerance is not met; give a bandwidth "
+            "below twice the spread of the values (by default twice the thresholds' spacing: give finer thresholds)"
         ),
     )
 

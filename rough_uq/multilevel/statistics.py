@@ -322,7 +322,9 @@ def _covariance_se(dx: np.ndarray, dy: np.ndarray, cov: np.ndarray, n: int) -> n
     var_x = np.sum(x**2, axis=0) / (n - 1)
     var_y = np.sum(y**2, axis=0) / (n - 1)
     variance = (mu22 - (n - 2) / (n - 1) * c**2 + var_x * var_y / (n - 1)) / n
-    return np.sqrt(np.maximum(variance, 0.0)) * sx * sy
+    # Deviations or a covariance beyond the float range (values near 1e308): an infinite error, not 0.
+    finite = np.isfinite(sx) & np.isfinite(sy) & np.isfinite(cov)
+    return np.where(finite, np.sqrt(np.maximum(variance, 0.0)) * sx * sy, np.inf)
 
 
 def _centre(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

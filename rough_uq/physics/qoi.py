@@ -105,7 +105,8 @@ def _field(name: str, values: object) -> np.ndarray:
 
     A NaN would silently compare as "not in contact", so it is refused here;
     so are complex numbers (converting drops the imaginary part, with a numpy
-    warning) and booleans (a contact map is no pressure or gap field).
+    warning), booleans (a contact map is no pressure or gap field) and Python
+    objects (integers beyond int64 among them), as :func:`solve_contact` refuses them.
     """
     if values is None:  # asarray(None, float) is a NaN, which would read as "non-finite entries"
         raise InvalidParameterError(name, None, "an array of finite numbers")
@@ -485,8 +486,8 @@ def evaluate_qoi(
         strings (``name="names"``, listing the allowed ones), a missing ``gap`` / ``critical_pressure``, a
         ``gap`` of another shape than ``pressure``, a bad ``connectivity`` or
         ``area_estimator`` (``name="estimator"``), a field that is not a
-        non-empty 2-d array of real numbers (complex and boolean arrays are
-        refused, not converted), a non-finite field, or a negative pressure.
+        non-empty 2-d array of real numbers (complex, boolean and object arrays
+        are refused, not converted), a non-finite field, or a negative pressure.
     """
     names = _names(names)
     _check_cluster_count(connectivity)  # a bad setting is an error even when clusters are not asked for

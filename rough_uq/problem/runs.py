@@ -423,7 +423,7 @@ def checked_tolerances(tol: object, n_qoi: int, columns: Sequence[str] | None = 
         if values.size > 1 and np.ndim(tol) == 1:  # "a sequence of 4" said nothing of which one of the 4 is bad
             i = int(bad[0])
             column = "" if columns is None else f" (column {columns[i]})"
-            raise InvalidParameterError(f"tol[{i}]", float(values[i]), f"a number > 0{column}")
+            raise InvalidParameterError(f"tol[{i}]", float(values[i]), f"a finite number > 0{column}")
     raise InvalidParameterError("tol", tol, allowed)
 
 

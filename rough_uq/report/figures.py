@@ -325,7 +325,7 @@ def _cost_vs_tol_figure(drawn: _Drawn, path: Path) -> Path | None:
         if points:
             x, y = np.array(points, dtype=float).T
             if len(points) == 1 and style in ("-", "--"):
-                # A line of one point draws nothing: a short dash marks it (only the loosest tolerance reachable).
+                # A line of one point draws nothing: a short dash marks it (e.g. one screened tolerance reachable).
                 keywords = {**keywords, "marker": "_", "markersize": 14, "markeredgewidth": 2}
             ax.plot(x, y, style, **keywords)
     ax.set_xscale("log")
@@ -504,7 +504,7 @@ def _cdf_figure(runs: Sequence[RunRecord], column: str, unit: str | None, path: 
             ax.fill_between(s, distribution.cdf_lower, distribution.cdf_upper, color=colour, alpha=0.25,
                             linewidth=0, step=None)
             label = f"MLMC, tol {tol_number(run.tol[0])}: sup RMSE {run.outcome.rmse[0]:.2g} (band)"
-            label += "" if run.outcome.tol_met else ", NOT MET"  # e.g. at grid.max_level: drawn as a met one
+            label += "" if run.outcome.tol_met else ", NOT MET"  # its band is drawn as a met run's is
         elif not is_rmse_measured(run.outcome):  # the thresholds miss a level's samples: variance not measured
             label = f"MLMC, tol {tol_number(run.tol[0])}: RMSE not measured (thresholds miss samples)"
         else:  # the bandwidth is too wide: the band, the statistical error's, ignores a large smoothing bias

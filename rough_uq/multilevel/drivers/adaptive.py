@@ -693,7 +693,9 @@ def _final(events: Iterator[Event]) -> EstimationResult:
 
 
 def _root_sum_squares(values: np.ndarray) -> np.ndarray:
-    """``sqrt(sum(values^2, axis=0))`` in units of the largest: no squares that overflow (errors of 1e200)."""
+    """``sqrt(sum(values^2, axis=0))`` in units of the largest: no squares that overflow (errors of 1e200); an
+    infinite value gives ``inf``."""
     scale = np.max(np.abs(values), axis=0)
-    scaled = np.divide(values, scale, out=np.zeros_like(values), where=scale > 0)
-    return np.sqrt(np.sum(scaled**2, axis=0)) * scale
+    usable = np.isfinite(scale) & (scale > 0)
+    unit = np.where(usable, scale, 1.0)
+    return np.where(usable, np.sqrt(np.sum((values / unit) ** 2, axis=0)) * unit, scale)
