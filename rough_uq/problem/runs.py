@@ -462,6 +462,7 @@ def _keys_as_columns(name: str, values: Mapping, columns: Sequence[str]) -> dict
     spelled: dict = {}
     for key, value in values.items():
         column = column_of_load(key, columns) if isinstance(key, str) else key
+        column = column if column in columns else key  # an unknown key is refused as typed
         if column in spelled:
             raise InvalidParameterError(name, f"keys {spelled[column][0]!r} and {key!r}", f"one key for {column}")
         spelled[column] = (key, value)
