@@ -49,7 +49,7 @@ __all__ = [
     "level_statistics",
 ]
 # Also imported by the other modules of rough_uq.multilevel (and the problem's results), not part of the API:
-# checked_names, readonly_array, qoi_text, the repr helpers values_summary / names_summary / units_summary /
+# checked_names, readonly_array, scaled_by_largest, qoi_text, the repr helpers values_summary / names_summary / units_summary /
 # errors_summary, and level_moments / assemble_statistics (the drivers' level table, kept as LevelMoments per level).
 
 #: Kurtosis of ``Y_l`` above which ``V_l`` is considered unreliable (Giles' ``mlmc_test`` value).
@@ -290,11 +290,21 @@ def _sample_variance(centred: np.ndarray, n: int) -> np.ndarray:
     return np.sum(centred**2, axis=0) / (n - 1)
 
 
+def scaled_by_largest(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``values`` in units of each column's largest magnitude (along axis 0), and those units.
+
+    The scaled values lie in ``[-1, 1]``: their fourth powers neither overflow nor underflow (QoIs of 1e100 or
+    1e-100). A column whose largest magnitude is 0 or not finite comes out as zeros.
+    """
+    scale = np.max(np.abs(values), axis=0)
+    usable = np.isfinite(scale) & (scale > 0)
+    return np.divide(values, scale, out=np.zeros_like(values), where=usable), scale
+
+
 def _kurtosis(centred: np.ndarray) -> np.ndarray:
     # Scaling by the largest deviation keeps z in [-1, 1]: no overflow in z^4, no
     # underflow of m2^2, and m2 >= 1/n whenever the scale is positive.
-    scale = np.max(np.abs(centred), axis=0)
-    z = np.divide(centred, scale, out=np.zeros_like(centred), where=scale > 0)
+    z, _ = scaled_by_largest(centred)
     m2 = np.mean(z**2, axis=0)
     m4 = np.mean(z**4, axis=0)
     return np.divide(m4, m2**2, out=np.zeros_like(m2), where=m2 > 0)
@@ -314,9 +324,7 @@ def _covariance_se(dx: np.ndarray, dy: np.ndarray, cov: np.ndarray, n: int) -> n
         return np.zeros(dx.shape[1:])
     # In units of each column's largest deviation (as _kurtosis): the fourth powers of values of 1e100 overflowed
     # (a NaN error), those of 1e-100 underflowed (an error of 0).
-    sx, sy = np.max(np.abs(dx), axis=0), np.max(np.abs(dy), axis=0)
-    x = np.divide(dx, sx, out=np.zeros_like(dx), where=sx > 0)
-    y = np.divide(dy, sy, out=np.zeros_like(dy), where=sy > 0)
+    (x, sx), (y, sy) = scaled_by_largest(dx), scaled_by_largest(dy)
     c = np.divide(np.divide(cov, sx, out=np.zeros_like(sx), where=sx > 0), sy, out=np.zeros_like(sy), where=sy > 0)
     mu22 = np.mean(x**2 * y**2, axis=0)
     var_x = np.sum(x**2, axis=0) / (n - 1)

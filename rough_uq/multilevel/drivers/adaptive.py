@@ -55,7 +55,9 @@ from rough_uq.multilevel.drivers.planning import (
 from rough_uq.multilevel.drivers.samples import Sampler, _check_positive, _shape_out, check_optional_positive
 from rough_uq.multilevel.rates import STALL_SIGNIFICANCE, DroppedLevel, Rates, confirmed_tail, estimated_bias, tail_rate
 from rough_uq.multilevel.richardson import RICHARDSON_MIN_LEVELS, ratio_instability, richardson_bias, richardson_weight
-from rough_uq.multilevel.statistics import KURTOSIS_LIMIT, EstimationWarning, LevelStatistics, diagnose, readonly_array
+from rough_uq.multilevel.statistics import (
+    KURTOSIS_LIMIT, EstimationWarning, LevelStatistics, diagnose, readonly_array, scaled_by_largest,
+)
 
 #: Plans with more samples than this are refused, by the Python runs (:mod:`rough_uq.problem.runs`, unless
 #: ``max_samples=`` moves the limit) and by ``roughuq`` (whatever ``--max-cost``).
@@ -695,7 +697,6 @@ def _final(events: Iterator[Event]) -> EstimationResult:
 def _root_sum_squares(values: np.ndarray) -> np.ndarray:
     """``sqrt(sum(values^2, axis=0))`` in units of the largest: no squares that overflow (errors of 1e200); an
     infinite value gives ``inf``."""
-    scale = np.max(np.abs(values), axis=0)
-    usable = np.isfinite(scale) & (scale > 0)
-    unit = np.where(usable, scale, 1.0)
-    return np.where(usable, np.sqrt(np.sum((values / unit) ** 2, axis=0)) * unit, scale)
+    scaled, scale = scaled_by_largest(values)
+    finite = np.isfinite(scale)
+    return np.where(finite, np.sqrt(np.sum(scaled**2, axis=0)) * np.where(finite, scale, 0.0), scale)
