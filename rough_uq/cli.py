@@ -1545,14 +1545,19 @@ def _writing(target: str, write: Callable[[], Any]) -> Any:
 
 def _stage_of(study: Any, text: str) -> int:
     """``--stage``: 'screening', a run id (as `roughuq report` prints it) or a stage number."""
+    return _stage_and_name(study, text)[0]
+
+
+def _stage_and_name(study: Any, text: str) -> tuple[int, str]:
+    """The stage of ``--stage`` (:func:`_stage_of`) and its name as typed: the screening, run <id> or stage <n>."""
     from rough_uq.study.records import read_run_records
 
     if text == "screening":
-        return 0
+        return 0, "the screening"
     runs = read_run_records(study.store)
     for run in runs:
         if run.run_id == text and run.stage is not None:
-            return run.stage
+            return run.stage, f"run {text}"
     try:
         stage = int(text)
     except ValueError:
@@ -1561,16 +1566,7 @@ def _stage_of(study: Any, text: str) -> int:
                                     "or a stage number") from None
     if not 0 <= stage <= MAX_INT64:
         raise InvalidParameterError("--stage", text, f"'screening', a run id or a stage number in 0..{MAX_INT64}")
-    return stage
-
-
-def _is_integer_text(text: str) -> bool:
-    """Whether ``int(text)`` reads ``text`` (a stage number, not a run id)."""
-    try:
-        int(text)
-    except ValueError:
-        return False
-    return True
+    return stage, f"stage {stage}"
 
 
 def _load_index(load: Any, text: str | None) -> int:
@@ -1619,17 +1615,12 @@ def show(study_path: str, stage: str, level: int, index: int, load_text: str | N
         if level > study.config.grid.max_level:
             raise InvalidParameterError("--level", level, f"an integer in 0..{study.config.grid.max_level}")
         load_index = _load_index(study.config.load, load_text)
-        stage_id = _stage_of(study, stage)
+        stage_id, name = _stage_and_name(study, stage)  # the title names the stage as typed (a run's is a hash)
         stored = study.store.sample_indices(level=level, stage=stage_id)
         model = study.model_for(level)  # the FFT plans the sample was computed with
     if index not in set(int(i) for i in stored):
         have = f"stored: {' '.join(_ranges(sorted(int(i) for i in stored)))}" if stored.size else "none stored"
         raise InvalidParameterError("--index", index, f"a sample of stage {stage} on level {level} ({have})")
-
-    # The title names the stage as typed: a run's stage number is a 17-digit hash.
-    name = "the screening" if stage == "screening" else f"stage {stage_id}"
-    if stage != "screening" and not _is_integer_text(stage):
-        name = f"run {stage}"
 
     def write() -> Any:
         return write_sample_figure(model=model, stage=stage_id, level=level, index=index, path=out,

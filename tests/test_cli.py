@@ -647,6 +647,18 @@ def test_report_plots_and_show_write_figures(screened):
     assert (screened / "upper.PNG").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_show_names_the_stage_as_typed(screened, monkeypatch):
+    # A run's sample was titled "sample stage 65290023461150223", its stage's hash.
+    run("mlmc", "--tol", "5", "--workers", "1", "--quiet")
+    (run_id,) = [entry["run_id"] for entry in json.loads(run("report", "results.h5", "--json").stdout)["runs"]]
+    names = []
+    monkeypatch.setattr("rough_uq.report.figures.write_sample_figure",
+                        lambda **arguments: names.append(arguments["stage_name"]) or Path(arguments["path"]))
+    for stage in ("screening", run_id, "0"):
+        run("show", "--stage", stage, "--level", "1", "--index", "0", "--out", "s.png")
+    assert names == ["the screening", f"run {run_id}", "stage 0"]
+
+
 def test_show_draws_the_load_of_a_curve_that_load_names(tmp_path, monkeypatch):
     # show drew a load curve's first load only.
     pytest.importorskip("matplotlib")
