@@ -35,13 +35,14 @@ pyFFTW.
 
 from __future__ import annotations
 
-import importlib
-from importlib.metadata import PackageNotFoundError, version
+import importlib as _importlib
+from importlib.metadata import PackageNotFoundError as _PackageNotFoundError
+from importlib.metadata import version as _installed_version
 from typing import TYPE_CHECKING
 
 try:
-    __version__ = version("roughuq")
-except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = _installed_version("roughuq")
+except _PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0.0.0+unknown"
 
 #: Public name -> module that defines it.
@@ -171,10 +172,16 @@ def __getattr__(name: str) -> object:
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'rough_uq' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
+    value = getattr(_importlib.import_module(module), name)
     globals()[name] = value
     return value
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+    """The public names, the subpackages loaded so far and the dunders: what a notebook's completion should offer."""
+    own = {
+        name
+        for name, value in globals().items()
+        if (name.startswith("__") and name.endswith("__")) or getattr(value, "__name__", "") == f"{__name__}.{name}"
+    }
+    return sorted(own | set(__all__))

@@ -120,6 +120,10 @@ def test_public_names_are_pinned_and_resolve():
     for name in PUBLIC:
         assert getattr(rough_uq, name) is not None, name
     assert set(PUBLIC) <= set(dir(rough_uq))
+    # the package's own imports are not names a notebook's completion offers (``rough_uq.version`` was
+    # importlib's function, not the version)
+    assert not {"version", "importlib", "PackageNotFoundError", "TYPE_CHECKING", "annotations"} & set(dir(rough_uq))
+    assert not hasattr(rough_uq, "version")
     assert rough_uq.mlmc is rough_uq.problem.runs.mlmc
     assert rough_uq.EstimationResult is rough_uq.multilevel.drivers.EstimationResult
     with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
