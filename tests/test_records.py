@@ -194,9 +194,11 @@ def test_random_records_round_trip_exactly(seed):
                         seconds_per_cost=float(rng.random()), diagnostics=(Diagnostic("level 1: 1 sample(s)"),))
     text = json.dumps(screening.to_json())
     assert ScreeningRecord.from_json(json.loads(text)) == screening
-    outcome = replace(_run(MLMC).outcome, estimate=tuple(rng.normal(size=n_qoi).tolist()),
-                      statistics=_random_table(rng, n_levels, n_qoi), rates=_random_rates(rng, n_qoi))
-    run = replace(_run(MLMC), tol=tuple(rng.random(n_qoi).tolist()), outcome=outcome)
+    per_qoi = {key: tuple(rng.normal(size=n_qoi).tolist())
+               for key in ("estimate", "stat_error", "bias_estimate", "rmse", "variance", "variance_error")}
+    outcome = replace(_run(MLMC).outcome, **per_qoi, statistics=_random_table(rng, n_levels, n_qoi),
+                      rates=_random_rates(rng, n_qoi))
+    run = replace(_run(MLMC), tol=tuple(rng.random(n_qoi).tolist()), qoi_names=screening.qoi_names, outcome=outcome)
     assert RunRecord.from_json(json.loads(json.dumps(run.to_json())), run_id=MLMC) == run
 
 
@@ -256,6 +258,12 @@ RUN_DEFECTS = [
     (("forecast", "memory_bytes"), 1.5, "forecast.memory_bytes", "an integer"),
     (("statistics", "consistency"), [0.1], "statistics.consistency[0]", "a list"),
     (("rates", "levels_alpha", 0), [1, "2"], "rates.levels_alpha[0][1]", "an integer"),
+    # lengths that disagree: the report indexed past their ends (a traceback)
+    (("tol",), [], "tol", "one tolerance per QoI (2: contact_area, clusters)"),
+    (("tol",), [0.5], "tol", "one tolerance per QoI (2: contact_area, clusters)"),
+    (("estimate",), [20.0], "estimate", "2 values, one per QoI as in tol"),
+    (("variance_error",), [1.0, 2.0, 3.0], "variance_error", "2 values, one per QoI as in tol"),
+    (("n_samples",), [57], "n_samples", "counts, one per level"),
 ]
 
 

@@ -179,6 +179,71 @@ def test_damaged_sample_rows_are_refused_not_read(tmp_path, dataset, damage):
             reader.read_samples(level=0, stage=3)
 
 
+def _replaced(name: str, data: object) -> Callable[[object], None]:
+    """A change of a tiny study file: the dataset ``samples/level_0/<name>`` replaced by ``data``."""
+    def change(f) -> None:
+        del f[f"samples/level_0/{name}"]
+        f[f"samples/level_0/{name}"] = data
+    return change
+
+
+def _level_attribute(value: object) -> Callable[[object], None]:
+    def change(f) -> None:
+        f["samples/level_0"].attrs["level"] = value
+    return change
+
+
+def _level_as_dataset(f) -> None:
+    del f["samples/level_0"]
+    f["samples/level_0"] = np.arange(3)
+
+
+# Files whose structure was edited by hand or damaged (a study file's checksums cover its rows' bits, not its
+# layout): each crashed `report`, `mlmc` and `mc` with a traceback before, at the place the layout was relied on.
+MALFORMED = {
+    "level-not-a-number": (_level_attribute("abc"), "samples/level_0: its 'level' attribute is 'abc', not a non-"),
+    "level-an-array": (_level_attribute(np.array([1, 2])), "samples/level_0: its 'level' attribute is array"),
+    "level-of-another-group": (_level_attribute(3), "samples/level_0: its 'level' attribute is 3"),
+    "level-a-dataset": (_level_as_dataset, "samples/level_0: a dataset of shape (3,) and dtype int64, not a group"),
+    "index-a-string": (_replaced("index", np.bytes_(b"text")), "samples/level_0/index: a dataset of shape () and "
+                       "dtype |S4, not integer values of shape (rows)"),
+    "stage-float32": (_replaced("stage", np.full(10, 3, dtype=np.float32)), "samples/level_0/stage: a dataset of "
+                      "shape (10,) and dtype float32, not integer values of shape (rows)"),
+    "stage-too-short": (_replaced("stage", np.full(4, 3)), "samples/level_0/stage: 4 rows, fewer than the 10"),
+    "fine-a-column-too-many": (_replaced("fine", np.zeros((10, 9))), "samples/level_0/fine: a dataset of shape "
+                               "(10, 9) and dtype float64, not float values of shape (rows, 1)"),
+    "converged-a-group": (lambda f: (f["samples/level_0"].__delitem__("converged"),
+                                     f["samples/level_0"].create_group("converged")),
+                          "samples/level_0/converged: a group, not boolean values of shape (rows, 2)"),
+    "n_committed-a-list": (_replaced("n_committed", [10, 10]), "samples/level_0/n_committed: a dataset of shape (2,)"),
+    "n_committed-negative": (_replaced("n_committed", -1), "samples/level_0/n_committed is -1, not a non-negative"),
+}
+
+
+@pytest.mark.parametrize("change, message", MALFORMED.values(), ids=list(MALFORMED))
+def test_a_study_file_of_a_malformed_layout_is_refused_as_damaged(tmp_path, change, message):
+    import h5py
+
+    path = _tiny_study(tmp_path)
+    with h5py.File(path, "r+") as f:
+        change(f)
+    with open_study_readonly(path) as reader:
+        with pytest.raises(StudyFileError, match="study.h5 cannot be read: truncated or damaged study file") as info:
+            reader.read_samples(level=0, stage=3)
+    assert message in str(info.value)
+
+
+def test_report_refuses_a_study_file_of_a_malformed_layout_in_one_line(tmp_path):
+    import h5py
+
+    config = load_config(write_config(tmp_path / "tiny.yaml", tiny_config()))
+    with create_study(config, tmp_path / "study.h5") as study:
+        study.store.append_samples(make_batch(0, 0, range(10), n_qoi=len(config.qoi_names)))
+    with h5py.File(tmp_path / "study.h5", "r+") as f:
+        _replaced("stage", np.full(10, 3, dtype=np.float32))(f)
+    _assert_refused_as_damaged(_roughuq("report", "study.h5", cwd=tmp_path), "study.h5")
+
+
 def test_a_changed_byte_of_a_record_is_refused(tmp_path):
     path = _tiny_study(tmp_path)
     _damage_first_chunk(path, "runs/r/record", lambda data: data.replace(b"0.125", b"0.725"))  # still JSON

@@ -1078,7 +1078,7 @@ class RunRecord:
         where = f"run {run_id}"
         fields = _Fields(data, where)
         has_outcome = "finished" in fields.data
-        return cls(
+        record = cls(
             run_id=run_id,
             method=fields.required("method", _method),
             status=fields.required("status", _status),
@@ -1098,6 +1098,30 @@ class RunRecord:
             reason=fields.optional("reason", _text),
             stopped_elapsed=fields.optional("stopped_elapsed", _number),
         )
+        _check_lengths(record, where)
+        return record
+
+
+def _check_lengths(record: RunRecord, where: str) -> None:
+    """Refuse a record whose per-QoI fields disagree in length (a hand-edited or damaged record: the report indexed
+    past their ends)."""
+    n = len(record.tol)
+    if n == 0 or (record.qoi_names is not None and len(record.qoi_names) != n):
+        names = "" if record.qoi_names is None else f" ({len(record.qoi_names)}: {', '.join(record.qoi_names)})"
+        _fail(f"{where}.tol", list(record.tol), f"one tolerance per QoI{names}")
+    outcome = record.outcome
+    if outcome is None:
+        return
+    per_qoi = ["bias_estimate", "rmse"]
+    if record.method != "cdf":  # a CDF run's estimate and statistical error have one value per threshold
+        per_qoi += ["estimate", "stat_error", *(key for key in _OUTCOME_MOMENTS if getattr(outcome, key) is not None)]
+    elif len(outcome.stat_error) != len(outcome.estimate):
+        _fail(f"{where}.stat_error", list(outcome.stat_error), f"{len(outcome.estimate)} values, one per threshold")
+    for key in per_qoi:
+        if len(getattr(outcome, key)) != n:
+            _fail(f"{where}.{key}", list(getattr(outcome, key)), f"{n} values, one per QoI as in tol")
+    if len(outcome.n_samples) != len(outcome.levels):
+        _fail(f"{where}.n_samples", list(outcome.n_samples), f"{len(outcome.levels)} counts, one per level")
 
 
 # ---------------------------------------------------------------------------

@@ -1056,36 +1056,104 @@ def _create_level(f: h5py.File, level: int, columns: Mapping[str, np.ndarray]) -
 
 
 def _committed_rows(f: h5py.File, version: int) -> dict[int, int]:
-    """Committed row count of every level group (version 1: every row)."""
+    """Committed row count of every level group (version 1: every row); a malformed group is :class:`_DamagedRows`."""
     counts = {}
     samples = f["samples"]
     for name in samples:
         group = samples[name]  # not values(), which gives None for a group HDF5 cannot read (a damaged file)
-        level = int(group.attrs["level"])
-        counts[level] = int(group[_COMMITTED][()]) if version >= 2 else int(group["index"].shape[0])
+        where = f"samples/{name}"
+        if not isinstance(group, h5py.Group):
+            raise _DamagedRows(f"{where}: {_describe_node(group)}, not a group of sample columns")
+        level = _stored_integer(group.attrs.get("level"), f"{where}: its 'level' attribute")
+        if name != f"level_{level}":
+            raise _DamagedRows(f"{where}: its 'level' attribute is {level}")
+        if version >= 2:
+            counts[level] = _stored_integer(_scalar(group, _COMMITTED), f"{where}/{_COMMITTED}")
+        else:
+            counts[level] = _column(group, where, "index", 0).shape[0]
     return counts
 
 
-def _read_columns(f: h5py.File, level: int, n_rows: int, version: int) -> dict[str, np.ndarray]:
-    """The first ``n_rows`` rows of ``level`` of a file of format ``version``, checked against their checksums from
-    version 3 on (:class:`_DamagedRows`)."""
-    group = f[f"samples/level_{level}"]
+#: What each sample column holds: the kinds of dtype allowed (numpy's ``dtype.kind``) and its shape after the rows
+#: (``None``: one value per QoI).
+_COLUMN_LAYOUT: dict[str, tuple[str, tuple[int | None, ...]]] = {
+    "stage": ("iu", ()),
+    "index": ("iu", ()),
+    "fine": ("f", (None,)),
+    "coarse": ("f", (None,)),
+    "cost": ("f", ()),
+    "n_iter": ("iu", (2,)),
+    "converged": ("b", (2,)),
+    _CHECKSUM: ("u", ()),
+}
+_KIND_WORDS = {"iu": "integer", "f": "float", "b": "boolean", "u": "unsigned integer"}
+
+
+def _describe_node(node: Any) -> str:
+    """``a dataset of shape (3,) and dtype float32``, ``a group``, ``nothing``: what a damaged file holds there."""
+    if node is None:
+        return "nothing"
+    if isinstance(node, h5py.Dataset):
+        return f"a dataset of shape {node.shape} and dtype {node.dtype}"
+    return "a group" if isinstance(node, h5py.Group) else f"a {type(node).__name__}"
+
+
+def _scalar(group: h5py.Group, name: str) -> Any:
+    """The value of the scalar dataset ``name`` of ``group`` (:class:`_DamagedRows` for anything else)."""
+    node = group.get(name)
+    if not isinstance(node, h5py.Dataset) or node.shape != ():
+        raise _DamagedRows(f"{group.name.lstrip('/')}/{name}: {_describe_node(node)}, not a count")
+    return node[()]
+
+
+def _stored_integer(value: Any, what: str) -> int:
+    """``value`` (read from the file) as a non-negative int; :class:`_DamagedRows` naming ``what`` otherwise."""
+    array = np.asarray(value) if value is not None else None
+    if array is None or array.shape != () or array.dtype.kind not in "iu" or int(array) < 0:
+        shown = array.item() if array is not None and array.shape == () and array.dtype.kind != "O" else value
+        raise _DamagedRows(f"{what} is {shown!r}, not a non-negative integer")
+    return int(array)
+
+
+def _column(group: h5py.Group, where: str, name: str, n_rows: int, n_qoi: int | None = None) -> h5py.Dataset:
+    """The dataset of column ``name``, checked against :data:`_COLUMN_LAYOUT` and for at least ``n_rows`` rows."""
+    dataset = group.get(name)
+    kinds, tail = _COLUMN_LAYOUT[name]
+    expected = tuple(n_qoi if size is None else size for size in tail)
+    if (
+        not isinstance(dataset, h5py.Dataset)
+        or dataset.dtype.kind not in kinds
+        or len(dataset.shape) != 1 + len(tail)
+        or (n_qoi is not None and dataset.shape[1:] != expected)
+    ):
+        shape = ", ".join(["rows", *(("QoIs" if size is None else str(size)) for size in expected)])
+        raise _DamagedRows(f"{where}/{name}: {_describe_node(dataset)}, not {_KIND_WORDS[kinds]} values of shape "
+                           f"({shape})")
+    if dataset.shape[0] < n_rows:  # a SWMR reader's cached extent; ask the file again
+        dataset.refresh()
+        if dataset.shape[0] < n_rows:
+            raise _DamagedRows(f"{where}/{name}: {dataset.shape[0]} rows, fewer than the {n_rows} committed")
+    return dataset
+
+
+def _read_columns(f: h5py.File, level: int, n_rows: int, version: int, n_qoi: int) -> dict[str, np.ndarray]:
+    """The first ``n_rows`` rows of ``level`` of a file of format ``version`` with ``n_qoi`` QoIs, checked against
+    their layout and from version 3 on their checksums (:class:`_DamagedRows`)."""
+    where = f"samples/level_{level}"
+    group = f[where]
     is_checked = version >= 3
     if is_checked and _CHECKSUM not in group:
-        raise _DamagedRows(f"samples/level_{level}: no {_CHECKSUM} dataset")
+        raise _DamagedRows(f"{where}: no {_CHECKSUM} dataset")
     columns = {}
     for name in (*_COLUMNS, _CHECKSUM) if is_checked else _COLUMNS:
-        dataset = group[name]
-        if dataset.shape[0] < n_rows:  # a SWMR reader's cached extent; ask the file again
-            dataset.refresh()
-        columns[name] = dataset[:n_rows]
+        columns[name] = _column(group, where, name, n_rows, n_qoi)[:n_rows]
     if is_checked:
         _check_rows(level, columns.pop(_CHECKSUM), columns)
     return columns
 
 
 class _DamagedRows(RuntimeError):
-    """Rows that differ from their checksums: reported as a damaged file (one of :data:`_HDF5_READ_ERRORS`, and
+    """Sample columns of the wrong layout, or rows that differ from their checksums: reported as a damaged file (one of :data:`_HDF5_READ_ERRORS`, and
     not an OSError, which a copy-on-write transaction would report as a failed write)."""
 
 
@@ -1225,7 +1293,7 @@ class StudyFile(StudyStore):
         if n_rows == 0:
             return _empty_columns(self.n_qoi)
         with self._reading() as f:
-            columns = _read_columns(f, level, n_rows, self.format_version)
+            columns = _read_columns(f, level, n_rows, self.format_version, self.n_qoi)
         if not self._is_closed:
             self._cache[level] = [columns]
         return columns
@@ -1414,8 +1482,9 @@ def _copy_committed(src: h5py.File, dst: h5py.File, committed: Mapping[int, int]
     for record in _record_datasets(dst):
         _with_checksums(record)
     dst.create_group("samples")
+    n_qoi = len(src["qoi_names"])
     for level, n_rows in sorted(committed.items()):
-        _create_level(dst, level, _read_columns(src, level, n_rows, version))
+        _create_level(dst, level, _read_columns(src, level, n_rows, version, n_qoi))
 
 
 def _record_datasets(f: h5py.File) -> list[h5py.Dataset]:
