@@ -494,6 +494,11 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
         assert re.search(rf"contact_area \[%\]\s+{cell}\s", table), table
     result = run("sweep", str(config), "--set", "surface.system_size=1.1", "--fixed-spacing", expect=2)
     assert "even integer" in result.stderr
+    for value in ("nan", "abc", "1e400", "-2", "null"):  # the first three were tracebacks (float(), round())
+        result = run("sweep", str(config), "--set", f"surface.system_size=1,{value}", "--fixed-spacing", expect=2)
+        assert result.stderr.startswith(f"error: --set surface.system_size={value}: --fixed-spacing needs a box "
+                                        "size (got "), result.stderr
+        assert result.stderr.rstrip().endswith("allowed: a finite number > 0)") and result.stderr.count("\n") == 1
     result = run("sweep", str(config), "--set", "surface.colour=1", expect=2)
     assert "not a field" in result.stderr
 

@@ -166,6 +166,8 @@ BAD_CASES = {
     "wrong_schema_version": ("schema_version: ", "got 2"),
     "top_level_list": ("top_level_list.yaml: the top level must be a mapping", "got a list"),
     "duplicate_key": ("duplicate_key.yaml: not valid YAML at line 4", "duplicate key 'seed'"),
+    "octal_seed": ("octal_seed.yaml: not valid YAML at line 3", "found 012345, which YAML reads as an octal number "
+                   "(5349); write it without the leading zero"),
 }
 
 
@@ -542,6 +544,16 @@ def test_sweep_values_are_read_as_the_config_file_reads_them() -> None:
     assert [c.solver.tol for _, c in configs] == [1e-8, 2.5e-9]
     with pytest.raises(ConfigError, match="solver.tol: must be a number, not a string"):
         sweep_configs(config, key="solver.tol", values=["tight"])
+
+
+def test_a_swept_null_is_the_config_file_s_null_and_a_leading_zero_is_refused() -> None:
+    # null was kept as the text 'null': "estimation.max_cost: must be a number, not a string (got 'null'; allowed:
+    # number > 0 or null)"; 012 would be the octal 10 of YAML 1.1.
+    config = config_from_dict(_base())
+    configs = sweep_configs(config, key="estimation.max_cost", values=["1", "null"])
+    assert [c.estimation.max_cost for _, c in configs] == [1, None]
+    with pytest.raises(ConfigError, match=r"^--set seed=012: found 012, which YAML reads as an octal number \(10\)"):
+        sweep_configs(config, key="seed", values=["1", "012"])
 
 
 def test_a_swept_value_is_named_in_its_file_by_the_full_key_and_the_value_text():

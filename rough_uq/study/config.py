@@ -1320,11 +1320,23 @@ class _StrictLoader(yaml.SafeLoader):
             seen.add(key)
         return super().construct_mapping(node, deep=deep)
 
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
+        # YAML 1.1 reads 012345 as the octal 5349 (`seed: 012345` drew another surface, without a word; YAML 1.2
+        # reads it as 12345): a leading zero is refused, with the line.
+        text = self.construct_scalar(node).replace("_", "")
+        if re.fullmatch(r"[-+]?0[0-7]+", text):
+            raise yaml.constructor.ConstructorError(
+                None, None, f"found {node.value}, which YAML reads as an octal number ({super().construct_yaml_int(node)}"
+                "); write it without the leading zero (or as 0x... for hexadecimal)", node.start_mark
+            )
+        return super().construct_yaml_int(node)
+
 
 _INT_TAG, _FLOAT_TAG = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
 # YAML 1.1 reads `15:25:41` as the base-60 integer 55541 (and `1:30.5` as a float): a threshold grid written as
 # --thresholds takes it read "thresholds: must be a mapping (got 55541)". The numbers stay YAML 1.1's otherwise
 # (binary, octal and hexadecimal integers, `_` separators, .inf and .nan): only a colon now makes text.
+_StrictLoader.add_constructor(_INT_TAG, _StrictLoader.construct_yaml_int)
 _StrictLoader.yaml_implicit_resolvers = {
     first: [(tag, pattern) for tag, pattern in resolvers if tag not in (_INT_TAG, _FLOAT_TAG)]
     for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
@@ -1623,10 +1635,29 @@ def _flattened(data: dict[str, Any], prefix: str = "") -> dict[str, object]:
     return flat
 
 
-def _parse_scalar(text: str) -> object:
+def _coarsest_at_fixed_spacing(config: StudyConfig, text: object, value: object) -> int:
+    """``grid.coarsest`` for the box ``value`` (``text`` as typed) at the grid spacing of ``config``."""
+    spacing = config.surface.system_size / config.grid.coarsest
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
+        raise ConfigError(f"--set surface.system_size={text}: --fixed-spacing needs a box size (got {value!r}; "
+                          "allowed: a finite number > 0)")
+    n_0 = config.grid.coarsest * value / config.surface.system_size
+    if not (n_0 == round(n_0) and round(n_0) % 2 == 0):
+        raise ConfigError(
+            f"--fixed-spacing: box {value} needs grid.coarsest = {n_0:g} for the spacing {spacing:g} (got "
+            f"{value!r}; allowed: a box size giving an even integer n_0)"
+        )
+    return int(round(n_0))
+
+
+def _parse_scalar(text: str, key: str) -> object:
     # The config file's reading of a value, so that 1e-8 is a number here too.
-    value = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
-    return value if isinstance(value, (int, float, str, bool)) else text
+    try:
+        value = yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - _StrictLoader is a SafeLoader
+    except yaml.YAMLError as exc:  # 012: an octal number (_StrictLoader.construct_yaml_int)
+        raise ConfigError(f"--set {key}={text}: {getattr(exc, 'problem', None) or exc} (got {text!r}; allowed: a "
+                          "value as a config file writes it)") from None
+    return value if value is None or isinstance(value, (int, float, str, bool)) else text
 
 
 #: What the text of a swept value may be: it becomes part of a file name, so no separator, space or quote.
@@ -1735,17 +1766,10 @@ def sweep_configs(
         target = data
         for part in parts[:-1]:
             target = target[part]
-        value = _parse_scalar(str(text))
+        value = _parse_scalar(str(text), key)
         target[parts[-1]] = value
         if fixed_spacing:
-            n_0 = config.grid.coarsest * float(value) / config.surface.system_size
-            if not (n_0 == round(n_0) and round(n_0) % 2 == 0):
-                raise ConfigError(
-                    f"--fixed-spacing: box {value} needs grid.coarsest = {n_0:g} for the spacing "
-                    f"{config.surface.system_size / config.grid.coarsest:g} (got {value!r}; allowed: a box size "
-                    f"giving an even integer n_0)"
-                )
-            data["grid"]["coarsest"] = int(round(n_0))
+            data["grid"]["coarsest"] = _coarsest_at_fixed_spacing(config, text, value)
         data["output"]["path"] = os.path.join(os.path.dirname(config.output.path), name)
         try:
             swept = config_from_dict(data)
