@@ -1325,9 +1325,10 @@ class _StrictLoader(yaml.SafeLoader):
         # reads it as 12345): a leading zero is refused, with the line.
         text = self.construct_scalar(node).replace("_", "")
         if re.fullmatch(r"[-+]?0[0-7]+", text):
+            octal = super().construct_yaml_int(node)
             raise yaml.constructor.ConstructorError(
-                None, None, f"found {node.value}, which YAML reads as an octal number ({super().construct_yaml_int(node)}"
-                "); write it without the leading zero (or as 0x... for hexadecimal)", node.start_mark
+                None, None, f"found {node.value}, which YAML reads as an octal number ({octal}); write it without the "
+                "leading zero (or as 0x... for hexadecimal)", node.start_mark
             )
         return super().construct_yaml_int(node)
 

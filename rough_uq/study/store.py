@@ -1153,8 +1153,9 @@ def _read_columns(f: h5py.File, level: int, n_rows: int, version: int, n_qoi: in
 
 
 class _DamagedRows(RuntimeError):
-    """Sample columns of the wrong layout, or rows that differ from their checksums: reported as a damaged file (one of :data:`_HDF5_READ_ERRORS`, and
-    not an OSError, which a copy-on-write transaction would report as a failed write)."""
+    """Sample columns of the wrong layout, or rows that differ from their checksums: reported as a damaged file
+    (one of :data:`_HDF5_READ_ERRORS`, and not an OSError, which a copy-on-write transaction would report as a
+    failed write)."""
 
 
 def _check_rows(level: int, checksums: np.ndarray, columns: Mapping[str, np.ndarray]) -> None:
