@@ -517,6 +517,8 @@ class LoadConfig(_Section):
 #: The smallest solver tolerance: ``rough_uq.problem.contact.MIN_SOLVER_TOL``, which says why (a copy, as
 #: MAX_GRID; tests/test_problem_arguments.py checks they agree).
 MIN_SOLVER_TOL = 1e-14
+#: The largest: ``rough_uq.problem.contact.MAX_SOLVER_TOL``, which says why (a copy, checked alike).
+MAX_SOLVER_TOL = 1e-2
 
 #: The most threads per solve: ``rough_uq.problem.contact.MAX_THREADS``, which says why (a copy, as MAX_GRID;
 #: tests/test_problem_arguments.py checks they agree). A run on local workers also refuses more than 4 per core.
@@ -534,9 +536,10 @@ class SolverConfig(_Section):
             "(4- or 8-connectivity) by at most 0.014 per unit area on the classic settings against tol 1e-10, "
             "under 1 % of the tightest classic tolerances (scripts/tolerance_study.py, README)"
         ),
-        allowed=f"number in [{MIN_SOLVER_TOL:g}, 1) (below it rounding stops the solver before the tolerance)",
+        allowed=f"number in [{MIN_SOLVER_TOL:g}, {MAX_SOLVER_TOL:g}] (below it rounding stops the solver before "
+        "the tolerance; above it a solve is no contact solution: at 0.1 contact areas were off by up to 30 %)",
         ge=MIN_SOLVER_TOL,
-        lt=1,
+        le=MAX_SOLVER_TOL,
     )
     max_iter: Int = _field(
         10000,
