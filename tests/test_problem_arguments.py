@@ -23,7 +23,8 @@ def _problem(**changes) -> rough_uq.ContactProblem:
 @pytest.mark.parametrize("tol", [1e-17, 1e-16, 1e-15, 0.99e-14])
 def test_a_solver_tolerance_below_what_rounding_allows_is_refused(tol) -> None:
     # 1e-17 was accepted, and every solve ran 10,000 iterations and a 100,000-iteration retry without converging.
-    with pytest.raises(InvalidParameterError, match=r"^solver_tol: got .*allowed: a number in \[1e-14, 0.01\]") as caught:
+    refusal = r"^solver_tol: got .*allowed: a number in \[1e-14, 0.01\]"
+    with pytest.raises(InvalidParameterError, match=refusal) as caught:
         _problem(solver_tol=tol)
     assert "rounding" in caught.value.allowed
 
