@@ -16,8 +16,8 @@ Exit status (also in ``roughuq --help`` and the README):
   option or command, a missing argument, a value its type refuses: the line
   names the command and its ``--help``; :class:`_OneLineUsage`);
 * 3: an ``mlmc`` / ``mc`` run finished without meeting its tolerance (bias
-  beyond ``grid.max_level``, ``--max-cost`` reached, MC bias too large); its
-  result is stored and printed, with what to change;
+  beyond ``grid.max_level``, ``--max-cost`` reached); its result is stored and
+  printed, with what to change;
 * 130 / 143: stopped by Ctrl-C / SIGTERM; completed samples are saved
   (``sample`` writes its shard whole or not at all: nothing);
 * 141: the reader of the output went away (``roughuq report FILE | head``),
