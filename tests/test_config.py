@@ -166,6 +166,8 @@ BAD_CASES = {
     "wrong_schema_version": ("schema_version: ", "got 2"),
     "top_level_list": ("top_level_list.yaml: the top level must be a mapping", "got a list"),
     "duplicate_key": ("duplicate_key.yaml: not valid YAML at line 4", "duplicate key 'seed'"),
+    "boolean_key": ("boolean_key.yaml: not valid YAML at line 4, column 1", "found the key on, which YAML reads as "
+                    "true; keys are field names"),
     "octal_seed": ("octal_seed.yaml: not valid YAML at line 3", "found 012345, which YAML reads as an octal number "
                    "(5349); write it without the leading zero"),
 }

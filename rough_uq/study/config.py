@@ -1316,6 +1316,12 @@ class _StrictLoader(yaml.SafeLoader):
                     "while reading a mapping", node.start_mark, f"found a {type(key).__name__} as a key; "
                     "keys are field names", key_node.start_mark
                 )
+            if isinstance(key, bool):
+                # `yes: 1` was "1: keys should be strings (got True; ...)": neither the key nor its line.
+                raise yaml.constructor.ConstructorError(
+                    "while reading a mapping", node.start_mark, f"found the key {key_node.value}, which YAML reads "
+                    f"as {str(key).lower()}; keys are field names", key_node.start_mark
+                )
             if key in seen:
                 raise yaml.constructor.ConstructorError(
                     "while reading a mapping", node.start_mark, f"found duplicate key {key!r}", key_node.start_mark
