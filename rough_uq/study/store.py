@@ -1232,7 +1232,8 @@ class StudyFile(StudyStore):
         if self._h5 is None:
             if not self.read_only and _is_marked_open(self.path):
                 # Our own handle failed to close after a write error; we hold the lock.
-                _rewrite(self.path)
+                with signals_held():
+                    _rewrite(self.path)
             try:
                 self._h5 = _open_for_reading(self.path) if self.read_only else _open_for_writing(self.path)
             except _HDF5_READ_ERRORS as exc:
@@ -1545,26 +1546,33 @@ def _make_directory(path: Path) -> None:
 def _prepare_locked(
     path: Path, *, config_text: str, config_hash: str, qoi_names: Sequence[str], code_version: str, role: str
 ) -> dict[str, Any]:
-    """With the lock held: create the file if missing, check it, bring it to this version; its header."""
+    """With the lock held: create the file if missing, check it, bring it to this version; its header.
+
+    A Ctrl-C or SIGTERM while the file is written takes effect once it is in place: raised inside h5py's
+    conversion of a text attribute, a KeyboardInterrupt came out as "TypeError: Operation not defined for data
+    type class" (a traceback, status 1).
+    """
     if not path.exists():
-        _replace_atomically(
-            path,
-            lambda f: _write_header(
-                f,
-                config_text=config_text,
-                config_hash=config_hash,
-                qoi_names=qoi_names,
-                code_version=str(code_version),
-                role=role,
-            ),
-            copy_from=None,
-        )
+        with signals_held():
+            _replace_atomically(
+                path,
+                lambda f: _write_header(
+                    f,
+                    config_text=config_text,
+                    config_hash=config_hash,
+                    qoi_names=qoi_names,
+                    code_version=str(code_version),
+                    role=role,
+                ),
+                copy_from=None,
+            )
     header = _read_header(path)
     _check_header(path, header, config_hash=config_hash, qoi_names=qoi_names)
     _check_role(path, header["role"], role)
     _remove_stale_tmp(path)  # left by a killed writer; we hold the lock, so none is live
     if header["format_version"] != FORMAT_VERSION or _is_marked_open(path):
-        _rewrite(path)
+        with signals_held():
+            _rewrite(path)
         header = _read_header(path)
     return header
 
