@@ -29,7 +29,10 @@ def run() -> None:
     """
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, stop_loading)
-    _load()()
+    command = _load()
+    if _stopped:  # the handler's SystemExit was lost (raised while CPython compiled a module: it ran on)
+        sys.exit(EXIT_INTERRUPTED)
+    command()
 
 
 def _load() -> Callable[[], None]:
@@ -38,6 +41,13 @@ def _load() -> Callable[[], None]:
     return command
 
 
+#: Whether :func:`stop_loading` ran: a SystemExit raised while CPython compiles a module's source (no bytecode
+#: cache, ``PYTHONDONTWRITEBYTECODE``) is lost, and the command ran to its end with status 0 (3 of 40 Ctrl-Cs).
+_stopped = False
+
+
 def stop_loading(signum: int, frame: object) -> None:
     """Exit with status 130, quietly: a Ctrl-C before any command has started."""
+    global _stopped
+    _stopped = True
     sys.exit(EXIT_INTERRUPTED)
