@@ -1159,14 +1159,36 @@ def test_a_plan_below_the_runs_levels_is_unreachable_where_those_levels_miss_the
 def test_the_batch_size_changes_no_result(seed):
     # Runs re-planned after every batch: rough_uq.mlmc drew N_l 21 10 10 with batches of 1 and 22 10 10 with
     # batches of 10 (another estimate), mc 38 / 40 / 43 samples. A round now draws all a level misses.
-    problem = Synthetic(seed=seed, scales=(1.0, 2.0))
+    # The spent cost was summed batch by batch: its last bit moved with the batch size (gamma 0.7 makes the
+    # costs 2^(0.7 l) inexact).
+    from rough_uq.multilevel.moments import mlmc_variance
+
+    problem = Synthetic(seed=seed, scales=(1.0, 2.0), gamma=0.7)
     runs = {size: (run_quietly(mlmc, problem, tol=0.05, batch_size=size)[0],
-                   run_quietly(mc, problem, tol=0.05, level=2, batch_size=size)[0]) for size in (1, 3, 10, None)}
-    for mean_run, mc_run in runs.values():
+                   run_quietly(mc, problem, tol=0.05, level=2, batch_size=size)[0],
+                   run_quietly(mlmc_variance, problem, tol=0.1, batch_size=size)[0]) for size in (1, 3, 10, None)}
+    for mean_run, mc_run, variance_run in runs.values():
         np.testing.assert_array_equal(mean_run.n_samples, runs[None][0].n_samples)
         np.testing.assert_array_equal(mean_run.estimate, runs[None][0].estimate)
         np.testing.assert_array_equal(mc_run.n_samples, runs[None][1].n_samples)
         np.testing.assert_array_equal(mc_run.estimate, runs[None][1].estimate)
+        assert (mean_run.cost, mc_run.cost, variance_run.cost) == tuple(run.cost for run in runs[None])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_an_exact_total_is_the_correctly_rounded_sum_in_any_order_and_chunks(seed):
+    from rough_uq.multilevel.statistics import ExactTotal
+
+    rng = np.random.default_rng(seed)
+    values = rng.normal(size=300) * 10.0 ** rng.integers(-12, 12, size=300)
+    expected = math.fsum(values.tolist())
+    for _ in range(5):
+        order = rng.permutation(values)
+        cuts = np.sort(rng.choice(np.arange(1, 300), size=int(rng.integers(0, 40)), replace=False))
+        total = ExactTotal()
+        for chunk in np.split(order, cuts):
+            total.add(chunk)
+        assert total.value == expected
 
 
 @pytest.mark.parametrize("scale", [1e100, 1e-100])

@@ -49,8 +49,8 @@ __all__ = [
     "level_statistics",
 ]
 # Also imported by the other modules of rough_uq.multilevel (and the problem's results), not part of the API:
-# checked_names, readonly_array, scaled_by_largest, qoi_text, the repr helpers values_summary / names_summary /
-# units_summary / errors_summary, and level_moments / assemble_statistics (the drivers' level table, kept as
+# checked_names, readonly_array, scaled_by_largest, ExactTotal, qoi_text, the repr helpers values_summary /
+# names_summary / units_summary / errors_summary, and level_moments / assemble_statistics (the drivers' level table, kept as
 # LevelMoments per level).
 
 #: Kurtosis of ``Y_l`` above which ``V_l`` is considered unreliable (Giles' ``mlmc_test`` value).
@@ -289,6 +289,37 @@ def _sample_variance(centred: np.ndarray, n: int) -> np.ndarray:
     if n < 2:
         return np.zeros(centred.shape[1:])
     return np.sum(centred**2, axis=0) / (n - 1)
+
+
+class ExactTotal:
+    """A sum of floats kept exactly (Shewchuk's non-overlapping partials), read correctly rounded.
+
+    A run's spent cost was added batch by batch, so its last bit depended on the batch size (0.8075319616 and
+    0.8075319616000001 for one run at ``batch_size`` 10 and 3): the exact sum is the same in every order.
+    """
+
+    def __init__(self) -> None:
+        self._partials: list[float] = []
+
+    def add(self, values: np.ndarray) -> None:
+        """Add every value of ``values`` (finite floats)."""
+        for value in np.ravel(values).tolist():
+            kept = 0
+            for partial in self._partials:
+                if abs(value) < abs(partial):
+                    value, partial = partial, value
+                high = value + partial
+                low = partial - (high - value)
+                if low:
+                    self._partials[kept] = low
+                    kept += 1
+                value = high
+            self._partials[kept:] = [value]
+
+    @property
+    def value(self) -> float:
+        """The exact sum, rounded once."""
+        return math.fsum(self._partials)
 
 
 def scaled_by_largest(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

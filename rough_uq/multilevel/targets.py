@@ -126,6 +126,7 @@ from rough_uq.multilevel.rates import giles_prediction, rate_line, remaining_bia
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT,
     EstimationWarning,
+    ExactTotal,
     checked_names,
     diagnose,
     errors_summary,
@@ -534,14 +535,14 @@ class _Level:
         self.fine: list[np.ndarray] = []
         self.coarse: list[np.ndarray] = []
         self.n = 0
-        self.spent = 0.0
+        self._spent = ExactTotal()  # the same whatever the batches
         self._term: LevelTerm | None = None
 
     def add(self, fine: np.ndarray, coarse: np.ndarray, cost: np.ndarray) -> None:
         self.fine.append(fine)
         self.coarse.append(coarse)
         self.n += len(cost)
-        self.spent += float(np.sum(cost))
+        self._spent.add(cost)
         self._term = None
 
     def term(self, function: TermFunction) -> LevelTerm:
@@ -552,6 +553,10 @@ class _Level:
             self.fine, self.coarse = [fine], [] if coarse is None else [coarse]
             self._term = function(fine, coarse, self.level)
         return self._term
+
+    @property
+    def spent(self) -> float:
+        return self._spent.value
 
     @property
     def mean_cost(self) -> float:

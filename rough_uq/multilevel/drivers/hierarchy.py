@@ -13,7 +13,7 @@ import numpy as np
 from rough_uq.multilevel.drivers.events import PlanUpdated
 from rough_uq.multilevel.drivers.planning import _pooled_variance
 from rough_uq.multilevel.drivers.samples import _LevelSamples
-from rough_uq.multilevel.statistics import LevelStatistics, assemble_statistics, readonly_array
+from rough_uq.multilevel.statistics import ExactTotal, LevelStatistics, assemble_statistics, readonly_array
 
 
 class _Hierarchy:
@@ -36,7 +36,7 @@ class _Hierarchy:
         self.base = base
         self.targets = [floor if level >= base else 0 for level in range(n_levels)]
         self.floor = floor
-        self.spent = 0.0
+        self._spent = ExactTotal()
         self.reported_from = reported_from
         self.prior_var: dict[int, np.ndarray] = {}
         self.prior_mean: dict[int, np.ndarray] = {}
@@ -49,6 +49,14 @@ class _Hierarchy:
                     self.prior_var[int(level)] = prior.var_fine[row] if is_base else prior.var_diff[row]
                     self.prior_mean[int(level)] = prior.mean_fine[row] if is_base else prior.mean_diff[row]
                     self.prior_n[int(level)] = int(prior.n_samples[row])
+
+    @property
+    def spent(self) -> float:
+        """Modelled cost of the samples drawn so far (exactly summed: the same whatever the batches)."""
+        return self._spent.value
+
+    def add_cost(self, costs: np.ndarray) -> None:
+        self._spent.add(costs)
 
     def add_level(self) -> None:
         self.samples.append(_LevelSamples(self.n_levels))

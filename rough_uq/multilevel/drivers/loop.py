@@ -169,7 +169,7 @@ def _draw_batch(run: _Run, sampler: Sampler, samples: _LevelSamples, n: int) -> 
     # The base level is sampled as Q_base: its coarse values are not part of the sum.
     coarse = np.zeros_like(batch.fine) if samples.level == hierarchy.base else batch.coarse
     samples.add(batch.fine, coarse, batch.cost)
-    hierarchy.spent += float(np.sum(batch.cost))
+    hierarchy.add_cost(batch.cost)
     return batch
 
 
