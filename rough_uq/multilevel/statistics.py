@@ -50,8 +50,8 @@ __all__ = [
 ]
 # Also imported by the other modules of rough_uq.multilevel (and the problem's results), not part of the API:
 # checked_names, readonly_array, scaled_by_largest, ExactTotal, qoi_text, the repr helpers values_summary /
-# names_summary / units_summary / errors_summary, and level_moments / assemble_statistics (the drivers' level table, kept as
-# LevelMoments per level).
+# names_summary / units_summary / errors_summary, and level_moments / assemble_statistics (the drivers' level
+# table, kept as LevelMoments per level).
 
 #: Kurtosis of ``Y_l`` above which ``V_l`` is considered unreliable (Giles' ``mlmc_test`` value).
 KURTOSIS_LIMIT = 100.0
