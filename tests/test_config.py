@@ -716,7 +716,8 @@ def test_an_output_path_that_names_a_directory_is_refused(path):
     assert f"output.path: names a directory, not a file (got {path!r}" in text
 
 
-@pytest.mark.parametrize("path", ["a\x1b[31mb.h5", "runs\n.h5", "x\t.h5", "del\x7f.h5"])
+@pytest.mark.parametrize("path", ["a\x1b[31mb.h5", "runs\n.h5", "x\t.h5", "del\x7f.h5", "csi\x9b31m.h5",
+                                  "results\u202e5h.txt", "isolate\u2066.h5"])
 def test_an_output_path_with_a_control_character_is_refused(path):
     # `validate` showed "a\e[31mb.h5" as "ab.h5" (the terminal ate the escape) and screen wrote it as typed.
     text = _message({**_base(), "output": {"path": path}})

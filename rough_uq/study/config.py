@@ -903,7 +903,9 @@ class EstimationConfig(_Section):
     )
 
 
-_CONTROL_CHARACTER = re.compile(r"[\x00-\x1f\x7f]")
+#: C0 and C1 controls (0x9b starts an escape sequence as 0x1b [ does) and the text-direction controls (U+202E
+#: showed "results\u202e5h.txt" as "resultstxt.h5").
+_CONTROL_CHARACTER = re.compile(r"[\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
 
 
 class OutputConfig(_Section):
