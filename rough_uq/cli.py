@@ -182,6 +182,14 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             what, status = ("terminated", EXIT_TERMINATED) if terminated else ("interrupted", EXIT_INTERRUPTED)
             click.echo(f"{what}: {_stopped_text(command.__name__)}", err=True)
             sys.exit(status)
+        except MemoryError as exc:
+            # A grid beyond the machine's memory (warned of before the run): numpy's "Unable to allocate ..." was a
+            # traceback, status 1, which says "a bug". Completed samples are stored batch by batch.
+            reason = str(exc) or "out of memory"
+            click.echo(f"error: {reason} (got a solve larger than this process could allocate; allowed: grids whose "
+                       "solves fit the machine's memory: see the forecast's memory, and use a looser --tol, fewer "
+                       "--workers or a machine with more memory; completed samples are saved)", err=True)
+            sys.exit(2)
         except BrokenPipeError:
             # The reader of the output has gone (`roughuq report FILE | head`): stop quietly, as a program that
             # SIGPIPE ends does (status 141), instead of click's status 1, which says "a bug" here.

@@ -42,6 +42,32 @@ def screened(tmp_path, monkeypatch):
     return tmp_path
 
 
+def test_a_solve_beyond_the_memory_is_one_line_and_the_run_resumes(screened, monkeypatch):
+    # A grid the machine could not hold (after the forecast's warning) ended in numpy's _ArrayMemoryError
+    # traceback, status 1, which the CLI reserves for bugs.
+    import rough_uq.problem.sampler as sampler_module
+
+    solve = sampler_module._solve
+
+    def out_of_memory(model, heights, initial):
+        if heights.shape[0] >= 32:
+            raise MemoryError("Unable to allocate 2.00 GiB for an array with shape (16384, 16384) and data type "
+                              "float64")
+        return solve(model, heights, initial)
+
+    monkeypatch.setattr(sampler_module, "_solve", out_of_memory)
+    result = run("mc", "--level", "2", "--tol", "0.5", "--workers", "1", "--quiet", expect=2)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    line = lines[0]
+    assert line.startswith("error: Unable to allocate 2.00 GiB for an array with shape (16384, 16384)"), line
+    assert "allowed: grids whose solves fit the machine's memory" in line and "completed samples are saved" in line
+    monkeypatch.setattr(sampler_module, "_solve", solve)
+    report = json.loads(run("report", "results.h5", "--json").output)
+    assert [r["status"] for r in report["runs"]] == ["interrupted"]
+    run("mc", "--level", "2", "--tol", "0.5", "--workers", "1", "--quiet")
+
+
 def test_version_and_help():
     assert __version__ in run("--version").output
     output = run("--help").output
