@@ -344,7 +344,8 @@ def test_commands_warn_before_computing_levels_beyond_the_machine(tmp_path, monk
     monkeypatch.setattr(config_module, "machine_memory_bytes", lambda: solver_memory_bytes(16))
     checked = _cli("validate", path)
     assert checked.stderr == "" and ": valid" in checked.stdout
-    assert "(finest solve about 0.16 MiB per worker; this machine has 0.039 MiB, too little for it)" in checked.stdout
+    assert ("(finest solve about 0.16 MiB per worker, beyond the some 200 MiB a process takes to start; this machine "
+            "has 0.039 MiB, too little for it)") in checked.stdout
 
     (line,) = _memory_warnings(_cli("screen", path, "--workers", "1", "--quiet"))
     assert line == (
