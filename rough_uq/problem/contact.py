@@ -135,7 +135,9 @@ MIN_SOLVER_TOL = 1e-14
 #: area at tol 0.1 / 0.03 / 0.01 / 1e-3 was off that at 1e-7 by up to 30 / 5.5 /
 #: 3.0 / 0.4 % (0.9 gave 100 % after no iteration, "converged"); a QoI
 #: tolerance written under ``solver`` by mistake was taken. At 1e-2 a solve
-#: still says something on a quick look; studies keep the default 1e-7.
+#: still says something on a quick look; studies keep the default 1e-7. A new
+#: config refuses more; a problem warns (a study file's stored config from
+#: before the bound is read as it was).
 MAX_SOLVER_TOL = 1e-2
 
 
@@ -242,9 +244,10 @@ class ContactProblem:
         Seed of all random streams, >= 0 (SPEC section 7). Default 0.
     solver_tol : float
         Relative stopping tolerance of the contact solver, in
-        ``[MIN_SOLVER_TOL, MAX_SOLVER_TOL]`` (:data:`MIN_SOLVER_TOL` = 1e-14, what
-        rounding lets the solver reach; :data:`MAX_SOLVER_TOL` = 1e-2, beyond which
-        a solve is no contact solution; the config's ``solver.tol``, default 1e-7).
+        ``[MIN_SOLVER_TOL, 1)`` (:data:`MIN_SOLVER_TOL` = 1e-14, what rounding
+        lets the solver reach; above :data:`MAX_SOLVER_TOL` = 1e-2 a solve is no
+        contact solution: an :class:`~rough_uq.errors.EstimationWarning`; the
+        config's ``solver.tol``, default 1e-7, refuses it).
     max_iter : int
         Iterations per solve before a retry (:mod:`rough_uq.problem.sampler`), >= 1.
     warm_start : bool
@@ -343,12 +346,17 @@ class ContactProblem:
         set_ = object.__setattr__
         set_(self, "seed", checked_integer("seed", self.seed, 0))
         tol = self.solver_tol
-        if not (is_real_number(tol) and MIN_SOLVER_TOL <= tol <= MAX_SOLVER_TOL):
+        if not (is_real_number(tol) and MIN_SOLVER_TOL <= tol < 1):
             raise InvalidParameterError(
-                "solver_tol", tol, f"a number in [{MIN_SOLVER_TOL:g}, {MAX_SOLVER_TOL:g}] (MIN_SOLVER_TOL: below it "
-                "rounding stops the solver before the tolerance, and every solve would run max_iter and its retry in "
-                "vain; MAX_SOLVER_TOL: above it a solve is no contact solution to average)"
+                "solver_tol", tol, f"a number in [{MIN_SOLVER_TOL:g}, 1) (MIN_SOLVER_TOL: below it rounding stops the "
+                "solver before the tolerance, and every solve would run max_iter and its retry in vain)"
             )
+        if tol > MAX_SOLVER_TOL:
+            # A warning, not a refusal: a study file's config from before the config's bound (any tol < 1) must
+            # still be read, reported and resumed.
+            warn_at_caller(f"solver_tol {tol:g} is above MAX_SOLVER_TOL = {MAX_SOLVER_TOL:g}: a solve this loose "
+                           "is no contact solution (at 0.1 contact areas were off by up to 30 %); use 1e-7, the "
+                           "default", EstimationWarning)
         set_(self, "solver_tol", float(tol))
         set_(self, "max_iter", checked_integer("max_iter", self.max_iter, 1))
         set_(self, "warm_start", checked_bool("warm_start", self.warm_start))

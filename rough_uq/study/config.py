@@ -83,6 +83,7 @@ from pydantic import (
     ConfigDict,
     Field,
     ValidationError,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
@@ -539,7 +540,6 @@ class SolverConfig(_Section):
         allowed=f"number in [{MIN_SOLVER_TOL:g}, {MAX_SOLVER_TOL:g}] (below it rounding stops the solver before "
         "the tolerance; above it a solve is no contact solution: at 0.1 contact areas were off by up to 30 %)",
         ge=MIN_SOLVER_TOL,
-        le=MAX_SOLVER_TOL,
     )
     max_iter: Int = _field(
         10000,
@@ -559,6 +559,18 @@ class SolverConfig(_Section):
         ge=1,
         le=MAX_THREADS,
     )
+
+    @field_validator("tol")
+    @classmethod
+    def _gives_contact_solutions(cls, value: float, info: ValidationInfo) -> float:
+        # MAX_SOLVER_TOL holds for new configs; a study file's stored config from before it (any tol < 1) is
+        # read as it was, so that its report and samples stay readable (the problem refuses new solves).
+        if (info.context or {}).get("stored"):
+            if not value < 1:
+                raise PydanticCustomError("solver_tol", "must be less than 1")
+        elif value > MAX_SOLVER_TOL:
+            raise PydanticCustomError("solver_tol", f"must be less than or equal to {MAX_SOLVER_TOL:g}")
+        return value
 
 
 # ---------------------------------------------------------------------------
@@ -1347,7 +1359,8 @@ class _StrictLoader(yaml.SafeLoader):
 _INT_TAG, _FLOAT_TAG = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
 # YAML 1.1 reads `15:25:41` as the base-60 integer 55541 (and `1:30.5` as a float): a threshold grid written as
 # --thresholds takes it read "thresholds: must be a mapping (got 55541)". The numbers stay YAML 1.1's otherwise
-# (binary, octal and hexadecimal integers, `_` separators, .inf and .nan): only a colon now makes text.
+# (binary and hexadecimal integers, `_` separators, .inf and .nan; an octal 012 is refused,
+# _StrictLoader.construct_yaml_int): only a colon now makes text.
 _StrictLoader.add_constructor(_INT_TAG, _StrictLoader.construct_yaml_int)
 _StrictLoader.yaml_implicit_resolvers = {
     first: [(tag, pattern) for tag, pattern in resolvers if tag not in (_INT_TAG, _FLOAT_TAG)]
@@ -1457,7 +1470,7 @@ def config_from_stored_text(text: str, *, source: str = "config") -> StudyConfig
     _accept_stored_forms(data)
     if data is None:
         raise _config_error([f"{source}: the file is empty (got no content; allowed: a YAML mapping of sections)"])
-    return config_from_dict(data, source=source)
+    return config_from_dict(data, source=source, stored=True)
 
 
 def _accept_stored_forms(data: object) -> None:
@@ -1523,10 +1536,11 @@ def _config_error(lines: list[str]) -> ConfigError:
     return error
 
 
-def config_from_dict(data: object, *, source: str = "config") -> StudyConfig:
+def config_from_dict(data: object, *, source: str = "config", stored: bool = False) -> StudyConfig:
     """Validate an already-parsed config (a mapping of sections).
 
-    ``source`` names the input in the message when the top level is not a mapping.
+    ``source`` names the input in the message when the top level is not a mapping; ``stored`` reads a study
+    file's stored config by the rules it was written under where a rule was tightened since (``solver.tol``).
     Raises :class:`ConfigError` like :func:`load_config`.
     """
     if not isinstance(data, Mapping):
@@ -1537,7 +1551,7 @@ def config_from_dict(data: object, *, source: str = "config") -> StudyConfig:
             ]
         )
     try:
-        return StudyConfig.model_validate(dict(data))
+        return StudyConfig.model_validate(dict(data), context={"stored": stored})
     except ValidationError as exc:
         raise _config_error(_format_errors(exc)) from None
 
@@ -1654,7 +1668,7 @@ def _coarsest_at_fixed_spacing(config: StudyConfig, text: object, value: object)
         raise ConfigError(f"--set surface.system_size={text}: --fixed-spacing needs a box size (got {value!r}; "
                           "allowed: a finite number > 0)")
     n_0 = config.grid.coarsest * value / config.surface.system_size
-    if not (n_0 == round(n_0) and round(n_0) % 2 == 0):
+    if not (math.isfinite(n_0) and n_0 == round(n_0) and round(n_0) % 2 == 0):  # 1e308: n_0 overflows
         raise ConfigError(
             f"--fixed-spacing: box {value} needs grid.coarsest = {n_0:g} for the spacing {spacing:g} (got "
             f"{value!r}; allowed: a box size giving an even integer n_0)"
