@@ -33,6 +33,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -41,6 +42,7 @@ from typing import Any
 import click
 
 from rough_uq import __version__
+from rough_uq import console
 from rough_uq.console import EXIT_INTERRUPTED, stop_loading
 from rough_uq.errors import InvalidParameterError, MisplacedOptionError, RoughUQError
 
@@ -166,11 +168,15 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
         previous = {}
         previous_unraisable = sys.unraisablehook
         sys.unraisablehook = _quiet_unraisable(previous_unraisable)
+        previous_format = warnings.formatwarning
+        warnings.formatwarning = _warning_line
         if on_main_thread:
             previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, _raise_terminated)
             # Ctrl-C is taken over only where Python's default handler has it, or the console script's quiet stop
             # while it loads (not where it is ignored).
             if signal.getsignal(signal.SIGINT) in (signal.default_int_handler, stop_loading):
+                if console.stopped():  # the quiet stop's SystemExit was lost (console.run): stop before the command
+                    sys.exit(EXIT_INTERRUPTED)
                 previous[signal.SIGINT] = signal.signal(signal.SIGINT, _raise_terminated)
         try:
             return command(*args, **kwargs)
@@ -214,8 +220,16 @@ def _user_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
             sys.unraisablehook = previous_unraisable
+            warnings.formatwarning = previous_format
 
     return wrapper
+
+
+def _warning_line(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  line: str | None = None) -> str:
+    """A Python warning that reaches the terminal as the commands' own: ``warning: ...`` (it printed
+    ``<string>:19: EstimationWarning: ...``, the place in the code, which says nothing to a user)."""
+    return f"warning: {message}\n"
 
 
 def _console() -> Any:

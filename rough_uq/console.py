@@ -15,7 +15,7 @@ import signal
 import sys
 from collections.abc import Callable
 
-__all__ = ["EXIT_INTERRUPTED", "run", "stop_loading"]
+__all__ = ["EXIT_INTERRUPTED", "run", "stop_loading", "stopped"]
 
 #: The exit status of a program stopped by Ctrl-C (128 + SIGINT), as the commands' own.
 EXIT_INTERRUPTED = 130
@@ -30,7 +30,7 @@ def run() -> None:
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
         signal.signal(signal.SIGINT, stop_loading)
     command = _load()
-    if _stopped:  # the handler's SystemExit was lost (raised while CPython compiled a module: it ran on)
+    if stopped():  # the handler's SystemExit was lost (raised while CPython compiled a module: it ran on)
         sys.exit(EXIT_INTERRUPTED)
     command()
 
@@ -44,6 +44,11 @@ def _load() -> Callable[[], None]:
 #: Whether :func:`stop_loading` ran: a SystemExit raised while CPython compiles a module's source (no bytecode
 #: cache, ``PYTHONDONTWRITEBYTECODE``) is lost, and the command ran to its end with status 0 (3 of 40 Ctrl-Cs).
 _stopped = False
+
+
+def stopped() -> bool:
+    """Whether :func:`stop_loading` ran (the command line checks it again where a command takes Ctrl-C over)."""
+    return _stopped
 
 
 def stop_loading(signum: int, frame: object) -> None:

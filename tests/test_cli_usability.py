@@ -115,6 +115,16 @@ def test_ctrl_c_while_the_command_line_loads_exits_130_without_a_traceback():
             "console.run()\n")
     done = subprocess.run([sys.executable, "-c", lost], capture_output=True, text=True, timeout=60)
     assert (done.returncode, done.stdout, done.stderr) == (130, "", "")
+    # Lost between loading and the command (click parsing the line): the command does not start either.
+    late = ("import signal\n"
+            "import rough_uq.cli as cli, rough_uq.console as console\n"
+            "signal.signal(signal.SIGINT, console.stop_loading)\n"
+            "console._stopped = True\n"
+            "def command():\n"
+            "    print('the command ran')\n"
+            "cli._user_errors(command)()\n")
+    done = subprocess.run([sys.executable, "-c", late], capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stdout, done.stderr) == (130, "", "")
     # A command takes Ctrl-C over from the quiet stop (which stays in place between loading and the command,
     # where click said "Aborted!" and status 1): a clean stop, "interrupted: ...", samples saved.
     command = ("import os, signal, time\n"
