@@ -525,6 +525,8 @@ def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
         assert result.stderr.startswith(f"error: --set surface.system_size={value}: --fixed-spacing needs a box "
                                         "size (got "), result.stderr
         assert result.stderr.rstrip().endswith("allowed: a finite number > 0)") and result.stderr.count("\n") == 1
+    result = run("sweep", str(config), "--set", "surface.system_size=1,1e308", "--fixed-spacing", expect=2)
+    assert result.stderr.startswith("error: --fixed-spacing: box 1e+308 needs grid.coarsest = inf"), result.stderr
     result = run("sweep", str(config), "--set", "surface.colour=1", expect=2)
     assert "not a field" in result.stderr
 

@@ -1189,6 +1189,10 @@ def test_an_exact_total_is_the_correctly_rounded_sum_in_any_order_and_chunks(see
         for chunk in np.split(order, cuts):
             total.add(chunk)
         assert total.value == expected
+    overflowing, infinite = ExactTotal(), ExactTotal()
+    overflowing.add(np.array([1e308, 1e308]))  # fsum's "intermediate overflow" was a ValueError
+    infinite.add(np.array([1.0, math.inf, 2.0]))  # the partials made it NaN
+    assert (overflowing.value, infinite.value) == (math.inf, math.inf)
 
 
 @pytest.mark.parametrize("scale", [1e100, 1e-100])

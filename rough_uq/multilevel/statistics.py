@@ -300,10 +300,16 @@ class ExactTotal:
 
     def __init__(self) -> None:
         self._partials: list[float] = []
+        self._non_finite = 0.0  # inf and NaN, added as floats add them
 
     def add(self, values: np.ndarray) -> None:
-        """Add every value of ``values`` (finite floats)."""
-        for value in np.ravel(values).tolist():
+        """Add every value of ``values``."""
+        values = np.ravel(np.asarray(values, dtype=float))
+        finite = np.isfinite(values)
+        if not np.all(finite):
+            self._non_finite += float(np.sum(values[~finite]))
+            values = values[finite]
+        for value in values.tolist():
             kept = 0
             for partial in self._partials:
                 if abs(value) < abs(partial):
@@ -318,8 +324,12 @@ class ExactTotal:
 
     @property
     def value(self) -> float:
-        """The exact sum, rounded once."""
-        return math.fsum(self._partials)
+        """The exact sum, rounded once (inf where it overflows; inf or NaN where such values were added)."""
+        try:
+            total = math.fsum(self._partials)
+        except (OverflowError, ValueError):  # beyond the float range (partials that overflowed give -inf + inf)
+            total = math.copysign(math.inf, self._partials[-1])
+        return total + self._non_finite
 
 
 def scaled_by_largest(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
