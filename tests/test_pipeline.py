@@ -1111,3 +1111,26 @@ def test_index_ranges_and_shards_cover_the_missing_indices_exactly_once():
         for level, indices in missing.items():
             covered = [i for lv, start, stop in shards if lv == level for i in range(start, stop)]
             assert covered == indices.tolist()
+
+
+def test_a_refused_command_keeps_a_new_study_file_another_process_holds(tmp_path):
+    # Two `screen`s on one new study: the one refused as "locked" removed the file the other had just created and
+    # held ("unused"), and the other then failed on a file gone (3 of 25 races). The other process's study is
+    # stood in for by a writer of this process (flock locks clash between two opens of the lock file).
+    from rough_uq.study.pipeline.studies import removed_if_left_unused
+    from rough_uq.study.store import open_study
+
+    path = tmp_path / "results.h5"
+    with pytest.raises(StudyFileError, match="is locked by a running process"):
+        with removed_if_left_unused(path):
+            holder = open_study(path, config_text="x: 1\n", config_hash="h", qoi_names=["contact_area"],
+                                code_version="test")
+            open_study(path, config_text="x: 1\n", config_hash="h", qoi_names=["contact_area"], code_version="test")
+    assert path.is_file()
+    holder.close()
+    with pytest.raises(RuntimeError):  # once free, a file the block created and left unused is removed, as before
+        with removed_if_left_unused(tmp_path / "other.h5"):
+            open_study(tmp_path / "other.h5", config_text="x: 1\n", config_hash="h", qoi_names=["contact_area"],
+                       code_version="test").close()
+            raise RuntimeError("refused")
+    assert not (tmp_path / "other.h5").exists()

@@ -180,6 +180,7 @@ __all__ = [
     "remove_abandoned",
     "is_lock_held",
     "is_locked_by_running_process",
+    "lock_if_free",
     "shard_refusal",
 ]
 
@@ -832,6 +833,24 @@ def _acquire_lock(path: Path) -> int:
             return fd
         os.close(fd)
     raise StudyFileError(f"{path}: could not take the lock {lock_path.name}", path)
+
+
+@contextmanager
+def lock_if_free(path: str | os.PathLike[str]) -> Iterator[bool]:
+    """Hold the lock of the study file ``path`` for the block if no other process holds it; yields whether held.
+
+    For removing a file only its creator may remove: a command refused on a study another process had just
+    created (and held) removed that file as "unused", and the other command failed on a file gone.
+    """
+    try:
+        fd = _acquire_lock(Path(path))
+    except StudyFileError:
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        _release_lock(Path(path), fd)
 
 
 def _release_lock(path: Path, fd: int) -> None:

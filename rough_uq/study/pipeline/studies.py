@@ -26,7 +26,14 @@ from rough_uq.study.fft_wisdom import prepare_wisdom
 from rough_uq.problem.contact import ContactProblem
 from rough_uq.problem.loads import AbsoluteLoad, RelativeLoad
 from rough_uq.problem.sampler import ContactModel
-from rough_uq.study.store import StudyStore, checked_study_path, is_hdf5_file, open_study, open_study_readonly
+from rough_uq.study.store import (
+    StudyStore,
+    checked_study_path,
+    is_hdf5_file,
+    lock_if_free,
+    open_study,
+    open_study_readonly,
+)
 from rough_uq.physics.surface import SurfaceSpectrum
 
 
@@ -282,8 +289,12 @@ def removed_if_left_unused(path: str | Path) -> Iterator[None]:
     try:
         yield
     except BaseException:
-        if not existed and path.is_file() and _is_unused(path):
-            path.unlink()
+        if not existed:
+            # Under the file's lock: a file another process has just created and holds is its own, however empty
+            # (two `screen`s on one new study: the one refused as "locked" removed the other's file).
+            with lock_if_free(path) as is_free:
+                if is_free and path.is_file() and _is_unused(path):
+                    path.unlink()
         raise
 
 
