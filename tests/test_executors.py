@@ -120,7 +120,9 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path, monkeypatch):
     assert result.exit_code == 2 and "dask scheduler" in result.stderr
 
 
-@pytest.mark.parametrize("address", ["notaurl", "localhost:abc", "tcp://", "foo://bar:1", "tcp://host:0", "h:99999"])
+@pytest.mark.parametrize("address", ["notaurl", "localhost:abc", "tcp://", "foo://bar:1", "tcp://host:0", "h:99999",
+                                     # schemes the client cannot connect by: tracebacks, status 1, after 20 s
+                                     "tls://127.0.0.1:9999", "ucx://127.0.0.1:9999", "inproc://x"])
 def test_a_malformed_scheduler_address_is_refused_by_name_before_any_connection(tmp_path, monkeypatch, address):
     # distributed's Client raised a bare ValueError (a traceback, status 1), and its finaliser then waited 20 s.
     pytest.importorskip("distributed")
@@ -131,6 +133,33 @@ def test_a_malformed_scheduler_address_is_refused_by_name_before_any_connection(
                                                               "address of a dask scheduler, [scheme://]host:port")
     assert result.exception is None or isinstance(result.exception, SystemExit)
     assert not (tmp_path / "results.h5").exists()  # refused with the other options, before the study file
+
+
+@pytest.mark.parametrize("raised", [TimeoutError("No valid workers found"),
+                                    Exception("ModuleNotFoundError(\"No module named 'rough_uq'\")")])
+def test_a_cluster_whose_workers_cannot_take_the_problem_is_one_error(raised):
+    # A scheduler without workers, or workers without roughuq: the scatter's error was a traceback, status 1.
+    from rough_uq.errors import ExecutorError
+
+    class Client:
+        def scatter(self, data, broadcast):
+            raise raised
+
+    executor = executors.DaskExecutor.__new__(executors.DaskExecutor)
+    executor._client, executor._scattered = Client(), None
+    with pytest.raises(ExecutorError, match=r"^cannot send the problem to the dask cluster's workers \(") as info:
+        executor._scatter("model")
+    assert type(raised).__name__ in str(info.value) and "\n" not in str(info.value)
+    assert "start workers" in str(info.value) and "where roughuq is installed" in str(info.value)
+
+
+def test_a_lost_task_s_reason_is_one_line():
+    # distributed's reason for a cancelled future holds a newline: the error: line became two.
+    from concurrent.futures import CancelledError
+
+    text = executors.dask_failure_text(CancelledError("cancelled for reason: scheduler-connection-lost.\nClient "
+                                                      "lost the connection to the scheduler."))
+    assert "\n" not in text and "scheduler-connection-lost. Client lost" in text and "scheduler went away" in text
 
 
 @pytest.mark.parametrize("is_pool_worker", [True, False])

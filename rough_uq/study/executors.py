@@ -505,8 +505,8 @@ class DaskExecutor(Executor):
             scheduler = check_scheduler_address(scheduler)
             try:
                 self._client = Client(scheduler, timeout="10s", set_as_default=False)
-            except OSError as exc:
-                raise ExecutorError(f"cannot reach the dask scheduler at {scheduler!r}: {exc}") from None
+            except (OSError, TypeError, ValueError) as exc:  # a TLS address without certificates was a TypeError
+                raise ExecutorError(f"cannot reach the dask scheduler at {scheduler!r}: {_one_line(exc)}") from None
             self._owns_client = True
         self.n_workers = max(1, sum(self._client.nthreads().values()))
         self._scattered: tuple[ContactModel, object] | None = None
@@ -515,7 +515,17 @@ class DaskExecutor(Executor):
         # Scatter once and keep the future: scattering the same data again gives the
         # same key, which the release of an earlier run's future would take away.
         if self._scattered is None or self._scattered[0] != model:
-            self._scattered = (model, self._client.scatter(model, broadcast=True))
+            try:
+                future = self._client.scatter(model, broadcast=True)
+            except Exception as exc:  # noqa: BLE001 - distributed re-raises the workers' errors as they are
+                # A scheduler without workers ("No valid workers found") or workers that cannot import roughuq
+                # were tracebacks, status 1.
+                raise ExecutorError(
+                    f"cannot send the problem to the dask cluster's workers ({_one_line(exc)}): start workers "
+                    "(`dask worker ADDRESS --nthreads 1`) in an environment where roughuq is installed, the same "
+                    "version as here"
+                ) from None
+            self._scattered = (model, future)
         return self._scattered[1]
 
     def run(self, model: ContactModel, items: Sequence[WorkItem]) -> Iterator[LevelBatch]:
@@ -559,16 +569,26 @@ def dask_failure_text(error: Exception) -> str:
 
     from distributed import KilledWorker
 
-    cause = f"{type(error).__name__}: {error}"
+    cause = _one_line(error)
     if isinstance(error, (KilledWorker, CancelledError, OSError)):
-        return (f"a dask task was lost ({cause}): its workers died (killed, or out of memory) or left the cluster; "
+        return (f"a dask task was lost ({cause}): its workers died (killed, or out of memory) or left the cluster, "
+                "or the scheduler went away; "
                 "a study file keeps the samples already stored: the same roughuq command run again, on a cluster "
                 "with workers, computes the rest")
     return f"a dask task failed: {cause}"
 
 
+def _one_line(error: BaseException) -> str:
+    """``Type: message`` on one line (distributed's reasons hold newlines: an ``error:`` line became two)."""
+    return " ".join(f"{type(error).__name__}: {error}".split())
+
+
 #: Schemes of a scheduler address whose location is ``host:port``.
 _HOST_PORT_SCHEMES = ("tcp", "tls", "ws", "wss")
+
+#: Schemes roughuq's client connects by: tls and wss need certificates it has no option for (a TypeError after
+#: 20 s), ucx a UCX build, inproc a scheduler in this process (tracebacks, status 1).
+_CONNECTABLE_SCHEMES = ("tcp", "ws")
 
 
 def check_scheduler_address(scheduler: object, name: str = "scheduler") -> str:
@@ -581,11 +601,12 @@ def check_scheduler_address(scheduler: object, name: str = "scheduler") -> str:
     from distributed.comm.addressing import parse_address, parse_host_port
     from distributed.comm.registry import backends
 
-    allowed = f"the address of a dask scheduler, [scheme://]host:port with a scheme of {', '.join(sorted(backends))} "
+    schemes = [scheme for scheme in _CONNECTABLE_SCHEMES if scheme in backends]
+    allowed = f"the address of a dask scheduler, [scheme://]host:port with a scheme of {', '.join(schemes)} "
     allowed += "(e.g. tcp://127.0.0.1:8786)"
     try:
         scheme, location = parse_address(str(scheduler))
-        if scheme not in backends:
+        if scheme not in schemes:
             raise ValueError(scheme)
         if scheme in _HOST_PORT_SCHEMES:
             host, port = parse_host_port(location)
