@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -142,6 +143,9 @@ def test_a_cluster_whose_workers_cannot_take_the_problem_is_one_error(raised):
     from rough_uq.errors import ExecutorError
 
     class Client:
+        def run(self, function):
+            return {"tcp://127.0.0.1:1": function()}
+
         def scatter(self, data, broadcast):
             raise raised
 
@@ -151,6 +155,25 @@ def test_a_cluster_whose_workers_cannot_take_the_problem_is_one_error(raised):
         executor._scatter("model")
     assert type(raised).__name__ in str(info.value) and "\n" not in str(info.value)
     assert "start workers" in str(info.value) and "where roughuq is installed" in str(info.value)
+
+
+def test_dask_workers_of_another_roughuq_are_refused():
+    # A worker of another version stored its own numbers as the study's, status 0.
+    from rough_uq import __version__
+    from rough_uq.errors import ExecutorError
+
+    class Client:
+        def run(self, function):
+            return {"tcp://10.0.0.2:4000": function(), "tcp://10.0.0.3:4000": "0.0.9"}
+
+        def scatter(self, data, broadcast):
+            raise AssertionError("scattered to workers of another version")
+
+    executor = executors.DaskExecutor.__new__(executors.DaskExecutor)
+    executor._client, executor._scattered = Client(), None
+    refusal = rf"^dask workers run another roughuq than this one \({re.escape(__version__)}\): tcp://10.0.0.3:4000 has "
+    with pytest.raises(ExecutorError, match=refusal + "0.0.9; install roughuq"):
+        executor._scatter("model")
 
 
 def test_a_lost_task_s_reason_is_one_line():

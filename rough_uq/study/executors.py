@@ -516,7 +516,10 @@ class DaskExecutor(Executor):
         # same key, which the release of an earlier run's future would take away.
         if self._scattered is None or self._scattered[0] != model:
             try:
+                _check_worker_versions(self._client.run(_installed_version))
                 future = self._client.scatter(model, broadcast=True)
+            except RoughUQError:  # workers of another version
+                raise
             except Exception as exc:  # noqa: BLE001 - distributed re-raises the workers' errors as they are
                 # A scheduler without workers ("No valid workers found") or workers that cannot import roughuq
                 # were tracebacks, status 1.
@@ -556,6 +559,24 @@ class DaskExecutor(Executor):
         if self._owns_client:
             self._client.close()
             self._owns_client = False
+
+
+def _installed_version() -> str:
+    """The roughuq version of the process that runs it (a dask worker's)."""
+    from rough_uq import __version__
+
+    return __version__
+
+
+def _check_worker_versions(versions: dict[str, str]) -> None:
+    """Refuse dask workers (address -> roughuq version) whose roughuq is not this one's: a worker of another
+    version stored its own numbers as the study's, status 0 (every sample of the run differed from a serial run)."""
+    here = _installed_version()
+    other = {address: version for address, version in versions.items() if version != here}
+    if other:
+        shown = ", ".join(f"{address} has {version}" for address, version in sorted(other.items())[:3])
+        raise ExecutorError(f"dask workers run another roughuq than this one ({here}): {shown}; install roughuq "
+                            f"{here} on the workers (same config and seed give the same numbers only on one version)")
 
 
 def dask_failure_text(error: Exception) -> str:
