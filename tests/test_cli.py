@@ -492,6 +492,19 @@ def test_merge_refuses_a_shard_of_another_config(screened):
     assert "--indices" in result.stderr
 
 
+def test_merge_refuses_an_incomplete_shard(screened):
+    # A `sample` killed mid-run leaves <shard>.partial-PID, which `report` calls incomplete; merge took it silently.
+    run("sample", "--study", "results.h5", "--stage", "screening", "--level", "0", "--indices", "100:102",
+        "--out", "b.h5", "--workers", "1", "--quiet")
+    (screened / "b.h5").rename(screened / "b.h5.partial-4242")
+    before = (screened / "results.h5").read_bytes()
+    result = run("merge", "b.h5.partial-4242", "--into", "results.h5", expect=2)
+    assert result.stderr.strip() == ("error: b.h5.partial-4242 is an incomplete shard (process 4242 had not finished "
+                                     "it; got 'b.h5.partial-4242'; allowed: complete shards): run its `roughuq sample "
+                                     "... --out b.h5` again, then merge b.h5; nothing was merged")
+    assert (screened / "results.h5").read_bytes() == before
+
+
 def test_sweep_box_size_at_fixed_spacing(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     # The spectrum in wavelengths, which stay fixed as the box grows (in wave numbers it would scale with it).

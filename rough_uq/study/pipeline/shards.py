@@ -185,12 +185,24 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
     return {"added": added, "duplicates": duplicates, "studies": studies}
 
 
+def _refuse_an_incomplete_shard(path: str | Path) -> None:
+    """Refuse ``<shard>.partial-PID``, the name a shard has until `roughuq sample` completes it (it was merged
+    without a word, although a shard is written whole or not at all)."""
+    name, separator, pid = Path(path).name.rpartition(".partial-")
+    if separator and pid.isdigit():
+        raise StudyFileError(
+            f"{path} is an incomplete shard (process {pid} had not finished it; got {str(path)!r}; allowed: "
+            f"complete shards): run its `roughuq sample ... --out {name}` again, then merge {name}; nothing was "
+            "merged", Path(path))
+
+
 def _read_shards(study: Study, shards: Sequence[str | Path]) -> tuple[list[LevelBatch], list[str]]:
     """Every sample of ``shards``, each checked (:func:`merge_shards`), and the inputs that are study files."""
     batches: list[LevelBatch] = []
     studies = []
     for path in shards:
         _refuse_the_study_itself(study, path)
+        _refuse_an_incomplete_shard(path)
         with _open_shard(path) as shard:
             _check_shard(study, path, shard)
             if shard.role != "shard":
