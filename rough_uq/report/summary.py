@@ -67,7 +67,6 @@ import shlex
 import textwrap
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -95,7 +94,7 @@ from rough_uq.study.records import (
     read_run_records,
     read_screening_record,
 )
-from rough_uq.study.store import FORMAT_VERSION, StudyStore, is_locked_by_running_process
+from rough_uq.study.store import FORMAT_VERSION, StudyStore, incomplete_shard_name, is_locked_by_running_process
 
 __all__ = [
     "MIN_ALPHA",
@@ -791,10 +790,11 @@ def _open_band(distribution: dict[str, Any]) -> None:
 def _shard_text(path: str, *, is_running: bool) -> str:
     """What a shard file is and what to do with it; a ``.partial-PID`` one is a shard not yet complete (it read
     "add them to their study", as if whole)."""
-    name, separator, pid = Path(path).name.rpartition(".partial-")
-    if not (separator and pid.isdigit()):
+    incomplete = incomplete_shard_name(path)
+    if incomplete is None:
         return ("a shard of samples (written by `roughuq sample`): add them to their study with `roughuq merge "
                 f"--into STUDY {escape(shlex.quote(path))}`")
+    name, pid = incomplete
     if is_running:
         return (f"an incomplete shard (being written by process {pid}): `roughuq sample` renames it {escape(name)} "
                 "once complete; merge that file")

@@ -181,6 +181,8 @@ __all__ = [
     "is_lock_held",
     "is_locked_by_running_process",
     "lock_if_free",
+    "PARTIAL_SUFFIX",
+    "incomplete_shard_name",
     "shard_refusal",
 ]
 
@@ -833,6 +835,16 @@ def _acquire_lock(path: Path) -> int:
             return fd
         os.close(fd)
     raise StudyFileError(f"{path}: could not take the lock {lock_path.name}", path)
+
+
+#: What ``roughuq sample`` appends to a shard's name, with its pid, until the shard is complete.
+PARTIAL_SUFFIX = ".partial-"
+
+
+def incomplete_shard_name(path: str | os.PathLike[str]) -> tuple[str, str] | None:
+    """``(name, pid)`` of a shard file named ``<name>.partial-<pid>`` (not yet complete), None for any other."""
+    name, separator, pid = Path(path).name.rpartition(PARTIAL_SUFFIX)
+    return (name, pid) if separator and pid.isdigit() else None
 
 
 @contextmanager

@@ -23,7 +23,15 @@ from rough_uq.study.executors import Executor
 from rough_uq.study.progress import Progress
 from rough_uq.study.records import read_run_records, read_screening_record
 from rough_uq.problem.sampler import LevelBatch
-from rough_uq.study.store import StudyFile, StudyStore, open_study, open_study_readonly, remove_abandoned
+from rough_uq.study.store import (
+    PARTIAL_SUFFIX,
+    StudyFile,
+    StudyStore,
+    incomplete_shard_name,
+    open_study,
+    open_study_readonly,
+    remove_abandoned,
+)
 from rough_uq.study.pipeline.sampling import StudySampler
 from rough_uq.study.pipeline.studies import Study, _differences_text, _readable_config
 
@@ -73,8 +81,8 @@ def compute_shard(
     if not 0 <= level <= study.config.grid.max_level:
         allowed = f"an integer in 0..{study.config.grid.max_level} (grid.max_level)"
         raise InvalidParameterError("--level", level, allowed)
-    abandoned = remove_abandoned(out, ".partial-")  # of this shard, by a run killed outright
-    partial = out.with_name(f"{out.name}.partial-{os.getpid()}")
+    abandoned = remove_abandoned(out, PARTIAL_SUFFIX)  # of this shard, by a run killed outright
+    partial = out.with_name(f"{out.name}{PARTIAL_SUFFIX}{os.getpid()}")
     indices = np.unique(np.asarray(indices, dtype=np.int64))
     shard_store = open_study(
         partial,
@@ -188,8 +196,9 @@ def merge_shards(study: Study, shards: Sequence[str | Path]) -> dict[str, int]:
 def _refuse_an_incomplete_shard(path: str | Path) -> None:
     """Refuse ``<shard>.partial-PID``, the name a shard has until `roughuq sample` completes it (it was merged
     without a word, although a shard is written whole or not at all)."""
-    name, separator, pid = Path(path).name.rpartition(".partial-")
-    if separator and pid.isdigit():
+    incomplete = incomplete_shard_name(path)
+    if incomplete is not None:
+        name, pid = incomplete
         raise StudyFileError(
             f"{path} is an incomplete shard (process {pid} had not finished it; got {str(path)!r}; allowed: "
             f"complete shards): run its `roughuq sample ... --out {name}` again, then merge {name}; nothing was "
