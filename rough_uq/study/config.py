@@ -564,7 +564,7 @@ class SolverConfig(_Section):
     @classmethod
     def _gives_contact_solutions(cls, value: float, info: ValidationInfo) -> float:
         # MAX_SOLVER_TOL holds for new configs; a study file's stored config from before it (any tol < 1) is
-        # read as it was, so that its report and samples stay readable (the problem refuses new solves).
+        # read as it was, so that its report and samples stay readable (its ContactProblem warns).
         if (info.context or {}).get("stored"):
             if not value < 1:
                 raise PydanticCustomError("solver_tol", "must be less than 1")
