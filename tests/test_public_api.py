@@ -23,7 +23,7 @@ from rough_uq.multilevel.rates import fit_rates
 from rough_uq.multilevel.statistics import level_statistics
 from tests.mlmc_problems import shifted_screening
 from rough_uq.problem.batch import STAGE_SCREENING
-from rough_uq.problem.runs import run_id
+from rough_uq.problem.runs import contact_planning_rates, run_id
 from rough_uq.problem.sampler import run_stage
 from rough_uq.study.config import config_from_dict
 from rough_uq.study.executors import Executor, SerialExecutor
@@ -722,14 +722,17 @@ def test_a_screening_forecasts_what_mlmc_draws_first_and_what_it_costs():
     assert forecast.cpu_seconds == pytest.approx(forecast.cost * screening.seconds_per_cost)
     assert forecast.mc_cost > 0 and forecast.mc_cpu_seconds == pytest.approx(forecast.mc_cost *
                                                                              screening.seconds_per_cost)
-    # The plan the run starts from (its first PlanUpdated), and the costs of those samples.
+    # The plan the run starts from (its first PlanUpdated, with the problem's cost rate beyond the screened levels
+    # that mlmc passes), and the costs of those samples.
+    planned = contact_planning_rates(problem.model, screening.statistics, 3)
+    assert planned.gamma_beyond > planned.gamma
     events = iter_mlmc(problem.sampler(1), tol=np.array([1.0]), screening=screening.statistics, max_level=3,
-                       coarsest_level=None)
+                       coarsest_level=None, gamma_beyond=planned.gamma_beyond)
     first = next(event for event in events if isinstance(event, PlanUpdated))
     events.close()
     assert first.n_planned.tolist() == forecast.n_samples.tolist()
     levels = np.arange(len(forecast.n_samples))
-    model = np.where(levels < 3, 0.0, screening.rates.cost_model(3))
+    model = np.where(levels < 3, 0.0, planned.cost_model(3))
     costs = np.where(levels < 3, screening.statistics.mean_cost[np.minimum(levels, 2)], model)
     assert forecast.cost == pytest.approx(float(np.dot(forecast.n_samples, costs)))
     with pytest.raises(rough_uq.InvalidParameterError, match="^theta: "):

@@ -119,7 +119,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer
+from rough_uq.errors import EstimationError, InvalidParameterError, checked_integer, is_real_number
 from rough_uq.multilevel.statistics import LevelStatistics, checked_names, readonly_array
 
 __all__ = [
@@ -195,6 +195,11 @@ class Rates:
         Per QoI, the levels the fit used (empty if prescribed).
     levels_gamma : tuple of int
         Levels the cost fit used.
+    gamma_beyond : float or None
+        The least rate of the cost beyond the finest of ``levels_gamma``
+        (:meth:`cost_model`), which the problem knows and the screened levels
+        need not show (their costs still carry fixed parts that finer grids
+        outgrow); None: the fitted ``gamma`` there too.
     """
 
     alpha: np.ndarray
@@ -209,6 +214,7 @@ class Rates:
     levels_alpha: tuple[tuple[int, ...], ...] = ()
     levels_beta: tuple[tuple[int, ...], ...] = ()
     levels_gamma: tuple[int, ...] = ()
+    gamma_beyond: float | None = None
 
     def __post_init__(self) -> None:
         n_qoi = max(np.size(self.alpha), np.size(self.beta), np.size(self.c_alpha), np.size(self.c_beta))
@@ -221,11 +227,19 @@ class Rates:
             object.__setattr__(self, name, value)
         for name in ("gamma", "c_gamma", "gamma_se"):
             object.__setattr__(self, name, float(getattr(self, name)))
+        if self.gamma_beyond is not None:
+            object.__setattr__(self, "gamma_beyond", checked_gamma_beyond("Rates.gamma_beyond", self.gamma_beyond))
 
     @property
     def n_qoi(self) -> int:
         """Number of quantities of interest."""
         return len(self.alpha)
+
+    @property
+    def gamma_extrapolated(self) -> float:
+        """The rate of the cost beyond the levels with a measured cost: the larger of ``gamma`` and
+        ``gamma_beyond`` (``gamma`` without the latter)."""
+        return self.gamma if self.gamma_beyond is None else max(self.gamma, self.gamma_beyond)
 
     def bias_model(self, level: int) -> np.ndarray:
         """Model ``|E[Y_l]|``, shape (n_qoi,), at level ``level`` (an integer >= 0).
@@ -250,12 +264,29 @@ class Rates:
     def cost_model(self, level: int) -> float:
         """Model cost ``C_l`` of one level-``level`` sample (``level`` an integer >= 0).
 
+        ``c_gamma 2^(gamma l)``; beyond the finest level of the fit (``levels_gamma``) the model goes on from
+        its value there at the larger of ``gamma`` and ``gamma_beyond``.
+
         Raises
         ------
         InvalidParameterError
             If ``level`` is not an integer >= 0 (a string, a float, a boolean or an array included).
         """
-        return self.c_gamma * 2.0 ** (self.gamma * _level(level))
+        level = _level(level)
+        top = max(self.levels_gamma, default=level)
+        if self.gamma_beyond is None or level <= top:
+            return self.c_gamma * 2.0 ** (self.gamma * level)
+        return self.c_gamma * 2.0 ** (self.gamma * top + self.gamma_extrapolated * (level - top))
+
+
+def checked_gamma_beyond(name: str, value: object) -> float | None:
+    """``value`` (None or a float), or :class:`InvalidParameterError` naming ``name`` unless None or a finite
+    real number >= 0 (:attr:`Rates.gamma_beyond`)."""
+    if value is None:
+        return None
+    if not is_real_number(value) or not 0.0 <= float(value) < math.inf:
+        raise InvalidParameterError(name, value, "None or a finite real number >= 0")
+    return float(value)
 
 
 def _level(level: object) -> int:

@@ -52,7 +52,9 @@ from rough_uq.multilevel.statistics import (
 from rough_uq.problem.batch import STAGE_SCREENING, LevelBatch
 from rough_uq.problem.contact import BatchExecutor, ContactProblem, ContactSampler, ProgressReporter
 from rough_uq.problem.columns import column_of_load, split_column, tol_number, tol_text, values_text
-from rough_uq.problem.sampler import ContactModel, measured_seconds_per_cost, modelled_cost, run_stage
+from rough_uq.problem.sampler import (
+    ContactModel, cost_rate_beyond, measured_seconds_per_cost, modelled_cost, run_stage,
+)
 
 __all__ = [
     "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "exact_column_caveats", "mc", "mlmc", "run_id", "screen",
@@ -142,7 +144,8 @@ class ScreeningResult:
         forecasts).
 
         ``tol``, ``theta`` and ``richardson`` as in :func:`mlmc`. The plan is the one the run starts from (the
-        rates floored as it floors them, :func:`~rough_uq.multilevel.drivers.planning.planning_rates`); the run then
+        rates floored as it floors them, with the problem's cost rate beyond the screened levels:
+        :func:`contact_planning_rates`); the run then
         adapts it to its own samples. ``max_level`` (default the screened problem's) forecasts the run of the
         problem with that ``max_level`` (``dataclasses.replace(problem, max_level=...)``, which the same
         screening serves, as the refusal of an unreachable tolerance suggests). Raises
@@ -159,7 +162,7 @@ class ScreeningResult:
         theta = check_fraction("theta", theta)
         richardson = checked_bool("richardson", richardson)  # bool("no") is True
         _refuse_stalled_bias(problem.columns, self.rates, self.statistics)
-        planned = drivers.planning_rates(self.statistics)
+        planned = contact_planning_rates(problem.model, self.statistics, problem.max_level)
         initial = drivers.starting_plan(tol=tol, rates=planned, statistics=self.statistics, theta=theta,
                                         max_level=problem.max_level, richardson=richardson)
         counts, costs = drivers.starting_forecast(initial, planned)
@@ -688,7 +691,8 @@ def mlmc(
         _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics), statistics,
                              "; screen finer grids (a larger coarsest), or use mc(level=...) (bias not estimated)")
     if statistics is not None:  # as roughuq mlmc: a bias the screening predicts beyond max_level is refused
-        starting_rates = rates if isinstance(rates, Rates) else drivers.planning_rates(statistics)
+        starting_rates = rates if isinstance(rates, Rates) else contact_planning_rates(
+            problem.model, statistics, problem.max_level)
         _refuse_unreachable(problem, tol, drivers.starting_plan(
             tol=tol, rates=starting_rates, statistics=statistics, theta=theta, max_level=problem.max_level,
             richardson=richardson, min_finest_level=min_finest_level), statistics, method="mlmc")
@@ -709,6 +713,7 @@ def mlmc(
         richardson=richardson,
         coarsest_level=None if statistics is not None else 0,
         qoi_names=problem.columns,
+        gamma_beyond=None if statistics is None else _gamma_beyond(problem.model, statistics, problem.max_level),
     )
     with reporting_progress(sampler, f"mlmc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
@@ -778,15 +783,26 @@ def _screened_mc_cost(problem: ContactProblem, screening, statistics: LevelStati
         return None
 
 
+def _gamma_beyond(model: ContactModel, statistics: LevelStatistics, max_level: int) -> float | None:
+    return cost_rate_beyond(model, statistics.levels, statistics.mean_cost, max_level)
+
+
+def contact_planning_rates(model: ContactModel, statistics: LevelStatistics, max_level: int) -> Rates:
+    """The rates a run of a contact problem plans with from a screening: those of
+    :func:`~rough_uq.multilevel.drivers.planning.planning_rates` with the problem's cost rate beyond the screened
+    levels (:func:`~rough_uq.problem.sampler.cost_rate_beyond`) up to ``max_level``."""
+    return drivers.planning_rates(statistics, gamma_beyond=_gamma_beyond(model, statistics, max_level))
+
+
 def _screened_mc_plan(problem: ContactProblem, screening, statistics: LevelStatistics, tol: np.ndarray,
                       theta: float) -> Plan:
     """The plain MC run the screening plans for ``tol``: its level, bias and cost (``EstimationError`` where the
     screening's bias does not decay). Planned with the rates floored as MLMC runs plan
-    (:func:`~rough_uq.multilevel.drivers.planning.planning_rates`), as ``roughuq mc`` does."""
+    (:func:`contact_planning_rates`), as ``roughuq mc`` does."""
     _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics), statistics)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)  # the screening reported them
-        planned = drivers.planning_rates(statistics)
+        planned = contact_planning_rates(problem.model, statistics, problem.max_level)
     return plan(tol=tol, rates=planned, statistics=statistics, theta=theta, max_level=problem.max_level,
                 coarsest_level=None)
 

@@ -83,6 +83,7 @@ __all__ = [
     "sample_rng",
     "modelled_cost",
     "measured_seconds_per_cost",
+    "cost_rate_beyond",
     "compute_batch",
     "warm_up",
     "SampleSolution",
@@ -215,9 +216,53 @@ def sample_rng(seed: int, stage: int, level: int, index: int) -> np.random.Gener
     return np.random.Generator(np.random.PCG64(sequence))
 
 
+def _iteration_cost(n: int) -> float:
+    """Modelled cost of one solver iteration on an ``n x n`` grid (reference seconds)."""
+    return COST_PER_POINT * n * n * math.log2(n * n) + COST_PER_ITERATION
+
+
 def _solve_cost(n: int, n_iter: np.ndarray) -> np.ndarray:
-    per_iteration = COST_PER_POINT * n * n * math.log2(n * n) + COST_PER_ITERATION
-    return (n_iter + COST_EXTRA_ITERATIONS) * per_iteration
+    return (n_iter + COST_EXTRA_ITERATIONS) * _iteration_cost(n)
+
+
+#: Least growth per level (``log2``) of a coupled sample's iterations that :func:`cost_rate_beyond` assumes. The
+#: screened grids show less than finer grids do: on the quickstart's surface (levels 32^2..2048^2, MLMC samples of
+#: 2026-11-29) the iterations per unit of work grew by 2^0.12 from level 1 to 2 and by 2^0.21 per level from 128^2
+#: to 2048^2; a cold solve on the benchmark surface by 2^0.27 per level from 256^2 to 4096^2.
+ITERATION_RATE_FLOOR = 0.2
+
+
+def cost_rate_beyond(model: ContactModel, levels: np.ndarray, mean_cost: np.ndarray, max_level: int) -> float | None:
+    """The rate ``gamma`` at which a coupled sample's modelled cost grows beyond the finest screened level.
+
+    A screening's ``gamma`` is fitted where the fixed cost of an iteration (``COST_PER_ITERATION``) still
+    weighs, so that it underrates finer grids (the quickstart's 1.54 against 2.1-2.6 per level from 128^2 to
+    2048^2). This rate is that of the modelled work of an iteration on the fine and the coarse grid from the
+    finest screened level ``L`` to ``max_level``, plus the growth of the iterations (the mean cost over that
+    work) between the two finest screened levels >= 1, at least :data:`ITERATION_RATE_FLOOR` and at most 1.
+    None where nothing lies beyond ``L`` or fewer than two levels >= 1 have a positive cost.
+
+    Parameters
+    ----------
+    model : ContactModel
+    levels, mean_cost : ndarray, shape (n_levels,)
+        The screened levels and the mean modelled cost of a sample on each.
+    max_level : int
+        The finest level a run may reach.
+    """
+    levels, mean_cost = np.asarray(levels), np.asarray(mean_cost, dtype=float)
+    usable = np.flatnonzero((levels >= 1) & (mean_cost > 0))
+    if usable.size < 2 or max_level <= levels[usable[-1]]:
+        return None
+    top, below = (int(levels[row]) for row in usable[-1:-3:-1])
+
+    def work(level: int) -> float:
+        return _iteration_cost(model.grid(level)) + _iteration_cost(model.grid(level - 1))
+
+    iterations = [mean_cost[row] / work(int(levels[row])) for row in usable[-2:]]
+    iteration_rate = math.log2(iterations[1] / iterations[0]) / (top - below)
+    work_rate = math.log2(work(max_level) / work(top)) / (max_level - top)
+    return work_rate + min(max(iteration_rate, ITERATION_RATE_FLOOR), 1.0)
 
 
 def modelled_cost(model: ContactModel, level: int, n_iter: np.ndarray, *, is_coupled: bool = True) -> np.ndarray:

@@ -53,7 +53,9 @@ from rough_uq.multilevel.drivers.planning import (
     planning_variances,
 )
 from rough_uq.multilevel.drivers.samples import Sampler, _check_positive, _shape_out, check_optional_positive
-from rough_uq.multilevel.rates import STALL_SIGNIFICANCE, DroppedLevel, Rates, confirmed_tail, estimated_bias, tail_rate
+from rough_uq.multilevel.rates import (
+    STALL_SIGNIFICANCE, DroppedLevel, Rates, checked_gamma_beyond, confirmed_tail, estimated_bias, tail_rate,
+)
 from rough_uq.multilevel.richardson import RICHARDSON_MIN_LEVELS, ratio_instability, richardson_bias, richardson_weight
 from rough_uq.multilevel.statistics import (
     KURTOSIS_LIMIT, EstimationWarning, LevelStatistics, diagnose, readonly_array, scaled_by_largest,
@@ -82,6 +84,7 @@ def iter_mlmc(
     richardson: bool = False,
     coarsest_level: int | None = 0,
     qoi_names: Sequence[str] | None = None,
+    gamma_beyond: float | None = None,
 ) -> Iterator[Event]:
     """Adaptive MLMC to a tolerance, as a generator of events.
 
@@ -151,6 +154,11 @@ def iter_mlmc(
         Names of the QoI columns, one per QoI: warnings and the Richardson
         refusal name the QoIs (``for contact_area``); without them they give
         column indices (``for QoI [0]``).
+    gamma_beyond : float or None
+        The problem's least cost rate beyond the screened levels, with which
+        the screening's plan predicts the cost of finer levels
+        (:attr:`~rough_uq.multilevel.rates.Rates.gamma_beyond`; None: the
+        fitted ``gamma``). Ignored without a screening or with ``rates``.
 
     Yields
     ------
@@ -190,6 +198,7 @@ def iter_mlmc(
         kurtosis_limit=_check_positive("kurtosis_limit", kurtosis_limit),
         richardson=checked_bool("richardson", richardson),
         coarsest_level=None if coarsest_level is None else checked_integer("coarsest_level", coarsest_level, 0),
+        gamma_beyond=checked_gamma_beyond("gamma_beyond", gamma_beyond),
     )
     batch_cap = checked_batch_cap(batch_size)
     return _drive(functools.partial(_MlmcRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)
@@ -223,6 +232,7 @@ class _MlmcOptions(_Options):
     rates: Rates | None
     richardson: bool
     coarsest_level: int | None
+    gamma_beyond: float | None
 
 
 @dataclass(frozen=True, eq=False)
@@ -271,7 +281,7 @@ def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
             base=options.coarsest_level or 0, dropped=(), targets=(), floor=options.n_initial, fallback=rates,
             extrapolation="pending" if richardson else "off",
         )
-    screening_rates = rates if rates is not None else planning_rates(screening)
+    screening_rates = rates if rates is not None else planning_rates(screening, gamma_beyond=options.gamma_beyond)
     initial = starting_plan(
         tol=options.tol, rates=screening_rates, statistics=screening, theta=options.theta,
         max_level=options.max_level, richardson=options.richardson, coarsest_level=options.coarsest_level,
@@ -387,7 +397,7 @@ class _MlmcRun(_Run):
 
     @property
     def cost_rate(self) -> float:
-        return self.driver.gamma
+        return self.driver.gamma_extrapolated
 
     def on_qoi_count(self, n_qoi: int) -> None:
         if self.fallback is not None and self.fallback.n_qoi != n_qoi:
@@ -445,7 +455,7 @@ class _MlmcRun(_Run):
         variances = planning_variances(var_diff, has_data, self.driver.beta, base)
         if self.extrapolation == "active":
             variances[-1] = variances[-1] * richardson_weight(self.driver.alpha) ** 2
-        costs = fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), self.driver.gamma)
+        costs = fill_costs(mean_cost, np.array([s.n > 0 for s in hierarchy.samples]), self.cost_rate)
         budget = (1.0 - self.options.theta) * self.tol**2
         wanted = np.zeros(hierarchy.n_levels)
         wanted[base:] = np.ceil(np.max(optimal_samples(variances[base:], costs[base:], budget), axis=1))

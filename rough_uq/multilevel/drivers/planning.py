@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -22,7 +22,7 @@ def _floor_rates(n_qoi: int) -> Rates:
     )
 
 
-def planning_rates(screening: LevelStatistics) -> Rates:
+def planning_rates(screening: LevelStatistics, *, gamma_beyond: float | None = None) -> Rates:
     """The rates an MLMC run started from ``screening`` plans with: fitted on levels >= 1, floored at RATE_FLOOR.
 
     The fits of :func:`~rough_uq.multilevel.rates.fit_rates` with every rate
@@ -32,9 +32,10 @@ def planning_rates(screening: LevelStatistics) -> Rates:
     would make the tail sum ``|E[Y_L]| / (2^alpha - 1)`` of the bias many
     times the level means themselves. Forecasts and the plain MC level
     chosen from a screening plan with these rates, so that they predict
-    what the run does.
+    what the run does. ``gamma_beyond``: the problem's least cost rate
+    beyond the screened levels (:attr:`~rough_uq.multilevel.rates.Rates.gamma_beyond`).
     """
-    return _lenient_rates(screening, None)
+    return replace(_lenient_rates(screening, None), gamma_beyond=gamma_beyond)
 
 
 def _lenient_rates(
@@ -73,6 +74,7 @@ def _lenient_rates(
         levels_alpha=alpha.levels,
         levels_beta=beta.levels,
         levels_gamma=gamma.levels,
+        gamma_beyond=base.gamma_beyond,
     )
 
 

@@ -36,6 +36,7 @@ from rough_uq.study.pipeline.planning import (
     _screened_seconds_per_cost,
 )
 from rough_uq.study.pipeline.sampling import StudySampler
+from rough_uq.study.pipeline.screening import study_planning_rates
 from rough_uq.study.pipeline.studies import Study
 
 
@@ -168,7 +169,7 @@ def _screened_events(
     if method == "mlmc":
         events = iter_mlmc(
             sampler, max_level=config.grid.max_level, screening=statistics, richardson=estimation.richardson,
-            coarsest_level=None, **options,
+            coarsest_level=None, gamma_beyond=study_planning_rates(study, statistics).gamma_beyond, **options,
         )
     else:
         context["level"] = int(prediction.finest_level)

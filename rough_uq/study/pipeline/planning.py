@@ -17,7 +17,7 @@ import numpy as np
 from rough_uq.study.config import StudyConfig
 from rough_uq.errors import PLANNED_COUNT_CAP, EstimationError, InvalidParameterError
 from rough_uq.multilevel.drivers import (
-    MAX_PLANNED_SAMPLES, PlanUpdated, planning_rates, refuse_large_plan, starting_forecast, starting_plan,
+    MAX_PLANNED_SAMPLES, PlanUpdated, refuse_large_plan, starting_forecast, starting_plan,
 )
 from rough_uq.study.progress import format_duration
 from rough_uq.study.records import Forecast, ScreeningRecord, read_screening_record
@@ -27,7 +27,7 @@ from rough_uq.problem.sampler import ContactModel, modelled_cost, run_stage
 from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL, TOL_RANGE_TEXT, Plan, plan
 from rough_uq.multilevel.rates import Rates, fit_rates, stalled_bias, stalled_text
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics
-from rough_uq.study.pipeline.screening import screening_statistics
+from rough_uq.study.pipeline.screening import screening_statistics, study_planning_rates
 from rough_uq.study.pipeline.studies import Study, build_model, naming_source
 
 
@@ -127,7 +127,7 @@ def _estimation_plan(study: Study, tol: np.ndarray, *, method: str) -> tuple[Lev
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", EstimationWarning)
         rates = fit_rates(statistics, names=study.config.qoi_names)
-        planned = planning_rates(statistics)
+        planned = study_planning_rates(study, statistics)
     _refuse_stalled_bias(study.config, statistics, rates)
     return statistics, rates, _run_plan(study.config, tol, planned, statistics, method=method)
 
@@ -199,7 +199,7 @@ def forecast_run(
         if is_given_level and stalled_bias(config.qoi_names, rates, statistics):
             return None  # MC on a given level needs no bias model, and there is none to predict from
         _refuse_stalled_bias(config, statistics, rates)
-        rates = planning_rates(statistics)  # floored, as the run plans
+        rates = study_planning_rates(study, statistics)  # floored, as the run plans
         prediction = _run_plan(config, tol, rates, statistics, method=method, richardson=richardson)
         if not prediction.is_bias_met and not is_given_level:
             raise _unreachable(config, tol, prediction, n_screened=int(np.min(statistics.n_samples)))

@@ -18,14 +18,16 @@ import numpy as np
 from rough_uq import __version__
 from rough_uq.study.config import StudyConfig
 from rough_uq.errors import EstimationError, InvalidParameterError, RoughUQError, StudyFileError
-from rough_uq.multilevel.drivers import planning_rates, starting_plan
+from rough_uq.multilevel.drivers import starting_plan
 from rough_uq.study.executors import Executor, SerialExecutor
 from rough_uq.study.progress import Progress
 from rough_uq.study.records import (
     Diagnostic, DroppedLevel, LevelTable, PlanRecord, RatesRecord, ScreeningRecord, count_not_converged,
     read_screening_record, utc_timestamp,
 )
-from rough_uq.problem.runs import MIN_SCREENED_LEVELS, ScreeningResult, exact_column_caveats, screening_of_batches
+from rough_uq.problem.runs import (
+    MIN_SCREENED_LEVELS, ScreeningResult, contact_planning_rates, exact_column_caveats, screening_of_batches,
+)
 from rough_uq.problem.sampler import STAGE_SCREENING, LevelBatch, measured_seconds_per_cost, modelled_cost
 from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL, Plan, plan
 from rough_uq.multilevel.rates import (
@@ -151,7 +153,7 @@ def run_screening(study: Study, *, executor: Executor, progress: Progress) -> Sc
         raise
     progress.stop()
     seconds_per_cost = measured_seconds_per_cost(batches, study.model)
-    predictions, problems = _predictions(config, statistics, rates, seconds_per_cost)
+    predictions, problems = _predictions(study, statistics, rates, seconds_per_cost)
     caveats = exact_column_caveats(study.model, config.qoi_names, rates, statistics)
     texts = (*diagnose(statistics, names=config.qoi_names), *problems, *caveats, *smaller)
     checks = [Diagnostic(text) for text in texts]
@@ -210,15 +212,22 @@ def _screening_rates(statistics: LevelStatistics, qoi_names: Sequence[str]) -> R
         raise EstimationError(f"screening cannot fit the rates: {exc}; {advice}") from None
 
 
+def study_planning_rates(study: Study, statistics: LevelStatistics) -> Rates:
+    """The rates a run of ``study`` plans with from its screening's ``statistics``
+    (:func:`~rough_uq.problem.runs.contact_planning_rates`, up to ``grid.max_level``)."""
+    return contact_planning_rates(study.model, statistics, study.config.grid.max_level)
+
+
 def _predictions(
-    config: StudyConfig, statistics: LevelStatistics, rates: Rates, seconds_per_cost: float
+    study: Study, statistics: LevelStatistics, rates: Rates, seconds_per_cost: float
 ) -> tuple[tuple[PlanRecord, ...], list[str]]:
     """Plans for the multiples :data:`PREDICTION_FACTORS` of the base tolerance, and why any is missing."""
+    config = study.config
     base = _base_tolerance(config, statistics)
     predictions = []
     if stalled_bias(config.qoi_names, rates, statistics):
         return (), [_no_prediction(config.qoi_names, rates, statistics, None)]
-    planned = planning_rates(statistics)  # floored, as the runs plan (the record keeps the fitted rates)
+    planned = study_planning_rates(study, statistics)  # floored, as the runs plan (the record keeps the fits)
     # A tol within a factor 8 of the range's edge dropped the rows after it, advising more levels.
     factors = [f for f in PREDICTION_FACTORS if np.all((base * f >= MIN_TOL) & (base * f <= MAX_TOL))]
     notes = [] if len(factors) == len(PREDICTION_FACTORS) else [_beyond_tolerances(PREDICTION_FACTORS, factors)]
