@@ -37,7 +37,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import click
 
@@ -248,8 +248,19 @@ def _console() -> Any:
     return _PipedConsole(width=160 if is_free_width else None, soft_wrap=is_free_width)
 
 
-def _progress(quiet: bool, watch: tuple[Any, Any, str, str] | None = None) -> Any:
-    """Progress output; with ``watch = (config, pool, executor, lower_with)`` also the memory warnings.
+class _MemoryWatch(NamedTuple):
+    """What the memory warnings of a command's progress need: where it runs, and how it gets to a lower level
+    (``lower_with``; ``least_level`` the lowest it can stay at: below it only a smaller grid.coarsest helps)."""
+
+    config: Any
+    pool: Any
+    executor: str
+    lower_with: str
+    least_level: int = 0
+
+
+def _progress(quiet: bool, watch: _MemoryWatch | None = None) -> Any:
+    """Progress output; with ``watch`` also the memory warnings.
 
     The pipeline announces every plan (screening levels, MLMC levels added
     as the run adapts, a shard's level) before computing it; the warning for
@@ -272,8 +283,8 @@ def _progress(quiet: bool, watch: tuple[Any, Any, str, str] | None = None) -> An
             todo = [int(lv) for lv, planned, done in zip(levels, n_planned, n_done) if planned > done]
             if todo and max(todo) > self.checked:
                 self.checked = max(todo)
-                config, pool, executor, lower_with = watch
-                _warn_memory(config, self.checked, pool, executor, lower_with=lower_with)
+                _warn_memory(watch.config, self.checked, watch.pool, watch.executor, lower_with=watch.lower_with,
+                             least_level=watch.least_level)
             inner.plan(levels, n_planned, n_done)
 
         def advance(self, level: int, n: int) -> None:
@@ -341,7 +352,7 @@ def _check_executor_options(executor: str, scheduler: str | None, workers: int |
 
 
 def _warn_memory(config: Any, level: int, pool: Any, executor: str = "local", *,
-                 lower_with: str = "a smaller grid.max_level") -> None:
+                 lower_with: str = "a smaller grid.max_level", least_level: int = 0) -> None:
     """Warn (one line on stderr) if ``level``'s solves, one per local worker, exceed this machine's memory.
 
     Nothing is said for a dask cluster: its workers run on other machines.
@@ -350,7 +361,8 @@ def _warn_memory(config: Any, level: int, pool: Any, executor: str = "local", *,
 
     if executor == "dask":
         return
-    text = memory_warning(config, level, getattr(pool, "n_workers", 1), lower_with=lower_with)
+    text = memory_warning(config, level, getattr(pool, "n_workers", 1), lower_with=lower_with,
+                          least_level=least_level)
     if text:
         click.echo(f"warning: {text}", err=True)
 
@@ -762,6 +774,7 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     Creates the study file (or continues an interrupted screening in it).
     """
     _check_not_empty("--out", out)
+    from rough_uq.problem.runs import MIN_SCREENED_LEVELS
     from rough_uq.study.pipeline import create_study, removed_if_left_unused, run_screening
     from rough_uq.report.summary import render_screening, screening_json
 
@@ -772,7 +785,9 @@ def screen(config_path: str, out: str | None, workers: int | None, executor: str
     with removed_if_left_unused(study_path), create_study(config, out, model=model, source=config_path) as study:
         _warm_kernels(study.model, quiet=quiet or as_json)
         with _executor(config, workers, executor, scheduler) as pool:
-            watch = (study.config, pool, executor, "a smaller screening.levels")
+            # A screening needs levels 0..2: a smaller screening.levels cannot go below level 2.
+            watch = _MemoryWatch(study.config, pool, executor, "a smaller screening.levels",
+                                 least_level=MIN_SCREENED_LEVELS - 1)
             outcome = run_screening(study, executor=pool, progress=_progress(quiet or as_json, watch))
         path = study.store.path
     record = outcome.record
@@ -1106,7 +1121,7 @@ def _run_target(target: str, *, tol_var: Sequence[str], tol_cdf: str | None, qoi
     with open_existing_study(opts.study_path, config=config, source=opts.config_path) as study:
         tolerances, request = requested(study.config)
         with _executor(study.config, opts.workers, opts.executor, opts.scheduler) as pool:
-            watch = (study.config, pool, opts.executor, "a looser tolerance")
+            watch = _MemoryWatch(study.config, pool, opts.executor, "a looser tolerance")
             record = run_target(study, target=target, tol=tolerances, executor=pool, request=request,
                                 progress=_progress(opts.quiet or opts.as_json, watch), max_cost=opts.max_cost)
     option = "--tol-var" if target == "variance" else "--tol-cdf"
@@ -1152,6 +1167,9 @@ def _show_missing(study: Any, method: str, tolerances: Any, cap: float | None, l
 
     forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level)
     work = missing_samples(study, method=method, tol=tolerances, max_cost=cap, level=level)
+    if work.missing:  # as the run warns before its first sample there; for one solve (`sample` counts its workers)
+        _warn_memory(study.config, max(work.missing), None,
+                     lower_with="a smaller --level" if level is not None else "a looser --tol")
     resources = None
     if with_resources:
         from rough_uq.study.resources import shard_resources
@@ -1170,7 +1188,8 @@ def _estimate(study: Any, method: str, tolerances: Any, cap: float | None, level
                                 n_workers=getattr(pool, "n_workers", 1))
         if not (opts.as_json or opts.quiet):
             _print_forecast(forecast, method)
-        watch = (study.config, pool, opts.executor, "a smaller --level" if level is not None else "a looser --tol")
+        watch = _MemoryWatch(study.config, pool, opts.executor,
+                             "a smaller --level" if level is not None else "a looser --tol")
         # The option itself (None: the config's estimation.max_cost, which the run then names so).
         return run_estimation(study, method=method, tol=tolerances, executor=pool,
                               progress=_progress(opts.quiet or opts.as_json, watch), max_cost=opts.max_cost,
@@ -1419,7 +1438,7 @@ def sample(study_path: str, stage: str, level: int, indices: str, out: str, work
     with open_existing_study(study_path, writable=False, options="--study") as study:
         stage_id = _stage_of(study, stage)  # a run id too, as `show --stage` takes it (it was refused here)
         with _executor(study.config, workers, "local", None) as pool:
-            watch = (study.config, pool, "local", "a study with a smaller grid.max_level")
+            watch = _MemoryWatch(study.config, pool, "local", "a study with a smaller grid.max_level")
             path = compute_shard(study, stage=stage_id, level=level, indices=wanted, out=out, executor=pool,
                                  progress=_progress(quiet, watch))
     click.echo(f"{path}: {_counted(wanted.size, 'sample')} of stage {stage_id}, level {level}")

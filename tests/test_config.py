@@ -310,6 +310,12 @@ def test_memory_is_a_run_time_warning_not_a_validation_rule(monkeypatch: pytest.
     text = memory_warning(config, 2)
     assert text.startswith("level 2 (grid 1024 x 1024) needs about 160 MiB per solve")
     assert "this machine has 40 MiB" in text and "stay at level <= 1 (a smaller grid.max_level)" in text
+    # A caller that cannot go below level 2 (a screening needs levels 0..2) is told of the coarsest grid instead:
+    # the screen advised "stay at level <= 1 (a smaller screening.levels)", which the config then refused.
+    assert "use a smaller grid.coarsest" in memory_warning(config, 2, lower_with="a smaller screening.levels",
+                                                           least_level=2)
+    assert "stay at level <= 1 (a smaller screening.levels)" in memory_warning(
+        config, 2, lower_with="a smaller screening.levels", least_level=1)
     # Two workers on level 1 need two solves at once; one fits.
     text = memory_warning(config, 1, n_workers=2, lower_with="unused")
     assert "x 2 workers = 80 MiB" in text and "use --workers 1" in text and "unused" not in text
@@ -350,9 +356,14 @@ def test_commands_warn_before_computing_levels_beyond_the_machine(tmp_path, monk
     (line,) = _memory_warnings(_cli("screen", path, "--workers", "1", "--quiet"))
     assert line == (
         f"warning: level 2 (grid 32 x 32) needs about 0.156 MiB per solve ({SOLVER_ARRAYS_PER_NODE} float64 arrays "
-        "of n^2), but this machine has 0.0391 MiB: stay at level <= 1 (a smaller screening.levels), or run on a "
-        "machine with more memory"
+        "of n^2), but this machine has 0.0391 MiB: use a smaller grid.coarsest, or run on a machine with more "
+        "memory"
     )
+    # --plan said nothing of it: the run warned only when it started (the plans of shards for other machines too).
+    (line,) = _memory_warnings(_cli("mc", "--level", "2", "--plan"))
+    assert "grid 32 x 32" in line and "(a smaller --level)" in line
+    (line,) = _memory_warnings(_cli("mlmc", "--plan"))
+    assert "grid 32 x 32" in line and "(a looser --tol)" in line
     (line,) = _memory_warnings(_cli("mc", "--level", "2", "--workers", "1", "--quiet", expect=(0, 3)))
     assert "grid 32 x 32" in line and "(a smaller --level)" in line
     (line,) = _memory_warnings(_cli("sample", "--stage", "screening", "--level", "2", "--indices", "8:9",

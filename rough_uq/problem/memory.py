@@ -39,7 +39,7 @@ def _size(n_bytes: float) -> str:
 
 def memory_warning(
     grids: Sequence[int], level: int, n_workers: int, memory: int | None, *, lower_with: str, workers: str,
-    smaller_coarsest: str,
+    smaller_coarsest: str, least_level: int = 0,
 ) -> str | None:
     """What to say before solves on ``grids[level]`` (``n_workers`` at once, each of
     :func:`solver_memory_bytes`) that need more than ``memory`` bytes, or None if they fit (or ``memory`` is
@@ -47,7 +47,8 @@ def memory_warning(
 
     The text names the grid, the estimate, the machine's memory and what to change: fewer workers
     (``workers`` with the number, e.g. ``"--workers {}"``) if one solve fits, else a lower level
-    (``lower_with`` says how the caller gets there) or a smaller coarsest grid (``smaller_coarsest``).
+    (``lower_with`` says how the caller gets there, down to ``least_level``) or a smaller coarsest grid
+    (``smaller_coarsest``).
     """
     n = grids[level]
     per_solve = solver_memory_bytes(n)
@@ -58,7 +59,7 @@ def memory_warning(
     if per_solve <= memory:
         change = f"use {workers.format(memory // per_solve)}, or run on a machine with more memory"
     else:
-        fitting = [lv for lv in range(level) if solver_memory_bytes(grids[lv]) <= memory]
+        fitting = [lv for lv in range(least_level, level) if solver_memory_bytes(grids[lv]) <= memory]
         lower = f"stay at level <= {fitting[-1]} ({lower_with})" if fitting else f"use {smaller_coarsest}"
         change = f"{lower}, or run on a machine with more memory"
     return (

@@ -959,7 +959,8 @@ def machine_memory_bytes() -> int | None:
 
 
 def memory_warning(
-    config: StudyConfig, level: int, n_workers: int = 1, *, lower_with: str = "a smaller grid.max_level"
+    config: StudyConfig, level: int, n_workers: int = 1, *, lower_with: str = "a smaller grid.max_level",
+    least_level: int = 0,
 ) -> str | None:
     """What to say before computing samples of ``level`` on this machine, or None if they fit.
 
@@ -969,11 +970,13 @@ def memory_warning(
     returned line names the grid, the estimate, the machine's memory and
     what to change: fewer workers if one solve fits, else a lower level (or
     another machine); ``lower_with`` says how the caller's command gets to a
-    lower level (:func:`rough_uq.problem.memory.memory_warning`).
+    lower level, ``least_level`` the lowest it can stay at
+    (:func:`rough_uq.problem.memory.memory_warning`).
     """
     grids = [config.grid.n_at(lv) for lv in range(level + 1)]
     return grid_memory_warning(grids, level, n_workers, machine_memory_bytes(), lower_with=lower_with,
-                               workers="--workers {}", smaller_coarsest="a smaller grid.coarsest")
+                               workers="--workers {}", smaller_coarsest="a smaller grid.coarsest",
+                               least_level=least_level)
 
 
 class StudyConfig(_Section):
