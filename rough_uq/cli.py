@@ -560,8 +560,6 @@ def main() -> None:
     creates it and fits the rates, `roughuq mlmc --tol EPS` and `roughuq mc
     --tol EPS` run estimations into it, `roughuq report FILE` shows it.
     """
-    # FFTW's and numba's thread pools otherwise busy-wait against each other.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 @main.command()
