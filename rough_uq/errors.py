@@ -14,7 +14,7 @@ import numbers
 import os
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -68,6 +68,18 @@ def scalar_refusal(name: str, value: object, allowed: str) -> InvalidParameterEr
     if type(value).__name__ == "ndarray" and getattr(value, "shape", None) == ():
         allowed += " (a number, not a 0-d array: x.item() is one)"
     return InvalidParameterError(name, value, allowed)
+
+
+def is_one_of(value: object, allowed: Collection[object]) -> bool:
+    """``value in allowed`` for any value: an array that is not 0-d (its ``==`` compares elementwise: in a tuple
+    it raised "the truth value of an array ... is ambiguous") or an unhashable value (in a dict or a set:
+    TypeError) is in none. A numpy scalar (``np.str_``, ``np.int64``) is compared as its value."""
+    if getattr(value, "ndim", 0) != 0:
+        return False
+    try:
+        return value in allowed
+    except TypeError:  # unhashable, in a dict or set
+        return False
 
 
 def is_integer(value: object) -> bool:

@@ -12,7 +12,7 @@ import pytest
 
 import rough_uq
 from rough_uq.multilevel.distribution import cdf_level_term
-from rough_uq.multilevel.moments import variance_level_term
+from rough_uq.multilevel.moments import central_moment_level_term, variance_level_term
 from rough_uq.multilevel.targets import adaptive_mlmc
 
 
@@ -482,3 +482,34 @@ def test_a_bad_tolerance_in_a_list_is_named_by_its_index_and_column(tol, index):
     with pytest.raises(rough_uq.InvalidParameterError, match=rf"^tol\[{index}\]: got .*; allowed: a finite number > 0 "
                                                              rf"\(column {problem.columns[index]}\)$"):
         rough_uq.mc(problem, tol=tol, level=0, executor=_NoSampling())
+
+
+_SPECTRUM = rough_uq.SurfaceSpectrum(system_size=2, k_l=2, k_r=2, k_s=16, hurst=0.8, rms_height=1)
+
+
+@pytest.mark.parametrize(("name", "call"), [
+    ("connectivity", lambda v: rough_uq.ContactProblem(_SPECTRUM, load=rough_uq.RelativeLoad(0.1), qoi=["clusters"],
+                                                       coarsest=32, connectivity=v)),
+    ("projection", lambda v: rough_uq.ContactProblem(_SPECTRUM, load=rough_uq.RelativeLoad(0.1),
+                                                     qoi=["contact_area"], coarsest=32, projection=v)),
+    ("projection", lambda v: rough_uq.sample_coupled(_SPECTRUM, 64, np.random.default_rng(0), projection=v)),
+    ("column", lambda v: rough_uq.distribution(_problem(("contact_area", "clusters")), tol=0.2,
+                                               thresholds=[15, 20, 25], column=v)),
+    ("order", lambda v: central_moment_level_term(np.ones((8, 1)), None, order=v)),
+    ("qoi", lambda v: rough_uq.ContactProblem(_SPECTRUM, load=rough_uq.RelativeLoad(0.1), qoi=[v], coarsest=32)),
+])
+@pytest.mark.parametrize("kind", ["array", "unhashable"])
+def test_an_array_or_an_unhashable_value_where_one_choice_is_taken_is_refused_by_name(name, call, kind):
+    # A numpy array gave numpy's "truth value of an array ... is ambiguous" ValueError, a list or a dict
+    # where a dict was searched a TypeError.
+    value = np.array([4, 8]) if kind == "array" else [4, 8]
+    with pytest.raises(rough_uq.InvalidParameterError, match=f"^{name}: got "):
+        call(value)
+
+
+def test_a_numpy_string_unit_is_kept_as_plain_text():
+    # units={"contact_area": np.str_("fraction")} showed as np.str_('fraction') in the problem's and results' units.
+    problem = rough_uq.ContactProblem(_SPECTRUM, load=rough_uq.RelativeLoad(0.1), qoi=["contact_area"], coarsest=32,
+                                      units={"contact_area": np.str_("fraction")})
+    assert problem.units == (("contact_area", "fraction"),) and type(problem.units[0][1]) is str
+    assert problem.qoi_units == ("fraction",) and "np.str_" not in repr(problem)

@@ -70,7 +70,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError
+from rough_uq.errors import EstimationError, InvalidParameterError, is_one_of
 from rough_uq.multilevel.drivers import Sampler
 from rough_uq.multilevel.statistics import readonly_array
 from rough_uq.multilevel.targets import LevelTerm, TargetEstimate, adaptive_mlmc, telescope
@@ -260,7 +260,7 @@ def central_moment_level_term(fine: np.ndarray, coarse: np.ndarray | None, level
     -------
     LevelTerm
     """
-    if order not in _MIN_SAMPLES:
+    if not is_one_of(order, _MIN_SAMPLES):
         raise InvalidParameterError("order", order, "2, 3 or 4")
     x, y = _pair(fine, coarse, max(_MIN_SAMPLES[order], 2))
     n = x.shape[0]

@@ -53,7 +53,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from rough_uq.errors import InvalidParameterError, is_integer, is_real_number, refuse_non_real
+from rough_uq.errors import InvalidParameterError, is_integer, is_one_of, is_real_number, refuse_non_real
 
 __all__ = [
     "QOI_NAMES",
@@ -421,7 +421,7 @@ def _names(names: object) -> tuple[str, ...]:
     """``names`` of :func:`evaluate_qoi` as a tuple, or :class:`InvalidParameterError` naming ``names``."""
     names = ordered_names("names", names, "a name or a list of names from " + ", ".join(QOI_NAMES))
     for name in names:
-        if name not in QOI_NAMES:
+        if not is_one_of(name, QOI_NAMES):
             raise InvalidParameterError("names", name, "one of " + ", ".join(QOI_NAMES))
     return names
 

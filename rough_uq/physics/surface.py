@@ -58,7 +58,7 @@ from typing import Literal
 import numpy as np
 
 from rough_uq.errors import (
-    InvalidParameterError, checked_real_array, is_integer, is_real_number, scalar_refusal,
+    InvalidParameterError, checked_real_array, is_integer, is_one_of, is_real_number, scalar_refusal,
 )
 from rough_uq.physics.fft import get_fft
 
@@ -553,7 +553,7 @@ def sample_coupled(
     """
     _check_inputs(spectrum, rng)
     n = _check_grid_size("n", n, multiple=4)
-    if projection not in PROJECTIONS:
+    if not is_one_of(projection, PROJECTIONS):
         raise InvalidParameterError("projection", projection, " or ".join(repr(p) for p in PROJECTIONS))
     modes = _grid_modes(spectrum, n)
     amplitudes = _draw(modes, rng)
@@ -591,7 +591,7 @@ def project_surface(
     -------
     ndarray of float64, shape (n_coarse, n_coarse)
     """
-    if method not in PROJECTIONS:
+    if not is_one_of(method, PROJECTIONS):
         raise InvalidParameterError("method", method, " or ".join(repr(p) for p in PROJECTIONS))
     fine = np.asarray(fine, dtype=np.float64)
     if fine.ndim != 2 or fine.shape[0] != fine.shape[1]:

@@ -24,6 +24,7 @@ from rough_uq.errors import (
     checked_bool,
     checked_integer,
     is_integer,
+    is_one_of,
     is_real_number,
     warn_at_caller,
 )
@@ -176,15 +177,17 @@ def _units(units: object, names: tuple[str, ...]) -> tuple[tuple[str, str], ...]
                                         f"{', '.join(map(str, repeated))})")
         units = dict(pairs)
     for name, unit in units.items():
-        if name not in names:
+        if not is_one_of(name, names):
             raise InvalidParameterError("units", name, "a QoI of this problem: " + ", ".join(names))
         qoi_scale(name, unit, system_size=1.0)  # refuses a unit the QoI does not have
-    return tuple((name, units[name]) for name in names if units.get(name, QOI_UNITS[name][0]) != QOI_UNITS[name][0])
+    # str(): the plain text of a numpy string (np.str_('fraction') was kept and shown so in the results' units).
+    return tuple((name, str(units[name])) for name in names
+                 if units.get(name, QOI_UNITS[name][0]) != QOI_UNITS[name][0])
 
 
 def _choice(name: str, value: object, allowed: tuple) -> object:
     # 8.0 == 8: a number must be an integer to stand for one of the allowed integers.
-    if isinstance(value, bool) or (is_real_number(value) and not is_integer(value)) or value not in allowed:
+    if isinstance(value, bool) or (is_real_number(value) and not is_integer(value)) or not is_one_of(value, allowed):
         raise InvalidParameterError(name, value, " or ".join(repr(a) for a in allowed))
     return allowed[allowed.index(value)]  # the plain value: np.int64(8) is kept as 8, np.str_ as str
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationWarning, InvalidParameterError, warn_at_caller
+from rough_uq.errors import EstimationWarning, InvalidParameterError, is_one_of, warn_at_caller
 from rough_uq.multilevel.distribution import (
     DEFAULT_PROBABILITIES, CdfEstimate, Quantiles, check_cdf_tol, checked_thresholds, mlmc_cdf, quantiles,
 )
@@ -258,7 +258,7 @@ def _column_index(problem: ContactProblem, column: str | None) -> int:
     if column is None:
         return 0
     name = column_of_load(column, columns) if isinstance(column, str) else column
-    if name not in columns:
+    if not is_one_of(name, columns):
         raise InvalidParameterError("column", column, f"one of {', '.join(columns)}")
     return columns.index(name)
 

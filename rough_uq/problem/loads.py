@@ -54,7 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, is_real_number, scalar_refusal
+from rough_uq.errors import InvalidParameterError, is_one_of, is_real_number, scalar_refusal
 from rough_uq.physics.surface import SurfaceSpectrum
 from rough_uq.problem.columns import LOAD_SEPARATOR, column_name, load_label
 
@@ -101,9 +101,9 @@ def qoi_scale(name: str, unit: str, *, system_size: float) -> float:
     -------
     float
     """
-    if name not in QOI_UNITS:
+    if not is_one_of(name, QOI_UNITS):
         raise InvalidParameterError("qoi", name, "one of " + ", ".join(QOI_UNITS))
-    if unit not in QOI_UNITS[name]:
+    if not is_one_of(unit, QOI_UNITS[name]):
         raise InvalidParameterError(f"units.{name}", unit, " or ".join(repr(u) for u in QOI_UNITS[name]))
     if unit == "percent":
         return 100.0
