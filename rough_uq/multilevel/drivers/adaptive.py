@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import (
+    PLANNED_COUNT_CAP,
     EstimationError,
     InvalidParameterError,
     PlanTooLargeError,
@@ -173,7 +174,7 @@ def iter_mlmc(
         refused Richardson extrapolation.
     """
     theta = check_fraction("theta", theta)
-    n_initial = checked_integer("n_initial", n_initial, 2)
+    n_initial = checked_integer("n_initial", n_initial, 2, PLANNED_COUNT_CAP)  # 10**20 overflowed the plan's int64
     # Two levels above the base (>= 0) to fit the rates from: levels 0..2 at least.
     min_finest_level, max_level = check_finest_levels(min_finest_level, max_level, least_max_level=2)
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)

@@ -8,7 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import InvalidParameterError, checked_integer, checked_real_array, warn_at_caller
+from rough_uq.errors import (
+    PLANNED_COUNT_CAP, InvalidParameterError, checked_integer, checked_real_array, warn_at_caller,
+)
 from rough_uq.multilevel.allocation import check_fraction, check_tol
 from rough_uq.multilevel.drivers.adaptive import MIN_LEVEL_SAMPLES, _final
 from rough_uq.multilevel.drivers.events import EstimationResult, Event, Finished
@@ -99,7 +101,7 @@ def iter_mc(
     """
     theta = check_fraction("theta", theta)
     level = checked_integer("level", level, 0)
-    n_initial = checked_integer("n_initial", n_initial, 2)
+    n_initial = checked_integer("n_initial", n_initial, 2, PLANNED_COUNT_CAP)  # 10**20 overflowed the plan's int64
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = check_optional_positive("max_cost", max_cost)
     n_qoi = screening.n_qoi if screening is not None else None
