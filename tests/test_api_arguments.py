@@ -522,3 +522,11 @@ def test_an_initial_count_beyond_the_plans_integers_is_refused_by_name(method):
     with pytest.raises(rough_uq.InvalidParameterError, match=r"^n_initial: got 100000000000000000000; allowed: an "
                                                               r"integer in 2\.\.4503599627370496$"):
         getattr(rough_uq, method)(_problem(), **options)
+
+
+def test_a_huge_given_bias_is_refused_without_numpy_overflow_warnings():
+    # bias=1e300 printed two "overflow encountered in square" RuntimeWarnings from inside the package first.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(rough_uq.EstimationError, match="no theta does: loosen tol above the bias"):
+            rough_uq.mc(_problem(), tol=2.0, level=1, bias=1e300, executor=_NoSampling())

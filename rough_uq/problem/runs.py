@@ -834,10 +834,11 @@ def _refuse_given_bias(columns: tuple[str, ...], tol: np.ndarray, theta: float, 
     to the bias: with a larger bias the run ended ``"bias"``, not met, after drawing all of them in vain.
     """
     bias = np.broadcast_to(bias.reshape(-1), tol.shape)
-    over = bias**2 > theta * tol**2 * (1 + 1e-12)
-    if not np.any(over):
-        return
-    needed = float(np.max(bias[over] ** 2 / tol[over] ** 2))
+    with np.errstate(over="ignore"):  # a bias of 1e300 squares to inf, which is compared as such (no warning)
+        over = bias**2 > theta * tol**2 * (1 + 1e-12)
+        if not np.any(over):
+            return
+        needed = float(np.max(bias[over] ** 2 / tol[over] ** 2))
     remedy = (f"raise theta (the bias's share of tol^2) to at least {needed:.3g}, or loosen tol" if needed < 1
               else "no theta does: loosen tol above the bias, or sample a finer level")
     raise EstimationError(
