@@ -15,6 +15,7 @@ import os
 import sys
 import warnings
 from collections.abc import Collection, Sequence
+from types import FrameType
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -369,9 +370,20 @@ def warn_at_caller(message: str | Warning, category: type[Warning] = UserWarning
     A fixed ``stacklevel`` counts the frames of one call path; the same
     warning reached through ``rough_uq.mlmc``, a driver or the CLI pointed at
     a line inside the package from most of them. (Python 3.12's
-    ``skip_file_prefixes`` does this; 3.11 does not have it.)
+    ``skip_file_prefixes`` does this; 3.11 does not have it.) Code that
+    :mod:`dataclasses` generates for a roughuq class (its ``__init__``, file
+    ``<string>``) is roughuq's too: a warning of ``__post_init__`` pointed at
+    ``<string>:19``, one location for every caller, so that Python showed it once.
     """
     frame, level = sys._getframe(1), 2  # the caller of this function is stacklevel 2
-    while frame.f_back is not None and frame.f_code.co_filename.startswith(_PACKAGE_DIR):
+    while frame.f_back is not None and _is_package_frame(frame):
         frame, level = frame.f_back, level + 1
     warnings.warn(message, category, stacklevel=level)
+
+
+def _is_package_frame(frame: FrameType) -> bool:
+    """A frame of roughuq's files, or of code generated for one of its modules (no file: ``<string>``)."""
+    filename = frame.f_code.co_filename
+    if filename.startswith(_PACKAGE_DIR):
+        return True
+    return filename.startswith("<") and str(frame.f_globals.get("__name__", "")).startswith(f"{__package__}.")

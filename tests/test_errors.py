@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 import pickle
+import warnings
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
@@ -99,3 +100,17 @@ def test_a_scalar_parameter_given_a_0d_array_says_that_a_number_is_meant():
     with pytest.raises(errors.InvalidParameterError) as info:  # a number out of range: no hint
         SurfaceSpectrum(system_size=1, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=-1.0)
     assert "0-d" not in str(info.value)
+
+
+def test_a_warning_of_a_dataclass_post_init_points_at_the_users_line():
+    # The warning pointed at "<string>:19", the __init__ dataclasses generate: one location for every caller, so
+    # that Python's default filter showed it once for all of them.
+    import rough_uq
+
+    spectrum = rough_uq.SurfaceSpectrum(system_size=2, k_l=2, k_r=2, k_s=16, hurst=0.8, rms_height=1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.1), qoi=["contact_area"], coarsest=32,
+                                solver_tol=0.05)
+    (warning,) = [w for w in caught if "MAX_SOLVER_TOL" in str(w.message)]
+    assert warning.filename == __file__
