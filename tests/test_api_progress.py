@@ -158,3 +158,30 @@ def test_a_progress_class_is_refused_with_the_instance_it_needs():
     with pytest.raises(InvalidParameterError, match="^progress: ") as caught:
         rough_uq.mlmc(_problem(), tol=2.0, progress=PlainProgress)
     assert str(caught.value).endswith("(an instance: PlainProgress(), not the class)")
+
+
+class _StopWithoutKeyword(_Recorded):
+    def stop(self):  # the protocol's keyword left out, as a user's class may
+        self.calls.append(("stop",))
+
+
+def test_a_progress_whose_stop_takes_no_is_complete_is_refused_before_the_run():
+    # It ran; a Ctrl-C then ended in "TypeError: stop() got an unexpected keyword argument 'is_complete'", the
+    # KeyboardInterrupt and its note (the samples kept) only in __context__.
+    progress = _StopWithoutKeyword()
+    with pytest.raises(InvalidParameterError, match="^progress: ") as caught:
+        rough_uq.mlmc(_problem(), tol=2.0, progress=progress)
+    assert str(caught.value).endswith("its stop must take the keyword is_complete: stop(self, *, is_complete=True)")
+    assert progress.calls == []
+
+
+class _FailingStop(_Recorded):
+    def stop(self, *, is_complete=True):
+        raise RuntimeError("display gone")
+
+
+def test_a_progress_that_fails_to_stop_leaves_the_runs_own_error_to_the_caller():
+    with pytest.raises(EstimationError) as caught:
+        rough_uq.mlmc(_problem(), tol=1e-3, max_samples=50, progress=_FailingStop())
+    assert any("stop(is_complete=False) failed too: RuntimeError('display gone')" in note
+               for note in caught.value.__notes__)

@@ -12,7 +12,8 @@ a study config. :class:`ContactSampler` serves its samples to the drivers of
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+import inspect
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import KW_ONLY, dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
@@ -100,12 +101,27 @@ def _checked_progress(progress: object) -> ProgressReporter | None:
     is_reporter = not isinstance(progress, type) and all(
         callable(getattr(progress, name, None)) for name in _PROGRESS_METHODS
     )
-    if progress is None or is_reporter:
-        return progress  # type: ignore[return-value]
     allowed = "None or an object with start, plan, advance and stop, e.g. rough_uq.study.progress.PlainProgress()"
+    if progress is None or (is_reporter and _takes_is_complete(progress.stop)):  # type: ignore[union-attr]
+        return progress  # type: ignore[return-value]
+    if is_reporter:  # a stop() without it turned a Ctrl-C into a TypeError from the run's clean-up
+        allowed += "; its stop must take the keyword is_complete: stop(self, *, is_complete=True)"
     if isinstance(progress, type):
         allowed += f" (an instance: {progress.__name__}(), not the class)"
     raise InvalidParameterError("progress", progress, allowed)
+
+
+def _takes_is_complete(stop: Callable[..., object]) -> bool:
+    """Whether ``stop(is_complete=False)`` binds (True where the signature cannot be read, e.g. a builtin)."""
+    try:
+        signature = inspect.signature(stop)
+    except (TypeError, ValueError):  # no signature to read
+        return True
+    try:
+        signature.bind(is_complete=False)
+    except TypeError:
+        return False
+    return True
 
 
 #: The largest grid (nodes per side) of a hierarchy. One solve at 65536^2 needs

@@ -984,7 +984,10 @@ def reporting_progress(sampler: ContactSampler, title: str) -> Iterator[None]:
                 "(in memory): the same call on the same problem goes on from them"
             )
         if progress is not None:
-            progress.stop(is_complete=False)
+            try:
+                progress.stop(is_complete=False)
+            except Exception as failed:  # the run's own error (a Ctrl-C) is what the caller must see
+                error.add_note(f"rough_uq: the progress reporter's stop(is_complete=False) failed too: {failed!r}")
         raise
     if progress is not None:
         progress.stop()
