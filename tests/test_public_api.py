@@ -963,6 +963,23 @@ def test_results_name_their_columns_and_units():
     assert repr(result).startswith(f"TargetEstimate(qoi_names={problem.columns!r}, units={squares!r}, ")
 
 
+@pytest.mark.filterwarnings("ignore::rough_uq.errors.EstimationWarning")  # weakly coupled clusters: beside the point
+def test_a_printed_result_of_many_columns_shows_numbers():
+    # Eight columns (two QoIs at four loads) printed estimate=<8 values>, rmse=<8 values>: no number at all.
+    loads = [rough_uq.RelativeLoad(r) for r in (0.05, 0.1, 0.2, 0.4)]
+    result = rough_uq.variance(_problem(load=loads, qoi=["contact_area", "clusters"]), tol=50.0)
+    text = repr(result)
+    assert "values>" not in text and "columns>" not in text
+    assert f"estimate=[{', '.join(f'{value:.3g}' for value in result.estimate)}]" in text
+    assert f"qoi_names={result.qoi_names!r}" in text
+    # Beyond twelve, the first and last three with their count (a CDF of 121 thresholds).
+    from rough_uq.multilevel.statistics import names_summary, values_summary
+
+    assert values_summary(np.arange(13.0)) == "[0, 1, 2, ..., 10, 11, 12 (13 values)]"
+    assert names_summary(tuple("abcdefghijklm")) == "('a', 'b', 'c', ..., 'k', 'l', 'm' (13 columns))"
+    assert values_summary(np.arange(12.0)).count(",") == 11 and names_summary(("a",)) == "('a',)"
+
+
 def test_the_default_units_given_or_not_make_the_same_problem():
     # units={"contact_area": "percent"} (the default) made a problem unequal to the one without units.
     assert _problem(units={"contact_area": "percent"}) == _problem()

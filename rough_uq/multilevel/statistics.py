@@ -109,21 +109,31 @@ CONSISTENCY_CHECK_SAMPLES = 5
 _ROUNDING = 64 * np.finfo(float).eps
 
 
-#: Arrays of up to this many values are shown in a summary (:func:`values_summary`), longer ones by their size.
-_SHOWN_VALUES = 6
+#: Arrays of up to this many values are shown whole in a summary (:func:`values_summary`); longer ones by their
+#: first and last :data:`_EDGE_VALUES` and their size (a load curve of 121 loads, a CDF of 121 thresholds).
+_SHOWN_VALUES = 12
+_EDGE_VALUES = 3
+
+
+def _elided(items: list[str], noun: str) -> str:
+    """``a, b, c`` for a few items; ``a, b, c, ..., x, y, z (121 values)`` for many."""
+    if len(items) <= _SHOWN_VALUES:
+        return ", ".join(items)
+    return f"{', '.join(items[:_EDGE_VALUES])}, ..., {', '.join(items[-_EDGE_VALUES:])} ({len(items)} {noun})"
 
 
 def values_summary(values: object) -> str:
-    """``[1.23, 4.56]`` (three significant digits), or ``<121 values>`` for a long array (the results' reprs)."""
+    """``[1.23, 4.56]`` (three significant digits), for a long array ``[1.23, 4.56, 7.89, ..., 2.34, 5.67,
+    8.9 (121 values)]`` (the results' reprs; they showed ``<8 values>`` and no number)."""
     values = np.atleast_1d(np.asarray(values, dtype=float))
-    if values.size > _SHOWN_VALUES:
-        return f"<{values.size} values>"
-    return "[" + ", ".join(f"{value:.3g}" for value in values) + "]"
+    return "[" + _elided([f"{value:.3g}" for value in values], "values") + "]"
 
 
 def names_summary(names: tuple[str, ...] | None) -> str:
-    """The names of a result's columns for its repr, ``<12 columns>`` for many (a load curve's)."""
-    return repr(names) if names is None or len(names) <= _SHOWN_VALUES else f"<{len(names)} columns>"
+    """The names of a result's columns for its repr, the first and last few of many (a load curve's)."""
+    if names is None or len(names) <= _SHOWN_VALUES:
+        return repr(names)
+    return "(" + _elided([repr(name) for name in names], "columns") + ")"
 
 
 def units_summary(units: tuple[str, ...] | None) -> str:
