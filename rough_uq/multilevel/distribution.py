@@ -16,8 +16,9 @@ bias is of second order, ``E[g((s - Q)/delta)] - F(s) = delta^2 f'(s) / 14 +
 O(delta^4)`` (``1/7`` the second moment of ``K``, ``f`` the density of
 ``Q``).
 
-A value equal to a threshold (within :data:`TIE_TOLERANCE` bandwidths,
-which absorbs the rounding of thresholds typed in decimal) counts whole,
+A value equal to a threshold (within :data:`TIE_TOLERANCE` bandwidths, or
+of the thresholds' span where that is narrower, which absorbs the rounding of
+thresholds typed in decimal) counts whole,
 ``1`` instead of ``g(0) = 1/2``:
 for a ``Q`` with atoms (a count of clusters, a rounded value) the smoothed
 indicator otherwise tends to ``F(s-) + P(Q = s) / 2`` on every level, a bias
@@ -209,6 +210,8 @@ UNSEEN_CHANGE = 3.0
 
 #: A value within this many bandwidths of a threshold is on it (module docstring): the rounding of a threshold
 #: typed in decimal (300 against 3 clusters in a box of 0.1, 3 / 0.1**2 = 299.99999999999994) must not halve an atom.
+#: Of the thresholds' span where the bandwidth is wider: with ``bandwidth=1e12`` every value was on every threshold
+#: (F = 1 at all of them, values of 17-22 at 10 too).
 TIE_TOLERANCE = 1e-9
 
 #: Largest finest bandwidth, in standard deviations of the values, whose smoothing bias the decay of the level
@@ -272,9 +275,10 @@ def _column(values: np.ndarray, qoi: int, name: str) -> np.ndarray:
 
 def _indicator(s: np.ndarray, values: np.ndarray, delta: float) -> np.ndarray:
     """The smoothed indicators ``g((s - Q) / delta)``, 1 where ``Q`` equals ``s`` to :data:`TIE_TOLERANCE` (module
-    docstring), shape ``(n_values, n_thresholds)`` for ``values`` of shape ``(n_values, 1)``."""
-    x = (s - values) / delta
-    return np.where(np.abs(x) <= TIE_TOLERANCE, 1.0, smoothed_step(x))
+    docstring), shape ``(n_values, n_thresholds)`` for ``values`` of shape ``(n_values, 1)`` and all the
+    thresholds ``s`` (increasing)."""
+    tie = TIE_TOLERANCE * min(delta, float(s[-1] - s[0]))
+    return np.where(np.abs(s - values) <= tie, 1.0, smoothed_step((s - values) / delta))
 
 
 def _indicator_differences(x: np.ndarray, y: np.ndarray | None, s: np.ndarray, delta_x: float, delta_y: float):
