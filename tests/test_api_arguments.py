@@ -393,6 +393,10 @@ def test_a_screening_whose_bias_does_not_decay_says_so_in_its_diagnostics():
         "the bias of clusters (alpha = -2.7) does not decrease from level to level on the screened grids, so no "
         "finest level can be chosen from this screening (roughuq mlmc refuses it); screen finer grids (a larger "
         "coarsest), or use mc(level=...) (bias not estimated)")
+    # Its forecast refused without saying what would do (mlmc said it).
+    with pytest.raises(rough_uq.EstimationError, match=r"no level can be chosen for a tolerance; screen finer grids "
+                                                       r"\(a larger coarsest\), or use mc\(level=\.\.\.\)"):
+        screening.forecast(tol=[2.0, 5.0])
     # Level means within their noise (clusters: 0.17 ± 0.17, -0.17 ± 0.17) fit an alpha of -0 that says nothing
     # of the decay: no such diagnostic, and the runs plan at the floor rate.
     spectrum = rough_uq.SurfaceSpectrum(system_size=1.0, k_l=1, k_r=2, k_s=8, hurst=0.8, rms_height=1.0)

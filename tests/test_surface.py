@@ -271,7 +271,10 @@ def test_invalid_sampling_arguments() -> None:
         with pytest.raises(InvalidParameterError) as info:
             sample_surface(SPECTRUM, 16, rng_like)  # type: ignore[arg-type]
         assert info.value.name == "rng"
-    with pytest.raises(InvalidParameterError) as info:
+    # The value, not its type's name: "rng: got 'int'" read as the text 'int'.
+    with pytest.raises(InvalidParameterError, match=r"^rng: got 5; allowed: a numpy.random.Generator"):
+        sample_surface(SPECTRUM, 16, 5)  # type: ignore[arg-type]
+    with pytest.raises(InvalidParameterError, match=r"^spectrum: got None; allowed: a SurfaceSpectrum$") as info:
         sample_coupled(None, 16, rng)  # type: ignore[arg-type]
     assert info.value.name == "spectrum"
 

@@ -397,12 +397,11 @@ def _check_grid_size(name: str, n: object, *, multiple: int = 2) -> int:
 
 def _check_inputs(spectrum: object, rng: object) -> None:
     # InvalidParameterError, as for every other argument (a RoughUQError, so the CLI and callers catch one kind).
+    # The value itself ("rng: got 5"); its type's name read as a value ("rng: got 'int'").
     if not isinstance(spectrum, SurfaceSpectrum):
-        raise InvalidParameterError("spectrum", type(spectrum).__name__, "a SurfaceSpectrum")
+        raise InvalidParameterError("spectrum", spectrum, "a SurfaceSpectrum")
     if not isinstance(rng, np.random.Generator):
-        raise InvalidParameterError(
-            "rng", type(rng).__name__, "a numpy.random.Generator (e.g. numpy.random.default_rng(seed))"
-        )
+        raise InvalidParameterError("rng", rng, "a numpy.random.Generator (e.g. numpy.random.default_rng(seed))")
 
 
 @dataclass(frozen=True)

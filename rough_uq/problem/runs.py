@@ -374,7 +374,13 @@ def exact_column_caveats(
     ]
 
 
-def _refuse_stalled_bias(columns: Sequence[str], rates: Rates, statistics: LevelStatistics, advice: str = "") -> None:
+#: What a refusal of a bias that does not decay advises (the forecast gave none, mlmc this).
+_STALLED_ADVICE = "; screen finer grids (a larger coarsest), or use mc(level=...) (bias not estimated)"
+
+
+def _refuse_stalled_bias(
+    columns: Sequence[str], rates: Rates, statistics: LevelStatistics, advice: str = _STALLED_ADVICE
+) -> None:
     """Raise :class:`~rough_uq.errors.EstimationError` if the screening's bias of a column does not decay.
 
     ``advice`` ends the message (``"; ..."``).
@@ -688,8 +694,7 @@ def mlmc(
     if isinstance(rates, Rates):
         _check_qoi_count(problem, "rates", rates.n_qoi)
     elif statistics is not None:  # as roughuq mlmc: no finest level can be planned from a bias that grows
-        _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics), statistics,
-                             "; screen finer grids (a larger coarsest), or use mc(level=...) (bias not estimated)")
+        _refuse_stalled_bias(problem.columns, _fitted_rates(problem, screening, statistics), statistics)
     if statistics is not None:  # as roughuq mlmc: a bias the screening predicts beyond max_level is refused
         starting_rates = rates if isinstance(rates, Rates) else contact_planning_rates(
             problem.model, statistics, problem.max_level)

@@ -127,6 +127,15 @@ class PlainProgress(Progress):
 
     ETA of a level: its remaining samples times the mean time per sample
     since the level's first completed sample (see the module docstring).
+
+    Parameters
+    ----------
+    stream : text stream or None
+        Where the lines go (an object with ``write`` and ``flush``); None: ``sys.stderr``.
+    interval : float
+        Least seconds between two lines of one level, and between two lines of a changed plan (>= 0; 0: a
+        line for every batch); a level's first line, a plan that adds a level and every level's last count
+        (at the end) are printed whatever the interval.
     """
 
     def __init__(self, stream: IO[str] | None = None, *, interval: float = 10.0) -> None:
