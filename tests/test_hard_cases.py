@@ -890,6 +890,12 @@ def test_a_screening_sized_level_whose_variance_rests_on_one_sample_is_flagged()
     (message,) = [m for m in diagnose(table, names=["clusters"]) if "kurtosis" in m]
     assert message == ("level 1: kurtosis 18.1 of Q_l - Q_l-1 for clusters exceeds 10 = 20 samples / 2: the "
                        "variance rests on 20 / 18.1 = 1.11 of them, fewer than 2; its variance estimate is unreliable")
+    # On the base level the samples are Q_0 alone, as the message says (it said "of Q_l - Q_l-1" there too).
+    spike = np.zeros(n)
+    spike[5] = 1.0
+    base = level_statistics(fine=[spike, spike], coarse=[np.zeros(n), spike], cost=[np.ones(n)] * 2)
+    (message,) = [m for m in diagnose(base) if "kurtosis" in m]
+    assert message.startswith("level 0: kurtosis 18.1 of Q_l for QoI [0] exceeds 10")
     # Two jumps of 20: the variance rests on about 2.5 samples, not flagged; nor one jump in 19 samples.
     assert not [m for m in diagnose(_jump_table(n, [5, 11])) if "kurtosis" in m]
     assert not [m for m in diagnose(_jump_table(19, [3])) if "kurtosis" in m]

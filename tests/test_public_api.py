@@ -417,10 +417,13 @@ def test_settings_that_are_not_numbers_are_refused_by_name(run, field, value):
 def test_mlmc_options_are_checked_and_an_infinite_budget_is_no_budget():
     problem = _problem()
     for field, value in (("kurtosis_limit", -1.0), ("kurtosis_limit", "5"), ("kurtosis_limit", float("nan")),
-                         ("richardson", "yes"), ("richardson", 1)):
+                         ("kurtosis_limit", 0.5), ("richardson", "yes"), ("richardson", 1)):
         with pytest.raises(rough_uq.InvalidParameterError) as caught:
             rough_uq.mlmc(problem, tol=5.0, **{field: value})
         assert caught.value.name == field
+    # A kurtosis is at least 1: a limit of 0.5 (taken before) flagged every level.
+    with pytest.raises(rough_uq.InvalidParameterError, match=r"^kurtosis_limit: got 0.99; allowed: a number >= 1 "):
+        rough_uq.mc(problem, tol=5.0, level=0, kurtosis_limit=0.99)
     unlimited = rough_uq.variance(problem, tol=50.0, max_cost=None)
     infinite = rough_uq.variance(problem, tol=50.0, max_cost=math.inf)  # was an OverflowError
     np.testing.assert_array_equal(infinite.estimate, unlimited.estimate)

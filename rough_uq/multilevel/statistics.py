@@ -648,8 +648,9 @@ def _level_messages(
     heavy = np.flatnonzero(statistics.kurtosis[row] > kurtosis_threshold(n, kurtosis_limit))
     if heavy.size:
         worst = float(np.max(statistics.kurtosis[row]))
+        of = "Q_l" if level <= statistics.base_level else "Q_l - Q_l-1"  # the base level's samples are Q_l alone
         messages.append(
-            f"level {level}: kurtosis {worst:.3g} of Q_l - Q_l-1 for {qoi_text(heavy, names)} "
+            f"level {level}: kurtosis {worst:.3g} of {of} for {qoi_text(heavy, names)} "
             f"{kurtosis_text(worst, n, kurtosis_limit)}; its variance estimate is unreliable"
         )
     if level <= statistics.base_level:

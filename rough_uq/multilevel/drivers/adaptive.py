@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import (
-    PLANNED_COUNT_CAP,
     EstimationError,
     InvalidParameterError,
     PlanTooLargeError,
@@ -53,7 +52,9 @@ from rough_uq.multilevel.drivers.planning import (
     planning_rates,
     planning_variances,
 )
-from rough_uq.multilevel.drivers.samples import Sampler, _check_positive, _shape_out, check_optional_positive
+from rough_uq.multilevel.drivers.samples import (
+    Sampler, _shape_out, check_initial_count, check_kurtosis_limit, check_optional_positive,
+)
 from rough_uq.multilevel.rates import (
     STALL_SIGNIFICANCE, DroppedLevel, Rates, checked_gamma_beyond, confirmed_tail, estimated_bias, tail_rate,
 )
@@ -174,7 +175,7 @@ def iter_mlmc(
         refused Richardson extrapolation.
     """
     theta = check_fraction("theta", theta)
-    n_initial = checked_integer("n_initial", n_initial, 2, PLANNED_COUNT_CAP)  # 10**20 overflowed the plan's int64
+    n_initial = check_initial_count(n_initial)
     # Two levels above the base (>= 0) to fit the rates from: levels 0..2 at least.
     min_finest_level, max_level = check_finest_levels(min_finest_level, max_level, least_max_level=2)
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
@@ -196,7 +197,7 @@ def iter_mlmc(
         max_level=max_level,
         screening=screening,
         rates=rates,
-        kurtosis_limit=_check_positive("kurtosis_limit", kurtosis_limit),
+        kurtosis_limit=check_kurtosis_limit(kurtosis_limit),
         richardson=checked_bool("richardson", richardson),
         coarsest_level=None if coarsest_level is None else checked_integer("coarsest_level", coarsest_level, 0),
         gamma_beyond=checked_gamma_beyond("gamma_beyond", gamma_beyond),

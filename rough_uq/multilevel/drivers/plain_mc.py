@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rough_uq.errors import (
-    PLANNED_COUNT_CAP, InvalidParameterError, checked_integer, checked_real_array, warn_at_caller,
+    InvalidParameterError, checked_integer, checked_real_array, warn_at_caller,
 )
 from rough_uq.multilevel.allocation import check_fraction, check_tol
 from rough_uq.multilevel.drivers.adaptive import MIN_LEVEL_SAMPLES, _final
@@ -19,7 +19,8 @@ from rough_uq.multilevel.drivers.loop import _MAX_COUNT, _Options, _Run, _check_
 from rough_uq.multilevel.drivers.samples import (
     _LevelSamples,
     Sampler,
-    _check_positive,
+    check_initial_count,
+    check_kurtosis_limit,
     _shape_out,
     check_optional_positive,
 )
@@ -101,7 +102,7 @@ def iter_mc(
     """
     theta = check_fraction("theta", theta)
     level = checked_integer("level", level, 0)
-    n_initial = checked_integer("n_initial", n_initial, 2, PLANNED_COUNT_CAP)  # 10**20 overflowed the plan's int64
+    n_initial = check_initial_count(n_initial)
     batch_size = None if batch_size is None else checked_integer("batch_size", batch_size, 1)
     max_cost = check_optional_positive("max_cost", max_cost)
     n_qoi = screening.n_qoi if screening is not None else None
@@ -114,7 +115,7 @@ def iter_mc(
         bias=None if bias is None else _checked_bias(bias),
         n_initial=n_initial,
         screening=screening,
-        kurtosis_limit=_check_positive("kurtosis_limit", kurtosis_limit),
+        kurtosis_limit=check_kurtosis_limit(kurtosis_limit),
     )
     batch_cap = checked_batch_cap(batch_size)
     return _drive(functools.partial(_McRun, options), sampler, batch_cap=batch_cap, max_cost=max_cost)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rough_uq.errors import EstimationError, InvalidParameterError, is_real_number
+from rough_uq.errors import PLANNED_COUNT_CAP, EstimationError, InvalidParameterError, checked_integer, is_real_number
 from rough_uq.multilevel.statistics import LevelMoments, level_moments, readonly_array
 
 Sampler = Callable[[int, np.ndarray], tuple[object, object, object]]
@@ -102,9 +102,23 @@ def check_optional_positive(name: str, value: object) -> float | None:
     return None if value == math.inf else float(value)
 
 
-def _check_positive(name: str, value: object) -> float:
-    if not (is_real_number(value) and value > 0):
-        raise InvalidParameterError(name, value, "a number > 0")
+def check_initial_count(n_initial: object) -> int:
+    """``n_initial`` as an int, or :class:`InvalidParameterError` unless an integer from 2 to
+    :data:`~rough_uq.errors.PLANNED_COUNT_CAP` (2^52, the largest count a plan gives a level: ``10**20`` was an
+    OverflowError from the first plan's int64 counts)."""
+    n_initial = checked_integer("n_initial", n_initial, 2)
+    if n_initial > PLANNED_COUNT_CAP:
+        raise InvalidParameterError("n_initial", n_initial, f"at most 2^52 = {PLANNED_COUNT_CAP}, the largest count "
+                                    "a plan gives a level")
+    return n_initial
+
+
+def check_kurtosis_limit(value: object) -> float:
+    """``kurtosis_limit`` as a float, or :class:`InvalidParameterError` unless a number >= 1 (``math.inf``: never
+    warn): a kurtosis is at least 1, so a limit below it flagged every level (0.5 was taken)."""
+    if not (is_real_number(value) and value >= 1):
+        raise InvalidParameterError("kurtosis_limit", value, "a number >= 1 (a kurtosis is at least 1; math.inf: "
+                                    "never warn)")
     return float(value)
 
 
