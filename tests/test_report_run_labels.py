@@ -215,3 +215,19 @@ def test_a_table_is_printed_wider_than_the_terminal_only_where_squeezing_would_c
     words = ["contact_area=0.25", "0.029912", "0.0044721", "12345.678", "0.08445"]
     lines = printed(words, 30)
     assert max(map(len, lines)) > 30 and all(word in "".join(lines).split() for word in words)
+
+
+def test_an_error_beside_its_tolerance_never_reads_as_equal_to_it():
+    # An audit's cdf run printed "sup-norm RMSE 0.1 > tol 0.1" (RMSE 0.10364) and its table RMSE 0.1, tol 0.1, met no.
+    from types import SimpleNamespace
+
+    from rough_uq.report.summary import _error_text
+
+    estimated = SimpleNamespace(is_bias_estimated=True)
+    assert _error_text(estimated, 0.10364, 0.1, "sup-norm ") == "sup-norm RMSE 0.104 > tol 0.1"
+    assert _error_text(estimated, 0.0999, 0.1) == "RMSE 0.0999 <= tol 0.1"
+    assert _error_text(estimated, 0.39, 0.5) == "RMSE 0.39 <= tol 0.5"  # two digits where they tell apart
+    assert _error_text(estimated, 0.1, 0.1) == "RMSE 0.1 <= tol 0.1"
+    # The share of an mc --level run: the bound printed as finely as the error.
+    assert _error_text(SimpleNamespace(is_bias_estimated=False), 0.1801, 0.18 / 0.9, share=0.9) == (
+        "stat. error 0.1801 > 0.18, its share of tol 0.2")

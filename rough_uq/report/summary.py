@@ -387,6 +387,17 @@ def _g(value: float | None, digits: int = 3) -> str:
     return f"{value + 0.0:.{digits}g}"  # + 0.0: a fitted -0.0 reads "0", not "-0"
 
 
+def _beside(value: float, bound: float, digits: int = 2, bound_digits: int = 3) -> tuple[str, str]:
+    """``value`` and ``bound`` to ``digits`` and ``bound_digits`` significant digits, both to more (up to 6)
+    where they would read alike without being equal: an RMSE of 0.10364 beside its tolerance 0.1 printed
+    "RMSE 0.1 > tol 0.1"."""
+    while True:
+        text, bound_text = _g(value, digits), _g(bound, bound_digits)
+        if value == bound or text != bound_text or max(digits, bound_digits) >= 6:
+            return text, bound_text
+        digits, bound_digits = digits + 1, max(bound_digits, digits + 1)
+
+
 def _digits(value: float, digits: int) -> str:
     """``value`` to ``digits`` significant digits, trailing zeros kept (``18.60`` beside ``20.45``; ``:.4g``
     printed ``18.6``), without a bare trailing point (``1000``, not ``1000.``)."""
@@ -602,8 +613,10 @@ def _error_text(outcome: Any, rmse: float, tol: float, what: str = "", share: fl
     relation = "<=" if rmse <= bound * (1 + 1e-12) else ">"
     label = f"{what}RMSE" if outcome.is_bias_estimated else f"{what}stat. error"
     if share is not None:
-        return f"{label} {_g(rmse, 2)} {relation} {_g(bound, 2)}, its share of tol {_g(tol)}"
-    return f"{label} {_g(rmse, 2)} {relation} tol {_g(tol)}"
+        shown, bound_shown = _beside(rmse, bound, bound_digits=2)
+        return f"{label} {shown} {relation} {bound_shown}, its share of tol {_g(tol)}"
+    shown, tol_shown = _beside(rmse, tol)
+    return f"{label} {shown} {relation} tol {tol_shown}"
 
 
 def _estimate_line(outcome: Any, q: int, label: str, unit: str, tol: float, share: float | None = None) -> str:
@@ -947,7 +960,7 @@ def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
                 _qoi_cell(name, _column_unit(units, name), 2),
                 _value_error(variance, outcome.stat_error[q]),
                 _g(math.sqrt(variance)) if variance >= 0 else "-",
-                _g(outcome.rmse[q], 2) if is_estimated else "-", _g(run.tol[q]),
+                *(_beside(outcome.rmse[q], run.tol[q]) if is_estimated else ("-", _g(run.tol[q]))),
                 _g(outcome.bias_estimate[q], 2) if is_estimated else "-",
                 " ".join(str(n) for n in outcome.n_samples),
                 "yes" if outcome.tol_met else "no",
@@ -971,7 +984,7 @@ def _distribution_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any
         outcome, distribution = run.outcome, run.outcome.distribution
         unit = _column_unit(units, distribution.column)
         is_rmse = is_rmse_measured(outcome) and bool(outcome.is_bias_estimated)
-        run_cells = (_g(outcome.rmse[0], 2) if is_rmse else "-", _g(run.tol[0]),
+        run_cells = (*(_beside(outcome.rmse[0], run.tol[0]) if is_rmse else ("-", _g(run.tol[0]))),
                      " ".join(str(n) for n in outcome.n_samples), "yes" if outcome.tol_met else "no")
         for row, quantile in enumerate(distribution.quantiles or (None,)):
             value, bar = "-", "-"
