@@ -52,3 +52,16 @@ def test_richardson_note_names_the_qoi_that_refused_it():
 def test_plan_refuses_qoi_names_that_do_not_match_the_columns(bad):
     with pytest.raises(InvalidParameterError, match="^qoi_names"):
         _richardson_note(NOT_DECAYING, qoi_names=bad)
+
+
+def test_the_starting_plan_of_a_run_and_its_forecast_name_the_qoi_too():
+    # The forecast said "(QoI 0)" where the run's own warning named contact_area@0.05: the run's starting plan
+    # (from which forecasts are made) did not pass the names on to plan.
+    from rough_uq.multilevel.drivers import planning_rates, starting_plan
+
+    statistics = _screening(np.asarray(NOT_DECAYING, dtype=float))
+    options = dict(tol=np.array([1e-3, 1e-3]), rates=planning_rates(statistics), statistics=statistics, theta=0.5,
+                   max_level=6, richardson=True)
+    named = starting_plan(**options, qoi_names=("contact_area", "clusters")).richardson_note
+    assert "(clusters)" in named and "QoI" not in named
+    assert "(QoI 1)" in starting_plan(**options).richardson_note

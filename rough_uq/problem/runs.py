@@ -164,7 +164,7 @@ class ScreeningResult:
         _refuse_stalled_bias(problem.columns, self.rates, self.statistics)
         planned = contact_planning_rates(problem.model, self.statistics, problem.max_level)
         initial = drivers.starting_plan(tol=tol, rates=planned, statistics=self.statistics, theta=theta,
-                                        max_level=problem.max_level, richardson=richardson)
+                                        max_level=problem.max_level, richardson=richardson, qoi_names=problem.columns)
         counts, costs = drivers.starting_forecast(initial, planned)
         cost = float(np.dot(counts, costs))
         mc_cost = mc_run_cost(_screened_mc_plan(problem, self, self.statistics, tol, theta))
@@ -700,7 +700,8 @@ def mlmc(
             problem.model, statistics, problem.max_level)
         _refuse_unreachable(problem, tol, drivers.starting_plan(
             tol=tol, rates=starting_rates, statistics=statistics, theta=theta, max_level=problem.max_level,
-            richardson=richardson, min_finest_level=min_finest_level), statistics, method="mlmc")
+            richardson=richardson, min_finest_level=min_finest_level, qoi_names=problem.columns), statistics,
+            method="mlmc")
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
     sampler = problem.sampler(stage, executor=executor, progress=progress)
     events = drivers.iter_mlmc(

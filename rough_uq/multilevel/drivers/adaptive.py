@@ -287,7 +287,7 @@ def _mlmc_start(options: _MlmcOptions) -> _MlmcStart:
     initial = starting_plan(
         tol=options.tol, rates=screening_rates, statistics=screening, theta=options.theta,
         max_level=options.max_level, richardson=options.richardson, coarsest_level=options.coarsest_level,
-        min_finest_level=options.min_finest_level,
+        min_finest_level=options.min_finest_level, qoi_names=options.qoi_names,
     )
     base = initial.coarsest_level
     targets = starting_samples(initial, min_finest_level=options.min_finest_level)
@@ -332,6 +332,7 @@ def starting_forecast(
 def starting_plan(
     *, tol: np.ndarray, rates: Rates, statistics: LevelStatistics, theta: float, max_level: int,
     richardson: bool = False, coarsest_level: int | None = None, min_finest_level: int = 2,
+    qoi_names: Sequence[str] | None = None,
 ) -> Plan:
     """The plan an MLMC run started from a screening begins with (:func:`iter_mlmc`).
 
@@ -339,9 +340,11 @@ def starting_plan(
     coarsest level is chosen from the screening unless given, and is level 0
     when ``max_level`` leaves no two levels above the chosen one (the rates
     need them). Forecasts use it to predict what the run will plan. Its bias is the one the run's levels
-    predict (:func:`with_run_bias`).
+    predict (:func:`with_run_bias`). ``qoi_names`` name the QoIs in the plan's reasons (a forecast said
+    ``(QoI 0)`` where the run named ``contact_area@0.05``).
     """
-    options = dict(tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=max_level, richardson=richardson)
+    options = dict(tol=tol, rates=rates, statistics=statistics, theta=theta, max_level=max_level, richardson=richardson,
+                   qoi_names=qoi_names)
     initial = plan(**options, coarsest_level=coarsest_level)
     if coarsest_level is None and initial.coarsest_level + 2 > max_level:
         initial = plan(**options, coarsest_level=0)

@@ -143,7 +143,7 @@ def _run_plan(
 ) -> Plan:
     """The screening plan of a run: MLMC's starting plan (its coarsest level included), MC's finest level."""
     options = dict(tol=tol, rates=rates, statistics=statistics, theta=config.estimation.theta,
-                   max_level=config.grid.max_level)
+                   max_level=config.grid.max_level, qoi_names=config.qoi_names)
     if method != "mlmc":
         return plan(**options, coarsest_level=None)
     richardson = bool(config.estimation.richardson) if richardson is None else richardson

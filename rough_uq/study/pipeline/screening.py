@@ -111,7 +111,7 @@ def _marked_as_runs_refuse(prediction: Plan, config: StudyConfig, rates: Rates, 
     (:func:`~rough_uq.multilevel.drivers.adaptive.with_run_bias`).
     """
     start = starting_plan(tol=prediction.tol, rates=rates, statistics=statistics, theta=prediction.theta,
-                          max_level=config.grid.max_level)
+                          max_level=config.grid.max_level, qoi_names=config.qoi_names)
     if start.is_bias_met or not prediction.is_bias_met:
         return prediction
     return replace(prediction, bias=start.bias, is_bias_met=False)
