@@ -122,11 +122,17 @@ def _elided(items: list[str], noun: str) -> str:
     return f"{', '.join(items[:_EDGE_VALUES])}, ..., {', '.join(items[-_EDGE_VALUES:])} ({len(items)} {noun})"
 
 
-def values_summary(values: object) -> str:
-    """``[1.23, 4.56]`` (three significant digits), for a long array ``[1.23, 4.56, 7.89, ..., 2.34, 5.67,
-    8.9 (121 values)]`` (the results' reprs; they showed ``<8 values>`` and no number)."""
+def values_summary(values: object, digits: int = 3) -> str:
+    """``[1.23, 4.56]`` (``digits`` significant digits), for a long array ``[1.23, 4.56, 7.89, ..., 2.34, 5.67,
+    8.9 (121 values)]`` (the results' reprs; they showed ``<8 values>`` and no number). Estimates take
+    :data:`ESTIMATE_DIGITS`."""
     values = np.atleast_1d(np.asarray(values, dtype=float))
-    return "[" + _elided([f"{value:.3g}" for value in values], "values") + "]"
+    return "[" + _elided([f"{value:.{digits}g}" for value in values], "values") + "]"
+
+
+#: Significant digits of an estimate in a result's repr: 20.148 ± 0.30 printed ``estimate=[20.1]``, a digit
+#: short of what its error supports; errors and tolerances keep three.
+ESTIMATE_DIGITS = 4
 
 
 def names_summary(names: tuple[str, ...] | None) -> str:

@@ -124,6 +124,7 @@ from rough_uq.multilevel.drivers import (
 )
 from rough_uq.multilevel.rates import giles_prediction, rate_line, remaining_bias, tail_rate
 from rough_uq.multilevel.statistics import (
+    ESTIMATE_DIGITS,
     KURTOSIS_LIMIT,
     EstimationWarning,
     ExactTotal,
@@ -312,8 +313,9 @@ class TargetEstimate:
         # stay in the attributes.
         names = "" if self.qoi_names is None else f"qoi_names={names_summary(self.qoi_names)}, "
         errors = errors_summary(self.rmse, self.stat_error, self.bias, self.is_bias_estimated)
+        estimate = values_summary(self.estimate, ESTIMATE_DIGITS)
         return (
-            f"TargetEstimate({names}{units_summary(self.units)}estimate={values_summary(self.estimate)}, {errors}, "
+            f"TargetEstimate({names}{units_summary(self.units)}estimate={estimate}, {errors}, "
             f"tol={values_summary(self.tol)}, tol_met={self.tol_met}, stop_reason={self.stop_reason!r}, "
             f"levels={self.levels.tolist()}, n_samples={self.n_samples.tolist()})"
         )

@@ -10,7 +10,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rough_uq.multilevel.rates import DroppedLevel, Rates
-from rough_uq.multilevel.statistics import LevelStatistics, errors_summary, names_summary, units_summary, values_summary
+from rough_uq.multilevel.statistics import (
+    ESTIMATE_DIGITS, LevelStatistics, errors_summary, names_summary, units_summary, values_summary,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -201,7 +203,7 @@ class EstimationResult:
                                  bias_name="bias_estimate")
         return (
             f"EstimationResult(method={self.method!r}, qoi_names={names_summary(self.qoi_names)}, "
-            f"{units_summary(self.units)}estimate={values_summary(self.estimate)}, {errors}, "
+            f"{units_summary(self.units)}estimate={values_summary(self.estimate, ESTIMATE_DIGITS)}, {errors}, "
             f"tol={values_summary(self.tol)}, tol_met={self.tol_met}, "
             f"stop_reason={self.stop_reason!r}, levels={np.asarray(self.levels).tolist()}, "
             f"n_samples={np.asarray(self.n_samples).tolist()}, n_not_converged={self.n_not_converged})"
