@@ -301,6 +301,13 @@ def test_load_curve_kappa_line_stops_where_its_fit_stops(tmp_path, figures):
     (line,) = [line for label, line in _lines(ax).items() if label.startswith("kappa")]
     np.testing.assert_allclose(line.get_xdata(), [0.0, 0.2 / 1.8])
     assert max(line.get_ydata()) == pytest.approx(20.0) and ax.get_ylim()[1] < 110.0
+    # Its label reads as the report's text (value to the error's second digit): "kappa = 2.2 ± 0.049" stood beside
+    # the report's 2.203 ± 0.049.
+    fit.update(kappa=2.2034, error=0.0491)
+    plots._load_curve_figure(plots._Drawn(None, (), ("contact_area",), {"contact_area": "%"}, (), (entry,)),
+                             tmp_path / "load_curve.png")
+    (label,) = [label for label in _lines(figures["load_curve.png"].axes[0]) if label.startswith("kappa")]
+    assert label.startswith("kappa = 2.203 ± 0.049 (fit on 2 loads")
 
 
 def test_load_curve_names_of_many_runs_stay_distinct_and_short():

@@ -45,7 +45,7 @@ from rough_uq.physics.qoi import cluster_count, contact_area, label_clusters
 from rough_uq.physics.solver import ContactSolution
 from rough_uq.problem.sampler import ContactModel, is_coupled_stage, solve_sample
 from rough_uq.problem.columns import split_column, tol_number
-from rough_uq.report.summary import has_error_band, is_rmse_measured, run_label, tol_text
+from rough_uq.report.summary import has_error_band, is_rmse_measured, run_label, tol_text, value_error_text
 from rough_uq.multilevel.rates import EXACT_RATE
 from rough_uq.study.records import RunRecord, ScreeningRecord, is_bias_decaying
 
@@ -480,7 +480,9 @@ def _load_curve_figure(drawn: _Drawn, path: Path) -> Path | None:
                 reach = fit["max_area"] / fit["kappa"] if fit["kappa"] > 0 else math.inf
                 span = np.array([0.0, min(load.max(), reach)])
                 source = "one load" if fit["n_points"] == 1 else f"fit on {fit['n_points']} loads"
-                label = f"kappa = {fit['kappa']:.3g} ± {fit['error']:.2g} ({source}, A/A0 < {fit['max_area']:g})"
+                # As the text prints it: "kappa = 2.2 ± 0.049" read beside the report's 2.203 ± 0.049.
+                kappa = value_error_text(fit["kappa"], fit["error"])
+                label = f"kappa = {kappa} ({source}, A/A0 < {fit['max_area']:g})"
                 ax.plot(span, fit["kappa"] * span * scale, ":", color=colour, label=label)
         unit = units.get(name)
         ax.set_xlabel("load $p / (E^* \\sqrt{m_2})$")

@@ -109,6 +109,7 @@ __all__ = [
     "derive_runs",
     "format_run",
     "load_text",
+    "value_error_text",
     "render_report",
     "render_runs",
     "render_sweep",
@@ -427,7 +428,7 @@ def _pm(value: float, error: float) -> str:
     return f"{_g(value, 3)} ± {_g(error, 2)}"
 
 
-def _value_error(value: float, error: float) -> str:
+def value_error_text(value: float, error: float) -> str:
     """``value ± error`` with the error to two significant digits and the value to the same decimal."""
     if not (math.isfinite(value) and math.isfinite(error)) or error <= 0:
         return f"{_g(value, 5)} ± {_g(error, 2)}"
@@ -625,7 +626,7 @@ def _estimate_line(outcome: Any, q: int, label: str, unit: str, tol: float, shar
     Without a bias estimate: ``(stat. error e <= tol t, bias not estimated)``; ``share``: :func:`_error_text`.
     """
     bias = f"bias {_g(outcome.bias_estimate[q], 2)}" if outcome.is_bias_estimated else "bias not estimated"
-    return (f"  {label} = {_value_error(outcome.estimate[q], outcome.stat_error[q])}{unit} "
+    return (f"  {label} = {value_error_text(outcome.estimate[q], outcome.stat_error[q])}{unit} "
             f"({_error_text(outcome, outcome.rmse[q], tol, share=share)}, {bias})")
 
 
@@ -958,7 +959,7 @@ def _variance_table(runs: Sequence[RunRecord], units: dict[str, str]) -> Any:
             is_estimated = outcome.is_bias_estimated
             table.add_row(
                 _qoi_cell(name, _column_unit(units, name), 2),
-                _value_error(variance, outcome.stat_error[q]),
+                value_error_text(variance, outcome.stat_error[q]),
                 _g(math.sqrt(variance)) if variance >= 0 else "-",
                 *(_beside(outcome.rmse[q], run.tol[q]) if is_estimated else ("-", _g(run.tol[q]))),
                 _g(outcome.bias_estimate[q], 2) if is_estimated else "-",
@@ -1031,7 +1032,7 @@ def render_sweep(console: Any, rows: Sequence[Any], *, key: str, level: int,
         for q, name in enumerate(row.run.qoi_names):
             table.add_row(
                 escape(row.value), str(row.grid), escape(_labelled(name, _column_unit(row_units, name))),
-                _value_error(outcome.estimate[q], outcome.stat_error[q]), str(outcome.n_samples[0]),
+                value_error_text(outcome.estimate[q], outcome.stat_error[q]), str(outcome.n_samples[0]),
                 format_duration(outcome.seconds),
             )
     _print_table(console, table)
@@ -1256,13 +1257,13 @@ def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: di
         for name in names:
             table.add_column(escape(_labelled(name, units.get(name, ""))), justify="right")
         for j, load in enumerate(entry["loads"]):
-            cells = [_value_error(entry["curves"][n]["estimate"][j], entry["curves"][n]["rmse"][j]) for n in names]
+            cells = [value_error_text(entry["curves"][n]["estimate"][j], entry["curves"][n]["rmse"][j]) for n in names]
             table.add_row(_g(load, 4), _g(entry["relative_loads"][j], 4), *cells)
         _print_table(console, table)
         fit = entry.get("kappa")
         if fit is not None:
             console.print(
-                f"  kappa = {_value_error(fit['kappa'], fit['error'])} in A/A0 = kappa p/(E* sqrt(m2)), "
+                f"  kappa = {value_error_text(fit['kappa'], fit['error'])} in A/A0 = kappa p/(E* sqrt(m2)), "
                 f"{_slope_source(fit)}; Persson's theory: sqrt(8/pi) = {math.sqrt(8 / math.pi):.3f}, numerical "
                 "studies: about 2",
                 highlight=False,
