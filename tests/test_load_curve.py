@@ -416,6 +416,9 @@ def test_report_shows_the_load_curve_table_and_kappa(curve_study, tmp_path):
 
     output = CliRunner().invoke(main, ["report", str(curve_study), "--plots", str(tmp_path)]).output
     assert "Load curve of" in output and "kappa =" in output and "contact_area@0.02" in output
+    # Relative loads once: a "load" column repeated the p/(E* sqrt(m2)) one.
+    headers = [line.split() for line in output.splitlines() if "p/(E* sqrt(m2))" in line and "kappa" not in line]
+    assert headers and all(header[0] == "p/(E*" for header in headers), headers
     # One small load gives no fit, only the line through it (the report said "fitted ... on the 1 load(s)").
     for entry in curves:
         n_points = entry["kappa"]["n_points"]

@@ -1251,14 +1251,18 @@ def render_load_curves(console: Any, curves: Sequence[dict[str, Any]], units: di
     units = units or {}
     for entry in curves:
         table = _table(escape(f"Load curve of {entry['label']} (estimate ± {entry['error']})"))
-        table.add_column("load", justify="right")
+        # Relative loads are the second column already: a first column repeating them made the table wider than
+        # most terminals for two QoIs.
+        is_absolute = entry["loads"] != entry["relative_loads"]
+        if is_absolute:
+            table.add_column("load", justify="right")
         table.add_column("p/(E* sqrt(m2))", justify="right")
         names = list(entry["curves"])
         for name in names:
             table.add_column(escape(_labelled(name, units.get(name, ""))), justify="right")
         for j, load in enumerate(entry["loads"]):
             cells = [value_error_text(entry["curves"][n]["estimate"][j], entry["curves"][n]["rmse"][j]) for n in names]
-            table.add_row(_g(load, 4), _g(entry["relative_loads"][j], 4), *cells)
+            table.add_row(*([_g(load, 4)] if is_absolute else []), _g(entry["relative_loads"][j], 4), *cells)
         _print_table(console, table)
         fit = entry.get("kappa")
         if fit is not None:
