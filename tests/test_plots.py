@@ -390,3 +390,20 @@ def test_a_sample_figure_names_its_stage_as_given(tmp_path, figures):
                               stage_name="run mlmc_contact_area-2_theta-0.5")
     (suptitle,) = figures["s.png"].texts
     assert suptitle.get_text().startswith("sample of run mlmc_contact_area-2_theta-0.5, level 0 (grid 8), index 0")
+
+
+def test_the_cost_legend_counts_the_exponents_of_many_columns():
+    # Ten columns of a load curve, each named with its exponent, took more lines than the axes had room for.
+    from types import SimpleNamespace
+
+    def complexity(mc: float, regime: str = "eps^-2 (beta > gamma)"):
+        return SimpleNamespace(mc_exponent=mc, mlmc_regime=regime, mlmc_exponent=2.0)
+
+    columns = tuple(f"contact_area@{load}" for load in (0.01, 0.02, 0.05, 0.1, 0.2))
+    drawn = plots._Drawn(None, (), columns, {}, ())
+    many = [complexity(3.0)] * 3 + [complexity(3.5)] * 2
+    assert plots._exponent_note(drawn, many, is_mc=True) == (
+        "\neps^-3.00 (3 columns), eps^-3.50 (2 columns); per\ncolumn in the report")
+    assert plots._exponent_note(drawn, many, is_mc=False) == "\neps^-2 (5 columns); per column in the report"
+    few = plots._exponent_note(plots._Drawn(None, (), columns[:2], {}, ()), many[3:], is_mc=True)
+    assert few == "\ncontact_area@0.01 eps^-3.50;\ncontact_area@0.02 eps^-3.50"  # named, as before

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 import textwrap
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -267,15 +268,24 @@ def _exponent_note(drawn: _Drawn, complexities: Sequence[Any], *, is_mc: bool) -
             return f" (eps^-{c.mc_exponent:.2f})" if _positive(c.mc_exponent) else ""
         return f" ({c.mlmc_regime})"
     notes = []
-    for name, c in zip(drawn.qoi_names, complexities):
+    for c in complexities:
         if c.mlmc_regime.startswith("exact"):  # no rates to speak of (records.complexity)
-            note = "exact"
+            notes.append("exact")
         elif is_mc:
-            note = f"eps^-{c.mc_exponent:.2f}" if _positive(c.mc_exponent) else "not fitted"
+            notes.append(f"eps^-{c.mc_exponent:.2f}" if _positive(c.mc_exponent) else "not fitted")
         else:
-            note = c.mlmc_regime.split(" (")[0] if c.mlmc_exponent is not None else "not fitted"
-        notes.append(f"{name} {note}")
-    return "\n" + _fill("; ".join(map(_no_break, notes)), 50)
+            notes.append(c.mlmc_regime.split(" (")[0] if c.mlmc_exponent is not None else "not fitted")
+    if len(notes) > _NAMED_EXPONENTS:
+        # Each column named, ten columns of a load curve took more lines than the axes (an audit's figure).
+        counts = Counter(notes)
+        text = ", ".join(f"{note} ({counts[note]} columns)" for note in dict.fromkeys(notes))
+        return "\n" + _fill(f"{text}; per column in the report", 50)
+    named = [f"{name} {note}" for name, note in zip(drawn.qoi_names, notes)]
+    return "\n" + _fill("; ".join(map(_no_break, named)), 50)
+
+
+#: Up to this many columns the legend names each column's cost exponent; more are counted by exponent.
+_NAMED_EXPONENTS = 3
 
 
 def _positive(value: object) -> bool:
