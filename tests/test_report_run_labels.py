@@ -231,3 +231,12 @@ def test_an_error_beside_its_tolerance_never_reads_as_equal_to_it():
     # The share of an mc --level run: the bound printed as finely as the error.
     assert _error_text(SimpleNamespace(is_bias_estimated=False), 0.1801, 0.18 / 0.9, share=0.9) == (
         "stat. error 0.1801 > 0.18, its share of tol 0.2")
+
+
+def test_a_tiny_value_is_printed_to_its_errors_second_digit_too():
+    # A variance of a mean gap printed "2.13623e-07 ± 3.8e-08": four digits its error does not support.
+    from rough_uq.report.summary import value_error_text
+
+    assert value_error_text(2.13623e-07, 3.8e-08) == "2.14e-07 ± 3.8e-08"
+    assert value_error_text(20.148, 0.30) == "20.15 ± 0.30"  # fixed decimals, as before
+    assert value_error_text(0.0, 3e-10) == "0 ± 3e-10"

@@ -433,8 +433,9 @@ def value_error_text(value: float, error: float) -> str:
     if not (math.isfinite(value) and math.isfinite(error)) or error <= 0:
         return f"{_g(value, 5)} ± {_g(error, 2)}"
     decimals = max(0, 1 - math.floor(math.log10(error)))
-    if decimals > 8:
-        return f"{value:.6g} ± {error:.2g}"
+    if decimals > 8:  # in exponent form, the value to the error's second digit too (it printed 2.13623e-07 ± 3.8e-08)
+        digits = max(1, math.floor(math.log10(abs(value))) - math.floor(math.log10(error)) + 2) if value else 1
+        return f"{value:.{min(digits, 6)}g} ± {error:.2g}"
     return f"{value:.{decimals}f} ± {error:.{decimals}f}"
 
 
