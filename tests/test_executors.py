@@ -20,9 +20,9 @@ from click.testing import CliRunner
 
 from rough_uq.cli import main
 from rough_uq.study.config import config_from_dict
+from rough_uq.errors import ExecutorError, InvalidParameterError
 from rough_uq.study import executors
 from rough_uq.study.executors import SerialExecutor, default_workers, make_executor, PoolExecutor
-from rough_uq.errors import InvalidParameterError
 from rough_uq.study.pipeline import Study, run_estimation, run_screening
 from rough_uq.study.progress import Progress
 from rough_uq.study.store import MemoryStore
@@ -119,6 +119,25 @@ def test_unreachable_scheduler_is_a_clear_error(tmp_path, monkeypatch):
     result = CliRunner().invoke(main, ["screen", str(config), "--executor", "dask", "--scheduler",
                                        "tcp://127.0.0.1:1", "-q"])
     assert result.exit_code == 2 and "dask scheduler" in result.stderr
+
+
+def test_an_address_that_listens_but_is_no_scheduler_is_refused_not_waited_on(tmp_path, monkeypatch):
+    # Something else listening there (an HTTP server, a frozen scheduler): distributed's Client waited without
+    # end, and after a Ctrl-C its finaliser another 20 s, printing its traceback.
+    import socket
+
+    pytest.importorskip("distributed")
+    monkeypatch.setattr(executors, "HANDSHAKE_SECONDS", 0.5)
+    with socket.create_server(("127.0.0.1", 0)) as silent:
+        port = silent.getsockname()[1]
+        with pytest.raises(ExecutorError, match=f"^'tcp://127.0.0.1:{port}' accepts connections but is no dask "
+                                                r"scheduler \(no handshake within 0.5 s;"):
+            executors.DaskExecutor(f"tcp://127.0.0.1:{port}")
+        monkeypatch.chdir(tmp_path)
+        config = write_config(tmp_path / "tiny.yaml", tiny_config())
+        result = CliRunner().invoke(main, ["screen", str(config), "--executor", "dask", "--scheduler",
+                                           f"tcp://127.0.0.1:{port}", "-q"])
+        assert result.exit_code == 2 and "is no dask scheduler" in result.stderr
 
 
 @pytest.mark.parametrize("address", ["notaurl", "localhost:abc", "tcp://", "foo://bar:1", "tcp://host:0", "h:99999",

@@ -503,6 +503,7 @@ class DaskExecutor(Executor):
             self._owns_client = False
         else:
             scheduler = check_scheduler_address(scheduler)
+            _check_handshake(scheduler)
             try:
                 self._client = Client(scheduler, timeout="10s", set_as_default=False)
             except (OSError, TypeError, ValueError) as exc:  # a TLS address without certificates was a TypeError
@@ -610,6 +611,44 @@ _HOST_PORT_SCHEMES = ("tcp", "tls", "ws", "wss")
 #: Schemes roughuq's client connects by: tls and wss need certificates it has no option for (a TypeError after
 #: 20 s), ucx a UCX build, inproc a scheduler in this process (tracebacks, status 1).
 _CONNECTABLE_SCHEMES = ("tcp", "ws")
+
+
+#: Seconds a tcp address has to send the first bytes of a dask handshake (:func:`_check_handshake`).
+HANDSHAKE_SECONDS = 10.0
+
+
+def _check_handshake(scheduler: str) -> None:
+    """Refuse (:class:`ExecutorError`) a tcp address that accepts a connection but sends no handshake.
+
+    A dask scheduler (its listener) sends its handshake as soon as a connection opens. distributed's
+    ``Client`` waits for it without end: an address where something else listens (an HTTP server) or a frozen
+    scheduler held a command silently until Ctrl-C, whose exit then waited 20 s more and printed the client's
+    traceback. A refused connection is left to the Client, which says so. ws addresses speak HTTP first and
+    are not probed.
+    """
+    import socket
+
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    scheme, location = parse_address(scheduler)
+    if scheme != "tcp":
+        return
+    host, port = parse_host_port(location)
+    try:
+        connection = socket.create_connection((host, int(port)), timeout=HANDSHAKE_SECONDS)
+    except OSError:
+        return  # refused or unreachable: the Client's own message names it
+    with connection:
+        try:
+            is_answered = bool(connection.recv(1))
+        except OSError:  # timed out, reset
+            is_answered = False
+    if not is_answered:
+        raise ExecutorError(
+            f"{scheduler!r} accepts connections but is no dask scheduler (no handshake within "
+            f"{HANDSHAKE_SECONDS:g} s; a scheduler stopped or frozen does the same): give the address that "
+            "`dask scheduler` prints"
+        )
 
 
 def check_scheduler_address(scheduler: object, name: str = "scheduler") -> str:
