@@ -241,14 +241,24 @@ def test_a_ctrl_c_while_workers_are_spawned_comes_after_the_spawning_once():
     def handler(signum: int, frame: object) -> None:
         calls.append("handler")
 
+    # Thread-directed signals: a process-directed one (os.kill) went to whichever thread of the test process did
+    # not block it (an OpenMP thread of an earlier test), whose handler could run after this test under load; the
+    # suite then stopped with KeyboardInterrupt (2026-11-29).
+    def held_back_here() -> None:
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
     def taken_by_another_thread() -> None:
-        thread = threading.Thread(target=os.kill, args=(os.getpid(), signal.SIGINT))
+        def take() -> None:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # it inherited the block
+            signal.pthread_kill(threading.get_ident(), signal.SIGINT)  # handled (flagged) before this returns
+
+        thread = threading.Thread(target=take)
         thread.start()
         thread.join()
 
     previous = signal.signal(signal.SIGINT, handler)
     try:
-        for ctrl_c in (lambda: os.kill(os.getpid(), signal.SIGINT), taken_by_another_thread):
+        for ctrl_c in (held_back_here, taken_by_another_thread):
             calls.clear()
             with executors._sigint_held_back():
                 ctrl_c()
