@@ -246,8 +246,10 @@ def test_loading_the_ffts_lets_idle_openmp_threads_sleep_unless_the_environment_
     env = {key: value for key, value in os.environ.items() if key != "OMP_WAIT_POLICY"}
     if preset is not None:
         env["OMP_WAIT_POLICY"] = preset
-    code = ("import os, rough_uq; before = os.environ.get('OMP_WAIT_POLICY'); import rough_uq.physics.fft; "
-            "print(before, os.environ['OMP_WAIT_POLICY'])")
+    # Nothing at import (STYLE); set when pyFFTW is first used, before its OpenMP runtime loads.
+    code = ("import os, sys, rough_uq.physics.fft as fft; before = os.environ.get('OMP_WAIT_POLICY'); "
+            "loaded = 'pyfftw' in sys.modules; fft.get_fft((8, 8)); "
+            "print(before, loaded, 'pyfftw' in sys.modules, os.environ['OMP_WAIT_POLICY'])")
     result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.split() == [str(preset), preset or "PASSIVE"]
+    assert result.stdout.split() == [str(preset), "False", "True", preset or "PASSIVE"]

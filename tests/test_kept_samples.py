@@ -239,8 +239,8 @@ def test_a_progress_interrupted_while_it_starts_is_stopped():
 def test_a_ctrl_c_while_the_kernels_warm_up_takes_effect_once_they_are_loaded(monkeypatch):
     # A Ctrl-C while numba registered its implementations (a process's first solve) broke every later solve of
     # the process (RuntimeError: generator raised StopIteration): the warm-up now defers it.
-    import os
     import signal
+    import threading
 
     import rough_uq.problem.sampler as sampler_module
 
@@ -248,7 +248,7 @@ def test_a_ctrl_c_while_the_kernels_warm_up_takes_effect_once_they_are_loaded(mo
     compute = sampler_module.compute_batch
 
     def interrupted(model, **item):
-        os.kill(os.getpid(), signal.SIGINT)  # delivered while the warm-up solves
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)  # delivered while the warm-up solves
         batch = compute(model, **item)
         done.append(batch.n_samples)
         return batch

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import threading
 import time
@@ -24,7 +23,9 @@ def recorded():
 
 
 def _send(signum: int) -> None:
-    os.kill(os.getpid(), signum)
+    # To the main thread: a process-directed signal (os.kill) may reach another thread of the test process, whose
+    # C handler can run later under load.
+    signal.pthread_kill(threading.main_thread().ident, signum)
     time.sleep(0.02)  # the handler runs at the next instruction of the main thread
 
 

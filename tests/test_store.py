@@ -10,6 +10,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -661,7 +662,7 @@ def _ctrl_c_once(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     def interrupted_fsync(*args, **kwargs):
         if not sent:
             sent.append(signal.SIGINT)
-            os.kill(os.getpid(), signal.SIGINT)
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)  # this thread's, not another's
             time.sleep(0.05)  # Python runs the handler at the next instruction: it would land here
         return fsync(*args, **kwargs)
 
@@ -992,7 +993,6 @@ def test_a_writer_is_not_refused_for_a_reader_probing_the_lock(tmp_path, monkeyp
     # is_lock_held (report's "running") takes a shared lock for an instant: a writer starting then was refused,
     # "locked by a running process (pid unknown)", in 2-3 of 25 reruns beside a loop of probes.
     import fcntl
-    import threading
 
     path = tmp_path / "s.h5"
     store_module._release_lock(path, store_module._acquire_lock(path))

@@ -71,16 +71,9 @@ def _import_pyfftw():
     imported are marked absent while pyFFTW imports (its ``interfaces`` then
     skip them, as when they are not installed) and unmarked at once, so that
     the caller can import them later as usual. A process that imported them
-    before gets pyFFTW's full interfaces.
-
-    First the OpenMP threads are told to sleep when idle (``OMP_WAIT_POLICY=PASSIVE``, unless the
-    environment sets a policy): pyFFTW's threaded transforms (the OpenMP runtime its wheels bundle reads
-    the setting when it is loaded, with pyFFTW) and numba's parallel passes (another runtime, loaded at the
-    first parallel kernel) otherwise busy-wait against each other. A 512^2 solve with ``threads=2`` took
-    4.1 s instead of 0.17 s from Python on two cores (2026-11-29); the CLI and the pool's workers set it
-    before, the Python API did not.
+    before gets pyFFTW's full interfaces. First :func:`prefer_sleeping_threads`.
     """
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    prefer_sleeping_threads()
     hidden = [name for name in ("dask", "scipy.fftpack") if name not in sys.modules]
     for name in hidden:
         sys.modules[name] = None  # ``import name`` raises ImportError
@@ -93,7 +86,30 @@ def _import_pyfftw():
     return pyfftw
 
 
-pyfftw = _import_pyfftw()
+def prefer_sleeping_threads() -> None:
+    """Let idle OpenMP threads sleep (``OMP_WAIT_POLICY=PASSIVE``) unless the environment sets a policy.
+
+    pyFFTW's threaded transforms (the OpenMP runtime its wheels bundle reads the setting when it is loaded,
+    with pyFFTW) and numba's parallel passes (another runtime, loaded at the first parallel kernel) otherwise
+    busy-wait against each other: a 512^2 solve with ``threads=2`` took 4.1 s instead of 0.17 s from Python on
+    two cores (2026-11-29); the CLI and the pool's workers set it before, the Python API did not. Called when
+    pyFFTW is first used and by every solve, never at import.
+    """
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+class _LazyPyFFTW:
+    """pyFFTW, imported (:func:`_import_pyfftw`) at the first use of one of its names, not with this module."""
+
+    _module = None
+
+    def __getattr__(self, name: str):
+        if _LazyPyFFTW._module is None:
+            _LazyPyFFTW._module = _import_pyfftw()
+        return getattr(_LazyPyFFTW._module, name)
+
+
+pyfftw = _LazyPyFFTW()
 
 __all__ = [
     "RealFFT",
