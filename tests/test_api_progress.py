@@ -171,8 +171,19 @@ def test_a_progress_whose_stop_takes_no_is_complete_is_refused_before_the_run():
     progress = _StopWithoutKeyword()
     with pytest.raises(InvalidParameterError, match="^progress: ") as caught:
         rough_uq.mlmc(_problem(), tol=2.0, progress=progress)
-    assert str(caught.value).endswith("its stop must take the keyword is_complete: stop(self, *, is_complete=True)")
+    assert str(caught.value).endswith("its stop must take the keyword is_complete, with a default: "
+                                      "stop(self, *, is_complete=True)")
     assert progress.calls == []
+
+
+class _StopWithoutDefault(_Recorded):
+    def stop(self, is_complete):  # a finished run calls stop(): it failed with TypeError after every sample
+        self.calls.append(("stop", is_complete))
+
+
+def test_a_progress_whose_stop_has_no_default_is_refused_before_the_run():
+    with pytest.raises(InvalidParameterError, match="its stop must take the keyword is_complete, with a default"):
+        rough_uq.mlmc(_problem(), tol=2.0, progress=_StopWithoutDefault())
 
 
 class _FailingStop(_Recorded):

@@ -105,20 +105,23 @@ def _checked_progress(progress: object) -> ProgressReporter | None:
     if progress is None or (is_reporter and _takes_is_complete(progress.stop)):  # type: ignore[union-attr]
         return progress  # type: ignore[return-value]
     if is_reporter:  # a stop() without it turned a Ctrl-C into a TypeError from the run's clean-up
-        allowed += "; its stop must take the keyword is_complete: stop(self, *, is_complete=True)"
+        allowed += "; its stop must take the keyword is_complete, with a default: stop(self, *, is_complete=True)"
     if isinstance(progress, type):
         allowed += f" (an instance: {progress.__name__}(), not the class)"
     raise InvalidParameterError("progress", progress, allowed)
 
 
 def _takes_is_complete(stop: Callable[..., object]) -> bool:
-    """Whether ``stop(is_complete=False)`` binds (True where the signature cannot be read, e.g. a builtin)."""
+    """Whether ``stop(is_complete=False)`` and ``stop()`` both bind, as the runs call it (True where the signature
+    cannot be read, e.g. a builtin): ``stop(self, is_complete)`` without its default failed at the end of every
+    run that finished."""
     try:
         signature = inspect.signature(stop)
     except (TypeError, ValueError):  # no signature to read
         return True
     try:
         signature.bind(is_complete=False)
+        signature.bind()
     except TypeError:
         return False
     return True
