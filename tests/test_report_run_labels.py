@@ -228,6 +228,7 @@ def test_an_error_beside_its_tolerance_never_reads_as_equal_to_it():
     assert _error_text(estimated, 0.0999, 0.1) == "RMSE 0.0999 <= tol 0.1"
     assert _error_text(estimated, 0.39, 0.5) == "RMSE 0.39 <= tol 0.5"  # two digits where they tell apart
     assert _error_text(estimated, 0.1, 0.1) == "RMSE 0.1 <= tol 0.1"
+    assert _error_text(estimated, 0.1234, 0.123) == "RMSE 0.1234 > tol 0.123"  # it read "RMSE 0.12 > tol 0.123"
     # The share of an mc --level run: the bound printed as finely as the error.
     assert _error_text(SimpleNamespace(is_bias_estimated=False), 0.1801, 0.18 / 0.9, share=0.9) == (
         "stat. error 0.1801 > 0.18, its share of tol 0.2")
@@ -238,5 +239,7 @@ def test_a_tiny_value_is_printed_to_its_errors_second_digit_too():
     from rough_uq.report.summary import value_error_text
 
     assert value_error_text(2.13623e-07, 3.8e-08) == "2.14e-07 ± 3.8e-08"
+    assert value_error_text(9.96e-08, 3.8e-08) == "1.0e-07 ± 3.8e-08"  # its zeros kept (it read 1e-07)
+    assert value_error_text(2e-07, 9.96e-09) == "2.000e-07 ± 1.0e-08"
     assert value_error_text(20.148, 0.30) == "20.15 ± 0.30"  # fixed decimals, as before
-    assert value_error_text(0.0, 3e-10) == "0 ± 3e-10"
+    assert value_error_text(0.0, 3e-10) == "0 ± 3.0e-10"

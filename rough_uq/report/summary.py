@@ -394,7 +394,9 @@ def _beside(value: float, bound: float, digits: int = 2, bound_digits: int = 3) 
     "RMSE 0.1 > tol 0.1"."""
     while True:
         text, bound_text = _g(value, digits), _g(bound, bound_digits)
-        if value == bound or text != bound_text or max(digits, bound_digits) >= 6:
+        # Read as the numbers compare: not alike where they differ, nor the other way round ("0.12 > 0.123").
+        is_read_right = (float(text) > float(bound_text)) == (value > bound) and (text != bound_text) == (value != bound)
+        if is_read_right or max(digits, bound_digits) >= 6:
             return text, bound_text
         digits, bound_digits = digits + 1, max(bound_digits, digits + 1)
 
@@ -434,8 +436,10 @@ def value_error_text(value: float, error: float) -> str:
         return f"{_g(value, 5)} ± {_g(error, 2)}"
     decimals = max(0, 1 - math.floor(math.log10(error)))
     if decimals > 8:  # in exponent form, the value to the error's second digit too (it printed 2.13623e-07 ± 3.8e-08)
-        digits = max(1, math.floor(math.log10(abs(value))) - math.floor(math.log10(error)) + 2) if value else 1
-        return f"{value:.{min(digits, 6)}g} ± {error:.2g}"
+        if value == 0:
+            return f"0 ± {error:.1e}"
+        digits = max(1, math.floor(math.log10(abs(value))) - math.floor(math.log10(error)) + 2)
+        return f"{value:.{min(digits, 6) - 1}e} ± {error:.1e}"  # e, not g: the zeros kept (9.96e-08 read 1e-07)
     return f"{value:.{decimals}f} ± {error:.{decimals}f}"
 
 
