@@ -395,7 +395,8 @@ def _beside(value: float, bound: float, digits: int = 2, bound_digits: int = 3) 
     while True:
         text, bound_text = _g(value, digits), _g(bound, bound_digits)
         # Read as the numbers compare: not alike where they differ, nor the other way round ("0.12 > 0.123").
-        is_read_right = (float(text) > float(bound_text)) == (value > bound) and (text != bound_text) == (value != bound)
+        is_ordered = (float(text) > float(bound_text)) == (value > bound)
+        is_read_right = is_ordered and (text != bound_text) == (value != bound)
         if is_read_right or max(digits, bound_digits) >= 6:
             return text, bound_text
         digits, bound_digits = digits + 1, max(bound_digits, digits + 1)
