@@ -382,8 +382,10 @@ def warn_at_caller(message: str | Warning, category: type[Warning] = UserWarning
 
 
 def _is_package_frame(frame: FrameType) -> bool:
-    """A frame of roughuq's files, or of code generated for one of its modules (no file: ``<string>``)."""
+    """A frame of roughuq's files, of code generated for one of its modules (no file: ``<string>``), or of
+    :mod:`dataclasses` on the way out of them (``dataclasses.replace(problem, ...)`` pointed at dataclasses.py)."""
     filename = frame.f_code.co_filename
     if filename.startswith(_PACKAGE_DIR):
         return True
-    return filename.startswith("<") and str(frame.f_globals.get("__name__", "")).startswith(f"{__package__}.")
+    module = str(frame.f_globals.get("__name__", ""))
+    return module == "dataclasses" or (filename.startswith("<") and module.startswith(f"{__package__}."))

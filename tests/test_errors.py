@@ -114,3 +114,12 @@ def test_a_warning_of_a_dataclass_post_init_points_at_the_users_line():
                                 solver_tol=0.05)
     (warning,) = [w for w in caught if "MAX_SOLVER_TOL" in str(w.message)]
     assert warning.filename == __file__
+    # Through dataclasses.replace (which the README suggests for a deeper max_level) it pointed at dataclasses.py.
+    import dataclasses
+
+    problem = rough_uq.ContactProblem(spectrum, load=rough_uq.RelativeLoad(0.1), qoi=["contact_area"], coarsest=32)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        dataclasses.replace(problem, solver_tol=0.05)
+    (warning,) = [w for w in caught if "MAX_SOLVER_TOL" in str(w.message)]
+    assert warning.filename == __file__
