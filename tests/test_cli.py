@@ -664,6 +664,18 @@ def test_mc_on_a_given_level_forecasts_the_initial_samples_it_draws(tmp_path, mo
     assert record["forecast"]["n_samples"] == [10]
 
 
+def test_the_two_forecasts_of_one_mc_run_price_its_samples_alike(screened):
+    # mc --tol priced a sample at the fine solve's share of the coupled cost, mc --level at the whole coupled cost:
+    # the same run (level, N) was forecast at 7.2 and 9.68 ref-s on the quickstart.
+    from rough_uq.study.pipeline import forecast_run, open_existing_study
+
+    with open_existing_study("results.h5", writable=False) as study:
+        planned = forecast_run(study, method="mc", tol=np.array([5.0]))
+        given = forecast_run(study, method="mc", tol=np.array([5.0]), level=planned.finest_level)
+    per_sample = [f.modelled_cost / f.n_samples[0] for f in (planned, given)]
+    assert per_sample[0] == pytest.approx(per_sample[1], rel=1e-12)
+
+
 def test_mc_refuses_a_level_beyond_the_grids_before_forecasting_or_planning(screened):
     for extra in ([], ["--plan"]):
         result = run("mc", "--tol", "5", "--level", "99", *extra, expect=2)

@@ -132,3 +132,24 @@ def test_a_run_plans_the_level_it_adds_beyond_its_samples_at_the_rate_beyond():
     assert added[None].levels.tolist() == added[4.0].levels.tolist() == [0, 1, 2, 3, 4]
     assert added[4.0].n_planned[4] < added[None].n_planned[4]
     assert np.all(added[4.0].n_planned[1:4] >= added[None].n_planned[1:4])
+
+
+def test_plain_mc_beyond_the_screening_is_priced_at_the_rate_there():
+    # mc --tol priced its fine solves at the share 1 / (1 + 2^-gamma) of the screening's gamma (1.54: 0.74) where
+    # the cost model beyond runs at gamma_beyond; mc --level took the whole coupled sample. The same MC run was
+    # forecast at 7.2 and 9.68 ref-s.
+    from rough_uq.multilevel.allocation import fine_cost_share, plan
+
+    rates = _rates(gamma_beyond=2.5)
+    assert rates.cost_rate_at(2) == 1.5 and rates.cost_rate_at(3) == 2.5 and _rates().cost_rate_at(3) == 1.5
+    rng = np.random.default_rng(5)
+    fine = [rng.normal(1.0, 1.0, size=(20, 1))] + [rng.normal(0.0, 1.0, size=(20, 1)) for _ in range(2)]
+    coarse = [np.zeros((20, 1))] + [f - rng.normal(0.3 * 4.0**-lv, 0.05, size=(20, 1)) for lv, f in
+                                    zip((1, 2), fine[1:])]
+    statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, 2.0 ** (1.5 * lv)) for lv in range(3)])
+    planned = planning_rates(statistics, gamma_beyond=2.5)
+    prediction = plan(tol=np.array([0.01]), rates=planned, statistics=statistics, max_level=6, coarsest_level=None)
+    level = prediction.finest_level
+    assert level > 2
+    share = fine_cost_share(2.5, level)
+    assert prediction.mc_cost == pytest.approx(prediction.mc_n_samples * planned.cost_model(level) * share)

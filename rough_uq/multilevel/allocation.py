@@ -616,7 +616,7 @@ def _allocated_plan(
         weighted[-1] *= richardson_weight(rates.alpha) ** 2
     n_samples, stat_variance = _allocate(weighted, inputs.costs, budget, base)
     mc_n = _mc_samples(statistics, inputs.variances, level, budget)
-    mc_cost = mc_n * inputs.costs[level] * fine_cost_share(rates.gamma, level)
+    mc_cost = mc_n * inputs.costs[level] * fine_cost_share(rates.cost_rate_at(level), level)
     return Plan(
         tol=readonly_array(tol),
         theta=theta,

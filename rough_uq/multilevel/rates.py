@@ -241,6 +241,12 @@ class Rates:
         ``gamma_beyond`` (``gamma`` without the latter)."""
         return self.gamma if self.gamma_beyond is None else max(self.gamma, self.gamma_beyond)
 
+    def cost_rate_at(self, level: int) -> float:
+        """The cost rate of the model at ``level``: ``gamma`` up to the finest level of the fit, beyond it
+        :attr:`gamma_extrapolated` (:meth:`cost_model`; e.g. the share of a sample's cost its fine solve takes,
+        :func:`~rough_uq.multilevel.allocation.fine_cost_share`)."""
+        return self.gamma_extrapolated if _level(level) > max(self.levels_gamma, default=level) else self.gamma
+
     def bias_model(self, level: int) -> np.ndarray:
         """Model ``|E[Y_l]|``, shape (n_qoi,), at level ``level`` (an integer >= 0).
 

@@ -24,7 +24,7 @@ from rough_uq.study.records import Forecast, ScreeningRecord, read_screening_rec
 from rough_uq.problem.columns import column_of_load, tol_text
 from rough_uq.problem.runs import run_id, unreachable_text
 from rough_uq.problem.sampler import ContactModel, modelled_cost, run_stage
-from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL, TOL_RANGE_TEXT, Plan, plan
+from rough_uq.multilevel.allocation import MAX_TOL, MIN_TOL, TOL_RANGE_TEXT, Plan, fine_cost_share, plan
 from rough_uq.multilevel.rates import Rates, fit_rates, stalled_bias, stalled_text
 from rough_uq.multilevel.statistics import EstimationWarning, LevelStatistics
 from rough_uq.study.pipeline.screening import screening_statistics, study_planning_rates
@@ -292,8 +292,9 @@ def _planned_samples(
         least = 2 if level is None else max(n_initial, 2)
         counts = (max(int(prediction.mc_n_samples), least),)
         fine_cost = prediction.mc_cost / max(prediction.mc_n_samples, 1)
-        if level is not None:
-            fine_cost = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
+        if level is not None:  # the fine solve's share of a coupled sample, as for the level MC plans (allocation)
+            coupled = rates.cost_model(finest) if finest > prediction.finest_level else prediction.costs[finest]
+            fine_cost = coupled * fine_cost_share(rates.cost_rate_at(finest), finest)
         return finest, counts, (float(fine_cost),)
     # What the run asks for first: nothing below the plan's coarsest level, two levels above it at least.
     counts, costs = starting_forecast(prediction, rates)
