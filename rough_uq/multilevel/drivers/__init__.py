@@ -121,7 +121,9 @@ Giles (2015), algorithm 1, with the refinements of his ``mlmc`` code:
    the screened levels at the rate of the finest screened pair, so a run and
    the screening's prediction agree). If it exceeds ``sqrt(theta) eps`` for
    some QoI, add level ``L+1`` with ``V_{L+1} = V_L 2^-beta``, ``C_{L+1} =
-   C_L 2^gamma`` and go to 2. Each time the plan changes, a run whose bias so
+   C_L 2^gamma`` (``gamma`` the larger of the fitted one and the problem's
+   ``gamma_beyond``: :attr:`~rough_uq.multilevel.rates.Rates.gamma_extrapolated`)
+   and go to 2. Each time the plan changes, a run whose bias so
    far, carried to ``max_level`` at that rate, is above twice its share warns
    before drawing the plan's samples (:meth:`~rough_uq.multilevel.drivers.adaptive._MlmcRun.check_reach`).
 4. Stop when all planned samples are drawn and the bias test passes

@@ -116,7 +116,8 @@ def iter_mlmc(
         shortened) only if its predicted cost fits in what is left, otherwise
         the run stops with ``stop_reason = "max_cost"``. The prediction is the
         level's mean cost so far, or the nearest sampled level's scaled by
-        ``2^gamma`` per level; before any cost is known the run draws two
+        ``2^gamma`` per level (the rates' ``gamma_extrapolated``: with
+        ``gamma_beyond``, the larger of both); before any cost is known the run draws two
         samples first (:data:`~rough_uq.multilevel.drivers.loop._PROBE`) and then what the rest of the budget
         pays, stopping if that is not the whole first batch. The total can
         exceed ``max_cost`` only by those two samples or a misprediction of a
