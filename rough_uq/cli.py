@@ -1166,14 +1166,23 @@ def _show_missing(study: Any, method: str, tolerances: Any, cap: float | None, l
     forecast_run(study, method=method, tol=tolerances, max_cost=cap, level=level)
     work = missing_samples(study, method=method, tol=tolerances, max_cost=cap, level=level)
     if work.missing:  # as the run warns before its first sample there; for one solve (`sample` counts its workers)
-        _warn_memory(study.config, max(work.missing), None,
-                     lower_with="a smaller --level" if level is not None else "a looser --tol")
+        watch = _run_watch(study.config, None, "local", method, level)
+        _warn_memory(study.config, max(work.missing), None, lower_with=watch.lower_with,
+                     least_level=watch.least_level)
     resources = None
     if with_resources:
         from rough_uq.study.resources import shard_resources
 
         resources = shard_resources(study, stage=work.stage, levels=list(work.missing))
     _print_plan(work, as_json, shard_size, resources)
+
+
+def _run_watch(config: Any, pool: Any, executor: str, method: str, level: int | None) -> _MemoryWatch:
+    """The memory warnings of a run: a lower level by its option; an mlmc run samples levels 0..2 at least, so
+    below level 2 only a smaller grid.coarsest helps."""
+    if level is not None:
+        return _MemoryWatch(config, pool, executor, "a smaller --level")
+    return _MemoryWatch(config, pool, executor, "a looser --tol", least_level=2 if method == "mlmc" else 0)
 
 
 def _estimate(study: Any, method: str, tolerances: Any, cap: float | None, level: int | None,
@@ -1186,8 +1195,7 @@ def _estimate(study: Any, method: str, tolerances: Any, cap: float | None, level
                                 n_workers=getattr(pool, "n_workers", 1))
         if not (opts.as_json or opts.quiet):
             _print_forecast(forecast, method)
-        watch = _MemoryWatch(study.config, pool, opts.executor,
-                             "a smaller --level" if level is not None else "a looser --tol")
+        watch = _run_watch(study.config, pool, opts.executor, method, level)
         # The option itself (None: the config's estimation.max_cost, which the run then names so).
         return run_estimation(study, method=method, tol=tolerances, executor=pool,
                               progress=_progress(opts.quiet or opts.as_json, watch), max_cost=opts.max_cost,
