@@ -405,5 +405,7 @@ def test_the_cost_legend_counts_the_exponents_of_many_columns():
     assert plots._exponent_note(drawn, many, is_mc=True) == (
         "\neps^-3.00 (3 columns), eps^-3.50 (2 columns); per\ncolumn in the report")
     assert plots._exponent_note(drawn, many, is_mc=False) == "\neps^-2 (5 columns); per column in the report"
+    assert " ".join(plots._exponent_note(drawn, many[:4] + [complexity(4.0)], is_mc=True).split()).startswith(
+        "eps^-3.00 (3 columns), eps^-3.50 (1 column), eps^-4.00 (1 column);")
     few = plots._exponent_note(plots._Drawn(None, (), columns[:2], {}, ()), many[3:], is_mc=True)
     assert few == "\ncontact_area@0.01 eps^-3.50;\ncontact_area@0.02 eps^-3.50"  # named, as before

@@ -57,7 +57,8 @@ from rough_uq.problem.sampler import (
 )
 
 __all__ = [
-    "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "exact_column_caveats", "mc", "mlmc", "run_id", "screen",
+    "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "contact_planning_rates", "exact_column_caveats", "mc",
+    "mlmc", "run_id", "screen",
     "screening_of_batches", "unreachable_text",
 ]
 # Also imported by rough_uq.problem.distribution (variance and distribution runs), not part of the API:

@@ -278,7 +278,8 @@ def _exponent_note(drawn: _Drawn, complexities: Sequence[Any], *, is_mc: bool) -
     if len(notes) > _NAMED_EXPONENTS:
         # Each column named, ten columns of a load curve took more lines than the axes (an audit's figure).
         counts = Counter(notes)
-        text = ", ".join(f"{note} ({counts[note]} columns)" for note in dict.fromkeys(notes))
+        text = ", ".join(f"{note} ({counts[note]} column{'s' if counts[note] > 1 else ''})"
+                         for note in dict.fromkeys(notes))
         return "\n" + _fill(f"{text}; per column in the report", 50)
     named = [f"{name} {note}" for name, note in zip(drawn.qoi_names, notes)]
     return "\n" + _fill("; ".join(map(_no_break, named)), 50)
