@@ -523,3 +523,15 @@ def test_a_value_within_rounding_of_a_threshold_counts_as_on_it():
     term = cdf_level_term(density, None, 0, thresholds=np.array([300.0, 400.0]), bandwidth=50.0)
     assert term.mean.tolist() == [1.0, 1.0]
     assert cdf_level_term(density + 1e-6, None, 0, thresholds=np.array([300.0, 400.0]), bandwidth=50.0).mean[0] < 1
+
+
+def test_a_value_on_a_threshold_to_rounding_counts_whole_whatever_the_bandwidth_and_the_span():
+    # 3 clusters in a box of 0.1: 3 / 0.1**2 = 299.99999999999994 on the threshold 300. The tie width was
+    # TIE_TOLERANCE bandwidths (bandwidth 1e12: every value on every threshold), then of the thresholds' span
+    # (1e-5 here: below the rounding of 300, the atom halved again).
+    from rough_uq.multilevel.distribution import _indicator
+
+    value = np.array([[3 / 0.1**2]])
+    for thresholds, bandwidth in (([300.0, 300.00001], 1.0), ([300.0, 1000.0], 1e12), ([300.0, 400.0], 0.5)):
+        assert _indicator(np.array(thresholds), value, bandwidth)[0, 0] == 1.0
+    assert _indicator(np.array([10.0, 40.0]), np.array([[20.0]]), 1e12)[0, 0] == pytest.approx(0.5, abs=1e-9)

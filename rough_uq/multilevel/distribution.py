@@ -17,7 +17,7 @@ O(delta^4)`` (``1/7`` the second moment of ``K``, ``f`` the density of
 ``Q``).
 
 A value equal to a threshold (within :data:`TIE_TOLERANCE` bandwidths, or
-of the thresholds' span where that is narrower, which absorbs the rounding of
+of the thresholds' scale where that is smaller, which absorbs the rounding of
 thresholds typed in decimal) counts whole,
 ``1`` instead of ``g(0) = 1/2``:
 for a ``Q`` with atoms (a count of clusters, a rounded value) the smoothed
@@ -210,8 +210,8 @@ UNSEEN_CHANGE = 3.0
 
 #: A value within this many bandwidths of a threshold is on it (module docstring): the rounding of a threshold
 #: typed in decimal (300 against 3 clusters in a box of 0.1, 3 / 0.1**2 = 299.99999999999994) must not halve an atom.
-#: Of the thresholds' span where the bandwidth is wider: with ``bandwidth=1e12`` every value was on every threshold
-#: (F = 1 at all of them, values of 17-22 at 10 too).
+#: Of the thresholds' scale (their span or size, the larger) where the bandwidth is wider: with ``bandwidth=1e12``
+#: every value was on every threshold (F = 1 at all of them, values of 17-22 at 10 too).
 TIE_TOLERANCE = 1e-9
 
 #: Largest finest bandwidth, in standard deviations of the values, whose smoothing bias the decay of the level
@@ -277,7 +277,9 @@ def _indicator(s: np.ndarray, values: np.ndarray, delta: float) -> np.ndarray:
     """The smoothed indicators ``g((s - Q) / delta)``, 1 where ``Q`` equals ``s`` to :data:`TIE_TOLERANCE` (module
     docstring), shape ``(n_values, n_thresholds)`` for ``values`` of shape ``(n_values, 1)`` and all the
     thresholds ``s`` (increasing)."""
-    tie = TIE_TOLERANCE * min(delta, float(s[-1] - s[0]))
+    # The thresholds' scale caps the bandwidth's: their span, or their size where that is larger (two thresholds
+    # 1e-5 apart near 300 would otherwise make the width less than the rounding of 300).
+    tie = TIE_TOLERANCE * min(delta, max(float(s[-1] - s[0]), float(np.max(np.abs(s)))))
     return np.where(np.abs(s - values) <= tie, 1.0, smoothed_step((s - values) / delta))
 
 
