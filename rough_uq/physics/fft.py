@@ -93,7 +93,7 @@ def prefer_sleeping_threads() -> None:
     with pyFFTW) and numba's parallel passes (another runtime, loaded at the first parallel kernel) otherwise
     busy-wait against each other: a 512^2 solve with ``threads=2`` took 4.1 s instead of 0.17 s from Python on
     two cores (2026-11-29); the CLI and the pool's workers set it before, the Python API did not. Called when
-    pyFFTW is first used and by every solve, never at import.
+    pyFFTW is first used (a solve makes its transforms before its first parallel pass), never at import.
     """
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
