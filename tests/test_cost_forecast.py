@@ -153,3 +153,15 @@ def test_plain_mc_beyond_the_screening_is_priced_at_the_rate_there():
     assert level > 2
     share = fine_cost_share(2.5, level)
     assert prediction.mc_cost == pytest.approx(prediction.mc_n_samples * planned.cost_model(level) * share)
+
+
+def test_a_floored_cost_rate_goes_on_from_the_fit_at_its_finest_level():
+    # Costs that fall with the level (0.01, 0.005, 0.002): gamma is floored at 0.5, but its constant was the
+    # fitted line's, which priced level 3 at 59 times level 2's measured cost.
+    rng = np.random.default_rng(2)
+    fine = [rng.normal(1.0, 1.0, size=(20, 1)) for _ in range(3)]
+    coarse = [np.zeros((20, 1))] + [f - rng.normal(0.1, 0.05, size=(20, 1)) for f in fine[1:]]
+    statistics = level_statistics(fine=fine, coarse=coarse, cost=[np.full(20, c) for c in (0.01, 0.005, 0.002)])
+    rates = planning_rates(statistics)
+    assert rates.gamma == 0.5 and rates.levels_gamma == (1, 2)
+    assert rates.cost_model(2) == pytest.approx(0.002) and rates.cost_model(3) == pytest.approx(0.002 * 2**0.5)

@@ -109,7 +109,13 @@ def _lenient_gamma(statistics: LevelStatistics, base: Rates, min_level: int, *, 
     """``gamma`` fitted (floored), else the fallback's; ``is_anchored``: put a fallback's ``c_gamma`` on the data."""
     line, _ = gamma_line(statistics, min_level)
     if line is not None:
-        return RateLine(rate=max(line.rate, RATE_FLOOR), constant=line.constant, se=line.se, levels=line.levels)
+        # A floored rate goes through the fit at its finest level, where the models of finer levels start
+        # (Rates.cost_model): with the fit's own constant, costs 0.01, 0.005, 0.002 on levels 0..2 priced level 3
+        # at 59 times level 2.
+        top = max(line.levels)
+        rate = max(line.rate, RATE_FLOOR)
+        return RateLine(rate=rate, constant=line.constant * 2.0 ** ((line.rate - rate) * top), se=line.se,
+                        levels=line.levels)
     c_gamma = base.c_gamma
     known = np.flatnonzero(statistics.mean_cost > 0)
     if is_anchored and known.size:
