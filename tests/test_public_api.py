@@ -1046,6 +1046,11 @@ def test_the_api_warns_before_solves_that_exceed_the_machines_memory(monkeypatch
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         rough_uq.mc(_problem(), tol=2.0, level=0)  # 16^2 fits
+    # A screening samples levels 0..2 whatever: "stay at level <= 0" was advice it could not take.
+    with pytest.warns(rough_uq.EstimationWarning) as caught:
+        rough_uq.screen(_problem(), levels=3, samples=2)
+    texts = [str(w.message) for w in caught if "memory" in str(w.message)]
+    assert texts and all("use a smaller coarsest" in text for text in texts), texts
 
     class TwoWorkers(_Reversed):
         n_workers = 2

@@ -459,7 +459,7 @@ class ContactProblem:
 
     def sampler(
         self, stage: int, *, executor: BatchExecutor | None = None, progress: ProgressReporter | None = None,
-        plans_asked: bool = False,
+        plans_asked: bool = False, least_level: int = 0,
     ) -> ContactSampler:
         """The level sampler (:mod:`rough_uq.multilevel.drivers` contract) of random stage ``stage``.
 
@@ -478,6 +478,10 @@ class ContactProblem:
         plans_asked : bool
             Also report the samples asked for so far as the plan (for runs
             whose estimator announces no plan).
+        least_level : int
+            The finest level the run samples at least (2 for a screening or an
+            MLMC run): below it a memory warning advises a smaller coarsest
+            grid, not a lower level.
 
         Every sample its samplers compute is kept with the problem (:mod:`rough_uq.problem.kept`): asked for
         again, it is given back, not solved again (a run interrupted by Ctrl-C and made again goes on from
@@ -490,7 +494,8 @@ class ContactProblem:
             )
         stage = checked_integer("stage", stage, 0)
         return ContactSampler(self.model, stage=stage, executor=executor, max_level=self.max_level,
-                              progress=_checked_progress(progress), plans_asked=bool(plans_asked), kept=self._kept)
+                              progress=_checked_progress(progress), plans_asked=bool(plans_asked), kept=self._kept,
+                              least_level=least_level)
 
 
 def _checked_level(level: object, max_level: int | None) -> int:
@@ -567,8 +572,10 @@ class ContactSampler:
     def __init__(
         self, model: ContactModel, *, stage: int, executor: BatchExecutor | None = None, max_level: int | None = None,
         progress: ProgressReporter | None = None, plans_asked: bool = False, kept: KeptSamples | None = None,
+        least_level: int = 0,
     ) -> None:
         self.model = model
+        self.least_level = least_level
         self.kept = kept
         self._kept_before = 0 if kept is None else len(kept)
         self.stage = stage
@@ -638,7 +645,8 @@ class ContactSampler:
         n_workers = int(getattr(self.executor, "n_workers", 1)) if self.executor is not None else 1
         text = memory_warning(grids, level, n_workers, physical_memory_bytes(),
                               lower_with="a smaller max_level, or mc's level=",
-                              workers="an executor with n_workers = {}", smaller_coarsest="a smaller coarsest")
+                              workers="an executor with n_workers = {}", smaller_coarsest="a smaller coarsest",
+                              least_level=self.least_level)
         if text:
             warn_at_caller(text, EstimationWarning)
 

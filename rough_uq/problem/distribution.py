@@ -180,7 +180,8 @@ def variance(
     problem = checked_problem(problem)
     tol = checked_tolerances(tol, problem.n_qoi, problem.columns)
     stage = run_stage("mlmc", run_id("variance", problem.columns, tol, theta))
-    sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
+    sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True,
+                              least_level=initial_finest_level(problem.max_level))
     with reporting_progress(sampler, f"variance {tol_text(problem.columns, tol)}"):
         result = estimate_target(
             sampler, target="variance", tol=tol, max_level=problem.max_level, theta=theta, n_initial=n_initial,
@@ -332,7 +333,8 @@ def distribution(
     tol_array = np.array([check_cdf_tol(tol)])
     name = problem.columns[index]
     stage = run_stage("mlmc", run_id("cdf", [name], tol_array, theta))
-    sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True)
+    sampler = problem.sampler(stage, executor=executor, progress=progress, plans_asked=True,
+                              least_level=initial_finest_level(problem.max_level))
     with reporting_progress(sampler, f"cdf {tol_text([name], tol_array)}"):
         estimate = estimate_target(
             sampler, target="cdf", tol=tol_array, max_level=problem.max_level, thresholds=thresholds, qoi=index,

@@ -320,7 +320,7 @@ def screen(
             "samples", samples, f"an integer in 2..{drivers.MAX_PLANNED_SAMPLES // levels} (a screening of {levels} "
             f"levels; at most {drivers.MAX_PLANNED_SAMPLES:,} samples in all, as any run plans)",
         )
-    sampler = problem.sampler(STAGE_SCREENING, executor=executor, progress=progress)
+    sampler = problem.sampler(STAGE_SCREENING, executor=executor, progress=progress, least_level=2)
     indices = np.arange(samples, dtype=np.int64)
     with reporting_progress(sampler, "screening"):
         if sampler.progress is not None:
@@ -704,7 +704,7 @@ def mlmc(
             richardson=richardson, min_finest_level=min_finest_level, qoi_names=problem.columns), statistics,
             method="mlmc")
     stage = run_stage("mlmc", run_id("mlmc", problem.columns, tol, theta, richardson=richardson))
-    sampler = problem.sampler(stage, executor=executor, progress=progress)
+    sampler = problem.sampler(stage, executor=executor, progress=progress, least_level=min_finest_level)
     events = drivers.iter_mlmc(
         sampler,
         tol=tol,
