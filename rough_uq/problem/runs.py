@@ -57,8 +57,8 @@ from rough_uq.problem.sampler import (
 )
 
 __all__ = [
-    "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "contact_planning_rates", "exact_column_caveats", "mc",
-    "mlmc", "run_id", "screen",
+    "MIN_SCREENED_LEVELS", "RunForecast", "ScreeningResult", "contact_gamma_beyond", "contact_planning_rates",
+    "exact_column_caveats", "mc", "mlmc", "run_id", "screen",
     "screening_of_batches", "unreachable_text",
 ]
 # Also imported by rough_uq.problem.distribution (variance and distribution runs), not part of the API:
@@ -720,7 +720,7 @@ def mlmc(
         richardson=richardson,
         coarsest_level=None if statistics is not None else 0,
         qoi_names=problem.columns,
-        gamma_beyond=None if statistics is None else _gamma_beyond(problem.model, statistics, problem.max_level),
+        gamma_beyond=None if statistics is None else contact_gamma_beyond(problem.model, statistics, problem.max_level),
     )
     with reporting_progress(sampler, f"mlmc {tol_text(problem.columns, tol)}"):
         result = _run_to_end(events, max_samples=max_samples, tol=tol,
@@ -790,7 +790,9 @@ def _screened_mc_cost(problem: ContactProblem, screening, statistics: LevelStati
         return None
 
 
-def _gamma_beyond(model: ContactModel, statistics: LevelStatistics, max_level: int) -> float | None:
+def contact_gamma_beyond(model: ContactModel, statistics: LevelStatistics, max_level: int) -> float | None:
+    """The contact problem's cost rate beyond the screened levels of ``statistics``, up to ``max_level``
+    (:func:`~rough_uq.problem.sampler.cost_rate_beyond`; ``iter_mlmc``'s ``gamma_beyond``)."""
     return cost_rate_beyond(model, statistics.levels, statistics.mean_cost, max_level)
 
 
@@ -798,7 +800,7 @@ def contact_planning_rates(model: ContactModel, statistics: LevelStatistics, max
     """The rates a run of a contact problem plans with from a screening: those of
     :func:`~rough_uq.multilevel.drivers.planning.planning_rates` with the problem's cost rate beyond the screened
     levels (:func:`~rough_uq.problem.sampler.cost_rate_beyond`) up to ``max_level``."""
-    return drivers.planning_rates(statistics, gamma_beyond=_gamma_beyond(model, statistics, max_level))
+    return drivers.planning_rates(statistics, gamma_beyond=contact_gamma_beyond(model, statistics, max_level))
 
 
 def _screened_mc_plan(problem: ContactProblem, screening, statistics: LevelStatistics, tol: np.ndarray,

@@ -27,7 +27,7 @@ from rough_uq.study.records import (
     read_screening_record, utc_timestamp,
 )
 from rough_uq.problem.columns import tol_text
-from rough_uq.problem.runs import run_id
+from rough_uq.problem.runs import contact_gamma_beyond, run_id
 from rough_uq.problem.sampler import run_stage
 from rough_uq.multilevel.statistics import EstimationWarning
 from rough_uq.study.pipeline.diagnostics import collecting_diagnostics, unique_diagnostics
@@ -36,7 +36,6 @@ from rough_uq.study.pipeline.planning import (
     _screened_seconds_per_cost,
 )
 from rough_uq.study.pipeline.sampling import StudySampler
-from rough_uq.study.pipeline.screening import study_planning_rates
 from rough_uq.study.pipeline.studies import Study
 
 
@@ -169,7 +168,8 @@ def _screened_events(
     if method == "mlmc":
         events = iter_mlmc(
             sampler, max_level=config.grid.max_level, screening=statistics, richardson=estimation.richardson,
-            coarsest_level=None, gamma_beyond=study_planning_rates(study, statistics).gamma_beyond, **options,
+            coarsest_level=None, **options,
+            gamma_beyond=contact_gamma_beyond(study.model, statistics, config.grid.max_level),
         )
     else:
         context["level"] = int(prediction.finest_level)
