@@ -227,8 +227,7 @@ class Rates:
             object.__setattr__(self, name, value)
         for name in ("gamma", "c_gamma", "gamma_se"):
             object.__setattr__(self, name, float(getattr(self, name)))
-        if self.gamma_beyond is not None:
-            object.__setattr__(self, "gamma_beyond", checked_gamma_beyond("Rates.gamma_beyond", self.gamma_beyond))
+        object.__setattr__(self, "gamma_beyond", checked_gamma_beyond("Rates.gamma_beyond", self.gamma_beyond))
 
     @property
     def n_qoi(self) -> int:
