@@ -88,6 +88,11 @@ def test_a_rerun_of_a_finished_run_ends_its_progress_at_the_plan(tmp_path, monke
     assert last and all(done == planned for done, planned in last.values()), stderr
 
 
+def _python(code: str) -> subprocess.CompletedProcess:
+    """``code`` run by a fresh Python (``-c``), its output captured as text."""
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+
+
 def test_ctrl_c_while_the_command_line_loads_exits_130_without_a_traceback():
     """A Ctrl-C in the first 0.2-0.3 s of ``roughuq`` (click, numpy loading) printed a KeyboardInterrupt traceback
     through the import machinery. The console script's loading is replaced by one that is interrupted."""
@@ -98,7 +103,7 @@ def test_ctrl_c_while_the_command_line_loads_exits_130_without_a_traceback():
                "    time.sleep(5)\n"
                "console._load = interrupted\n"
                "console.run()\n")
-    done = subprocess.run([sys.executable, "-c", loading], capture_output=True, text=True, timeout=60)
+    done = _python(loading)
     assert (done.returncode, done.stderr) == (130, "")
     # CPython loses a SystemExit that a handler raises while it compiles a module's source (no bytecode cache):
     # the command ran on to its end, status 0 (3 of 40 early Ctrl-Cs in an audit). Loading that loses it:
@@ -113,7 +118,7 @@ def test_ctrl_c_while_the_command_line_loads_exits_130_without_a_traceback():
             "    return lambda: print('the command ran')\n"
             "console._load = interrupted\n"
             "console.run()\n")
-    done = subprocess.run([sys.executable, "-c", lost], capture_output=True, text=True, timeout=60)
+    done = _python(lost)
     assert (done.returncode, done.stdout, done.stderr) == (130, "", "")
     # Lost between loading and the command (click parsing the line): the command does not start either.
     late = ("import signal\n"
@@ -123,7 +128,7 @@ def test_ctrl_c_while_the_command_line_loads_exits_130_without_a_traceback():
             "def command():\n"
             "    print('the command ran')\n"
             "cli._user_errors(command)()\n")
-    done = subprocess.run([sys.executable, "-c", late], capture_output=True, text=True, timeout=60)
+    done = _python(late)
     assert (done.returncode, done.stdout, done.stderr) == (130, "", "")
     # A command takes Ctrl-C over from the quiet stop (which stays in place between loading and the command,
     # where click said "Aborted!" and status 1): a clean stop, "interrupted: ...", samples saved.
@@ -134,7 +139,7 @@ def test_ctrl_c_while_the_command_line_loads_exits_130_without_a_traceback():
                "    os.kill(os.getpid(), signal.SIGINT)\n"
                "    time.sleep(5)\n"
                "cli._user_errors(screen)()\n")
-    done = subprocess.run([sys.executable, "-c", command], capture_output=True, text=True, timeout=60)
+    done = _python(command)
     assert done.returncode == 130 and done.stderr.startswith("interrupted: "), done.stderr
     pyproject = (ROOT / "pyproject.toml").read_text()
     assert 'roughuq = "rough_uq.console:run"' in pyproject
